@@ -239,7 +239,7 @@ void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const in
 // blocks so no two threads write the same element.
 template <typename T>
 void reduce_rows(const T* rows, int64_t m, int64_t S, const int32_t* ids, T* out) {
-  at::parallel_for(0, S, 1, [&](int64_t c0, int64_t c1) {
+  at::parallel_for(0, S, m * S < (1 << 16) ? S : 1, [&](int64_t c0, int64_t c1) {
     for (int64_t k = 0; k < m; ++k) {
       const T* r = rows + k * S;
       T* o = out + int64_t(ids[k]) * S;
@@ -265,6 +265,12 @@ Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const
   s.tiles_x = int((a.width + a.tile_size - 1) / a.tile_size);
   s.opt = {T(a.alpha_max), T(a.alpha_threshold), T(a.t_min)};
   return s;
+}
+
+// Tiles per task: small images or few intersections run on one thread, where
+// waking a thread pool would cost more than the work.
+int64_t tile_grain(int64_t tiles, int64_t isects) {
+  return isects < 16384 ? std::max<int64_t>(tiles, 1) : 1;
 }
 
 int64_t num_tiles(const RasterArgs& a) {
@@ -298,7 +304,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
-    at::parallel_for(0, num_tiles(a), 1, [&](int64_t b, int64_t e) {
+    const int64_t tiles = num_tiles(a);
+    at::parallel_for(0, tiles, tile_grain(tiles, i_c.size(0)), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         forward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, out_color.data_ptr<T>(),
                         out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
@@ -343,7 +350,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
-    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, a_c.data_ptr<T>(),
                          n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(), va_c.data_ptr<T>(),
@@ -385,7 +392,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_colors_cpu", [&] {
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a);
-    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_colors_tile<T>(s, t, C, n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(),
                                 rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);
