@@ -1,0 +1,72 @@
+#pragma once
+// Per-pixel alpha of a projected Gaussian, and the opacity-aware tile test.
+#include <math.h>
+
+#include "macros.h"
+
+namespace tiger {
+
+template <typename T>
+struct RasterOptions {
+  T alpha_max;        // alpha is clamped here so 1 - alpha never vanishes (backward divides by it)
+  T alpha_threshold;  // contributions below are skipped
+  T t_min;            // a pixel stops once transmittance would fall below this
+};
+
+// Quadratic form q = d^T conic d with d = pixel centre - mean.
+template <typename T>
+TIGER_HD T conic_quadratic(T ca, T cb, T cc, T dx, T dy) {
+  return ca * dx * dx + T(2) * cb * dx * dy + cc * dy * dy;
+}
+
+// alpha = min(alpha_max, o * exp(-q / 2)); `clamped` tells whether alpha_max applied.
+template <typename T>
+TIGER_HD T splat_alpha(T opacity, T q, T alpha_max, T& gauss, bool& clamped) {
+  gauss = exp(T(-0.5) * q);
+  const T a = opacity * gauss;
+  clamped = a > alpha_max;
+  return clamped ? alpha_max : a;
+}
+
+// Quadratic threshold above which alpha surely falls below the threshold:
+// o * exp(-q/2) < thr  <=>  q > 2 log(o / thr). The small relative margin keeps
+// this pre-test conservative under rounding, so the exact alpha test decides.
+template <typename T>
+TIGER_HD T cutoff_quadratic(T opacity, T alpha_threshold) {
+  const T k2 = T(2) * log(opacity / alpha_threshold);
+  return k2 * T(1.0001) + T(1e-4);
+}
+
+// Minimum of the 1D quadratic a t^2 + 2 b t + c over t in [lo, hi].
+template <typename T>
+TIGER_HD T min_quadratic_on_segment(T a, T b, T c, T lo, T hi) {
+  T t = a > T(0) ? -b / a : lo;
+  t = t < lo ? lo : (t > hi ? hi : t);
+  return (a * t + T(2) * b) * t + c;
+}
+
+// Minimum of q(d) = d^T conic d over the rectangle [x0,x1]x[y0,y1] of offsets
+// d = point - mean: zero if the mean lies inside, else the best point on an edge.
+template <typename T>
+TIGER_HD T min_quadratic_on_rect(T ca, T cb, T cc, T x0, T x1, T y0, T y1) {
+  if (x0 <= T(0) && T(0) <= x1 && y0 <= T(0) && T(0) <= y1) return T(0);
+  // Along a vertical edge x = X: q(y) = cc y^2 + 2 (cb X) y + ca X^2.
+  T m = min_quadratic_on_segment(cc, cb * x0, ca * x0 * x0, y0, y1);
+  T e = min_quadratic_on_segment(cc, cb * x1, ca * x1 * x1, y0, y1);
+  m = e < m ? e : m;
+  e = min_quadratic_on_segment(ca, cb * y0, cc * y0 * y0, x0, x1);
+  m = e < m ? e : m;
+  e = min_quadratic_on_segment(ca, cb * y1, cc * y1 * y1, x0, x1);
+  return e < m ? e : m;
+}
+
+// Does the Gaussian reach alpha >= threshold at some pixel centre of the tile
+// spanning pixels [px0, px1) x [py0, py1)? Pixel centres sit at +0.5.
+template <typename T>
+TIGER_HD bool tile_touches(T u, T v, T ca, T cb, T cc, T qcut, int px0, int px1, int py0, int py1) {
+  const T x0 = T(px0) + T(0.5) - u, x1 = T(px1) - T(0.5) - u;
+  const T y0 = T(py0) + T(0.5) - v, y1 = T(py1) - T(0.5) - v;
+  return min_quadratic_on_rect(ca, cb, cc, x0, x1, y0, y1) <= qcut;
+}
+
+}  // namespace tiger

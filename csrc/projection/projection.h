@@ -1,0 +1,39 @@
+#pragma once
+// EWA projection of 3D Gaussians to the image plane.
+//
+// project_gaussians
+//   means [N,3], quats [N,4] (w,x,y,z, any norm), scales [N,3] (linear), opacities [N] in [0,1],
+//   viewmat [4,4] world->camera (OpenCV axes), K [3,3] pinhole intrinsics; all one float dtype.
+//   -> means2d [N,2] px, conics [N,3] (a, b, c of the inverse dilated 2D covariance),
+//      depths [N] camera z, opacities_out [N] (after antialias compensation),
+//      radii [N,2] int32 opacity-aware half extents in px (0 = culled).
+// project_gaussians_backward: gradients of the above w.r.t. means, quats, scales,
+//   opacities, viewmat [4,4] (rows 0-2) and K [3,3] (fx, fy, cx, cy); culled Gaussians get 0.
+#include <ATen/ATen.h>
+
+#include <tuple>
+
+namespace tiger {
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_gaussians_cpu(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+    const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
+    int64_t height, double eps2d, double near_plane, double far_plane, double alpha_threshold,
+    bool antialiased);
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
+                               const at::Tensor& scales, const at::Tensor& opacities,
+                               const at::Tensor& viewmat, const at::Tensor& K, const at::Tensor& radii,
+                               int64_t width, int64_t height, double eps2d, bool antialiased,
+                               const at::Tensor& v_means2d, const at::Tensor& v_conics,
+                               const at::Tensor& v_depths, const at::Tensor& v_opacities,
+                               bool camera_grad);
+
+// Shared argument validation (CPU and CUDA glue).
+void check_projection_inputs(const char* op, const at::Tensor& means, const at::Tensor& quats,
+                             const at::Tensor& scales, const at::Tensor& opacities,
+                             const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
+                             int64_t height);
+
+}  // namespace tiger

@@ -1,0 +1,65 @@
+// Schemas of the rasterization ops (kernels: raster_cpu.cpp, raster_cuda.cpp).
+#include <torch/library.h>
+
+#include "common/torch_checks.h"
+#include "raster.h"
+
+namespace tiger {
+
+void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Tensor& conics,
+                         const at::Tensor& opacities, const at::Tensor& depths,
+                         const std::optional<at::Tensor>& background, int64_t channels,
+                         const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids,
+                         const RasterArgs& a) {
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble, op,
+              ": means2d must be float32 or float64, got ", means2d.scalar_type());
+  check_shape(means2d, op, "means2d", {-1, 2});
+  const int64_t n = means2d.size(0);
+  check_shape(conics, op, "conics", {n, 3});
+  check_shape(opacities, op, "opacities", {n});
+  check_shape(depths, op, "depths", {n});
+  check_same(conics, means2d, op, "conics");
+  check_same(opacities, means2d, op, "opacities");
+  check_same(depths, means2d, op, "depths");
+  TORCH_CHECK(channels >= 1, op, ": colors must have at least one channel");
+  if (background.has_value()) {
+    check_shape(*background, op, "background", {channels});
+    check_same(*background, means2d, op, "background");
+  }
+  TORCH_CHECK(a.width > 0 && a.height > 0, op, ": width and height must be positive, got ", a.width,
+              "x", a.height);
+  TORCH_CHECK(a.tile_size >= 1 && a.tile_size <= 64, op, ": tile_size must be in [1, 64]");
+  const int64_t tiles = ((a.width + a.tile_size - 1) / a.tile_size) *
+                        ((a.height + a.tile_size - 1) / a.tile_size);
+  check_shape(tile_offsets, op, "tile_offsets", {tiles + 1});
+  check_dtype(tile_offsets, at::kLong, op, "tile_offsets");
+  check_shape(gaussian_ids, op, "gaussian_ids", {-1});
+  check_dtype(gaussian_ids, at::kInt, op, "gaussian_ids");
+  TORCH_CHECK(a.alpha_max > 0 && a.alpha_max < 1, op, ": alpha_max must be in (0, 1), got ",
+              a.alpha_max);
+  TORCH_CHECK(a.alpha_threshold >= 0 && a.alpha_threshold < a.alpha_max, op,
+              ": alpha_threshold must be in [0, alpha_max), got ", a.alpha_threshold);
+  TORCH_CHECK(a.t_min >= 0 && a.t_min < 1, op, ": t_min must be in [0, 1), got ", a.t_min);
+}
+
+TORCH_LIBRARY_FRAGMENT(tiger, m) {
+  m.def(
+      "rasterize(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
+      "Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, int height, "
+      "int tile_size, float alpha_max, float alpha_threshold, float t_min) "
+      "-> (Tensor color, Tensor alpha, Tensor depth, Tensor n_contrib)");
+  m.def(
+      "rasterize_backward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, "
+      "Tensor depths, Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, "
+      "int height, int tile_size, float alpha_max, float alpha_threshold, float t_min, "
+      "Tensor alpha, Tensor n_contrib, Tensor v_color, Tensor v_alpha, Tensor v_depth) "
+      "-> (Tensor v_means2d, Tensor v_conics, Tensor v_opacities, Tensor v_colors, "
+      "Tensor v_depths, Tensor v_background)");
+  m.def(
+      "rasterize_backward_colors(Tensor means2d, Tensor conics, Tensor opacities, "
+      "Tensor tile_offsets, Tensor gaussian_ids, int width, int height, int tile_size, "
+      "float alpha_max, float alpha_threshold, float t_min, Tensor n_contrib, Tensor v_color) "
+      "-> (Tensor v_colors, Tensor v_background)");
+}
+
+}  // namespace tiger

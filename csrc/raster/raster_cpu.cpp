@@ -1,0 +1,400 @@
+// CPU rasterization: one tile per task (at::parallel_for over tiles). Within a
+// tile the Gaussians are visited in list order and each one sweeps the tile's
+// pixels, so the per-Gaussian data stays in registers and the channel loops run
+// over contiguous memory (they vectorise). Backward passes write one gradient
+// row per (tile, Gaussian) intersection and reduce them per Gaussian afterwards:
+// no atomics, and the result does not depend on the thread count.
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <vector>
+
+#include "common/raster_math.h"
+#include "common/torch_checks.h"
+#include "raster.h"
+
+namespace tiger {
+
+namespace {
+
+template <typename T>
+struct Scene2D {
+  const T* means2d;
+  const T* conics;
+  const T* opac;
+  const T* depths;
+  const int64_t* tile_offsets;
+  const int32_t* ids;
+  int width, height, ts, tiles_x;
+  RasterOptions<T> opt;
+};
+
+struct TileGeom {
+  int px0, py0, pw, ph;
+};
+
+inline TileGeom tile_geom(int64_t tile, int tiles_x, int ts, int width, int height) {
+  const int tx = int(tile % tiles_x), ty = int(tile / tiles_x);
+  const int px0 = tx * ts, py0 = ty * ts;
+  return {px0, py0, std::min(ts, width - px0), std::min(ts, height - py0)};
+}
+
+// Quadratic form of Gaussian g at every pixel centre of the tile (branch-free,
+// so the compiler vectorises it).
+template <typename T>
+inline void tile_quadratic(const Scene2D<T>& s, int32_t g, const TileGeom& tg, T* q) {
+  const T u = s.means2d[2 * g], v = s.means2d[2 * g + 1];
+  const T ca = s.conics[3 * g], cb = s.conics[3 * g + 1], cc = s.conics[3 * g + 2];
+  for (int y = 0; y < tg.ph; ++y) {
+    const T dy = T(tg.py0 + y) + T(0.5) - v;
+    T* qr = q + y * tg.pw;
+    for (int x = 0; x < tg.pw; ++x) {
+      const T dx = T(tg.px0 + x) + T(0.5) - u;
+      qr[x] = conic_quadratic(ca, cb, cc, dx, dy);
+    }
+  }
+}
+
+template <typename T>
+void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors, const T* bg,
+                  T* out_color, T* out_alpha, T* out_depth, int32_t* out_count) {
+  const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
+  const int P = tg.pw * tg.ph;
+  std::vector<T> Tr(P, T(1)), acc(size_t(P) * C, T(0)), accd(P, T(0)), q(P);
+  std::vector<int32_t> cnt(P, 0);
+  std::vector<char> done(P, 0);
+  int n_done = 0;
+  const int64_t start = s.tile_offsets[tile], end = s.tile_offsets[tile + 1];
+  for (int64_t k = start; k < end && n_done < P; ++k) {
+    const int32_t g = s.ids[k];
+    const T o = s.opac[g], z = s.depths[g];
+    const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
+    const T* col = colors + int64_t(g) * C;
+    tile_quadratic(s, g, tg, q.data());
+    for (int p = 0; p < P; ++p) {
+      if (done[p] || q[p] > qcut) continue;
+      T gauss;
+      bool clamped;
+      const T alpha = splat_alpha(o, q[p], s.opt.alpha_max, gauss, clamped);
+      if (alpha < s.opt.alpha_threshold) continue;
+      const T next_T = Tr[p] * (T(1) - alpha);
+      if (next_T < s.opt.t_min) {
+        done[p] = 1;
+        ++n_done;
+        continue;
+      }
+      const T w = alpha * Tr[p];
+      T* a = acc.data() + int64_t(p) * C;
+      for (int64_t c = 0; c < C; ++c) a[c] += w * col[c];
+      accd[p] += w * z;
+      Tr[p] = next_T;
+      cnt[p] = int32_t(k - start + 1);
+    }
+  }
+  for (int p = 0; p < P; ++p) {
+    const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    T* oc = out_color + pix * C;
+    const T* a = acc.data() + int64_t(p) * C;
+    for (int64_t c = 0; c < C; ++c) oc[c] = a[c] + (bg ? Tr[p] * bg[c] : T(0));
+    out_alpha[pix] = T(1) - Tr[p];
+    out_depth[pix] = accd[p];
+    out_count[pix] = cnt[p];
+  }
+}
+
+// Per-intersection gradient row layout: [colors(C), u, v, ca, cb, cc, opacity, depth].
+constexpr int kGeomGrads = 7;
+
+template <typename T>
+void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors, const T* bg,
+                   const T* alpha_out, const int32_t* count, const T* v_color, const T* v_alpha,
+                   const T* v_depth, T* rows, T* v_bg_tile) {
+  const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
+  const int P = tg.pw * tg.ph;
+  const int64_t S = C + kGeomGrads;
+  std::vector<T> Tr(P), Tfin(P), R(size_t(P) * C), Rd(P, T(0)), vC(size_t(P) * C), vA(P), vD(P),
+      q(P);
+  std::vector<int32_t> cnt(P);
+  int32_t max_cnt = 0;
+  for (int p = 0; p < P; ++p) {
+    const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    Tfin[p] = Tr[p] = T(1) - alpha_out[pix];
+    cnt[p] = count[pix];
+    max_cnt = std::max(max_cnt, cnt[p]);
+    vA[p] = v_alpha[pix];
+    vD[p] = v_depth[pix];
+    for (int64_t c = 0; c < C; ++c) {
+      vC[p * C + c] = v_color[pix * C + c];
+      R[p * C + c] = bg ? bg[c] : T(0);
+      v_bg_tile[c] += Tfin[p] * vC[p * C + c];
+    }
+  }
+  const int64_t start = s.tile_offsets[tile];
+  std::vector<T> gcol(C);
+  for (int64_t k = start + max_cnt - 1; k >= start; --k) {
+    const int32_t g = s.ids[k];
+    const T o = s.opac[g], z = s.depths[g];
+    const T u = s.means2d[2 * g], v = s.means2d[2 * g + 1];
+    const T ca = s.conics[3 * g], cb = s.conics[3 * g + 1], cc = s.conics[3 * g + 2];
+    const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
+    const T* col = colors + int64_t(g) * C;
+    std::fill(gcol.begin(), gcol.end(), T(0));
+    T gu = 0, gv = 0, gca = 0, gcb = 0, gcc = 0, go = 0, gz = 0;
+    bool touched = false;
+    const int32_t rank = int32_t(k - start);
+    tile_quadratic(s, g, tg, q.data());
+    for (int p = 0; p < P; ++p) {
+      if (rank >= cnt[p] || q[p] > qcut) continue;
+      T gauss;
+      bool clamped;
+      const T alpha = splat_alpha(o, q[p], s.opt.alpha_max, gauss, clamped);
+      if (alpha < s.opt.alpha_threshold) continue;
+      touched = true;
+      const T ra = T(1) / (T(1) - alpha);
+      const T Ti = Tr[p] * ra;  // transmittance in front of this Gaussian
+      const T w = alpha * Ti;
+      const T* vc = vC.data() + int64_t(p) * C;
+      T* r = R.data() + int64_t(p) * C;
+      T dot = T(0);
+      for (int64_t c = 0; c < C; ++c) {
+        gcol[c] += w * vc[c];
+        dot += vc[c] * (col[c] - r[c]);
+        r[c] = alpha * col[c] + (T(1) - alpha) * r[c];
+      }
+      const T v_a = Ti * dot + vD[p] * Ti * (z - Rd[p]) + vA[p] * Tfin[p] * ra;
+      Rd[p] = alpha * z + (T(1) - alpha) * Rd[p];
+      gz += w * vD[p];
+      Tr[p] = Ti;
+      if (!clamped) {
+        go += v_a * gauss;
+        const T vq = T(-0.5) * v_a * o * gauss;  // d alpha / d q = -o G / 2
+        const T dx = T(tg.px0 + p % tg.pw) + T(0.5) - u;
+        const T dy = T(tg.py0 + p / tg.pw) + T(0.5) - v;
+        gca += vq * dx * dx;
+        gcb += vq * T(2) * dx * dy;
+        gcc += vq * dy * dy;
+        gu -= vq * T(2) * (ca * dx + cb * dy);
+        gv -= vq * T(2) * (cb * dx + cc * dy);
+      }
+    }
+    if (!touched) continue;
+    T* row = rows + k * S;
+    for (int64_t c = 0; c < C; ++c) row[c] = gcol[c];
+    row[C] = gu;
+    row[C + 1] = gv;
+    row[C + 2] = gca;
+    row[C + 3] = gcb;
+    row[C + 4] = gcc;
+    row[C + 5] = go;
+    row[C + 6] = gz;
+  }
+}
+
+template <typename T>
+void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const int32_t* count,
+                          const T* v_color, T* rows, T* v_bg_tile) {
+  const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
+  const int P = tg.pw * tg.ph;
+  std::vector<T> Tr(P, T(1)), q(P), gcol(C);
+  std::vector<int32_t> cnt(P);
+  std::vector<int64_t> pix(P);
+  int32_t max_cnt = 0;
+  for (int p = 0; p < P; ++p) {
+    pix[p] = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    cnt[p] = count[pix[p]];
+    max_cnt = std::max(max_cnt, cnt[p]);
+  }
+  const int64_t start = s.tile_offsets[tile];
+  for (int64_t k = start; k < start + max_cnt; ++k) {
+    const int32_t g = s.ids[k];
+    const T o = s.opac[g];
+    const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
+    const int32_t rank = int32_t(k - start);
+    std::fill(gcol.begin(), gcol.end(), T(0));
+    bool touched = false;
+    tile_quadratic(s, g, tg, q.data());
+    for (int p = 0; p < P; ++p) {
+      if (rank >= cnt[p] || q[p] > qcut) continue;
+      T gauss;
+      bool clamped;
+      const T alpha = splat_alpha(o, q[p], s.opt.alpha_max, gauss, clamped);
+      if (alpha < s.opt.alpha_threshold) continue;
+      touched = true;
+      const T w = alpha * Tr[p];
+      const T* vc = v_color + pix[p] * C;
+      for (int64_t c = 0; c < C; ++c) gcol[c] += w * vc[c];
+      Tr[p] *= T(1) - alpha;
+    }
+    if (touched) std::copy(gcol.begin(), gcol.end(), rows + k * C);
+  }
+  for (int p = 0; p < P; ++p)
+    for (int64_t c = 0; c < C; ++c) v_bg_tile[c] += Tr[p] * v_color[pix[p] * C + c];
+}
+
+// out[ids[k], :] += rows[k, :] for every intersection k; parallel over column
+// blocks so no two threads write the same element.
+template <typename T>
+void reduce_rows(const T* rows, int64_t m, int64_t S, const int32_t* ids, T* out) {
+  at::parallel_for(0, S, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t k = 0; k < m; ++k) {
+      const T* r = rows + k * S;
+      T* o = out + int64_t(ids[k]) * S;
+      for (int64_t c = c0; c < c1; ++c) o[c] += r[c];
+    }
+  });
+}
+
+template <typename T>
+Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                      const at::Tensor& depths, const at::Tensor& tile_offsets,
+                      const at::Tensor& ids, const RasterArgs& a) {
+  Scene2D<T> s;
+  s.means2d = means2d.data_ptr<T>();
+  s.conics = conics.data_ptr<T>();
+  s.opac = opac.data_ptr<T>();
+  s.depths = depths.defined() ? depths.data_ptr<T>() : nullptr;
+  s.tile_offsets = tile_offsets.data_ptr<int64_t>();
+  s.ids = ids.data_ptr<int32_t>();
+  s.width = int(a.width);
+  s.height = int(a.height);
+  s.ts = int(a.tile_size);
+  s.tiles_x = int((a.width + a.tile_size - 1) / a.tile_size);
+  s.opt = {T(a.alpha_max), T(a.alpha_threshold), T(a.t_min)};
+  return s;
+}
+
+int64_t num_tiles(const RasterArgs& a) {
+  return ((a.width + a.tile_size - 1) / a.tile_size) * ((a.height + a.tile_size - 1) / a.tile_size);
+}
+
+}  // namespace
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+    const at::Tensor& colors, const at::Tensor& depths, const std::optional<at::Tensor>& background,
+    const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
+    int64_t tile_size, double alpha_max, double alpha_threshold, double t_min) {
+  const char* op = "tiger.rasterize";
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  check_shape(colors, op, "colors", {means2d.size(0), -1});
+  check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
+                      tile_offsets, gaussian_ids, a);
+  check_same(colors, means2d, op, "colors");
+  const int64_t C = colors.size(1);
+  auto out_color = at::empty({height, width, C}, means2d.options());
+  auto out_alpha = at::empty({height, width}, means2d.options());
+  auto out_depth = at::empty({height, width}, means2d.options());
+  auto out_count = at::empty({height, width}, means2d.options().dtype(at::kInt));
+  const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
+             d_c = depths.contiguous(), col_c = colors.contiguous(), t_c = tile_offsets.contiguous(),
+             i_c = gaussian_ids.contiguous();
+  const auto bg_c = background.has_value() ? background->contiguous() : at::Tensor();
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_cpu", [&] {
+    using T = scalar_t;
+    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
+    const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
+    at::parallel_for(0, num_tiles(a), 1, [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t)
+        forward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, out_color.data_ptr<T>(),
+                        out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
+                        out_count.data_ptr<int32_t>());
+    });
+  });
+  return {out_color, out_alpha, out_depth, out_count};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
+                       const at::Tensor& opacities, const at::Tensor& colors,
+                       const at::Tensor& depths, const std::optional<at::Tensor>& background,
+                       const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width,
+                       int64_t height, int64_t tile_size, double alpha_max, double alpha_threshold,
+                       double t_min, const at::Tensor& alpha, const at::Tensor& n_contrib,
+                       const at::Tensor& v_color, const at::Tensor& v_alpha,
+                       const at::Tensor& v_depth) {
+  const char* op = "tiger.rasterize_backward";
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  const int64_t n = means2d.size(0);
+  check_shape(colors, op, "colors", {n, -1});
+  const int64_t C = colors.size(1);
+  check_raster_inputs(op, means2d, conics, opacities, depths, background, C, tile_offsets,
+                      gaussian_ids, a);
+  check_shape(alpha, op, "alpha", {height, width});
+  check_shape(n_contrib, op, "n_contrib", {height, width});
+  check_dtype(n_contrib, at::kInt, op, "n_contrib");
+  check_shape(v_color, op, "v_color", {height, width, C});
+  check_shape(v_alpha, op, "v_alpha", {height, width});
+  check_shape(v_depth, op, "v_depth", {height, width});
+  const int64_t S = C + kGeomGrads, m = gaussian_ids.size(0), tiles = num_tiles(a);
+  auto rows = at::zeros({m, S}, means2d.options());
+  auto v_bg_tiles = at::zeros({tiles, C}, means2d.options());
+  auto grads = at::zeros({n, S}, means2d.options());
+  const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
+             d_c = depths.contiguous(), col_c = colors.contiguous(), t_c = tile_offsets.contiguous(),
+             i_c = gaussian_ids.contiguous(), a_c = alpha.contiguous(), n_c = n_contrib.contiguous(),
+             vc_c = v_color.contiguous(), va_c = v_alpha.contiguous(), vd_c = v_depth.contiguous();
+  const auto bg_c = background.has_value() ? background->contiguous() : at::Tensor();
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_cpu", [&] {
+    using T = scalar_t;
+    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
+    const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
+    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t)
+        backward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, a_c.data_ptr<T>(),
+                         n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(), va_c.data_ptr<T>(),
+                         vd_c.data_ptr<T>(), rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);
+    });
+    reduce_rows<T>(rows.data_ptr<T>(), m, S, i_c.data_ptr<int32_t>(), grads.data_ptr<T>());
+  });
+  auto v_colors = grads.narrow(1, 0, C).contiguous();
+  auto v_means2d = grads.narrow(1, C, 2).contiguous();
+  auto v_conics = grads.narrow(1, C + 2, 3).contiguous();
+  auto v_opac = grads.select(1, C + 5).contiguous();
+  auto v_depths = grads.select(1, C + 6).contiguous();
+  auto v_bg = v_bg_tiles.sum(0);
+  return {v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg};
+}
+
+std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+    const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
+    int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
+    const at::Tensor& n_contrib, const at::Tensor& v_color) {
+  const char* op = "tiger.rasterize_backward_colors";
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  const int64_t n = means2d.size(0);
+  check_shape(v_color, op, "v_color", {height, width, -1});
+  const int64_t C = v_color.size(2);
+  check_raster_inputs(op, means2d, conics, opacities, opacities.new_empty({n}), std::nullopt, C,
+                      tile_offsets, gaussian_ids, a);
+  check_same(v_color, means2d, op, "v_color");
+  check_shape(n_contrib, op, "n_contrib", {height, width});
+  check_dtype(n_contrib, at::kInt, op, "n_contrib");
+  const int64_t m = gaussian_ids.size(0), tiles = num_tiles(a);
+  auto rows = at::zeros({m, C}, means2d.options());
+  auto v_bg_tiles = at::zeros({tiles, C}, means2d.options());
+  auto v_colors = at::zeros({n, C}, means2d.options());
+  const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
+             t_c = tile_offsets.contiguous(), i_c = gaussian_ids.contiguous(),
+             n_c = n_contrib.contiguous(), vc_c = v_color.contiguous();
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_colors_cpu", [&] {
+    using T = scalar_t;
+    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a);
+    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t)
+        backward_colors_tile<T>(s, t, C, n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(),
+                                rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);
+    });
+    reduce_rows<T>(rows.data_ptr<T>(), m, C, i_c.data_ptr<int32_t>(), v_colors.data_ptr<T>());
+  });
+  return {v_colors, v_bg_tiles.sum(0)};
+}
+
+TORCH_LIBRARY_IMPL(tiger, CPU, m) {
+  m.impl("rasterize", &rasterize_cpu);
+  m.impl("rasterize_backward", &rasterize_backward_cpu);
+  m.impl("rasterize_backward_colors", &rasterize_backward_colors_cpu);
+}
+
+}  // namespace tiger

@@ -1,0 +1,52 @@
+"""Fake kernel and autograd of ``tiger::project_gaussians``."""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+_OP = "tiger::project_gaussians"
+
+
+@torch.library.register_fake(_OP)
+def _project_fake(means, quats, scales, opacities, viewmat, K, width, height, eps2d, near_plane,
+                  far_plane, alpha_threshold, antialiased):
+    n = means.shape[0]
+    return (means.new_empty(n, 2), means.new_empty(n, 3), means.new_empty(n),
+            means.new_empty(n), means.new_empty(n, 2, dtype=torch.int32))
+
+
+@torch.library.register_fake("tiger::project_gaussians_backward")
+def _project_backward_fake(means, quats, scales, opacities, viewmat, K, radii, width, height, eps2d,
+                           antialiased, v_means2d, v_conics, v_depths, v_opacities_out, camera_grad):
+    return (torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales),
+            torch.empty_like(opacities), means.new_empty(4, 4), means.new_empty(3, 3))
+
+
+def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
+    means, quats, scales, opacities, viewmat, K, width, height, eps2d, _, _, _, antialiased = inputs
+    ctx.save_for_backward(means, quats, scales, opacities, viewmat, K, output[4])
+    ctx.args = (width, height, eps2d, antialiased)
+    ctx.mark_non_differentiable(output[4])
+
+
+def _backward(ctx: Any, v_means2d, v_conics, v_depths, v_opac, _v_radii):
+    means, quats, scales, opacities, viewmat, K, radii = ctx.saved_tensors
+    width, height, eps2d, antialiased = ctx.args
+    n = means.shape[0]
+    zeros = lambda *s: means.new_zeros(*s)  # noqa: E731
+    v_means2d = zeros(n, 2) if v_means2d is None else v_means2d
+    v_conics = zeros(n, 3) if v_conics is None else v_conics
+    v_depths = zeros(n) if v_depths is None else v_depths
+    v_opac = zeros(n) if v_opac is None else v_opac
+    need = ctx.needs_input_grad
+    camera_grad = bool(need[4] or need[5])
+    g = torch.ops.tiger.project_gaussians_backward(
+        means, quats, scales, opacities, viewmat, K, radii, width, height, eps2d, antialiased,
+        v_means2d.contiguous(), v_conics.contiguous(), v_depths.contiguous(), v_opac.contiguous(),
+        camera_grad)
+    grads = [gi if need[i] else None for i, gi in enumerate(g)]
+    return (*grads, None, None, None, None, None, None, None)
+
+
+torch.library.register_autograd(_OP, _backward, setup_context=_setup)

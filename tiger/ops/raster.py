@@ -1,0 +1,76 @@
+"""Fake kernels and autograd of ``tiger::rasterize``.
+
+The backward picks the features-only kernel when no geometry input (means2d,
+conics, opacities, depths) needs a gradient: language-field training then pays
+for no geometry term at all.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+_OP = "tiger::rasterize"
+
+
+@torch.library.register_fake(_OP)
+def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
+                 gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min):
+    c = colors.shape[1]
+    return (colors.new_empty(height, width, c), colors.new_empty(height, width),
+            colors.new_empty(height, width), colors.new_empty(height, width, dtype=torch.int32))
+
+
+@torch.library.register_fake("tiger::rasterize_backward")
+def _raster_backward_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
+                          gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
+                          alpha, n_contrib, v_color, v_alpha, v_depth):
+    return (torch.empty_like(means2d), torch.empty_like(conics), torch.empty_like(opacities),
+            torch.empty_like(colors), torch.empty_like(depths), colors.new_empty(colors.shape[1]))
+
+
+@torch.library.register_fake("tiger::rasterize_backward_colors")
+def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gaussian_ids, width,
+                                 height, tile_size, alpha_max, alpha_threshold, t_min, n_contrib,
+                                 v_color):
+    c = v_color.shape[2]
+    return v_color.new_empty(means2d.shape[0], c), v_color.new_empty(c)
+
+
+def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
+    (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
+     *args) = inputs
+    _, alpha, _, n_contrib = output
+    ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
+                          gaussian_ids, alpha, n_contrib)
+    ctx.args = tuple(args)
+    ctx.mark_non_differentiable(n_contrib)
+
+
+def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count):
+    (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids, alpha,
+     n_contrib) = ctx.saved_tensors
+    need = ctx.needs_input_grad
+    if v_color is None:
+        v_color = torch.zeros(alpha.shape + colors.shape[1:], dtype=colors.dtype,
+                              device=colors.device)
+    geometry = need[0] or need[1] or need[2] or need[4]
+    if not geometry:
+        v_colors, v_bg = torch.ops.tiger.rasterize_backward_colors(
+            means2d, conics, opacities, tile_offsets, gaussian_ids, *ctx.args, n_contrib,
+            v_color.contiguous())
+        return (None, None, None, v_colors if need[3] else None, None,
+                v_bg if need[5] else None) + (None,) * 8
+    v_alpha = torch.zeros_like(alpha) if v_alpha is None else v_alpha
+    v_depth = torch.zeros_like(alpha) if v_depth is None else v_depth
+    g = torch.ops.tiger.rasterize_backward(
+        means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
+        *ctx.args, alpha, n_contrib, v_color.contiguous(), v_alpha.contiguous(),
+        v_depth.contiguous())
+    v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg = g
+    return (v_means2d if need[0] else None, v_conics if need[1] else None,
+            v_opac if need[2] else None, v_colors if need[3] else None,
+            v_depths if need[4] else None, v_bg if need[5] else None) + (None,) * 8
+
+
+torch.library.register_autograd(_OP, _backward, setup_context=_setup)

@@ -1,0 +1,187 @@
+"""The public rasterization entry point: projection → (SH) → tile binning → compositing."""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+import tiger.ops  # noqa: F401  (registers torch.ops.tiger)
+
+__all__ = ["rasterize_gaussians", "RasterDefaults"]
+
+
+class RasterDefaults:
+    """Default accuracy knobs (SPEC §3); every one is a keyword of :func:`rasterize_gaussians`."""
+
+    near: float = 0.01
+    far: float = 1e10
+    eps2d: float = 0.3
+    alpha_max: float = 0.99
+    alpha_threshold: float = 1.0 / 255.0
+    t_min: float = 1e-4
+    tile_size: int = 16
+
+
+_NAME = "tiger.rasterize_gaussians"
+
+
+def _check_tensor(t: object, name: str, shape: tuple, ref: Optional[Tensor] = None) -> Tensor:
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{_NAME}: {name} must be a torch.Tensor, got {type(t).__name__}")
+    ok = t.dim() == len(shape) and all(s is None or t.shape[i] == s for i, s in enumerate(shape))
+    if not ok:
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"{_NAME}: {name} must have shape {want}, got {list(t.shape)}")
+    if not t.is_floating_point():
+        raise TypeError(f"{_NAME}: {name} must be a floating-point tensor, got {t.dtype}")
+    if ref is not None and t.device != ref.device:
+        raise ValueError(f"{_NAME}: {name} is on {t.device} but means is on {ref.device}")
+    return t
+
+
+def _check_finite(tensors: dict[str, Tensor]) -> None:
+    for name, t in tensors.items():
+        if t is not None and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{_NAME}: {name} contains {bad} non-finite value(s) (NaN or Inf); "
+                             "pass check_finite=False to skip this check")
+
+
+def camera_center(viewmat: Tensor) -> Tensor:
+    """Camera centre in world coordinates from a world→camera ``viewmat`` [4,4] → [3]."""
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    return -(R.transpose(0, 1) @ t)
+
+
+def rasterize_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    background: Optional[Tensor] = None,
+    sh_degree: Optional[int] = None,
+    near: float = RasterDefaults.near,
+    far: float = RasterDefaults.far,
+    eps2d: float = RasterDefaults.eps2d,
+    antialiased: bool = False,
+    alpha_max: float = RasterDefaults.alpha_max,
+    alpha_threshold: float = RasterDefaults.alpha_threshold,
+    t_min: float = RasterDefaults.t_min,
+    tile_size: int = RasterDefaults.tile_size,
+    check_finite: bool = True,
+) -> dict[str, Tensor]:
+    """Render 3D Gaussians into one pinhole camera, differentiably.
+
+    Args:
+        means: [N, 3] world-space centres.
+        quats: [N, 4] rotations (w, x, y, z); normalised inside (any non-zero norm).
+        scales: [N, 3] standard deviations along the local axes (linear, world units).
+        opacities: [N] in [0, 1].
+        colors: [N, C] per-Gaussian channels (any C >= 1: RGB, 64-d language, both), or with
+            ``sh_degree=d`` spherical-harmonics coefficients [N, K, 3] with K >= (d+1)^2
+            (INRIA order), evaluated per Gaussian for its view direction as max(SH + 0.5, 0).
+        viewmat: [4, 4] world→camera transform, OpenCV axes (+x right, +y down, +z forward).
+        K: [3, 3] pinhole intrinsics (fx, fy, cx, cy used; pixels).
+        width, height: image size in pixels.
+        background: [C] colour behind the Gaussians (default 0).
+        near, far: camera-space depth range; Gaussians with centres outside are culled.
+        eps2d: dilation added to the 2D covariance diagonal [px^2].
+        antialiased: scale opacity by sqrt(det Σ2d / det(Σ2d + eps2d I)) (Mip-Splatting style).
+        alpha_max: per-Gaussian alpha clamp (keeps 1 - alpha away from 0).
+        alpha_threshold: contributions with alpha below are skipped (also the extent rule).
+        t_min: a pixel stops compositing once transmittance would drop below this.
+        tile_size: tile edge in pixels for binning.
+        check_finite: raise on NaN/Inf inputs (one reduction per input; off for speed).
+
+    Returns:
+        dict with ``color`` [H, W, C], ``alpha`` [H, W], ``depth`` [H, W] (expected depth,
+        Σ w z / Σ w, 0 where alpha == 0), ``depth_accum`` [H, W] (Σ w z), ``radii`` [N] int32
+        (opacity-aware screen radius in px, 0 = culled), ``means2d`` [N, 2] (pixel centres; a
+        non-leaf that can ``retain_grad()`` for densification), ``conics`` [N, 3],
+        ``depths`` [N], ``n_isects`` (number of tile-Gaussian pairs, int).
+        Every float output is differentiable w.r.t. every float input (viewmat and K included).
+        When only ``colors``/``background`` require grad, the backward runs the features-only
+        kernel (no geometry gradient is computed).
+    """
+    _check_tensor(means, "means", (None, 3))
+    n = means.shape[0]
+    if means.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{_NAME}: means must be float32 or float64, got {means.dtype}")
+    _check_tensor(quats, "quats", (n, 4), means)
+    _check_tensor(scales, "scales", (n, 3), means)
+    _check_tensor(opacities, "opacities", (n,), means)
+    if sh_degree is None:
+        _check_tensor(colors, "colors", (n, None), means)
+        if colors.shape[1] < 1:
+            raise ValueError(f"{_NAME}: colors must have at least one channel, got shape "
+                             f"{list(colors.shape)}")
+    else:
+        if not 0 <= int(sh_degree) <= 3:
+            raise ValueError(f"{_NAME}: sh_degree must be in [0, 3], got {sh_degree}")
+        _check_tensor(colors, "colors (SH coefficients)", (n, None, 3), means)
+        if colors.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(f"{_NAME}: colors holds {colors.shape[1]} SH coefficients per "
+                             f"Gaussian but sh_degree={sh_degree} needs {(sh_degree + 1) ** 2}")
+    _check_tensor(viewmat, "viewmat", (4, 4), means)
+    _check_tensor(K, "K", (3, 3), means)
+    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors)):
+        if t.dtype != means.dtype:
+            raise TypeError(f"{_NAME}: {name} has dtype {t.dtype} but means has {means.dtype}")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"{_NAME}: width and height must be positive, got {width}x{height}")
+    channels = 3 if sh_degree is not None else colors.shape[1]
+    if background is not None:
+        _check_tensor(background, "background", (channels,), means)
+        background = background.to(means.dtype)
+    if check_finite:
+        _check_finite({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+                       "colors": colors, "viewmat": viewmat, "K": K, "background": background})
+    viewmat = viewmat.to(means.dtype)
+    K = K.to(means.dtype)
+    width, height = int(width), int(height)
+
+    means2d, conics, depths, opac, radii = torch.ops.tiger.project_gaussians(
+        means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
+        viewmat.contiguous(), K.contiguous(), width, height, float(eps2d), float(near), float(far),
+        float(alpha_threshold), bool(antialiased))
+    visible = radii[:, 0] > 0
+
+    if sh_degree is not None:
+        dirs = means - camera_center(viewmat)
+        rgb = torch.ops.tiger.sh_to_color(dirs.contiguous(), colors.contiguous(), int(sh_degree),
+                                          visible)
+        feats = torch.clamp_min(rgb + 0.5, 0.0)
+    else:
+        feats = colors.contiguous()
+
+    with torch.no_grad():
+        tile_offsets, gaussian_ids = torch.ops.tiger.bin_gaussians(
+            means2d.detach(), conics.detach(), opac.detach(), depths.detach(), radii, width,
+            height, int(tile_size), float(alpha_threshold))
+
+    color, alpha, depth_accum, _ = torch.ops.tiger.rasterize(
+        means2d, conics, opac, feats, depths,
+        background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
+        width, height, int(tile_size), float(alpha_max), float(alpha_threshold), float(t_min))
+    covered = alpha > 0
+    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
+    return {
+        "color": color,
+        "alpha": alpha,
+        "depth": depth,
+        "depth_accum": depth_accum,
+        "radii": radii.amax(dim=1),
+        "means2d": means2d,
+        "conics": conics,
+        "depths": depths,
+        "n_isects": int(gaussian_ids.shape[0]),
+    }
