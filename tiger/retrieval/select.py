@@ -45,13 +45,20 @@ def otsu_threshold(scores: torch.Tensor, bins: int = 512) -> float:
     return lo + (k + 1) * (hi - lo) / bins
 
 
-def choose_tau(scores: torch.Tensor, tau: Tau, score: str) -> float:
+def choose_tau(scores: torch.Tensor, tau: Tau, score: str,
+               temperature: float = DEFAULT_TEMPERATURE) -> float:
     """The selection threshold. A number is used as given. ``None`` / ``"auto"``: Otsu's threshold
-    on the scores (:func:`otsu_threshold`); for the LERF relevancy it is never below 0.5, the point
-    where the query and the closest canonical negative are equally similar."""
+    (:func:`otsu_threshold`) of the cosines. For the LERF relevancy ``r = sigmoid(t m)`` the cut is
+    found on the margin ``m = logit(r) / t`` (query cosine minus the hardest negative's, a cosine
+    scale where objects separate as clearly as in the cosines; r itself saturates at 1), mapped
+    back through the sigmoid, and never below 0.5 (the query no more similar than a negative)."""
     if tau is None or (isinstance(tau, str) and tau == "auto"):
-        t = otsu_threshold(scores)
-        return max(t, 0.5) if score == "relevancy" else t
+        if score != "relevancy":
+            return otsu_threshold(scores)
+        r = scores.detach().to(torch.float64).clamp(1e-12, 1 - 1e-12)
+        margin = torch.log(r / (1 - r)) / temperature
+        t = float(torch.sigmoid(torch.tensor(otsu_threshold(margin) * temperature, dtype=torch.float64)))
+        return max(t, 0.5)
     if isinstance(tau, str):
         raise ValueError(f"tiger.retrieval: tau must be a number or 'auto', got '{tau}'")
     t = float(tau)
@@ -189,7 +196,7 @@ def retrieve(scene: Any, query: Query, *, encoder: Optional[TextEncoder] = None,
     cos = cos[:, 0]
     rel = rel[:, 0] if rel is not None else None
     s = rel if score == "relevancy" else cos
-    t = choose_tau(s, tau, score)
+    t = choose_tau(s, tau, score, temperature)
     mask = s > t
     out = Retrieval(scores=s, cosine=cos, relevancy=rel, mask=mask, tau=t, score=score)
     k = int(mask.sum())

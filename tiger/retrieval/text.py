@@ -27,8 +27,9 @@ class TextEncoder(Protocol):
 def pca_of(source: Any) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
     """The (basis [F, D], mean [F]) PCA pair of a scene, a PCA object or a tuple; None if absent.
 
-    Accepts a scene with ``lang_pca_basis``/``lang_pca_mean``, an object with ``basis``/``mean``,
-    a ``(basis, mean)`` tuple, or a dict with keys ``basis`` and ``mean``.
+    Accepts a scene with ``lang_pca_basis``/``lang_pca_mean``, a ``tiger.language.PCABasis``
+    (``components``/``mean``), an object with ``basis``/``mean``, a ``(basis, mean)`` tuple, or a
+    dict with keys ``basis`` and ``mean``.
     """
     if source is None:
         return None
@@ -38,6 +39,8 @@ def pca_of(source: Any) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
         basis, mean = source.get("basis"), source.get("mean")
     elif hasattr(source, "lang_pca_basis"):
         basis, mean = source.lang_pca_basis, getattr(source, "lang_pca_mean", None)
+    elif hasattr(source, "components"):  # tiger.language.PCABasis
+        basis, mean = source.components, getattr(source, "mean", None)
     elif hasattr(source, "basis"):
         basis, mean = source.basis, getattr(source, "mean", None)
     else:
