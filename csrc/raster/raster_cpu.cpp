@@ -58,7 +58,7 @@ inline void tile_quadratic(const Scene2D<T>& s, int32_t g, const TileGeom& tg, T
 
 template <typename T>
 void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors, const T* bg,
-                  T* out_color, T* out_alpha, T* out_depth, int32_t* out_count) {
+                  T* out_color, T* out_alpha, T* out_depth, int32_t* out_count, T* out_trans) {
   const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
   const int P = tg.pw * tg.ph;
   std::vector<T> Tr(P, T(1)), acc(size_t(P) * C, T(0)), accd(P, T(0)), q(P);
@@ -100,6 +100,7 @@ void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors,
     out_alpha[pix] = T(1) - Tr[p];
     out_depth[pix] = accd[p];
     out_count[pix] = cnt[p];
+    out_trans[pix] = Tr[p];
   }
 }
 
@@ -108,7 +109,7 @@ constexpr int kGeomGrads = 7;
 
 template <typename T>
 void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors, const T* bg,
-                   const T* alpha_out, const int32_t* count, const T* v_color, const T* v_alpha,
+                   const T* trans, const int32_t* count, const T* v_color, const T* v_alpha,
                    const T* v_depth, T* rows, T* v_bg_tile) {
   const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
   const int P = tg.pw * tg.ph;
@@ -119,7 +120,7 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
   int32_t max_cnt = 0;
   for (int p = 0; p < P; ++p) {
     const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
-    Tfin[p] = Tr[p] = T(1) - alpha_out[pix];
+    Tfin[p] = Tr[p] = trans[pix];
     cnt[p] = count[pix];
     max_cnt = std::max(max_cnt, cnt[p]);
     vA[p] = v_alpha[pix];
@@ -140,7 +141,9 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
     const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
     const T* col = colors + int64_t(g) * C;
     std::fill(gcol.begin(), gcol.end(), T(0));
-    T gu = 0, gv = 0, gca = 0, gcb = 0, gcc = 0, go = 0, gz = 0;
+    // Geometry terms sum over up to a whole tile of pixels with cancellation:
+    // accumulate them in double so float32 gradients keep their accuracy.
+    double gu = 0, gv = 0, gca = 0, gcb = 0, gcc = 0, go = 0, gz = 0;
     bool touched = false;
     const int32_t rank = int32_t(k - start);
     tile_quadratic(s, g, tg, q.data());
@@ -181,13 +184,13 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
     if (!touched) continue;
     T* row = rows + k * S;
     for (int64_t c = 0; c < C; ++c) row[c] = gcol[c];
-    row[C] = gu;
-    row[C + 1] = gv;
-    row[C + 2] = gca;
-    row[C + 3] = gcb;
-    row[C + 4] = gcc;
-    row[C + 5] = go;
-    row[C + 6] = gz;
+    row[C] = T(gu);
+    row[C + 1] = T(gv);
+    row[C + 2] = T(gca);
+    row[C + 3] = T(gcb);
+    row[C + 4] = T(gcc);
+    row[C + 5] = T(go);
+    row[C + 6] = T(gz);
   }
 }
 
@@ -236,7 +239,7 @@ void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const in
 // blocks so no two threads write the same element.
 template <typename T>
 void reduce_rows(const T* rows, int64_t m, int64_t S, const int32_t* ids, T* out) {
-  at::parallel_for(0, S, 1, [&](int64_t c0, int64_t c1) {
+  at::parallel_for(0, S, m * S < (1 << 16) ? S : 1, [&](int64_t c0, int64_t c1) {
     for (int64_t k = 0; k < m; ++k) {
       const T* r = rows + k * S;
       T* o = out + int64_t(ids[k]) * S;
@@ -264,13 +267,19 @@ Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const
   return s;
 }
 
+// Tiles per task: small images or few intersections run on one thread, where
+// waking a thread pool would cost more than the work.
+int64_t tile_grain(int64_t tiles, int64_t isects) {
+  return isects < 16384 ? std::max<int64_t>(tiles, 1) : 1;
+}
+
 int64_t num_tiles(const RasterArgs& a) {
   return ((a.width + a.tile_size - 1) / a.tile_size) * ((a.height + a.tile_size - 1) / a.tile_size);
 }
 
 }  // namespace
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& colors, const at::Tensor& depths, const std::optional<at::Tensor>& background,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
@@ -286,6 +295,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
   auto out_alpha = at::empty({height, width}, means2d.options());
   auto out_depth = at::empty({height, width}, means2d.options());
   auto out_count = at::empty({height, width}, means2d.options().dtype(at::kInt));
+  auto out_trans = at::empty({height, width}, means2d.options());
   const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
              d_c = depths.contiguous(), col_c = colors.contiguous(), t_c = tile_offsets.contiguous(),
              i_c = gaussian_ids.contiguous();
@@ -294,14 +304,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
-    at::parallel_for(0, num_tiles(a), 1, [&](int64_t b, int64_t e) {
+    const int64_t tiles = num_tiles(a);
+    at::parallel_for(0, tiles, tile_grain(tiles, i_c.size(0)), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         forward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, out_color.data_ptr<T>(),
                         out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
-                        out_count.data_ptr<int32_t>());
+                        out_count.data_ptr<int32_t>(), out_trans.data_ptr<T>());
     });
   });
-  return {out_color, out_alpha, out_depth, out_count};
+  return {out_color, out_alpha, out_depth, out_count, out_trans};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
@@ -310,7 +321,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& depths, const std::optional<at::Tensor>& background,
                        const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width,
                        int64_t height, int64_t tile_size, double alpha_max, double alpha_threshold,
-                       double t_min, const at::Tensor& alpha, const at::Tensor& n_contrib,
+                       double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const at::Tensor& v_alpha,
                        const at::Tensor& v_depth) {
   const char* op = "tiger.rasterize_backward";
@@ -320,7 +331,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   const int64_t C = colors.size(1);
   check_raster_inputs(op, means2d, conics, opacities, depths, background, C, tile_offsets,
                       gaussian_ids, a);
-  check_shape(alpha, op, "alpha", {height, width});
+  check_shape(transmittance, op, "transmittance", {height, width});
   check_shape(n_contrib, op, "n_contrib", {height, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
   check_shape(v_color, op, "v_color", {height, width, C});
@@ -332,14 +343,14 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   auto grads = at::zeros({n, S}, means2d.options());
   const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
              d_c = depths.contiguous(), col_c = colors.contiguous(), t_c = tile_offsets.contiguous(),
-             i_c = gaussian_ids.contiguous(), a_c = alpha.contiguous(), n_c = n_contrib.contiguous(),
+             i_c = gaussian_ids.contiguous(), a_c = transmittance.contiguous(), n_c = n_contrib.contiguous(),
              vc_c = v_color.contiguous(), va_c = v_alpha.contiguous(), vd_c = v_depth.contiguous();
   const auto bg_c = background.has_value() ? background->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_cpu", [&] {
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
-    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, a_c.data_ptr<T>(),
                          n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(), va_c.data_ptr<T>(),
@@ -381,7 +392,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_colors_cpu", [&] {
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a);
-    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_colors_tile<T>(s, t, C, n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(),
                                 rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);
