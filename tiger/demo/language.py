@@ -139,16 +139,32 @@ def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str],
             # LERF's relevancy needs real canonical negatives ("object", "stuff", ...): with the
             # built-in vocabulary the heat maps show the cosine instead.
             builtin = isinstance(encoder, BuiltinTextEncoder)
-            write_relevancy_pictures(field_scene, pic_cams[:2], q, out / "relevancy",
+            views = _views_showing(scene, r.mask, pic_cams)
+            write_relevancy_pictures(field_scene, views[:2], q, out / "relevancy",
                                      encoder=encoder, score="cosine" if builtin else "relevancy")
-            _write_selection(scene, r.mask, pic_cams[0], out / f"retrieved_{_slug(q)}.png")
-            _write_highlight(scene, r.mask, pic_cams[0], out / f"highlight_{_slug(q)}.png")
+            _write_selection(scene, r.mask, views[0], out / f"retrieved_{_slug(q)}.png")
+            _write_highlight(scene, r.mask, views[0], out / f"highlight_{_slug(q)}.png")
         results.append(_report(scene, q, r))
     return results
 
 
 def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+
+
+def _views_showing(scene: LabelledGaussians, mask: torch.Tensor, cams: list) -> list:
+    """The cameras ordered by how much of the selection they see (visible alpha of it)."""
+    sel = mask.float()[:, None]
+    seen = []
+    for cam in cams:
+        K = cam.K.clone()
+        K[:2] /= 4  # a quarter-size render is enough to compare views
+        with torch.no_grad():
+            r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, sel,
+                                    cam.viewmat, K, cam.width // 4, cam.height // 4)
+        seen.append(float(r["color"].sum()))
+    order = sorted(range(len(cams)), key=lambda i: -seen[i])
+    return [cams[i] for i in order]
 
 
 def _write_selection(scene: LabelledGaussians, mask: torch.Tensor, cam, path: Path) -> None:
