@@ -278,10 +278,9 @@ def _indexed(props: dict, prefix: str) -> list:
     """Names ``prefix0..prefixN`` present in ``props``, sorted by index; raises when the
     indices are not contiguous from 0."""
     found = sorted((int(m.group(1)), n) for n in props if (m := re.fullmatch(re.escape(prefix) + r"(\d+)", n)))
-    idx = [i for i, _ in found]
-    if idx != list(range(len(idx))):
-        missing = sorted(set(range(max(idx) + 1)) - set(idx)) if idx else []
-        raise KeyError(f"{prefix}{missing[0] if missing else ''}")
+    for expect, (i, _) in enumerate(found):
+        if i != expect:  # the first gap (never materialise range(max index): it can be huge)
+            raise KeyError(f"{prefix}{expect}")
     return [n for _, n in found]
 
 
