@@ -25,10 +25,10 @@ def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> torch.Tensor:
 
 def sphere_cameras(n: int, size: int = 64, radius: float = 4.0, offset: float = 0.0) -> list:
     """``n`` cameras on a (Fibonacci) sphere looking at the origin; ``offset`` shifts the
-    spiral so that two calls give disjoint view sets."""
+    spiral (in [0, 1)) so that two calls give disjoint view sets."""
     cams = []
     for i in range(n):
-        t = (i + 0.5 + offset) / n
+        t = (i + 0.25 + 0.5 * offset) / n   # never exactly at a pole (up vector)
         z = 1 - 2 * t
         r = math.sqrt(max(0.0, 1 - z * z))
         phi = (i + offset) * 2.399963229728653

@@ -63,3 +63,12 @@ def test_position_lr_schedule_is_log_linear():
     assert expon_lr(15000, 1.6e-4, 1.6e-6, 30000) == pytest.approx(1.6e-5)       # geometric mean
     assert expon_lr(60000, 1.6e-4, 1.6e-6, 30000) == pytest.approx(1.6e-6)       # clamped
     assert expon_lr(0, 1.0, 0.1, 100, delay_steps=10, delay_mult=0.01) == pytest.approx(0.01)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_ssim_on_cuda_matches_cpu():
+    a, b = torch.rand(2, 3, 70, 90, dtype=torch.float64).unbind(0)
+    cpu = ssim_map(a, b)
+    gpu = ssim_map(a.cuda(), b.cuda())   # conv2d path
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-12)

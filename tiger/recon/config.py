@@ -51,6 +51,7 @@ class ReconConfig:
     seed: int = 0
     checkpoint_every: int = 0              # 0: only when asked / at the end with out_dir
     eval_every: int = 0                    # 0: only at the end
+    time_budget_s: Optional[float] = None  # stop early once training took this long
     progress: bool = True
 
     def __post_init__(self) -> None:

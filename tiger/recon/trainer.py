@@ -153,7 +153,9 @@ class Trainer:
         return info
 
     def fit(self) -> GaussianScene:
-        """Train until ``config.iterations`` (continuing a resumed run); returns the scene."""
+        """Train until ``config.iterations`` (continuing a resumed run) or until
+        ``config.time_budget_s``; evaluates the test views at the end and writes
+        ``out_dir/checkpoint.pt`` when ``out_dir`` is set. Returns the scene (detached)."""
         from tqdm.auto import tqdm
 
         c = self.cfg
@@ -175,6 +177,10 @@ class Trainer:
                 self._record_eval()
             if c.checkpoint_every and self.out_dir and self.step % c.checkpoint_every == 0:
                 self.save(self.out_dir / "checkpoint.pt")
+            if c.time_budget_s is not None and self.elapsed >= c.time_budget_s:
+                log.info("time budget of %.0f s reached at step %d of %d", c.time_budget_s, self.step,
+                         c.iterations)
+                break
         bar.close()
         if self.test_cameras and (not self.history or self.history[-1]["step"] != self.step):
             self._record_eval()
