@@ -27,10 +27,11 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "fox")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--downscale", type=float, default=8.0)
-    ap.add_argument("--iterations", type=int, default=3000)
+    ap.add_argument("--iterations", type=int, default=1000)
     ap.add_argument("--time-budget", type=float, default=600.0, help="seconds of training before stopping")
     ap.add_argument("--eval-every", type=int, default=500)
-    ap.add_argument("--init-points", type=int, default=20_000)
+    ap.add_argument("--init-points", type=int, default=10_000)
+    ap.add_argument("--init-radius", type=float, default=0.5, help="random init within this x camera distance")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--sh-degree", type=int, default=3)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -58,6 +59,7 @@ def main(argv: list | None = None) -> int:
     t_load = time.perf_counter() - t0
     H, W = train_i[0].shape[:2]
     cfg = ReconConfig.scaled(args.iterations, sh_degree=args.sh_degree, init_random_points=args.init_points,
+                             init_radius_fraction=args.init_radius,
                              max_gaussians=args.max_gaussians, eval_every=args.eval_every,
                              time_budget_s=args.time_budget, progress=sys.stderr.isatty())
     tr = Trainer(train_c, train_i, cfg, device=args.device, out_dir=args.out, test_cameras=test_c,

@@ -46,6 +46,7 @@ class ReconConfig:
     random_background: bool = False
     init_random_points: int = 100_000
     init_min_view_fraction: float = 0.5
+    init_radius_fraction: float = 1.0      # random init within this x the camera distance
     init_opacity: float = 0.1
     extent: Optional[float] = None         # None: from the cameras (INRIA's rule)
     seed: int = 0

@@ -86,7 +86,7 @@ class Trainer:
     def _initial_scene(self, points: Optional[torch.Tensor], colors: Optional[torch.Tensor]) -> GaussianScene:
         if points is None:
             pts = points_in_views(self.cameras, self.cfg.init_random_points, self.cfg.init_min_view_fraction,
-                                  generator=self.gen)
+                                  generator=self.gen, radius_fraction=self.cfg.init_radius_fraction)
             colors = torch.rand(pts.shape, generator=self.gen)
             log.info("random initialisation: %d points seen by >= %.0f%% of the views", len(pts),
                      100 * self.cfg.init_min_view_fraction)
