@@ -149,7 +149,8 @@ project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
   auto v_viewmat = at::zeros({4, 4}, means.options());
   auto v_K = at::zeros({3, 3}, means.options());
   if (camera_grad && n > 0) {
-    const auto s = v_cam.sum(0);
+    // Summed in double: the per-Gaussian terms cancel strongly.
+    const auto s = v_cam.sum(0, /*keepdim=*/false, at::kDouble).to(means.scalar_type());
     v_viewmat.view(-1).narrow(0, 0, 12).copy_(s.narrow(0, 0, 12));
     v_K.view(-1)[0] = s[12];
     v_K.view(-1)[4] = s[13];

@@ -6,7 +6,9 @@
 //   width, height, tile_size, alpha_max, alpha_threshold, t_min
 //   -> color [H,W,C] = sum_i c_i a_i T_i + T_final * background,
 //      alpha [H,W] = 1 - T_final, depth [H,W] = sum_i z_i a_i T_i (not normalised),
-//      n_contrib [H,W] int32: entries of the pixel's tile list up to its last contributor.
+//      n_contrib [H,W] int32: entries of the pixel's tile list up to its last contributor,
+//      transmittance [H,W] = T_final, kept apart from alpha because 1 - (1 - T) loses
+//      T's relative precision in float32 where pixels saturate.
 // rasterize_backward: gradients w.r.t. means2d, conics, opacities, colors, depths, background
 //   from v_color [H,W,C], v_alpha [H,W], v_depth [H,W]; walks each list back to front.
 // rasterize_backward_colors: the features-only backward: gradients w.r.t. colors and
@@ -29,7 +31,7 @@ void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Te
                          const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids,
                          const RasterArgs& a);
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& colors, const at::Tensor& depths, const std::optional<at::Tensor>& background,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
@@ -41,7 +43,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& depths, const std::optional<at::Tensor>& background,
                        const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width,
                        int64_t height, int64_t tile_size, double alpha_max, double alpha_threshold,
-                       double t_min, const at::Tensor& alpha, const at::Tensor& n_contrib,
+                       double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const at::Tensor& v_alpha,
                        const at::Tensor& v_depth);
 

@@ -18,13 +18,14 @@ def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_of
                  gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min):
     c = colors.shape[1]
     return (colors.new_empty(height, width, c), colors.new_empty(height, width),
-            colors.new_empty(height, width), colors.new_empty(height, width, dtype=torch.int32))
+            colors.new_empty(height, width), colors.new_empty(height, width, dtype=torch.int32),
+            colors.new_empty(height, width))
 
 
 @torch.library.register_fake("tiger::rasterize_backward")
 def _raster_backward_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
                           gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
-                          alpha, n_contrib, v_color, v_alpha, v_depth):
+                          transmittance, n_contrib, v_color, v_alpha, v_depth):
     return (torch.empty_like(means2d), torch.empty_like(conics), torch.empty_like(opacities),
             torch.empty_like(colors), torch.empty_like(depths), colors.new_empty(colors.shape[1]))
 
@@ -40,19 +41,19 @@ def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gauss
 def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
      *args) = inputs
-    _, alpha, _, n_contrib = output
+    _, _, _, n_contrib, transmittance = output
     ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
-                          gaussian_ids, alpha, n_contrib)
+                          gaussian_ids, transmittance, n_contrib)
     ctx.args = tuple(args)
-    ctx.mark_non_differentiable(n_contrib)
+    ctx.mark_non_differentiable(n_contrib, transmittance)
 
 
-def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count):
-    (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids, alpha,
+def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
+    (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids, trans,
      n_contrib) = ctx.saved_tensors
     need = ctx.needs_input_grad
     if v_color is None:
-        v_color = torch.zeros(alpha.shape + colors.shape[1:], dtype=colors.dtype,
+        v_color = torch.zeros(trans.shape + colors.shape[1:], dtype=colors.dtype,
                               device=colors.device)
     geometry = need[0] or need[1] or need[2] or need[4]
     if not geometry:
@@ -61,11 +62,11 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count):
             v_color.contiguous())
         return (None, None, None, v_colors if need[3] else None, None,
                 v_bg if need[5] else None) + (None,) * 8
-    v_alpha = torch.zeros_like(alpha) if v_alpha is None else v_alpha
-    v_depth = torch.zeros_like(alpha) if v_depth is None else v_depth
+    v_alpha = torch.zeros_like(trans) if v_alpha is None else v_alpha
+    v_depth = torch.zeros_like(trans) if v_depth is None else v_depth
     g = torch.ops.tiger.rasterize_backward(
         means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
-        *ctx.args, alpha, n_contrib, v_color.contiguous(), v_alpha.contiguous(),
+        *ctx.args, trans, n_contrib, v_color.contiguous(), v_alpha.contiguous(),
         v_depth.contiguous())
     v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg = g
     return (v_means2d if need[0] else None, v_conics if need[1] else None,

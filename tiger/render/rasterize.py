@@ -167,7 +167,7 @@ def rasterize_gaussians(
             means2d.detach(), conics.detach(), opac.detach(), depths.detach(), radii, width,
             height, int(tile_size), float(alpha_threshold))
 
-    color, alpha, depth_accum, _ = torch.ops.tiger.rasterize(
+    color, alpha, depth_accum, _, _ = torch.ops.tiger.rasterize(
         means2d, conics, opac, feats, depths,
         background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
         width, height, int(tile_size), float(alpha_max), float(alpha_threshold), float(t_min))
