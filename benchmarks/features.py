@@ -197,6 +197,7 @@ def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, 
 
     def row(stage, seconds, note=""):
         rows.append({"stage": stage, "seconds/image": seconds, "note": note})
+        print(f"  {stage}: {seconds:.3f} s  {note}", flush=True)  # partial results survive a time-out
 
     clip_in = resize_for_patches(image[None], clip_long)[0]
     clip(clip_in[None])  # warm-up
@@ -211,10 +212,13 @@ def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, 
                                                 guidance_normalizer=norm), dev)
     row("FeatUp JBU", t, f"16x stack + resize to {out_hw}")
 
-    cfg = ImplicitConfig(steps=steps, n_views=n_views)
-    up, t_fit = timed(lambda: ImplicitUpsampler.fit(clip_in, clip, cfg), dev)
-    hr, t_eval = timed(lambda: up(out_hw), dev)
-    row("FeatUp implicit", t_fit + t_eval, f"fit {t_fit:.2f}s ({steps} steps, {n_views} views) + eval {t_eval:.2f}s")
+    if steps > 0:
+        cfg = ImplicitConfig(steps=steps, n_views=n_views)
+        up, t_fit = timed(lambda: ImplicitUpsampler.fit(clip_in, clip, cfg), dev)
+        hr, t_eval = timed(lambda: up(out_hw), dev)
+        row("FeatUp implicit", t_fit + t_eval, f"fit {t_fit:.2f}s ({steps} steps, {n_views} views) + eval {t_eval:.2f}s")
+    else:
+        hr = hr_jbu
 
     lenient = SamMaskConfig(points_per_batch=points_per_batch, pred_iou_thresh=-1e9, stability_score_thresh=0.0)
     gen = SamMaskGenerator(sam_model, lenient)
@@ -236,13 +240,14 @@ def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, 
     feats = F.normalize(hr.float(), dim=0).permute(1, 2, 0).reshape(-1, d)
     (_, means, counts), t_ma = timed(lambda: masked_average(feats, ids, sm.masks.shape[0]), dev)
     row("id map + masked average", t_ids + t_ma, f"{sm.masks.shape[0]} masks")
-    acc = StreamingPCA(d, 64)
+    acc = StreamingPCA(d, min(64, d))
     _, t_pca = timed(lambda: acc.update(torch.cat([means, feats[ids < 0]]),
                                         torch.cat([counts.float(), torch.ones(int((ids < 0).sum()), device=dev)])), dev)
     row("PCA statistics", t_pca)
     total_fast = sum(r["seconds/image"] for r in rows if r["stage"] != "FeatUp implicit")
     total_quality = sum(r["seconds/image"] for r in rows if r["stage"] != "FeatUp JBU")
-    row("TOTAL (implicit, paper)", total_quality)
+    if steps > 0:
+        row("TOTAL (implicit, paper)", total_quality)
     row("TOTAL (JBU, fast)", total_fast)
     return rows
 
@@ -253,8 +258,9 @@ def main() -> None:
     ap.add_argument("--models", choices=["tiny", "full"], default=None)
     ap.add_argument("--image", default="1080x1920", help="HxW of the input image")
     ap.add_argument("--out-long-side", type=int, default=None, help="feature-map long side (default: 480 CPU, 1920 GPU)")
-    ap.add_argument("--clip-long-side", type=int, default=448)
-    ap.add_argument("--steps", type=int, default=None, help="implicit FeatUp steps (default 1200 GPU, 30 CPU)")
+    ap.add_argument("--clip-long-side", type=int, default=None, help="MaskCLIP input long side (448 GPU, 224 CPU)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="implicit FeatUp steps (default 1200 GPU, 10 CPU; 0 skips the implicit upsampler)")
     ap.add_argument("--views", type=int, default=None, help="implicit FeatUp jittered views (default 3000 GPU, 20 CPU)")
     ap.add_argument("--skip-ops", action="store_true")
     ap.add_argument("--skip-pipeline", action="store_true")
@@ -272,9 +278,9 @@ def main() -> None:
     if not args.skip_ops:
         print_table(bench_ops(dev, *out_hw), "ops (median seconds; errors vs float64)")
     if not args.skip_pipeline:
-        rows = bench_pipeline(dev, kind, dtype, (ih, iw), out_hw, args.clip_long_side,
-                              args.steps or (1200 if cuda else 30), args.views or (3000 if cuda else 20),
-                              256 if cuda else 64)
+        steps = args.steps if args.steps is not None else (1200 if cuda else 10)
+        rows = bench_pipeline(dev, kind, dtype, (ih, iw), out_hw, args.clip_long_side or (448 if cuda else 224),
+                              steps, args.views or (3000 if cuda else 20), 256 if cuda else 64)
         print_table(rows, f"per-image stage times ({kind} models, {dtype})")
 
 

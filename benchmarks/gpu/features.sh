@@ -17,7 +17,7 @@ export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
   timeout 240 "$PY" -m pytest -q -m cuda tests/language tests/models -p no:cacheprovider 2>&1 | tail -25
   echo "== benchmark: feature maps at 1920x1080 (full resolution)"
   timeout 420 "$PY" benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 1920 2>&1
-  echo "== benchmark: feature maps at 960x540 (pipeline only)"
-  timeout 240 "$PY" benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 960 --skip-ops 2>&1
+  echo "== benchmark: feature maps at 960x540 (pipeline with JBU only)"
+  timeout 240 "$PY" benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 960 --skip-ops --steps 0 2>&1
   echo "== done: $(date -u)"
 } 2>&1 | tee "$LOG"
