@@ -157,3 +157,22 @@ def test_relevancy_maps_render_and_pictures(tmp_path):
     assert mug.sum() > 10 and m["cosine"][0][mug].median() > 0.9
     paths = write_relevancy_pictures(ls.scene, ls.cameras, "red mug", tmp_path, encoder=ls.encoder)
     assert len(paths) == 2 and all(p.stat().st_size > 1000 for p in paths)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_retrieve_on_cuda_matches_cpu():
+    import tiger
+
+    if not tiger.ops.cuda_enabled():
+        pytest.skip("tiger built without CUDA kernels")
+    ls = _scene_with_oracle_lang()
+    cpu = retrieve(ls.scene, "green apple", encoder=ls.encoder, score="relevancy")
+    gpu_scene = types.SimpleNamespace(**{k: (v.cuda() if torch.is_tensor(v) else v) for k, v in vars(ls.scene).items()})
+    for dt in (torch.float32, torch.float16):
+        gpu_scene.lang = ls.scene.lang.to("cuda", dt)
+        gpu = retrieve(gpu_scene, "green apple", encoder=ls.encoder, score="relevancy")
+        assert gpu.scores.is_cuda
+        torch.testing.assert_close(gpu.cosine.cpu(), cpu.cosine, atol=2e-3 if dt == torch.float16 else 1e-5, rtol=0)
+        assert torch.equal(gpu.mask.cpu(), cpu.mask)
+        torch.testing.assert_close(gpu.center.cpu(), cpu.center, atol=1e-5, rtol=0)
