@@ -30,10 +30,14 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
     (out / "keep.txt").write_text("x")
     r = _run("demo", "--out", str(out), "--width", "64", "--height", "48", "--views", "1")
     assert r.returncode == 2 and "--force" in r.stderr and "Traceback" not in r.stderr
-    r = _run("demo", "--out", str(out), "--width", "64", "--height", "48", "--views", "1", "--force")
+    r = _run("demo", "--out", str(out), "--width", "64", "--height", "48", "--views", "1",
+             "--steps", "40", "--queries", "ball", "--force")
     assert r.returncode == 0, r.stderr
     for kind in ("color", "depth", "alpha", "features_pca"):
         assert (out / f"view0_{kind}.png").stat().st_size > 100
+    for name in ("highlight_ball.png", "retrieved_ball.png", "relevancy/ball_view0.png"):
+        assert (out / name).stat().st_size > 100, name
+    assert "-> ball" in r.stdout  # the query retrieved the ball
 
 
 def test_bad_arguments_give_one_line_error():

@@ -81,9 +81,13 @@ def render_views(scene: LabelledGaussians, features: torch.Tensor, out: Path, wi
 
 
 
+DEFAULT_QUERIES = ("mug", "ball", "plant")
+
+
 def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
-             n_views: int = 4, density: float = 1.0) -> dict:
-    """Run the demo end to end; returns the timer rows and written files."""
+             n_views: int = 4, density: float = 1.0, queries=DEFAULT_QUERIES,
+             models: str | None = None, steps: int = 300) -> dict:
+    """Run the demo end to end: build, render, language-embed, query. Returns what it did."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     timer = StageTimer()
@@ -94,5 +98,18 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
     counts = {n: int((scene.labels == i).sum()) for i, n in enumerate(scene.names)}
     print(f"  scene: {len(scene)} Gaussians " + ", ".join(f"{k}={v}" for k, v in counts.items()))
     views = render_views(scene, feats, out, width, height, n_views, timer)
+    found = []
+    if queries:
+        from .language import embed_and_query
+
+        found = embed_and_query(scene, out, list(queries), timer, models=models, steps=steps,
+                                picture_size=(width, height))
     print("\nstage timings\n" + timer.summary())
-    return {"timer": timer.rows, "views": views, "scene": scene}
+    if found:
+        print("\nqueries")
+        for r in found:
+            print(f"  {r['query']!r:>14} -> {r['object']:<8} {r['selected']:6d} Gaussians, "
+                  f"precision {r['precision']:.3f}, recall {r['recall']:.3f}")
+    print(f"\npictures in {out}/: view*_{{color,depth,alpha,features_pca}}.png, "
+          "relevancy/*.png, highlight_*.png, retrieved_*.png")
+    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found}

@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from tiger.render.views import orbit_viewmats as _orbit
+from tiger.render.views import pinhole_K
+
 __all__ = ["LabelledGaussians", "tabletop_scene", "orbit_viewmats", "pinhole_K"]
 
 
@@ -157,27 +160,7 @@ def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledGaussians:
     return LabelledGaussians.cat(parts, names)
 
 
-def pinhole_K(width: int, height: int, fov_y_deg: float = 45.0) -> Tensor:
-    """[3,3] intrinsics with the given vertical field of view, principal point at the centre."""
-    f = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
-    return torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-
-
-def orbit_viewmats(n: int, radius: float = 2.7, height: float = -1.3,
-                   target=(0.0, -0.1, 0.0), start_deg: float = 20.0) -> list[Tensor]:
-    """World→camera [4,4] matrices (OpenCV axes) on a circle around ``target``, world up = -y."""
-    out = []
-    tgt = torch.tensor(target)
-    for i in range(n):
-        a = math.radians(start_deg) + 2 * math.pi * i / n
-        eye = torch.tensor([radius * math.sin(a), height, -radius * math.cos(a)])
-        f = tgt - eye
-        f = f / f.norm()
-        r = torch.linalg.cross(f, torch.tensor([0.0, -1.0, 0.0]))
-        r = r / r.norm()
-        d = torch.linalg.cross(f, r)
-        V = torch.eye(4)
-        V[:3, :3] = torch.stack([r, d, f])
-        V[:3, 3] = -V[:3, :3] @ eye
-        out.append(V)
-    return out
+def orbit_viewmats(n: int, start_deg: float = 20.0) -> list[Tensor]:
+    """The demo's views: ``n`` cameras circling the table, looking slightly down at it."""
+    return _orbit(n, center=(0.0, -0.1, 0.0), radius=3.0, elevation_deg=25.7,
+                  start_deg=start_deg, up=(0.0, -1.0, 0.0))
