@@ -92,9 +92,13 @@ def test_resume_after_interruption(models, tmp_path, monkeypatch):
     monkeypatch.setattr(extract_mod, "compute_image_features", flaky)
     extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
     assert calls == []  # a finished run does nothing again
-    # another configuration is recomputed, not mixed with the old cache
-    monkeypatch.setattr(extract_mod, "compute_image_features", real)
+    # a new PCA size refits the PCA from the cache without recomputing any image
+    fs3 = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(pca_dim=3), progress=False)
+    assert calls == [] and fs3.load(fs3.names[0])[0].shape[-1] == 3
+    # another stage-1 setting is recomputed, not mixed with the old cache
     extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(unmasked="ignore"), progress=False)
+    assert len(calls) == 3
+    monkeypatch.setattr(extract_mod, "compute_image_features", real)
 
 
 def test_paths_implicit_and_no_sam(models, tmp_path):
