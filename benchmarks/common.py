@@ -1,0 +1,105 @@
+"""The standard benchmark scene and camera, shared by every rendering benchmark.
+
+Scene: N Gaussians with means uniform in [-1, 1]^3, scales log-uniform in [0.003, 0.03]
+(world units), uniformly random rotations (normalised Gaussian quaternions), opacities
+uniform in [0.05, 0.95], colours uniform in [0, 1] and 64-d features standard normal.
+Camera: 3.5 units from the origin looking at it, vertical field of view 50 degrees,
+pinhole with the principal point at the image centre, OpenCV axes.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+SCALE_RANGE = (0.003, 0.03)
+OPACITY_RANGE = (0.05, 0.95)
+CAMERA_DISTANCE = 3.5
+FOV_Y_DEG = 50.0
+
+
+def standard_scene(n: int, channels: int = 3, *, device: str = "cpu",
+                   dtype: torch.dtype = torch.float32, seed: int = 0) -> dict[str, Tensor]:
+    """Means [N,3], quats [N,4] (w,x,y,z), scales [N,3], opacities [N], colors [N,C].
+
+    channels: 3 -> RGB uniform in [0,1]; 64 -> standard-normal features; otherwise the
+    first 3 channels are RGB and the rest standard-normal features (C = 67 is RGB + 64-d).
+    Drawn on the CPU in float64 from ``seed`` so every device and dtype sees the same scene.
+    """
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    means = torch.rand(n, 3, generator=g, dtype=f64) * 2 - 1
+    quats = torch.randn(n, 4, generator=g, dtype=f64)
+    quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    lo, hi = math.log(SCALE_RANGE[0]), math.log(SCALE_RANGE[1])
+    scales = torch.exp(torch.rand(n, 3, generator=g, dtype=f64) * (hi - lo) + lo)
+    opac = torch.rand(n, generator=g, dtype=f64) * (OPACITY_RANGE[1] - OPACITY_RANGE[0]) + OPACITY_RANGE[0]
+    if channels == 64:
+        colors = torch.randn(n, 64, generator=g, dtype=f64)
+    else:
+        rgb = torch.rand(n, min(channels, 3), generator=g, dtype=f64)
+        feats = torch.randn(n, max(channels - 3, 0), generator=g, dtype=f64)
+        colors = torch.cat([rgb, feats], dim=1)
+    out = {"means": means, "quats": quats, "scales": scales, "opacities": opac, "colors": colors}
+    return {k: v.to(device=device, dtype=dtype) for k, v in out.items()}
+
+
+def standard_camera(width: int, height: int, *, device: str = "cpu",
+                    dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """World->camera viewmat [4,4] (camera on -z at CAMERA_DISTANCE, looking at the origin,
+    +y down) and intrinsics K [3,3] with a 50 degree vertical field of view."""
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[2, 3] = CAMERA_DISTANCE  # camera at (0, 0, -d): p_cam = p_world + (0, 0, d)
+    fy = 0.5 * height / math.tan(math.radians(FOV_Y_DEG) / 2)
+    K = torch.tensor([[fy, 0.0, width / 2], [0.0, fy, height / 2], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64)
+    return viewmat.to(device=device, dtype=dtype), K.to(device=device, dtype=dtype)
+
+
+def rel_err(a: Tensor, b: Tensor) -> float:
+    """Norm-wise relative error ||a - b|| / ||b|| in float64."""
+    a, b = a.detach().double(), b.detach().double().to(a.device)
+    return float((a - b).norm() / b.norm().clamp_min(1e-300))
+
+
+def cuda_time_ms(fn: Callable[[], Optional[object]], iters: int = 20, warmup: int = 3,
+                 setup: Optional[Callable[[], object]] = None) -> float:
+    """Median wall time of ``fn`` in ms from CUDA events, after ``warmup`` calls.
+    ``setup`` (untimed) runs before each call and its result is passed to ``fn``."""
+    times = []
+    for i in range(warmup + iters):
+        arg = setup() if setup is not None else None
+        torch.cuda.synchronize()
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn(arg) if setup is not None else fn()
+        end.record()
+        torch.cuda.synchronize()
+        if i >= warmup:
+            times.append(start.elapsed_time(end))
+    times.sort()
+    return times[len(times) // 2]
+
+
+def cpu_time_ms(fn: Callable[[], object], iters: int = 3, warmup: int = 1) -> float:
+    """Median wall time of ``fn`` in ms (CPU)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    times.sort()
+    return times[len(times) // 2]
+
+
+def table(rows: list[dict], cols: list[str]) -> str:
+    """Plain-text table of ``rows`` (dicts) with the given column order."""
+    cells = [[str(r.get(c, "")) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(x[i]) for x in cells)) if cells else len(c) for i, c in enumerate(cols)]
+    line = lambda xs: "  ".join(x.rjust(w) for x, w in zip(xs, widths))  # noqa: E731
+    return "\n".join([line(cols), line(["-" * w for w in widths])] + [line(x) for x in cells])

@@ -1,0 +1,83 @@
+#!/usr/bin/env bash
+# GPU check of the CUDA rendering core, in one call on a machine with one GPU:
+#   1. build tiger with CUDA (pip install --no-build-isolation --no-deps -e .)
+#   2. the test suite on CUDA (CUDA vs CPU vs float64 reference, gradcheck in float64)
+#   3. compute-sanitizer memcheck (all kernels) and racecheck (rasterizer) on a small case
+#   4. the benchmark against gsplat 1.5.3 (if its wheel is given) and the error sweep
+# Results go under $OUT (check.log, tests.log, sanitizer.log, bench.txt, bench.json).
+# Usage, from the repo root:  OUT=/tmp/out bash benchmarks/gpu/check.sh [WHEEL_DIR] [EIGEN_DEB]
+# Environment: CHECK_STEPS (default "build tests sanitizer bench"), BENCH_ARGS, PYTEST_ARGS.
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+OUT="${OUT:-/tmp/tiger-gpu-check}"
+mkdir -p "$OUT"
+WHEELS="${1:-}"
+EIGEN_DEB="${2:-}"
+STEPS="${CHECK_STEPS:-build tests sanitizer bench}"
+PY="${PYTHON:-python3}"
+export PYTHONUNBUFFERED=1
+LOG="$OUT/check.log"
+status=0
+say() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$LOG"; }
+has() { [[ " $STEPS " == *" $1 "* ]]; }
+
+say "GPU: $(nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>&1)"
+say "python: $($PY -c 'import sys, torch; print(sys.version.split()[0], torch.__version__, torch.version.cuda)')"
+say "nvcc: $(nvcc --version | tail -1)"
+
+if [ -n "$WHEELS" ] && ls "$WHEELS"/*.whl >/dev/null 2>&1; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHEELS"/*.whl \
+    && export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
+  say "wheels installed: $(ls "$WHEELS")"
+fi
+
+if has build; then
+  CMAKE_EXTRA=()
+  if ! [ -f /usr/include/eigen3/Eigen/Core ] && [ -n "$EIGEN_DEB" ]; then
+    dpkg -x "$EIGEN_DEB" /tmp/eigen
+    CMAKE_EXTRA+=(--config-settings=cmake.define.Eigen3_DIR=/tmp/eigen/usr/share/eigen3/cmake)
+  fi
+  say "build (CUDA arch ${TIGER_CHECK_ARCHS:-90})"
+  t0=$(date +%s)
+  if ! CMAKE_BUILD_PARALLEL_LEVEL=$(nproc) $PY -m pip install --no-build-isolation --no-deps -e . \
+      --config-settings=cmake.define.CMAKE_CUDA_ARCHITECTURES="${TIGER_CHECK_ARCHS:-90}" \
+      "${CMAKE_EXTRA[@]}" > "$OUT/build.log" 2>&1; then
+    say "BUILD FAILED"; tail -60 "$OUT/build.log" | tee -a "$LOG"; exit 1
+  fi
+  say "build ok in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
+fi
+
+if has tests; then
+  say "tests on CUDA (pytest -m cuda)"
+  $PY -m pytest -q -m "cuda and not slow" -p no:cacheprovider ${PYTEST_ARGS:-} tests > "$OUT/tests.log" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  say "tests rc=$rc: $(tail -1 "$OUT/tests.log")"
+  grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -30 | tee -a "$LOG"
+fi
+
+if has sanitizer; then
+  SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
+  say "compute-sanitizer memcheck (every kernel, caching allocator off)"
+  PYTORCH_NO_CUDA_MEMORY_CACHING=1 "$SAN" --tool memcheck --error-exitcode 99 \
+    $PY benchmarks/gpu/sanitize_case.py > "$OUT/sanitizer.log" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  say "memcheck rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
+  say "compute-sanitizer racecheck (rasterizer kernels)"
+  "$SAN" --tool racecheck --error-exitcode 99 --kernel-name regex:'forward_kernel|backward_kernel|backward_colors_kernel' \
+    $PY benchmarks/gpu/sanitize_case.py >> "$OUT/sanitizer.log" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  say "racecheck rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
+fi
+
+if has bench; then
+  say "benchmark (gsplat JIT-compiles on first use)"
+  export MAX_JOBS="${MAX_JOBS:-$(nproc)}" TORCH_CUDA_ARCH_LIST="${TORCH_CUDA_ARCH_LIST:-9.0}"
+  $PY benchmarks/gpu/rasterize_vs_gsplat.py --json "$OUT/bench.json" ${BENCH_ARGS:-} \
+    > "$OUT/bench.txt" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  say "benchmark rc=$rc"
+  sed -n '/^== /,$p' "$OUT/bench.txt" | tee -a "$LOG"
+  [ $rc -ne 0 ] && tail -30 "$OUT/bench.txt" | tee -a "$LOG"
+fi
+say "done, status=$status"
+exit $status
