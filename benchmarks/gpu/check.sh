@@ -49,7 +49,7 @@ fi
 
 if has tests; then
   say "tests on CUDA (pytest -m cuda)"
-  $PY -m pytest -q -m "cuda and not slow" -p no:cacheprovider ${PYTEST_ARGS:-} tests > "$OUT/tests.log" 2>&1
+  $PY -m pytest -q -m "cuda and not slow" -p no:cacheprovider --timeout 600 ${PYTEST_ARGS:-} tests > "$OUT/tests.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "tests rc=$rc: $(tail -1 "$OUT/tests.log")"
   grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -30 | tee -a "$LOG"
@@ -58,12 +58,12 @@ fi
 if has sanitizer; then
   SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
   say "compute-sanitizer memcheck (every kernel, caching allocator off)"
-  PYTORCH_NO_CUDA_MEMORY_CACHING=1 "$SAN" --tool memcheck --error-exitcode 99 \
+  PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout "${SANITIZER_TIMEOUT:-300}" "$SAN" --tool memcheck --error-exitcode 99 \
     $PY benchmarks/gpu/sanitize_case.py > "$OUT/sanitizer.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "memcheck rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
   say "compute-sanitizer racecheck (rasterizer kernels)"
-  "$SAN" --tool racecheck --error-exitcode 99 --kernel-name regex:'forward_kernel|backward_kernel|backward_colors_kernel' \
+  timeout "${SANITIZER_TIMEOUT:-300}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name regex:'forward_kernel|backward_kernel|backward_colors_kernel' \
     $PY benchmarks/gpu/sanitize_case.py >> "$OUT/sanitizer.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "racecheck rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
@@ -72,7 +72,7 @@ fi
 if has bench; then
   say "benchmark (gsplat JIT-compiles on first use)"
   export MAX_JOBS="${MAX_JOBS:-$(nproc)}" TORCH_CUDA_ARCH_LIST="${TORCH_CUDA_ARCH_LIST:-9.0}"
-  $PY benchmarks/gpu/rasterize_vs_gsplat.py --json "$OUT/bench.json" ${BENCH_ARGS:-} \
+  timeout "${BENCH_TIMEOUT:-900}" $PY benchmarks/gpu/rasterize_vs_gsplat.py --json "$OUT/bench.json" ${BENCH_ARGS:-} \
     > "$OUT/bench.txt" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "benchmark rc=$rc"
