@@ -63,7 +63,7 @@ if has sanitizer; then
   rc=$?; [ $rc -ne 0 ] && status=1
   say "memcheck rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
   say "compute-sanitizer racecheck (rasterizer kernels)"
-  timeout "${SANITIZER_TIMEOUT:-300}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name regex:'forward_kernel|backward_kernel|backward_colors_kernel' \
+  timeout "${SANITIZER_TIMEOUT:-300}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=raster_cuda \
     $PY benchmarks/gpu/sanitize_case.py >> "$OUT/sanitizer.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "racecheck rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"

@@ -158,7 +158,7 @@ def test_tens_of_millions_of_intersections_64bit_offsets():
     counts = torch.bincount(ids.long(), minlength=s["means"].shape[0])
     assert int(counts.sum()) == m and bool((counts[r[:, 0] == 0] == 0).all())
     out = ops.rasterize(m2, cn, op, s["colors"], d, None, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
-    assert bool(torch.isfinite(out[0]).all()) and float(out[1].mean()) > 0.5
+    assert bool(torch.isfinite(out[0]).all()) and float(out[1].mean()) > 0.2
 
 
 def test_runs_on_the_current_stream():
