@@ -121,11 +121,14 @@ def speed_table(args, have_gsplat):
     return rows
 
 
+def fmt_num(v: float) -> str:
+    if v != v or v == 0.0:
+        return f"{v:.3f}" if v == v else "nan"
+    return f"{v:.2e}" if abs(v) < 0.01 else f"{v:.3f}"
+
+
 def fmt_rows(rows):
-    out = []
-    for r in rows:
-        out.append({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in r.items()})
-    return out
+    return [{k: (fmt_num(v) if isinstance(v, float) else v) for k, v in r.items()} for r in rows]
 
 
 # ------------------------------------------------------------------------------------------
@@ -232,8 +235,8 @@ def stage_table(args):
                "raster_fwd": cuda_time_ms(rs, it), "raster_bwd": cuda_time_ms(rb, it),
                "feat_bwd": cuda_time_ms(rc, it), "project_bwd": cuda_time_ms(pb, it)}
         knobs = {}
-        for env, vals in (("TIGER_FWD_CB", (64, 32)), ("TIGER_BWD_CB", (16, 32)),
-                          ("TIGER_COLORS_CB", (32, 16))):
+        for env, vals in (("TIGER_FWD_CB", (64, 32)), ("TIGER_BWD_CB", (64, 32)),
+                          ("TIGER_COLORS_CB", (64, 32))):
             fn = {"TIGER_FWD_CB": rs, "TIGER_BWD_CB": rb, "TIGER_COLORS_CB": rc}[env]
             for v in vals:
                 os.environ[env] = str(v)

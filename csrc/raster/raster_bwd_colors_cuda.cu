@@ -5,8 +5,8 @@ namespace tiger {
 namespace {
 using namespace raster_cuda;
 
-// A thread holds v_color and the gradient term per channel: blocks of 32 in float32
-// (TIGER_COLORS_CB=16 selects 16 for tuning), 8 in float64 (tests only).
+// A thread holds v_color per channel (gradient terms are reduced in pieces of 32): blocks
+// of 64 in float32 (TIGER_COLORS_CB=32 selects 32 for tuning), 8 in float64 (tests only).
 template <int CB_MAX, typename T>
 cudaError_t launch_colors_cb(const RasterLaunch<T>& a, const int32_t* n_contrib,
                              const T* v_color, T* v_colors, T* v_bg_tiles, cudaStream_t stream) {
@@ -35,9 +35,9 @@ cudaError_t rasterize_backward_colors_cuda_launch(const RasterLaunch<T>& a,
                                                   cudaStream_t stream) {
   if (a.tiles_x * a.tiles_y == 0) return cudaSuccess;
   if constexpr (std::is_same<T, float>::value) {
-    if (channel_block_max("TIGER_COLORS_CB", 32, 16) == 16)
-      return launch_colors_cb<16>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
-    return launch_colors_cb<32>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
+    if (channel_block_max("TIGER_COLORS_CB", 64, 32) == 32)
+      return launch_colors_cb<32>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
+    return launch_colors_cb<64>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
   } else {
     return launch_colors_cb<8>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
   }

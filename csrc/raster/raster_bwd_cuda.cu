@@ -5,9 +5,9 @@ namespace tiger {
 namespace {
 using namespace raster_cuda;
 
-// Per channel a thread holds v_color, the colour behind and the gradient term: blocks of
-// 16 channels in float32 keep it near 80 registers (TIGER_BWD_CB=32 selects 32 for tuning),
-// 8 in float64 (tests only).
+// Per channel a thread holds only v_color (the colour behind is one scalar): blocks of 64
+// channels in float32, so C <= 64 walks the list once (TIGER_BWD_CB=32 selects 32 for
+// tuning); 8 in float64 (tests only).
 template <int CB_MAX, typename T, typename TC>
 cudaError_t launch_backward_cb(const RasterLaunch<T>& a, const TC* colors,
                                const BackwardIO<T>& io, cudaStream_t stream) {
@@ -32,9 +32,9 @@ template <typename T, typename TC>
 cudaError_t launch_backward(const RasterLaunch<T>& a, const TC* colors, const BackwardIO<T>& io,
                             cudaStream_t stream) {
   if constexpr (std::is_same<T, float>::value) {
-    if (channel_block_max("TIGER_BWD_CB", 16, 32) == 32)
+    if (channel_block_max("TIGER_BWD_CB", 64, 32) == 32)
       return launch_backward_cb<32>(a, colors, io, stream);
-    return launch_backward_cb<16>(a, colors, io, stream);
+    return launch_backward_cb<64>(a, colors, io, stream);
   } else {
     return launch_backward_cb<8>(a, colors, io, stream);
   }

@@ -186,6 +186,20 @@ __device__ __forceinline__ void block_background_grad(T (&vals)[CB], int C, int 
     v_bg_tiles[int64_t(tile) * C + c0 + threadIdx.x] = s_bg[threadIdx.x];
 }
 
+// v_bg_tiles[tile, c0 + c] += sum over the block's pixels of t * vc[c], in pieces of 32.
+template <int CB, typename T>
+__device__ __forceinline__ void background_grads(const T (&vc)[CB], T t, int C, int c0, int tile,
+                                                 T* s_bg, T* v_bg_tiles) {
+  constexpr int PIECE = CB < 32 ? CB : 32;
+#pragma unroll
+  for (int h = 0; h < CB / PIECE; ++h) {
+    T vals[PIECE];
+#pragma unroll
+    for (int c = 0; c < PIECE; ++c) vals[c] = t * vc[h * PIECE + c];
+    block_background_grad<PIECE>(vals, C, c0 + h * PIECE, tile, s_bg, v_bg_tiles);
+  }
+}
+
 // ----------------------------------------------------------------------------------------
 // Full backward: back to front, dividing by (1 - alpha)
 // ----------------------------------------------------------------------------------------
@@ -198,6 +212,28 @@ struct BackwardIO {
   T *v_means2d, *v_conics, *v_opac, *v_colors, *v_depths, *v_bg_tiles;
 };
 
+// Adds w * vc[c] of every lane to v_colors[gid, c0 + c], reduced over the warp first:
+// pieces of at most 32 channels, so the temporaries stay at 32 registers for any CB.
+template <int CB, typename T>
+__device__ __forceinline__ void warp_add_color_grads(const T (&vc)[CB], T w, int64_t gid, int C,
+                                                     int c0, int lane, T* v_colors) {
+  constexpr int PIECE = CB < 32 ? CB : 32;
+#pragma unroll
+  for (int h = 0; h < CB / PIECE; ++h) {
+    T gc[PIECE];
+#pragma unroll
+    for (int c = 0; c < PIECE; ++c) gc[c] = w * vc[h * PIECE + c];
+    const T sc = cuda::warp_reduce_scatter<PIECE>(gc, lane);
+    const int ch = c0 + h * PIECE + lane;
+    if (lane < PIECE && ch < C) atomicAdd(&v_colors[gid * C + ch], sc);
+  }
+}
+
+// Back-to-front walk for channels [c0, c0 + CB). The colour behind each Gaussian enters
+// the gradient only through its dot product with v_color, so one scalar per pixel,
+// P = <v_color, colour behind>, replaces the per-channel state:
+//   dot_i = <v_color, c_i> - P,   P <- alpha_i <v_color, c_i> + (1 - alpha_i) P.
+// The geometry gradients are linear in dot, so channel blocks add their shares.
 template <int CB, typename T, typename TC>
 __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC* colors,
                                               const BackwardIO<T>& io, const TilePixel& p,
@@ -209,14 +245,11 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
   const int lane = threadIdx.x & 31;
   const int64_t start = a.tile_offsets[p.tile];
   const int64_t pix = int64_t(p.py) * a.width + p.px;
-  T Tfin = T(1), vA = T(0), vD = T(0);
+  T Tfin = T(1), vA = T(0), vD = T(0), P = T(0);
   int32_t cnt = 0;
-  T vc[CB], R[CB];
+  T vc[CB];
 #pragma unroll
-  for (int c = 0; c < CB; ++c) {
-    vc[c] = T(0);
-    R[c] = T(0);
-  }
+  for (int c = 0; c < CB; ++c) vc[c] = T(0);
   if (p.inside) {
     Tfin = io.trans[pix];
     cnt = io.count[pix];
@@ -226,15 +259,10 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
     for (int c = 0; c < CB; ++c)
       if (c0 + c < C) {
         vc[c] = io.v_color[pix * C + c0 + c];
-        if (io.bg) R[c] = io.bg[c0 + c];
+        if (io.bg) P += vc[c] * io.bg[c0 + c];
       }
   }
-  {
-    T bgv[CB];
-#pragma unroll
-    for (int c = 0; c < CB; ++c) bgv[c] = Tfin * vc[c];
-    block_background_grad<CB>(bgv, C, c0, p.tile, s_bg, io.v_bg_tiles);
-  }
+  background_grads<CB>(vc, Tfin, C, c0, p.tile, s_bg, io.v_bg_tiles);
   const T fx = T(p.px) + T(0.5), fy = T(p.py) + T(0.5);
   T Tr = Tfin, Rd = T(0);
   for (int64_t b1 = start + max_cnt; b1 > start; b1 -= BS) {
@@ -262,23 +290,20 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
         }
       }
       if (!__any_sync(kFullMask, contrib)) continue;
-      T gcol[CB];
       T geo[8];
 #pragma unroll
       for (int k = 0; k < 8; ++k) geo[k] = T(0);
+      T w = T(0);
       if (contrib) {
         const T ra = T(1) / (T(1) - alpha);
         const T Ti = Tr * ra;  // transmittance in front of this Gaussian
-        const T w = alpha * Ti;
+        w = alpha * Ti;
         const T* col = s_col + j * CB;
-        T dot = T(0);
+        T sdot = T(0);
 #pragma unroll
-        for (int c = 0; c < CB; ++c) {
-          gcol[c] = w * vc[c];
-          dot += vc[c] * (col[c] - R[c]);
-          R[c] = alpha * col[c] + (T(1) - alpha) * R[c];
-        }
-        T v_a = Ti * dot;
+        for (int c = 0; c < CB; ++c) sdot += vc[c] * col[c];
+        T v_a = Ti * (sdot - P);
+        P = alpha * sdot + (T(1) - alpha) * P;
         if (first) {
           v_a += vD * Ti * (g.z - Rd) + vA * Tfin * ra;
           Rd = alpha * g.z + (T(1) - alpha) * Rd;
@@ -294,13 +319,9 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
           geo[0] = -vq * T(2) * (g.ca * dx + g.cb * dy);
           geo[1] = -vq * T(2) * (g.cb * dx + g.cc * dy);
         }
-      } else {
-#pragma unroll
-        for (int c = 0; c < CB; ++c) gcol[c] = T(0);
       }
       const int64_t gid = s_id[j];
-      const T sc = cuda::warp_reduce_scatter<CB>(gcol, lane);
-      if (lane < CB && c0 + lane < C) atomicAdd(&io.v_colors[gid * C + c0 + lane], sc);
+      warp_add_color_grads<CB>(vc, w, gid, C, c0, lane, io.v_colors);
       const T sg = cuda::warp_reduce_scatter<8>(geo, lane);
       if (lane < 2) {
         atomicAdd(&io.v_means2d[2 * gid + lane], sg);
@@ -391,17 +412,10 @@ __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int3
         }
       }
       if (!__any_sync(kFullMask, contrib)) continue;
-      T gcol[CB];
-#pragma unroll
-      for (int c = 0; c < CB; ++c) gcol[c] = w * vc[c];
-      const T sc = cuda::warp_reduce_scatter<CB>(gcol, lane);
-      if (lane < CB && c0 + lane < C) atomicAdd(&v_colors[int64_t(s_id[j]) * C + c0 + lane], sc);
+      warp_add_color_grads<CB>(vc, w, s_id[j], C, c0, lane, v_colors);
     }
   }
-  T bgv[CB];
-#pragma unroll
-  for (int c = 0; c < CB; ++c) bgv[c] = Tr * vc[c];
-  block_background_grad<CB>(bgv, C, c0, p.tile, s_bg, v_bg_tiles);
+  background_grads<CB>(vc, Tr, C, c0, p.tile, s_bg, v_bg_tiles);
 }
 
 template <typename T, int CBM, int CBT>
