@@ -72,7 +72,7 @@ fi
 if has bench; then
   say "benchmark (gsplat JIT-compiles on first use)"
   export MAX_JOBS="${MAX_JOBS:-$(nproc)}" TORCH_CUDA_ARCH_LIST="${TORCH_CUDA_ARCH_LIST:-9.0}"
-  timeout "${BENCH_TIMEOUT:-900}" $PY benchmarks/gpu/rasterize_vs_gsplat.py --json "$OUT/bench.json" ${BENCH_ARGS:-} \
+  timeout "${BENCH_TIMEOUT:-900}" $PY benchmarks/gpu/rasterize_vs_gsplat.py --json "$OUT/bench.json" --profile "$OUT/profile.txt" ${BENCH_ARGS:-} \
     > "$OUT/bench.txt" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "benchmark rc=$rc"

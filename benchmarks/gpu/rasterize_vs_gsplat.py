@@ -207,10 +207,10 @@ def sweep_table(args, err_rows):
 
 def stage_table(args):
     ops = torch.ops.tiger
-    n, w, h = args.sizes[-1], args.width, args.height
+    w, h = args.width, args.height
     rows = []
     V, K = standard_camera(w, h, device="cuda")
-    for C in args.channels:
+    for n, C in [(n, C) for n in args.sizes for C in args.channels]:
         s = standard_scene(n, C, device="cuda")
         it = args.iters
         pr = lambda: ops.project_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], V, K,  # noqa: E731
@@ -231,7 +231,7 @@ def stage_table(args):
         pb = lambda: ops.project_gaussians_backward(s["means"], s["quats"], s["scales"],  # noqa: E731
                                                     s["opacities"], V, K, r, w, h, 0.3, False,
                                                     g[0], g[1], g[4], g[2], False)
-        row = {"C": C, "project": cuda_time_ms(pr, it), "bin+sort": cuda_time_ms(bn, it),
+        row = {"N": n, "C": C, "project": cuda_time_ms(pr, it), "bin+sort": cuda_time_ms(bn, it),
                "raster_fwd": cuda_time_ms(rs, it), "raster_bwd": cuda_time_ms(rb, it),
                "feat_bwd": cuda_time_ms(rc, it), "project_bwd": cuda_time_ms(pb, it)}
         knobs = {}
@@ -248,6 +248,33 @@ def stage_table(args):
         del s
         torch.cuda.empty_cache()
     return rows
+
+
+def profile_kernels(args, path: Path) -> None:
+    """Per-kernel GPU times of one forward+backward (torch.profiler), ours and gsplat's."""
+    from torch.profiler import ProfilerActivity, profile
+    w, h = args.width, args.height
+    V, K = standard_camera(w, h, device="cuda")
+    lines = []
+    for n, C in ((args.sizes[0], 3), (args.sizes[-1], 64)):
+        scene = standard_scene(n, C, device="cuda")
+        v = torch.randn(h, w, C, device="cuda")
+        for name, fn in (("ours", ours), ("gsplat", gsplat_render)):
+            s = leaves(scene, PARAMS)
+            try:
+                for _ in range(2):
+                    fn(s, V, K, w, h)[0].backward(v)
+                torch.cuda.synchronize()
+                with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                    fn(s, V, K, w, h)[0].backward(v)
+                    torch.cuda.synchronize()
+            except Exception as exc:  # gsplat may be missing
+                lines.append(f"{name} N={n} C={C}: {exc!r}")
+                continue
+            lines.append(f"== {name}: N={n} C={C} {w}x{h}, one forward+backward")
+            lines.append(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14,
+                                                   max_name_column_width=70))
+    path.write_text("\n".join(lines))
 
 
 def copy_bandwidth() -> float:
@@ -288,6 +315,7 @@ def main() -> None:
     p.add_argument("--no-gsplat", action="store_true")
     p.add_argument("--skip", default="", help="comma list of sections to skip: speed,error,sweep,stages")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--profile", type=Path, default=None, help="write per-kernel times here")
     args = p.parse_args()
     skip = set(filter(None, args.skip.split(",")))
     torch.backends.cuda.matmul.allow_tf32 = False
@@ -318,8 +346,8 @@ def main() -> None:
     if "stages" not in skip:
         st = stage_table(args)
         result["stages"] = st
-        sections.append((f"Our stages at N={args.sizes[-1]} ({args.width}x{args.height}), ms; "
-                         "channel-block knobs", st, None))
+        sections.append((f"Our stages ({args.width}x{args.height}), ms; channel-block knobs",
+                         st, None))
     if "speed" not in skip:
         sp = speed_table(args, have_gsplat)
         result["speed"] = sp
@@ -335,6 +363,8 @@ def main() -> None:
         result["sweep"] = sw
         sections.append((f"Time against error (N={args.sweep_n}, C=64, {args.width}x{args.height};"
                          " errors from the error table's case)", sw, None))
+    if args.profile:
+        profile_kernels(args, args.profile)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=1, default=float))

@@ -46,11 +46,11 @@ cudaError_t rasterize_backward_cuda_launch(const RasterLaunch<T>& a, const void*
                                            ColorStorage storage, const T* background,
                                            const T* trans, const int32_t* n_contrib,
                                            const T* v_color, const T* v_alpha, const T* v_depth,
-                                           T* v_means2d, T* v_conics, T* v_opacities, T* v_colors,
-                                           T* v_depths, T* v_bg_tiles, cudaStream_t stream) {
+                                           T* v_geom, T* v_colors, T* v_bg_tiles,
+                                           cudaStream_t stream) {
   if (a.tiles_x * a.tiles_y == 0) return cudaSuccess;
-  const BackwardIO<T> io{background, trans,     n_contrib,   v_color,  v_alpha,  v_depth,
-                         v_means2d,  v_conics,  v_opacities, v_colors, v_depths, v_bg_tiles};
+  const BackwardIO<T> io{background, trans,  n_contrib, v_color,   v_alpha,
+                         v_depth,    v_geom, v_colors,  v_bg_tiles};
   if constexpr (std::is_same<T, float>::value) {
     if (storage == ColorStorage::kHalf)
       return launch_backward<T>(a, static_cast<const __half*>(colors), io, stream);
@@ -64,7 +64,7 @@ cudaError_t rasterize_backward_cuda_launch(const RasterLaunch<T>& a, const void*
 #define TIGER_INSTANTIATE(T)                                                                   \
   template cudaError_t rasterize_backward_cuda_launch<T>(                                      \
       const RasterLaunch<T>&, const void*, ColorStorage, const T*, const T*, const int32_t*,   \
-      const T*, const T*, const T*, T*, T*, T*, T*, T*, T*, cudaStream_t);
+      const T*, const T*, const T*, T*, T*, T*, cudaStream_t);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
 #undef TIGER_INSTANTIATE

@@ -132,11 +132,8 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
     check_device(*t, means2d, op, name);
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto opts = means2d.options();
-  auto v_means2d = at::zeros({n, 2}, opts);
-  auto v_conics = at::zeros({n, 3}, opts);
-  auto v_opac = at::zeros({n}, opts);
+  auto v_geom = at::zeros({n, 8}, opts);  // u, v, conic a, b, c, opacity, depth, pad
   auto v_colors = at::zeros({n, C}, opts);
-  auto v_depths = at::zeros({n}, opts);
   auto v_bg_tiles = at::zeros({num_tiles(a), C}, opts);
   const auto dt = means2d.scalar_type();
   const auto m = means2d.contiguous(), c = conics.contiguous(), o = opacities.contiguous(),
@@ -151,12 +148,13 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
     check_ok(rasterize_backward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), va.data_ptr<T>(),
-                 vd.data_ptr<T>(), v_means2d.data_ptr<T>(), v_conics.data_ptr<T>(),
-                 v_opac.data_ptr<T>(), v_colors.data_ptr<T>(), v_depths.data_ptr<T>(),
+                 vd.data_ptr<T>(), v_geom.data_ptr<T>(), v_colors.data_ptr<T>(),
                  v_bg_tiles.data_ptr<T>(), c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
-  return {v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg_tiles.sum(0)};
+  return {v_geom.narrow(1, 0, 2).contiguous(), v_geom.narrow(1, 2, 3).contiguous(),
+          v_geom.select(1, 5).contiguous(), v_colors, v_geom.select(1, 6).contiguous(),
+          v_bg_tiles.sum(0)};
 }
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(

@@ -32,15 +32,17 @@ cudaError_t rasterize_forward_cuda_launch(const RasterLaunch<T>& a, const void* 
                                           T* out_alpha, T* out_depth, int32_t* out_count,
                                           T* out_trans, cudaStream_t stream);
 
-// Gradient outputs must be zero-filled (accumulated with atomics). v_colors is in T
-// whatever the colour storage; v_bg_tiles [tiles, C] holds one partial row per tile.
+// Gradient outputs must be zero-filled (accumulated with atomics). v_geom [N, 8] holds per
+// Gaussian d/d(u, v, conic a, b, c, opacity, depth) and a pad, so one warp's atomics for a
+// Gaussian hit one 32-byte sector; v_colors is in T whatever the colour storage;
+// v_bg_tiles [tiles, C] holds one partial row per tile.
 template <typename T>
 cudaError_t rasterize_backward_cuda_launch(const RasterLaunch<T>& a, const void* colors,
                                            ColorStorage storage, const T* background,
                                            const T* trans, const int32_t* n_contrib,
                                            const T* v_color, const T* v_alpha, const T* v_depth,
-                                           T* v_means2d, T* v_conics, T* v_opacities, T* v_colors,
-                                           T* v_depths, T* v_bg_tiles, cudaStream_t stream);
+                                           T* v_geom, T* v_colors, T* v_bg_tiles,
+                                           cudaStream_t stream);
 
 // Features-only backward (front to back, no division): v_colors [N,C] (zero-filled) and
 // v_bg_tiles [tiles, C].

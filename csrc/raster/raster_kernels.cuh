@@ -209,7 +209,8 @@ struct BackwardIO {
   const T* trans;
   const int32_t* count;
   const T *v_color, *v_alpha, *v_depth;
-  T *v_means2d, *v_conics, *v_opac, *v_colors, *v_depths, *v_bg_tiles;
+  T* v_geom;  // [N, 8]: u, v, conic a, b, c, opacity, depth, (pad): one 32-byte row
+  T *v_colors, *v_bg_tiles;
 };
 
 // Adds w * vc[c] of every lane to v_colors[gid, c0 + c], reduced over the warp first:
@@ -322,16 +323,9 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
       }
       const int64_t gid = s_id[j];
       warp_add_color_grads<CB>(vc, w, gid, C, c0, lane, io.v_colors);
+      // Lanes 0-6 add to one 32-byte row: a single sector per warp and Gaussian.
       const T sg = cuda::warp_reduce_scatter<8>(geo, lane);
-      if (lane < 2) {
-        atomicAdd(&io.v_means2d[2 * gid + lane], sg);
-      } else if (lane < 5) {
-        atomicAdd(&io.v_conics[3 * gid + lane - 2], sg);
-      } else if (lane == 5) {
-        atomicAdd(&io.v_opac[gid], sg);
-      } else if (lane == 6 && first) {
-        atomicAdd(&io.v_depths[gid], sg);
-      }
+      if (lane < (first ? 7 : 6)) atomicAdd(&io.v_geom[8 * gid + lane], sg);
     }
   }
 }
