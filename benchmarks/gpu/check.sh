@@ -13,7 +13,7 @@ OUT="${OUT:-/tmp/tiger-gpu-check}"
 mkdir -p "$OUT"
 WHEELS="${1:-}"
 EIGEN_DEB="${2:-}"
-STEPS="${CHECK_STEPS:-build tests sanitizer bench}"
+STEPS="${CHECK_STEPS:-build nocuda tests sanitizer bench}"
 PY="${PYTHON:-python3}"
 export PYTHONUNBUFFERED=1
 LOG="$OUT/check.log"
@@ -47,9 +47,22 @@ if has build; then
   say "build ok in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
 fi
 
+if has nocuda; then
+  # TIGER_CUDA=0 must switch the CUDA build off even where torch has CUDA and nvcc exists.
+  rm -rf /tmp/tiger-nocuda
+  EIGEN_DIR_ARG=()
+  [ -d /tmp/eigen ] && EIGEN_DIR_ARG=(-DEigen3_DIR=/tmp/eigen/usr/share/eigen3/cmake)
+  TIGER_CUDA=0 cmake -S . -B /tmp/tiger-nocuda -G Ninja -DPython_EXECUTABLE="$(command -v $PY)" \
+    "${EIGEN_DIR_ARG[@]}" > "$OUT/nocuda.log" 2>&1
+  rc=$?
+  flag=$(grep -E '^TIGER_CUDA:BOOL' /tmp/tiger-nocuda/CMakeCache.txt 2>/dev/null)
+  [ $rc -eq 0 ] && [ "$flag" = "TIGER_CUDA:BOOL=OFF" ] || status=1
+  say "TIGER_CUDA=0 configure rc=$rc: $flag"
+fi
+
 if has tests; then
-  say "tests on CUDA (pytest -m cuda)"
-  $PY -m pytest -q -m "cuda and not slow" -p no:cacheprovider --timeout 600 ${PYTEST_ARGS:-} tests > "$OUT/tests.log" 2>&1
+  say "test suite (${TEST_MARKERS:-not slow}; the CUDA tests are those marked cuda)"
+  $PY -m pytest -q -m "${TEST_MARKERS:-not slow}" -p no:cacheprovider --timeout 600 ${PYTEST_ARGS:-} tests > "$OUT/tests.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "tests rc=$rc: $(tail -1 "$OUT/tests.log")"
   grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -30 | tee -a "$LOG"

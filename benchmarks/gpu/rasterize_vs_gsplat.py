@@ -69,6 +69,8 @@ def measure(render, scene, V, K, w, h, iters, features_only=False):
     s = leaves(scene, grad_set)
 
     def fwd_bwd():
+        for t in s.values():  # a fresh .grad each time: no accumulation kernels timed
+            t.grad = None
         col, _ = render(s, V, K, w, h)
         col.backward(v_color)
 
@@ -77,6 +79,8 @@ def measure(render, scene, V, K, w, h, iters, features_only=False):
         fb = cuda_time_ms(fwd_bwd, iters=iters)
 
     def setup():
+        for t in s.values():
+            t.grad = None
         col, _ = render(s, V, K, w, h)
         return col
 
@@ -265,6 +269,8 @@ def profile_kernels(args, path: Path) -> None:
                 for _ in range(2):
                     fn(s, V, K, w, h)[0].backward(v)
                 torch.cuda.synchronize()
+                for t in s.values():
+                    t.grad = None
                 with profile(activities=[ProfilerActivity.CUDA]) as prof:
                     fn(s, V, K, w, h)[0].backward(v)
                     torch.cuda.synchronize()

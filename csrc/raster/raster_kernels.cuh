@@ -60,6 +60,21 @@ __device__ __forceinline__ void load_geom(const RasterLaunch<T>& a, int32_t g, S
 template <int CB, typename T, typename TC>
 __device__ __forceinline__ void load_colors(const TC* colors, const int32_t* ids, int64_t b0,
                                             int nb, int C, int c0, T* s_col) {
+  if constexpr (std::is_same<T, float>::value && std::is_same<TC, float>::value && CB % 4 == 0) {
+    // 16-byte loads when every row start is 16-byte aligned (c0 is a multiple of 4, and
+    // with C % 4 == 0 a vector is either wholly inside the row or wholly past it).
+    if ((C & 3) == 0 && (reinterpret_cast<uintptr_t>(colors) & 15) == 0) {
+      constexpr int V = CB / 4;
+      for (int e = threadIdx.x; e < nb * V; e += blockDim.x) {
+        const int j = e / V, c = (e % V) * 4;
+        float4 val = make_float4(0.f, 0.f, 0.f, 0.f);
+        if (c0 + c < C)
+          val = *reinterpret_cast<const float4*>(colors + int64_t(ids[b0 + j]) * C + c0 + c);
+        reinterpret_cast<float4*>(s_col)[e] = val;
+      }
+      return;
+    }
+  }
   for (int e = threadIdx.x; e < nb * CB; e += blockDim.x) {
     const int j = e / CB, c = e % CB;
     T val = T(0);

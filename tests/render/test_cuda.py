@@ -185,3 +185,26 @@ def test_backward_is_reproducible_up_to_atomic_order():
         grads.append([t.grad for t in leaves])
     for a, b in zip(*grads):
         assert rel(a, b) <= 1e-5
+
+
+@pytest.mark.parametrize("tile_size", [8, 12])
+def test_other_tile_sizes_match_cpu(tile_size):
+    """Blocks of tile_size^2 pixels rounded up to whole warps (12 -> 160 threads)."""
+    w, h = 45, 31
+    ins = _pipeline_inputs(300, 19, w, h, F64, seed=9)
+    outs = []
+    for dev in ("cpu", "cuda"):
+        leaves = [t.to(dev).clone().requires_grad_() for t in ins[:5]]
+        out = tiger.rasterize_gaussians(*leaves, ins[5].to(dev), ins[6].to(dev), w, h,
+                                        background=ins[7].to(dev), tile_size=tile_size)
+        (out["color"].square().sum() + out["depth"].sum()).backward()
+        outs.append((out["color"], out["alpha"], *[t.grad for t in leaves]))
+    for a, b in zip(*outs):
+        assert rel(b, a) <= 1e-10
+
+
+def test_tile_size_over_16_is_refused_with_a_clear_error():
+    w, h = 40, 40
+    ins = [t.cuda() for t in _pipeline_inputs(20, 3, w, h, F32)]
+    with pytest.raises(RuntimeError, match="tile_size <= 16"):
+        tiger.rasterize_gaussians(*ins[:7], w, h, tile_size=32)
