@@ -32,9 +32,6 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
                             const at::Tensor& opac, const at::Tensor* depths,
                             const at::Tensor& tile_offsets, const at::Tensor& ids,
                             const RasterArgs& a, int64_t channels) {
-  TORCH_CHECK(a.tile_size <= 16, "tiger.rasterize: the CUDA kernels take tile_size <= 16, got ",
-              a.tile_size);
-  TORCH_CHECK(channels < (int64_t(1) << 24), "tiger.rasterize: too many channels (", channels, ")");
   RasterLaunch<T> l;
   l.means2d = means2d.data_ptr<T>();
   l.conics = conics.data_ptr<T>();
@@ -58,6 +55,12 @@ int64_t num_tiles(const RasterArgs& a) {
   return ((a.width + a.tile_size - 1) / a.tile_size) * ((a.height + a.tile_size - 1) / a.tile_size);
 }
 
+// Checked before any dispatch: one block per tile holds at most 256 pixel threads.
+void check_cuda_limits(const char* op, const RasterArgs& a, int64_t channels) {
+  TORCH_CHECK(a.tile_size <= 16, op, ": the CUDA kernels take tile_size <= 16, got ", a.tile_size);
+  TORCH_CHECK(channels < (int64_t(1) << 24), op, ": too many channels (", channels, ")");
+}
+
 void check_ok(cudaError_t err, const char* op) {
   TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
 }
@@ -75,9 +78,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
                       tile_offsets, gaussian_ids, a);
   const ColorStorage storage = color_storage(colors, means2d, op);
-  for (const auto& [t, name] : {std::pair<const at::Tensor*, const char*>{&colors, "colors"},
-                                {&tile_offsets, "tile_offsets"}, {&gaussian_ids, "gaussian_ids"}})
-    check_device(*t, means2d, op, name);
+  check_cuda_limits(op, a, colors.size(1));
+  check_device(colors, means2d, op, "colors");
+  check_device(tile_offsets, means2d, op, "tile_offsets");
+  check_device(gaussian_ids, means2d, op, "gaussian_ids");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const int64_t C = colors.size(1);
   auto out_color = at::empty({height, width, C}, means2d.options());
@@ -125,11 +129,15 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   check_shape(v_color, op, "v_color", {height, width, C});
   check_shape(v_alpha, op, "v_alpha", {height, width});
   check_shape(v_depth, op, "v_depth", {height, width});
-  for (const auto& [t, name] : {std::pair<const at::Tensor*, const char*>{&colors, "colors"},
-                                {&tile_offsets, "tile_offsets"}, {&gaussian_ids, "gaussian_ids"},
-                                {&transmittance, "transmittance"}, {&n_contrib, "n_contrib"},
-                                {&v_color, "v_color"}, {&v_alpha, "v_alpha"}, {&v_depth, "v_depth"}})
-    check_device(*t, means2d, op, name);
+  check_cuda_limits(op, a, C);
+  check_device(colors, means2d, op, "colors");
+  check_device(tile_offsets, means2d, op, "tile_offsets");
+  check_device(gaussian_ids, means2d, op, "gaussian_ids");
+  check_device(transmittance, means2d, op, "transmittance");
+  check_device(n_contrib, means2d, op, "n_contrib");
+  check_device(v_color, means2d, op, "v_color");
+  check_device(v_alpha, means2d, op, "v_alpha");
+  check_device(v_depth, means2d, op, "v_depth");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto opts = means2d.options();
   auto v_geom = at::zeros({n, 8}, opts);  // u, v, conic a, b, c, opacity, depth, pad
@@ -171,10 +179,11 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
                       tile_offsets, gaussian_ids, a);
   check_shape(n_contrib, op, "n_contrib", {height, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
-  for (const auto& [t, name] : {std::pair<const at::Tensor*, const char*>{&tile_offsets, "tile_offsets"},
-                                {&gaussian_ids, "gaussian_ids"}, {&n_contrib, "n_contrib"},
-                                {&v_color, "v_color"}})
-    check_device(*t, means2d, op, name);
+  check_cuda_limits(op, a, C);
+  check_device(tile_offsets, means2d, op, "tile_offsets");
+  check_device(gaussian_ids, means2d, op, "gaussian_ids");
+  check_device(n_contrib, means2d, op, "n_contrib");
+  check_device(v_color, means2d, op, "v_color");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto dt = means2d.scalar_type();
   auto v_colors = at::zeros({n, C}, means2d.options());

@@ -203,8 +203,16 @@ def test_other_tile_sizes_match_cpu(tile_size):
         assert rel(b, a) <= 1e-10
 
 
-def test_tile_size_over_16_is_refused_with_a_clear_error():
+def test_cuda_glue_errors_are_clear():
     w, h = 40, 40
     ins = [t.cuda() for t in _pipeline_inputs(20, 3, w, h, F32)]
+    m2, cn, d, op, r, to, ids = _project_and_bin(*ins[:4], ins[5], ins[6], w, h)
+    with pytest.raises(RuntimeError, match="colors must have the dtype of means2d"):
+        ops.rasterize(m2, cn, op, ins[4].double(), d, None, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
+    with pytest.raises(RuntimeError, match="gaussian_ids is on cpu"):
+        ops.rasterize(m2, cn, op, ins[4], d, None, to, ids.cpu(), w, h, 16, 0.99, 1 / 255, 1e-4)
+    to32, ids32 = ops.bin_gaussians(m2, cn, op, d, r, w, h, 32, 1 / 255)
     with pytest.raises(RuntimeError, match="tile_size <= 16"):
+        ops.rasterize(m2, cn, op, ins[4], d, None, to32, ids32, w, h, 32, 0.99, 1 / 255, 1e-4)
+    with pytest.raises(ValueError, match=r"tile_size in \[1, 16\]"):
         tiger.rasterize_gaussians(*ins[:7], w, h, tile_size=32)

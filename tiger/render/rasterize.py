@@ -140,6 +140,8 @@ def rasterize_gaussians(
     if colors.dtype != means.dtype and not half_colors:
         raise TypeError(f"{_NAME}: colors has dtype {colors.dtype} but means has {means.dtype} "
                         "(float16/bfloat16 colors are accepted with float32 geometry)")
+    if means.is_cuda and not 1 <= int(tile_size) <= 16:
+        raise ValueError(f"{_NAME}: the CUDA kernels take tile_size in [1, 16], got {tile_size}")
     if int(width) <= 0 or int(height) <= 0:
         raise ValueError(f"{_NAME}: width and height must be positive, got {width}x{height}")
     channels = 3 if sh_degree is not None else colors.shape[1]
