@@ -37,14 +37,21 @@ if has build; then
     dpkg -x "$EIGEN_DEB" /tmp/eigen
     CMAKE_EXTRA+=(--config-settings=cmake.define.Eigen3_DIR=/tmp/eigen/usr/share/eigen3/cmake)
   fi
-  say "build (CUDA arch ${TIGER_CHECK_ARCHS:-90})"
+  # The device image presets CXX=/opt/gcc/bin/g++, whose modules carry a private copy of
+  # libstdc++ (no libstdc++.so in ldd): any C++ error message that formats an integer then
+  # segfaults inside torch's process. The system g++ builds a normal module.
+  if [ -z "${TIGER_KEEP_CXX:-}" ] && [ -x /usr/bin/g++ ]; then
+    export CXX=/usr/bin/g++ CUDAHOSTCXX=/usr/bin/g++ CC=/usr/bin/gcc
+    CMAKE_EXTRA+=(--config-settings=build-dir=build/system-gxx)
+  fi
+  say "build (CUDA arch ${TIGER_CHECK_ARCHS:-90}, CXX=${CXX:-default})"
   t0=$(date +%s)
   if ! CMAKE_BUILD_PARALLEL_LEVEL=$(nproc) $PY -m pip install --no-build-isolation --no-deps -e . \
       --config-settings=cmake.define.CMAKE_CUDA_ARCHITECTURES="${TIGER_CHECK_ARCHS:-90}" \
       "${CMAKE_EXTRA[@]}" > "$OUT/build.log" 2>&1; then
     say "BUILD FAILED"; tail -60 "$OUT/build.log" | tee -a "$LOG"; exit 1
   fi
-  say "build ok in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
+  say "build ok in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())'); $(ldd "$($PY -c 'import tiger._C as c; print(c.__file__)')" | grep -o 'libstdc++[^ ]*' | head -1)"
 fi
 
 if has nocuda; then
