@@ -5,11 +5,17 @@ Scene: N Gaussians with means uniform in [-1, 1]^3, scales log-uniform in [0.003
 uniform in [0.05, 0.95], colours uniform in [0, 1] and 64-d features standard normal.
 Camera: 3.5 units from the origin looking at it, vertical field of view 50 degrees,
 pinhole with the principal point at the image centre, OpenCV axes.
+
+Two views of the same definition: :func:`standard_scene` (tensors in a dict, channels chosen
+up front) and :func:`standard_view` (a :class:`StandardScene` bundling the camera, with RGB
+and features that ``.colors(C)`` combines for C in {3, 64, 67}).
 """
 from __future__ import annotations
 
 import math
 import time
+import statistics
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
@@ -101,5 +107,106 @@ def table(rows: list[dict], cols: list[str]) -> str:
     """Plain-text table of ``rows`` (dicts) with the given column order."""
     cells = [[str(r.get(c, "")) for c in cols] for r in rows]
     widths = [max(len(c), *(len(x[i]) for x in cells)) if cells else len(c) for i, c in enumerate(cols)]
+    line = lambda xs: "  ".join(x.rjust(w) for x, w in zip(xs, widths))  # noqa: E731
+    return "\n".join([line(cols), line(["-" * w for w in widths])] + [line(x) for x in cells])
+
+
+@dataclass
+class StandardScene:
+    """The standard scene and camera as one object (see :func:`standard_view`)."""
+
+    means: Tensor      # [N, 3]
+    quats: Tensor      # [N, 4] (w, x, y, z), unit
+    scales: Tensor     # [N, 3]
+    opacities: Tensor  # [N]
+    rgb: Tensor        # [N, 3]
+    features: Tensor   # [N, 64]
+    viewmat: Tensor    # [4, 4] world->camera, OpenCV axes
+    K: Tensor          # [3, 3]
+    width: int
+    height: int
+
+    def colors(self, channels: int) -> Tensor:
+        """[N, C] channels: 3 = RGB, 64 = features, 67 = both; other C: uniform channels."""
+        if channels == 3:
+            return self.rgb
+        if channels == 64:
+            return self.features
+        if channels == 67:
+            return torch.cat([self.rgb, self.features], dim=1).contiguous()
+        g = torch.Generator(device="cpu").manual_seed(channels)
+        return torch.rand(self.rgb.shape[0], channels, generator=g).to(self.rgb)
+
+    def to(self, device=None, dtype=None) -> "StandardScene":
+        f = lambda t: t.to(device=device, dtype=dtype)  # noqa: E731
+        return StandardScene(f(self.means), f(self.quats), f(self.scales), f(self.opacities),
+                             f(self.rgb), f(self.features), f(self.viewmat), f(self.K),
+                             self.width, self.height)
+
+
+def standard_view(n: int, width: int, height: int, seed: int = 0,
+                  dtype: torch.dtype = torch.float32) -> StandardScene:
+    """The standard scene (RGB + 64-d features, drawn as C = 67) with its camera, on the CPU."""
+    s = standard_scene(n, 67, dtype=torch.float64, seed=seed)
+    V, K = standard_camera(width, height, dtype=torch.float64)
+    c = s["colors"]
+    return StandardScene(s["means"], s["quats"], s["scales"], s["opacities"], c[:, :3].contiguous(),
+                         c[:, 3:].contiguous(), V, K, width, height).to(dtype=dtype)
+
+
+def median_time(fn: Callable[[], object], repeats: int = 5, warmup: int = 1,
+                cuda: bool = False) -> float:
+    """Median time of fn() in seconds (CUDA events when cuda=True, else wall clock)."""
+    if cuda:
+        return cuda_time_ms(fn, iters=repeats, warmup=warmup) / 1e3
+    return cpu_time_ms(fn, iters=repeats, warmup=warmup) / 1e3
+
+
+def print_table(rows: list[dict], title: str = "") -> str:
+    """Print (and return) ``rows`` as an aligned table; floats with 3 significant digits."""
+    if not rows:
+        return ""
+    fmt = lambda v: f"{v:.3g}" if isinstance(v, float) else str(v)  # noqa: E731
+    text = table([{k: fmt(v) for k, v in r.items()} for r in rows], list(rows[0].keys()))
+    if title:
+        text = title + "\n" + text
+    print(text, flush=True)
+    return text
+
+
+def scene_tensors(n: int, channels: int, width: int, height: int, *, device: str = "cpu",
+                  dtype: torch.dtype = torch.float32, seed: int = 0
+                  ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """The standard scene as a dict of tensors (means, quats, scales, opacities, colors [N, C])
+    plus its viewmat [4,4] and K [3,3], on ``device`` in ``dtype``."""
+    s = standard_scene(n, width, height, seed=seed, dtype=torch.float64)
+    out = {"means": s.means, "quats": s.quats, "scales": s.scales, "opacities": s.opacities,
+           "colors": s.colors(channels)}
+    out = {k: v.to(device=device, dtype=dtype) for k, v in out.items()}
+    return out, s.viewmat.to(device=device, dtype=dtype), s.K.to(device=device, dtype=dtype)
+
+
+def cuda_time_ms(fn: Callable, iters: int = 20, warmup: int = 3,
+                 setup: Callable | None = None) -> float:
+    """Median time of ``fn`` in ms from CUDA events, after ``warmup`` calls. ``setup``
+    (untimed) runs before each call and its result is passed to ``fn``."""
+    times = []
+    for i in range(warmup + iters):
+        arg = setup() if setup is not None else None
+        torch.cuda.synchronize()
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn(arg) if setup is not None else fn()
+        end.record()
+        torch.cuda.synchronize()
+        if i >= warmup:
+            times.append(start.elapsed_time(end))
+    return statistics.median(times)
+
+
+def table(rows: list[dict], cols: list[str]) -> str:
+    """Plain-text table of ``rows`` (dicts, values already formatted) in column order."""
+    cells = [[str(r.get(c, "")) for c in cols] for r in rows]
+    widths = [max([len(c)] + [len(x[i]) for x in cells]) for i, c in enumerate(cols)]
     line = lambda xs: "  ".join(x.rjust(w) for x, w in zip(xs, widths))  # noqa: E731
     return "\n".join([line(cols), line(["-" * w for w in widths])] + [line(x) for x in cells])

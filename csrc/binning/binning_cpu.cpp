@@ -98,7 +98,7 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
     using T = scalar_t;
     const T* dp = d_c.data_ptr<T>();
     int32_t* ids = gaussian_ids.data_ptr<int32_t>();
-    at::parallel_for(0, n_tiles, 16, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, n_tiles, m < 16384 ? std::max<int64_t>(n_tiles, 1) : 16, [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         std::stable_sort(ids + to[t], ids + to[t + 1],
                          [&](int32_t a, int32_t c) { return dp[a] < dp[c]; });

@@ -8,6 +8,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <cmath>
 #include <vector>
 
 #include "common/raster_math.h"
@@ -40,20 +41,52 @@ inline TileGeom tile_geom(int64_t tile, int tiles_x, int ts, int width, int heig
   return {px0, py0, std::min(ts, width - px0), std::min(ts, height - py0)};
 }
 
-// Quadratic form of Gaussian g at every pixel centre of the tile (branch-free,
-// so the compiler vectorises it).
+// The part of a tile where a Gaussian can reach alpha >= threshold: the
+// bounding box of its cutoff ellipse (widened by a pixel against rounding),
+// in tile-local pixel coordinates. Pixels outside are never evaluated.
+struct SubRect {
+  int x0, x1, y0, y1, pw;
+  int count() const { return (x1 - x0) * (y1 - y0); }
+  int pixel(int i) const {  // i-th pixel of the rect -> tile-local linear index
+    const int w = x1 - x0;
+    return (y0 + i / w) * pw + x0 + i % w;
+  }
+};
+
 template <typename T>
-inline void tile_quadratic(const Scene2D<T>& s, int32_t g, const TileGeom& tg, T* q) {
+inline SubRect gaussian_subrect(T u, T v, T ca, T cb, T cc, T qcut, const TileGeom& tg) {
+  SubRect r{0, tg.pw, 0, tg.ph, tg.pw};
+  const T det = ca * cc - cb * cb;
+  if (!(det > T(0))) return r;
+  // Half extents of {d : d^T conic d <= qcut} are sqrt(qcut * Sigma_xx), Sigma = conic^-1.
+  const double ex = std::sqrt(double(qcut) * double(cc) / double(det));
+  const double ey = std::sqrt(double(qcut) * double(ca) / double(det));
+  if (!(ex < 1e6 && ey < 1e6)) return r;
+  auto clampi = [](double a, int hi) { return int(std::min<double>(std::max<double>(a, 0), hi)); };
+  r.x0 = clampi(std::floor(double(u) - ex - 0.5) - tg.px0, tg.pw);
+  r.x1 = clampi(std::ceil(double(u) + ex - 0.5) - tg.px0 + 1, tg.pw);
+  r.y0 = clampi(std::floor(double(v) - ey - 0.5) - tg.py0, tg.ph);
+  r.y1 = clampi(std::ceil(double(v) + ey - 0.5) - tg.py0 + 1, tg.ph);
+  if (r.x1 <= r.x0 || r.y1 <= r.y0) r.x1 = r.x0, r.y1 = r.y0;
+  return r;
+}
+
+// Quadratic form of Gaussian g at the pixel centres of its sub-rectangle
+// (branch-free rows, so the compiler vectorises them); returns that rectangle.
+template <typename T>
+inline SubRect tile_quadratic(const Scene2D<T>& s, int32_t g, T qcut, const TileGeom& tg, T* q) {
   const T u = s.means2d[2 * g], v = s.means2d[2 * g + 1];
   const T ca = s.conics[3 * g], cb = s.conics[3 * g + 1], cc = s.conics[3 * g + 2];
-  for (int y = 0; y < tg.ph; ++y) {
+  const SubRect r = gaussian_subrect(u, v, ca, cb, cc, qcut, tg);
+  for (int y = r.y0; y < r.y1; ++y) {
     const T dy = T(tg.py0 + y) + T(0.5) - v;
     T* qr = q + y * tg.pw;
-    for (int x = 0; x < tg.pw; ++x) {
+    for (int x = r.x0; x < r.x1; ++x) {
       const T dx = T(tg.px0 + x) + T(0.5) - u;
       qr[x] = conic_quadratic(ca, cb, cc, dx, dy);
     }
   }
+  return r;
 }
 
 template <typename T>
@@ -71,8 +104,9 @@ void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors,
     const T o = s.opac[g], z = s.depths[g];
     const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
     const T* col = colors + int64_t(g) * C;
-    tile_quadratic(s, g, tg, q.data());
-    for (int p = 0; p < P; ++p) {
+    const SubRect rect = tile_quadratic(s, g, qcut, tg, q.data());
+    for (int i = 0, ni = rect.count(); i < ni; ++i) {
+      const int p = rect.pixel(i);
       if (done[p] || q[p] > qcut) continue;
       T gauss;
       bool clamped;
@@ -146,8 +180,9 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
     double gu = 0, gv = 0, gca = 0, gcb = 0, gcc = 0, go = 0, gz = 0;
     bool touched = false;
     const int32_t rank = int32_t(k - start);
-    tile_quadratic(s, g, tg, q.data());
-    for (int p = 0; p < P; ++p) {
+    const SubRect rect = tile_quadratic(s, g, qcut, tg, q.data());
+    for (int i = 0, ni = rect.count(); i < ni; ++i) {
+      const int p = rect.pixel(i);
       if (rank >= cnt[p] || q[p] > qcut) continue;
       T gauss;
       bool clamped;
@@ -160,6 +195,8 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
       const T* vc = vC.data() + int64_t(p) * C;
       T* r = R.data() + int64_t(p) * C;
       T dot = T(0);
+      // The dot product is a reduction: let it vectorise (reassociation is fine here).
+#pragma omp simd reduction(+ : dot)
       for (int64_t c = 0; c < C; ++c) {
         gcol[c] += w * vc[c];
         dot += vc[c] * (col[c] - r[c]);
@@ -216,8 +253,9 @@ void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const in
     const int32_t rank = int32_t(k - start);
     std::fill(gcol.begin(), gcol.end(), T(0));
     bool touched = false;
-    tile_quadratic(s, g, tg, q.data());
-    for (int p = 0; p < P; ++p) {
+    const SubRect rect = tile_quadratic(s, g, qcut, tg, q.data());
+    for (int i = 0, ni = rect.count(); i < ni; ++i) {
+      const int p = rect.pixel(i);
       if (rank >= cnt[p] || q[p] > qcut) continue;
       T gauss;
       bool clamped;
@@ -239,7 +277,7 @@ void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const in
 // blocks so no two threads write the same element.
 template <typename T>
 void reduce_rows(const T* rows, int64_t m, int64_t S, const int32_t* ids, T* out) {
-  at::parallel_for(0, S, 1, [&](int64_t c0, int64_t c1) {
+  at::parallel_for(0, S, m * S < (1 << 16) ? S : 1, [&](int64_t c0, int64_t c1) {
     for (int64_t k = 0; k < m; ++k) {
       const T* r = rows + k * S;
       T* o = out + int64_t(ids[k]) * S;
@@ -265,6 +303,12 @@ Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const
   s.tiles_x = int((a.width + a.tile_size - 1) / a.tile_size);
   s.opt = {T(a.alpha_max), T(a.alpha_threshold), T(a.t_min)};
   return s;
+}
+
+// Tiles per task: small images or few intersections run on one thread, where
+// waking a thread pool would cost more than the work.
+int64_t tile_grain(int64_t tiles, int64_t isects) {
+  return isects < 16384 ? std::max<int64_t>(tiles, 1) : 1;
 }
 
 int64_t num_tiles(const RasterArgs& a) {
@@ -298,7 +342,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
-    at::parallel_for(0, num_tiles(a), 1, [&](int64_t b, int64_t e) {
+    const int64_t tiles = num_tiles(a);
+    at::parallel_for(0, tiles, tile_grain(tiles, i_c.size(0)), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         forward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, out_color.data_ptr<T>(),
                         out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
@@ -343,7 +388,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
-    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, a_c.data_ptr<T>(),
                          n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(), va_c.data_ptr<T>(),
@@ -385,7 +430,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_colors_cpu", [&] {
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a);
-    at::parallel_for(0, tiles, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_colors_tile<T>(s, t, C, n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(),
                                 rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);

@@ -15,7 +15,8 @@ NAMES = ("means", "quats", "scales", "opacities", "colors", "viewmat", "K", "bac
 
 
 def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))
+    a, b = a.detach().double(), b.detach().double()
+    return float((a - b).norm() / b.norm().clamp_min(1e-300))
 
 
 def _inputs(n, c, w, h, dtype, seed=0, sh_degree=None, device="cpu", **kw):

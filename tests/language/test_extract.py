@@ -1,0 +1,208 @@
+"""extract_features: outputs, caching, resume after an interruption, and rank sharding."""
+import os
+
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from tiger.language import extract as extract_mod
+from tiger.language.extract import FeatureConfig, FeatureSet, extract_features, load_image
+from tiger.language.featup import ImplicitConfig
+from tiger.language.maskclip import MaskCLIP
+from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator
+
+LENIENT = SamMaskConfig(points_per_side=4, pred_iou_thresh=-1e9, stability_score_thresh=0.0, mask_nms_score=-1e9,
+                        min_mask_region_area=10)
+
+
+class SimulatedCrash(Exception):
+    pass
+
+
+def images(n=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.rand(3, 40 + 8 * k, 56, generator=g) for k in range(n)]
+
+
+def config(**kw):
+    base = dict(upsampler="bilinear", clip_long_side=64, output_long_side=32, pca_dim=4, sam=LENIENT)
+    base.update(kw)
+    return FeatureConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def models(tiny_models):
+    clip = MaskCLIP.from_pretrained(tiny_models / "clip-vit-base-patch16")
+    sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", mask_config=LENIENT)
+    return clip, sam
+
+
+def test_outputs_and_masked_average(models, tmp_path):
+    clip, sam = models
+    imgs = images()
+    fs = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
+    assert fs.names == ["00000", "00001", "00002"]
+    for k, name in enumerate(fs.names):
+        feats, valid = fs.load(name)
+        h = round(32 * (40 + 8 * k) / 56) if 40 + 8 * k < 56 else 32
+        assert feats.dtype == torch.float16 and feats.shape == (h, 32, 4) and valid.all()
+        rec = torch.load(tmp_path / "cache" / f"{name}.pt", weights_only=True)
+        ids = rec["ids"].long()
+        # every pixel of a mask carries that mask's projected mean
+        for m in ids.unique().tolist():
+            if m >= 0:
+                vals = feats[ids == m].float()
+                assert (vals - vals[0]).abs().max() < 1e-6
+    # the text projection uses the saved basis
+    q = clip.encode_text(["red cup"])
+    assert fs.pca.project(q).shape == (1, 4)
+    assert (tmp_path / "pca.pt").is_file()
+
+
+def test_resume_after_interruption(models, tmp_path, monkeypatch):
+    clip, sam = models
+    imgs = images()
+    calls = []
+    crash = [True]
+    real = extract_mod.compute_image_features
+
+    def flaky(image, *a, **kw):
+        calls.append(tuple(image.shape))
+        if len(calls) == 2 and crash[0]:
+            crash[0] = False
+            raise SimulatedCrash("simulated interruption")
+        return real(image, *a, **kw)
+
+    monkeypatch.setattr(extract_mod, "compute_image_features", flaky)
+    with pytest.raises(SimulatedCrash):
+        extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
+    done = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert done == ["00000.pt"]  # no torn or temporary file left behind
+    first_mtime = os.stat(tmp_path / "cache" / "00000.pt").st_mtime_ns
+    calls.clear()
+    fs = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
+    assert len(calls) == 2  # the finished image was skipped
+    assert os.stat(tmp_path / "cache" / "00000.pt").st_mtime_ns == first_mtime
+    # identical to an uninterrupted run
+    monkeypatch.setattr(extract_mod, "compute_image_features", real)
+    ref = extract_features(imgs, tmp_path / "ref", clip=clip, sam=sam, config=config(), progress=False)
+    for name in fs.names:
+        assert torch.equal(fs.load(name)[0], ref.load(name)[0])
+    calls.clear()
+    monkeypatch.setattr(extract_mod, "compute_image_features", flaky)
+    extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
+    assert calls == []  # a finished run does nothing again
+    # a new PCA size refits the PCA from the cache without recomputing any image
+    fs3 = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(pca_dim=3), progress=False)
+    assert calls == [] and fs3.load(fs3.names[0])[0].shape[-1] == 3
+    # another stage-1 setting is recomputed, not mixed with the old cache
+    extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(unmasked="ignore"), progress=False)
+    assert len(calls) == 3
+    monkeypatch.setattr(extract_mod, "compute_image_features", real)
+
+
+def test_paths_implicit_and_no_sam(models, tmp_path):
+    from PIL import Image
+
+    clip, _ = models
+    paths = []
+    for k, img in enumerate(images(2)):
+        p = tmp_path / f"view_{k}.png"
+        Image.fromarray((img.permute(1, 2, 0) * 255).round().byte().numpy()).save(p)
+        paths.append(p)
+    assert torch.allclose(load_image(paths[0]), images(1)[0], atol=1 / 255)
+    cfg = config(upsampler="implicit", use_sam=False,
+                 implicit=ImplicitConfig(steps=3, n_views=4, pca_batch=4, kernel_size=3, jitters_per_step=2))
+    fs = extract_features(paths, tmp_path / "out", clip=clip, config=cfg, progress=False)
+    assert fs.names == ["view_0", "view_1"]
+    assert fs.load("view_1")[0].shape == (27, 32, 4)  # 48x56 at long side 32
+
+
+def test_bad_arguments(models, tmp_path):
+    clip, sam = models
+    with pytest.raises(ValueError, match="upsampler must be one of"):
+        extract_features(images(1), tmp_path, clip=clip, sam=sam, config=config(upsampler="nearest"))
+    with pytest.raises(ValueError, match="names must be unique"):
+        extract_features(images(2), tmp_path, names=["a", "a"], clip=clip, sam=sam, config=config())
+    with pytest.raises(ValueError, match=r"\[3, H, W\]"):
+        extract_features([torch.rand(1, 8, 8)], tmp_path, clip=clip, sam=sam, config=config())
+
+
+def _rank_main(rank, world, init_file, out_dir, model_dir, result_dir):
+    import torch.distributed as dist
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        clip = MaskCLIP.from_pretrained(os.path.join(model_dir, "clip-vit-base-patch16"))
+        sam = SamMaskGenerator.from_pretrained(os.path.join(model_dir, "sam-vit-huge"), mask_config=LENIENT)
+        seen = []
+        real = extract_mod.compute_image_features
+
+        def spy(image, *a, **kw):
+            seen.append(int(image.shape[1]))
+            return real(image, *a, **kw)
+
+        extract_mod.compute_image_features = spy
+        extract_features(images(3), out_dir, clip=clip, sam=sam, config=config(), progress=False)
+        torch.save(seen, os.path.join(result_dir, f"rank{rank}.pt"))
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_ranks_share_the_images(tiny_models, tmp_path):
+    out = tmp_path / "out"
+    mp.spawn(_rank_main, args=(2, str(tmp_path / "init"), str(out), str(tiny_models), str(tmp_path)), nprocs=2)
+    seen0 = torch.load(tmp_path / "rank0.pt")
+    seen1 = torch.load(tmp_path / "rank1.pt")
+    assert seen0 == [40, 56] and seen1 == [48]  # rank r takes images r, r + 2, ...
+    fs = FeatureSet(out, ["00000", "00001", "00002"], extract_mod.PCABasis.load(out / "pca.pt"))
+    for name in fs.names:
+        assert fs.load(name)[0].shape[-1] == 4
+
+
+def _pixel_features(record):
+    """Per-pixel 512-d features [h*w, D] rebuilt from a stage-1 cache record."""
+    ids = record["ids"].reshape(-1).long()
+    out = torch.zeros(ids.numel(), record["means"].shape[1])
+    valid = ids >= 0
+    out[valid] = record["means"].float()[ids[valid]]
+    out[~valid] = record["unmasked"].float()
+    return out
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_pipeline_on_cuda_matches_cpu(tiny_models, tmp_path):
+    import tiger
+
+    if not tiger.ops.cuda_enabled():
+        pytest.skip("tiger built without CUDA kernels")
+    outs = {}
+    for dev in ("cpu", "cuda"):
+        clip = MaskCLIP.from_pretrained(tiny_models / "clip-vit-base-patch16", device=dev)
+        sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", device=dev, mask_config=LENIENT)
+        fs = extract_features(images(2), tmp_path / dev, clip=clip, sam=sam, config=config(), device=dev,
+                              progress=False)
+        outs[dev] = [_pixel_features(torch.load(tmp_path / dev / "cache" / f"{n}.pt", weights_only=True))
+                     for n in fs.names]
+        assert fs.load(fs.names[0])[0].shape[-1] == 4
+    for a, b in zip(outs["cpu"], outs["cuda"]):
+        # masks may differ at a few boundary pixels (float32 upsampling on two devices)
+        cos = torch.nn.functional.cosine_similarity(a, b, dim=1)
+        assert (cos > 0.999).float().mean() > 0.97
+
+
+def test_models_loaded_from_a_config_with_jbu(tiny_models, tmp_path):
+    """No model objects passed: CLIP, SAM and the JBU checkpoint come from a models config."""
+    from tiger.language.featup import JBUStack
+
+    torch.manual_seed(0)
+    state = {f"upsampler.{k}": v for k, v in JBUStack(24).state_dict().items()}
+    torch.save({"state_dict": state}, tmp_path / "maskclip_jbu_stack_cocostuff.ckpt")
+    models = {"clip": tiny_models / "clip-vit-base-patch16", "sam": tiny_models / "sam-vit-huge",
+              "featup_jbu": tmp_path / "maskclip_jbu_stack_cocostuff.ckpt"}
+    fs = extract_features(images(1), tmp_path / "out", config=config(upsampler="jbu"), models=models,
+                          device="cpu", progress=False)
+    feats, valid = fs.load(fs.names[0])
+    assert feats.shape == (23, 32, 4) and torch.isfinite(feats.float()).all() and valid.all()

@@ -1,0 +1,119 @@
+"""SAM finest-level automatic masks: prompting, filters and clean-up against references."""
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from tiger.language.sam_masks import (
+    SamMaskConfig,
+    SamMaskGenerator,
+    SamMasks,
+    masks_to_boxes,
+    point_grid,
+    remove_small_regions,
+    stability_score,
+)
+
+
+def test_point_grid_is_sams():
+    n = 5
+    offset = 1 / (2 * n)
+    side = np.linspace(offset, 1 - offset, n)
+    ref = np.stack([np.tile(side[None, :], (n, 1)).ravel(), np.tile(side[:, None], (1, n)).ravel()], axis=1)
+    np.testing.assert_allclose(point_grid(n).numpy(), ref, atol=1e-12)
+
+
+def test_stability_score():
+    logits = torch.tensor([[[2.0, 0.5, -0.5, -2.0]]])
+    # > +1: one pixel; > -1: three pixels
+    torch.testing.assert_close(stability_score(logits, 0.0, 1.0), torch.tensor([1 / 3]))
+
+
+def test_masks_to_boxes_matches_nonzero():
+    masks = torch.rand(6, 9, 11) > 0.8
+    masks[2] = False
+    boxes = masks_to_boxes(masks)
+    for k in range(6):
+        ys, xs = torch.nonzero(masks[k], as_tuple=True)
+        ref = [0, 0, 0, 0] if len(ys) == 0 else [xs.min(), ys.min(), xs.max(), ys.max()]
+        assert boxes[k].tolist() == [float(v) for v in ref]
+
+
+def test_remove_small_regions():
+    m = np.zeros((20, 20), dtype=bool)
+    m[2:15, 2:15] = True
+    m[5, 5] = False  # a 1-px hole
+    m[18:20, 18:20] = True  # a 4-px island
+    filled, changed = remove_small_regions(m, 10, "holes")
+    assert changed and filled[5, 5] and filled[18, 18]
+    cleaned, changed = remove_small_regions(filled, 10, "islands")
+    assert changed and not cleaned[18:, 18:].any() and cleaned[2:15, 2:15].all()
+    same, changed = remove_small_regions(cleaned, 10, "islands")
+    assert not changed and np.array_equal(same, cleaned)
+    tiny = np.zeros((10, 10), dtype=bool)
+    tiny[0, 0] = True
+    tiny[5:7, 5:7] = True
+    kept, _ = remove_small_regions(tiny, 10, "islands")  # all small: the largest stays
+    assert kept[5:7, 5:7].all() and not kept[0, 0]
+    with pytest.raises(ValueError, match="holes"):
+        remove_small_regions(m, 10, "both")
+
+
+def test_id_map_smallest_mask_wins():
+    masks = torch.zeros(3, 6, 6, dtype=torch.bool)
+    masks[0, :, :] = True
+    masks[1, 1:4, 1:4] = True
+    masks[2, 2:3, 2:3] = True
+    ids = SamMasks(masks, torch.ones(3), torch.ones(3)).id_map()
+    assert ids[0, 0] == 0 and ids[1, 1] == 1 and ids[2, 2] == 2
+    assert SamMasks(masks[:0], torch.ones(0), torch.ones(0)).id_map().eq(-1).all()
+
+
+@pytest.fixture(scope="module")
+def generator(tiny_models):
+    cfg = SamMaskConfig(points_per_side=4, points_per_batch=7, pred_iou_thresh=-1e9, stability_score_thresh=0.0)
+    return SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", mask_config=cfg)
+
+
+def test_predict_matches_single_point_prompts(generator):
+    image = torch.rand(3, 40, 56, generator=torch.Generator().manual_seed(3))
+    size = (30, 42)
+    masks, iou, stab = generator.predict(image, size)
+    assert masks.shape == (16, *size) and masks.dtype == torch.bool
+    model = generator.model
+    pixels, (rh, rw) = generator.preprocess(image)
+    assert (rh, rw) == (46, 64)  # long side -> 64, short side 40 * 64 / 56 rounded
+    assert pixels.shape == (1, 3, 64, 64) and pixels[..., rh:, :].abs().sum() == 0
+    emb = model.get_image_embeddings(pixels)
+    n = 4
+    for k in (0, 3, 6, 9, 12, 15):  # corners and inner points of the 4x4 grid
+        x = (k % n + 0.5) / n * rw
+        y = (k // n + 0.5) / n * rh
+        with torch.no_grad():
+            out = model(image_embeddings=emb, input_points=torch.tensor([[[[x, y]]]]), multimask_output=True)
+        low = out.pred_masks[0, 0, 0][None, None]
+        up = F.interpolate(low, size=(64, 64), mode="bilinear", align_corners=False)[..., :rh, :rw]
+        up = F.interpolate(up, size=size, mode="bilinear", align_corners=False)[0, 0]
+        assert torch.equal(masks[k], up > 0)
+        torch.testing.assert_close(iou[k], out.iou_scores[0, 0, 0])
+        torch.testing.assert_close(stab[k], ((up > 1).sum() / (up > -1).sum().clamp_min(1)).float())
+
+
+def test_full_generator_output_obeys_its_filters(generator):
+    cfg = SamMaskConfig(points_per_side=6, pred_iou_thresh=-1e9, stability_score_thresh=0.0, mask_nms_score=-1e9,
+                        min_mask_region_area=20)
+    gen = SamMaskGenerator(generator.model, cfg)
+    out = gen(torch.rand(3, 48, 64, generator=torch.Generator().manual_seed(5)))
+    m = out.masks
+    assert m.shape[1:] == (48, 64) and m.shape[0] >= 1
+    assert (m.flatten(1).sum(1) >= 20).all()
+    inter = (m.flatten(1).double() @ m.flatten(1).double().T)
+    area = inter.diagonal()
+    iou = inter / (area[:, None] + area[None, :] - inter)
+    iou.fill_diagonal_(0)
+    assert (iou <= 0.8 + 1e-9).all()
+    ids = out.id_map()
+    assert ids.min() >= -1 and ids.max() < m.shape[0]
+    for k in ids.unique().tolist():
+        if k >= 0:
+            assert m[k][ids == k].all()

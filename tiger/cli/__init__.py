@@ -1,0 +1,1 @@
+"""The ``tiger`` command line."""

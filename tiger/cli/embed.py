@@ -1,0 +1,63 @@
+"""``tiger embed``: train each Gaussian's 64-d language embedding from cached feature maps."""
+from __future__ import annotations
+
+import argparse
+
+from .common import Summary, add_common, device_of, existing, load_scene, output_file
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "embed", help="train the language field of a scene from feature maps",
+        description="Optimise only each Gaussian's language embedding L (Adam) so that rendered "
+                    "features match the maps written by `tiger features`; geometry stays frozen "
+                    "and the features-only backward computes no geometry gradient. Writes a PLY "
+                    "with lang_* and the PCA basis.",
+        epilog="example: tiger embed outputs/fox/scene.ply ../shared/data/fox "
+               "--features outputs/fox/features --out outputs/fox/scene_lang.ply",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", help="input PLY")
+    p.add_argument("data", help="the dataset the features were extracted from (for the cameras)")
+    p.add_argument("--features", required=True, help="folder written by `tiger features`")
+    add_common(p)
+    p.add_argument("--steps", type=int, default=10_000)
+    p.add_argument("--lr", type=float, default=2.5e-3)
+    p.add_argument("--batch-views", type=int, default=1)
+    p.add_argument("--loss", choices=("l1", "l2", "cosine"), default="l1")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file (default: OUT + .ckpt.pt)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from tiger.language.extract import FeatureSet
+    from tiger.language.field import train_field
+    from tiger.language.pca import PCABasis
+    from tiger.scene.dataset import load_dataset
+
+    dev = device_of(args.device)
+    out = output_file(args.out, args.force)
+    feat_dir = existing(args.features, "feature folder")
+    scene = load_scene(args.scene, dev)
+    cams = load_dataset(existing(args.data, "dataset")).cameras
+    names = [str(c.image_name).replace("/", "_") for c in cams]
+    pca = PCABasis.load(existing(str(Path(feat_dir) / "pca.pt"), "PCA file"))
+    fs = FeatureSet(Path(feat_dir), names, pca)
+    keep = [i for i, n in enumerate(names) if fs.path(n).is_file()]
+    if not keep:
+        raise SystemExit(f"tiger embed: none of the dataset's {len(names)} images has a feature map "
+                         f"in {feat_dir}/features (run `tiger features` first)")
+    cams = [cams[i].to(dev) if hasattr(cams[i], "to") else cams[i] for i in keep]
+    summary = Summary("tiger embed")
+    ckpt = args.checkpoint or str(out) + ".ckpt.pt"
+    res = train_field(scene, cams, lambda i: fs.load(names[keep[i]]), pca=pca, checkpoint=ckpt,
+                      steps=args.steps, lr=args.lr, batch_views=args.batch_views, loss=args.loss)
+    scene.save_ply(out)
+    summary.add(f"{len(keep)} views, loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}" if res.losses
+                else f"{len(keep)} views")
+    if res.invisible is not None:
+        summary.add(f"{int(res.invisible.sum())} Gaussians invisible in every view (skipped)")
+    summary.add(f"scene with language features -> {out}")
+    summary.print()
+    return 0

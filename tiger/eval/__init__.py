@@ -1,0 +1,1 @@
+"""Evaluation: metrics and benchmarks of retrieval and editing against published protocols."""

@@ -1,0 +1,434 @@
+"""FeatUp upsamplers for MaskCLIP features (SPEC §4): the implicit upsampler (per-image, the
+paper's choice) and the JBU stack (fast, loads FeatUp's MaskCLIP checkpoint).
+
+Implicit upsampler (FeatUp ``train_implicit_upsampler.py`` defaults): an MLP on Fourier features
+of pixel coordinates and colour (30 frequencies, learned phase biases) predicts ``proj_dim`` =
+128 PCA coefficients of the features at every pixel. It is fitted so that jittered
+(pad/zoom/crop/flip) copies of its output, downsampled by a learned attention downsampler,
+match the backbone's features of the identically jittered images (NAdam, 1200 steps, 10 jitters
+per step, learned per-pixel uncertainty, magnitude, magnitude-TV and blur-pin regularisers).
+Because the network is a function of (x, y, r, g, b), it is evaluated directly at the output
+resolution.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from tiger.ops.jbu import adaptive_conv
+
+logger = logging.getLogger(__name__)
+
+Featurizer = Callable[[torch.Tensor], torch.Tensor]  # images [B,3,H,W] in [0,1] -> [B,D,h,w]
+
+
+# ----------------------------------------------------------------------------- JBU stack
+class JBULearnedRange(nn.Module):
+    """One x2 joint-bilateral upsampling stage (FeatUp's ``JBULearnedRange``; same parameter names,
+    so FeatUp checkpoints load). The per-pixel kernel runs through ``tiger::adaptive_conv``."""
+
+    def __init__(self, guidance_dim: int, feat_dim: int, key_dim: int, scale: int = 2, radius: int = 3) -> None:
+        super().__init__()
+        self.scale, self.radius, self.diameter = scale, radius, 2 * radius + 1
+        self.guidance_dim, self.key_dim, self.feat_dim = guidance_dim, key_dim, feat_dim
+        d2 = self.diameter**2
+        self.range_temp = nn.Parameter(torch.tensor(0.0))
+        self.range_proj = nn.Sequential(
+            nn.Conv2d(guidance_dim, key_dim, 1, 1), nn.GELU(), nn.Dropout2d(0.1), nn.Conv2d(key_dim, key_dim, 1, 1)
+        )
+        self.fixup_proj = nn.Sequential(
+            nn.Conv2d(guidance_dim + d2, d2, 1, 1), nn.GELU(), nn.Dropout2d(0.1), nn.Conv2d(d2, d2, 1, 1)
+        )
+        self.sigma_spatial = nn.Parameter(torch.tensor(1.0))
+
+    def range_kernel(self, guidance: torch.Tensor) -> torch.Tensor:
+        b, _, h, w = guidance.shape
+        proj = self.range_proj(guidance)
+        padded = F.pad(proj, [self.radius] * 4, mode="reflect")
+        queries = F.unfold(padded, self.diameter).reshape(b, self.key_dim, self.diameter**2, h, w)
+        temp = self.range_temp.exp().clamp(1e-4, 1e4)
+        return F.softmax(temp * torch.einsum("bcphw,bchw->bphw", queries, proj), dim=1)
+
+    def spatial_kernel(self) -> torch.Tensor:
+        r = torch.linspace(-1, 1, self.diameter, device=self.sigma_spatial.device, dtype=self.sigma_spatial.dtype)
+        y, x = torch.meshgrid(r, r, indexing="ij")
+        k = torch.exp(-(x.square() + y.square()) / (2 * self.sigma_spatial**2))
+        return k.reshape(1, self.diameter**2, 1, 1)
+
+    def forward(self, source: torch.Tensor, guidance: torch.Tensor) -> torch.Tensor:
+        b, _, gh, gw = guidance.shape
+        if source.shape[0] != b:
+            raise ValueError(f"tiger.JBU: source batch {source.shape[0]} != guidance batch {b}")
+        kernel = self.range_kernel(guidance) * self.spatial_kernel()
+        kernel = kernel / kernel.sum(1, keepdim=True).clamp(1e-7)
+        kernel = kernel + 0.1 * self.fixup_proj(torch.cat([kernel, guidance], dim=1))
+        kernel = kernel.permute(0, 2, 3, 1).reshape(b, gh, gw, self.diameter, self.diameter)
+        hr = F.interpolate(source, (gh, gw), mode="bicubic", align_corners=False)
+        hr = F.pad(hr, [self.radius] * 4, mode="reflect")
+        return adaptive_conv(hr.contiguous(), kernel.contiguous())
+
+
+class JBUStack(nn.Module):
+    """FeatUp's JBU upsampler: four x2 stages guided by the image, then a residual 1x1 fix-up.
+
+    ``forward(source [B, D, h, w], guidance [B, 3, H, W]) -> [B, D, 16h, 16w]``; the guidance is the
+    normalised image (FeatUp: ImageNet statistics), average-pooled to each stage's size.
+    """
+
+    def __init__(self, feat_dim: int, key_dim: int = 32, radius: int = 3) -> None:
+        super().__init__()
+        self.up1, self.up2, self.up3, self.up4 = (JBULearnedRange(3, feat_dim, key_dim, radius=radius) for _ in range(4))
+        self.fixup_proj = nn.Sequential(nn.Dropout2d(0.2), nn.Conv2d(feat_dim, feat_dim, kernel_size=1))
+
+    @staticmethod
+    def _stage(source: torch.Tensor, guidance: torch.Tensor, up: JBULearnedRange) -> torch.Tensor:
+        h, w = source.shape[-2:]
+        return up(source, F.adaptive_avg_pool2d(guidance, (2 * h, 2 * w)))
+
+    def forward(self, source: torch.Tensor, guidance: torch.Tensor) -> torch.Tensor:
+        for up in (self.up1, self.up2, self.up3, self.up4):
+            source = self._stage(source, guidance, up)
+        return self.fixup_proj(source) * 0.1 + source
+
+    @classmethod
+    def from_checkpoint(cls, path=None, feat_dim: int = 512, **kwargs) -> "JBUStack":
+        """A JBU stack with FeatUp's MaskCLIP weights (see :func:`tiger.models.load_jbu_checkpoint`)."""
+        from tiger.models.featup import load_jbu_checkpoint
+
+        state = load_jbu_checkpoint(path, **kwargs)
+        dim = state["fixup_proj.1.weight"].shape[0] if "fixup_proj.1.weight" in state else feat_dim
+        model = cls(dim)
+        model.load_state_dict(state, strict=True)
+        return model.eval()
+
+
+# ----------------------------------------------------------------------------- implicit upsampler
+class FourierFeaturizer(nn.Module):
+    """FeatUp's ``ImplicitFeaturizer`` (colour features, learned phase biases): sin/cos of
+    (y, x, r, g, b) at ``n_freqs`` log-spaced frequencies exp(linspace(-2, 10)), plus the colour."""
+
+    def __init__(self, n_freqs: int = 30, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.n_freqs, self.dims = n_freqs, 5
+        self.biases = nn.Parameter(torch.randn(2, self.dims, n_freqs, generator=generator))
+
+    @property
+    def out_dim(self) -> int:
+        return 2 * self.dims * self.n_freqs + 3
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        b, _, h, w = image.shape
+        gy = torch.linspace(-1, 1, h, device=image.device, dtype=image.dtype)
+        gx = torch.linspace(-1, 1, w, device=image.device, dtype=image.dtype)
+        yy, xx = torch.meshgrid(gy, gx, indexing="ij")
+        coords = torch.stack([yy, xx]).unsqueeze(0).expand(b, 2, h, w)
+        feats = torch.cat([coords, image], dim=1).unsqueeze(1)  # [B, 1, 5, H, W]
+        freqs = torch.exp(torch.linspace(-2, 10, self.n_freqs, device=image.device, dtype=image.dtype))
+        feats = feats * freqs.reshape(1, self.n_freqs, 1, 1, 1)  # [B, F, 5, H, W]
+        # FeatUp reshapes its (2, 5, F) biases as (F, 5): kept for checkpoint-free parity of init.
+        sin_b = self.biases[0].reshape(1, self.n_freqs, self.dims, 1, 1)
+        cos_b = self.biases[1].reshape(1, self.n_freqs, self.dims, 1, 1)
+        n = self.n_freqs * self.dims
+        return torch.cat(
+            [torch.sin(feats + sin_b).reshape(b, n, h, w), torch.cos(feats + cos_b).reshape(b, n, h, w), image], dim=1
+        )
+
+
+class _ChannelNorm(nn.Module):
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.norm(x.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
+
+
+def _min_max(x: torch.Tensor) -> torch.Tensor:
+    flat = x.transpose(0, 1).reshape(x.shape[1], -1)
+    lo = flat.min(-1).values.view(1, -1, 1, 1)
+    scale = (flat.max(-1).values.view(1, -1, 1, 1) - lo).clamp_min(1e-4)
+    return (x - lo) / scale - 0.5
+
+
+class ImplicitNet(nn.Module):
+    """FeatUp's implicit network: min-max scaled image -> Fourier features -> 3 1x1 convs."""
+
+    def __init__(self, out_dim: int, n_freqs: int = 30, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.fourier = FourierFeaturizer(n_freqs, generator)
+        d = self.fourier.out_dim
+        self.net = nn.Sequential(
+            _ChannelNorm(d), nn.Dropout2d(0.2), nn.Conv2d(d, out_dim, 1), nn.ReLU(), nn.Dropout2d(0.2),
+            _ChannelNorm(out_dim), nn.Conv2d(out_dim, out_dim, 1), nn.ReLU(), nn.Conv2d(out_dim, out_dim, 1),
+        )
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.net(self.fourier(_min_max(image)))
+
+
+class AttentionDownsampler(nn.Module):
+    """FeatUp's learned attention downsampler: each low-res cell is a softmax-weighted average of a
+    ``kernel`` x ``kernel`` window of the (blurred) high-res features."""
+
+    def __init__(self, dim: int, kernel: int, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.kernel = kernel
+        self.attention = nn.Sequential(nn.Dropout(0.2), nn.Linear(dim, 1))
+        self.w = nn.Parameter(torch.ones(kernel, kernel) + 0.01 * torch.randn(kernel, kernel, generator=generator))
+        self.b = nn.Parameter(torch.zeros(kernel, kernel) + 0.01 * torch.randn(kernel, kernel, generator=generator))
+
+    def forward(self, hr: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        b, c, h, w = hr.shape
+        fh, fw = size
+        k = min(self.kernel, h, w)
+        x = _gaussian_blur(hr)
+        sh = max(1, (h - k) // max(fh - 1, 1))
+        sw = max(1, (w - k) // max(fw - 1, 1))
+        patches = F.unfold(x, k, stride=(sh, sw))  # [B, C*k*k, L]
+        nh, nw = (h - k) // sh + 1, (w - k) // sw + 1
+        patches = patches.reshape(b, c, k * k, nh, nw)[..., :fh, :fw].permute(0, 3, 4, 2, 1)  # [B,fh,fw,kk,C]
+        logits = self.attention(patches).squeeze(-1)
+        if self.training:
+            logits = logits * (torch.rand(logits.shape[:3] + (1,), device=hr.device) > 0.2)
+        wk = self.w[:k, :k].reshape(1, 1, 1, -1)
+        bk = self.b[:k, :k].reshape(1, 1, 1, -1)
+        attn = F.softmax(logits * wk + bk, dim=-1)
+        return torch.einsum("bhwpc,bhwp->bchw", patches, attn)
+
+
+def _gaussian_blur(x: torch.Tensor, size: int = 5, sigma: float = 1.0) -> torch.Tensor:
+    r = torch.arange(size, device=x.device, dtype=x.dtype) - (size - 1) / 2
+    g = torch.exp(-r.square() / (2 * sigma**2))
+    g = g / g.sum()
+    c = x.shape[1]
+    x = F.pad(x, [size // 2] * 4, mode="reflect")
+    x = F.conv2d(x, g.view(1, 1, 1, size).expand(c, 1, 1, size), groups=c)
+    return F.conv2d(x, g.view(1, 1, size, 1).expand(c, 1, size, 1), groups=c)
+
+
+@dataclass
+class Jitter:
+    """One FeatUp jitter: reflect-pad by ``pad``, zoom, crop at (y, x), optional horizontal flip."""
+
+    pad: int
+    zoom: float
+    y: int
+    x: int
+    flip: bool
+
+    def apply(self, img: torch.Tensor) -> torch.Tensor:
+        h, w = img.shape[-2:]
+        out = F.pad(img, [self.pad] * 4, mode="reflect") if self.pad > 0 else img
+        if self.zoom > 1.0:
+            out = F.interpolate(out, scale_factor=self.zoom, mode="bilinear", align_corners=False)
+        out = out[..., self.y : self.y + h, self.x : self.x + w]
+        return torch.flip(out, [3]) if self.flip else out
+
+
+def sample_jitter(h: int, w: int, max_pad: int, max_zoom: float, use_flips: bool, gen: torch.Generator) -> Jitter:
+    """FeatUp's ``sample_transform``: flip with p=0.5; zoom in [1, max_zoom) with p=0.5; a crop
+    anywhere inside the padded, zoomed image."""
+    u = torch.rand(3, generator=gen).tolist()
+    flip = use_flips and u[0] > 0.5
+    zoom = 1.0 + u[2] * (max_zoom - 1.0) if u[1] > 0.5 else 1.0
+    vh = int((h + 2 * max_pad) * zoom) - h + 1
+    vw = int((w + 2 * max_pad) * zoom) - w + 1
+    y = int(torch.randint(0, max(vh, 1), (), generator=gen))
+    x = int(torch.randint(0, max(vw, 1), (), generator=gen))
+    return Jitter(max_pad, zoom, y, x, flip)
+
+
+@dataclass
+class ImplicitConfig:
+    """FeatUp's implicit-upsampler defaults (``configs/implicit_upsampler.yaml``).
+
+    ``max_pad`` is in pixels at a 224-pixel input and scales with the fitting resolution.
+    ``channel_norm`` (FeatUp's ``use_norm``) LayerNorms the backbone features before fitting;
+    it is off by default because it changes the CLIP features' cosine with text embeddings.
+    """
+
+    steps: int = 1200
+    n_views: int = 3000
+    jitters_per_step: int = 10
+    proj_dim: int = 128
+    pca_batch: int = 50
+    n_freqs: int = 30
+    kernel_size: int = 29
+    max_pad: int = 30
+    max_zoom: float = 1.8
+    use_flips: bool = True
+    mag_weight: float = 0.001
+    mag_tv_weight: float = 0.05
+    blur_pin: float = 0.1
+    lr: float = 2e-3
+    channel_norm: bool = False
+    featurize_batch: int = 64
+    seed: int = 0
+
+
+def _tv(x: torch.Tensor) -> torch.Tensor:
+    return (x[..., 1:, :] - x[..., :-1, :]).square().mean() + (x[..., :, 1:] - x[..., :, :-1]).square().mean()
+
+
+class ImplicitUpsampler:
+    """Fit FeatUp's implicit upsampler to one image, then evaluate it at any resolution.
+
+    Usage: ``up = ImplicitUpsampler.fit(image, featurizer)``; ``up(size) -> [D, H, W]``.
+    ``image`` is [3, H, W] in [0, 1] at the featurizer's input size; ``featurizer`` maps images
+    [B, 3, H, W] in [0, 1] to features [B, D, h, w].
+    """
+
+    def __init__(self, net: ImplicitNet, image: torch.Tensor, mean: torch.Tensor, basis: torch.Tensor,
+                 history: list[float]) -> None:
+        self.net, self.image, self.mean, self.basis, self.history = net, image, mean, basis, history
+
+    @classmethod
+    def fit(cls, image: torch.Tensor, featurizer: Featurizer, config: ImplicitConfig | None = None,
+            progress: bool = False) -> "ImplicitUpsampler":
+        """Fit to ``image`` [3, H, W] in [0, 1]; deterministic for a given ``config.seed`` (the
+        caller's random state is left untouched)."""
+        cfg = config or ImplicitConfig()
+        devices = [image.device] if image.device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            torch.manual_seed(cfg.seed)
+            return cls._fit(image, featurizer, cfg, progress)
+
+    @classmethod
+    def _fit(cls, image: torch.Tensor, featurizer: Featurizer, cfg: ImplicitConfig,
+             progress: bool) -> "ImplicitUpsampler":
+        if image.dim() != 3 or image.shape[0] != 3:
+            raise ValueError(f"tiger.ImplicitUpsampler: image must be [3, H, W], got {tuple(image.shape)}")
+        dev = image.device
+        gen = torch.Generator().manual_seed(cfg.seed)
+        img = image.unsqueeze(0).float()
+        h, w = img.shape[-2:]
+        max_pad = int(round(cfg.max_pad * min(h, w) / 224))
+        max_pad = min(max_pad, min(h, w) - 1)
+        norm = (lambda f: F.layer_norm(f.permute(0, 2, 3, 1), f.shape[1:2]).permute(0, 3, 1, 2)) if cfg.channel_norm \
+            else (lambda f: f)
+
+        with torch.no_grad():
+            lr = norm(featurizer(img).float())
+            fh, fw = lr.shape[-2:]
+            jitters = [sample_jitter(h, w, max_pad, cfg.max_zoom, cfg.use_flips, gen) for _ in range(cfg.n_views)]
+            feats: list[torch.Tensor] = []
+            for i in range(0, cfg.n_views, cfg.featurize_batch):
+                batch = torch.cat([j.apply(img) for j in jitters[i : i + cfg.featurize_batch]])
+                feats.append(norm(featurizer(batch).float()))
+            views = torch.cat(feats)  # [N, D, fh, fw]
+            mean, basis = _pca_basis(views[: cfg.pca_batch], cfg.proj_dim)
+            targets = _project(views, mean, basis)  # [N, k, fh, fw]
+            del views, feats
+        k = basis.shape[1]
+        net = ImplicitNet(k, cfg.n_freqs, gen).to(dev)
+        down = AttentionDownsampler(k + 1, cfg.kernel_size, gen).to(dev)
+        outlier = nn.Conv2d(k, 1, 1).to(dev)
+        with torch.no_grad():
+            outlier.weight.mul_(0.1)
+            outlier.bias.mul_(0.1)
+        params = list(net.parameters()) + list(down.parameters()) + list(outlier.parameters())
+        opt = torch.optim.NAdam(params, lr=cfg.lr)
+        history: list[float] = []
+        steps = range(cfg.steps)
+        if progress:
+            from tqdm.auto import tqdm
+
+            steps = tqdm(steps, desc="FeatUp implicit", leave=False)
+        net.train()
+        down.train()
+        for _ in steps:
+            hr = net(img)
+            hr_mag = hr.norm(dim=1, keepdim=True)
+            both = torch.cat([hr_mag, hr], dim=1)
+            idx = torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen).tolist()
+            target = targets[idx]
+            jittered = torch.cat([jitters[i].apply(both) for i in idx])
+            out = down(jittered, (fh, fw))
+            magnitude, pred = out[:, :1], out[:, 1:]
+            scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
+            loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
+            if cfg.mag_weight > 0:
+                loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
+            if cfg.mag_tv_weight > 0:
+                loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
+            if cfg.blur_pin > 0:
+                loss = loss + cfg.blur_pin * (_gaussian_blur(hr) - hr).square().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            history.append(float(loss.detach()))
+        net.eval()
+        return cls(net, img, mean, basis, history)
+
+    @torch.no_grad()
+    def __call__(self, size: tuple[int, int] | None = None, image: torch.Tensor | None = None) -> torch.Tensor:
+        """Features [D, H, W] at ``size`` (default: the fitting size), from the fitted network on
+        the image resized to that size (or on ``image`` [3, H, W] if given)."""
+        img = self.image if image is None else image.unsqueeze(0).float()
+        if size is not None and tuple(img.shape[-2:]) != tuple(size):
+            img = F.interpolate(img, size=size, mode="bilinear", align_corners=False, antialias=True)
+        coeffs = self.net(img)[0]  # [k, H, W]
+        return torch.einsum("dk,khw->dhw", self.basis, coeffs) + self.mean.view(-1, 1, 1)
+
+
+def _pca_basis(views: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean [D] and the top-k principal directions [D, k] of the feature vectors in views [N, D, h, w]."""
+    x = views.permute(0, 2, 3, 1).reshape(-1, views.shape[1]).double()
+    mean = x.mean(0)
+    cov = (x - mean).T @ (x - mean) / max(x.shape[0] - 1, 1)
+    evals, evecs = torch.linalg.eigh(cov)
+    k = min(k, x.shape[1])
+    return mean.float(), evecs[:, -k:].flip(1).float()
+
+
+def _project(views: torch.Tensor, mean: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+    return torch.einsum("ndhw,dk->nkhw", views - mean.view(1, -1, 1, 1), basis)
+
+
+# ----------------------------------------------------------------------------- switch
+UPSAMPLERS = ("implicit", "jbu", "bilinear")
+
+
+def upsample_features(
+    image: torch.Tensor,
+    featurizer: Featurizer,
+    size: tuple[int, int],
+    mode: str = "implicit",
+    *,
+    jbu: JBUStack | None = None,
+    implicit: ImplicitConfig | None = None,
+    lowres: torch.Tensor | None = None,
+    guidance_normalizer: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Pixel-level features [D, *size] of one image [3, H, W] (in [0, 1], at the featurizer's input size).
+
+    ``mode`` is the quality/speed switch: 'implicit' (FeatUp implicit, per-image fit: the paper's
+    choice, slow), 'jbu' (FeatUp JBU stack: fast; needs ``jbu``), 'bilinear' (baseline).
+    ``lowres`` [D, h, w] reuses already computed backbone features.
+    """
+    if mode not in UPSAMPLERS:
+        raise ValueError(f"tiger.upsample_features: mode must be one of {UPSAMPLERS}, got {mode!r}")
+    if mode == "implicit":
+        return ImplicitUpsampler.fit(image, featurizer, implicit)(size)
+    lr = featurizer(image.unsqueeze(0)).float() if lowres is None else lowres.unsqueeze(0).float()
+    if mode == "bilinear":
+        return F.interpolate(lr, size=size, mode="bilinear", align_corners=False)[0]
+    if jbu is None:
+        raise ValueError("tiger.upsample_features: mode='jbu' needs a JBUStack (JBUStack.from_checkpoint(...))")
+    guide = image.unsqueeze(0).float()
+    if guidance_normalizer is not None:
+        guide = guidance_normalizer(guide)
+    h, w = lr.shape[-2:]
+    guide = F.interpolate(guide, size=(16 * h, 16 * w), mode="bilinear", align_corners=False, antialias=True)
+    p = next(jbu.parameters())
+    with torch.no_grad():
+        hr = jbu(lr.to(p.dtype), guide.to(p.dtype)).float()
+    if tuple(hr.shape[-2:]) != tuple(size):
+        hr = F.interpolate(hr, size=size, mode="bilinear", align_corners=False)
+    return hr[0]

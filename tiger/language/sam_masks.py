@@ -1,0 +1,248 @@
+"""SAM finest-level automatic masks (SPEC §4; SAM's automatic mask generator as LangSplat uses it).
+
+A 32x32 grid of single-point prompts; of SAM's three multimask outputs the finest (index 0) is
+kept; masks are filtered by predicted IoU (> 0.7) and stability (>= 0.85), deduplicated by box
+NMS (IoU 0.7, ``tiger::box_nms``), cleaned of small holes and islands (< 100 px) with a second
+box NMS preferring unchanged masks, masks under 100 px are dropped, and LangSplat's mask NMS
+(IoU 0.8, score = IoU x stability > 0.7, nested 0.5; ``tiger::mask_nms``) runs last. Masks are
+produced directly at the requested working resolution.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from tiger.ops.nms import box_nms, mask_nms
+
+logger = logging.getLogger(__name__)
+
+SAM_MEAN = (0.485, 0.456, 0.406)  # SAM's pixel_mean / 255
+SAM_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass
+class SamMaskConfig:
+    """Thresholds of SAM's automatic mask generator as set by SPEC §4 and LangSplat."""
+
+    points_per_side: int = 32
+    points_per_batch: int = 64
+    level: int = 0
+    pred_iou_thresh: float = 0.7
+    stability_score_thresh: float = 0.85
+    stability_score_offset: float = 1.0
+    mask_threshold: float = 0.0
+    box_nms_thresh: float = 0.7
+    min_mask_region_area: int = 100
+    mask_nms_iou: float = 0.8
+    mask_nms_score: float = 0.7
+    mask_nms_inner: float = 0.5
+
+
+@dataclass
+class SamMasks:
+    """Masks [M, H, W] bool with predicted IoU [M] and stability [M], ordered by decreasing
+    IoU x stability."""
+
+    masks: torch.Tensor
+    iou: torch.Tensor
+    stability: torch.Tensor
+
+    def id_map(self) -> torch.Tensor:
+        """Per-pixel mask id [H, W] int64 (-1: in no mask). Where masks overlap the smallest wins,
+        so the finest segment decides (masks painted from the largest down)."""
+        m, h, w = self.masks.shape
+        ids = torch.full((h, w), -1, dtype=torch.int64, device=self.masks.device)
+        if m == 0:
+            return ids
+        areas = self.masks.flatten(1).sum(1)
+        for k in torch.argsort(areas, descending=True, stable=True).tolist():
+            ids[self.masks[k]] = k
+        return ids
+
+
+def point_grid(n: int) -> torch.Tensor:
+    """SAM's ``build_point_grid``: [n*n, 2] (x, y) in [0, 1], cell centres, x fastest."""
+    side = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    y, x = torch.meshgrid(side, side, indexing="ij")
+    return torch.stack([x.reshape(-1), y.reshape(-1)], dim=1)
+
+
+def stability_score(logits: torch.Tensor, threshold: float, offset: float) -> torch.Tensor:
+    """SAM's stability: IoU of the masks thresholded at threshold +/- offset, for logits [B, H, W]."""
+    inter = (logits > threshold + offset).flatten(1).sum(1)
+    union = (logits > threshold - offset).flatten(1).sum(1)
+    return inter.float() / union.float().clamp_min(1)
+
+
+def masks_to_boxes(masks: torch.Tensor) -> torch.Tensor:
+    """Tight boxes [M, 4] (x0, y0, x1, y1; inclusive pixel indices, SAM's convention; 0 for empty)."""
+    m, h, w = masks.shape
+    if m == 0:
+        return torch.zeros(0, 4, device=masks.device)
+    rows, cols = masks.any(2), masks.any(1)
+    ar_h = torch.arange(h, device=masks.device)
+    ar_w = torch.arange(w, device=masks.device)
+    y1 = torch.where(rows, ar_h, -1).amax(1)
+    y0 = torch.where(rows, ar_h, h).amin(1)
+    x1 = torch.where(cols, ar_w, -1).amax(1)
+    x0 = torch.where(cols, ar_w, w).amin(1)
+    boxes = torch.stack([x0, y0, x1, y1], 1).float()
+    return torch.where((y1 >= 0).unsqueeze(1), boxes, torch.zeros_like(boxes))
+
+
+def _label(binary: np.ndarray) -> tuple[np.ndarray, int]:
+    try:  # OpenCV's labelling is the fastest when installed; scipy is the always-present fallback
+        import cv2  # type: ignore
+
+        n, labels = cv2.connectedComponents(binary.astype(np.uint8), connectivity=8)
+        return labels, n - 1
+    except ImportError:
+        from scipy import ndimage
+
+        labels, n = ndimage.label(binary, structure=np.ones((3, 3), dtype=bool))
+        return labels, n
+
+
+def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple[np.ndarray, bool]:
+    """SAM's ``remove_small_regions``: fill holes (mode 'holes') or drop islands ('islands')
+    smaller than ``area_thresh`` pixels (8-connectivity); an all-small mask keeps its largest island."""
+    if mode not in ("holes", "islands"):
+        raise ValueError(f"tiger.remove_small_regions: mode must be 'holes' or 'islands', got {mode!r}")
+    holes = mode == "holes"
+    labels, n = _label(holes ^ mask)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    small = np.nonzero(sizes < area_thresh)[0] + 1
+    if small.size == 0:
+        return mask, False
+    keep = np.zeros(n + 1, dtype=bool)  # lookup table: label -> in the result
+    if holes:
+        keep[0] = True
+        keep[small] = True
+    else:
+        keep[1:] = True
+        keep[small] = False
+        if not keep.any():
+            keep[int(np.argmax(sizes)) + 1] = True
+    return keep[labels], True
+
+
+class SamMaskGenerator:
+    """Automatic finest-level masks from a ``transformers.SamModel``.
+
+    ``generator(image [3, H, W] in [0, 1], size=(h, w)) -> SamMasks`` at the working size ``size``
+    (default the image size).
+    """
+
+    def __init__(self, model: Any, config: SamMaskConfig | None = None) -> None:
+        self.model = model
+        self.config = config or SamMaskConfig()
+        self.input_size = int(model.config.vision_config.image_size)
+
+    @classmethod
+    def from_pretrained(cls, path=None, *, device="cpu", dtype=torch.float32,
+                        mask_config: SamMaskConfig | None = None, **kwargs) -> "SamMaskGenerator":
+        """Load SAM through :func:`tiger.models.load_sam` (``path``, ``config``, ... as there)."""
+        from tiger.models.sam import load_sam
+
+        return cls(load_sam(path, device=device, dtype=dtype, **kwargs), mask_config)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return next(self.model.parameters()).dtype
+
+    def preprocess(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+        """SAM input [1, 3, S, S]: long side resized to S, normalised, zero-padded bottom/right."""
+        if image.dim() != 3 or image.shape[0] != 3:
+            raise ValueError(f"tiger.SamMaskGenerator: image must be [3, H, W], got {tuple(image.shape)}")
+        h, w = image.shape[-2:]
+        s = self.input_size
+        scale = s / max(h, w)
+        rh, rw = int(h * scale + 0.5), int(w * scale + 0.5)
+        x = F.interpolate(image[None].float(), size=(rh, rw), mode="bilinear", align_corners=False, antialias=True)
+        mean = torch.tensor(SAM_MEAN, device=x.device).view(1, 3, 1, 1)
+        std = torch.tensor(SAM_STD, device=x.device).view(1, 3, 1, 1)
+        x = F.pad((x - mean) / std, (0, s - rw, 0, s - rh))
+        return x, (rh, rw)
+
+    def _upscale(self, low: torch.Tensor, resized: tuple[int, int], size: tuple[int, int]) -> torch.Tensor:
+        """SAM's postprocess_masks: low-res logits [B, h, w] -> input frame -> crop -> ``size``."""
+        s = self.input_size
+        x = F.interpolate(low[:, None].float(), size=(s, s), mode="bilinear", align_corners=False)
+        x = x[..., : resized[0], : resized[1]]
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)[:, 0]
+
+    @torch.no_grad()
+    def predict(self, image: torch.Tensor, size: tuple[int, int] | None = None):
+        """Raw point-grid predictions passing the IoU/stability filters: (masks [N, h, w] bool,
+        iou [N], stability [N]), before any NMS."""
+        cfg = self.config
+        size = tuple(size) if size is not None else tuple(image.shape[-2:])
+        pixels, resized = self.preprocess(image.to(self.device))
+        emb = self.model.get_image_embeddings(pixels.to(self.dtype))
+        pts = point_grid(cfg.points_per_side) * torch.tensor([resized[1], resized[0]], dtype=torch.float64)
+        pts = pts.to(self.device, torch.float32)
+        masks, ious, stabs = [], [], []
+        for i in range(0, pts.shape[0], cfg.points_per_batch):
+            p = pts[i : i + cfg.points_per_batch]
+            out = self.model(image_embeddings=emb, input_points=p[None, :, None, :],
+                             input_labels=torch.ones(1, p.shape[0], 1, dtype=torch.int64, device=self.device),
+                             multimask_output=True)
+            iou = out.iou_scores[0, :, cfg.level].float()
+            keep = iou > cfg.pred_iou_thresh
+            if not bool(keep.any()):
+                continue
+            logits = self._upscale(out.pred_masks[0, keep, cfg.level], resized, size)
+            stab = stability_score(logits, cfg.mask_threshold, cfg.stability_score_offset)
+            ok = stab >= cfg.stability_score_thresh
+            masks.append(logits[ok] > cfg.mask_threshold)
+            ious.append(iou[keep][ok])
+            stabs.append(stab[ok])
+        if not masks:
+            empty = torch.zeros(0, *size, dtype=torch.bool, device=self.device)
+            return empty, torch.zeros(0, device=self.device), torch.zeros(0, device=self.device)
+        return torch.cat(masks), torch.cat(ious), torch.cat(stabs)
+
+    @torch.no_grad()
+    def __call__(self, image: torch.Tensor, size: tuple[int, int] | None = None) -> SamMasks:
+        """Finest-level automatic masks of image [3, H, W] (RGB in [0, 1]) at ``size`` (h, w)."""
+        cfg = self.config
+        masks, iou, stab = self.predict(image, size)
+        keep = box_nms(masks_to_boxes(masks), iou, cfg.box_nms_thresh)
+        masks, iou, stab = masks[keep], iou[keep], stab[keep]
+        if cfg.min_mask_region_area > 0 and masks.shape[0] > 0:
+            masks, changed = self._clean(masks)
+            keep = box_nms(masks_to_boxes(masks), (~changed).float(), cfg.box_nms_thresh)
+            masks, iou, stab = masks[keep], iou[keep], stab[keep]
+            big = masks.flatten(1).sum(1) >= cfg.min_mask_region_area
+            masks, iou, stab = masks[big], iou[big], stab[big]
+        keep = mask_nms(masks, iou * stab, cfg.mask_nms_iou, cfg.mask_nms_score, cfg.mask_nms_inner)
+        return SamMasks(masks[keep], iou[keep], stab[keep])
+
+    def _clean(self, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Small holes and islands removed from every mask; connected components run on the CPU,
+        one mask per thread (OpenCV releases the GIL)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        area = self.config.min_mask_region_area
+        host = masks.cpu().numpy()
+        changed = np.zeros(len(host), dtype=bool)
+
+        def one(k: int) -> None:
+            m, c1 = remove_small_regions(host[k], area, "holes")
+            m, c2 = remove_small_regions(m, area, "islands")
+            if c1 or c2:
+                host[k], changed[k] = m, True
+
+        with ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1)) as pool:
+            list(pool.map(one, range(len(host))))
+        return torch.from_numpy(host).to(masks.device), torch.from_numpy(changed).to(masks.device)

@@ -1,0 +1,167 @@
+"""Where model weights live, and the error when they are missing (SPEC §7).
+
+A model is found, in this order, at: an explicit ``path`` argument; the entry for it in a config
+(a mapping or a JSON file of ``{name: path}``); ``$TIGER_MODELS/<folder>`` (the folder named in
+the registry below, or the public id as a nested folder). Nothing is downloaded unless the
+caller passes ``allow_download=True`` (then ``huggingface_hub`` fetches the public id into
+``$TIGER_MODELS`` or its own cache).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Union
+
+logger = logging.getLogger(__name__)
+
+ENV_VAR = "TIGER_MODELS"
+PathLike = Union[str, os.PathLike]
+ConfigLike = Union[None, PathLike, Mapping[str, PathLike]]
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A model the package can load.
+
+    ``required`` lists groups of file names: a folder is complete when, for every group, one of
+    its names exists in it. ``files`` names single-file checkpoints accepted instead of a folder.
+    """
+
+    name: str
+    public_id: str
+    folder: str
+    required: tuple[tuple[str, ...], ...]
+    files: tuple[str, ...] = ()
+    source: str = ""
+
+    def describe(self) -> str:
+        groups = [" or ".join(g) for g in self.required]
+        text = "a folder with " + ", ".join(groups) if groups else ""
+        if self.files:
+            text += (" / " if text else "") + "a checkpoint file " + " or ".join(self.files)
+        return text
+
+
+_WEIGHTS = ("model.safetensors", "pytorch_model.bin", "model.safetensors.index.json", "pytorch_model.bin.index.json")
+
+REGISTRY: dict[str, ModelSpec] = {
+    "clip": ModelSpec(
+        name="clip",
+        public_id="openai/clip-vit-base-patch16",
+        folder="clip-vit-base-patch16",
+        required=(("config.json",), _WEIGHTS, ("vocab.json", "tokenizer.json"), ("merges.txt", "tokenizer.json")),
+        source="Hugging Face (CLIPModel.save_pretrained layout)",
+    ),
+    "sam": ModelSpec(
+        name="sam",
+        public_id="facebook/sam-vit-huge",
+        folder="sam-vit-huge",
+        required=(("config.json",), _WEIGHTS),
+        files=("sam_vit_h_4b8939.pth",),
+        source="Hugging Face (SamModel.save_pretrained layout) or the original segment-anything checkpoint",
+    ),
+    "featup_jbu": ModelSpec(
+        name="featup_jbu",
+        public_id="mhamilton723/FeatUp (torch.hub 'maskclip' JBU upsampler)",
+        folder="featup",
+        required=(),
+        files=("maskclip_jbu_stack_cocostuff.ckpt",),
+        source="FeatUp's released MaskCLIP JBU checkpoint",
+    ),
+}
+
+
+class ModelNotFoundError(FileNotFoundError):
+    """A model's files are not where they were looked for."""
+
+
+def _is_complete(folder: Path, spec: ModelSpec) -> bool:
+    if not spec.required or not folder.is_dir():
+        return False
+    return all(any((folder / name).exists() for name in group) for group in spec.required)
+
+
+def _from_config(name: str, config: ConfigLike) -> Path | None:
+    if config is None:
+        return None
+    if not isinstance(config, Mapping):
+        cfg_path = Path(config)
+        try:
+            config = json.loads(cfg_path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"tiger.models: cannot read the model config {cfg_path}: {exc}") from exc
+        if not isinstance(config, Mapping):
+            raise ValueError(f"tiger.models: the model config {cfg_path} must be a JSON object of name -> path")
+    value = config.get(name)
+    return Path(value).expanduser() if value else None
+
+
+def _candidates(spec: ModelSpec, root: Path) -> list[Path]:
+    out = [root / spec.folder, root / spec.public_id.split(" ")[0]]
+    out += [root / f for f in spec.files] + [root / spec.folder / f for f in spec.files]
+    return out
+
+
+def _accept(candidate: Path, spec: ModelSpec) -> Path | None:
+    if candidate.is_file() and (not spec.files or candidate.suffix in {Path(f).suffix for f in spec.files}):
+        return candidate
+    if _is_complete(candidate, spec):
+        return candidate
+    if candidate.is_dir():
+        for f in spec.files:
+            if (candidate / f).is_file():
+                return candidate / f
+    return None
+
+
+def resolve_model_path(
+    name: str,
+    path: PathLike | None = None,
+    *,
+    config: ConfigLike = None,
+    allow_download: bool = False,
+) -> Path:
+    """Find the weights of registry model ``name`` ('clip', 'sam', 'featup_jbu').
+
+    Returns a folder (Hugging Face layout) or a checkpoint file. Raises
+    :class:`ModelNotFoundError` naming the expected files, the public id and every place looked at.
+    """
+    if name not in REGISTRY:
+        raise KeyError(f"tiger.models: unknown model {name!r}; known: {sorted(REGISTRY)}")
+    spec = REGISTRY[name]
+    looked: list[Path] = []
+    explicit = Path(path).expanduser() if path is not None else _from_config(name, config)
+    if explicit is not None:
+        looked.append(explicit)
+        found = _accept(explicit, spec)
+        if found is not None:
+            return found
+    else:
+        root = os.environ.get(ENV_VAR)
+        if root:
+            for cand in _candidates(spec, Path(root).expanduser()):
+                looked.append(cand)
+                found = _accept(cand, spec)
+                if found is not None:
+                    return found
+        if allow_download and spec.required:
+            return _download(spec, Path(root).expanduser() if root else None)
+    where = ", ".join(str(p) for p in looked) if looked else f"nowhere (no path given and ${ENV_VAR} is unset)"
+    raise ModelNotFoundError(
+        f"tiger: model '{name}' not found. Expected {spec.describe()} "
+        f"({spec.source}; public id '{spec.public_id}'). Looked at: {where}. "
+        f"Pass its path, add it to a model config, or put it under ${ENV_VAR}/{spec.folder}"
+        + (f" (downloads happen only with allow_download=True)." if spec.required else ".")
+    )
+
+
+def _download(spec: ModelSpec, root: Path | None) -> Path:
+    from tiger.utils.lazy import require
+
+    hub = require("huggingface_hub", purpose=f"downloading {spec.public_id}")
+    local_dir = str(root / spec.folder) if root else None
+    logger.info("downloading %s (allow_download=True)", spec.public_id)
+    return Path(hub.snapshot_download(spec.public_id, local_dir=local_dir))

@@ -1,0 +1,13 @@
+"""Text -> 3D Gaussians: relevance scores, selection, object bounds and 2D relevancy maps."""
+from __future__ import annotations
+
+from .maps import relevancy_maps, render_language, render_rgb, save_heatmap, write_relevancy_pictures
+from .relevance import DEFAULT_TEMPERATURE, relevancy
+from .select import (Retrieval, choose_tau, min_error_threshold, otsu_threshold, retrieve, robust_bounds,
+                     subset, valley_threshold)
+from .text import CANONICAL_NEGATIVES, TextEncoder, embed_negatives, embed_queries, pca_of, project
+
+__all__ = ["CANONICAL_NEGATIVES", "DEFAULT_TEMPERATURE", "Retrieval", "TextEncoder", "choose_tau",
+           "embed_negatives", "embed_queries", "min_error_threshold", "otsu_threshold", "pca_of", "project", "relevancy",
+           "relevancy_maps", "render_language", "render_rgb", "retrieve", "robust_bounds",
+           "save_heatmap", "subset", "valley_threshold", "write_relevancy_pictures"]

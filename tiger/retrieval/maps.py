@@ -1,0 +1,166 @@
+"""2D relevancy maps: render each Gaussian's L, score every pixel, draw heat-maps over the image."""
+from __future__ import annotations
+
+import logging
+import os
+import re
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from tiger.utils.io import atomic_write
+
+from .relevance import DEFAULT_TEMPERATURE, relevancy
+from .text import CANONICAL_NEGATIVES, Query, TextEncoder, embed_negatives, embed_queries
+
+log = logging.getLogger(__name__)
+PathLike = Union[str, os.PathLike]
+
+
+def _render(scene: Any, camera: Any, colors: torch.Tensor, **kwargs: Any) -> dict:
+    from tiger import rasterize_gaussians
+
+    means = scene.means.detach()
+    return rasterize_gaussians(
+        means=means, quats=scene.quats.detach(), scales=scene.scales.detach(),
+        opacities=scene.opacities.detach(), colors=colors.to(means.dtype),
+        viewmat=torch.as_tensor(camera.viewmat).to(means), K=torch.as_tensor(camera.K).to(means),
+        width=int(camera.width), height=int(camera.height), **kwargs)
+
+
+def render_language(scene: Any, camera: Any, **kwargs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render the language features: ([H, W, D] features, [H, W] alpha); background 0.
+
+    ``scene`` needs ``means, quats, scales, opacities, lang``; ``camera`` ``viewmat, K, width, height``.
+    """
+    if getattr(scene, "lang", None) is None:
+        raise ValueError("tiger.retrieval: the scene has no language features to render (scene.lang)")
+    with torch.no_grad():
+        out = _render(scene, camera, scene.lang.detach(), **kwargs)
+    return out["color"], out["alpha"]
+
+
+def render_rgb(scene: Any, camera: Any) -> Optional[torch.Tensor]:
+    """[H, W, 3] colour render for the picture background, or None when the scene has no colour."""
+    with torch.no_grad():
+        if hasattr(scene, "render"):
+            return scene.render(camera)["color"].clamp(0, 1)
+        if getattr(scene, "colors", None) is not None:
+            return _render(scene, camera, scene.colors.detach())["color"].clamp(0, 1)
+    return None
+
+
+def relevancy_maps(scene: Any, camera: Any, queries: torch.Tensor, negatives: Optional[torch.Tensor] = None,
+                   *, temperature: float = DEFAULT_TEMPERATURE) -> dict[str, Optional[torch.Tensor]]:
+    """Per-pixel cosine and LERF relevancy of the rendered language features.
+
+    Args:
+        queries: [Q, D] query embeddings in the language space (:func:`embed_queries`).
+        negatives: [M, D] canonical negatives (None: cosine only).
+    Returns:
+        dict with 'cosine' [Q, H, W], 'relevancy' [Q, H, W] or None, 'alpha' [H, W], 'features' [H, W, D].
+    """
+    feats, alpha = render_language(scene, camera)
+    cos, rel = relevancy(feats, queries, negatives, temperature=temperature)
+    return {"cosine": cos.permute(2, 0, 1), "relevancy": None if rel is None else rel.permute(2, 0, 1),
+            "alpha": alpha, "features": feats}
+
+
+def _to_numpy(x: Optional[torch.Tensor]) -> Optional[np.ndarray]:
+    return None if x is None else x.detach().float().cpu().numpy()
+
+
+def save_heatmap(path: PathLike, values: torch.Tensor, image: Optional[torch.Tensor] = None, *,
+                 title: str = "", cmap: str = "turbo", vmin: Optional[float] = None,
+                 vmax: Optional[float] = None, alpha: float = 0.6, below: Optional[float] = None,
+                 boxes: Optional[Sequence[Sequence[float]]] = None,
+                 points: Optional[Sequence[Sequence[float]]] = None, label: str = "relevancy",
+                 dpi: int = 100) -> Path:
+    """Write a heat-map of ``values`` [H, W] over ``image`` [H, W, 3] (in [0, 1]) with a colour bar.
+
+    Args:
+        below: pixels with values under this are left uncoloured (LERF shows relevancy > 0.5 only).
+        boxes: [x1, y1, x2, y2] pixel boxes drawn as rectangles (ground truth).
+        points: (x, y) pixel positions marked (predictions).
+    The file (PNG, or any format matplotlib knows from the suffix) is written atomically.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    v = _to_numpy(values)
+    if v is None or v.ndim != 2:
+        raise ValueError(f"tiger.retrieval: heat-map values must be [H, W], got {None if v is None else v.shape}")
+    h, w = v.shape
+    img = _to_numpy(image)
+    if img is not None and img.shape[:2] != (h, w):
+        raise ValueError(f"tiger.retrieval: image {img.shape} does not match the heat-map size {(h, w)}")
+    # Sized so the image is drawn at about its native resolution (plus room for the colour bar).
+    fig = Figure(figsize=(max(4.0, 1.1 * w / dpi) + 1.5, max(3.0, 1.1 * h / dpi) + 0.6), dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    if img is not None:
+        ax.imshow(np.clip(img[..., :3], 0, 1), interpolation="nearest")
+    shown = np.ma.masked_where(v < below, v) if below is not None else v
+    im = ax.imshow(shown, cmap=cmap, vmin=vmin, vmax=vmax, alpha=alpha if img is not None else 1.0,
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label=label)
+    for b in boxes or []:
+        x1, y1, x2, y2 = (float(c) for c in b)
+        ax.add_patch(Rectangle((min(x1, x2), min(y1, y2)), abs(x2 - x1), abs(y2 - y1), fill=False,
+                               edgecolor="black", linewidth=2, linestyle="--"))
+    if points is not None and len(points):
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        ax.scatter(pts[:, 0], pts[:, 1], s=60, c="red", edgecolors="black", linewidths=1.5, zorder=3)
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_axis_off()
+    if title:
+        ax.set_title(title)
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    with atomic_write(path, "wb") as fh:
+        fig.savefig(fh, format=fmt, bbox_inches="tight")
+    return path
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")[:80] or "query"
+
+
+def write_relevancy_pictures(scene: Any, cameras: Sequence[Any], query: Query, out_dir: PathLike, *,
+                             encoder: Optional[TextEncoder] = None, pca: Any = None,
+                             negatives: Union[None, Sequence[str], torch.Tensor] = CANONICAL_NEGATIVES,
+                             score: str = "relevancy", temperature: float = DEFAULT_TEMPERATURE,
+                             names: Optional[Sequence[str]] = None) -> list[Path]:
+    """Heat-map pictures of one query for the given views: ``out_dir/<query>_<view>.png``.
+
+    ``score="relevancy"`` draws the LERF relevancy (colour bar over [0.5, 1], lower values left
+    uncoloured, as LERF shows it); ``"cosine"`` the cosine over [-1, 1].
+    """
+    if score not in ("cosine", "relevancy"):
+        raise ValueError(f"tiger.retrieval: score must be 'cosine' or 'relevancy', got '{score}'")
+    d = scene.lang.shape[1]
+    pca_src = scene if pca is None else pca
+    q = embed_queries(query, dim=d, encoder=encoder, pca=pca_src)
+    neg = None
+    if score == "relevancy":
+        if negatives is None or (encoder is None and not torch.is_tensor(negatives)):
+            raise ValueError("tiger.retrieval: relevancy pictures need negatives (embeddings, or strings "
+                             "with a text encoder)")
+        neg = embed_negatives(negatives, dim=d, encoder=encoder, pca=pca_src)
+    text = query if isinstance(query, str) else "query"
+    out_dir = Path(out_dir)
+    paths = []
+    for i, cam in enumerate(cameras):
+        view = names[i] if names is not None else (getattr(cam, "image_name", "") or f"view{i:03d}")
+        maps = relevancy_maps(scene, cam, q[:1], neg, temperature=temperature)
+        vals = maps["relevancy"][0] if score == "relevancy" else maps["cosine"][0]
+        rng = dict(vmin=0.5, vmax=1.0, below=0.5) if score == "relevancy" else dict(vmin=-1.0, vmax=1.0)
+        p = out_dir / f"{_slug(text)}_{_slug(Path(view).stem)}.png"
+        save_heatmap(p, vals, render_rgb(scene, cam), title=f"'{text}' ({score})", label=score, **rng)
+        paths.append(p)
+    log.info("wrote %d relevancy pictures to %s", len(paths), out_dir)
+    return paths

@@ -1,0 +1,81 @@
+"""Pictures: PNG writing (atomic), depth colouring and PCA views of feature maps."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .io import atomic_write
+
+
+def to_uint8(img: Union[Tensor, np.ndarray]) -> np.ndarray:
+    """[H,W] or [H,W,3|4] float in [0,1] (or uint8) → uint8 array."""
+    if isinstance(img, Tensor):
+        img = img.detach().float().cpu().numpy()
+    if img.dtype == np.uint8:
+        return img
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def save_png(path: Union[str, os.PathLike], img: Union[Tensor, np.ndarray]) -> Path:
+    """Write an image atomically as PNG. img: [H,W], [H,W,3] or [H,W,4], float [0,1] or uint8."""
+    from PIL import Image
+
+    path = Path(path)
+    with atomic_write(path, "wb") as fh:
+        Image.fromarray(to_uint8(img)).save(fh, format="PNG")
+    return path
+
+
+def colorize(values: Tensor, mask: Optional[Tensor] = None, cmap: str = "turbo",
+             vmin: Optional[float] = None, vmax: Optional[float] = None) -> Tensor:
+    """Map a scalar image [H,W] through a matplotlib colormap → [H,W,3] in [0,1].
+
+    Pixels outside ``mask`` [H,W] bool are black; the range defaults to the masked 1st/99th
+    percentiles so a few outliers do not wash the picture out.
+    """
+    import matplotlib
+
+    v = values.detach().float().cpu()
+    m = torch.ones_like(v, dtype=torch.bool) if mask is None else mask.detach().cpu()
+    sel = v[m]
+    if sel.numel() == 0:
+        return torch.zeros(*v.shape, 3)
+    lo = float(torch.quantile(sel, 0.01)) if vmin is None else vmin
+    hi = float(torch.quantile(sel, 0.99)) if vmax is None else vmax
+    t = ((v - lo) / max(hi - lo, 1e-12)).clamp(0, 1)
+    rgb = torch.from_numpy(matplotlib.colormaps[cmap](t.numpy())[..., :3]).float()
+    return rgb * m[..., None]
+
+
+def feature_pca_image(features: Tensor, mask: Optional[Tensor] = None,
+                      basis: Optional[Tensor] = None) -> Tensor:
+    """Show a [H,W,D] feature map as RGB through its first 3 principal components.
+
+    Components are fitted on the masked pixels (or taken from ``basis`` [D,3], so several
+    views share colours) and each scaled to its 1st–99th percentile range → [H,W,3].
+    """
+    h, w, d = features.shape
+    f = features.detach().float().cpu().reshape(-1, d)
+    m = torch.ones(h * w, dtype=torch.bool) if mask is None else mask.detach().cpu().reshape(-1)
+    if int(m.sum()) < 3:
+        return torch.zeros(h, w, 3)
+    if basis is None:
+        basis = pca_basis(f[m], 3)
+    proj = (f - f[m].mean(0)) @ basis
+    lo = torch.quantile(proj[m], 0.01, dim=0)
+    hi = torch.quantile(proj[m], 0.99, dim=0)
+    rgb = ((proj - lo) / (hi - lo).clamp_min(1e-12)).clamp(0, 1)
+    return (rgb * m[:, None]).reshape(h, w, 3)
+
+
+def pca_basis(x: Tensor, k: int) -> Tensor:
+    """Top-k principal directions [D,k] of rows x [M,D] (deterministic sign)."""
+    xc = x - x.mean(0)
+    _, _, vh = torch.linalg.svd(xc[: min(len(xc), 200_000)], full_matrices=False)
+    b = vh[:k].T
+    return b * torch.sign(b.sum(0, keepdim=True) + 1e-12)
