@@ -22,7 +22,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from benchmarks.common import cuda_time_ms, rel_err, scene_tensors, table  # noqa: E402
+from benchmarks.common import (cuda_time_ms, rel_err, standard_camera,  # noqa: E402
+                               standard_scene, table)
 
 import tiger  # noqa: E402
 from tiger.render.reference import render_ref  # noqa: E402
@@ -101,9 +102,10 @@ def measure(render, scene, V, K, w, h, iters, features_only=False):
 def speed_table(args, have_gsplat):
     rows = []
     w, h = args.width, args.height
+    V, K = standard_camera(w, h, device="cuda")
     for n in args.sizes:
         for C in args.channels:
-            scene, V, K = scene_tensors(n, C, w, h, device="cuda")
+            scene = standard_scene(n, C, device="cuda")
             with torch.no_grad():
                 n_isects = tiger.rasterize_gaussians(*[scene[k] for k in PARAMS], V, K, w, h,
                                                      check_finite=False)["n_isects"]
@@ -152,7 +154,8 @@ def grads_of(render, scene, V, K, w, h, v_color):
 
 def error_table(args, have_gsplat):
     n, C, w, h = args.err_n, 67, args.err_width, args.err_height
-    scene64, V64, K64 = scene_tensors(n, C, w, h, device="cuda", dtype=torch.float64, seed=3)
+    scene64 = standard_scene(n, C, device="cuda", dtype=torch.float64, seed=3)
+    V64, K64 = standard_camera(w, h, device="cuda", dtype=torch.float64)
     v_color = torch.randn(h, w, C, device="cuda", dtype=torch.float64,
                           generator=torch.Generator(device="cuda").manual_seed(2))
     ref_c, ref_a, ref_g = reference_grads(scene64, V64, K64, w, h, v_color)
@@ -190,9 +193,10 @@ def sweep_table(args, err_rows):
     for name, dt, cdt in (("ours float64", torch.float64, None), ("ours float32", torch.float32, None),
                           ("ours float32, fp16 channels", torch.float32, torch.float16),
                           ("ours float32, bf16 channels", torch.float32, torch.bfloat16)):
-        scene, V, K = scene_tensors(n, C, w, h, device="cuda", dtype=dt)
+        scene = standard_scene(n, C, device="cuda", dtype=dt)
         if cdt is not None:
             scene["colors"] = scene["colors"].to(cdt)
+        V, K = standard_camera(w, h, device="cuda", dtype=dt)
         iters = 3 if dt == torch.float64 else max(5, args.iters // 2)
         f, fb, _, peak = measure(ours, scene, V, K, w, h, iters)
         e = errs.get(name, {})
@@ -209,8 +213,9 @@ def stage_table(args):
     ops = torch.ops.tiger
     w, h = args.width, args.height
     rows = []
+    V, K = standard_camera(w, h, device="cuda")
     for n, C in [(n, C) for n in args.sizes for C in args.channels]:
-        s, V, K = scene_tensors(n, C, w, h, device="cuda")
+        s = standard_scene(n, C, device="cuda")
         it = args.iters
         pr = lambda: ops.project_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], V, K,  # noqa: E731
                                            w, h, 0.3, 0.01, 1e10, 1 / 255, False)
@@ -253,9 +258,10 @@ def profile_kernels(args, path: Path) -> None:
     """Per-kernel GPU times of one forward+backward (torch.profiler), ours and gsplat's."""
     from torch.profiler import ProfilerActivity, profile
     w, h = args.width, args.height
+    V, K = standard_camera(w, h, device="cuda")
     lines = []
     for n, C in ((args.sizes[0], 3), (args.sizes[-1], 64)):
-        scene, V, K = scene_tensors(n, C, w, h, device="cuda")
+        scene = standard_scene(n, C, device="cuda")
         v = torch.randn(h, w, C, device="cuda")
         for name, fn in (("ours", ours), ("gsplat", gsplat_render)):
             s = leaves(scene, PARAMS)

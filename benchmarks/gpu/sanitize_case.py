@@ -13,15 +13,16 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from benchmarks.common import scene_tensors  # noqa: E402
+from benchmarks.common import standard_camera, standard_scene  # noqa: E402
 
 import tiger  # noqa: E402
 
 
 def run(n: int, C: int, dtype: torch.dtype, cdtype: torch.dtype | None, sh: int | None,
         features_only: bool, w: int = 50, h: int = 37) -> None:
-    s, V, K = scene_tensors(n, C, w, h, device="cuda", dtype=dtype, seed=C)
+    s = standard_scene(n, C, device="cuda", dtype=dtype, seed=C)
     s["scales"] = s["scales"] * 6  # a few tiles per Gaussian at this small size
+    V, K = standard_camera(w, h, device="cuda", dtype=dtype)
     V[:3, 3] = torch.tensor([0.2, -0.1, 3.0], dtype=dtype)
     if sh is not None:
         s["colors"] = 0.3 * torch.randn(n, (sh + 1) ** 2, 3, device="cuda", dtype=dtype)

@@ -138,9 +138,10 @@ def test_half_precision_channels(half):
 
 def test_tens_of_millions_of_intersections_64bit_offsets():
     """~30M tile-Gaussian pairs: offsets are int64, lists complete and front to back."""
-    from benchmarks.common import scene_tensors
+    from benchmarks.common import standard_camera, standard_scene
     w, h = 1920, 1080
-    s, V, K = scene_tensors(4_000_000, 3, w, h, device="cuda")
+    s = standard_scene(4_000_000, 3, device="cuda")
+    V, K = standard_camera(w, h, device="cuda")
     m2, cn, d, op, r, to, ids = _project_and_bin(s["means"], s["quats"], s["scales"], s["opacities"],
                                                  V, K, w, h)
     m = ids.numel()
