@@ -14,14 +14,18 @@ def _run(*args):
                           text=True, timeout=600)
 
 
-def test_every_subcommand_has_help_with_example():
+def test_every_subcommand_has_help_with_example(capsys):
     parser = build_parser()
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
-    assert sub.choices, "no subcommands"
+    assert set(sub.choices) >= {"reconstruct", "features", "embed", "query", "render",
+                                "eval-lerf", "info", "demo"}
     for name in sub.choices:
-        with pytest.raises(SystemExit) as e:
-            main([name, "--help"])
-        assert e.value.code == 0
+        try:
+            code = main([name, "--help"])
+        except SystemExit as e:
+            code = e.code
+        assert code == 0, name
+        assert "example: tiger " + name in capsys.readouterr().out, name
 
 
 def test_demo_refuses_to_overwrite_then_runs(tmp_path):
@@ -35,11 +39,43 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
     assert r.returncode == 0, r.stderr
     for kind in ("color", "depth", "alpha", "features_pca"):
         assert (out / f"view0_{kind}.png").stat().st_size > 100
-    for name in ("highlight_ball.png", "retrieved_ball.png", "relevancy/ball_view0.png"):
+    for name in ("highlight_ball.png", "retrieved_ball.png"):
         assert (out / name).stat().st_size > 100, name
+    assert len(list((out / "relevancy").glob("ball_view*.png"))) == 2
     assert "-> ball" in r.stdout  # the query retrieved the ball
+    assert (out / "scene.ply").is_file() and (out / "text_embeddings.pt").is_file()
+
+    # The other commands work on what the demo wrote.
+    r = _run("info", str(out / "scene.ply"))
+    assert r.returncode == 0 and "64-d, with PCA basis" in r.stdout, r.stderr
+    q = tmp_path / "query"
+    r = _run("query", str(out / "scene.ply"), "ball", "cup", "--text-embeddings",
+             str(out / "text_embeddings.pt"), "--out", str(q), "--views", "1", "--tau", "0.5")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    sel = json.loads((q / "selection.json").read_text())
+    assert sel["ball"]["selected"] > 0 and sel["cup"]["selected"] > 0
+    assert (q / "ball.ply").is_file() and (q / "ball_highlight_0.png").is_file()
+    rd = tmp_path / "render"
+    r = _run("render", str(out / "scene.ply"), "--orbit", "2", "--size", "64", "48", "--what",
+             "color", "depth", "features", "--video", "--out", str(rd))
+    assert r.returncode == 0, r.stderr
+    assert len(list(rd.glob("*_features.png"))) == 2 and list(rd.glob("turntable.*"))
+    r = _run("query", str(out / "scene.ply"), "unicorn", "--text-embeddings",
+             str(out / "text_embeddings.pt"), "--out", str(tmp_path / "q2"))
+    assert r.returncode != 0 and "no embedding for ['unicorn']" in r.stderr
+    assert "Traceback" not in r.stderr
 
 
-def test_bad_arguments_give_one_line_error():
+def test_bad_arguments_give_one_line_error(tmp_path):
     r = _run("demo", "--width", "-3", "--out", "/tmp/tiger-never", "--force")
     assert r.returncode == 2 and "must be positive" in r.stderr and "Traceback" not in r.stderr
+    for args in (["info", str(tmp_path / "missing.ply")],
+                 ["reconstruct", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")],
+                 ["render", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "r")],
+                 ["eval-lerf", "--labels", str(tmp_path)]):
+        r = _run(*args)
+        assert r.returncode != 0, args
+        assert "Traceback" not in r.stderr and r.stderr.strip(), args
+        assert "error" in r.stderr.strip().splitlines()[-1], (args, r.stderr)

@@ -125,6 +125,12 @@ def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str],
     print(f"  field: loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}; "
           f"{int(res.invisible.sum())} Gaussians invisible in every view (skipped)")
     field_scene.lang_pca_basis, field_scene.lang_pca_mean = basis, mean
+    with timer.stage("save scene.ply (with lang_* and PCA) and the text-embedding table"):
+        _save_scene(scene, field_scene.lang, basis, mean, out / "scene.ply")
+        if isinstance(encoder, BuiltinTextEncoder):
+            from tiger.utils.io import atomic_torch_save
+
+            atomic_torch_save(encoder.table, out / "text_embeddings.pt")
 
     pw, ph = picture_size
     pic_cams = [types.SimpleNamespace(viewmat=V, K=pinhole_K(pw, ph), width=pw, height=ph,
@@ -150,6 +156,20 @@ def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str],
 
 def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+
+
+def _save_scene(scene: LabelledGaussians, lang: torch.Tensor, basis: torch.Tensor,
+                mean: torch.Tensor, path: Path) -> None:
+    """The demo scene as an INRIA-layout PLY with its language features, for the other commands."""
+    from tiger.scene import GaussianScene
+
+    sh_c0 = 0.28209479177387814
+    o = scene.opacities.clamp(1e-4, 1 - 1e-4)
+    gs = GaussianScene(scene.means.clone(), scene.scales.clamp_min(1e-8).log(), scene.quats.clone(),
+                       torch.log(o / (1 - o)), (scene.rgb - 0.5) / sh_c0, lang=lang.detach().float(),
+                       lang_pca_basis=basis.float(), lang_pca_mean=mean.float(),
+                       metadata={"source": "tiger demo", "labels": list(scene.names)})
+    gs.save_ply(path)
 
 
 def _views_showing(scene: LabelledGaussians, mask: torch.Tensor, cams: list) -> list:

@@ -179,6 +179,8 @@ def _dist_setup(rank: int | None, world_size: int | None) -> tuple[int, int, boo
     env_world = int(os.environ.get("WORLD_SIZE", "1"))
     if rank is None and world_size is None and env_world > 1 and dist.is_available():
         backend = "nccl" if torch.cuda.is_available() else "gloo"
+        if backend == "nccl":  # NCCL collectives run on the rank's own GPU
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")) % torch.cuda.device_count())
         dist.init_process_group(backend)
         return dist.get_rank(), dist.get_world_size(), True
     return int(rank or 0), int(world_size or 1), False

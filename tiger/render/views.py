@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import types
 from typing import Sequence
 
 import torch
@@ -59,8 +58,9 @@ def orbit_viewmats(n: int, center: Sequence[float] = (0.0, 0.0, 0.0), radius: fl
 
 
 def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0, **orbit) -> list:
-    """Cameras (namespaces with viewmat, K, width, height, image_name) on an orbit."""
+    """``tiger.scene.Camera`` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
+    from tiger.scene.cameras import Camera
+
     K = pinhole_K(width, height, fov_y_deg)
-    return [types.SimpleNamespace(viewmat=V, K=K, width=width, height=height,
-                                  image_name=f"orbit{i:03d}")
+    return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=f"orbit{i:03d}")
             for i, V in enumerate(orbit_viewmats(n, **orbit))]

@@ -97,7 +97,8 @@ def save_heatmap(path: PathLike, values: torch.Tensor, image: Optional[torch.Ten
     img = _to_numpy(image)
     if img is not None and img.shape[:2] != (h, w):
         raise ValueError(f"tiger.retrieval: image {img.shape} does not match the heat-map size {(h, w)}")
-    fig = Figure(figsize=(max(3.0, w / dpi) + 1.2, max(2.5, h / dpi)), dpi=dpi)
+    # Sized so the image is drawn at about its native resolution (plus room for the colour bar).
+    fig = Figure(figsize=(max(4.0, 1.1 * w / dpi) + 1.5, max(3.0, 1.1 * h / dpi) + 0.6), dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     if img is not None:

@@ -367,6 +367,9 @@ def colmap_cameras(cams: dict, imgs: dict, images_dir: Path, model_path: PathLik
         vm = torch.eye(4, dtype=torch.float64)
         vm[:3, :3] = R
         vm[:3, 3] = torch.tensor(im.tvec, dtype=torch.float64)
-        out.append(Camera(vm, K, c.width, c.height, image_path=images_dir / im.name, image_name=im.name,
-                          distortion=dist, camera_id=c.id))
+        try:
+            out.append(Camera(vm, K, c.width, c.height, image_path=images_dir / im.name, image_name=im.name,
+                              distortion=dist, camera_id=c.id))
+        except ValueError as exc:  # e.g. a non-positive focal length
+            raise SceneFormatError(model_path, f"camera {c.id} / image {im.id}: {exc}", "PARAMS") from None
     return out

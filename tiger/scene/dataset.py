@@ -136,19 +136,22 @@ def look_at_point(cameras: Sequence[Camera]) -> torch.Tensor:
 
 
 def points_in_views(cameras: Sequence[Camera], n: int, min_fraction: float = 0.5,
-                    generator: Optional[torch.Generator] = None, max_rounds: int = 50) -> torch.Tensor:
+                    generator: Optional[torch.Generator] = None, max_rounds: int = 50,
+                    radius_fraction: float = 1.0) -> torch.Tensor:
     """[n, 3] random points seen (in front of the camera and inside the image) by at
     least ``min_fraction`` of ``cameras``: INRIA's random initialisation, restricted to the
     region the captures share (a visual hull of the frusta, without silhouettes).
 
     Candidates are drawn uniformly in a cube around :func:`look_at_point` whose half-size
-    is the largest camera distance from it, and kept by rejection.
+    is ``radius_fraction`` x the largest camera distance from it, and kept by rejection.
+    (Points near the cameras cover much of their images: a smaller fraction keeps the
+    first steps cheap when the object sits in the middle of the captures.)
     """
     if not cameras:
         raise ValueError("tiger: points_in_views needs cameras")
     centre = look_at_point(cameras)
     half = float(torch.stack([c.center.double() for c in cameras]).sub(centre).norm(dim=1).max())
-    half = half if half > 0 else 1.0
+    half = (half if half > 0 else 1.0) * radius_fraction
     need = max(1, int(round(min_fraction * len(cameras))))
     kept: list = []
     total = 0

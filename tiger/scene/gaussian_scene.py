@@ -137,7 +137,10 @@ class GaussianScene:
         r = self.sh_rest
         if r.ndim != 3 or r.shape[0] != N or r.shape[2] != 3:
             raise ValueError(f"tiger: GaussianScene.sh_rest must be [N={N}, K, 3], got {list(r.shape)}")
-        sh_degree_from_rest(r.shape[1])
+        try:
+            sh_degree_from_rest(r.shape[1])
+        except ValueError as exc:
+            raise ValueError(f"tiger: GaussianScene.sh_rest {list(r.shape)}: {exc}") from None
         if self.lang is not None and (self.lang.ndim != 2 or self.lang.shape[0] != N):
             raise ValueError(f"tiger: GaussianScene.lang must be [N={N}, D], got {list(self.lang.shape)}")
         if (self.lang_pca_basis is None) != (self.lang_pca_mean is None):
@@ -330,8 +333,8 @@ class GaussianScene:
             camera: the view (its viewmat and K are cast to the scene's dtype/device).
             background: [C] colour behind the Gaussians (default zeros).
             sh_degree: SH bands used for ``rgb`` (default: all of the scene's).
-            features: ``"rgb"`` (SH colour, [H, W, 3]) or ``"lang"`` ([H, W, D] language
-                features, rendered as plain colours).
+            features: ``"rgb"`` (SH colour, [H, W, 3]), ``"lang"`` ([H, W, D] language
+                features, rendered as plain colours) or ``"rgb+lang"`` (one pass, [H, W, 3 + D]).
             **kwargs: passed on (near, far, eps2d, antialiased, ...).
         Returns:
             the rasterizer's dict: 'color' [H, W, C], 'alpha' [H, W], 'depth' [H, W],
@@ -349,11 +352,25 @@ class GaussianScene:
         if features == "rgb":
             sh = self.sh[:, : num_sh_bases(deg)]
             return rasterize_gaussians(colors=sh, sh_degree=deg, **common, **kwargs)
-        if features == "lang":
+        if features in ("lang", "rgb+lang"):
             if self.lang is None:
-                raise ValueError("tiger: render(features='lang'): the scene has no language features")
-            return rasterize_gaussians(colors=self.lang, **common, **kwargs)
-        raise ValueError(f"tiger: render features must be 'rgb' or 'lang', got '{features}'")
+                raise ValueError(f"tiger: render(features='{features}'): the scene has no language features")
+            if features == "lang":
+                return rasterize_gaussians(colors=self.lang, **common, **kwargs)
+            return rasterize_gaussians(colors=torch.cat([self.view_colors(cam, deg), self.lang], 1),
+                                       **common, **kwargs)
+        raise ValueError(f"tiger: render features must be 'rgb', 'lang' or 'rgb+lang', got '{features}'")
+
+    def view_colors(self, camera: "Camera", sh_degree: Optional[int] = None) -> torch.Tensor:
+        """[N, 3] RGB of each Gaussian seen from ``camera``: max(SH(dir) + 0.5, 0), the
+        rasterizer's own SH op (differentiable)."""
+        import tiger.ops  # noqa: F401  (registers torch.ops.tiger)
+
+        deg = self.sh_degree if sh_degree is None else int(sh_degree)
+        vm = camera.viewmat.to(self.means)
+        dirs = self.means + (vm[:3, :3].T @ vm[:3, 3])  # means - camera centre
+        rgb = torch.ops.tiger.sh_to_color(dirs.contiguous(), self.sh.contiguous(), deg, None)
+        return torch.clamp_min(rgb + 0.5, 0.0)
 
     # -- files ----------------------------------------------------------------------------
     @classmethod

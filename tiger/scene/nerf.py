@@ -53,7 +53,10 @@ def read_json(path: PathLike) -> Any:
 def _number(v: Any, path: Path, field: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise SceneFormatError(path, f"must be a number, got {type(v).__name__} {str(v)[:40]}", field)
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:
+        raise SceneFormatError(path, "number too large", field) from None
     if not math.isfinite(v):
         raise SceneFormatError(path, f"must be finite, got {v}", field)
     return v
@@ -79,14 +82,17 @@ def _matrix(m: Any, path: Path, field: str) -> torch.Tensor:
 def resolve_image(base: Path, file_path: str) -> Optional[Path]:
     """The image ``file_path`` (relative to ``base``); tries common extensions when the
     name has none (NeRF-synthetic writes ``./train/r_0``). None when nothing exists."""
-    p = (base / file_path)
-    if p.is_file():
-        return p
-    if not p.suffix or p.suffix.lower() not in _IMAGE_EXTS:
-        for ext in _IMAGE_EXTS:
-            q = p.with_name(p.name + ext)
-            if q.is_file():
-                return q
+    try:
+        p = (base / file_path)
+        if p.is_file():
+            return p
+        if not p.suffix or p.suffix.lower() not in _IMAGE_EXTS:
+            for ext in _IMAGE_EXTS:
+                q = p.with_name(p.name + ext)
+                if q.is_file():
+                    return q
+    except (OSError, ValueError):  # NUL bytes, names too long: no such image
+        return None
     return None
 
 
@@ -132,8 +138,11 @@ def load_transforms(path: PathLike, skip_missing: bool = False) -> tuple:
         K, dist, w, h = _frame_intrinsics(meta, fr, i, img, path)
         vm = rigid_inverse(c2w_gl @ GL_TO_CV)
         name = os.path.relpath(img, base)
-        cams.append(Camera(vm, K, w, h, image_path=img, image_name=name, distortion=dist,
-                           metadata={"frame_index": i}))
+        try:
+            cams.append(Camera(vm, K, w, h, image_path=img, image_name=name, distortion=dist,
+                               metadata={"frame_index": i}))
+        except ValueError as exc:
+            raise SceneFormatError(path, str(exc), f"frames[{i}]") from None
     if missing:
         log.warning("%s: skipped %d of %d frames whose image is missing (first: %s)", path, len(missing),
                     len(frames), missing[0])

@@ -184,13 +184,11 @@ def _read_ascii(lines: list, start: int, el: _Element, path: PathLike):
         try:
             flat = np.array(" ".join(rows).split(), dtype=np.float64)
         except ValueError:
-            bad = _first_bad_ascii_row(rows, n)
-            raise SceneFormatError(path, f"non-numeric value in row {bad[0]} of element '{el.name}'",
-                                   bad[1]) from None
+            r, fld, msg = _first_bad_ascii_row(rows, el.props)
+            raise SceneFormatError(path, f"row {r} of element '{el.name}': {msg}", fld) from None
         if flat.size != n * el.count:
-            bad = _first_bad_ascii_row(rows, n)
-            raise SceneFormatError(path, f"row {bad[0]} of element '{el.name}' does not have {n} values",
-                                   bad[1])
+            r, fld, msg = _first_bad_ascii_row(rows, el.props)
+            raise SceneFormatError(path, f"row {r} of element '{el.name}': {msg}", fld)
         flat = flat.reshape(el.count, n)
         out = {}
         for i, p in enumerate(el.props):
@@ -222,17 +220,19 @@ def _read_ascii(lines: list, start: int, el: _Element, path: PathLike):
     return out, start + el.count
 
 
-def _first_bad_ascii_row(rows: list, n: int) -> tuple:
+def _first_bad_ascii_row(rows: list, props: list) -> tuple:
+    """(row, field, message) of the first malformed row of an ASCII element."""
     for r, row in enumerate(rows):
         tok = row.split()
-        if len(tok) != n:
-            return r, f"row {r}"
-        for t in tok:
+        for i, t in enumerate(tok):
             try:
                 float(t)
             except ValueError:
-                return r, f"value '{t[:20]}'"
-    return -1, "data"
+                name = props[i].name if i < len(props) else f"value {i}"
+                return r, name, f"'{t[:20]}' is not a number"
+        if len(tok) != len(props):
+            return r, f"row {r}", f"{len(tok)} values instead of {len(props)}"
+    return -1, "data", "malformed"
 
 
 def read_ply_elements(path: PathLike, stop_after: Optional[str] = None) -> tuple:
@@ -278,10 +278,9 @@ def _indexed(props: dict, prefix: str) -> list:
     """Names ``prefix0..prefixN`` present in ``props``, sorted by index; raises when the
     indices are not contiguous from 0."""
     found = sorted((int(m.group(1)), n) for n in props if (m := re.fullmatch(re.escape(prefix) + r"(\d+)", n)))
-    idx = [i for i, _ in found]
-    if idx != list(range(len(idx))):
-        missing = sorted(set(range(max(idx) + 1)) - set(idx)) if idx else []
-        raise KeyError(f"{prefix}{missing[0] if missing else ''}")
+    for expect, (i, _) in enumerate(found):
+        if i != expect:  # the first gap (never materialise range(max index): it can be huge)
+            raise KeyError(f"{prefix}{expect}")
     return [n for _, n in found]
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-SH_C0 = 0.28209479177387814
+from tiger.render.reference import SH_C0
 MAX_SH_DEGREE = 3
 
 

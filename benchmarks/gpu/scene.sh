@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# GPU run for the scene/recon area (one H100, after `pip install --no-build-isolation -e .`).
+# Run from the repo root; writes "$OUT/scene.txt" (and scene_fox.json). About 4 minutes:
+#   1. the CUDA tests of tests/scene and tests/recon (pytest -m cuda),
+#   2. the fox capture fitted at half resolution (540x960) on the GPU, as many steps of a
+#      7000-step schedule as fit in 200 s of training, held-out PSNR/SSIM against steps/time.
+# The fox images are looked up in $FOX_DATA, ../shared/data/fox, then shared/data/fox.
+set -uo pipefail
+OUT="${OUT:-outputs/gpu}"
+mkdir -p "$OUT"
+LOG="$OUT/scene.txt"
+PY="${PYTHON:-python}"
+export PYTHONUNBUFFERED=1
+{
+  echo "== scene/recon GPU run: $(date -u)"
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+  "$PY" -c "import torch, tiger.ops as o; print('torch', torch.__version__, 'cuda', torch.version.cuda, \
+'| tiger CUDA kernels:', o.cuda_enabled())"
+
+  echo; echo "== 1. CUDA tests (tests/scene, tests/recon)"
+  timeout 300 "$PY" -m pytest -q -m cuda tests/scene tests/recon -p no:cacheprovider -rs 2>&1 | tail -20
+
+  echo; echo "== 2. fox at half resolution on the GPU"
+  FOX=""
+  for d in "${FOX_DATA:-}" ../shared/data/fox shared/data/fox; do
+    if [ -n "$d" ] && [ -f "$d/transforms.json" ]; then FOX="$d"; break; fi
+  done
+  if [ -z "$FOX" ]; then
+    echo "SKIPPED: fox data not found (set FOX_DATA to a folder with transforms.json and images/)"
+  else
+    timeout 420 "$PY" benchmarks/recon_fox.py --data "$FOX" --device cuda --downscale 2 \
+      --iterations 7000 --time-budget 200 --eval-every 1000 --init-points 100000 \
+      --cache /tmp/tiger_fox_cache --out /tmp/tiger_fox_gpu --json "$OUT/scene_fox.json" 2>&1 \
+      | grep -v "it/s\]" | tail -40
+  fi
+  echo; echo "== done: $(date -u)"
+} 2>&1 | tee "$LOG"

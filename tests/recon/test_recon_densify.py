@@ -1,0 +1,75 @@
+"""Densification: clone small, split large, prune transparent/huge; optimizer rows follow."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from tiger.recon.densify import DensifyStats, densify_and_prune, reset_opacity
+from tiger.scene import GaussianScene
+from tiger.scene.gaussian_scene import inverse_sigmoid
+
+
+def make():
+    # 0: small, high gradient -> clone; 1: large, high gradient -> split;
+    # 2: quiet -> kept as is; 3: transparent -> pruned; 4: huge in world -> pruned by size
+    means = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]])
+    scales = torch.tensor([0.005, 0.5, 0.005, 0.005, 5.0]).log()[:, None].repeat(1, 3)
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(5, 1)
+    op = inverse_sigmoid(torch.tensor([0.5, 0.6, 0.7, 0.001, 0.9]))
+    sh_dc = torch.arange(15.0).reshape(5, 3)
+    s = GaussianScene(means, scales, quats, op, sh_dc, torch.zeros(5, 3, 3))
+    opt = torch.optim.Adam(s.parameter_groups(), eps=1e-15)
+    for p in s.params().values():
+        p.grad = torch.ones_like(p)
+    opt.step()   # non-zero Adam moments for every Gaussian
+    stats = DensifyStats.zeros(5, torch.device("cpu"))
+    # gradients in pixels of a 100x50 image: NDC norm = |(gx * 50, gy * 25)|
+    g2d = torch.tensor([[1e-5, 0], [0, 2e-5], [1e-7, 0], [0, 0], [0, 0]])
+    stats.add(g2d, torch.tensor([3, 3, 3, 3, 3]), 100, 50)
+    return s, opt, stats
+
+
+def test_clone_split_prune():
+    s, opt, stats = make()
+    torch.testing.assert_close(stats.grad_accum, torch.tensor([5e-4, 5e-4, 5e-6, 0, 0]))
+    old_dc = s.sh_dc.detach().clone()
+    old_avg = opt.state[s.sh_dc]["exp_avg"].clone()
+    big = s.scales[1].detach().clone()
+    out = densify_and_prune(s, opt, stats, grad_threshold=2e-4, extent=1.0, percent_dense=0.01,
+                            min_opacity=0.005, max_world_size=1.0, generator=torch.Generator().manual_seed(0))
+    assert out == {"cloned": 1, "split": 1, "pruned": 2, "total": 5, "before": 5}
+    # order: kept originals (0, 2), then the clone of 0, then the two halves of 1
+    torch.testing.assert_close(s.sh_dc.detach(), old_dc[[0, 2, 0, 1, 1]])
+    assert torch.equal(s.means[2], s.means[0])
+    halves = s.scales[3:].detach()
+    torch.testing.assert_close(halves, (big / 1.6).expand(2, 3))
+    assert (s.means[3:] - torch.tensor([1.0, 0, 0])).abs().max() < 4 * 0.5   # samples of the big Gaussian
+    assert not torch.equal(s.means[3], s.means[4])
+    avg = opt.state[s.sh_dc]["exp_avg"]
+    torch.testing.assert_close(avg[:2], old_avg[[0, 2]])
+    assert (avg[2:] == 0).all()
+    for g in opt.param_groups:   # every group holds the scene's current tensor
+        assert g["params"][0] is getattr(s, g["name"])
+        assert opt.state[g["params"][0]]["exp_avg"].shape == g["params"][0].shape
+    assert stats.grad_accum.shape == (5,) and (stats.count == 0).all()
+
+
+def test_max_gaussians_caps_growth():
+    s, opt, stats = make()
+    densify_and_prune(s, opt, stats, 2e-4, 1.0, min_opacity=0.0, max_gaussians=5)
+    assert len(s) == 5     # 5 existing, room for 0 more: nothing densified, nothing pruned
+    s, opt, stats = make()
+    out = densify_and_prune(s, opt, stats, 2e-4, 1.0, min_opacity=0.0, max_gaussians=6)
+    assert out["cloned"] + out["split"] == 1
+
+
+def test_reset_opacity_clamps_and_clears_moments():
+    s, opt, _ = make()
+    before = s.opacities.detach().clone()
+    reset_opacity(s, opt, 0.01)
+    expected = torch.minimum(before, torch.tensor(0.01))
+    torch.testing.assert_close(s.opacities.detach(), expected, rtol=1e-5, atol=1e-7)
+    st = opt.state[s.opacity_logits]
+    assert (st["exp_avg"] == 0).all() and (st["exp_avg_sq"] == 0).all()
+    assert math.isclose(float(s.opacities[3]), float(before[3]), rel_tol=1e-4) and before[3] < 0.01

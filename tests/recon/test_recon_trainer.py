@@ -1,0 +1,131 @@
+"""The reconstruction trainer: refit a known scene, resume exactly, fine-tune, init, errors."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from synthscene import ground_truth, render_views, sphere_cameras
+from tiger.recon import ReconConfig, Trainer, psnr
+from tiger.scene import GaussianScene
+from tiger.scene.checkpoint import load_checkpoint
+
+SYNTH = dict(iterations=900, sh_degree=0, lr_means_init=8e-4, lr_means_final=8e-6, densify_from=100,
+             densify_until=540, densify_interval=50, opacity_reset_interval=0, max_gaussians=1000,
+             init_random_points=300, progress=False)
+
+
+def synthetic_fit(device: str = "cpu") -> tuple:
+    gt = ground_truth(64)
+    train, test = sphere_cameras(24), sphere_cameras(8, offset=0.5)   # disjoint held-out views
+    tr = Trainer(train, render_views(gt, train), ReconConfig(**SYNTH), device=device,
+                 test_cameras=test, test_images=render_views(gt, test))
+    tr.fit()
+    return tr, tr.evaluate()
+
+
+@pytest.mark.timeout(600)
+def test_synthetic_scene_refit_from_random_init_reaches_30db():
+    tr, m = synthetic_fit()
+    assert m["psnr"] >= 30.0, m
+    assert m["ssim"] > 0.95
+    assert min(p for p, _ in m["per_view"]) > 27.0          # no view is left behind
+    assert 64 <= len(tr.scene) <= SYNTH["max_gaussians"]
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_synthetic_refit_on_cuda():
+    import tiger.ops
+
+    if not tiger.ops.cuda_enabled():
+        pytest.skip("tiger was built without CUDA kernels")
+    tr, m = synthetic_fit("cuda")
+    assert tr.scene.device.type == "cuda" and m["psnr"] >= 30.0, m
+
+
+def small_setup(n_views=10, size=24):
+    gt = ground_truth(20, seed=3)
+    cams = sphere_cameras(n_views, size=size)
+    return gt, cams, render_views(gt, cams)
+
+
+def small_config(**kw):
+    base = dict(iterations=40, sh_degree=1, sh_increase_every=15, densify_from=5, densify_until=35,
+                densify_interval=10, opacity_reset_interval=20, init_random_points=60, progress=False,
+                random_background=True, lr_means_init=1e-3)
+    base.update(kw)
+    return ReconConfig(**base)
+
+
+def test_resume_from_checkpoint_continues_identically(tmp_path):
+    gt, cams, imgs = small_setup()
+    a = Trainer(cams, imgs, small_config())
+    a.fit()
+
+    b = Trainer(cams, imgs, small_config(), out_dir=tmp_path)
+    for _ in range(20):   # stop half way, right after an opacity reset and a densification
+        b.train_step()
+    b.save(tmp_path / "half.pt")
+    c = Trainer(cams, imgs, small_config())
+    c.load(tmp_path / "half.pt")
+    assert c.step == 20 and len(c.scene) == len(b.scene)
+    c.fit()
+    assert c.step == a.step == 40
+    assert c.scene.detach().equal(a.scene.detach())
+    # fit() with out_dir leaves a final checkpoint that reloads to the same scene
+    b.fit()
+    ck = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert ck["step"] == 40 and ck["scene"].equal(b.scene.detach())
+
+
+def test_finetune_starts_from_scene_and_improves_it():
+    gt, cams, imgs = small_setup(size=32)
+    gt = gt.with_sh_degree(2)
+    start = gt.clone()
+    start.sh_dc = start.sh_dc + 0.6                      # a wrong colour everywhere
+    start.means = start.means + 0.03 * torch.randn(start.means.shape, generator=torch.Generator().manual_seed(0))
+    cfg = ReconConfig.finetune(150, sh_degree=2, progress=False, densify=False)
+    tr = Trainer(cams, imgs, cfg, scene=start)
+    assert tr.active_sh == 2 and len(tr.scene) == len(start)
+    before = tr.evaluate(cams, imgs)["psnr"]
+    tr.fit()
+    after = tr.evaluate(cams, imgs)["psnr"]
+    assert after > max(before + 5.0, 28.0), (before, after)
+    assert len(tr.scene) == len(start)                   # densify=False keeps the Gaussians
+
+
+def test_initialisation_from_points_and_bounds():
+    gt, cams, imgs = small_setup()
+    pts = torch.randn(50, 3) * 0.3
+    cols = torch.rand(50, 3)
+    tr = Trainer(cams, imgs, ReconConfig(iterations=0, progress=False), init_points=pts, init_colors=cols)
+    s = tr.fit()
+    assert torch.equal(s.means, pts) and torch.allclose(s.rgb, cols, atol=1e-6)
+    tr = Trainer(cams, imgs, ReconConfig(iterations=0, progress=False, init_random_points=400,
+                                         init_min_view_fraction=1.0))
+    # every random point is seen by every camera
+    for c in cams:
+        uv, z = c.project(tr.scene.means.double())
+        assert (z > 0).all() and (uv >= 0).all() and (uv[:, 0] < c.width).all() and (uv[:, 1] < c.height).all()
+
+
+def test_trainer_input_errors():
+    gt, cams, imgs = small_setup()
+    with pytest.raises(ValueError, match="image 3 .* is 24x23 but its camera is 24x24"):
+        Trainer(cams, imgs[:3] + [imgs[3][:23]] + imgs[4:], ReconConfig(progress=False))
+    with pytest.raises(ValueError, match="10 cameras but 9 images"):
+        Trainer(cams, imgs[:9])
+    from tiger.scene import Distortion
+
+    cams[0].distortion = Distortion(k1=0.1)
+    with pytest.raises(ValueError, match="lens distortion"):
+        Trainer(cams, imgs)
+
+
+def test_psnr_of_evaluate_matches_direct_render():
+    gt, cams, imgs = small_setup()
+    tr = Trainer(cams, imgs, ReconConfig(iterations=0, progress=False), scene=gt.with_sh_degree(3))
+    m = tr.evaluate(cams, imgs)
+    direct = [psnr(gt.render(c)["color"].clamp(0, 1), im) for c, im in zip(cams, imgs)]
+    assert m["psnr"] == pytest.approx(sum(direct) / len(direct), rel=1e-5)
+    assert isinstance(tr.scene, GaussianScene)

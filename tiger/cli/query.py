@@ -1,0 +1,95 @@
+"""``tiger query``: text -> the Gaussians it names, with pictures and a PLY of the selection."""
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+from .common import Summary, add_common, device_of, load_scene, output_dir
+from .text import text_encoder
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "query", help="retrieve the Gaussians a text names; write pictures and the selection",
+        description="Encode the text with CLIP (templates averaged), project it with the scene's "
+                    "PCA, score every Gaussian (cosine, or LERF relevancy against canonical "
+                    "negatives), select s > tau, and write the selection as a PLY, relevancy heat "
+                    "maps and a highlighted render for a few views, and the object's centre and "
+                    "bounding box (selection.json).",
+        epilog='example: tiger query outputs/fox/scene_lang.ply "fox ears" --data ../shared/data/fox '
+               "--out outputs/fox/query_ears",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", help="PLY with lang_* features and their PCA basis")
+    p.add_argument("text", nargs="+", help="one or more queries")
+    add_common(p, models=True)
+    p.add_argument("--text-embeddings", default=None,
+                   help="torch.save'd {text: [512] tensor} instead of CLIP weights")
+    p.add_argument("--data", default=None, help="dataset whose cameras to draw (default: an orbit)")
+    p.add_argument("--views", type=int, default=3, help="pictures per query")
+    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
+    p.add_argument("--tau", default="auto", help="selection threshold, or 'auto' (Otsu)")
+    p.set_defaults(func=run)
+
+
+def pick_cameras(scene, data, n: int, device):
+    """n cameras from a dataset (evenly spread) or an orbit around the scene."""
+    if data:
+        from tiger.scene.dataset import load_dataset
+
+        cams = load_dataset(data).cameras
+        step = max(len(cams) // max(n, 1), 1)
+        return [c.to(device) if hasattr(c, "to") else c for c in cams[::step][:n]]
+    from tiger.render.views import orbit_cameras
+
+    m = scene.means.detach().float().cpu()
+    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
+    center, radius = (lo + hi) / 2, float((hi - lo).norm()) * 1.1
+    return orbit_cameras(n, 480, 360, center=center.tolist(), radius=max(radius, 1e-3))
+
+
+def run(args: argparse.Namespace) -> int:
+    from tiger.retrieval import retrieve, write_relevancy_pictures
+    from tiger.utils.images import save_png
+
+    dev = device_of(args.device)
+    out = output_dir(args.out, args.force)
+    scene = load_scene(args.scene, dev)
+    if scene.lang is None:
+        raise SystemExit(f"tiger query: {args.scene} has no language features (lang_*); "
+                         "run `tiger embed` first")
+    tau = args.tau if args.tau == "auto" else float(args.tau)
+    encoder = text_encoder(args.models, args.text_embeddings, dev)
+    cams = pick_cameras(scene, args.data, args.views, dev)
+    summary = Summary("tiger query")
+    report = {}
+    for text in args.text:
+        r = retrieve(scene, text, encoder=encoder, score=args.score, tau=tau)
+        slug = "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+        if r.count:
+            scene.subset(r.mask).save_ply(out / f"{slug}.ply")
+        write_relevancy_pictures(scene, cams, text, out / "relevancy", encoder=encoder,
+                                 score=args.score)
+        rgb = scene.rgb.detach()
+        tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
+                           0.35 * rgb + 0.3)
+        from tiger.render import rasterize_gaussians
+
+        for i, cam in enumerate(cams):
+            with torch.no_grad():
+                img = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
+                                          tint, torch.as_tensor(cam.viewmat).to(rgb),
+                                          torch.as_tensor(cam.K).to(rgb), int(cam.width),
+                                          int(cam.height), background=torch.ones(3, device=rgb.device))
+            save_png(out / f"{slug}_highlight_{i}.png", img["color"])
+        report[text] = {"selected": r.count, "tau": r.tau, "score": r.score,
+                        "center": None if r.center is None else r.center.tolist(),
+                        "bbox_min": None if r.bbox_min is None else r.bbox_min.tolist(),
+                        "bbox_max": None if r.bbox_max is None else r.bbox_max.tolist()}
+        summary.add(f"{text!r}: {r.count} of {len(scene)} Gaussians (tau {r.tau:.3f})"
+                    + (f" -> {out / (slug + '.ply')}" if r.count else ""))
+    (out / "selection.json").write_text(json.dumps(report, indent=2))
+    summary.add(f"pictures in {out}, details in {out / 'selection.json'}")
+    summary.print()
+    return 0

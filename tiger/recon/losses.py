@@ -1,0 +1,112 @@
+"""Photometric losses and image metrics: L1, SSIM (INRIA/Wang et al.), PSNR."""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+import torch.nn.functional as F
+
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+
+
+@lru_cache(maxsize=8)
+def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
+    if img.ndim == 3:
+        return img.permute(2, 0, 1)[None]
+    if img.ndim == 4:
+        return img
+    raise ValueError(f"tiger.recon: {name} must be [H, W, C] or [B, C, H, W], got {list(img.shape)}")
+
+
+@lru_cache(maxsize=16)
+def _band(n: int, size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """[n, n] matrix M with (M @ x) = the 1-D Gaussian filter of x with zero padding."""
+    g = _gauss_1d(size, sigma)
+    M = torch.zeros(n, n, dtype=torch.float64)
+    for i in range(size):
+        off = i - size // 2
+        if abs(off) < n:
+            M += torch.diag(torch.full((n - abs(off),), float(g[i]), dtype=torch.float64), off)
+    return M.to(dtype=dtype, device=device)
+
+
+def gaussian_blur(x: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
+                  method: str = "auto") -> torch.Tensor:
+    """Separable Gaussian filter of [B, C, H, W] with zero padding ("same" size).
+
+    ``method``: ``"conv"`` (conv2d), ``"matmul"`` (products with banded [H, H] and [W, W]
+    matrices), ``"shift"`` (sum of shifted slices) or ``"auto"``: conv on CUDA, matmul on
+    CPU up to 1024 px a side (10-20x cheaper than CPU conv2d there), shift beyond. All
+    compute the same sums (``benchmarks/recon_ssim.py`` times them).
+    """
+    B, C, H, W = x.shape
+    if method == "auto":
+        method = "conv" if x.is_cuda else ("matmul" if max(H, W) <= 1024 else "shift")
+    if method == "matmul":
+        bh = _band(H, window_size, float(sigma), x.dtype, x.device)
+        bw = _band(W, window_size, float(sigma), x.dtype, x.device)
+        return bh @ (x @ bw)   # both bands are symmetric
+    g = _gauss_1d(window_size, float(sigma)).to(x)
+    pad = window_size // 2
+    xp = F.pad(x, (pad, pad, pad, pad))
+    if method == "conv":
+        y = xp.reshape(B * C, 1, H + 2 * pad, W + 2 * pad)
+        y = F.conv2d(y, g.view(1, 1, 1, -1))
+        return F.conv2d(y, g.view(1, 1, -1, 1)).reshape(B, C, H, W)
+    if method != "shift":
+        raise ValueError(f"tiger.recon: gaussian_blur method must be auto, conv, matmul or shift, got {method}")
+    rows = sum(g[i] * xp[..., i:i + W] for i in range(window_size))
+    return sum(g[i] * rows[..., i:i + H, :] for i in range(window_size))
+
+
+def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11,
+             sigma: float = 1.5) -> torch.Tensor:
+    """Per-pixel SSIM of two images with a Gaussian window (size 11, sigma 1.5).
+
+    Args:
+        img1, img2: [H, W, C] or [B, C, H, W], values in [0, 1] (C1, C2 assume range 1).
+    Returns:
+        [B, C, H, W] SSIM map; borders use zero padding (as INRIA's training loss), so
+        ``ssim_map(...).mean()`` is INRIA's ``ssim``.
+    """
+    a, b = _to_bchw(img1, "img1"), _to_bchw(img2, "img2")
+    if a.shape != b.shape:
+        raise ValueError(f"tiger.recon: ssim inputs differ in shape: {list(a.shape)} vs {list(b.shape)}")
+    C = a.shape[1]
+    # the five local moments in one filtering pass
+    m = gaussian_blur(torch.cat([a, b, a * a, b * b, a * b], 1), window_size, sigma)
+    mu1, mu2, e11, e22, e12 = m.split(C, 1)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
+    return ((2 * mu12 + SSIM_C1) * (2 * s12 + SSIM_C2)) / ((mu1_sq + mu2_sq + SSIM_C1) * (s1 + s2 + SSIM_C2))
+
+
+def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM (scalar tensor, differentiable); see :func:`ssim_map`."""
+    return ssim_map(img1, img2, window_size, sigma).mean()
+
+
+def l1(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    return (img1 - img2).abs().mean()
+
+
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2) -> torch.Tensor:
+    """3DGS loss ``(1 - λ) L1 + λ (1 - SSIM)`` on [H, W, 3] images (λ = 0.2)."""
+    loss = (1.0 - lambda_dssim) * l1(render, target)
+    if lambda_dssim:
+        loss = loss + lambda_dssim * (1.0 - ssim(render, target))
+    return loss
+
+
+def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
+    """PSNR in dB of images in [0, 1] (both clamped to [0, 1] first)."""
+    mse = float(((img1.detach().clamp(0, 1) - img2.detach().clamp(0, 1)) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)

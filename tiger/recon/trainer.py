@@ -1,0 +1,243 @@
+"""The 3DGS reconstruction loop: photometric fit of a Gaussian scene to posed images."""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+import torch
+
+from tiger.scene.cameras import Camera, scene_extent
+from tiger.scene.checkpoint import load_checkpoint, save_checkpoint
+from tiger.scene.dataset import points_in_views
+from tiger.scene.gaussian_scene import GaussianScene
+
+from .config import ReconConfig, expon_lr
+from .densify import DensifyStats, densify_and_prune, reset_opacity
+from .losses import photometric_loss, psnr, ssim
+
+log = logging.getLogger(__name__)
+PathLike = Union[str, os.PathLike]
+
+
+class Trainer:
+    """Fit a :class:`GaussianScene` to images with the 3DGS recipe.
+
+    Args:
+        cameras: training views (pinhole; sizes must match ``images``).
+        images: one [H, W, 3] float tensor in [0, 1] per camera.
+        config: hyper-parameters (default INRIA's 30k recipe).
+        scene: start from this scene (fine-tuning); default: initialise.
+        init_points: [P, 3] points to initialise from (e.g. COLMAP's), with
+            ``init_colors`` [P, 3] in [0, 1]; default random points seen by the cameras.
+        device: where to train (default: the images' device).
+        out_dir: where checkpoints go (``checkpoint.pt``).
+        test_cameras, test_images: held-out views for :meth:`evaluate` during/after training.
+    """
+
+    def __init__(self, cameras: Sequence[Camera], images: Sequence[torch.Tensor],
+                 config: Optional[ReconConfig] = None, scene: Optional[GaussianScene] = None,
+                 init_points: Optional[torch.Tensor] = None, init_colors: Optional[torch.Tensor] = None,
+                 device: Optional[Union[str, torch.device]] = None, out_dir: Optional[PathLike] = None,
+                 test_cameras: Sequence[Camera] = (), test_images: Sequence[torch.Tensor] = ()) -> None:
+        self.cfg = config or ReconConfig()
+        if len(cameras) == 0:
+            raise ValueError("tiger.recon: no training cameras")
+        if len(cameras) != len(images) or len(test_cameras) != len(test_images):
+            raise ValueError(f"tiger.recon: {len(cameras)} cameras but {len(images)} images "
+                             f"(test: {len(test_cameras)} vs {len(test_images)})")
+        self.device = torch.device(device) if device is not None else images[0].device
+        self.cameras = [self._check_view(c, im, i) for i, (c, im) in enumerate(zip(cameras, images))]
+        self.images = [im.to(self.device, torch.float32) for im in images]
+        self.test_cameras = [self._check_view(c, im, i) for i, (c, im) in enumerate(zip(test_cameras, test_images))]
+        self.test_images = [im.to(self.device, torch.float32) for im in test_images]
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.extent = float(self.cfg.extent) if self.cfg.extent else scene_extent(self.cameras)
+        self.gen = torch.Generator().manual_seed(self.cfg.seed)
+        self.finetune = scene is not None
+        if scene is None:
+            scene = self._initial_scene(init_points, init_colors)
+        elif scene.sh_degree != self.cfg.sh_degree:
+            scene = scene.with_sh_degree(self.cfg.sh_degree)
+        self.scene = scene.to(self.device, torch.float32).clone()
+        self.step = 0
+        self.active_sh = self.cfg.sh_degree if (self.finetune or self.cfg.sh_increase_every == 0) else 0
+        self._order: list = []
+        self.history: list = []
+        self.elapsed = 0.0
+        self._build_optimizer()
+        self.stats = DensifyStats.zeros(len(self.scene), self.device)
+
+    # -- set-up -------------------------------------------------------------------------
+    def _check_view(self, cam: Camera, img: torch.Tensor, i: int) -> Camera:
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"tiger.recon: image {i} ({cam.image_name}) must be [H, W, 3], got {list(img.shape)}")
+        if (img.shape[0], img.shape[1]) != (cam.height, cam.width):
+            raise ValueError(f"tiger.recon: image {i} ({cam.image_name}) is {img.shape[1]}x{img.shape[0]} but "
+                             f"its camera is {cam.width}x{cam.height}")
+        if cam.distortion is not None:
+            raise ValueError(f"tiger.recon: camera {i} ({cam.image_name}) still has lens distortion; load its "
+                             "image with tiger.scene.images.load_image (which undistorts)")
+        return cam.to(self.device, torch.float32)
+
+    def _initial_scene(self, points: Optional[torch.Tensor], colors: Optional[torch.Tensor]) -> GaussianScene:
+        if points is None:
+            pts = points_in_views(self.cameras, self.cfg.init_random_points, self.cfg.init_min_view_fraction,
+                                  generator=self.gen, radius_fraction=self.cfg.init_radius_fraction)
+            colors = torch.rand(pts.shape, generator=self.gen)
+            log.info("random initialisation: %d points seen by >= %.0f%% of the views", len(pts),
+                     100 * self.cfg.init_min_view_fraction)
+        else:
+            pts = points.detach().float().cpu()
+            colors = None if colors is None else colors.detach().float().cpu()
+        return GaussianScene.from_points(pts, colors, sh_degree=self.cfg.sh_degree, opacity=self.cfg.init_opacity)
+
+    def _build_optimizer(self) -> None:
+        c = self.cfg
+        lrs = {"means": self._means_lr(), "log_scales": c.lr_log_scales, "quats": c.lr_quats,
+               "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
+        names = [n for n in lrs if n != "sh_rest" or self.scene.sh_rest.shape[1] > 0]
+        groups = self.scene.parameter_groups(lrs, names=names)
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=c.adam_eps)
+
+    def _means_lr(self) -> float:
+        c = self.cfg
+        return self.extent * expon_lr(self.step, c.lr_means_init, c.lr_means_final,
+                                      c.lr_means_max_steps or c.iterations, c.lr_means_delay_steps,
+                                      c.lr_means_delay_mult)
+
+    def _next_view(self) -> int:
+        if not self._order:
+            self._order = torch.randperm(len(self.cameras), generator=self.gen).tolist()
+        return self._order.pop()
+
+    def _background(self) -> torch.Tensor:
+        if self.cfg.random_background:
+            return torch.rand(3, generator=self.gen).to(self.device)
+        return torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
+
+    # -- training -----------------------------------------------------------------------
+    def train_step(self) -> dict:
+        """One optimizer step on one view; returns {'loss', 'psnr', 'gaussians'}."""
+        c = self.cfg
+        self.step += 1
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = self._means_lr()
+        if c.sh_increase_every and self.step % c.sh_increase_every == 0:
+            self.active_sh = min(self.active_sh + 1, c.sh_degree)
+        i = self._next_view()
+        cam, target = self.cameras[i], self.images[i]
+        out = self.scene.render(cam, sh_degree=self.active_sh, background=self._background(),
+                                check_finite=False)
+        out["means2d"].retain_grad()
+        loss = photometric_loss(out["color"], target, c.lambda_dssim)
+        loss.backward()
+        densifying = c.densify and self.step <= c.densify_until
+        if densifying and out["means2d"].grad is not None:
+            self.stats.add(out["means2d"].grad, out["radii"], cam.width, cam.height)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        info = {"loss": float(loss.detach()), "psnr": psnr(out["color"], target), "gaussians": len(self.scene)}
+        if densifying and self.step > c.densify_from and self.step % c.densify_interval == 0:
+            reset_done = c.opacity_reset_interval and self.step > c.opacity_reset_interval
+            info["densify"] = densify_and_prune(
+                self.scene, self.optimizer, self.stats, c.densify_grad_threshold, self.extent, c.percent_dense,
+                c.min_opacity, c.max_screen_size if reset_done else None,
+                c.max_world_size if (reset_done or self.finetune) else None, c.max_gaussians, self.gen)
+        if densifying and c.opacity_reset_interval and self.step % c.opacity_reset_interval == 0:
+            reset_opacity(self.scene, self.optimizer)
+        return info
+
+    def fit(self) -> GaussianScene:
+        """Train until ``config.iterations`` (continuing a resumed run) or until
+        ``config.time_budget_s``; evaluates the test views at the end and writes
+        ``out_dir/checkpoint.pt`` when ``out_dir`` is set. Returns the scene (detached)."""
+        from tqdm.auto import tqdm
+
+        c = self.cfg
+        bar = tqdm(total=c.iterations, initial=self.step, desc="3DGS fit", disable=not c.progress,
+                   dynamic_ncols=True)
+        ema_loss = ema_psnr = None
+        t0 = time.perf_counter()
+        start = self.elapsed
+        while self.step < c.iterations:
+            info = self.train_step()
+            self.elapsed = start + time.perf_counter() - t0
+            ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
+            p = info["psnr"] if math.isfinite(info["psnr"]) else 99.0
+            ema_psnr = p if ema_psnr is None else 0.9 * ema_psnr + 0.1 * p
+            if self.step % 10 == 0 or self.step == c.iterations:
+                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", N=len(self.scene), refresh=False)
+            bar.update(1)
+            if c.eval_every and self.test_cameras and self.step % c.eval_every == 0:
+                self._record_eval()
+            if c.checkpoint_every and self.out_dir and self.step % c.checkpoint_every == 0:
+                self.save(self.out_dir / "checkpoint.pt")
+            if c.time_budget_s is not None and self.elapsed >= c.time_budget_s:
+                log.info("time budget of %.0f s reached at step %d of %d", c.time_budget_s, self.step,
+                         c.iterations)
+                break
+        bar.close()
+        if self.test_cameras and (not self.history or self.history[-1]["step"] != self.step):
+            self._record_eval()
+        if self.out_dir is not None:
+            self.save(self.out_dir / "checkpoint.pt")
+        return self.scene.detach()
+
+    def _record_eval(self) -> None:
+        m = self.evaluate()
+        m.update(step=self.step, time_s=self.elapsed, gaussians=len(self.scene))
+        m.pop("per_view", None)
+        self.history.append(m)
+        log.info("step %d: test PSNR %.2f dB, SSIM %.4f, %d Gaussians", self.step, m["psnr"], m["ssim"],
+                 len(self.scene))
+
+    @torch.no_grad()
+    def evaluate(self, cameras: Optional[Sequence[Camera]] = None,
+                 images: Optional[Sequence[torch.Tensor]] = None) -> dict:
+        """Mean PSNR (dB) and SSIM over views (default the test views), full SH degree,
+        renders clamped to [0, 1]."""
+        cams = self.test_cameras if cameras is None else [c.to(self.device, torch.float32) for c in cameras]
+        imgs = self.test_images if images is None else [im.to(self.device, torch.float32) for im in images]
+        if not cams:
+            raise ValueError("tiger.recon: evaluate needs views (no test views were given)")
+        scene = self.scene.detach()
+        bg = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
+        per = []
+        for cam, img in zip(cams, imgs):
+            out = scene.render(cam, background=bg, check_finite=False)["color"].clamp(0, 1)
+            per.append((psnr(out, img), float(ssim(out, img))))
+        return {"psnr": sum(p for p, _ in per) / len(per), "ssim": sum(s for _, s in per) / len(per),
+                "per_view": per}
+
+    # -- checkpoints ----------------------------------------------------------------------
+    def save(self, path: PathLike) -> None:
+        """Checkpoint everything needed to resume bit-for-bit (atomic write)."""
+        extra = {"config": self.cfg.to_dict(), "stats": self.stats.state_dict(), "active_sh": self.active_sh,
+                 "generator": self.gen.get_state(), "order": list(self._order), "extent": self.extent,
+                 "history": self.history, "elapsed": self.elapsed, "finetune": self.finetune}
+        save_checkpoint(path, self.scene, self.optimizer, self.step, extra)
+
+    def load(self, path: PathLike) -> None:
+        """Resume from a checkpoint written by :meth:`save` (same views and config)."""
+        ck = load_checkpoint(path, map_location=self.device)
+        ex = ck["extra"]
+        self.scene = ck["scene"].to(self.device, torch.float32)
+        self.step = ck["step"]
+        self.extent = float(ex.get("extent", self.extent))
+        self.active_sh = int(ex.get("active_sh", self.active_sh))
+        self.finetune = bool(ex.get("finetune", self.finetune))
+        self._build_optimizer()
+        if ck["optimizer"] is not None:
+            self.optimizer.load_state_dict(ck["optimizer"])
+        self.stats = DensifyStats.from_state_dict({k: v.to(self.device) for k, v in ex["stats"].items()})
+        if "generator" in ex:
+            self.gen.set_state(ex["generator"].cpu())
+        self._order = list(ex.get("order", []))
+        self.history = list(ex.get("history", []))
+        self.elapsed = float(ex.get("elapsed", 0.0))
+        log.info("resumed from %s at step %d (%d Gaussians)", path, self.step, len(self.scene))
