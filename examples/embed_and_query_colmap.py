@@ -123,11 +123,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     dev = torch.device(args.device)
     out.mkdir(parents=True, exist_ok=True)
 
-    models = model_config(args, out)
-    clip_path = resolve_model_path("clip", config=models)  # fail early, before the slow steps
     cams = load_colmap(data, images=args.images).cameras
     scene = GaussianScene.load_ply(ply).to(dev)
     print(f"{len(cams)} cameras from {data}; {scene!r}")
+    models = model_config(args, out)
+    clip_path = resolve_model_path("clip", config=models)  # fail early, before the slow steps
     clip = MaskCLIP.from_pretrained(clip_path, device=dev)
     proj_dim = int(clip.clip.config.projection_dim)
     if args.pca_dim > proj_dim:
@@ -177,12 +177,17 @@ def _views_by_coverage(scene: Any, mask: torch.Tensor, cams: Sequence[Any]) -> l
     return sorted(range(len(cams)), key=lambda i: -seen[i])
 
 
-if __name__ == "__main__":
+def cli(argv: Optional[Sequence[str]] = None) -> int:
+    """``main`` with bad input reported in one line (SystemExit with the message), no traceback."""
     from tiger.models.paths import ModelNotFoundError
     from tiger.scene import SceneFormatError
 
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        sys.exit(main())
-    except (ModelNotFoundError, SceneFormatError) as exc:  # bad input: one line, no traceback
-        sys.exit(f"embed_and_query_colmap: {exc}")
+        return main(argv)
+    except (ModelNotFoundError, SceneFormatError) as exc:
+        raise SystemExit(f"embed_and_query_colmap: {exc}") from exc
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sys.exit(cli())

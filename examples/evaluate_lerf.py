@@ -85,15 +85,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     names = args.scenes or sorted(p.name for p in label_root.iterdir() if p.is_dir())
     if not names:
         raise SystemExit(f"evaluate_lerf: no scene folders in {label_root}")
+    for name in names:  # every input checked before the slow steps
+        missing = [f"{what} {p}" for what, p in (("label folder", label_root / name),
+                                                  ("PLY", Path(args.ply.format(scene=name))),
+                                                  ("capture", Path(args.data.format(root=root, scene=name))))
+                   if not p.exists()]
+        if missing:
+            raise SystemExit(f"evaluate_lerf: scene '{name}': {', '.join(missing)} not found")
     encoder = text_encoder(args)
     results = []
     for name in names:
         ply = Path(args.ply.format(scene=name))
         data = Path(args.data.format(root=root, scene=name))
-        if not ply.is_file():
-            raise SystemExit(f"evaluate_lerf: scene '{name}': PLY {ply} not found")
-        if not data.exists():
-            raise SystemExit(f"evaluate_lerf: scene '{name}': capture {data} not found (see --data)")
         scene = GaussianScene.load_ply(ply).to(args.device)
         if scene.lang is None:
             raise SystemExit(f"evaluate_lerf: {ply} has no language features (lang_*); train them first")
@@ -108,11 +111,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
+def cli(argv: Optional[Sequence[str]] = None) -> int:
+    """``main`` with bad input reported in one line (SystemExit with the message), no traceback."""
     from tiger.scene import SceneFormatError
 
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        sys.exit(main())
-    except (SceneFormatError, FileNotFoundError, KeyError) as exc:  # bad input: one line, no traceback
-        sys.exit(f"evaluate_lerf: {exc}")
+        return main(argv)
+    except (SceneFormatError, FileNotFoundError, KeyError) as exc:
+        raise SystemExit(f"evaluate_lerf: {exc}") from exc
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sys.exit(cli())

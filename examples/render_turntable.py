@@ -140,11 +140,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
+def cli(argv: Optional[Sequence[str]] = None) -> int:
+    """``main`` with bad input reported in one line (SystemExit with the message), no traceback."""
     from tiger.scene import SceneFormatError
 
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        sys.exit(main())
-    except (SceneFormatError, FileNotFoundError, KeyError) as exc:  # bad input: one line, no traceback
-        sys.exit(f"render_turntable: {exc}")
+        return main(argv)
+    except (SceneFormatError, FileNotFoundError, KeyError) as exc:
+        raise SystemExit(f"render_turntable: {exc}") from exc
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sys.exit(cli())

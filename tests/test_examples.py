@@ -25,6 +25,24 @@ def run(script: str, *args: str, timeout: float = 120) -> subprocess.CompletedPr
                           text=True, timeout=timeout, env=env, cwd=str(ROOT))
 
 
+def load_example(script: str):
+    """The example as a module (its ``main``/``cli`` called in-process: no interpreter start-up)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"example_{Path(script).stem}", EXAMPLES / script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def cli_error(script: str, *args) -> str:
+    """Run the example's ``cli`` expecting a one-line error; returns the message."""
+    with pytest.raises(SystemExit) as e:
+        load_example(script).cli([str(a) for a in args])
+    assert e.value.code not in (0, None)
+    return str(e.value.code)
+
+
 def tabletop_gaussian_scene(density: float = 0.1):
     from tiger.demo import tabletop_scene
     from tiger.scene import GaussianScene
@@ -37,12 +55,19 @@ def tabletop_gaussian_scene(density: float = 0.1):
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_help(script):
-    r = run(script, "--help", timeout=60)
-    assert r.returncode == 0, r.stderr
-    assert "usage:" in r.stdout and "example:" in r.stdout
+def test_help(script, capsys):
+    with pytest.raises(SystemExit) as e:
+        load_example(script).cli(["--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage:" in out and "example:" in out
     doc = (EXAMPLES / script).read_text().split('"""')[1]
     assert len(doc.strip().splitlines()) > 3  # a real docstring, not a one-liner
+
+
+def test_help_as_a_script():
+    r = run("evaluate_lerf.py", "--help", timeout=60)
+    assert r.returncode == 0 and "usage:" in r.stdout, r.stderr
 
 
 # ------------------------------------------------------------------------ render_turntable
@@ -83,10 +108,10 @@ def test_render_turntable_auto_video_and_errors(tmp_path):
     assert r.returncode == 0, r.stderr
     videos = list((tmp_path / "tt").glob("turntable.*"))
     assert len(videos) == 1 and videos[0].suffix in (".mp4", ".gif") and videos[0].stat().st_size > 0
-    r = run("render_turntable.py", tmp_path / "missing.ply", "--out", tmp_path / "x")
-    assert r.returncode != 0 and "missing.ply" in r.stderr
-    r = run("render_turntable.py", tmp_path / "s.ply", "--out", tmp_path / "x", "--views", 0)
-    assert r.returncode != 0 and "--views" in r.stderr
+    assert "missing.ply" in cli_error("render_turntable.py", tmp_path / "missing.ply", "--out", tmp_path / "x")
+    assert "--views" in cli_error("render_turntable.py", tmp_path / "s.ply", "--out", tmp_path / "x", "--views", 0)
+    (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nend_header\n")
+    assert "bad.ply" in cli_error("render_turntable.py", tmp_path / "bad.ply", "--out", tmp_path / "x")
 
 
 # ------------------------------------------------------------------ embed_and_query_colmap
@@ -173,21 +198,22 @@ def test_embed_and_query_colmap_random_models(tmp_path):
     assert "'mug':" in r.stdout and "'a ball':" in r.stdout
 
 
-def test_embed_and_query_colmap_errors(tmp_path):
-    r = run("embed_and_query_colmap.py", tmp_path / "nodata", tmp_path / "s.ply", "--out", tmp_path / "o",
-            "--query", "x", "--random-models")
-    assert r.returncode != 0 and "nodata" in r.stderr
+def test_embed_and_query_colmap_errors(tmp_path, monkeypatch):
+    monkeypatch.delenv("TIGER_MODELS", raising=False)
+    msg = cli_error("embed_and_query_colmap.py", tmp_path / "nodata", tmp_path / "s.ply", "--out", tmp_path / "o",
+                    "--query", "x", "--random-models")
+    assert "nodata" in msg
     (tmp_path / "empty").mkdir()
     lab, scene = tabletop_gaussian_scene(0.05)
     scene.save_ply(tmp_path / "s.ply")
-    r = run("embed_and_query_colmap.py", tmp_path / "empty", tmp_path / "s.ply", "--out", tmp_path / "o",
-            "--query", "x", "--random-models")
-    assert r.returncode != 0 and "no COLMAP model" in r.stderr and "Traceback" not in r.stderr
+    msg = cli_error("embed_and_query_colmap.py", tmp_path / "empty", tmp_path / "s.ply", "--out", tmp_path / "o",
+                    "--query", "x", "--random-models")
+    assert "no COLMAP model" in msg
     write_colmap_text(tmp_path / "data", lab, scene, n=2, w=16, h=12)
     (tmp_path / "nomodels").mkdir()
-    r = run("embed_and_query_colmap.py", tmp_path / "data", tmp_path / "s.ply", "--out", tmp_path / "o",
-            "--query", "x", "--models", tmp_path / "nomodels")
-    assert r.returncode != 0 and "model 'clip' not found" in r.stderr and "Traceback" not in r.stderr
+    msg = cli_error("embed_and_query_colmap.py", tmp_path / "data", tmp_path / "s.ply", "--out", tmp_path / "o",
+                    "--query", "x", "--models", tmp_path / "nomodels")
+    assert "model 'clip' not found" in msg and "nomodels" in msg
 
 
 # --------------------------------------------------------------------------- evaluate_lerf
@@ -259,10 +285,11 @@ def test_evaluate_lerf(tmp_path):
     assert len(list((tmp_path / "out" / "toyroom").rglob("*.png"))) >= 9
     # a text table that lacks a category is a clear error
     torch.save({k: v for k, v in ls.encoder.table.items() if k != "teddy bear"}, tmp_path / "short.pt")
-    r = run("evaluate_lerf.py", root, "--ply", str(root / "outputs" / "{scene}" / "scene_lang.ply"),
-            "--out", tmp_path / "out2", "--text-embeddings", tmp_path / "short.pt", "--scenes", "toyroom",
-            "--no-pictures", "--device", "cpu")
-    assert r.returncode != 0 and "teddy bear" in r.stderr
-    r = run("evaluate_lerf.py", root, "--ply", "no_pattern.ply", "--out", tmp_path / "o3",
-            "--text-embeddings", tmp_path / "text.pt")
-    assert r.returncode != 0 and "{scene}" in r.stderr
+    msg = cli_error("evaluate_lerf.py", root, "--ply", str(root / "outputs" / "{scene}" / "scene_lang.ply"),
+                    "--out", tmp_path / "out2", "--text-embeddings", tmp_path / "short.pt", "--scenes", "toyroom",
+                    "--no-pictures", "--device", "cpu")
+    assert "teddy bear" in msg
+    assert "{scene}" in cli_error("evaluate_lerf.py", root, "--ply", "no_pattern.ply", "--out", tmp_path / "o3",
+                                  "--text-embeddings", tmp_path / "text.pt")
+    assert "nowhere" in cli_error("evaluate_lerf.py", root, "--ply", "{scene}.ply", "--out", tmp_path / "o3",
+                                  "--text-embeddings", tmp_path / "text.pt", "--scenes", "nowhere")
