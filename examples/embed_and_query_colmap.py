@@ -140,6 +140,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     fs = extract_features([c.image_path for c in cams], out / "features", names=names, config=cfg,
                           clip=clip, models=models, device=dev)
 
+    cams = [c.to(device=dev) for c in cams]
     res = train_field(scene, cams, lambda i: fs.load(names[i]), pca=fs.pca,
                       checkpoint=out / "field.ckpt.pt", steps=args.steps, lr=args.lr)
     scene.save_ply(out / "scene_lang.ply")
