@@ -5,22 +5,9 @@ import math
 
 import torch
 
+from tiger.render.views import look_at
 from tiger.scene import Camera, GaussianScene
 from tiger.scene.cameras import intrinsics
-
-
-def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> torch.Tensor:
-    """[4, 4] world-to-camera (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
-    eye = torch.tensor(eye, dtype=torch.float64)
-    z = torch.tensor(target, dtype=torch.float64) - eye
-    z = z / z.norm()
-    x = torch.linalg.cross(z, torch.tensor(up, dtype=torch.float64))
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    vm = torch.eye(4, dtype=torch.float64)
-    vm[:3, :3], vm[:3, 3] = R, -R @ eye
-    return vm
 
 
 def sphere_cameras(n: int, size: int = 64, radius: float = 4.0, offset: float = 0.0) -> list:
@@ -33,7 +20,7 @@ def sphere_cameras(n: int, size: int = 64, radius: float = 4.0, offset: float = 
         r = math.sqrt(max(0.0, 1 - z * z))
         phi = (i + offset) * 2.399963229728653
         eye = (radius * r * math.cos(phi), radius * r * math.sin(phi), 0.8 * radius * z)
-        cams.append(Camera(look_at(eye), intrinsics(1.1 * size, 1.1 * size, size / 2, size / 2), size, size,
+        cams.append(Camera(look_at(eye, (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)).double(), intrinsics(1.1 * size, 1.1 * size, size / 2, size / 2), size, size,
                            image_name=f"view_{i:03d}_{offset}"))
     return cams
 

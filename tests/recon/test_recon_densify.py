@@ -72,4 +72,4 @@ def test_reset_opacity_clamps_and_clears_moments():
     torch.testing.assert_close(s.opacities.detach(), expected, rtol=1e-5, atol=1e-7)
     st = opt.state[s.opacity_logits]
     assert (st["exp_avg"] == 0).all() and (st["exp_avg_sq"] == 0).all()
-    assert math.isclose(float(s.opacities[3]), float(before[3]), rel_tol=1e-4) and before[3] < 0.01
+    assert math.isclose(float(s.opacities[3].detach()), float(before[3]), rel_tol=1e-4) and before[3] < 0.01

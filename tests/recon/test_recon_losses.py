@@ -72,3 +72,13 @@ def test_ssim_on_cuda_matches_cpu():
     cpu = ssim_map(a, b)
     gpu = ssim_map(a.cuda(), b.cuda())   # conv2d path
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-12)
+
+
+def test_scaled_schedule_is_inria_at_30k_and_sane_when_short():
+    from tiger.recon import ReconConfig
+
+    assert ReconConfig.scaled(30_000).to_dict() == ReconConfig().to_dict()
+    short = ReconConfig.scaled(600)
+    assert short.densify_from >= 100 and short.densify_interval >= 50
+    assert short.densify_from + short.densify_interval <= short.densify_until <= 600
+    assert ReconConfig.from_dict(short.to_dict()) == short

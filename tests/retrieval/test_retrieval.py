@@ -217,3 +217,25 @@ def test_retrieve_on_cuda_matches_cpu():
         torch.testing.assert_close(gpu.cosine.cpu(), cpu.cosine, atol=2e-3 if dt == torch.float16 else 1e-5, rtol=0)
         assert torch.equal(gpu.mask.cpu(), cpu.mask)
         torch.testing.assert_close(gpu.center.cpu(), cpu.center, atol=1e-5, rtol=0)
+
+
+def test_pictures_and_retrieval_with_a_gaussian_scene(tmp_path):
+    scene_mod = pytest.importorskip("tiger.scene")
+    from tiger.retrieval import write_relevancy_pictures
+
+    ls = _scene_with_oracle_lang()
+    s = ls.scene
+    gs = scene_mod.GaussianScene(means=s.means, log_scales=s.scales.log(), quats=s.quats,
+                                 opacity_logits=torch.logit(s.opacities),
+                                 sh_dc=(s.colors - 0.5) / (0.5 / math.sqrt(math.pi)), lang=s.lang,
+                                 lang_pca_basis=s.lang_pca_basis, lang_pca_mean=s.lang_pca_mean)
+    r = retrieve(gs, "blue book", encoder=ls.encoder, score="relevancy")
+    assert torch.equal(r.mask, ls.label_of == 3)
+    sub = r.subscene(gs)
+    assert isinstance(sub, scene_mod.GaussianScene) and len(sub) == int(r.mask.sum())
+    from tiger.retrieval.maps import render_rgb
+
+    rgb = render_rgb(gs, ls.cameras[0])  # SH colour through the rasterizer, plain camera objects
+    assert rgb.shape == (48, 48, 3) and float(rgb.max()) > 0.2
+    paths = write_relevancy_pictures(gs, ls.cameras[:1], "blue book", tmp_path, encoder=ls.encoder)
+    assert paths[0].stat().st_size > 1000

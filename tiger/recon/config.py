@@ -66,19 +66,24 @@ class ReconConfig:
 
     @classmethod
     def scaled(cls, iterations: int, **overrides) -> "ReconConfig":
-        """INRIA's schedule compressed to ``iterations`` steps: the SH ramp and the
-        densification window are scaled by ``iterations / 30000``; the densification
-        interval keeps a floor of 20 steps (statistics over fewer views are noise) and the
-        opacity reset stays 30 intervals apart (0 = none when that exceeds the window)."""
+        """INRIA's schedule compressed to ``iterations`` steps (identical at 30000).
+
+        The SH ramp and the end of densification scale with ``iterations / 30000``; the
+        start of densification keeps a floor of 100 steps and the interval one of 50 (the
+        first steps' gradients are large everywhere, and statistics over a handful of
+        views are noise: without the floors every Gaussian doubles each interval); the
+        opacity reset stays 30 intervals apart (none when that is past the window).
+        """
         f = iterations / 30_000
 
         def s(v: int, lo: int) -> int:
             return max(lo, int(round(v * f)))
 
-        until = s(15_000, 2)
-        interval = s(100, 20)
+        interval = s(100, 50)
+        start = s(500, 100)
+        until = max(s(15_000, 2), start + 2 * interval)
         reset = 30 * interval
-        kw = dict(iterations=iterations, sh_increase_every=s(1000, 1), densify_from=s(500, 1),
+        kw = dict(iterations=iterations, sh_increase_every=s(1000, 1), densify_from=start,
                   densify_until=until, densify_interval=interval,
                   opacity_reset_interval=reset if reset < until else 0)
         kw.update(overrides)

@@ -45,10 +45,13 @@ def render_language(scene: Any, camera: Any, **kwargs: Any) -> tuple[torch.Tenso
 def render_rgb(scene: Any, camera: Any) -> Optional[torch.Tensor]:
     """[H, W, 3] colour render for the picture background, or None when the scene has no colour."""
     with torch.no_grad():
-        if hasattr(scene, "render"):
-            return scene.render(camera)["color"].clamp(0, 1)
+        sh = getattr(scene, "sh", None)
+        if torch.is_tensor(sh) and sh.dim() == 3:  # a GaussianScene: SH colour of every band
+            return _render(scene, camera, sh.detach(), sh_degree=int(scene.sh_degree))["color"].clamp(0, 1)
         if getattr(scene, "colors", None) is not None:
             return _render(scene, camera, scene.colors.detach())["color"].clamp(0, 1)
+        if hasattr(scene, "render"):
+            return scene.render(camera)["color"].clamp(0, 1)
     return None
 
 

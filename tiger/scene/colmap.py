@@ -189,6 +189,8 @@ def _num(tok: str, kind: type, path: Path, lineno: int, field: str):
         raise SceneFormatError(path, f"line {lineno}: '{tok[:30]}' is not a valid {kind.__name__}", field) from None
     if kind is float and not math.isfinite(v):
         raise SceneFormatError(path, f"line {lineno}: non-finite value {tok}", field)
+    if kind is int and not -(1 << 63) <= v < (1 << 63):   # COLMAP ids are at most 64-bit
+        raise SceneFormatError(path, f"line {lineno}: integer {tok[:30]} out of range", field)
     return v
 
 

@@ -120,6 +120,7 @@ def look_at_point(cameras: Sequence[Camera]) -> torch.Tensor:
 
     Falls back to the mean camera centre when the axes are (nearly) parallel.
     """
+    cameras = [c.to("cpu", torch.float64) for c in cameras]
     A = torch.zeros(3, 3, dtype=torch.float64)
     b = torch.zeros(3, dtype=torch.float64)
     for c in cameras:
@@ -149,6 +150,7 @@ def points_in_views(cameras: Sequence[Camera], n: int, min_fraction: float = 0.5
     """
     if not cameras:
         raise ValueError("tiger: points_in_views needs cameras")
+    cameras = [c.to("cpu", torch.float64) for c in cameras]
     centre = look_at_point(cameras)
     half = float(torch.stack([c.center.double() for c in cameras]).sub(centre).norm(dim=1).max())
     half = (half if half > 0 else 1.0) * radius_fraction
