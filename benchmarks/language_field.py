@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import median_time, print_table, rel_err, standard_scene  # noqa: E402
+from common import median_time, print_table, rel_err, standard_view  # noqa: E402
 
 import tiger  # noqa: E402
 
@@ -61,7 +61,7 @@ def per_step(device: str, cases: list[tuple[int, int]]) -> list[dict]:
     cuda = device == "cuda"
     rows = []
     for n, w in cases:
-        sc = standard_scene(n, w, w, seed=1).to(device=device)
+        sc = standard_view(n, w, w, seed=1).to(device=device)
         with torch.no_grad():
             target = tiger.rasterize_gaussians(sc.means, sc.quats, sc.scales, sc.opacities, sc.features,
                                                sc.viewmat, sc.K, w, w)["color"]
@@ -70,7 +70,7 @@ def per_step(device: str, cases: list[tuple[int, int]]) -> list[dict]:
             lang = (0.1 * torch.randn(n, 64, device=device)).requires_grad_(True)
             opt = torch.optim.Adam([lang], lr=1e-2)
             times[full] = median_time(step_fn(sc, target, lang, opt, full), repeats=5, warmup=1, cuda=cuda)
-        err = grad_error(standard_scene(n, w, w, seed=1).to(device=device, dtype=torch.float64),
+        err = grad_error(standard_view(n, w, w, seed=1).to(device=device, dtype=torch.float64),
                          target.double()) if n * w * w <= (2e11 if cuda else 2e9) else float("nan")
         rows.append({"N": n, "W=H": w, "features_only_ms": 1e3 * times[False], "full_ms": 1e3 * times[True],
                      "full/features": times[True] / times[False], "grad_rel_err_f32": err})
@@ -130,7 +130,7 @@ def main() -> None:
         if not torch.cuda.is_available():
             raise SystemExit("benchmarks/language_field.py: no CUDA device")
         try:
-            sc = standard_scene(10, 16, 16).to(device="cuda")
+            sc = standard_view(10, 16, 16).to(device="cuda")
             tiger.rasterize_gaussians(sc.means, sc.quats, sc.scales, sc.opacities, sc.features, sc.viewmat, sc.K, 16, 16)
         except (RuntimeError, NotImplementedError) as exc:
             print(f"SKIPPED: the rasterizer has no CUDA kernels in this build ({str(exc).splitlines()[0]})")
