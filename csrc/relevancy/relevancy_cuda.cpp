@@ -1,6 +1,8 @@
 // Torch glue for the CUDA relevancy kernels (built only with CUDA).
-#include <ATen/cuda/CUDAContext.h>
+// c10/cuda only (not ATen/cuda/CUDAContext.h, which pulls in cuSPARSE/cuBLAS headers).
 #include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <cuda_runtime_api.h>
 #include <torch/library.h>
 
 #include "relevancy/relevancy_glue.h"
@@ -29,9 +31,11 @@ std::tuple<at::Tensor, at::Tensor> relevancy_cuda(const at::Tensor& features, co
   TORCH_CHECK(p.d <= INT32_MAX && p.q <= INT32_MAX && p.m <= INT32_MAX,
               "tiger.relevancy (CUDA): D, Q and M must fit in 32 bits");
   if (p.n == 0 || p.q == 0) return {p.cosine, p.relevancy};
-  const auto* prop = at::cuda::getCurrentDeviceProperties();
-  const size_t max_smem = prop->sharedMemPerBlockOptin;
-  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  int optin = 0;
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin,
+                                        features.device().index()));
+  const size_t max_smem = static_cast<size_t>(optin);
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(features.device().index()).stream();
   const int d = static_cast<int>(p.d), q = static_cast<int>(p.q), m = static_cast<int>(p.m);
   int rc = 0;
   switch (p.features.scalar_type()) {
