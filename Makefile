@@ -5,7 +5,8 @@ PY        := $(VENV)/bin/python
 PIP       := $(PY) -m pip
 TORCH_PIN ?= torch==2.13.0
 DEPS      := scikit-build-core pybind11 ninja cmake numpy tqdm pillow matplotlib scipy \
-             pytest pytest-timeout hypothesis nbclient nbformat ipykernel transformers safetensors
+             pytest pytest-timeout hypothesis nbclient nbformat ipykernel transformers safetensors \
+             opencv-python-headless
 CSRC      := $(shell find csrc -type f 2>/dev/null) CMakeLists.txt pyproject.toml
 BUILT     := $(VENV)/.tiger-built
 PYTEST_ARGS ?=

@@ -1,6 +1,6 @@
 // Torch glue of the CUDA adaptive_conv kernels (built only with CUDA).
 #include <ATen/Dispatch.h>
-#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAStream.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
@@ -20,7 +20,7 @@ at::Tensor adaptive_conv_cuda(const at::Tensor& input_in, const at::Tensor& filt
   const auto input = input_in.contiguous();
   const auto filters = filters_in.contiguous();
   auto out = at::empty({d.B, d.C, d.H, d.W}, input.options());
-  void* stream = at::cuda::getCurrentCUDAStream().stream();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "tiger.adaptive_conv", [&] {
     launch_adaptive_conv_forward<scalar_t>(input.data_ptr<scalar_t>(), filters.data_ptr<scalar_t>(), d.B, d.C,
                                            d.H, d.W, d.K, out.data_ptr<scalar_t>(), stream);
@@ -43,7 +43,7 @@ std::tuple<at::Tensor, at::Tensor> adaptive_conv_backward_cuda(const at::Tensor&
   const auto filters = filters_in.contiguous();
   auto gi = need_input ? at::empty_like(input) : at::zeros_like(input);
   auto gf = need_filters ? at::empty_like(filters) : at::zeros_like(filters);
-  void* stream = at::cuda::getCurrentCUDAStream().stream();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "tiger.adaptive_conv_backward", [&] {
     if (need_input)
       launch_adaptive_conv_grad_input<scalar_t>(go.data_ptr<scalar_t>(), filters.data_ptr<scalar_t>(), d.B, d.C,

@@ -1,6 +1,6 @@
 // Torch glue of the CUDA masked_average kernels (built only with CUDA).
 #include <ATen/Dispatch.h>
-#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAStream.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
@@ -27,7 +27,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> masked_average_cuda(const at::Ten
   auto counts = at::zeros({M}, ids.options());
   auto means = at::empty({M, C}, features.options());
   auto out = at::empty_like(features);
-  void* stream = at::cuda::getCurrentCUDAStream().stream();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "tiger.masked_average", [&] {
     launch_segment_sum<scalar_t>(features.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(), P, C, M,
                                  sums.data_ptr<scalar_t>(), counts.data_ptr<int64_t>(), stream);
@@ -57,7 +57,7 @@ at::Tensor masked_average_backward_cuda(const at::Tensor& grad_out_in, const at:
   const auto counts = counts_in.contiguous();
   auto sums = at::zeros({M, C}, grad_out.options());
   auto grad = at::empty_like(grad_out);
-  void* stream = at::cuda::getCurrentCUDAStream().stream();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(grad_out.scalar_type(), "tiger.masked_average_backward", [&] {
     launch_segment_sum<scalar_t>(grad_out.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(), P, C, M,
                                  sums.data_ptr<scalar_t>(), nullptr, stream);

@@ -1,6 +1,6 @@
 // Torch glue of the CUDA nms kernels (built only with CUDA).
 #include <ATen/Dispatch.h>
-#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAStream.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
@@ -25,7 +25,7 @@ at::Tensor box_nms_cuda(const at::Tensor& boxes_in, const at::Tensor& scores, do
   const auto sorted = boxes_in.index_select(0, order).contiguous();
   const int64_t words = (n + 63) / 64;
   auto mask = at::empty({n, words}, boxes_in.options().dtype(at::kLong));
-  void* stream = at::cuda::getCurrentCUDAStream().stream();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(sorted.scalar_type(), "tiger.box_nms", [&] {
     launch_box_iou_bits<scalar_t>(sorted.data_ptr<scalar_t>(), n, iou_threshold,
                                   reinterpret_cast<uint64_t*>(mask.data_ptr<int64_t>()), stream);
@@ -54,7 +54,7 @@ at::Tensor mask_intersections_cuda(const at::Tensor& masks_in) {
   const int64_t M = masks.size(0), L = masks.size(1) * masks.size(2), W = (L + 63) / 64;
   auto packed = at::empty({M, W}, masks.options().dtype(at::kLong));
   auto out = at::empty({M, M}, masks.options().dtype(at::kLong));
-  void* stream = at::cuda::getCurrentCUDAStream().stream();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
   auto* pk = reinterpret_cast<uint64_t*>(packed.data_ptr<int64_t>());
   launch_pack_masks(masks.data_ptr<bool>(), M, L, pk, W, stream);
   launch_pair_intersections(pk, M, W, out.data_ptr<int64_t>(), stream);

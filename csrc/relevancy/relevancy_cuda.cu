@@ -13,6 +13,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <type_traits>
 
 #include "relevancy/relevancy.h"
 
@@ -30,6 +31,15 @@ struct Chunk;
 template <>
 struct Chunk<__half> {
   static constexpr int VEC = 8;
+  __device__ __forceinline__ static void convert(const uint4& v, float* out) {
+    const __half2* h = reinterpret_cast<const __half2*>(&v);
+#pragma unroll
+    for (int i = 0; i < 4; ++i) {
+      const float2 f = __half22float2(h[i]);
+      out[2 * i] = f.x;
+      out[2 * i + 1] = f.y;
+    }
+  }
   __device__ __forceinline__ static void load(const __half* p, float* out) {
     const uint4 v = __ldcs(reinterpret_cast<const uint4*>(p));
     const __half2* h = reinterpret_cast<const __half2*>(&v);
@@ -44,6 +54,13 @@ struct Chunk<__half> {
 template <>
 struct Chunk<float> {
   static constexpr int VEC = 4;
+  __device__ __forceinline__ static void convert(const uint4& v, float* out) {
+    const float4 f = reinterpret_cast<const float4&>(v);
+    out[0] = f.x;
+    out[1] = f.y;
+    out[2] = f.z;
+    out[3] = f.w;
+  }
   __device__ __forceinline__ static void load(const float* p, float* out) {
     const float4 v = __ldcs(reinterpret_cast<const float4*>(p));
     out[0] = v.x;
@@ -152,6 +169,80 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
+
+// Row-per-thread path for rows of CH 16-byte chunks (fp16 D=64: CH=8): a block stages a tile
+// of kTileRows rows in shared memory with coalesced 16-byte loads (rows padded by one chunk so
+// the per-thread reads below are bank-conflict free), then each thread reduces its own row
+// against the text vectors (float, shared memory, broadcast reads): no shuffles at all, and
+// every output is written once, coalesced across the block.
+constexpr int kTileRows = 128;
+
+template <typename scalar_t, int CH>
+__global__ void __launch_bounds__(kTileRows)
+    relevancy_rowthread_kernel(const scalar_t* __restrict__ feat, int64_t n,
+                               const float* __restrict__ pos, int qc, const float* __restrict__ neg,
+                               int m, float temperature, float eps, float* __restrict__ cos_out,
+                               float* __restrict__ rel_out, int64_t ldo) {
+  constexpr int VEC = Chunk<scalar_t>::VEC;
+  constexpr int D = CH * VEC;
+  __shared__ uint4 tile[kTileRows * (CH + 1)];
+  __shared__ __align__(16) float text[kTMax * D];
+  const int nt = qc + m;
+  for (int i = threadIdx.x; i < nt * D; i += kTileRows) {
+    const int t = i / D, k = i - t * D;
+    text[i] = t < qc ? pos[int64_t(t) * D + k] : neg[int64_t(t - qc) * D + k];
+  }
+  const uint4* src = reinterpret_cast<const uint4*>(feat);
+  for (int64_t row0 = int64_t(blockIdx.x) * kTileRows; row0 < n; row0 += int64_t(gridDim.x) * kTileRows) {
+    const int rows = n - row0 < kTileRows ? int(n - row0) : kTileRows;
+    __syncthreads();  // the previous tile is consumed (and, first time, text is written)
+#pragma unroll
+    for (int k = 0; k < CH; ++k) {
+      const int c = threadIdx.x + k * kTileRows;  // chunk index within the tile
+      const int r = c / CH, j = c - r * CH;
+      if (r < rows) tile[r * (CH + 1) + j] = __ldcs(src + (row0 + r) * CH + j);
+    }
+    __syncthreads();
+    if (threadIdx.x >= rows) continue;
+    float n2 = 0.f, dots[kTMax];
+#pragma unroll
+    for (int t = 0; t < kTMax; ++t) dots[t] = 0.f;
+#pragma unroll
+    for (int j = 0; j < CH; ++j) {
+      const uint4 v = tile[threadIdx.x * (CH + 1) + j];
+      float x[VEC];
+      Chunk<scalar_t>::convert(v, x);
+#pragma unroll
+      for (int e = 0; e < VEC; ++e) n2 += x[e] * x[e];
+#pragma unroll
+      for (int t = 0; t < kTMax; ++t) {
+        if (t < nt) {
+          const float4* tv = reinterpret_cast<const float4*>(text + t * D + j * VEC);
+#pragma unroll
+          for (int e4 = 0; e4 < VEC / 4; ++e4) {
+            const float4 w = tv[e4];
+            dots[t] += x[4 * e4] * w.x + x[4 * e4 + 1] * w.y + x[4 * e4 + 2] * w.z + x[4 * e4 + 3] * w.w;
+          }
+        }
+      }
+    }
+    const float inv = 1.f / fmaxf(sqrtf(n2), eps);
+    float max_neg = -INFINITY;
+#pragma unroll
+    for (int t = 0; t < kTMax; ++t)
+      if (t >= qc && t < nt) max_neg = fmaxf(max_neg, dots[t] * inv);
+    const int64_t row = row0 + threadIdx.x;
+#pragma unroll
+    for (int t = 0; t < kTMax; ++t) {
+      if (t < qc) {
+        const float c = dots[t] * inv;
+        __stcs(cos_out + row * ldo + t, c);
+        if (m > 0) __stcs(rel_out + row * ldo + t, lerf_relevancy<float>(c, max_neg, temperature));
+      }
+    }
+  }
+}
+
 // Any D: one warp per row; the nt text vectors live in shared memory.
 template <typename scalar_t, typename acc_t>
 __global__ void __launch_bounds__(kThreads)
@@ -216,6 +307,27 @@ int launch(const scalar_t* feat, int64_t n, int d, const acc_t* texts, int q, in
   const int row_bytes = d * int(sizeof(scalar_t));
   const bool vec_ok = row_bytes % 16 == 0 && row_bytes <= 512 &&
                       reinterpret_cast<uintptr_t>(feat) % 16 == 0 && m < kTMax;
+  if constexpr (!std::is_same<scalar_t, double>::value) {
+    const int ch = row_bytes / 16;
+    if (vec_ok && (ch == 8 || ch == 16)) {
+      const int q_per_pass = kTMax - m;
+      for (int q0 = 0; q0 < q; q0 += q_per_pass) {
+        const int qc = std::min(q_per_pass, q - q0);
+        auto kernel = ch == 8 ? relevancy_rowthread_kernel<scalar_t, 8>
+                              : relevancy_rowthread_kernel<scalar_t, 16>;
+        int dev = 0, sms = 1, per_sm = 1;
+        cudaGetDevice(&dev);
+        cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
+        cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, kernel, kTileRows, 0);
+        const int64_t tiles = (n + kTileRows - 1) / kTileRows;
+        const int grid = int(std::max<int64_t>(1, std::min<int64_t>(tiles, int64_t(sms) * std::max(per_sm, 1))));
+        kernel<<<grid, kTileRows, 0, stream>>>(feat, n, texts + int64_t(q0) * d, qc, neg, m,
+                                               float(temperature), float(eps), cos_out + q0,
+                                               m > 0 ? rel_out + q0 : nullptr, q);
+      }
+      return static_cast<int>(cudaGetLastError());
+    }
+  }
   if (vec_ok) {
     int group = 1;
     while (group < d / VEC) group <<= 1;

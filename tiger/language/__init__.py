@@ -20,6 +20,9 @@ _EXPORTS = {
     "upsample_features": "featup",
     "PCABasis": "pca",
     "StreamingPCA": "pca",
+    "train_field": "field",
+    "FieldConfig": "field",
+    "FieldResult": "field",
 }
 
 __all__ = sorted(_EXPORTS)
