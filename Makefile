@@ -27,8 +27,9 @@ $(BUILT): $(VENV)/.tiger-env $(CSRC)
 	@touch $@
 
 # CI has no GPU: compile every .cu with this machine's nvcc so CUDA errors fail CI.
-cuda-check:
+cuda-check: $(VENV)/.tiger-env
 	bash tools/check_cuda_compile.sh
+	PY=$(PY) bash tools/check_cuda_glue.sh
 
 test: build cuda-check
 	$(PY) -m pytest -q $(PYTEST_ARGS)

@@ -1,36 +1,133 @@
-"""The standard benchmark scene (defined once) and timing/error helpers.
+"""The standard benchmark scene and camera, shared by every rendering benchmark.
 
-Scene: N Gaussians, means uniform in [-1, 1]^3, scales log-uniform in [0.003, 0.03],
-uniformly random rotations, opacities uniform in [0.05, 0.95], colours uniform in [0, 1],
-64-d features standard normal; camera 3.5 units from the origin looking at it, vertical
-field of view 50 degrees.
+Scene: N Gaussians with means uniform in [-1, 1]^3, scales log-uniform in [0.003, 0.03]
+(world units), uniformly random rotations (normalised Gaussian quaternions), opacities
+uniform in [0.05, 0.95], colours uniform in [0, 1] and 64-d features standard normal.
+Camera: 3.5 units from the origin looking at it, vertical field of view 50 degrees,
+pinhole with the principal point at the image centre, OpenCV axes.
+
+Two views of the same definition: :func:`standard_scene` (tensors in a dict, channels chosen
+up front) and :func:`standard_view` (a :class:`StandardScene` bundling the camera, with RGB
+and features that ``.colors(C)`` combines for C in {3, 64, 67}).
 """
 from __future__ import annotations
 
 import math
-import statistics
 import time
+import statistics
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
+from torch import Tensor
+
+SCALE_RANGE = (0.003, 0.03)
+OPACITY_RANGE = (0.05, 0.95)
+CAMERA_DISTANCE = 3.5
+FOV_Y_DEG = 50.0
+
+
+def standard_scene(n: int, channels: int = 3, *, device: str = "cpu",
+                   dtype: torch.dtype = torch.float32, seed: int = 0) -> dict[str, Tensor]:
+    """Means [N,3], quats [N,4] (w,x,y,z), scales [N,3], opacities [N], colors [N,C].
+
+    channels: 3 -> RGB uniform in [0,1]; 64 -> standard-normal features; otherwise the
+    first 3 channels are RGB and the rest standard-normal features (C = 67 is RGB + 64-d).
+    Drawn on the CPU in float64 from ``seed`` so every device and dtype sees the same scene.
+    """
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    means = torch.rand(n, 3, generator=g, dtype=f64) * 2 - 1
+    quats = torch.randn(n, 4, generator=g, dtype=f64)
+    quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    lo, hi = math.log(SCALE_RANGE[0]), math.log(SCALE_RANGE[1])
+    scales = torch.exp(torch.rand(n, 3, generator=g, dtype=f64) * (hi - lo) + lo)
+    opac = torch.rand(n, generator=g, dtype=f64) * (OPACITY_RANGE[1] - OPACITY_RANGE[0]) + OPACITY_RANGE[0]
+    if channels == 64:
+        colors = torch.randn(n, 64, generator=g, dtype=f64)
+    else:
+        rgb = torch.rand(n, min(channels, 3), generator=g, dtype=f64)
+        feats = torch.randn(n, max(channels - 3, 0), generator=g, dtype=f64)
+        colors = torch.cat([rgb, feats], dim=1)
+    out = {"means": means, "quats": quats, "scales": scales, "opacities": opac, "colors": colors}
+    return {k: v.to(device=device, dtype=dtype) for k, v in out.items()}
+
+
+def standard_camera(width: int, height: int, *, device: str = "cpu",
+                    dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """World->camera viewmat [4,4] (camera on -z at CAMERA_DISTANCE, looking at the origin,
+    +y down) and intrinsics K [3,3] with a 50 degree vertical field of view."""
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[2, 3] = CAMERA_DISTANCE  # camera at (0, 0, -d): p_cam = p_world + (0, 0, d)
+    fy = 0.5 * height / math.tan(math.radians(FOV_Y_DEG) / 2)
+    K = torch.tensor([[fy, 0.0, width / 2], [0.0, fy, height / 2], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64)
+    return viewmat.to(device=device, dtype=dtype), K.to(device=device, dtype=dtype)
+
+
+def rel_err(a: Tensor, b: Tensor) -> float:
+    """Norm-wise relative error ||a - b|| / ||b|| in float64."""
+    a, b = a.detach().double(), b.detach().double().to(a.device)
+    return float((a - b).norm() / b.norm().clamp_min(1e-300))
+
+
+def cuda_time_ms(fn: Callable[[], Optional[object]], iters: int = 20, warmup: int = 3,
+                 setup: Optional[Callable[[], object]] = None) -> float:
+    """Median wall time of ``fn`` in ms from CUDA events, after ``warmup`` calls.
+    ``setup`` (untimed) runs before each call and its result is passed to ``fn``."""
+    times = []
+    for i in range(warmup + iters):
+        arg = setup() if setup is not None else None
+        torch.cuda.synchronize()
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn(arg) if setup is not None else fn()
+        end.record()
+        torch.cuda.synchronize()
+        if i >= warmup:
+            times.append(start.elapsed_time(end))
+    times.sort()
+    return times[len(times) // 2]
+
+
+def cpu_time_ms(fn: Callable[[], object], iters: int = 3, warmup: int = 1) -> float:
+    """Median wall time of ``fn`` in ms (CPU)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    times.sort()
+    return times[len(times) // 2]
+
+
+def table(rows: list[dict], cols: list[str]) -> str:
+    """Plain-text table of ``rows`` (dicts) with the given column order."""
+    cells = [[str(r.get(c, "")) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(x[i]) for x in cells)) if cells else len(c) for i, c in enumerate(cols)]
+    line = lambda xs: "  ".join(x.rjust(w) for x, w in zip(xs, widths))  # noqa: E731
+    return "\n".join([line(cols), line(["-" * w for w in widths])] + [line(x) for x in cells])
 
 
 @dataclass
 class StandardScene:
-    means: torch.Tensor      # [N, 3]
-    quats: torch.Tensor      # [N, 4] (w, x, y, z), unit
-    scales: torch.Tensor     # [N, 3]
-    opacities: torch.Tensor  # [N]
-    rgb: torch.Tensor        # [N, 3]
-    features: torch.Tensor   # [N, 64]
-    viewmat: torch.Tensor    # [4, 4] world->camera, OpenCV axes
-    K: torch.Tensor          # [3, 3]
+    """The standard scene and camera as one object (see :func:`standard_view`)."""
+
+    means: Tensor      # [N, 3]
+    quats: Tensor      # [N, 4] (w, x, y, z), unit
+    scales: Tensor     # [N, 3]
+    opacities: Tensor  # [N]
+    rgb: Tensor        # [N, 3]
+    features: Tensor   # [N, 64]
+    viewmat: Tensor    # [4, 4] world->camera, OpenCV axes
+    K: Tensor          # [3, 3]
     width: int
     height: int
 
-    def colors(self, channels: int) -> torch.Tensor:
-        """[N, C] channels: 3 = RGB, 64 = features, 67 = both."""
+    def colors(self, channels: int) -> Tensor:
+        """[N, C] channels: 3 = RGB, 64 = features, 67 = both; other C: uniform channels."""
         if channels == 3:
             return self.rgb
         if channels == 64:
@@ -47,79 +144,31 @@ class StandardScene:
                              self.width, self.height)
 
 
-def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """World->camera [4,4] in OpenCV axes for a camera at eye looking at target."""
-    f = target - eye
-    f = f / f.norm()
-    r = torch.linalg.cross(f, up)
-    r = r / r.norm()
-    d = torch.linalg.cross(f, r)
-    R = torch.stack([r, d, f])
-    V = torch.eye(4, dtype=eye.dtype)
-    V[:3, :3] = R
-    V[:3, 3] = -R @ eye
-    return V
-
-
-def standard_scene(n: int, width: int, height: int, seed: int = 0,
-                   dtype: torch.dtype = torch.float32) -> StandardScene:
-    g = torch.Generator().manual_seed(seed)
-    d = torch.float64
-    means = torch.rand(n, 3, generator=g, dtype=d) * 2 - 1
-    quats = torch.randn(n, 4, generator=g, dtype=d)
-    quats = quats / quats.norm(dim=1, keepdim=True)
-    lo, hi = math.log(0.003), math.log(0.03)
-    scales = torch.exp(torch.rand(n, 3, generator=g, dtype=d) * (hi - lo) + lo)
-    opac = torch.rand(n, generator=g, dtype=d) * 0.9 + 0.05
-    rgb = torch.rand(n, 3, generator=g, dtype=d)
-    feats = torch.randn(n, 64, generator=g, dtype=d)
-    eye = torch.tensor([0.0, 0.0, -3.5], dtype=d)
-    V = look_at(eye, torch.zeros(3, dtype=d), torch.tensor([0.0, -1.0, 0.0], dtype=d))
-    fy = 0.5 * height / math.tan(math.radians(50.0) / 2)
-    K = torch.tensor([[fy, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=d)
-    return StandardScene(means, quats, scales, opac, rgb, feats, V, K, width,
-                         height).to(dtype=dtype)
+def standard_view(n: int, width: int, height: int, seed: int = 0,
+                  dtype: torch.dtype = torch.float32) -> StandardScene:
+    """The standard scene (RGB + 64-d features, drawn as C = 67) with its camera, on the CPU."""
+    s = standard_scene(n, 67, dtype=torch.float64, seed=seed)
+    V, K = standard_camera(width, height, dtype=torch.float64)
+    c = s["colors"]
+    return StandardScene(s["means"], s["quats"], s["scales"], s["opacities"], c[:, :3].contiguous(),
+                         c[:, 3:].contiguous(), V, K, width, height).to(dtype=dtype)
 
 
 def median_time(fn: Callable[[], object], repeats: int = 5, warmup: int = 1,
                 cuda: bool = False) -> float:
-    """Median wall time of fn() in seconds (CUDA events when cuda=True)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        if cuda:
-            s, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            s.record()
-            fn()
-            e.record()
-            torch.cuda.synchronize()
-            times.append(s.elapsed_time(e) / 1e3)
-        else:
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
-def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
-    """Norm-wise relative error ||a - b|| / ||b|| computed in float64."""
-    a, b = a.detach().double().cpu(), b.detach().double().cpu()
-    return float((a - b).norm() / b.norm().clamp_min(1e-300))
+    """Median time of fn() in seconds (CUDA events when cuda=True, else wall clock)."""
+    if cuda:
+        return cuda_time_ms(fn, iters=repeats, warmup=warmup) / 1e3
+    return cpu_time_ms(fn, iters=repeats, warmup=warmup) / 1e3
 
 
 def print_table(rows: list[dict], title: str = "") -> str:
-    """Format a list of dicts as an aligned text table; prints and returns it."""
+    """Print (and return) ``rows`` as an aligned table; floats with 3 significant digits."""
     if not rows:
         return ""
-    keys = list(rows[0].keys())
     fmt = lambda v: f"{v:.3g}" if isinstance(v, float) else str(v)  # noqa: E731
-    cols = [[k] + [fmt(r.get(k, "")) for r in rows] for k in keys]
-    widths = [max(len(c) for c in col) for col in cols]
-    lines = [title] if title else []
-    lines.append("  ".join(k.rjust(w) for k, w in zip(keys, widths)))
-    for i in range(len(rows)):
-        lines.append("  ".join(cols[j][i + 1].rjust(widths[j]) for j in range(len(keys))))
-    text = "\n".join(lines)
+    text = table([{k: fmt(v) for k, v in r.items()} for r in rows], list(rows[0].keys()))
+    if title:
+        text = title + "\n" + text
     print(text, flush=True)
     return text

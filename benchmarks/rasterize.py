@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import median_time, print_table, rel_err, standard_scene  # noqa: E402
+from common import median_time, print_table, rel_err, standard_view  # noqa: E402
 
 import tiger  # noqa: E402
 from tiger.render.reference import render_ref  # noqa: E402
@@ -92,7 +92,7 @@ def main_table(args, device):
     rows = []
     for n in args.n:
         for res in args.res:
-            sc = standard_scene(int(n), res, res).to(device=device)
+            sc = standard_view(int(n), res, res).to(device=device)
             for c in args.channels:
                 t_f, t_fb, t_ff, evals = time_case(sc, c, args.repeats, cuda)
                 bwd = t_fb - t_f
@@ -111,7 +111,7 @@ def sweep(args, device):
     """Time against error for each accuracy knob, one varied at a time."""
     cuda = device.type == "cuda"
     n, res, c = args.sweep_n, args.sweep_res, 3
-    sc = standard_scene(n, res, res).to(device=device)
+    sc = standard_view(n, res, res).to(device=device)
     sc64 = sc.to(dtype=torch.float64)
     exact = dict(t_min=0.0, alpha_threshold=1e-7, eps2d=0.3)
     with torch.no_grad():

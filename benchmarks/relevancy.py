@@ -51,9 +51,10 @@ def run(device: str, sizes: list[int], dtypes: list[torch.dtype], d: int = 64, q
     pos = torch.randn(q, d, generator=g).to(device)
     neg = torch.randn(m, d, generator=g).to(device)
     for n in sizes:
-        base = torch.randn(n, d, generator=g)
+        torch.manual_seed(n)
+        base = torch.randn(n, d, device=device)
         for dt in dtypes:
-            f = base.to(device=device, dtype=dt)
+            f = base.to(dtype=dt)
             op = lambda: torch.ops.tiger.relevancy(f, pos, neg, 10.0, 1e-12)  # noqa: E731
             t_op = median_time(op, repeats=7 if cuda else 3, warmup=2 if cuda else 1, cuda=cuda)
             t_eager = median_time(lambda: reference(f, pos, neg), repeats=3, warmup=1, cuda=cuda)
@@ -70,6 +71,7 @@ def run(device: str, sizes: list[int], dtypes: list[torch.dtype], d: int = 64, q
                          "cos_err": float((cos[:k].double() - rc).abs().max()),
                          "rel_err": float((rel[:k].double() - rr).abs().max())})
             del f, cos, rel
+        del base
     return rows
 
 

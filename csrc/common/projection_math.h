@@ -95,6 +95,50 @@ TIGER_HD ClampedCoord<T> clamp_to_frustum(T x, T z, T f, T c, int size) {
   return o;
 }
 
+// Intermediate terms of the EWA projection, shared by the forward and its VJP
+// (which recomputes them rather than storing them per Gaussian).
+template <typename T>
+struct EwaTerms {
+  Vec3<T> p;                  // camera-space mean
+  T qn, qw, qx, qy, qz;       // quaternion norm (floored) and the normalised quaternion
+  Mat3<T> Rq, W, M;           // local rotation, W = R Rq, M = W diag(scale)
+  ClampedCoord<T> tx, ty;     // frustum-clamped x, y for the Jacobian
+  T iz, j00, j02, j11, j12;   // 1/z and the Jacobian J = [[j00, 0, j02], [0, j11, j12]]
+  T a0[3], a1[3];             // rows of J M: cov2d = (J M)(J M)^T
+  T ca0, cb0, cc0;            // 2D covariance before dilation
+  T ca, cc, det;              // dilated diagonal and determinant
+};
+
+template <typename T>
+TIGER_HD EwaTerms<T> ewa_terms(const T* mean, const T* quat, const T* scale, const Camera<T>& cam,
+                               const ProjectOptions<T>& opt) {
+  EwaTerms<T> e;
+  e.p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]}) + cam.t;
+  T qn = sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
+  e.qn = qn > quat_norm_floor<T>() ? qn : quat_norm_floor<T>();
+  e.qw = quat[0] / e.qn, e.qx = quat[1] / e.qn, e.qy = quat[2] / e.qn, e.qz = quat[3] / e.qn;
+  e.Rq = quat_to_rotmat(e.qw, e.qx, e.qy, e.qz);
+  e.W = matmul(cam.R, e.Rq);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) e.M.m[i][j] = e.W.m[i][j] * scale[j];
+  e.tx = clamp_to_frustum(e.p.x, e.p.z, cam.fx, cam.cx, cam.width);
+  e.ty = clamp_to_frustum(e.p.y, e.p.z, cam.fy, cam.cy, cam.height);
+  e.iz = T(1) / e.p.z;
+  e.j00 = cam.fx * e.iz, e.j02 = -cam.fx * e.tx.t * e.iz * e.iz;
+  e.j11 = cam.fy * e.iz, e.j12 = -cam.fy * e.ty.t * e.iz * e.iz;
+  for (int k = 0; k < 3; ++k) {
+    e.a0[k] = e.j00 * e.M.m[0][k] + e.j02 * e.M.m[2][k];
+    e.a1[k] = e.j11 * e.M.m[1][k] + e.j12 * e.M.m[2][k];
+  }
+  e.ca0 = e.a0[0] * e.a0[0] + e.a0[1] * e.a0[1] + e.a0[2] * e.a0[2];
+  e.cb0 = e.a0[0] * e.a1[0] + e.a0[1] * e.a1[1] + e.a0[2] * e.a1[2];
+  e.cc0 = e.a1[0] * e.a1[0] + e.a1[1] * e.a1[1] + e.a1[2] * e.a1[2];
+  e.ca = e.ca0 + opt.eps2d;
+  e.cc = e.cc0 + opt.eps2d;
+  e.det = e.ca * e.cc - e.cb0 * e.cb0;
+  return e;
+}
+
 // Forward projection. Returns false when the Gaussian is culled (outside
 // near/far, degenerate covariance, opacity below the threshold, or off screen).
 template <typename T>
@@ -102,31 +146,9 @@ TIGER_HD bool project_gaussian(const T* mean, const T* quat, const T* scale, T o
                                const Camera<T>& cam, const ProjectOptions<T>& opt, Projected<T>& out) {
   const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]}) + cam.t;
   if (!(p.z > opt.near_plane && p.z < opt.far_plane)) return false;
-
-  T qn = sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
-  qn = qn > quat_norm_floor<T>() ? qn : quat_norm_floor<T>();
-  const Mat3<T> Rq = quat_to_rotmat(quat[0] / qn, quat[1] / qn, quat[2] / qn, quat[3] / qn);
-  const Mat3<T> W = matmul(cam.R, Rq);
-  Mat3<T> M;  // camera-space M = W diag(s); Sigma_c = M M^T
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) M.m[i][j] = W.m[i][j] * scale[j];
-
-  const ClampedCoord<T> tx = clamp_to_frustum(p.x, p.z, cam.fx, cam.cx, cam.width);
-  const ClampedCoord<T> ty = clamp_to_frustum(p.y, p.z, cam.fy, cam.cy, cam.height);
-  const T iz = T(1) / p.z;
-  const T j00 = cam.fx * iz, j02 = -cam.fx * tx.t * iz * iz;
-  const T j11 = cam.fy * iz, j12 = -cam.fy * ty.t * iz * iz;
-  // Rows of J M: the 2D covariance is (J M)(J M)^T, always positive semi-definite.
-  T a0[3], a1[3];
-  for (int k = 0; k < 3; ++k) {
-    a0[k] = j00 * M.m[0][k] + j02 * M.m[2][k];
-    a1[k] = j11 * M.m[1][k] + j12 * M.m[2][k];
-  }
-  const T ca0 = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2];
-  const T cb0 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2];
-  const T cc0 = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2];
-  const T ca = ca0 + opt.eps2d, cc = cc0 + opt.eps2d;
-  const T det = ca * cc - cb0 * cb0;
+  const EwaTerms<T> e = ewa_terms(mean, quat, scale, cam, opt);
+  const T ca0 = e.ca0, cb0 = e.cb0, cc0 = e.cc0, ca = e.ca, cc = e.cc, det = e.det;
+  const T iz = e.iz;
   if (!(det > T(0)) || !isfinite(det)) return false;
 
   T o = opacity;
@@ -137,12 +159,12 @@ TIGER_HD bool project_gaussian(const T* mean, const T* quat, const T* scale, T o
   if (!(o >= opt.alpha_threshold)) return false;
 
   const T inv = T(1) / det;
-  out.u = cam.fx * p.x * iz + cam.cx;
-  out.v = cam.fy * p.y * iz + cam.cy;
+  out.u = cam.fx * e.p.x * iz + cam.cx;
+  out.v = cam.fy * e.p.y * iz + cam.cy;
   out.ca = cc * inv;
   out.cb = -cb0 * inv;
   out.cc = ca * inv;
-  out.depth = p.z;
+  out.depth = e.p.z;
   out.opacity = o;
   // Opacity-aware extent: o * exp(-q/2) >= threshold  <=>  q <= 2 log(o / threshold);
   // the ellipse's axis-aligned half widths are sqrt(k2 * cov_xx), sqrt(k2 * cov_yy).
@@ -171,31 +193,16 @@ TIGER_HD void project_gaussian_vjp(const T* mean, const T* quat, const T* scale,
                                    const Camera<T>& cam, const ProjectOptions<T>& opt, T v_u, T v_v,
                                    T v_ca, T v_cb, T v_cc, T v_depth, T v_opac,
                                    ProjectionGrads<T>& g) {
-  // Recompute the forward intermediates.
-  const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]}) + cam.t;
-  T qn = sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
-  qn = qn > quat_norm_floor<T>() ? qn : quat_norm_floor<T>();
-  const T qw = quat[0] / qn, qx = quat[1] / qn, qy = quat[2] / qn, qz = quat[3] / qn;
-  const Mat3<T> Rq = quat_to_rotmat(qw, qx, qy, qz);
-  const Mat3<T> W = matmul(cam.R, Rq);
-  Mat3<T> M;
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) M.m[i][j] = W.m[i][j] * scale[j];
-  const ClampedCoord<T> tx = clamp_to_frustum(p.x, p.z, cam.fx, cam.cx, cam.width);
-  const ClampedCoord<T> ty = clamp_to_frustum(p.y, p.z, cam.fy, cam.cy, cam.height);
-  const T iz = T(1) / p.z, iz2 = iz * iz;
-  const T j00 = cam.fx * iz, j02 = -cam.fx * tx.t * iz2;
-  const T j11 = cam.fy * iz, j12 = -cam.fy * ty.t * iz2;
-  T a0[3], a1[3];
-  for (int k = 0; k < 3; ++k) {
-    a0[k] = j00 * M.m[0][k] + j02 * M.m[2][k];
-    a1[k] = j11 * M.m[1][k] + j12 * M.m[2][k];
-  }
-  const T ca0 = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2];
-  const T cb0 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2];
-  const T cc0 = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2];
-  const T ca = ca0 + opt.eps2d, cc = cc0 + opt.eps2d;
-  const T det = ca * cc - cb0 * cb0;
+  // The forward intermediates, recomputed by the same function.
+  const EwaTerms<T> e = ewa_terms(mean, quat, scale, cam, opt);
+  const Vec3<T> p = e.p;
+  const T qn = e.qn, qw = e.qw, qx = e.qx, qy = e.qy, qz = e.qz;
+  const Mat3<T>&Rq = e.Rq, &W = e.W, &M = e.M;
+  const ClampedCoord<T>&tx = e.tx, &ty = e.ty;
+  const T iz = e.iz, iz2 = iz * iz;
+  const T j00 = e.j00, j02 = e.j02, j11 = e.j11, j12 = e.j12;
+  const T *a0 = e.a0, *a1 = e.a1;
+  const T ca0 = e.ca0, cb0 = e.cb0, cc0 = e.cc0, ca = e.ca, cc = e.cc, det = e.det;
   const T inv = T(1) / det;
   const T Ka = cc * inv, Kb = -cb0 * inv, Kc = ca * inv;  // conic
 

@@ -69,7 +69,9 @@ def test_end_to_end_api(tmp_path, capsys):
         labels = lerf.load_scene_labels(tmp_path / "label" / name)
         assert len(labels) == 3 and all(fr.image_path is not None for fr in labels)
         fn = lerf.scene_relevancy_fn(ls.scene, cams, labels, encoder=ls.encoder)
-        res = lerf.evaluate_scene(name, labels, fn, out_dir=tmp_path / "out", progress=False)
+        # Pictures for the first scene only (matplotlib dominates the run time).
+        res = lerf.evaluate_scene(name, labels, fn, out_dir=tmp_path / "out", progress=False,
+                                  pictures=name == "toyroom")
         assert len(res.queries) >= 10
         assert res.accuracy == 1.0, [(q.frame, q.category) for q in res.queries if not q.hit]
         assert res.miou > 0.3
@@ -78,7 +80,7 @@ def test_end_to_end_api(tmp_path, capsys):
     print(table)
     assert "| **mean over scenes** |" in table and "**100.0**" in table
     pics = list((tmp_path / "out").rglob("*.png"))
-    assert len(pics) == sum(len(r.queries) for r in results)
+    assert len(pics) == len(results[0].queries) and all(p.stat().st_size > 1000 for p in pics)
 
 
 def _write_transforms(path, cams):

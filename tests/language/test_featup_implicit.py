@@ -57,3 +57,15 @@ def test_jitter_is_one_transform_for_image_and_features():
     out = j.apply(x)
     ref = torch.flip(F.pad(x, [2] * 4, mode="reflect")[..., 1:9, 3:13], [3])
     assert torch.equal(out, ref)
+
+
+def test_fit_is_deterministic_and_leaves_global_rng_alone():
+    img = scene()
+    cfg = ImplicitConfig(steps=3, n_views=4, pca_batch=4, kernel_size=5, jitters_per_step=2)
+    torch.manual_seed(123)
+    expected_next = torch.rand(1)
+    torch.manual_seed(123)
+    a = ImplicitUpsampler.fit(img, backbone, cfg)()
+    assert torch.equal(torch.rand(1), expected_next)
+    b = ImplicitUpsampler.fit(img, backbone, cfg)()
+    assert torch.equal(a, b)

@@ -86,7 +86,7 @@ def test_predict_matches_single_point_prompts(generator):
     assert pixels.shape == (1, 3, 64, 64) and pixels[..., rh:, :].abs().sum() == 0
     emb = model.get_image_embeddings(pixels)
     n = 4
-    for k in range(16):
+    for k in (0, 3, 6, 9, 12, 15):  # corners and inner points of the 4x4 grid
         x = (k % n + 0.5) / n * rw
         y = (k // n + 0.5) / n * rh
         with torch.no_grad():

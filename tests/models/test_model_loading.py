@@ -129,3 +129,19 @@ def test_wrong_checkpoint_is_named(tmp_path):
     torch.save({"something": torch.zeros(1)}, tmp_path / "sam_vit_h_4b8939.pth")
     with pytest.raises(ValueError, match="image_encoder.patch_embed.proj.weight"):
         load_sam(tmp_path / "sam_vit_h_4b8939.pth")
+
+
+def test_download_only_when_allowed(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    calls = []
+    fake = types.ModuleType("huggingface_hub")
+    fake.snapshot_download = lambda repo, local_dir=None: calls.append((repo, local_dir)) or str(tmp_path)
+    monkeypatch.setitem(sys.modules, "huggingface_hub", fake)
+    monkeypatch.setenv(ENV_VAR, str(tmp_path))
+    with pytest.raises(ModelNotFoundError):
+        resolve_model_path("clip")
+    assert calls == []
+    assert resolve_model_path("clip", allow_download=True) == tmp_path
+    assert calls == [("openai/clip-vit-base-patch16", str(tmp_path / "clip-vit-base-patch16"))]

@@ -7,6 +7,7 @@ import torch
 import tiger
 from tiger.render.reference import render_ref
 
+from .devices import DEVICES
 from .scenes import camera, random_scene
 
 F64 = torch.float64
@@ -18,7 +19,7 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm().clamp_min(1e-300))
 
 
-def _inputs(n, c, w, h, dtype, seed=0, sh_degree=None, **kw):
+def _inputs(n, c, w, h, dtype, seed=0, sh_degree=None, device="cpu", **kw):
     m, q, s, o, col = random_scene(n, c, dtype=F64, seed=seed, **kw)
     if sh_degree is not None:
         g = torch.Generator().manual_seed(seed + 7)
@@ -26,14 +27,14 @@ def _inputs(n, c, w, h, dtype, seed=0, sh_degree=None, **kw):
     V, K = camera(w, h)
     bg = torch.rand(3 if sh_degree is not None else c, generator=torch.Generator().manual_seed(seed),
                     dtype=F64)
-    return [t.to(dtype) for t in (m, q, s, o, col, V, K, bg)]
+    return [t.to(dtype).to(device) for t in (m, q, s, o, col, V, K, bg)]
 
 
 def _loss(out, seed=11):
     g = torch.Generator().manual_seed(seed)
-    wc = torch.randn(out["color"].shape, generator=g, dtype=F64).to(out["color"].dtype)
-    wa = torch.randn(out["alpha"].shape, generator=g, dtype=F64).to(out["color"].dtype)
-    wd = torch.randn(out["depth"].shape, generator=g, dtype=F64).to(out["color"].dtype)
+    wc = torch.randn(out["color"].shape, generator=g, dtype=F64).to(out["color"].device, out["color"].dtype)
+    wa = torch.randn(out["alpha"].shape, generator=g, dtype=F64).to(out["color"].device, out["color"].dtype)
+    wd = torch.randn(out["depth"].shape, generator=g, dtype=F64).to(out["color"].device, out["color"].dtype)
     return (out["color"] * wc).sum() + (out["alpha"] * wa).sum() + (out["depth"] * wd).sum()
 
 
@@ -44,10 +45,11 @@ def _grads(fn, tensors, w, h, **kw):
     return out, [t.grad for t in leaves]
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("channels", [1, 3, 64, 67])
-def test_forward_float64_matches_reference(channels):
+def test_forward_float64_matches_reference(channels, device):
     w, h = 48, 40
-    ins = _inputs(400, channels, w, h, F64, seed=channels)
+    ins = _inputs(400, channels, w, h, F64, seed=channels, device=device)
     out = tiger.rasterize_gaussians(*ins[:7], w, h, background=ins[7])
     ref = render_ref(*ins[:7], w, h, background=ins[7])
     assert out["n_isects"] > 0
@@ -57,9 +59,10 @@ def test_forward_float64_matches_reference(channels):
 
 @pytest.mark.parametrize("antialiased", [False, True])
 @pytest.mark.parametrize("sh_degree", [None, 0, 1, 3])
-def test_gradients_float64_match_reference(antialiased, sh_degree):
+@pytest.mark.parametrize("device", DEVICES)
+def test_gradients_float64_match_reference(antialiased, sh_degree, device):
     w, h = 40, 32
-    ins = _inputs(200, 5, w, h, F64, seed=3, sh_degree=sh_degree)
+    ins = _inputs(200, 5, w, h, F64, seed=3, sh_degree=sh_degree, device=device)
     kw = dict(antialiased=antialiased, sh_degree=sh_degree)
     out, g = _grads(tiger.rasterize_gaussians, ins, w, h, **kw)
     ref, g_ref = _grads(render_ref, ins, w, h, **kw)
@@ -68,10 +71,11 @@ def test_gradients_float64_match_reference(antialiased, sh_degree):
         assert rel(a, b) <= 1e-10, name
 
 
-def test_float32_on_1k_scene_within_tolerances():
+@pytest.mark.parametrize("device", DEVICES)
+def test_float32_on_1k_scene_within_tolerances(device):
     """SPEC acceptance: float32 kernels vs float64 reference, forward <= 1e-5, grads <= 1e-4."""
     w, h = 64, 64
-    ins64 = _inputs(1000, 67, w, h, F64, seed=5)
+    ins64 = _inputs(1000, 67, w, h, F64, seed=5, device=device)
     ins32 = [t.float() for t in ins64]
     out, g = _grads(tiger.rasterize_gaussians, ins32, w, h)
     ref, g_ref = _grads(render_ref, ins64, w, h)
@@ -81,9 +85,10 @@ def test_float32_on_1k_scene_within_tolerances():
         assert rel(a, b) <= 1e-4, name
 
 
-def test_outputs_and_radii():
+@pytest.mark.parametrize("device", DEVICES)
+def test_outputs_and_radii(device):
     w, h = 32, 24
-    ins = _inputs(50, 3, w, h, F64, seed=9)
+    ins = _inputs(50, 3, w, h, F64, seed=9, device=device)
     out = tiger.rasterize_gaussians(*ins[:7], w, h)
     assert out["color"].shape == (h, w, 3) and out["alpha"].shape == (h, w)
     assert out["depth"].shape == (h, w) and out["radii"].shape == (50,)
@@ -95,9 +100,10 @@ def test_outputs_and_radii():
     assert bool((out["color"].amax(-1) <= out["alpha"] * ins[4].max() + 1e-12).all())
 
 
-def test_means2d_gradient_available_for_densification():
+@pytest.mark.parametrize("device", DEVICES)
+def test_means2d_gradient_available_for_densification(device):
     w, h = 32, 32
-    ins = _inputs(60, 3, w, h, F64, seed=2)
+    ins = _inputs(60, 3, w, h, F64, seed=2, device=device)
     means = ins[0].clone().requires_grad_()
     out = tiger.rasterize_gaussians(means, *ins[1:7], w, h)
     out["means2d"].retain_grad()
@@ -107,9 +113,11 @@ def test_means2d_gradient_available_for_densification():
     assert bool((g2[out["radii"] == 0] == 0).all())
 
 
-def test_background_only_where_transparent():
+@pytest.mark.parametrize("device", DEVICES)
+def test_background_only_where_transparent(device):
     w, h = 16, 16
-    ins = _inputs(0, 3, w, h, F64)
-    out = tiger.rasterize_gaussians(*ins[:7], w, h, background=torch.tensor([0.2, 0.4, 0.6], dtype=F64))
-    assert torch.allclose(out["color"], torch.tensor([0.2, 0.4, 0.6], dtype=F64).expand(h, w, 3))
+    ins = _inputs(0, 3, w, h, F64, device=device)
+    bg = torch.tensor([0.2, 0.4, 0.6], dtype=F64, device=device)
+    out = tiger.rasterize_gaussians(*ins[:7], w, h, background=bg)
+    assert torch.allclose(out["color"], bg.expand(h, w, 3))
     assert bool((out["alpha"] == 0).all()) and bool((out["depth"] == 0).all())

@@ -7,7 +7,9 @@ import types
 import pytest
 import torch
 
-from tiger.retrieval import (CANONICAL_NEGATIVES, choose_tau, embed_queries, otsu_threshold, pca_of, project,
+from tiger.retrieval import (CANONICAL_NEGATIVES, choose_tau, embed_queries, min_error_threshold, otsu_threshold,
+                             valley_threshold,
+                             pca_of, project,
                              relevancy, retrieve, robust_bounds, save_heatmap)
 from tiger.retrieval.synthetic import DictTextEncoder, make_labelled_scene
 
@@ -65,8 +67,47 @@ def test_otsu_separates_two_groups():
     assert choose_tau(s, 0.25, "cosine") == 0.25
     with pytest.raises(ValueError, match="tau must be"):
         choose_tau(s, "median", "cosine")
+    assert choose_tau(s, "otsu", "cosine") == t
     # Relevancy: the cut is never below 0.5.
     assert choose_tau(torch.tensor([0.1, 0.2, 0.3, 0.31]), "auto", "relevancy") >= 0.5
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.01, 0.001])
+def test_auto_threshold_survives_small_objects(fraction):
+    # An object that is 1 % (or 0.1 %) of the scene: Otsu cuts inside the background, the
+    # default rule (minimum-error split, cut in the valley between the modes) still separates.
+    g = torch.Generator().manual_seed(7)
+    n = 100_000
+    k = int(n * fraction)
+    background = 0.1 + 0.08 * torch.randn(n - k, generator=g)
+    obj = 0.7 + 0.05 * torch.randn(k, generator=g)
+    s = torch.cat([background, obj])
+    t = choose_tau(s, "auto", "cosine")
+    assert t == valley_threshold(s)
+    assert 0.35 < t < 0.6  # in the valley between 0.1 +- 0.08 and 0.7 +- 0.05
+    fp, tp = int((background > t).sum()), int((obj > t).sum())
+    assert tp / k >= 0.999 and tp / (tp + fp) >= 0.999, (t, tp, fp)
+    if fraction <= 0.01:
+        t_otsu = otsu_threshold(s)
+        assert int((background > t_otsu).sum()) > 10 * k  # why Otsu is not the default
+    # The same in relevancy terms (sigmoid(10 * margin)).
+    r = torch.sigmoid(10 * (s - 0.2))
+    tr = choose_tau(r, "auto", "relevancy")
+    assert tr >= 0.5 and int(((r > tr) != (s > t)).sum()) <= 2
+
+
+def test_valley_rule_keeps_an_objects_tail():
+    # Object scores: a tight peak near 1 and a tail down to 0.5 (Gaussians blended at its border);
+    # background: two clusters. Kittler-Illingworth splits off the tight peak and loses the tail;
+    # the valley rule cuts in the empty stretch between background and object.
+    g = torch.Generator().manual_seed(8)
+    bg = torch.cat([-0.2 + 0.04 * torch.randn(120, generator=g), 0.1 + 0.04 * torch.randn(120, generator=g)])
+    obj = torch.cat([0.97 + 0.01 * torch.randn(33, generator=g), torch.linspace(0.5, 0.9, 7)])
+    s = torch.cat([bg, obj])
+    t = valley_threshold(s)
+    assert bg.max() < t < 0.5
+    assert min_error_threshold(s) > 0.5  # the failure the valley search fixes
+    assert valley_threshold(torch.full((4,), 0.2)) == pytest.approx(0.2)
 
 
 def test_robust_bounds_ignore_outliers():
@@ -157,3 +198,44 @@ def test_relevancy_maps_render_and_pictures(tmp_path):
     assert mug.sum() > 10 and m["cosine"][0][mug].median() > 0.9
     paths = write_relevancy_pictures(ls.scene, ls.cameras, "red mug", tmp_path, encoder=ls.encoder)
     assert len(paths) == 2 and all(p.stat().st_size > 1000 for p in paths)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_retrieve_on_cuda_matches_cpu():
+    import tiger
+
+    if not tiger.ops.cuda_enabled():
+        pytest.skip("tiger built without CUDA kernels")
+    ls = _scene_with_oracle_lang()
+    cpu = retrieve(ls.scene, "green apple", encoder=ls.encoder, score="relevancy")
+    gpu_scene = types.SimpleNamespace(**{k: (v.cuda() if torch.is_tensor(v) else v) for k, v in vars(ls.scene).items()})
+    for dt in (torch.float32, torch.float16):
+        gpu_scene.lang = ls.scene.lang.to("cuda", dt)
+        gpu = retrieve(gpu_scene, "green apple", encoder=ls.encoder, score="relevancy")
+        assert gpu.scores.is_cuda
+        torch.testing.assert_close(gpu.cosine.cpu(), cpu.cosine, atol=2e-3 if dt == torch.float16 else 1e-5, rtol=0)
+        assert torch.equal(gpu.mask.cpu(), cpu.mask)
+        torch.testing.assert_close(gpu.center.cpu(), cpu.center, atol=1e-5, rtol=0)
+
+
+def test_pictures_and_retrieval_with_a_gaussian_scene(tmp_path):
+    scene_mod = pytest.importorskip("tiger.scene")
+    from tiger.retrieval import write_relevancy_pictures
+
+    ls = _scene_with_oracle_lang()
+    s = ls.scene
+    gs = scene_mod.GaussianScene(means=s.means, log_scales=s.scales.log(), quats=s.quats,
+                                 opacity_logits=torch.logit(s.opacities),
+                                 sh_dc=(s.colors - 0.5) / (0.5 / math.sqrt(math.pi)), lang=s.lang,
+                                 lang_pca_basis=s.lang_pca_basis, lang_pca_mean=s.lang_pca_mean)
+    r = retrieve(gs, "blue book", encoder=ls.encoder, score="relevancy")
+    assert torch.equal(r.mask, ls.label_of == 3)
+    sub = r.subscene(gs)
+    assert isinstance(sub, scene_mod.GaussianScene) and len(sub) == int(r.mask.sum())
+    from tiger.retrieval.maps import render_rgb
+
+    rgb = render_rgb(gs, ls.cameras[0])  # SH colour through the rasterizer, plain camera objects
+    assert rgb.shape == (48, 48, 3) and float(rgb.max()) > 0.2
+    paths = write_relevancy_pictures(gs, ls.cameras[:1], "blue book", tmp_path, encoder=ls.encoder)
+    assert paths[0].stat().st_size > 1000

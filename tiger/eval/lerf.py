@@ -407,7 +407,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     missing = sorted(set(scenes) - set(data))
     if missing:
         raise SystemExit(f"tiger eval-lerf: no --data NAME=DATASET for {missing}")
-    from tiger.scene import GaussianScene, load_dataset
+    from tiger.scene import GaussianScene
+    from tiger.scene.dataset import load_dataset
 
     encoder = _load_encoder(args)
     results = []

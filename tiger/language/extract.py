@@ -67,8 +67,13 @@ class FeatureConfig:
         if self.clip_long_side < 16:
             raise ValueError(f"tiger.FeatureConfig: clip_long_side must be >= 16, got {self.clip_long_side}")
 
-    def fingerprint(self) -> str:
-        blob = json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
+    def fingerprint(self, stage1: bool = False) -> str:
+        """Hash of the settings; ``stage1=True`` leaves out what only the PCA uses (``pca_dim``), so
+        changing it refits the PCA without recomputing the cached images."""
+        d = dataclasses.asdict(self)
+        if stage1:
+            d.pop("pca_dim")
+        blob = json.dumps(d, sort_keys=True, default=str)
         return hashlib.sha1(blob.encode()).hexdigest()[:16]
 
     def out_size(self, h: int, w: int) -> tuple[int, int]:
@@ -179,6 +184,8 @@ def _dist_setup(rank: int | None, world_size: int | None) -> tuple[int, int, boo
     env_world = int(os.environ.get("WORLD_SIZE", "1"))
     if rank is None and world_size is None and env_world > 1 and dist.is_available():
         backend = "nccl" if torch.cuda.is_available() else "gloo"
+        if backend == "nccl":  # NCCL collectives run on the rank's own GPU
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")) % torch.cuda.device_count())
         dist.init_process_group(backend)
         return dist.get_rank(), dist.get_world_size(), True
     return int(rank or 0), int(world_size or 1), False
@@ -239,7 +246,8 @@ def extract_features(
     all_names = _names(images, names)
     rank, world, use_dist = _dist_setup(rank, world_size)
     dev = torch.device(device) if device is not None else _default_device()
-    fp = cfg.fingerprint()
+    fp = cfg.fingerprint(stage1=True)
+    full_fp = cfg.fingerprint()
     mine = list(range(rank, len(images), world))
     cache_dir, feat_dir = out / "cache", out / "features"
 
@@ -266,7 +274,7 @@ def extract_features(
     if rank == 0:
         pca_meta = out / "pca.json"
         stale = not pca_path.is_file() or not pca_meta.is_file() or \
-            json.loads(pca_meta.read_text()).get("config") != fp or \
+            json.loads(pca_meta.read_text()).get("config") != full_fp or \
             json.loads(pca_meta.read_text()).get("names") != all_names
         if stale:
             acc = StreamingPCA(int(_load_record(cache_dir / f"{all_names[0]}.pt", fp)["means"].shape[1]), cfg.pca_dim)
@@ -278,7 +286,7 @@ def extract_features(
             basis = acc.fit()
             basis.save(pca_path)
             with open(pca_meta.with_suffix(".json.tmp"), "w") as fh:
-                json.dump({"config": fp, "names": all_names, "pca": basis.fingerprint()}, fh)
+                json.dump({"config": full_fp, "names": all_names, "pca": basis.fingerprint()}, fh)
             os.replace(pca_meta.with_suffix(".json.tmp"), pca_meta)
     _barrier(use_dist)
     pca = PCABasis.load(pca_path)

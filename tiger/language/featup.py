@@ -291,7 +291,17 @@ class ImplicitUpsampler:
     @classmethod
     def fit(cls, image: torch.Tensor, featurizer: Featurizer, config: ImplicitConfig | None = None,
             progress: bool = False) -> "ImplicitUpsampler":
+        """Fit to ``image`` [3, H, W] in [0, 1]; deterministic for a given ``config.seed`` (the
+        caller's random state is left untouched)."""
         cfg = config or ImplicitConfig()
+        devices = [image.device] if image.device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            torch.manual_seed(cfg.seed)
+            return cls._fit(image, featurizer, cfg, progress)
+
+    @classmethod
+    def _fit(cls, image: torch.Tensor, featurizer: Featurizer, cfg: ImplicitConfig,
+             progress: bool) -> "ImplicitUpsampler":
         if image.dim() != 3 or image.shape[0] != 3:
             raise ValueError(f"tiger.ImplicitUpsampler: image must be [3, H, W], got {tuple(image.shape)}")
         dev = image.device

@@ -235,17 +235,12 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
     n, device, dtype = means.shape[0], means.device, means.dtype
     load = _map_loader(feature_maps, cameras)
 
+    # Only the first map is read up front (for D): maps may live on disk, one per view.
     first, _ = _as_map(load(0), 0)
     d = cfg.dim or (scene.lang.shape[1] if getattr(scene, "lang", None) is not None else first.shape[2])
-    sizes = []
-    for i in range(len(cameras)):
-        f = first if i == 0 else None
-        if f is None:
-            f, _ = _as_map(load(i), i)
-        if f.shape[2] != d:
-            raise ValueError(f"tiger.train_field: feature map {i} has {f.shape[2]} channels, L has {d}")
-        sizes.append((int(f.shape[0]), int(f.shape[1])))
     del first
+    # Culling does not depend on the resolution (K scales with it), so the cameras' own sizes do.
+    sizes = [(int(c.height), int(c.width)) for c in cameras]
 
     gen = torch.Generator().manual_seed(cfg.seed)
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
@@ -305,7 +300,9 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
             total = 0.0
             for v in views:
                 feats, valid = _as_map(load(v), v)
-                h, w = sizes[v]
+                if feats.shape[2] != d:
+                    raise ValueError(f"tiger.train_field: feature map {v} has {feats.shape[2]} channels, L has {d}")
+                h, w = int(feats.shape[0]), int(feats.shape[1])
                 out = _render(scene, cameras[v], lang, h, w, vis_mask)
                 target = feats.to(device=device, dtype=dtype)
                 loss = _loss(out["color"], target, None if valid is None else valid.to(device), cfg.loss)

@@ -10,6 +10,7 @@ produced directly at the requested working resolution.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -119,13 +120,16 @@ def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple
     small = np.nonzero(sizes < area_thresh)[0] + 1
     if small.size == 0:
         return mask, False
+    keep = np.zeros(n + 1, dtype=bool)  # lookup table: label -> in the result
     if holes:
-        fill = np.concatenate([[0], small])
+        keep[0] = True
+        keep[small] = True
     else:
-        fill = np.setdiff1d(np.arange(1, n + 1), small)
-        if fill.size == 0:
-            fill = np.array([int(np.argmax(sizes)) + 1])
-    return np.isin(labels, fill), True
+        keep[1:] = True
+        keep[small] = False
+        if not keep.any():
+            keep[int(np.argmax(sizes)) + 1] = True
+    return keep[labels], True
 
 
 class SamMaskGenerator:
@@ -225,12 +229,20 @@ class SamMaskGenerator:
         return SamMasks(masks[keep], iou[keep], stab[keep])
 
     def _clean(self, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Small holes and islands removed from every mask; connected components run on the CPU,
+        one mask per thread (OpenCV releases the GIL)."""
+        from concurrent.futures import ThreadPoolExecutor
+
         area = self.config.min_mask_region_area
         host = masks.cpu().numpy()
         changed = np.zeros(len(host), dtype=bool)
-        for k in range(len(host)):
+
+        def one(k: int) -> None:
             m, c1 = remove_small_regions(host[k], area, "holes")
             m, c2 = remove_small_regions(m, area, "islands")
             if c1 or c2:
                 host[k], changed[k] = m, True
+
+        with ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1)) as pool:
+            list(pool.map(one, range(len(host))))
         return torch.from_numpy(host).to(masks.device), torch.from_numpy(changed).to(masks.device)

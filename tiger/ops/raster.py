@@ -16,10 +16,11 @@ _OP = "tiger::rasterize"
 @torch.library.register_fake(_OP)
 def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
                  gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min):
+    # Outputs take the geometry dtype: colors may be stored in float16/bfloat16 (CUDA).
     c = colors.shape[1]
-    return (colors.new_empty(height, width, c), colors.new_empty(height, width),
-            colors.new_empty(height, width), colors.new_empty(height, width, dtype=torch.int32),
-            colors.new_empty(height, width))
+    return (means2d.new_empty(height, width, c), means2d.new_empty(height, width),
+            means2d.new_empty(height, width), means2d.new_empty(height, width, dtype=torch.int32),
+            means2d.new_empty(height, width))
 
 
 @torch.library.register_fake("tiger::rasterize_backward")
@@ -27,7 +28,8 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
                           gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
                           transmittance, n_contrib, v_color, v_alpha, v_depth):
     return (torch.empty_like(means2d), torch.empty_like(conics), torch.empty_like(opacities),
-            torch.empty_like(colors), torch.empty_like(depths), colors.new_empty(colors.shape[1]))
+            means2d.new_empty(colors.shape), torch.empty_like(depths),
+            means2d.new_empty(colors.shape[1]))
 
 
 @torch.library.register_fake("tiger::rasterize_backward_colors")
@@ -35,7 +37,7 @@ def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gauss
                                  height, tile_size, alpha_max, alpha_threshold, t_min, n_contrib,
                                  v_color):
     c = v_color.shape[2]
-    return v_color.new_empty(means2d.shape[0], c), v_color.new_empty(c)
+    return means2d.new_empty(means2d.shape[0], c), means2d.new_empty(c)
 
 
 def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
@@ -60,6 +62,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         v_colors, v_bg = torch.ops.tiger.rasterize_backward_colors(
             means2d, conics, opacities, tile_offsets, gaussian_ids, *ctx.args, n_contrib,
             v_color.contiguous())
+        v_colors = v_colors.to(colors.dtype)  # half-precision storage: grads in its dtype
         return (None, None, None, v_colors if need[3] else None, None,
                 v_bg if need[5] else None) + (None,) * 8
     v_alpha = torch.zeros_like(trans) if v_alpha is None else v_alpha
@@ -69,6 +72,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         *ctx.args, trans, n_contrib, v_color.contiguous(), v_alpha.contiguous(),
         v_depth.contiguous())
     v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg = g
+    v_colors = v_colors.to(colors.dtype)
     return (v_means2d if need[0] else None, v_conics if need[1] else None,
             v_opac if need[2] else None, v_colors if need[3] else None,
             v_depths if need[4] else None, v_bg if need[5] else None) + (None,) * 8

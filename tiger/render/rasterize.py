@@ -84,7 +84,8 @@ def rasterize_gaussians(
         quats: [N, 4] rotations (w, x, y, z); normalised inside (any non-zero norm).
         scales: [N, 3] standard deviations along the local axes (linear, world units).
         opacities: [N] in [0, 1].
-        colors: [N, C] per-Gaussian channels (any C >= 1: RGB, 64-d language, both), or with
+        colors: [N, C] per-Gaussian channels (any C >= 1: RGB, 64-d language, both; with float32
+            geometry they may be stored as float16/bfloat16, accumulated in float32), or with
             ``sh_degree=d`` spherical-harmonics coefficients [N, K, 3] with K >= (d+1)^2
             (INRIA order), evaluated per Gaussian for its view direction as max(SH + 0.5, 0).
         viewmat: [4, 4] world→camera transform, OpenCV axes (+x right, +y down, +z forward).
@@ -131,10 +132,16 @@ def rasterize_gaussians(
                              f"Gaussian but sh_degree={sh_degree} needs {(sh_degree + 1) ** 2}")
     _check_tensor(viewmat, "viewmat", (4, 4), means)
     _check_tensor(K, "K", (3, 3), means)
-    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities),
-                    ("colors", colors)):
+    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities)):
         if t.dtype != means.dtype:
             raise TypeError(f"{_NAME}: {name} has dtype {t.dtype} but means has {means.dtype}")
+    half_colors = (sh_degree is None and means.dtype == torch.float32
+                   and colors.dtype in (torch.float16, torch.bfloat16))
+    if colors.dtype != means.dtype and not half_colors:
+        raise TypeError(f"{_NAME}: colors has dtype {colors.dtype} but means has {means.dtype} "
+                        "(float16/bfloat16 colors are accepted with float32 geometry)")
+    if means.is_cuda and not 1 <= int(tile_size) <= 16:
+        raise ValueError(f"{_NAME}: the CUDA kernels take tile_size in [1, 16], got {tile_size}")
     if int(width) <= 0 or int(height) <= 0:
         raise ValueError(f"{_NAME}: width and height must be positive, got {width}x{height}")
     channels = 3 if sh_degree is not None else colors.shape[1]
@@ -159,7 +166,10 @@ def rasterize_gaussians(
         rgb = torch.ops.tiger.sh_to_color(dirs.contiguous(), colors.contiguous(), int(sh_degree),
                                           visible)
         feats = torch.clamp_min(rgb + 0.5, 0.0)
+    elif half_colors and not colors.is_cuda:
+        feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:
+        # CUDA reads float16/bfloat16 channels directly and accumulates in float32.
         feats = colors.contiguous()
 
     with torch.no_grad():

@@ -3,10 +3,11 @@ from __future__ import annotations
 
 from .maps import relevancy_maps, render_language, render_rgb, save_heatmap, write_relevancy_pictures
 from .relevance import DEFAULT_TEMPERATURE, relevancy
-from .select import Retrieval, choose_tau, otsu_threshold, retrieve, robust_bounds, subset
+from .select import (Retrieval, choose_tau, min_error_threshold, otsu_threshold, retrieve, robust_bounds,
+                     subset, valley_threshold)
 from .text import CANONICAL_NEGATIVES, TextEncoder, embed_negatives, embed_queries, pca_of, project
 
 __all__ = ["CANONICAL_NEGATIVES", "DEFAULT_TEMPERATURE", "Retrieval", "TextEncoder", "choose_tau",
-           "embed_negatives", "embed_queries", "otsu_threshold", "pca_of", "project", "relevancy",
+           "embed_negatives", "embed_queries", "min_error_threshold", "otsu_threshold", "pca_of", "project", "relevancy",
            "relevancy_maps", "render_language", "render_rgb", "retrieve", "robust_bounds",
-           "save_heatmap", "subset", "write_relevancy_pictures"]
+           "save_heatmap", "subset", "valley_threshold", "write_relevancy_pictures"]

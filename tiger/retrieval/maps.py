@@ -45,10 +45,13 @@ def render_language(scene: Any, camera: Any, **kwargs: Any) -> tuple[torch.Tenso
 def render_rgb(scene: Any, camera: Any) -> Optional[torch.Tensor]:
     """[H, W, 3] colour render for the picture background, or None when the scene has no colour."""
     with torch.no_grad():
-        if hasattr(scene, "render"):
-            return scene.render(camera)["color"].clamp(0, 1)
+        sh = getattr(scene, "sh", None)
+        if torch.is_tensor(sh) and sh.dim() == 3:  # a GaussianScene: SH colour of every band
+            return _render(scene, camera, sh.detach(), sh_degree=int(scene.sh_degree))["color"].clamp(0, 1)
         if getattr(scene, "colors", None) is not None:
             return _render(scene, camera, scene.colors.detach())["color"].clamp(0, 1)
+        if hasattr(scene, "render"):
+            return scene.render(camera)["color"].clamp(0, 1)
     return None
 
 
@@ -97,7 +100,8 @@ def save_heatmap(path: PathLike, values: torch.Tensor, image: Optional[torch.Ten
     img = _to_numpy(image)
     if img is not None and img.shape[:2] != (h, w):
         raise ValueError(f"tiger.retrieval: image {img.shape} does not match the heat-map size {(h, w)}")
-    fig = Figure(figsize=(max(3.0, w / dpi) + 1.2, max(2.5, h / dpi)), dpi=dpi)
+    # Sized so the image is drawn at about its native resolution (plus room for the colour bar).
+    fig = Figure(figsize=(max(4.0, 1.1 * w / dpi) + 1.5, max(3.0, 1.1 * h / dpi) + 0.6), dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     if img is not None:

@@ -1,0 +1,144 @@
+"""Language field training: time per step and to convergence, features-only vs full backward.
+
+(1) Per-step time on the standard scene (N Gaussians, one W x W view, 64-d features): render L,
+    L1 loss against a target map, backward, Adam step on L. "features-only": only L requires grad
+    (the rasterizer's features-only backward, what train_field does); "full": the geometry
+    (means, quats, scales, opacities) requires grad too, so the full backward runs (and its
+    gradients are thrown away). Error column: relative error of the float32 L gradient against
+    float64.
+(2) Convergence on the synthetic labelled scene (tiger.retrieval.synthetic): train_field from
+    random L; at milestones, time, loss and the worst per-label retrieval precision / recall
+    (cosine score, automatic threshold); "converged" = loss within 10 % of the last milestone's.
+    The full backward follows the same trajectory (only L is updated), so its time to
+    convergence is the features-only time x the per-step ratio of table (1).
+
+    python benchmarks/language_field.py                 # CPU
+    python benchmarks/language_field.py --device cuda   # GPU (needs the CUDA rasterizer)
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import median_time, print_table, rel_err, standard_view  # noqa: E402
+
+import tiger  # noqa: E402
+
+
+def step_fn(sc, target, lang, opt, full: bool):
+    geo = [t.detach().requires_grad_(full) for t in (sc.means, sc.quats, sc.scales, sc.opacities)]
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        for t in geo:
+            t.grad = None
+        out = tiger.rasterize_gaussians(*geo, lang, sc.viewmat, sc.K, sc.width, sc.height, check_finite=False)
+        (out["color"] - target).abs().mean().backward()
+        opt.step()
+
+    return step
+
+
+def grad_error(sc64, target64) -> float:
+    """Relative error of the float32 gradient of L against float64 (features-only backward)."""
+    grads = {}
+    for dt in (torch.float64, torch.float32):
+        s = sc64.to(dtype=dt)
+        lang = (0.5 * s.features).detach().clone().requires_grad_(True)  # away from the optimum
+        out = tiger.rasterize_gaussians(s.means, s.quats, s.scales, s.opacities, lang, s.viewmat, s.K,
+                                        s.width, s.height, check_finite=False)
+        ((out["color"] - target64.to(dt)) ** 2).mean().backward()
+        grads[dt] = lang.grad
+    return rel_err(grads[torch.float32], grads[torch.float64])
+
+
+def per_step(device: str, cases: list[tuple[int, int]]) -> list[dict]:
+    cuda = device == "cuda"
+    rows = []
+    for n, w in cases:
+        sc = standard_view(n, w, w, seed=1).to(device=device)
+        with torch.no_grad():
+            target = tiger.rasterize_gaussians(sc.means, sc.quats, sc.scales, sc.opacities, sc.features,
+                                               sc.viewmat, sc.K, w, w)["color"]
+        times = {}
+        for full in (False, True):
+            lang = (0.1 * torch.randn(n, 64, device=device)).requires_grad_(True)
+            opt = torch.optim.Adam([lang], lr=1e-2)
+            times[full] = median_time(step_fn(sc, target, lang, opt, full), repeats=5, warmup=1, cuda=cuda)
+        err = grad_error(standard_view(n, w, w, seed=1).to(device=device, dtype=torch.float64),
+                         target.double()) if n * w * w <= (2e11 if cuda else 2e9) else float("nan")
+        rows.append({"N": n, "W=H": w, "features_only_ms": 1e3 * times[False], "full_ms": 1e3 * times[True],
+                     "full/features": times[True] / times[False], "grad_rel_err_f32": err})
+    return rows
+
+
+def convergence(device: str, steps: int, lr: float = 0.05) -> list[dict]:
+    """Milestones every steps/10 of one train_field run (continued through checkpoint/resume, which
+    is identical to one run): time, loss (mean of the last 10 steps) and the worst precision and
+    recall over the labels (cosine score, automatic threshold)."""
+    import logging
+    import tempfile
+
+    from tiger.language.field import train_field
+    from tiger.retrieval import retrieve
+    from tiger.retrieval.synthetic import make_labelled_scene, oracle_feature_maps
+
+    logging.getLogger("tiger.language.field").setLevel(logging.ERROR)
+    ls = make_labelled_scene(per_object=80, floor=400, views=12, size=96)
+    maps = [(f.to(device), v.to(device)) for f, v in oracle_feature_maps(ls)]  # rendered on the CPU
+    s = ls.scene
+    for k in ("means", "quats", "scales", "opacities", "lang_pca_basis", "lang_pca_mean"):
+        setattr(s, k, getattr(s, k).to(device))
+    ls.label_of = ls.label_of.to(device)
+    for c in ls.cameras:
+        c.viewmat, c.K = c.viewmat.to(device), c.K.to(device)
+    rows, seconds = [], 0.0
+    every = max(10, steps // 10)
+    with tempfile.TemporaryDirectory() as tmp:
+        ck = Path(tmp) / "field.ckpt"
+        for milestone in range(every, steps + 1, every):
+            r = train_field(s, ls.cameras, maps, steps=milestone, lr=lr, batch_views=2, progress=False,
+                            checkpoint=ck, checkpoint_every=0)
+            seconds += r.seconds
+            prec, rec = [], []
+            for i, name in enumerate(ls.labels):
+                rr = retrieve(s, name, encoder=ls.encoder)
+                gt = ls.label_of == i
+                tp = int((rr.mask & gt).sum())
+                prec.append(tp / max(rr.count, 1))
+                rec.append(tp / int(gt.sum()))
+            rows.append({"N": len(ls.label_of), "views": len(ls.cameras), "W=H": 96, "lr": lr, "step": milestone,
+                         "seconds": seconds, "loss": sum(r.losses[-10:]) / len(r.losses[-10:]),
+                         "min_precision": min(prec), "min_recall": min(rec)})
+    final = rows[-1]["loss"]
+    conv = next(r for r in rows if r["loss"] <= 1.1 * final)
+    print(f"# converged (loss within 10 % of step {steps}'s) at step {conv['step']}, {conv['seconds']:.1f} s")
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--steps", type=int, default=200)
+    args = ap.parse_args()
+    if args.device == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit("benchmarks/language_field.py: no CUDA device")
+        try:
+            sc = standard_view(10, 16, 16).to(device="cuda")
+            tiger.rasterize_gaussians(sc.means, sc.quats, sc.scales, sc.opacities, sc.features, sc.viewmat, sc.K, 16, 16)
+        except (RuntimeError, NotImplementedError) as exc:
+            print(f"SKIPPED: the rasterizer has no CUDA kernels in this build ({str(exc).splitlines()[0]})")
+            return
+    cases = [(100_000, 256), (1_000_000, 512)] if args.device == "cuda" else [(5_000, 64), (20_000, 128)]
+    print_table(per_step(args.device, cases), title=f"language field step (render 64-d + L1 + backward + Adam), {args.device}")
+    print_table(convergence(args.device, args.steps), title=f"language field convergence, synthetic labelled scene, {args.device}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+// Torch glue of the CUDA projection kernels (built only with CUDA on).
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <torch/library.h>
+
+#include "common/torch_checks.h"
+#include "projection.h"
+#include "projection_cuda.h"
+
+namespace tiger {
+
+namespace {
+template <typename T>
+ProjectLaunch<T> make_launch(const at::Tensor& m, const at::Tensor& q, const at::Tensor& s,
+                             const at::Tensor& o, const at::Tensor& V, const at::Tensor& K,
+                             int64_t width, int64_t height, double eps2d, double near_plane,
+                             double far_plane, double alpha_threshold, bool antialiased) {
+  return {m.data_ptr<T>(), q.data_ptr<T>(), s.data_ptr<T>(), o.data_ptr<T>(), V.data_ptr<T>(),
+          K.data_ptr<T>(), m.size(0), int(width), int(height), T(eps2d), T(near_plane),
+          T(far_plane), T(alpha_threshold), antialiased};
+}
+}  // namespace
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_gaussians_cuda(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+    const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
+    int64_t height, double eps2d, double near_plane, double far_plane, double alpha_threshold,
+    bool antialiased) {
+  const char* op = "tiger.project_gaussians";
+  check_projection_inputs(op, means, quats, scales, opacities, viewmat, K, width, height);
+  const c10::cuda::CUDAGuard guard(means.device());
+  const int64_t n = means.size(0);
+  auto means2d = at::zeros({n, 2}, means.options());
+  auto conics = at::zeros({n, 3}, means.options());
+  auto depths = at::zeros({n}, means.options());
+  auto opac_out = at::zeros({n}, means.options());
+  auto radii = at::zeros({n, 2}, means.options().dtype(at::kInt));
+  const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous(),
+             o = opacities.contiguous(), V = viewmat.contiguous(), Kc = K.contiguous();
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_gaussians_cuda", [&] {
+    using T = scalar_t;
+    const auto a = make_launch<T>(m, q, s, o, V, Kc, width, height, eps2d, near_plane, far_plane,
+                                  alpha_threshold, antialiased);
+    const cudaError_t err = project_gaussians_cuda_launch<T>(
+        a, means2d.data_ptr<T>(), conics.data_ptr<T>(), depths.data_ptr<T>(),
+        opac_out.data_ptr<T>(), radii.data_ptr<int32_t>(), c10::cuda::getCurrentCUDAStream().stream());
+    TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
+  });
+  return {means2d, conics, depths, opac_out, radii};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+project_gaussians_backward_cuda(const at::Tensor& means, const at::Tensor& quats,
+                                const at::Tensor& scales, const at::Tensor& opacities,
+                                const at::Tensor& viewmat, const at::Tensor& K,
+                                const at::Tensor& radii, int64_t width, int64_t height,
+                                double eps2d, bool antialiased, const at::Tensor& v_means2d,
+                                const at::Tensor& v_conics, const at::Tensor& v_depths,
+                                const at::Tensor& v_opacities, bool camera_grad) {
+  const char* op = "tiger.project_gaussians_backward";
+  check_projection_inputs(op, means, quats, scales, opacities, viewmat, K, width, height);
+  const int64_t n = means.size(0);
+  check_shape(radii, op, "radii", {n, 2});
+  check_dtype(radii, at::kInt, op, "radii");
+  check_shape(v_means2d, op, "v_means2d", {n, 2});
+  check_shape(v_conics, op, "v_conics", {n, 3});
+  check_shape(v_depths, op, "v_depths", {n});
+  check_shape(v_opacities, op, "v_opacities_out", {n});
+  for (const auto* t : {&radii, &v_means2d, &v_conics, &v_depths, &v_opacities})
+    TORCH_CHECK(t->device() == means.device(), op, ": all tensors must be on ", means.device());
+  const c10::cuda::CUDAGuard guard(means.device());
+  auto v_means = at::zeros({n, 3}, means.options());
+  auto v_quats = at::zeros({n, 4}, means.options());
+  auto v_scales = at::zeros({n, 3}, means.options());
+  auto v_opac = at::zeros({n}, means.options());
+  auto v_cam = camera_grad ? at::zeros({n, 16}, means.options()) : at::Tensor();
+  const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous(),
+             o = opacities.contiguous(), V = viewmat.contiguous(), Kc = K.contiguous(),
+             r = radii.contiguous(), vm = v_means2d.to(means.scalar_type()).contiguous(),
+             vc = v_conics.to(means.scalar_type()).contiguous(),
+             vd = v_depths.to(means.scalar_type()).contiguous(),
+             vo = v_opacities.to(means.scalar_type()).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_gaussians_backward_cuda", [&] {
+    using T = scalar_t;
+    const auto a = make_launch<T>(m, q, s, o, V, Kc, width, height, eps2d, 0.0, 0.0, 0.0,
+                                  antialiased);
+    const cudaError_t err = project_gaussians_backward_cuda_launch<T>(
+        a, r.data_ptr<int32_t>(), vm.data_ptr<T>(), vc.data_ptr<T>(), vd.data_ptr<T>(),
+        vo.data_ptr<T>(), v_means.data_ptr<T>(), v_quats.data_ptr<T>(), v_scales.data_ptr<T>(),
+        v_opac.data_ptr<T>(), camera_grad ? v_cam.data_ptr<T>() : nullptr,
+        c10::cuda::getCurrentCUDAStream().stream());
+    TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
+  });
+  auto v_viewmat = at::zeros({4, 4}, means.options());
+  auto v_K = at::zeros({3, 3}, means.options());
+  if (camera_grad && n > 0) {
+    // Summed in double, as on the CPU: the per-Gaussian terms cancel strongly.
+    const auto sum = v_cam.sum(0, /*keepdim=*/false, at::kDouble).to(means.scalar_type());
+    v_viewmat.view(-1).narrow(0, 0, 12).copy_(sum.narrow(0, 0, 12));
+    v_K.view(-1)[0] = sum[12];
+    v_K.view(-1)[4] = sum[13];
+    v_K.view(-1)[2] = sum[14];
+    v_K.view(-1)[5] = sum[15];
+  }
+  return {v_means, v_quats, v_scales, v_opac, v_viewmat, v_K};
+}
+
+TORCH_LIBRARY_IMPL(tiger, CUDA, m) {
+  m.impl("project_gaussians", &project_gaussians_cuda);
+  m.impl("project_gaussians_backward", &project_gaussians_backward_cuda);
+}
+
+}  // namespace tiger

@@ -1,0 +1,72 @@
+// CUDA rasterization backward (back to front): launcher and instantiations.
+#include "raster_kernels.cuh"
+
+namespace tiger {
+namespace {
+using namespace raster_cuda;
+
+// Per channel a thread holds only v_color (the colour behind is one scalar): blocks of 64
+// channels in float32, so C <= 64 walks the list once (TIGER_BWD_CB=32 selects 32 for
+// tuning); 8 in float64 (tests only).
+template <int CB_MAX, typename T, typename TC>
+cudaError_t launch_backward_cb(const RasterLaunch<T>& a, const TC* colors,
+                               const BackwardIO<T>& io, cudaStream_t stream) {
+  const ChannelPlan plan = plan_channels(a.channels, CB_MAX);
+  const int threads = block_threads(a.tile_size);
+  const int blocks = a.tiles_x * a.tiles_y;
+  return dispatch_plan<CB_MAX>(plan, [&](auto m, auto t) -> cudaError_t {
+    constexpr int CBM = decltype(m)::value, CBT = decltype(t)::value;
+    constexpr int CBX = CBM > CBT ? CBM : CBT;
+    auto kernel = backward_kernel<T, TC, CBM, CBT>;
+    const size_t smem = size_t(threads) * (sizeof(SplatGeom<T>) + CBX * sizeof(T) +
+                                           sizeof(int32_t)) +
+                        CBX * sizeof(T) + 16;
+    cudaError_t err = set_smem_limit(kernel, smem);
+    if (err != cudaSuccess) return err;
+    kernel<<<blocks, threads, smem, stream>>>(a, colors, io, plan.n_main);
+    return cudaGetLastError();
+  });
+}
+
+template <typename T, typename TC>
+cudaError_t launch_backward(const RasterLaunch<T>& a, const TC* colors, const BackwardIO<T>& io,
+                            cudaStream_t stream) {
+  if constexpr (std::is_same<T, float>::value) {
+    if (channel_block_max("TIGER_BWD_CB", 64, 32) == 32)
+      return launch_backward_cb<32>(a, colors, io, stream);
+    return launch_backward_cb<64>(a, colors, io, stream);
+  } else {
+    return launch_backward_cb<8>(a, colors, io, stream);
+  }
+}
+}  // namespace
+
+template <typename T>
+cudaError_t rasterize_backward_cuda_launch(const RasterLaunch<T>& a, const void* colors,
+                                           ColorStorage storage, const T* background,
+                                           const T* trans, const int32_t* n_contrib,
+                                           const T* v_color, const T* v_alpha, const T* v_depth,
+                                           T* v_geom, T* v_colors, T* v_bg_tiles,
+                                           cudaStream_t stream) {
+  if (a.tiles_x * a.tiles_y == 0) return cudaSuccess;
+  const BackwardIO<T> io{background, trans,  n_contrib, v_color,   v_alpha,
+                         v_depth,    v_geom, v_colors,  v_bg_tiles};
+  if constexpr (std::is_same<T, float>::value) {
+    if (storage == ColorStorage::kHalf)
+      return launch_backward<T>(a, static_cast<const __half*>(colors), io, stream);
+    if (storage == ColorStorage::kBFloat16)
+      return launch_backward<T>(a, static_cast<const __nv_bfloat16*>(colors), io, stream);
+  }
+  if (storage != ColorStorage::kSame) return cudaErrorInvalidValue;
+  return launch_backward<T>(a, static_cast<const T*>(colors), io, stream);
+}
+
+#define TIGER_INSTANTIATE(T)                                                                   \
+  template cudaError_t rasterize_backward_cuda_launch<T>(                                      \
+      const RasterLaunch<T>&, const void*, ColorStorage, const T*, const T*, const int32_t*,   \
+      const T*, const T*, const T*, T*, T*, T*, cudaStream_t);
+TIGER_INSTANTIATE(float)
+TIGER_INSTANTIATE(double)
+#undef TIGER_INSTANTIATE
+
+}  // namespace tiger
