@@ -24,6 +24,7 @@ def add_parser(sub) -> None:
     p.add_argument("--long-side", type=int, default=None,
                    help="feature-map long side in pixels (default: each image's own size)")
     p.add_argument("--clip-long-side", type=int, default=448)
+    p.add_argument("--pca-dim", type=int, default=64, help="language dimension after the PCA")
     p.set_defaults(func=run)
 
 
@@ -49,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     if not files:
         raise SystemExit(f"tiger features: no images found in {data}")
     cfg = FeatureConfig(upsampler=args.upsampler, use_sam=not args.no_sam,
-                        output_long_side=args.long_side, clip_long_side=args.clip_long_side)
+                        output_long_side=args.long_side, clip_long_side=args.clip_long_side,
+                        pca_dim=args.pca_dim)
     summary = Summary("tiger features")
     fs = extract_features(files, args.out, names=names, config=cfg, models=args.models,
                           device=device_of(args.device))

@@ -1,0 +1,92 @@
+"""The pipeline commands end to end on a tiny rendered dataset with tiny random models:
+reconstruct -> features -> embed -> query/render/info. Checks files, shapes and exit codes
+(the models are random, so retrieval quality is not asserted here; tests/language covers it)."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import torch
+
+import tiger
+from tiger.demo import tabletop_scene
+from tiger.render.views import orbit_viewmats, pinhole_K
+from tiger.utils.images import save_png
+
+
+def _run(*args, timeout=900):
+    return subprocess.run([sys.executable, "-m", "tiger.cli.main", *args], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _dataset(root, n_views=6, w=64, h=48):
+    """Renders of the demo scene + transforms.json (OpenGL camera-to-world, as NeRF stores it)."""
+    scene = tabletop_scene(density=0.15)
+    (root / "images").mkdir(parents=True)
+    K = pinhole_K(w, h)
+    frames = []
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))  # OpenCV -> OpenGL camera axes
+    for i, V in enumerate(orbit_viewmats(n_views, center=(0.0, -0.1, 0.0), radius=3.0,
+                                         elevation_deg=25.0)):
+        with torch.no_grad():
+            img = tiger.rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
+                                            scene.rgb, V, K, w, h, background=torch.ones(3))["color"]
+        save_png(root / "images" / f"{i:03d}.png", img)
+        c2w = torch.linalg.inv(V.double()) @ flip.double()
+        frames.append({"file_path": f"images/{i:03d}.png", "transform_matrix": c2w.tolist()})
+    meta = {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": w / 2, "cy": h / 2, "w": w, "h": h,
+            "frames": frames}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+def _tiny_models(root):
+    from tiger.models.random_init import save_random_clip, save_random_sam
+
+    clip = save_random_clip(root / "clip")
+    sam = save_random_sam(root / "sam")
+    cfg = root / "models.json"
+    cfg.write_text(json.dumps({"clip": str(clip), "sam": str(sam)}))
+    return cfg
+
+
+def test_reconstruct_features_embed_query(tmp_path):
+    data = _dataset(tmp_path / "data")
+    out = tmp_path / "recon"
+    r = _run("reconstruct", str(data), "--out", str(out), "--steps", "60", "--init-points", "800",
+             "--test-every", "3", "--device", "cpu")
+    assert r.returncode == 0, r.stderr[-2000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["gaussians"] > 0 and math.isfinite(metrics["psnr"])
+    assert "test views: PSNR" in r.stdout
+    # --resume continues from the checkpoint instead of refusing the existing folder
+    r = _run("reconstruct", str(data), "--out", str(out), "--steps", "60", "--init-points", "800",
+             "--test-every", "3", "--resume")
+    assert r.returncode == 0, r.stderr[-2000:]
+
+    cfg = _tiny_models(tmp_path / "models")
+    feats = tmp_path / "features"
+    r = _run("features", str(data), "--out", str(feats), "--models", str(cfg), "--upsampler",
+             "bilinear", "--long-side", "32", "--clip-long-side", "64", "--pca-dim", "16")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (feats / "pca.pt").is_file() and len(list((feats / "features").glob("*.pt"))) == 6
+
+    lang = tmp_path / "scene_lang.ply"
+    r = _run("embed", str(out / "scene.ply"), str(data), "--features", str(feats), "--out",
+             str(lang), "--steps", "20")
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = _run("info", str(lang))
+    assert r.returncode == 0 and "with PCA basis" in r.stdout, r.stdout + r.stderr
+
+    q = tmp_path / "query"
+    r = _run("query", str(lang), "mug", "--models", str(cfg), "--data", str(data), "--views", "2",
+             "--out", str(q))
+    assert r.returncode == 0, r.stderr[-2000:]
+    sel = json.loads((q / "selection.json").read_text())
+    assert set(sel) == {"mug"} and len(list((q / "relevancy").glob("*.png"))) == 2
+    r = _run("render", str(lang), "--data", str(data), "--what", "color", "features", "--out",
+             str(tmp_path / "render"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert len(list((tmp_path / "render").glob("*_features.png"))) == 6
