@@ -233,7 +233,7 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
 
 template <typename T>
 void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const int32_t* count,
-                          const T* v_color, T* rows, T* v_bg_tile) {
+                          const T* v_color, T* rows, T* per_gaussian, T* v_bg_tile) {
   const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
   const int P = tg.pw * tg.ph;
   std::vector<T> Tr(P, T(1)), q(P), gcol(C);
@@ -267,7 +267,13 @@ void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const in
       for (int64_t c = 0; c < C; ++c) gcol[c] += w * vc[c];
       Tr[p] *= T(1) - alpha;
     }
-    if (touched) std::copy(gcol.begin(), gcol.end(), rows + k * C);
+    if (!touched) continue;
+    if (per_gaussian) {  // this thread's own [N, C] buffer
+      T* out = per_gaussian + int64_t(g) * C;
+      for (int64_t c = 0; c < C; ++c) out[c] += gcol[c];
+    } else {
+      std::copy(gcol.begin(), gcol.end(), rows + k * C);
+    }
   }
   for (int p = 0; p < P; ++p)
     for (int64_t c = 0; c < C; ++c) v_bg_tile[c] += Tr[p] * v_color[pix[p] * C + c];
@@ -421,9 +427,15 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
   check_shape(n_contrib, op, "n_contrib", {height, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
   const int64_t m = gaussian_ids.size(0), tiles = num_tiles(a);
-  auto rows = at::zeros({m, C}, means2d.options());
+  // Gradients go either straight into one [N, C] buffer per thread (summed at the end), or,
+  // when that would take more memory than one row per intersection, into per-intersection
+  // rows reduced per Gaussian afterwards. Both are deterministic for a given thread count.
+  const int64_t threads = at::get_num_threads();
+  const bool per_thread = threads * n <= m;
+  auto rows = per_thread ? at::Tensor() : at::zeros({m, C}, means2d.options());
+  auto partial = per_thread ? at::zeros({threads, n, C}, means2d.options()) : at::Tensor();
   auto v_bg_tiles = at::zeros({tiles, C}, means2d.options());
-  auto v_colors = at::zeros({n, C}, means2d.options());
+  auto v_colors = per_thread ? at::Tensor() : at::zeros({n, C}, means2d.options());
   const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
              t_c = tile_offsets.contiguous(), i_c = gaussian_ids.contiguous(),
              n_c = n_contrib.contiguous(), vc_c = v_color.contiguous();
@@ -431,12 +443,16 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     using T = scalar_t;
     const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a);
     at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
+      T* mine = per_thread ? partial.data_ptr<T>() + int64_t(at::get_thread_num()) * n * C : nullptr;
       for (int64_t t = b; t < e; ++t)
         backward_colors_tile<T>(s, t, C, n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(),
-                                rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);
+                                per_thread ? nullptr : rows.data_ptr<T>(), mine,
+                                v_bg_tiles.data_ptr<T>() + t * C);
     });
-    reduce_rows<T>(rows.data_ptr<T>(), m, C, i_c.data_ptr<int32_t>(), v_colors.data_ptr<T>());
+    if (!per_thread)
+      reduce_rows<T>(rows.data_ptr<T>(), m, C, i_c.data_ptr<int32_t>(), v_colors.data_ptr<T>());
   });
+  if (per_thread) v_colors = threads == 1 ? partial[0] : partial.sum(0);
   return {v_colors, v_bg_tiles.sum(0)};
 }
 
