@@ -3,6 +3,7 @@
 // The CPU kernel, the CUDA kernel and (through the same formulas written in
 // PyTorch) the float64 reference in tiger/render/reference.py all follow this file.
 #include <math.h>
+#include <stdint.h>
 
 #include "linalg.h"
 
@@ -175,6 +176,30 @@ TIGER_HD bool project_gaussian(const T* mean, const T* quat, const T* scale, T o
         out.v - out.ext_y < T(cam.height)))
     return false;
   return true;
+}
+
+// Extents are stored as int32 pixels; huge Gaussians saturate instead of overflowing.
+template <typename T>
+TIGER_HD int32_t extent_to_radius(T e) {
+  const T r = ceil(e);
+  return r > T(1 << 30) ? (1 << 30) : static_cast<int32_t>(r);
+}
+
+// Writes Gaussian i's projection into the op's outputs (means2d [N,2], conics [N,3],
+// depths [N], opacities [N], radii [N,2] with a floor of 1 so that 0 keeps meaning culled).
+template <typename T>
+TIGER_HD void store_projected(const Projected<T>& pr, int64_t i, T* means2d, T* conics, T* depths,
+                              T* opacities, int32_t* radii) {
+  means2d[2 * i] = pr.u;
+  means2d[2 * i + 1] = pr.v;
+  conics[3 * i] = pr.ca;
+  conics[3 * i + 1] = pr.cb;
+  conics[3 * i + 2] = pr.cc;
+  depths[i] = pr.depth;
+  opacities[i] = pr.opacity;
+  const int32_t rx = extent_to_radius(pr.ext_x), ry = extent_to_radius(pr.ext_y);
+  radii[2 * i] = rx > 1 ? rx : 1;
+  radii[2 * i + 1] = ry > 1 ? ry : 1;
 }
 
 // Gradients of one projected Gaussian. Inputs: the upstream gradients of the

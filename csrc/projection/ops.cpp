@@ -29,6 +29,21 @@ void check_projection_inputs(const char* op, const at::Tensor& means, const at::
               height);
 }
 
+std::tuple<at::Tensor, at::Tensor> camera_grads_from_rows(const at::Tensor& rows, bool camera_grad,
+                                                          const at::TensorOptions& options) {
+  auto v_viewmat = at::zeros({4, 4}, options);
+  auto v_K = at::zeros({3, 3}, options);
+  if (camera_grad && rows.defined() && rows.size(0) > 0) {
+    const auto s = rows.sum(0, /*keepdim=*/false, at::kDouble).to(options.dtype());
+    v_viewmat.view(-1).narrow(0, 0, 12).copy_(s.narrow(0, 0, 12));
+    v_K.view(-1)[0] = s[12];
+    v_K.view(-1)[4] = s[13];
+    v_K.view(-1)[2] = s[14];
+    v_K.view(-1)[5] = s[15];
+  }
+  return {v_viewmat, v_K};
+}
+
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
   m.def(
       "project_gaussians(Tensor means, Tensor quats, Tensor scales, Tensor opacities, "

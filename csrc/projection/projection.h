@@ -30,6 +30,12 @@ project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
                                const at::Tensor& v_depths, const at::Tensor& v_opacities,
                                bool camera_grad);
 
+// viewmat [4,4] and K [3,3] gradients from per-Gaussian rows [N,16] (R row-major with t in
+// column 3, then fx, fy, cx, cy), summed in double: the per-Gaussian terms cancel strongly.
+// Zeros when camera_grad is false.
+std::tuple<at::Tensor, at::Tensor> camera_grads_from_rows(const at::Tensor& rows, bool camera_grad,
+                                                          const at::TensorOptions& options);
+
 // Shared argument validation (CPU and CUDA glue).
 void check_projection_inputs(const char* op, const at::Tensor& means, const at::Tensor& quats,
                              const at::Tensor& scales, const at::Tensor& opacities,

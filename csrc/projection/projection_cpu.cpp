@@ -28,13 +28,6 @@ static Camera<T> read_camera(const at::Tensor& viewmat, const at::Tensor& K, int
   return cam;
 }
 
-// Extents are stored as int32 pixels; huge Gaussians saturate instead of overflowing.
-template <typename T>
-static int32_t extent_to_radius(T e) {
-  const T r = ceil(e);
-  return r > T(1 << 30) ? (1 << 30) : static_cast<int32_t>(r);
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_gaussians_cpu(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
     const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
@@ -68,15 +61,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_g
       for (int64_t i = b; i < e; ++i) {
         Projected<T> pr;
         if (!project_gaussian<T>(mp + 3 * i, qp + 4 * i, sp + 3 * i, op_[i], cam, opt, pr)) continue;
-        m2[2 * i] = pr.u;
-        m2[2 * i + 1] = pr.v;
-        cn[3 * i] = pr.ca;
-        cn[3 * i + 1] = pr.cb;
-        cn[3 * i + 2] = pr.cc;
-        dp[i] = pr.depth;
-        oo[i] = pr.opacity;
-        rp[2 * i] = std::max(extent_to_radius(pr.ext_x), 1);
-        rp[2 * i + 1] = std::max(extent_to_radius(pr.ext_y), 1);
+        store_projected(pr, i, m2, cn, dp, oo, rp);
       }
     });
   });
@@ -146,17 +131,7 @@ project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
       }
     });
   });
-  auto v_viewmat = at::zeros({4, 4}, means.options());
-  auto v_K = at::zeros({3, 3}, means.options());
-  if (camera_grad && n > 0) {
-    // Summed in double: the per-Gaussian terms cancel strongly.
-    const auto s = v_cam.sum(0, /*keepdim=*/false, at::kDouble).to(means.scalar_type());
-    v_viewmat.view(-1).narrow(0, 0, 12).copy_(s.narrow(0, 0, 12));
-    v_K.view(-1)[0] = s[12];
-    v_K.view(-1)[4] = s[13];
-    v_K.view(-1)[2] = s[14];
-    v_K.view(-1)[5] = s[15];
-  }
+  auto [v_viewmat, v_K] = camera_grads_from_rows(v_cam, camera_grad, means.options());
   return {v_means, v_quats, v_scales, v_opac, v_viewmat, v_K};
 }
 

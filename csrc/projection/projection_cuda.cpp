@@ -91,17 +91,7 @@ project_gaussians_backward_cuda(const at::Tensor& means, const at::Tensor& quats
         c10::cuda::getCurrentCUDAStream().stream());
     TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
   });
-  auto v_viewmat = at::zeros({4, 4}, means.options());
-  auto v_K = at::zeros({3, 3}, means.options());
-  if (camera_grad && n > 0) {
-    // Summed in double, as on the CPU: the per-Gaussian terms cancel strongly.
-    const auto sum = v_cam.sum(0, /*keepdim=*/false, at::kDouble).to(means.scalar_type());
-    v_viewmat.view(-1).narrow(0, 0, 12).copy_(sum.narrow(0, 0, 12));
-    v_K.view(-1)[0] = sum[12];
-    v_K.view(-1)[4] = sum[13];
-    v_K.view(-1)[2] = sum[14];
-    v_K.view(-1)[5] = sum[15];
-  }
+  auto [v_viewmat, v_K] = camera_grads_from_rows(v_cam, camera_grad, means.options());
   return {v_means, v_quats, v_scales, v_opac, v_viewmat, v_K};
 }
 

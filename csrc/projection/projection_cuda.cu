@@ -26,12 +26,6 @@ __device__ Camera<T> load_camera(const T* v, const T* k, int width, int height) 
 
 // Extents are stored as int32 pixels; huge Gaussians saturate instead of overflowing.
 template <typename T>
-__device__ int32_t extent_to_radius(T e) {
-  const T r = ceil(e);
-  return r > T(1 << 30) ? (1 << 30) : static_cast<int32_t>(r);
-}
-
-template <typename T>
 __global__ void project_kernel(ProjectLaunch<T> a, T* means2d, T* conics, T* depths, T* opac_out,
                                int32_t* radii) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -42,16 +36,7 @@ __global__ void project_kernel(ProjectLaunch<T> a, T* means2d, T* conics, T* dep
   if (!project_gaussian<T>(a.means + 3 * i, a.quats + 4 * i, a.scales + 3 * i, a.opacities[i], cam,
                            opt, pr))
     return;
-  means2d[2 * i] = pr.u;
-  means2d[2 * i + 1] = pr.v;
-  conics[3 * i] = pr.ca;
-  conics[3 * i + 1] = pr.cb;
-  conics[3 * i + 2] = pr.cc;
-  depths[i] = pr.depth;
-  opac_out[i] = pr.opacity;
-  const int32_t rx = extent_to_radius(pr.ext_x), ry = extent_to_radius(pr.ext_y);
-  radii[2 * i] = rx > 1 ? rx : 1;
-  radii[2 * i + 1] = ry > 1 ? ry : 1;
+  store_projected(pr, i, means2d, conics, depths, opac_out, radii);
 }
 
 template <typename T>
