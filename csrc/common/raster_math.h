@@ -13,10 +13,11 @@ struct RasterOptions {
   T t_min;            // a pixel stops once transmittance would fall below this
 };
 
-// Quadratic form q = d^T conic d with d = pixel centre - mean.
-template <typename T>
-TIGER_HD T conic_quadratic(T ca, T cb, T cc, T dx, T dy) {
-  return ca * dx * dx + T(2) * cb * dx * dy + cc * dy * dy;
+// Quadratic form q = d^T conic d with d = pixel centre - mean. The offsets may be a
+// vector type of S (the CPU rasterizer evaluates 8 pixels at once).
+template <typename T, typename S = T>
+TIGER_HD T conic_quadratic(S ca, S cb, S cc, T dx, T dy) {
+  return ca * dx * dx + S(2) * cb * dx * dy + cc * dy * dy;
 }
 
 // alpha = min(alpha_max, o * exp(-q / 2)); `clamped` tells whether alpha_max applied.

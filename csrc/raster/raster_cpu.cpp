@@ -9,11 +9,13 @@
 
 #include <algorithm>
 #include <cmath>
+#include <type_traits>
 #include <vector>
 
 #include "common/raster_math.h"
 #include "common/torch_checks.h"
 #include "raster.h"
+#include "simd_cpu.h"
 
 namespace tiger {
 
@@ -46,10 +48,11 @@ inline TileGeom tile_geom(int64_t tile, int tiles_x, int ts, int width, int heig
 // in tile-local pixel coordinates. Pixels outside are never evaluated.
 struct SubRect {
   int x0, x1, y0, y1, pw;
-  int count() const { return (x1 - x0) * (y1 - y0); }
-  int pixel(int i) const {  // i-th pixel of the rect -> tile-local linear index
-    const int w = x1 - x0;
-    return (y0 + i / w) * pw + x0 + i % w;
+  // f(p) for each pixel of the rectangle, p its tile-local linear index, row by row.
+  template <typename F>
+  void for_each(F&& f) const {
+    for (int y = y0; y < y1; ++y)
+      for (int p = y * pw + x0, e = y * pw + x1; p < e; ++p) f(p);
   }
 };
 
@@ -71,19 +74,51 @@ inline SubRect gaussian_subrect(T u, T v, T ca, T cb, T cc, T qcut, const TileGe
   return r;
 }
 
-// Quadratic form of Gaussian g at the pixel centres of its sub-rectangle
-// (branch-free rows, so the compiler vectorises them); returns that rectangle.
+// alpha = min(alpha_max, o exp(-q/2)) of Gaussian g at the pixel centres of the rows of its
+// sub-rectangle, and 0 where the pair does not count (outside the rectangle, q above the
+// cutoff, or alpha below the threshold). Every CPU pass reads its alphas from here, so
+// forward and backward agree bit for bit on which pairs count. Returns the rectangle.
 template <typename T>
-inline SubRect tile_quadratic(const Scene2D<T>& s, int32_t g, T qcut, const TileGeom& tg, T* q) {
-  const T u = s.means2d[2 * g], v = s.means2d[2 * g + 1];
+inline SubRect tile_alpha(const Scene2D<T>& s, int32_t g, T qcut, const TileGeom& tg, T* alpha) {
+  const T u = s.means2d[2 * g], v = s.means2d[2 * g + 1], o = s.opac[g];
   const T ca = s.conics[3 * g], cb = s.conics[3 * g + 1], cc = s.conics[3 * g + 2];
+  const T amax = s.opt.alpha_max, thr = s.opt.alpha_threshold;
   const SubRect r = gaussian_subrect(u, v, ca, cb, cc, qcut, tg);
   for (int y = r.y0; y < r.y1; ++y) {
     const T dy = T(tg.py0 + y) + T(0.5) - v;
-    T* qr = q + y * tg.pw;
-    for (int x = r.x0; x < r.x1; ++x) {
-      const T dx = T(tg.px0 + x) + T(0.5) - u;
-      qr[x] = conic_quadratic(ca, cb, cc, dx, dy);
+    T* row = alpha + y * tg.pw;
+    if constexpr (std::is_same_v<T, float>) {
+      // Eight pixels at a time with the polynomial exp; a short last block goes through a
+      // padded buffer so it is computed by the very same instructions.
+      using V = simd::Vec<float>;
+      constexpr int L = simd::kLanes<float>;
+      V lane;
+      for (int l = 0; l < L; ++l) lane[l] = float(l);
+      for (int x0 = r.x0 / L * L; x0 < r.x1; x0 += L) {  // only blocks the rectangle meets
+        const V x = lane + float(x0);
+        const V dx = (x + float(tg.px0) + 0.5f) - u;
+        const V q = conic_quadratic(ca, cb, cc, dx, simd::broadcast(dy));
+        V a = o * simd::exp(-0.5f * q);
+        a = a > amax ? simd::broadcast(amax) : a;
+        const auto keep = (x >= float(r.x0)) & (x < float(r.x1)) & (q <= qcut) & (a >= thr);
+        a = keep ? a : V{};
+        if (tg.pw - x0 >= L) {
+          simd::store(row + x0, a);
+        } else {
+          float tail[L];
+          simd::store(tail, a);
+          std::copy(tail, tail + (tg.pw - x0), row + x0);
+        }
+      }
+    } else {
+      for (int x = 0; x < tg.pw; ++x) {
+        const T dx = T(tg.px0 + x) + T(0.5) - u;
+        const T q = conic_quadratic(ca, cb, cc, dx, dy);
+        T gauss;
+        bool clamped;
+        const T a = splat_alpha(o, q, amax, gauss, clamped);
+        row[x] = (x >= r.x0 && x < r.x1 && q <= qcut && a >= thr) ? a : T(0);
+      }
     }
   }
   return r;
@@ -94,37 +129,33 @@ void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors,
                   T* out_color, T* out_alpha, T* out_depth, int32_t* out_count, T* out_trans) {
   const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
   const int P = tg.pw * tg.ph;
-  std::vector<T> Tr(P, T(1)), acc(size_t(P) * C, T(0)), accd(P, T(0)), q(P);
+  std::vector<T> Tr(P, T(1)), acc(size_t(P) * C, T(0)), accd(P, T(0)), alpha(P);
   std::vector<int32_t> cnt(P, 0);
   std::vector<char> done(P, 0);
   int n_done = 0;
   const int64_t start = s.tile_offsets[tile], end = s.tile_offsets[tile + 1];
   for (int64_t k = start; k < end && n_done < P; ++k) {
     const int32_t g = s.ids[k];
-    const T o = s.opac[g], z = s.depths[g];
-    const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
+    const T z = s.depths[g];
+    const T qcut = cutoff_quadratic(s.opac[g], s.opt.alpha_threshold);
     const T* col = colors + int64_t(g) * C;
-    const SubRect rect = tile_quadratic(s, g, qcut, tg, q.data());
-    for (int i = 0, ni = rect.count(); i < ni; ++i) {
-      const int p = rect.pixel(i);
-      if (done[p] || q[p] > qcut) continue;
-      T gauss;
-      bool clamped;
-      const T alpha = splat_alpha(o, q[p], s.opt.alpha_max, gauss, clamped);
-      if (alpha < s.opt.alpha_threshold) continue;
-      const T next_T = Tr[p] * (T(1) - alpha);
+    const SubRect rect = tile_alpha(s, g, qcut, tg, alpha.data());
+    rect.for_each([&](const int p) {
+      const T a = alpha[p];
+      if (done[p] || a == T(0)) return;
+      const T next_T = Tr[p] * (T(1) - a);
       if (next_T < s.opt.t_min) {
         done[p] = 1;
         ++n_done;
-        continue;
+        return;
       }
-      const T w = alpha * Tr[p];
-      T* a = acc.data() + int64_t(p) * C;
-      for (int64_t c = 0; c < C; ++c) a[c] += w * col[c];
+      const T w = a * Tr[p];
+      T* ap = acc.data() + int64_t(p) * C;
+      for (int64_t c = 0; c < C; ++c) ap[c] += w * col[c];
       accd[p] += w * z;
       Tr[p] = next_T;
       cnt[p] = int32_t(k - start + 1);
-    }
+    });
   }
   for (int p = 0; p < P; ++p) {
     const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
@@ -149,7 +180,7 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
   const int P = tg.pw * tg.ph;
   const int64_t S = C + kGeomGrads;
   std::vector<T> Tr(P), Tfin(P), R(size_t(P) * C), Rd(P, T(0)), vC(size_t(P) * C), vA(P), vD(P),
-      q(P);
+      alphas(P);
   std::vector<int32_t> cnt(P);
   int32_t max_cnt = 0;
   for (int p = 0; p < P; ++p) {
@@ -180,14 +211,11 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
     double gu = 0, gv = 0, gca = 0, gcb = 0, gcc = 0, go = 0, gz = 0;
     bool touched = false;
     const int32_t rank = int32_t(k - start);
-    const SubRect rect = tile_quadratic(s, g, qcut, tg, q.data());
-    for (int i = 0, ni = rect.count(); i < ni; ++i) {
-      const int p = rect.pixel(i);
-      if (rank >= cnt[p] || q[p] > qcut) continue;
-      T gauss;
-      bool clamped;
-      const T alpha = splat_alpha(o, q[p], s.opt.alpha_max, gauss, clamped);
-      if (alpha < s.opt.alpha_threshold) continue;
+    const SubRect rect = tile_alpha(s, g, qcut, tg, alphas.data());
+    rect.for_each([&](const int p) {
+      const T alpha = alphas[p];
+      if (rank >= cnt[p] || alpha == T(0)) return;
+      const bool clamped = alpha >= s.opt.alpha_max;
       touched = true;
       const T ra = T(1) / (T(1) - alpha);
       const T Ti = Tr[p] * ra;  // transmittance in front of this Gaussian
@@ -207,8 +235,8 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
       gz += w * vD[p];
       Tr[p] = Ti;
       if (!clamped) {
-        go += v_a * gauss;
-        const T vq = T(-0.5) * v_a * o * gauss;  // d alpha / d q = -o G / 2
+        go += v_a * alpha / o;                // d alpha / d o = G = alpha / o
+        const T vq = T(-0.5) * v_a * alpha;  // d alpha / d q = -o G / 2
         const T dx = T(tg.px0 + p % tg.pw) + T(0.5) - u;
         const T dy = T(tg.py0 + p / tg.pw) + T(0.5) - v;
         gca += vq * dx * dx;
@@ -217,7 +245,7 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
         gu -= vq * T(2) * (ca * dx + cb * dy);
         gv -= vq * T(2) * (cb * dx + cc * dy);
       }
-    }
+    });
     if (!touched) continue;
     T* row = rows + k * S;
     for (int64_t c = 0; c < C; ++c) row[c] = gcol[c];
@@ -231,52 +259,46 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
   }
 }
 
+// Features-only backward of one tile: d loss / d colors[g] = sum_p w_pg v_color[p] with the
+// forward's weights w = alpha T recomputed front to back; no geometry term at all.
 template <typename T>
 void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const int32_t* count,
                           const T* v_color, T* rows, T* per_gaussian, T* v_bg_tile) {
   const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
   const int P = tg.pw * tg.ph;
-  std::vector<T> Tr(P, T(1)), q(P), gcol(C);
+  std::vector<T> Tr(P, T(1)), alpha(P), wl(P);
   std::vector<int32_t> cnt(P);
-  std::vector<int64_t> pix(P);
+  std::vector<const T*> vrow(P), src(P);
   int32_t max_cnt = 0;
   for (int p = 0; p < P; ++p) {
-    pix[p] = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
-    cnt[p] = count[pix[p]];
+    const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    vrow[p] = v_color + pix * C;
+    cnt[p] = count[pix];
     max_cnt = std::max(max_cnt, cnt[p]);
   }
   const int64_t start = s.tile_offsets[tile];
   for (int64_t k = start; k < start + max_cnt; ++k) {
     const int32_t g = s.ids[k];
-    const T o = s.opac[g];
-    const T qcut = cutoff_quadratic(o, s.opt.alpha_threshold);
+    const T qcut = cutoff_quadratic(s.opac[g], s.opt.alpha_threshold);
     const int32_t rank = int32_t(k - start);
-    std::fill(gcol.begin(), gcol.end(), T(0));
-    bool touched = false;
-    const SubRect rect = tile_quadratic(s, g, qcut, tg, q.data());
-    for (int i = 0, ni = rect.count(); i < ni; ++i) {
-      const int p = rect.pixel(i);
-      if (rank >= cnt[p] || q[p] > qcut) continue;
-      T gauss;
-      bool clamped;
-      const T alpha = splat_alpha(o, q[p], s.opt.alpha_max, gauss, clamped);
-      if (alpha < s.opt.alpha_threshold) continue;
-      touched = true;
-      const T w = alpha * Tr[p];
-      const T* vc = v_color + pix[p] * C;
-      for (int64_t c = 0; c < C; ++c) gcol[c] += w * vc[c];
-      Tr[p] *= T(1) - alpha;
-    }
-    if (!touched) continue;
-    if (per_gaussian) {  // this thread's own [N, C] buffer
-      T* out = per_gaussian + int64_t(g) * C;
-      for (int64_t c = 0; c < C; ++c) out[c] += gcol[c];
-    } else {
-      std::copy(gcol.begin(), gcol.end(), rows + k * C);
-    }
+    const SubRect rect = tile_alpha(s, g, qcut, tg, alpha.data());
+    // Gather the (pixel, weight) pairs first, so the channel sums below run over a dense list
+    // with their accumulators in registers.
+    int n = 0;
+    rect.for_each([&](const int p) {  // branch-free: the test is unpredictable
+      const T a = rank < cnt[p] ? alpha[p] : T(0);
+      src[n] = vrow[p];
+      wl[n] = a * Tr[p];
+      Tr[p] *= T(1) - a;
+      n += a != T(0);
+    });
+    if (n == 0) continue;
+    T* out = per_gaussian ? per_gaussian + int64_t(g) * C  // this thread's own [N, C] buffer
+                          : rows + k * C;
+    simd::weighted_sum(src.data(), wl.data(), n, C, out);
   }
-  for (int p = 0; p < P; ++p)
-    for (int64_t c = 0; c < C; ++c) v_bg_tile[c] += Tr[p] * v_color[pix[p] * C + c];
+  // d loss / d background = sum_p T_final[p] v_color[p]: the same weighted sum.
+  simd::weighted_sum(vrow.data(), Tr.data(), P, C, v_bg_tile);
 }
 
 // out[ids[k], :] += rows[k, :] for every intersection k; parallel over column
