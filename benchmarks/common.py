@@ -90,15 +90,17 @@ def cuda_time_ms(fn: Callable[[], Optional[object]], iters: int = 20, warmup: in
     return times[len(times) // 2]
 
 
-def cpu_time_ms(fn: Callable[[], object], iters: int = 3, warmup: int = 1) -> float:
-    """Median wall time of ``fn`` in ms (CPU)."""
-    for _ in range(warmup):
-        fn()
+def cpu_time_ms(fn: Callable[..., object], iters: int = 3, warmup: int = 1,
+                setup: Optional[Callable[[], object]] = None) -> float:
+    """Median wall time of ``fn`` in ms (CPU). ``setup`` (untimed) runs before each call and
+    its result is passed to ``fn``."""
     times = []
-    for _ in range(iters):
+    for i in range(warmup + iters):
+        arg = setup() if setup is not None else None
         t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
+        fn(arg) if setup is not None else fn()
+        if i >= warmup:
+            times.append((time.perf_counter() - t0) * 1e3)
     times.sort()
     return times[len(times) // 2]
 
@@ -154,12 +156,13 @@ def standard_view(n: int, width: int, height: int, seed: int = 0,
                          c[:, 3:].contiguous(), V, K, width, height).to(dtype=dtype)
 
 
-def median_time(fn: Callable[[], object], repeats: int = 5, warmup: int = 1,
-                cuda: bool = False) -> float:
-    """Median time of fn() in seconds (CUDA events when cuda=True, else wall clock)."""
+def median_time(fn: Callable[..., object], repeats: int = 5, warmup: int = 1,
+                cuda: bool = False, setup: Optional[Callable[[], object]] = None) -> float:
+    """Median time of fn() in seconds (CUDA events when cuda=True, else wall clock); with
+    ``setup``, fn(setup()) is timed and setup() is not."""
     if cuda:
-        return cuda_time_ms(fn, iters=repeats, warmup=warmup) / 1e3
-    return cpu_time_ms(fn, iters=repeats, warmup=warmup) / 1e3
+        return cuda_time_ms(fn, iters=repeats, warmup=warmup, setup=setup) / 1e3
+    return cpu_time_ms(fn, iters=repeats, warmup=warmup, setup=setup) / 1e3
 
 
 def print_table(rows: list[dict], title: str = "") -> str:

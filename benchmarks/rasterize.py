@@ -1,7 +1,9 @@
 """Rasterizer benchmark: run time against error on the standard scene.
 
-Prints (1) a table over N, resolution and channel count C with forward, forward+backward
-and features-only backward times (median), Gaussian-pixel evaluations per second, and the
+Prints (1) a table over N, resolution and channel count C with forward, forward+backward,
+backward alone (every input requiring grad) and features-only backward alone (only the
+channels requiring grad) times (medians; the backward receives a fixed upstream gradient
+for the colour image, so no loss is timed), tile-Gaussian pairs per second, and the
 relative error of the float32 kernels against float64 (the dense reference where
 pixels x N fits, else the float64 kernels, which match the reference to ~1e-14); and
 (2) a sweep of the accuracy knobs (t_min, alpha threshold, eps2d, half-precision
@@ -42,26 +44,33 @@ def render(sc, channels, *, grad_geometry=False, grad_colors=False, dtype=None, 
 
 
 def time_case(sc, channels, repeats, cuda):
+    """(forward, forward+backward, full backward, features-only backward) in seconds.
+
+    The backward gets a fixed upstream gradient for ``color`` (``color.backward(w)``), so
+    no loss computation is timed. The two backward columns time ``backward`` alone, after
+    an untimed forward: full = every input requires grad, features-only = only the
+    per-Gaussian channels do."""
     def fwd():
         with torch.no_grad():
             return render(sc, channels)[0]
     w = torch.randn(sc.height, sc.width, channels, device=sc.means.device,
                     generator=torch.Generator(device=sc.means.device).manual_seed(1))
 
-    def fwd_bwd():
-        out, _, _ = render(sc, channels, grad_geometry=True, grad_colors=True)
-        (out["color"] * w).sum().backward()
+    def forward_full():
+        return render(sc, channels, grad_geometry=True, grad_colors=True)[0]["color"]
 
-    def fwd_bwd_features():
-        out, _, _ = render(sc, channels, grad_colors=True)
-        (out["color"] * w).sum().backward()
+    def forward_features():
+        return render(sc, channels, grad_colors=True)[0]["color"]
+
+    def backward(color):
+        color.backward(w)
 
     t_f = median_time(fwd, repeats, cuda=cuda)
-    t_fb = median_time(fwd_bwd, repeats, cuda=cuda)
-    t_ff = median_time(fwd_bwd_features, repeats, cuda=cuda)
-    out = fwd()
-    evals = float(out["n_isects"])  # tile-Gaussian pairs
-    return t_f, t_fb, t_ff, evals
+    t_fb = median_time(lambda: backward(forward_full()), repeats, cuda=cuda)
+    t_b = median_time(backward, repeats, cuda=cuda, setup=forward_full)
+    t_bf = median_time(backward, repeats, cuda=cuda, setup=forward_features)
+    evals = float(fwd()["n_isects"])  # tile-Gaussian pairs
+    return t_f, t_fb, t_b, t_bf, evals
 
 
 def error_case(sc, channels):
@@ -94,12 +103,10 @@ def main_table(args, device):
         for res in args.res:
             sc = standard_view(int(n), res, res).to(device=device)
             for c in args.channels:
-                t_f, t_fb, t_ff, evals = time_case(sc, c, args.repeats, cuda)
-                bwd = t_fb - t_f
-                feat_bwd = t_ff - t_f
+                t_f, t_fb, bwd, feat_bwd, evals = time_case(sc, c, args.repeats, cuda)
                 errs, ref = error_case(sc, c) if not args.no_error else ([float("nan")] * 3, "-")
                 rows.append({"N": int(n), "res": f"{res}x{res}", "C": c,
-                             "fwd_ms": 1e3 * t_f, "fwd+bwd_ms": 1e3 * t_fb,
+                             "fwd_ms": 1e3 * t_f, "fwd+bwd_ms": 1e3 * t_fb, "bwd_ms": 1e3 * bwd,
                              "feat_bwd_ms": 1e3 * feat_bwd, "full/feat_bwd": bwd / max(feat_bwd, 1e-9),
                              "isects": int(evals), "isect_px/s": evals * 256 / t_f,
                              "err_fwd": errs[0], "err_gcol": errs[1], "err_gmean": errs[2],
