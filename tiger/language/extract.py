@@ -235,8 +235,10 @@ def extract_features(
     """Language feature maps for ``images`` (paths or [3, H, W] tensors in [0, 1]) under ``out_dir``.
 
     Models not passed are loaded through :mod:`tiger.models` (``models``: a config mapping or
-    JSON file; else ``$TIGER_MODELS``). Returns a :class:`FeatureSet`; ``out_dir/pca.pt`` holds
-    the basis for projecting text (``FeatureSet.pca.project(clip.encode_text(...))``).
+    JSON file; else ``$TIGER_MODELS``). Models are loaded onto ``device`` (default: the passed
+    ``clip``'s device, else this rank's GPU when there is one, else the CPU) and every image is
+    processed there. Returns a :class:`FeatureSet`; ``out_dir/pca.pt`` holds the basis for
+    projecting text (``FeatureSet.pca.project(clip.encode_text(...))``).
     """
     from tqdm.auto import tqdm
 
@@ -245,7 +247,9 @@ def extract_features(
     out = Path(out_dir)
     all_names = _names(images, names)
     rank, world, use_dist = _dist_setup(rank, world_size)
-    dev = torch.device(device) if device is not None else _default_device()
+    # Passed-in models decide the device unless one is named: images follow the models.
+    dev = (torch.device(device) if device is not None
+           else clip.device if clip is not None else _default_device())
     fp = cfg.fingerprint(stage1=True)
     full_fp = cfg.fingerprint()
     mine = list(range(rank, len(images), world))
