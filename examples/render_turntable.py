@@ -7,8 +7,8 @@ the median Gaussian position (or ``--center``), its radius ``--radius`` or, by d
 axis. ``--up`` is the world's up direction: -y for COLMAP/OpenCV captures (the default),
 +z for many NeRF/Blender scenes.
 
-The video is an MP4 when imageio with its ffmpeg plugin is installed, otherwise an animated GIF
-written with Pillow (``--video gif|mp4|none`` forces one).
+The video is an MP4 (OpenCV's encoder, else imageio-ffmpeg) when one is available, otherwise an
+animated GIF written with Pillow (``--video gif|mp4|none`` forces one).
 
 Example::
 
@@ -24,9 +24,6 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import torch
-
-log = logging.getLogger("render_turntable")
-
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -61,43 +58,6 @@ def orbit_geometry(means: torch.Tensor, distance: float) -> tuple[torch.Tensor, 
     return m.median(dim=0).values, max(half_diag, 1e-6) * distance
 
 
-def write_video(frames: Sequence[torch.Tensor], out: Path, fps: int, kind: str = "auto") -> Optional[Path]:
-    """Frames [H, W, 3] in [0, 1] → ``out/turntable.mp4`` (imageio + ffmpeg) or ``.gif`` (Pillow).
-
-    ``kind="auto"`` tries MP4 and falls back to GIF; returns the path written (None for "none").
-    """
-    from tiger.utils.images import to_uint8
-    from tiger.utils.io import atomic_write
-
-    if kind == "none":
-        return None
-    arrays = [to_uint8(f) for f in frames]
-    if kind in ("auto", "mp4"):
-        try:
-            import imageio.v2 as imageio  # needs the imageio-ffmpeg plugin for MP4
-
-            path = out / "turntable.mp4"
-            tmp = out / ".turntable.tmp.mp4"
-            with imageio.get_writer(str(tmp), fps=fps, codec="libx264", macro_block_size=1) as w:
-                for a in arrays:
-                    w.append_data(a)
-            tmp.replace(path)
-            return path
-        except Exception as exc:  # noqa: BLE001 - no imageio/ffmpeg: GIF below, or a clear error
-            if kind == "mp4":
-                raise SystemExit(f"render_turntable: cannot write MP4 ({exc}); install imageio and "
-                                 "imageio-ffmpeg, or pass --video gif") from exc
-            log.info("MP4 unavailable (%s): writing an animated GIF instead", exc)
-    from PIL import Image
-
-    path = out / "turntable.gif"
-    imgs = [Image.fromarray(a) for a in arrays]
-    with atomic_write(path, "wb") as fh:
-        imgs[0].save(fh, format="GIF", save_all=True, append_images=imgs[1:],
-                     duration=max(1, round(1000 / fps)), loop=0)
-    return path
-
-
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     from tqdm.auto import tqdm
@@ -105,6 +65,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from tiger.render.views import orbit_viewmats, pinhole_K
     from tiger.scene import Camera, GaussianScene
     from tiger.utils.images import save_png
+    from tiger.utils.video import write_video
 
     if args.views < 1:
         raise SystemExit(f"render_turntable: --views must be >= 1, got {args.views}")
@@ -133,7 +94,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         img = r["color"].clamp(0, 1).cpu()
         save_png(out / f"frame_{i:04d}.png", img)
         frames.append(img)
-    video = write_video(frames, out, args.fps, args.video)
+    try:
+        video = write_video(frames, out / "turntable", args.fps, args.video)
+    except RuntimeError as exc:  # --video mp4 without an encoder
+        raise SystemExit(f"render_turntable: {exc} (--video gif)") from exc
     print(f"{scene!r}: {args.views} views at radius {radius:.3f} around "
           f"({', '.join(f'{float(c):.3f}' for c in center)}) -> {out}/frame_*.png"
           + (f", {video}" if video else ""))

@@ -15,7 +15,8 @@ def add_parser(sub) -> None:
         "render", help="render views of a scene to pictures (and a video)",
         description="Render a scene from a dataset's cameras or an orbit: colour, depth, alpha, a "
                     "PCA picture of the language features, and relevancy heat maps of --query. "
-                    "--video writes the colour frames as an MP4 (imageio-ffmpeg) or an animated GIF.",
+                    "--video writes the colour frames as an MP4 (OpenCV or imageio-ffmpeg), else an "
+                    "animated GIF.",
         epilog="example: tiger render outputs/fox/scene_lang.ply --orbit 36 --what color depth "
                "features --video --out outputs/fox/turntable",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -29,28 +30,6 @@ def add_parser(sub) -> None:
     p.add_argument("--text-embeddings", default=None)
     p.add_argument("--video", action="store_true", help="also write the colour frames as a video")
     p.set_defaults(func=run)
-
-
-def write_video(frames: list, path_stem) -> str:
-    """MP4 through imageio-ffmpeg when installed, else an animated GIF (Pillow)."""
-    import numpy as np
-
-    from tiger.utils.images import to_uint8
-
-    arrs = [to_uint8(f) for f in frames]
-    try:
-        import imageio.v2 as imageio
-
-        path = str(path_stem) + ".mp4"
-        imageio.mimwrite(path, arrs, fps=12)
-        return path
-    except Exception:  # no imageio / no ffmpeg backend: fall back to GIF
-        from PIL import Image
-
-        path = str(path_stem) + ".gif"
-        ims = [Image.fromarray(np.asarray(a)) for a in arrs]
-        ims[0].save(path, save_all=True, append_images=ims[1:], duration=80, loop=0)
-        return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
         write_relevancy_pictures(scene, cams, args.query, out, encoder=enc, score="relevancy")
     summary.add(f"{len(cams)} views x {', '.join(args.what)} -> {out}")
     if args.video and frames:
+        from tiger.utils.video import write_video
+
         summary.add(f"video: {write_video(frames, out / 'turntable')}")
     summary.print()
     return 0
