@@ -88,8 +88,8 @@ inline SubRect tile_alpha(const Scene2D<T>& s, int32_t g, T qcut, const TileGeom
     const T dy = T(tg.py0 + y) + T(0.5) - v;
     T* row = alpha + y * tg.pw;
     if constexpr (std::is_same_v<T, float>) {
-      // Eight pixels at a time with the polynomial exp; a short last block goes through a
-      // padded buffer so it is computed by the very same instructions.
+      // A vector of pixels at a time (8 with AVX, 4 without) with the polynomial exp; a short
+      // last block goes through a padded buffer so the very same instructions compute it.
       using V = simd::Vec<float>;
       constexpr int L = simd::kLanes<float>;
       V lane;

@@ -1,5 +1,5 @@
 #pragma once
-// Explicit 32-byte vectors for the CPU rasterizer's two hot loops: the per-pixel alpha of a
+// Explicit vectors for the CPU rasterizer's two hot loops: the per-pixel alpha of a
 // Gaussian over a tile row (an exp per pixel) and the features-only channel accumulation.
 // GCC/Clang vector extensions, not intrinsics: AVX2 registers with -march=x86-64-v3 and
 // register pairs without. GCC 12 leaves the equivalent scalar loops unvectorised (glibc's
@@ -11,10 +11,18 @@
 namespace tiger {
 namespace simd {
 
+// The register width of the build: 32 bytes with AVX, else 16 (SSE; TIGER_PORTABLE=1), where
+// 32-byte vectors would be split and passed through memory.
+#if defined(__AVX__)
+constexpr int kVecBytes = 32;
+#else
+constexpr int kVecBytes = 16;
+#endif
+
 // (The attribute must sit on a non-dependent typedef: on a template alias GCC drops it.)
-typedef float VecF __attribute__((vector_size(32)));
-typedef double VecD __attribute__((vector_size(32)));
-typedef int32_t VecI __attribute__((vector_size(32)));
+typedef float VecF __attribute__((vector_size(kVecBytes)));
+typedef double VecD __attribute__((vector_size(kVecBytes)));
+typedef int32_t VecI __attribute__((vector_size(kVecBytes)));
 
 template <typename T>
 struct VecOf;
@@ -49,7 +57,7 @@ inline Vec<T> broadcast(T x) {
   return Vec<T>{} + x;
 }
 
-// exp(x) for 8 floats: Cody-Waite reduction x = n ln2 + r with |r| <= ln2/2, a degree-6
+// exp(x) for a vector of floats: Cody-Waite reduction x = n ln2 + r with |r| <= ln2/2, a degree-6
 // minimax polynomial for e^r (about 1 ulp), and 2^n written into the exponent bits.
 // x is clamped to [-87, 88] so 2^n stays a normal float.
 inline VecF exp(VecF x) {
