@@ -92,8 +92,7 @@ inline SubRect tile_alpha(const Scene2D<T>& s, int32_t g, T qcut, const TileGeom
       // last block goes through a padded buffer so the very same instructions compute it.
       using V = simd::Vec<float>;
       constexpr int L = simd::kLanes<float>;
-      V lane;
-      for (int l = 0; l < L; ++l) lane[l] = float(l);
+      const V lane = simd::iota<float>();
       for (int x0 = r.x0 / L * L; x0 < r.x1; x0 += L) {  // only blocks the rectangle meets
         const V x = lane + float(x0);
         const V dx = (x + float(tg.px0) + 0.5f) - u;

@@ -57,6 +57,14 @@ inline Vec<T> broadcast(T x) {
   return Vec<T>{} + x;
 }
 
+// {0, 1, ..., lanes - 1}
+template <typename T>
+inline Vec<T> iota() {
+  Vec<T> v;
+  for (int l = 0; l < kLanes<T>; ++l) v[l] = T(l);
+  return v;
+}
+
 // exp(x) for a vector of floats: Cody-Waite reduction x = n ln2 + r with |r| <= ln2/2, a degree-6
 // minimax polynomial for e^r (about 1 ulp), and 2^n written into the exponent bits.
 // x is clamped to [-87, 88] so 2^n stays a normal float.

@@ -47,6 +47,15 @@ void relevancy_cpu_kernel(const scalar_t* feat, const acc_t* texts, int64_t n, i
   at::parallel_for(0, blocks, 64, [&](int64_t b0, int64_t b1) {
     std::vector<acc_t> buf(d * kBlock), row(d);
     acc_t inv[kBlock], dot[kBlock], max_neg[kBlock];
+    // dot[r] = <row r of the block, v>, the block stored dimension-major so r vectorises.
+    auto block_dot = [&](const acc_t* v) {
+      for (int64_t r = 0; r < kBlock; ++r) dot[r] = 0;
+      for (int64_t k = 0; k < d; ++k) {
+        const acc_t* x = buf.data() + k * kBlock;
+        const acc_t c = v[k];
+        for (int64_t r = 0; r < kBlock; ++r) dot[r] += x[r] * c;
+      }
+    };
     for (int64_t b = b0; b < b1; ++b) {
       const int64_t r0 = b * kBlock;
       const int64_t nr = std::min(kBlock, n - r0);
@@ -69,23 +78,11 @@ void relevancy_cpu_kernel(const scalar_t* feat, const acc_t* texts, int64_t n, i
       }
       // Negatives first (their maximum is needed by every query), then the queries.
       for (int64_t t = q; t < q + m; ++t) {
-        const acc_t* tv = texts + t * d;
-        for (int64_t r = 0; r < kBlock; ++r) dot[r] = 0;
-        for (int64_t k = 0; k < d; ++k) {
-          const acc_t* x = buf.data() + k * kBlock;
-          const acc_t c = tv[k];
-          for (int64_t r = 0; r < kBlock; ++r) dot[r] += x[r] * c;
-        }
+        block_dot(texts + t * d);
         for (int64_t r = 0; r < kBlock; ++r) max_neg[r] = std::max(max_neg[r], dot[r] * inv[r]);
       }
       for (int64_t t = 0; t < q; ++t) {
-        const acc_t* tv = texts + t * d;
-        for (int64_t r = 0; r < kBlock; ++r) dot[r] = 0;
-        for (int64_t k = 0; k < d; ++k) {
-          const acc_t* x = buf.data() + k * kBlock;
-          const acc_t c = tv[k];
-          for (int64_t r = 0; r < kBlock; ++r) dot[r] += x[r] * c;
-        }
+        block_dot(texts + t * d);
         for (int64_t r = 0; r < nr; ++r) {
           const acc_t cs = dot[r] * inv[r];
           cos_out[(r0 + r) * q + t] = cs;

@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 import types
 from dataclasses import dataclass
-from typing import Any, Optional, Sequence, Union
+from typing import Any, NamedTuple, Optional, Sequence, Union
 
 import torch
 
@@ -16,6 +16,28 @@ log = logging.getLogger(__name__)
 Tau = Union[None, str, float]
 
 
+class _Histogram(NamedTuple):
+    hist: Optional[torch.Tensor]  # [bins] counts; None when fewer than two distinct values
+    centres: Optional[torch.Tensor]  # [bins] bin centres
+    lo: float
+    hi: float
+    width: float
+
+
+def _histogram(scores: torch.Tensor, bins: int) -> _Histogram:
+    """The finite ``scores`` (any shape) in ``bins`` equal float64 bins over [min, max]."""
+    s = scores.detach().reshape(-1).to(torch.float64)
+    s = s[torch.isfinite(s)]
+    if s.numel() == 0:
+        raise ValueError("tiger.retrieval: no finite scores to threshold")
+    lo, hi = float(s.min()), float(s.max())
+    if not hi > lo:
+        return _Histogram(None, None, lo, hi, 0.0)
+    width = (hi - lo) / bins
+    centres = lo + (torch.arange(bins, dtype=torch.float64, device=s.device) + 0.5) * width
+    return _Histogram(torch.histc(s, bins=bins, min=lo, max=hi), centres, lo, hi, width)
+
+
 def otsu_threshold(scores: torch.Tensor, bins: int = 512) -> float:
     """Otsu's threshold of ``scores`` [K]: the cut maximising the between-class variance.
 
@@ -24,15 +46,10 @@ def otsu_threshold(scores: torch.Tensor, bins: int = 512) -> float:
     fewer than two distinct values there is nothing to separate and the maximum is returned
     (``scores > tau`` then selects nothing).
     """
-    s = scores.detach().reshape(-1).to(torch.float64)
-    s = s[torch.isfinite(s)]
-    if s.numel() == 0:
-        raise ValueError("tiger.retrieval: no finite scores to threshold")
-    lo, hi = float(s.min()), float(s.max())
-    if not hi > lo:
-        return hi
-    hist = torch.histc(s, bins=bins, min=lo, max=hi)
-    centres = lo + (torch.arange(bins, dtype=torch.float64, device=s.device) + 0.5) * (hi - lo) / bins
+    h = _histogram(scores, bins)
+    if h.hist is None:
+        return h.hi
+    hist, centres, lo, width = h.hist, h.centres, h.lo, h.width
     w0 = torch.cumsum(hist, 0)
     m0 = torch.cumsum(hist * centres, 0)
     total, total_m = w0[-1], m0[-1]
@@ -42,7 +59,7 @@ def otsu_threshold(scores: torch.Tensor, bins: int = 512) -> float:
     mu1 = (total_m - m0) / w1.clamp_min(1)
     between = torch.where(valid, w0 * w1 * (mu0 - mu1) ** 2, torch.full_like(w0, -1.0))
     k = int(torch.argmax(between))
-    return lo + (k + 1) * (hi - lo) / bins
+    return lo + (k + 1) * width
 
 
 def min_error_threshold(scores: torch.Tensor, bins: int = 512) -> float:
@@ -55,16 +72,10 @@ def min_error_threshold(scores: torch.Tensor, bins: int = 512) -> float:
     retrieval: 1 % object -> Otsu cuts inside the background). Variances are floored at the bin
     quantisation (width^2 / 12). Fewer than two distinct values: the maximum is returned.
     """
-    s = scores.detach().reshape(-1).to(torch.float64)
-    s = s[torch.isfinite(s)]
-    if s.numel() == 0:
-        raise ValueError("tiger.retrieval: no finite scores to threshold")
-    lo, hi = float(s.min()), float(s.max())
-    if not hi > lo:
-        return hi
-    hist = torch.histc(s, bins=bins, min=lo, max=hi)
-    width = (hi - lo) / bins
-    c = lo + (torch.arange(bins, dtype=torch.float64, device=s.device) + 0.5) * width
+    h = _histogram(scores, bins)
+    if h.hist is None:
+        return h.hi
+    hist, c, lo, width = h.hist, h.centres, h.lo, h.width
     w0, m0, q0 = hist.cumsum(0), (hist * c).cumsum(0), (hist * c * c).cumsum(0)
     total = w0[-1]
     w1, m1, q1 = total - w0, m0[-1] - m0, q0[-1] - q0
@@ -97,19 +108,15 @@ def valley_threshold(scores: torch.Tensor, bins: int = 256, sigma_bins: float = 
     valley search keeps its split and moves the cut to the emptiest place between the classes.
     """
     t_split = min_error_threshold(scores, bins=2 * bins)
-    s = scores.detach().reshape(-1).to(torch.float64)
-    s = s[torch.isfinite(s)]
-    lo, hi = float(s.min()), float(s.max())
-    if not hi > lo:
-        return hi
-    hist = torch.histc(s, bins=bins, min=lo, max=hi)
-    width = (hi - lo) / bins
+    h = _histogram(scores, bins)
+    if h.hist is None:
+        return h.hi
+    hist, centres, lo, width = h.hist, h.centres, h.lo, h.width
     r = int(3 * sigma_bins) + 1
-    x = torch.arange(-r, r + 1, dtype=torch.float64, device=s.device)
+    x = torch.arange(-r, r + 1, dtype=torch.float64, device=hist.device)
     kernel = torch.exp(-0.5 * (x / sigma_bins) ** 2)
     dens = torch.nn.functional.conv1d(torch.nn.functional.pad(hist[None, None], (r, r)),
                                       (kernel / kernel.sum())[None, None])[0, 0]
-    centres = lo + (torch.arange(bins, dtype=torch.float64, device=s.device) + 0.5) * width
     below = torch.nonzero(centres < t_split).reshape(-1)
     above = torch.nonzero(centres >= t_split).reshape(-1)
     if below.numel() == 0 or above.numel() == 0:
