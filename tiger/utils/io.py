@@ -1,6 +1,8 @@
 """Atomic file writes: a temp file in the destination folder, fsync, then rename.
 
-A crash or interruption leaves either the old file or the new one, never a torn one.
+A crash or interruption leaves either the old file or the new one, never a torn one. The new
+file gets the mode ``open()`` would have given it (0666 less the umask, typically 0644), not the
+owner-only 0600 of :func:`tempfile.mkstemp`.
 """
 from __future__ import annotations
 
@@ -15,13 +17,28 @@ import torch
 PathLike = Union[str, os.PathLike]
 
 
+def _umask() -> int:
+    """The process umask, read without changing it where Linux shows it (/proc/self/status)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)  # elsewhere reading it means setting it: put it straight back
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_write(path: PathLike, mode: str = "wb") -> Iterator[IO]:
-    """Open a temporary file next to ``path``; on clean exit it replaces ``path``."""
+    """Open a temporary file next to ``path``; on clean exit it replaces ``path``.
+
+    The file's permissions follow the umask, like a plain ``open(path, "w")``.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, mode) as fh:
             yield fh
             fh.flush()

@@ -1,0 +1,58 @@
+"""atomic_write: files get the mode a plain open() gives them (0666 less the umask)."""
+import os
+import stat
+
+import pytest
+import torch
+
+from tiger.utils.io import atomic_torch_save, atomic_write
+
+
+@pytest.fixture
+def umask():
+    old = os.umask(0o022)
+    yield lambda m: os.umask(m)
+    os.umask(old)
+
+
+def _mode(path) -> int:
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o002, 0o077])
+def test_mode_follows_the_umask_like_open(umask, tmp_path, mask):
+    umask(mask)
+    with open(tmp_path / "plain.txt", "w") as fh:  # the reference: what any program gets
+        fh.write("x")
+    with atomic_write(tmp_path / "atomic.txt", "w") as fh:
+        fh.write("x")
+    atomic_torch_save({"a": torch.zeros(2)}, tmp_path / "ckpt.pt")
+    assert _mode(tmp_path / "plain.txt") == 0o666 & ~mask
+    assert _mode(tmp_path / "atomic.txt") == _mode(tmp_path / "plain.txt")
+    assert _mode(tmp_path / "ckpt.pt") == _mode(tmp_path / "plain.txt")
+    assert os.umask(mask) == mask  # the writer left the umask as it found it
+
+
+def test_outputs_of_the_cli_writers_are_world_readable(umask, tmp_path):
+    from tiger.scene import GaussianScene
+    from tiger.utils.images import save_png
+
+    umask(0o022)
+    save_png(tmp_path / "a.png", torch.rand(4, 5, 3))
+    scene = GaussianScene.random_in_box(3, [0, 0, 0], [1, 1, 1], sh_degree=0,
+                                        generator=torch.Generator().manual_seed(0))
+    scene.save_ply(tmp_path / "scene.ply")
+    assert _mode(tmp_path / "a.png") == 0o644
+    assert _mode(tmp_path / "scene.ply") == 0o644
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp files left
+
+
+def test_failed_write_leaves_the_old_file(tmp_path):
+    target = tmp_path / "f.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(target, "w") as fh:
+            fh.write("new")
+            raise RuntimeError("boom")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
