@@ -15,6 +15,8 @@ F64 = torch.float64
 
 
 def _render_and_grads(means, quats, scales, opac, colors, V, K, w, h, **kw):
+    # The kernels must stay finite also on what the input checks refuse (a zero quaternion).
+    kw.setdefault("check_finite", False)
     leaves = [t.detach().clone().requires_grad_() for t in (means, quats, scales, opac, colors, V, K)]
     out = tiger.rasterize_gaussians(*leaves, w, h, **kw)
     loss = out["color"].sum() + out["alpha"].sum() + out["depth"].sum()
@@ -89,7 +91,7 @@ def test_stress_outputs_and_gradients_finite(case, dtype, antialiased):
                                   "degenerate_scales", "one_pixel"])
 def test_stress_matches_reference(case):
     m, q, s, o, c, V, K, w, h = _case(case, F64)
-    out = tiger.rasterize_gaussians(m, q, s, o, c, V, K, w, h)
+    out = tiger.rasterize_gaussians(m, q, s, o, c, V, K, w, h, check_finite=False)
     ref = render_ref(m, q, s, o, c, V, K, w, h)
     for key in ("color", "alpha"):
         assert torch.allclose(out[key], ref[key], atol=1e-10), key
@@ -144,6 +146,49 @@ class TestBadInput:
         with pytest.raises(ValueError, match=rf"{name} contains 1 non-finite"):
             tiger.rasterize_gaussians(*args)
         tiger.rasterize_gaussians(*self._args(), check_finite=False)
+
+    @pytest.mark.parametrize("idx,name,row,value,message", [
+        (1, "quats", 3, [0.0, 0.0, 0.0, 0.0], "is zero"),
+        (3, "opacities", 7, 1.25, r"is outside \[0, 1\]"),
+        (3, "opacities", 2, -0.01, r"is outside \[0, 1\]"),
+        (2, "scales", 5, [0.1, -0.02, 0.1], "has a negative entry"),
+    ])
+    def test_bad_values_name_tensor_and_row(self, idx, name, row, value, message):
+        args = self._args()
+        args[idx] = args[idx].clone()
+        args[idx][row] = torch.tensor(value, dtype=F64)
+        with pytest.raises(ValueError, match=rf"{name}\[{row}\] = .*{message}.* \(1 bad row\(s\) of 10\)"):
+            tiger.rasterize_gaussians(*args)
+        out = tiger.rasterize_gaussians(*args, check_finite=False)  # the knob switches them off
+        assert out["color"].shape == (16, 16, 3)
+
+    def test_first_bad_row_and_count(self):
+        args = self._args()
+        args[3] = args[3].clone()
+        args[3][[4, 8]] = 2.0
+        with pytest.raises(ValueError, match=r"opacities\[4\] = 2.0 .*\(2 bad row\(s\) of 10\)"):
+            tiger.rasterize_gaussians(*args)
+
+    def test_edge_values_are_accepted(self):
+        args = self._args()
+        for idx, row, value in ((3, 0, 0.0), (3, 1, 1.0), (2, 2, [0.0, 0.0, 0.0]), (1, 3, [0.0, 0.0, 0.0, -2.0])):
+            args[idx] = args[idx].clone()
+            args[idx][row] = torch.tensor(value, dtype=F64)
+        tiger.rasterize_gaussians(*args)
+
+    @pytest.mark.parametrize("width,height", [(16.5, 16), (16, 15.9), ("16", 16), (True, 16)])
+    def test_non_integer_size(self, width, height):
+        args = self._args()
+        with pytest.raises(TypeError, match="must be a whole number of pixels"):
+            tiger.rasterize_gaussians(*args[:7], width, height)
+
+    def test_integer_valued_sizes_are_accepted(self):
+        import numpy as np
+
+        args = self._args()
+        ref = tiger.rasterize_gaussians(*args)["color"]
+        for w, h in ((16.0, 16.0), (np.int64(16), torch.tensor(16))):
+            assert torch.equal(tiger.rasterize_gaussians(*args[:7], w, h)["color"], ref)
 
     def test_dtype_mismatch(self):
         args = self._args()

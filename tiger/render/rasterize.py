@@ -48,6 +48,42 @@ def _check_finite(tensors: dict[str, Tensor]) -> None:
                              "pass check_finite=False to skip this check")
 
 
+def _check_values(quats: Tensor, scales: Tensor, opacities: Tensor) -> None:
+    """Zero quaternions (no rotation), negative scales and opacities outside [0, 1] are input
+    mistakes the kernels would render without complaint; name the tensor and its first bad row.
+    One device sync for the three tests; the rows are looked up only on failure."""
+    with torch.no_grad():
+        zero_q = (quats == 0).all(dim=1)
+        neg_s = (scales < 0).any(dim=1)
+        bad_o = (opacities < 0) | (opacities > 1)
+        if not bool(torch.stack([zero_q.any(), neg_s.any(), bad_o.any()]).any()):
+            return
+        hint = "; pass check_finite=False to skip the input checks"
+        for name, bad, t, what in (("quats", zero_q, quats, "is zero, not a rotation"),
+                                   ("opacities", bad_o, opacities, "is outside [0, 1]"),
+                                   ("scales", neg_s, scales, "has a negative entry (scales are linear"
+                                                             " standard deviations, not logs)")):
+            rows = bad.nonzero().flatten()
+            if rows.numel():
+                row = int(rows[0])
+                raise ValueError(f"{_NAME}: {name}[{row}] = {t[row].tolist()} {what} "
+                                 f"({rows.numel()} bad row(s) of {t.shape[0]}){hint}")
+
+
+def _check_size(width: object, height: object) -> tuple[int, int]:
+    out = []
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, Tensor) and v.numel() == 1:
+            v = v.item()
+        if isinstance(v, bool) or not (isinstance(v, int) or hasattr(v, "__index__")
+                                       or (isinstance(v, float) and v.is_integer())):
+            raise TypeError(f"{_NAME}: {name} must be a whole number of pixels, got {v!r}")
+        out.append(int(v))
+    if out[0] <= 0 or out[1] <= 0:
+        raise ValueError(f"{_NAME}: width and height must be positive, got {out[0]}x{out[1]}")
+    return out[0], out[1]
+
+
 def camera_center(viewmat: Tensor) -> Tensor:
     """Camera centre in world coordinates from a world→camera ``viewmat`` [4,4] → [3]."""
     R, t = viewmat[:3, :3], viewmat[:3, 3]
@@ -90,7 +126,7 @@ def rasterize_gaussians(
             (INRIA order), evaluated per Gaussian for its view direction as max(SH + 0.5, 0).
         viewmat: [4, 4] world→camera transform, OpenCV axes (+x right, +y down, +z forward).
         K: [3, 3] pinhole intrinsics (fx, fy, cx, cy used; pixels).
-        width, height: image size in pixels.
+        width, height: image size in pixels (whole numbers; 640.0 is accepted, 640.5 is not).
         background: [C] colour behind the Gaussians (default 0).
         near, far: camera-space depth range; Gaussians with centres outside are culled.
         eps2d: dilation added to the 2D covariance diagonal [px^2].
@@ -99,7 +135,9 @@ def rasterize_gaussians(
         alpha_threshold: contributions with alpha below are skipped (also the extent rule).
         t_min: a pixel stops compositing once transmittance would drop below this.
         tile_size: tile edge in pixels for binning.
-        check_finite: raise on NaN/Inf inputs (one reduction per input; off for speed).
+        check_finite: input value checks (one reduction per input; off for speed): raise on
+            NaN/Inf in any tensor, on a zero quaternion, an opacity outside [0, 1] or a negative
+            scale, naming the tensor and its first bad row.
 
     Returns:
         dict with ``color`` [H, W, C], ``alpha`` [H, W], ``depth`` [H, W] (expected depth,
@@ -142,8 +180,7 @@ def rasterize_gaussians(
                         "(float16/bfloat16 colors are accepted with float32 geometry)")
     if means.is_cuda and not 1 <= int(tile_size) <= 16:
         raise ValueError(f"{_NAME}: the CUDA kernels take tile_size in [1, 16], got {tile_size}")
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"{_NAME}: width and height must be positive, got {width}x{height}")
+    width, height = _check_size(width, height)
     channels = 3 if sh_degree is not None else colors.shape[1]
     if background is not None:
         _check_tensor(background, "background", (channels,), means)
@@ -151,9 +188,9 @@ def rasterize_gaussians(
     if check_finite:
         _check_finite({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
                        "colors": colors, "viewmat": viewmat, "K": K, "background": background})
+        _check_values(quats, scales, opacities)
     viewmat = viewmat.to(means.dtype)
     K = K.to(means.dtype)
-    width, height = int(width), int(height)
 
     means2d, conics, depths, opac, radii = torch.ops.tiger.project_gaussians(
         means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
