@@ -56,8 +56,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise
         print(f"tiger {args.command}: error: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print(f"tiger {args.command}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:  # a command may say where it stopped (the message)
+        print(f"tiger {args.command}: interrupted" + (f": {e}" if str(e) else ""), file=sys.stderr)
         return 130
 
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 import json
 
-from .common import Summary, add_common, device_of, existing, output_dir
+from pathlib import Path
+
+from .common import CliError, Summary, add_common, device_of, existing, output_dir
 
 
 def add_parser(sub) -> None:
@@ -27,10 +29,25 @@ def add_parser(sub) -> None:
     p.add_argument("--init-points", type=int, default=100_000,
                    help="random initial Gaussians when the dataset has no points")
     p.add_argument("--checkpoint-every", type=int, default=1000)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/checkpoint.pt (refused when OUT holds other files but no "
+                        "checkpoint, unless --force)")
     p.add_argument("--finetune", default=None, metavar="PLY",
                    help="start from this scene instead of initialising (e.g. after a deletion)")
     p.set_defaults(func=run)
+
+
+def _resumable(out: Path, resume: bool) -> bool:
+    """--resume may write into a non-empty OUT only when OUT holds the checkpoint it resumes."""
+    if not resume:
+        return False
+    if (out / "checkpoint.pt").is_file():
+        return True
+    if out.is_dir() and any(out.iterdir()):
+        raise CliError(f"--resume: {out} has no checkpoint.pt to resume from but is not empty "
+                       f"({', '.join(sorted(p.name for p in out.iterdir())[:5])}); pass --force to "
+                       "start from scratch in it (overwriting its scene.ply, metrics.json, ...)")
+    return False
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
     dev = device_of(args.device)
     data = existing(args.data, "dataset")
-    out = output_dir(args.out, args.force or args.resume)
+    out = output_dir(args.out, args.force or _resumable(Path(args.out), args.resume))
     summary = Summary("tiger reconstruct")
     ds = load_dataset(data, skip_missing=args.skip_missing)
     train, test = ds.split(args.test_every)
@@ -60,7 +77,12 @@ def run(args: argparse.Namespace) -> int:
     if args.resume and ckpt.is_file():
         trainer.load(ckpt)
         summary.add(f"resumed from {ckpt} at step {trainer.step}")
-    scene = trainer.fit()
+    try:
+        scene = trainer.fit()
+    except KeyboardInterrupt:
+        held = (f"{ckpt} holds step {trainer.checkpoint_step}: continue with --resume"
+                if trainer.checkpoint_step is not None else "this run wrote no checkpoint yet")
+        raise KeyboardInterrupt(f"stopped at step {trainer.step} of {cfg.iterations}; {held}") from None
     scene.save_ply(out / "scene.ply")
     summary.add(f"scene: {len(scene)} Gaussians -> {out / 'scene.ply'}")
     metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed}

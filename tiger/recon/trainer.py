@@ -58,6 +58,7 @@ class Trainer:
         self.extent = float(self.cfg.extent) if self.cfg.extent else scene_extent(self.cameras)
         self.gen = torch.Generator().manual_seed(self.cfg.seed)
         self.finetune = scene is not None
+        self.checkpoint_step: Optional[int] = None  # step held by the last checkpoint saved or loaded
         if scene is None:
             scene = self._initial_scene(init_points, init_colors)
         elif scene.sh_degree != self.cfg.sh_degree:
@@ -221,13 +222,14 @@ class Trainer:
                  "generator": self.gen.get_state(), "order": list(self._order), "extent": self.extent,
                  "history": self.history, "elapsed": self.elapsed, "finetune": self.finetune}
         save_checkpoint(path, self.scene, self.optimizer, self.step, extra)
+        self.checkpoint_step = self.step
 
     def load(self, path: PathLike) -> None:
         """Resume from a checkpoint written by :meth:`save` (same views and config)."""
         ck = load_checkpoint(path, map_location=self.device)
         ex = ck["extra"]
         self.scene = ck["scene"].to(self.device, torch.float32)
-        self.step = ck["step"]
+        self.step = self.checkpoint_step = ck["step"]
         self.extent = float(ex.get("extent", self.extent))
         self.active_sh = int(ex.get("active_sh", self.active_sh))
         self.finetune = bool(ex.get("finetune", self.finetune))

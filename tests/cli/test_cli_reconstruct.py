@@ -1,0 +1,65 @@
+"""tiger reconstruct: --resume never writes into a folder it cannot resume, Ctrl-C says which
+step the last checkpoint holds."""
+from __future__ import annotations
+
+import pytest
+
+from tiger.cli.main import main
+
+from .test_cli_pipeline import _dataset
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    return _dataset(tmp_path_factory.mktemp("recon_data"), n_views=3, w=32, h=24)
+
+
+def _reconstruct(data, out, *extra):
+    return main(["reconstruct", str(data), "--out", str(out), "--steps", "30", "--init-points", "200",
+                 "--test-every", "0", "--device", "cpu", "--checkpoint-every", "10", *extra])
+
+
+def test_resume_without_checkpoint_refuses_a_non_empty_folder(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "scene.ply").write_bytes(b"precious")
+    assert _reconstruct(data, out, "--resume") == 2
+    err = capsys.readouterr().err
+    assert "no checkpoint.pt" in err and "--force" in err and "scene.ply" in err
+    assert (out / "scene.ply").read_bytes() == b"precious" and sorted(p.name for p in out.iterdir()) == ["scene.ply"]
+
+
+def test_resume_into_an_empty_or_new_folder_starts_fresh(data, tmp_path):
+    assert _reconstruct(data, tmp_path / "new", "--resume", "--steps", "10") == 0
+    assert (tmp_path / "new" / "scene.ply").is_file()
+
+
+def test_ctrl_c_names_the_checkpoint_step_and_resume_continues(data, tmp_path, capsys, monkeypatch):
+    from tiger.recon.trainer import Trainer
+
+    real = Trainer.train_step
+
+    def interrupted_at_25(self):
+        if self.step == 25:
+            raise KeyboardInterrupt
+        return real(self)
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(Trainer, "train_step", interrupted_at_25)
+    assert _reconstruct(data, out) == 130
+    err = capsys.readouterr().err
+    assert "stopped at step 25 of 30" in err and "checkpoint.pt holds step 20" in err and "--resume" in err
+    monkeypatch.setattr(Trainer, "train_step", real)
+    assert _reconstruct(data, out, "--resume") == 0
+    assert "resumed from" in capsys.readouterr().out and (out / "scene.ply").is_file()
+
+
+def test_ctrl_c_before_the_first_checkpoint(data, tmp_path, capsys, monkeypatch):
+    from tiger.recon.trainer import Trainer
+
+    def interrupted(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Trainer, "train_step", interrupted)
+    assert _reconstruct(data, tmp_path / "out") == 130
+    assert "stopped at step 0 of 30; this run wrote no checkpoint yet" in capsys.readouterr().err
