@@ -63,3 +63,37 @@ def test_ctrl_c_before_the_first_checkpoint(data, tmp_path, capsys, monkeypatch)
     monkeypatch.setattr(Trainer, "train_step", interrupted)
     assert _reconstruct(data, tmp_path / "out") == 130
     assert "stopped at step 0 of 30; this run wrote no checkpoint yet" in capsys.readouterr().err
+
+
+def _with_missing_frames(data, tmp_path, gone):
+    import shutil
+
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    for i in gone:
+        (copy / "images" / f"{i:03d}.png").unlink()
+    return copy
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "features", "render"])
+def test_missing_frames_name_the_flag_and_every_file(data, tmp_path, capsys, command):
+    copy = _with_missing_frames(data, tmp_path, [0, 2])
+    args = {"reconstruct": ["reconstruct", str(copy)],
+            "features": ["features", str(copy)],
+            "render": ["render", str(tmp_path / "none.ply"), "--data", str(copy)]}[command]
+    if command == "render":  # a scene to render: any PLY
+        from tiger.scene import GaussianScene
+        import torch
+
+        GaussianScene.random_in_box(5, [0, 0, 0], [1, 1, 1], generator=torch.Generator().manual_seed(0)) \
+            .save_ply(tmp_path / "none.ply")
+    assert main([*args, "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert "2 of 3 images not found" in err and "000.png" in err and "002.png" in err
+    assert "--skip-missing" in err and "skip_missing=True" not in err
+
+
+def test_skip_missing_flag_drops_the_views(data, tmp_path, capsys):
+    copy = _with_missing_frames(data, tmp_path, [2])
+    assert _reconstruct(copy, tmp_path / "out", "--skip-missing", "--steps", "5") == 0
+    assert "2 training views" in capsys.readouterr().out

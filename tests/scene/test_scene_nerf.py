@@ -136,3 +136,25 @@ def test_nerf_synthetic_split(tmp_path):
     train, test = ds.split()
     assert len(train) == 3 and len(test) == 2
     assert all(c.image_name.startswith("test") for c in test)
+
+
+def test_missing_images_are_all_named(tmp_path):
+    """Every missing file is counted and the first ten are named, not only the first."""
+    from tiger.scene import MissingImagesError
+
+    rng = np.random.default_rng(4)
+    frames = [{"file_path": f"images/{i:02d}.png", "transform_matrix": gl_c2w(rng).tolist()} for i in range(15)]
+    write_dataset(tmp_path, frames, {"fl_x": 30, "w": 40, "h": 30})
+    gone = [1, 2, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14]
+    for i in gone:
+        (tmp_path / "images" / f"{i:02d}.png").unlink()
+    with pytest.raises(MissingImagesError) as ei:
+        load_transforms(tmp_path)
+    msg = str(ei.value)
+    assert "12 of 15 images not found" in msg and "frames[1].file_path" in msg
+    for i in gone[:10]:
+        assert f"{i:02d}.png" in msg
+    assert "12.png" not in msg and "and 2 more" in msg
+    assert ei.value.missing == [str(tmp_path / "images" / f"{i:02d}.png") for i in gone]
+    assert "skip_missing=True" in msg
+    assert "--skip-missing" in str(ei.value.with_hint("pass --skip-missing to skip them"))

@@ -64,6 +64,22 @@ def existing(path: str, what: str) -> Path:
     return p
 
 
+def add_skip_missing(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--skip-missing", action="store_true",
+                   help="drop the dataset's views whose image file is missing (default: refuse, naming them)")
+
+
+def open_dataset(path: str, skip_missing: bool = False):
+    """``tiger.scene.dataset.load_dataset`` with its errors in the command line's terms."""
+    from tiger.scene import MissingImagesError
+    from tiger.scene.dataset import load_dataset
+
+    try:
+        return load_dataset(existing(path, "dataset"), skip_missing=skip_missing)
+    except MissingImagesError as e:
+        raise CliError(str(e.with_hint("pass --skip-missing to skip them"))) from None
+
+
 def load_scene(path: str, device: Optional[torch.device] = None):
     from tiger.scene import GaussianScene
 

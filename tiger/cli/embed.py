@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import argparse
 
-from .common import Summary, add_common, device_of, existing, load_scene, output_file
+from .common import (Summary, add_common, add_skip_missing, device_of, existing, load_scene, open_dataset,
+                     output_file)
 
 
 def add_parser(sub) -> None:
@@ -20,6 +21,7 @@ def add_parser(sub) -> None:
     p.add_argument("data", help="the dataset the features were extracted from (for the cameras)")
     p.add_argument("--features", required=True, help="folder written by `tiger features`")
     add_common(p)
+    add_skip_missing(p)
     p.add_argument("--steps", type=int, default=10_000)
     p.add_argument("--lr", type=float, default=2.5e-3)
     p.add_argument("--batch-views", type=int, default=1)
@@ -34,13 +36,12 @@ def run(args: argparse.Namespace) -> int:
     from tiger.language.extract import FeatureSet
     from tiger.language.field import train_field
     from tiger.language.pca import PCABasis
-    from tiger.scene.dataset import load_dataset
 
     dev = device_of(args.device)
     out = output_file(args.out, args.force)
     feat_dir = existing(args.features, "feature folder")
     scene = load_scene(args.scene, dev)
-    cams = load_dataset(existing(args.data, "dataset")).cameras
+    cams = open_dataset(args.data, args.skip_missing).cameras
     names = [str(c.image_name).replace("/", "_") for c in cams]
     pca = PCABasis.load(existing(str(Path(feat_dir) / "pca.pt"), "PCA file"))
     fs = FeatureSet(Path(feat_dir), names, pca)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import Summary, add_common, device_of, existing
+from .common import Summary, add_common, add_skip_missing, device_of, existing, open_dataset
 
 
 def add_parser(sub) -> None:
@@ -20,6 +20,7 @@ def add_parser(sub) -> None:
     add_common(p, models=True)
     p.add_argument("--upsampler", choices=("implicit", "jbu", "bilinear"), default="implicit",
                    help="quality/speed switch: FeatUp implicit (paper), JBU, or bilinear")
+    add_skip_missing(p)
     p.add_argument("--no-sam", action="store_true", help="skip the SAM masked average")
     p.add_argument("--long-side", type=int, default=None,
                    help="feature-map long side in pixels (default: each image's own size)")
@@ -28,7 +29,7 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _images(path):
+def _images(path, skip_missing: bool = False):
     from pathlib import Path
 
     folder = Path(path)
@@ -36,9 +37,7 @@ def _images(path):
     if folder.is_dir() and not any((folder / f).exists() for f in ("sparse", "transforms.json")):
         files = sorted(f for f in folder.iterdir() if f.suffix in exts)
         return files, [f.stem for f in files]
-    from tiger.scene.dataset import load_dataset
-
-    cams = load_dataset(folder).cameras
+    cams = open_dataset(str(folder), skip_missing).cameras
     return [c.image_path for c in cams], [str(c.image_name).replace("/", "_") for c in cams]
 
 
@@ -46,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from tiger.language.extract import FeatureConfig, extract_features
 
     data = existing(args.data, "dataset")
-    files, names = _images(data)
+    files, names = _images(data, args.skip_missing)
     if not files:
         raise SystemExit(f"tiger features: no images found in {data}")
     cfg = FeatureConfig(upsampler=args.upsampler, use_sam=not args.no_sam,

@@ -6,7 +6,7 @@ import json
 
 import torch
 
-from .common import Summary, add_common, device_of, load_scene, output_dir
+from .common import Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset, output_dir
 from .text import text_encoder
 
 
@@ -27,18 +27,17 @@ def add_parser(sub) -> None:
     p.add_argument("--text-embeddings", default=None,
                    help="torch.save'd {text: [512] tensor} instead of CLIP weights")
     p.add_argument("--data", default=None, help="dataset whose cameras to draw (default: an orbit)")
+    add_skip_missing(p)
     p.add_argument("--views", type=int, default=3, help="pictures per query")
     p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
     p.add_argument("--tau", default="auto", help="selection threshold, or 'auto' (Otsu)")
     p.set_defaults(func=run)
 
 
-def pick_cameras(scene, data, n: int, device):
+def pick_cameras(scene, data, n: int, device, skip_missing: bool = False):
     """n cameras from a dataset (evenly spread) or an orbit around the scene."""
     if data:
-        from tiger.scene.dataset import load_dataset
-
-        cams = load_dataset(data).cameras
+        cams = open_dataset(data, skip_missing).cameras
         step = max(len(cams) // max(n, 1), 1)
         return [c.to(device) if hasattr(c, "to") else c for c in cams[::step][:n]]
     from tiger.render.views import orbit_cameras
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
                          "run `tiger embed` first")
     tau = args.tau if args.tau == "auto" else float(args.tau)
     encoder = text_encoder(args.models, args.text_embeddings, dev)
-    cams = pick_cameras(scene, args.data, args.views, dev)
+    cams = pick_cameras(scene, args.data, args.views, dev, args.skip_missing)
     summary = Summary("tiger query")
     report = {}
     for text in args.text:

@@ -6,7 +6,7 @@ import json
 
 from pathlib import Path
 
-from .common import CliError, Summary, add_common, device_of, existing, output_dir
+from .common import CliError, Summary, add_common, add_skip_missing, device_of, existing, open_dataset, output_dir
 
 
 def add_parser(sub) -> None:
@@ -25,7 +25,7 @@ def add_parser(sub) -> None:
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor")
     p.add_argument("--sh-degree", type=int, default=3)
     p.add_argument("--test-every", type=int, default=8, help="hold out every N-th image (0: none)")
-    p.add_argument("--skip-missing", action="store_true", help="skip views whose image is missing")
+    add_skip_missing(p)
     p.add_argument("--init-points", type=int, default=100_000,
                    help="random initial Gaussians when the dataset has no points")
     p.add_argument("--checkpoint-every", type=int, default=1000)
@@ -53,13 +53,12 @@ def _resumable(out: Path, resume: bool) -> bool:
 def run(args: argparse.Namespace) -> int:
     from tiger.recon import ReconConfig, Trainer, load_views
     from tiger.scene import GaussianScene
-    from tiger.scene.dataset import load_dataset
 
     dev = device_of(args.device)
     data = existing(args.data, "dataset")
     out = output_dir(args.out, args.force or _resumable(Path(args.out), args.resume))
     summary = Summary("tiger reconstruct")
-    ds = load_dataset(data, skip_missing=args.skip_missing)
+    ds = open_dataset(args.data, args.skip_missing)
     train, test = ds.split(args.test_every)
     summary.add(f"{len(train)} training views, {len(test)} test views from {data} ({ds.kind})")
     cache = out / "image_cache"

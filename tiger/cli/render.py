@@ -5,7 +5,7 @@ import argparse
 
 import torch
 
-from .common import CliError, Summary, add_common, device_of, load_scene, output_dir
+from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, output_dir
 
 KINDS = ("color", "depth", "alpha", "features", "relevancy")
 
@@ -23,6 +23,7 @@ def add_parser(sub) -> None:
     p.add_argument("scene", help="PLY file")
     add_common(p, models=True)
     p.add_argument("--data", default=None, help="render this dataset's cameras")
+    add_skip_missing(p)
     p.add_argument("--orbit", type=int, default=8, help="orbit views when no --data (default: 8)")
     p.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
     p.add_argument("--what", nargs="+", choices=KINDS, default=["color", "depth"])
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if "relevancy" in args.what and not args.query:
         raise CliError("--what relevancy needs --query TEXT")
     if args.data:
-        cams = pick_cameras(scene, args.data, 10**9, dev)
+        cams = pick_cameras(scene, args.data, 10**9, dev, args.skip_missing)
     else:
         from tiger.render.views import orbit_cameras
 

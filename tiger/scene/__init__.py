@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 from .cameras import Camera, Distortion, scene_extent
-from .errors import SceneFormatError
+from .errors import MissingImagesError, SceneFormatError
 from .gaussian_scene import DEFAULT_LRS, PARAM_NAMES, GaussianScene
 from .ply import read_ply, write_ply
 
-__all__ = ["Camera", "Distortion", "GaussianScene", "SceneFormatError", "DEFAULT_LRS", "PARAM_NAMES",
+__all__ = ["Camera", "Distortion", "GaussianScene", "MissingImagesError", "SceneFormatError", "DEFAULT_LRS", "PARAM_NAMES",
            "read_ply", "write_ply", "scene_extent"]

@@ -19,7 +19,7 @@ import torch
 
 from .cameras import Camera
 from .colmap import colmap_cameras, find_model_dir, read_model
-from .errors import SceneFormatError
+from .errors import MissingImagesError, SceneFormatError
 from .nerf import load_transforms
 
 log = logging.getLogger(__name__)
@@ -100,9 +100,7 @@ def load_colmap(path: PathLike, images: str = "images", skip_missing: bool = Fal
     missing = [c for c in cams if not c.image_path.is_file()]
     if missing:
         if not skip_missing:
-            raise SceneFormatError(missing[0].image_path, f"image of '{missing[0].image_name}' not found "
-                                   f"({len(missing)} of {len(cams)} images missing; pass skip_missing=True "
-                                   "to skip them)", "NAME")
+            raise MissingImagesError(images_dir, [str(c.image_path) for c in missing], len(cams))
         log.warning("%s: skipped %d of %d images that are missing (first: %s)", images_dir, len(missing),
                     len(cams), missing[0].image_name)
         cams = [c for c in cams if c.image_path.is_file()]

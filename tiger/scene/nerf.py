@@ -19,7 +19,7 @@ from typing import Any, Optional, Union
 import torch
 
 from .cameras import Camera, Distortion, intrinsics, rigid_inverse
-from .errors import SceneFormatError
+from .errors import MissingImagesError, SceneFormatError
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -129,11 +129,8 @@ def load_transforms(path: PathLike, skip_missing: bool = False) -> tuple:
             raise SceneFormatError(path, "missing", f"frames[{i}].transform_matrix")
         img = resolve_image(base, fp)
         if img is None:
-            if skip_missing:
-                missing.append(fp)
-                continue
-            raise SceneFormatError(path, f"image file '{base / fp}' not found (pass skip_missing=True to "
-                                         "skip frames without images)", f"frames[{i}].file_path")
+            missing.append((i, fp))
+            continue
         c2w_gl = _matrix(fr["transform_matrix"], path, f"frames[{i}].transform_matrix")
         K, dist, w, h = _frame_intrinsics(meta, fr, i, img, path)
         vm = rigid_inverse(c2w_gl @ GL_TO_CV)
@@ -143,9 +140,12 @@ def load_transforms(path: PathLike, skip_missing: bool = False) -> tuple:
                                metadata={"frame_index": i}))
         except ValueError as exc:
             raise SceneFormatError(path, str(exc), f"frames[{i}]") from None
+    if missing and not skip_missing:
+        raise MissingImagesError(path, [str(base / fp) for _, fp in missing], len(frames),
+                                 f"frames[{missing[0][0]}].file_path")
     if missing:
         log.warning("%s: skipped %d of %d frames whose image is missing (first: %s)", path, len(missing),
-                    len(frames), missing[0])
+                    len(frames), missing[0][1])
     if not cams:
         raise SceneFormatError(path, "no usable frames", "frames")
     extra = {k: v for k, v in meta.items() if k != "frames"}
