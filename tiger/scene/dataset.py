@@ -100,7 +100,7 @@ def load_colmap(path: PathLike, images: str = "images", skip_missing: bool = Fal
     missing = [c for c in cams if not c.image_path.is_file()]
     if missing:
         if not skip_missing:
-            raise MissingImagesError(images_dir, [str(c.image_path) for c in missing], len(cams))
+            raise MissingImagesError(images_dir, [str(c.image_name) for c in missing], len(cams))
         log.warning("%s: skipped %d of %d images that are missing (first: %s)", images_dir, len(missing),
                     len(cams), missing[0].image_name)
         cams = [c for c in cams if c.image_path.is_file()]

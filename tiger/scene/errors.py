@@ -24,7 +24,8 @@ class SceneFormatError(ValueError):
 class MissingImagesError(SceneFormatError):
     """Views of a dataset whose image files are missing: names them all (the first ten shown).
 
-    ``missing`` lists every missing file, ``total`` counts the views. The message ends with
+    ``missing`` lists every missing file as the dataset names it (relative to ``path``),
+    ``total`` counts the views. The message ends with
     ``hint`` (how to skip them); a command-line front end replaces it with its flag through
     :meth:`with_hint`.
     """

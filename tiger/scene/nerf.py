@@ -141,7 +141,7 @@ def load_transforms(path: PathLike, skip_missing: bool = False) -> tuple:
         except ValueError as exc:
             raise SceneFormatError(path, str(exc), f"frames[{i}]") from None
     if missing and not skip_missing:
-        raise MissingImagesError(path, [str(base / fp) for _, fp in missing], len(frames),
+        raise MissingImagesError(path, [fp for _, fp in missing], len(frames),
                                  f"frames[{missing[0][0]}].file_path")
     if missing:
         log.warning("%s: skipped %d of %d frames whose image is missing (first: %s)", path, len(missing),
