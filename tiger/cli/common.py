@@ -38,14 +38,16 @@ def device_of(name: str) -> torch.device:
     return dev
 
 
-def output_dir(path: str, force: bool) -> Path:
-    """A folder to write into: refuses a non-empty one unless --force."""
+def output_dir(path: str, force: bool, create: bool = True) -> Path:
+    """A folder to write into: refuses a non-empty one unless --force. ``create=False`` only
+    checks (for commands that validate everything else before making the folder)."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise CliError(f"{out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not force:
         raise CliError(f"{out} already exists and is not empty; pass --force to overwrite it")
-    out.mkdir(parents=True, exist_ok=True)
+    if create:
+        out.mkdir(parents=True, exist_ok=True)
     return out
 
 

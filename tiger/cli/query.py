@@ -6,7 +6,7 @@ import json
 
 import torch
 
-from .common import Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset, output_dir
+from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset, output_dir
 from .text import text_encoder
 
 
@@ -48,24 +48,45 @@ def pick_cameras(scene, data, n: int, device, skip_missing: bool = False):
     return orbit_cameras(n, 480, 360, center=center.tolist(), radius=max(radius, 1e-3))
 
 
+def _slugs(texts: list[str]) -> list[str]:
+    """File-name stems of the texts, made unique ("fox ears" and "fox-ears" both give fox_ears)."""
+    out: list[str] = []
+    for text in texts:
+        slug = "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+        stem, k = slug, 2
+        while slug in out:
+            slug, k = f"{stem}_{k}", k + 1
+        out.append(slug)
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from tiger.retrieval import retrieve, write_relevancy_pictures
     from tiger.utils.images import save_png
+    from tiger.utils.io import atomic_write
 
+    # Everything that can refuse runs before the output folder is made: a refused query
+    # leaves nothing behind, and no text's outputs are written unless every text is known.
     dev = device_of(args.device)
-    out = output_dir(args.out, args.force)
+    output_dir(args.out, args.force, create=False)
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
-        raise SystemExit(f"tiger query: {args.scene} has no language features (lang_*); "
-                         "run `tiger embed` first")
+        raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
     tau = args.tau if args.tau == "auto" else float(args.tau)
     encoder = text_encoder(args.models, args.text_embeddings, dev)
+    texts = list(dict.fromkeys(args.text))
+    try:
+        results = {text: retrieve(scene, text, encoder=encoder, score=args.score, tau=tau) for text in texts}
+    except (KeyError, ValueError) as e:
+        raise CliError(f"{e.args[0] if e.args else e}; nothing was written") from None
     cams = pick_cameras(scene, args.data, args.views, dev, args.skip_missing)
+    out = output_dir(args.out, args.force)
     summary = Summary("tiger query")
     report = {}
-    for text in args.text:
-        r = retrieve(scene, text, encoder=encoder, score=args.score, tau=tau)
-        slug = "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+    from tiger.render import rasterize_gaussians
+
+    for text, slug in zip(texts, _slugs(texts)):
+        r = results[text]
         if r.count:
             scene.subset(r.mask).save_ply(out / f"{slug}.ply")
         write_relevancy_pictures(scene, cams, text, out / "relevancy", encoder=encoder,
@@ -73,8 +94,6 @@ def run(args: argparse.Namespace) -> int:
         rgb = scene.rgb.detach()
         tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
                            0.35 * rgb + 0.3)
-        from tiger.render import rasterize_gaussians
-
         for i, cam in enumerate(cams):
             with torch.no_grad():
                 img = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
@@ -82,13 +101,14 @@ def run(args: argparse.Namespace) -> int:
                                           torch.as_tensor(cam.K).to(rgb), int(cam.width),
                                           int(cam.height), background=torch.ones(3, device=rgb.device))
             save_png(out / f"{slug}_highlight_{i}.png", img["color"])
-        report[text] = {"selected": r.count, "tau": r.tau, "score": r.score,
+        report[text] = {"selected": r.count, "tau": r.tau, "score": r.score, "files": slug,
                         "center": None if r.center is None else r.center.tolist(),
                         "bbox_min": None if r.bbox_min is None else r.bbox_min.tolist(),
                         "bbox_max": None if r.bbox_max is None else r.bbox_max.tolist()}
         summary.add(f"{text!r}: {r.count} of {len(scene)} Gaussians (tau {r.tau:.3f})"
                     + (f" -> {out / (slug + '.ply')}" if r.count else ""))
-    (out / "selection.json").write_text(json.dumps(report, indent=2))
+    with atomic_write(out / "selection.json", "w") as fh:
+        json.dump(report, fh, indent=2)
     summary.add(f"pictures in {out}, details in {out / 'selection.json'}")
     summary.print()
     return 0
