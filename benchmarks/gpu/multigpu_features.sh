@@ -4,8 +4,10 @@
 #   2. full-size random-weight CLIP ViT-B/16 + SAM ViT-H + JBU, N synthetic 1920x1080 images
 #   3. single process on GPU 0
 #   4. torchrun --nproc_per_node 2 (NCCL, one rank per GPU)
-#   4b. single process again (the run-to-run baseline for the comparison)
-#   5. every written tensor of the runs compared with the first single-process run
+#   5. every written tensor of the 2-GPU run compared with the single-process run
+#   6. single process again, compared too (the run-to-run baseline)
+# About 6 minutes at 24 images (build 60 s, models 25 s, each run 70-85 s, each comparison ~30 s):
+# give the call 420 s or more.
 # Results under $OUT: multigpu.log, single*.json, two_gpu.json, compare.txt.
 # Usage, from the repo root:  OUT=/tmp/out bash benchmarks/gpu/multigpu_features.sh EIGEN_DEB [N_IMAGES]
 set -uo pipefail
@@ -33,32 +35,35 @@ $PY benchmarks/multigpu_features.py prepare "$WORK" --images "$N" >> "$LOG" 2>&1
 say "prepared in $(el "$t0") s"
 
 t0=$(date +%s.%N)
-CUDA_VISIBLE_DEVICES=0 timeout 110 $PY benchmarks/multigpu_features.py run "$WORK" single >> "$LOG" 2>&1
+CUDA_VISIBLE_DEVICES=0 timeout 90 $PY benchmarks/multigpu_features.py run "$WORK" single >> "$LOG" 2>&1
 say "single (1 process, GPU 0) rc=$? wall $(el "$t0") s"
 cp "$WORK/single/timing.json" "$OUT/single.json" 2>/dev/null
 
 t0=$(date +%s.%N)
-timeout 110 $PY -m torch.distributed.run --standalone --nproc_per_node 2 \
+timeout 90 $PY -m torch.distributed.run --standalone --nproc_per_node 2 \
   benchmarks/multigpu_features.py run "$WORK" two_gpu >> "$LOG" 2>&1
 say "two_gpu (torchrun, 2 ranks) rc=$? wall $(el "$t0") s"
 cp "$WORK/two_gpu/timing.json" "$OUT/two_gpu.json" 2>/dev/null
 
 
+# The comparison that matters first (one comparison reads ~50 files: ~30 s at 24 images).
+$PY benchmarks/multigpu_features.py compare "$WORK" single two_gpu > "$OUT/compare.txt" 2>&1
+say "compare two_gpu rc=$?"
+
 t0=$(date +%s.%N)
-CUDA_VISIBLE_DEVICES=0 timeout 110 $PY benchmarks/multigpu_features.py run "$WORK" single_again >> "$LOG" 2>&1
+CUDA_VISIBLE_DEVICES=0 timeout 90 $PY benchmarks/multigpu_features.py run "$WORK" single_again >> "$LOG" 2>&1
 say "single_again (1 process, GPU 0) rc=$? wall $(el "$t0") s"
 cp "$WORK/single_again/timing.json" "$OUT/single_again.json" 2>/dev/null
-
-$PY benchmarks/multigpu_features.py compare "$WORK" single single_again two_gpu > "$OUT/compare.txt" 2>&1
-say "compare rc=$?"
+$PY benchmarks/multigpu_features.py compare "$WORK" single single_again >> "$OUT/compare.txt" 2>&1
+say "compare single_again rc=$?"
 cat "$OUT/compare.txt" | tee -a "$LOG"
 $PY - "$OUT" <<'EOF' | tee -a "$LOG"
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1])
-rows = [json.loads((out / f"{n}.json").read_text()) for n in ("single", "single_again", "two_gpu") if (out / f"{n}.json").is_file()]
+rows = {n: json.loads((out / f"{n}.json").read_text()) for n in ("single", "two_gpu", "single_again") if (out / f"{n}.json").is_file()}
 print("| run | GPUs | backend | images | extract s | images/s | model load s |")
 print("| --- | ---: | --- | ---: | ---: | ---: | ---: |")
-for n, r in zip(("single", "single_again", "two_gpu"), rows):
+for n, r in rows.items():
     print(f"| {n} | {r['world_size']} | {r['backend']} | {r['images']} | {r['extract_s']:.2f} | {r['images_per_s']:.2f} | {r['model_load_s']:.1f} |")
 EOF
 say "done"
