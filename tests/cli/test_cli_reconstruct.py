@@ -3,6 +3,7 @@ step the last checkpoint holds."""
 from __future__ import annotations
 
 import pytest
+import torch
 
 from tiger.cli.main import main
 
@@ -32,6 +33,21 @@ def test_resume_without_checkpoint_refuses_a_non_empty_folder(data, tmp_path, ca
 def test_resume_into_an_empty_or_new_folder_starts_fresh(data, tmp_path):
     assert _reconstruct(data, tmp_path / "new", "--resume", "--steps", "10") == 0
     assert (tmp_path / "new" / "scene.ply").is_file()
+
+
+def test_reconstruct_stores_the_capture_cameras_beside_the_scene(data, tmp_path):
+    from tiger.scene.cameras_json import read_cameras_json
+    from tiger.scene.dataset import load_dataset
+
+    assert _reconstruct(data, tmp_path / "out", "--steps", "5") == 0
+    cams = read_cameras_json(tmp_path / "out" / "cameras.json")
+    ref = load_dataset(data).cameras  # every view, train and test, at full resolution
+    assert [c.image_name for c in cams] == [c.image_name for c in ref]
+    for a, b in zip(cams, ref):
+        assert torch.allclose(a.viewmat.double(), b.viewmat.double(), atol=1e-9)
+        assert torch.allclose(a.K.double(), b.K.double()) and (a.width, a.height) == (b.width, b.height)
+    # the PLY stays a plain INRIA PLY
+    assert b"cameras" not in (tmp_path / "out" / "scene.ply").read_bytes()[:4096]
 
 
 def test_ctrl_c_names_the_checkpoint_step_and_resume_continues(data, tmp_path, capsys, monkeypatch):

@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     out = output_file(args.out, args.force)
     feat_dir = existing(args.features, "feature folder")
     scene = load_scene(args.scene, dev)
-    cams = open_dataset(args.data, args.skip_missing).cameras
+    cams = capture = open_dataset(args.data, args.skip_missing).cameras
     names = [str(c.image_name).replace("/", "_") for c in cams]
     pca = PCABasis.load(existing(str(Path(feat_dir) / "pca.pt"), "PCA file"))
     fs = FeatureSet(Path(feat_dir), names, pca)
@@ -55,6 +55,10 @@ def run(args: argparse.Namespace) -> int:
     res = train_field(scene, cams, lambda i: fs.load(names[keep[i]]), pca=pca, checkpoint=ckpt,
                       steps=args.steps, lr=args.lr, batch_views=args.batch_views, loss=args.loss)
     scene.save_ply(out)
+    from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
+
+    if not cameras_json_path(out).is_file():  # `tiger render` renders along the capture's cameras
+        write_cameras_json(cameras_json_path(out), capture)
     summary.add(f"{len(keep)} views, loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}" if res.losses
                 else f"{len(keep)} views")
     if res.invisible is not None:

@@ -15,7 +15,9 @@ def add_parser(sub) -> None:
         description="Fit a 3D Gaussian Splatting scene to a COLMAP model (sparse/0 + images/) or a "
                     "NeRF/instant-ngp transforms.json, with the 3DGS recipe (L1 + 0.2 D-SSIM, "
                     "densification, opacity reset, SH schedule). Every 8th image is held out; "
-                    "test PSNR/SSIM are printed at the end. Checkpoints allow --resume.",
+                    "test PSNR/SSIM are printed at the end. Checkpoints allow --resume. Writes "
+                    "OUT/scene.ply (INRIA's PLY), OUT/cameras.json (the capture's cameras, INRIA's "
+                    "format; `tiger render` renders along them), OUT/metrics.json.",
         epilog="example: tiger reconstruct ../shared/data/fox --out outputs/fox --steps 7000 "
                "--downscale 4",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -53,6 +55,8 @@ def _resumable(out: Path, resume: bool) -> bool:
 def run(args: argparse.Namespace) -> int:
     from tiger.recon import ReconConfig, Trainer, load_views
     from tiger.scene import GaussianScene
+    from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
+    from tiger.utils.io import atomic_write
 
     dev = device_of(args.device)
     data = existing(args.data, "dataset")
@@ -83,13 +87,15 @@ def run(args: argparse.Namespace) -> int:
                 if trainer.checkpoint_step is not None else "this run wrote no checkpoint yet")
         raise KeyboardInterrupt(f"stopped at step {trainer.step} of {cfg.iterations}; {held}") from None
     scene.save_ply(out / "scene.ply")
-    summary.add(f"scene: {len(scene)} Gaussians -> {out / 'scene.ply'}")
+    write_cameras_json(cameras_json_path(out / "scene.ply"), ds.cameras)
+    summary.add(f"scene: {len(scene)} Gaussians -> {out / 'scene.ply'} (cameras: {out / 'cameras.json'})")
     metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed}
     if test_cams:
         ev = trainer.evaluate()
         metrics.update({k: v for k, v in ev.items() if isinstance(v, (int, float))})
         summary.add(f"test views: PSNR {ev.get('psnr', float('nan')):.2f} dB, "
                     f"SSIM {ev.get('ssim', float('nan')):.4f}")
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    with atomic_write(out / "metrics.json", "w") as fh:
+        json.dump(metrics, fh, indent=2)
     summary.print()
     return 0

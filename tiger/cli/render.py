@@ -13,19 +13,31 @@ KINDS = ("color", "depth", "alpha", "features", "relevancy")
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "render", help="render views of a scene to pictures (and a video)",
-        description="Render a scene from a dataset's cameras or an orbit: colour, depth, alpha, a "
-                    "PCA picture of the language features, and relevancy heat maps of --query. "
-                    "--video writes the colour frames as an MP4 (OpenCV or imageio-ffmpeg), else an "
-                    "animated GIF.",
-        epilog="example: tiger render outputs/fox/scene_lang.ply --orbit 36 --what color depth "
-               "features --video --out outputs/fox/turntable",
+        description="Render a scene: colour, depth, alpha, a PCA picture of the language features, "
+                    "and relevancy heat maps of --query. Views: --views of the capture's own camera "
+                    "path (the cameras.json that `tiger reconstruct` writes beside the PLY, or "
+                    "--data's cameras); without cameras, or with --orbit N, N views on an arc over "
+                    "the side the scene was observed from (judged from its view-dependent colour). "
+                    "Pictures are named after the source image (0001_color.png). --video writes "
+                    "the colour frames as an MP4 (OpenCV or imageio-ffmpeg), else an animated GIF.",
+        epilog="example: tiger render outputs/fox/scene_lang.ply --views 12 --downscale 2 --what color "
+               "depth features --video --out outputs/fox/views",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", help="PLY file")
     add_common(p, models=True)
-    p.add_argument("--data", default=None, help="render this dataset's cameras")
+    p.add_argument("--data", default=None,
+                   help="render this dataset's cameras (default: cameras.json beside the PLY)")
     add_skip_missing(p)
-    p.add_argument("--orbit", type=int, default=8, help="orbit views when no --data (default: 8)")
-    p.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
+    p.add_argument("--views", default=None, metavar="N|I,J,...",
+                   help="which views of the camera path: a count evenly spread (default: 8), "
+                        "comma-separated indices (0,12,24; one index: 12,) or 'all'")
+    p.add_argument("--downscale", type=float, default=1.0,
+                   help="render at 1/F of the cameras' resolution (default: 1)")
+    p.add_argument("--orbit", type=int, default=None, metavar="N",
+                   help="N views on an arc over the observed side instead of the capture's cameras "
+                        "(the default when there are none: 8)")
+    p.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"),
+                   help="picture size of --orbit views (default: 640 480)")
     p.add_argument("--what", nargs="+", choices=KINDS, default=["color", "depth"])
     p.add_argument("--query", default=None, help="text for the relevancy maps")
     p.add_argument("--text-embeddings", default=None)
@@ -33,10 +45,53 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _cameras(args: argparse.Namespace, scene, dev) -> tuple[list, str]:
+    """The views to render and where they come from (see the command's description)."""
+    from tiger.render.views import observed_orbit_cameras, path_view_indices
+    from tiger.scene.cameras_json import cameras_json_path, read_cameras_json
+
+    if not args.downscale > 0:
+        raise CliError(f"--downscale must be positive, got {args.downscale}")
+    stored = cameras_json_path(args.scene)
+    if args.orbit is not None or (not args.data and not stored.is_file()):
+        n = 8 if args.orbit is None else args.orbit
+        if n <= 0:
+            raise CliError(f"--orbit must be positive, got {n}")
+        if args.views is not None:
+            raise CliError("--views picks views of a camera path; with an orbit give the count as --orbit N")
+        w, h = (max(1, round(v / args.downscale)) for v in args.size)
+        return observed_orbit_cameras(scene, n, w, h), f"arc over the observed side, {w}x{h}"
+    if args.data:
+        from .query import pick_cameras
+
+        path, source = pick_cameras(scene, args.data, 10**9, dev, args.skip_missing), f"cameras of {args.data}"
+    else:
+        path, source = read_cameras_json(stored), f"capture path in {stored}"
+    try:
+        idx = list(range(len(path))) if args.views == "all" else path_view_indices(len(path), args.views)
+    except ValueError as e:
+        raise CliError(f"--views: {e}") from None
+    cams = [path[i].scaled(args.downscale) if args.downscale != 1 else path[i] for i in idx]
+    return cams, f"{len(cams)} of {len(path)} {source}"
+
+
+def _stems(cams: list) -> list[str]:
+    """File stems: the source image's name without folder or extension (0001), made unique."""
+    from pathlib import Path
+
+    out: list[str] = []
+    for i, cam in enumerate(cams):
+        name = Path(str(getattr(cam, "image_name", "") or f"view{i:03d}")).stem
+        stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or f"view{i:03d}"
+        base, k = stem, 2
+        while stem in out:
+            stem, k = f"{base}_{k}", k + 1
+        out.append(stem)
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
-
-    from .query import pick_cameras
 
     dev = device_of(args.device)
     out = output_dir(args.out, args.force)
@@ -45,24 +100,14 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.scene} has no language features: drop 'features'/'relevancy' from --what")
     if "relevancy" in args.what and not args.query:
         raise CliError("--what relevancy needs --query TEXT")
-    if args.data:
-        cams = pick_cameras(scene, args.data, 10**9, dev, args.skip_missing)
-    else:
-        from tiger.render.views import orbit_cameras
-
-        m = scene.means.detach().float().cpu()
-        lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
-        cams = orbit_cameras(args.orbit, args.size[0], args.size[1], center=((lo + hi) / 2).tolist(),
-                             radius=max(float((hi - lo).norm()) * 1.1, 1e-3))
+    cams, source = _cameras(args, scene, dev)
     summary = Summary("tiger render")
     frames, basis = [], None
     from tqdm.auto import tqdm
 
-    for i, cam in enumerate(tqdm(cams, desc="rendering")):
+    for cam, stem in zip(tqdm(cams, desc="rendering"), _stems(cams)):
         with torch.no_grad():
             r = scene.render(cam)
-        name = getattr(cam, "image_name", "") or f"view{i:03d}"
-        stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name))
         mask = r["alpha"] > 0.5
         if "color" in args.what:
             save_png(out / f"{stem}_color.png", r["color"].clamp(0, 1))
@@ -86,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 
         enc = text_encoder(args.models, args.text_embeddings, dev)
         write_relevancy_pictures(scene, cams, args.query, out, encoder=enc, score="relevancy")
-    summary.add(f"{len(cams)} views x {', '.join(args.what)} -> {out}")
+    summary.add(f"{len(cams)} views ({source}) x {', '.join(args.what)} -> {out}")
     if args.video and frames:
         from tiger.utils.video import write_video
 

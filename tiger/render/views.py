@@ -1,11 +1,17 @@
-"""Virtual cameras: look-at matrices and orbits around a point."""
+"""Virtual cameras: look-at matrices, orbits around a point, and the views to render of a
+captured scene: along the capture's camera path when the cameras are known
+(:func:`path_view_indices`), else an arc over the side the scene was observed from
+(:func:`observed_orbit_cameras`)."""
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import TYPE_CHECKING, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from tiger.scene import GaussianScene
 
 
 def look_at(eye: Sequence[float], target: Sequence[float],
@@ -64,3 +70,117 @@ def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0, **or
     K = pinhole_K(width, height, fov_y_deg)
     return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=f"orbit{i:03d}")
             for i, V in enumerate(orbit_viewmats(n, **orbit))]
+
+
+# -- views for scenes of a capture (forward-facing or not) ------------------------------------
+def path_view_indices(count: int, views: Union[None, int, str, Sequence[int]] = None,
+                      default: int = 8) -> list[int]:
+    """Which of ``count`` cameras along a capture path to render.
+
+    ``views``: None (``default`` views), a count ``k`` (an int or a string of digits: ``k`` views
+    evenly spaced along the path, first and last included), or indices (a sequence, or a string
+    with commas such as ``"0,12,24"``; a single index is written ``"12,"``). Counts above
+    ``count`` give every view. Bad indices raise ValueError naming them.
+    """
+    if count <= 0:
+        raise ValueError("tiger: no cameras to choose views from")
+    if isinstance(views, str):
+        text = views.strip()
+        try:
+            views = ([int(v) for v in text.split(",") if v.strip()] if "," in text else int(text))
+        except ValueError:
+            raise ValueError(f"tiger: views must be a count (8) or comma-separated indices (0,12,24), "
+                             f"got {text!r}") from None
+    if views is None or isinstance(views, int):
+        k = default if views is None else views
+        if k <= 0:
+            raise ValueError(f"tiger: the number of views must be positive, got {k}")
+        if k >= count:
+            return list(range(count))
+        return sorted({round(i * (count - 1) / max(k - 1, 1)) for i in range(k)})
+    idx = [int(v) for v in views]
+    bad = [v for v in idx if not 0 <= v < count]
+    if bad or not idx:
+        raise ValueError(f"tiger: view indices {bad or '[]'} are out of range: there are {count} cameras "
+                         f"(0..{count - 1})")
+    return idx
+
+
+def fibonacci_directions(n: int) -> Tensor:
+    """[n, 3] unit vectors spread evenly over the sphere (Fibonacci lattice), float64."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (1 + 5 ** 0.5) * i
+    r = (1 - z * z).sqrt()
+    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=1)
+
+
+def observed_direction(scene: "GaussianScene", candidates: int = 64) -> Optional[Tensor]:
+    """The direction [3] (from the scene's centre towards where the cameras were) that the
+    scene's view-dependent colour says was observed, or None for SH degree 0.
+
+    Rule: training fits the SH colours only for the directions the cameras saw; elsewhere the
+    higher bands extrapolate and the colours leave [0, 1]. For ``candidates`` directions d
+    spread over the sphere, each Gaussian's colour is evaluated for a distant camera at d
+    (view direction -d), and d scores the opacity-weighted mean amount by which the colours
+    fall outside [0, 1]. The answer is the mean of the directions scoring within 10 % (of the
+    score range) of the best: the centre of the observed cap.
+    """
+    if scene.sh_degree == 0 or len(scene) == 0:
+        return None
+    with torch.no_grad():
+        sh = scene.sh.detach().float()
+        w = scene.opacities.detach().float()
+        dirs = fibonacci_directions(candidates).float().to(sh.device)
+        scores = []
+        for d in dirs:
+            view = (-d).expand(sh.shape[0], 3).contiguous()
+            rgb = torch.ops.tiger.sh_to_color(view, sh.contiguous(), scene.sh_degree, None) + 0.5
+            outside = (rgb - 1).clamp_min(0) + (-rgb).clamp_min(0)
+            scores.append(float((outside.sum(1) * w).sum() / w.sum().clamp_min(1e-12)))
+    sc = torch.tensor(scores, dtype=torch.float64)
+    lo, hi = float(sc.min()), float(sc.max())
+    if hi - lo <= 1e-9 * max(hi, 1.0):  # no direction stands out: nothing was learnt about views
+        return None
+    good = dirs.double().cpu()[sc <= lo + 0.1 * (hi - lo)]  # the best directions: a cap
+    mean = good.mean(0)
+    return mean / mean.norm() if float(mean.norm()) > 1e-6 else good[0]
+
+
+def observed_orbit_cameras(scene: "GaussianScene", n: int, width: int, height: int, *,
+                           arc_deg: float = 120.0, elevation_deg: float = 15.0,
+                           up: Sequence[float] = (0.0, -1.0, 0.0), fov_y_deg: float = 45.0) -> list:
+    """``n`` views on an arc of ``arc_deg`` around the observed side of a scene with no cameras.
+
+    The centre and radius come from the 2-98 % quantiles of the means (radius 1.1 times the
+    box diagonal); the arc is centred on :func:`observed_direction` (the full circle when the
+    scene's colours do not say: SH degree 0), ``elevation_deg`` above the plane normal to
+    ``up`` (the COLMAP/OpenCV habit: -y).
+    """
+    m = scene.means.detach().float().cpu()
+    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
+    center, radius = ((lo + hi) / 2).double(), max(float((hi - lo).norm()) * 1.1, 1e-3)
+    front = observed_direction(scene)
+    u = torch.tensor(up, dtype=torch.float64)
+    u = u / u.norm()
+    if front is None:
+        return orbit_cameras(n, width, height, fov_y_deg, center=center.tolist(), radius=radius,
+                             elevation_deg=elevation_deg, up=u.tolist())
+    e1 = front - (front @ u) * u  # the front direction in the horizontal plane
+    if float(e1.norm()) < 1e-6:  # seen from straight above or below: any horizontal axis
+        e1 = torch.linalg.cross(u, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+        if float(e1.norm()) < 1e-6:
+            e1 = torch.linalg.cross(u, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(u, e1)
+    el = math.radians(elevation_deg)
+    K = pinhole_K(width, height, fov_y_deg)
+    from tiger.scene.cameras import Camera
+
+    cams = []
+    for i in range(n):
+        t = math.radians(arc_deg) * ((i / (n - 1) - 0.5) if n > 1 else 0.0)
+        eye = center + radius * (math.cos(el) * (math.cos(t) * e1 + math.sin(t) * e2) + math.sin(el) * u)
+        cams.append(Camera(viewmat=look_at(eye.tolist(), center.tolist(), u.tolist()), K=K.clone(),
+                           width=width, height=height, image_name=f"orbit{i:03d}"))
+    return cams

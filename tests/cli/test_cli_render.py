@@ -1,0 +1,88 @@
+"""tiger render of a captured scene: views along the capture's cameras (cameras.json beside the
+PLY), --views / --downscale, pictures named after the source images."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from tiger.cli.main import main
+from tiger.scene import GaussianScene
+from tiger.scene.cameras_json import read_cameras_json, write_cameras_json
+from tiger.scene.dataset import load_dataset
+
+from .test_cli_pipeline import _dataset
+
+
+@pytest.fixture(scope="module")
+def captured(tmp_path_factory):
+    """The scene the dataset was rendered from, saved as a PLY with the capture's cameras.json."""
+    from tiger.demo import tabletop_scene
+
+    root = tmp_path_factory.mktemp("render")
+    data = _dataset(root / "data")
+    s = tabletop_scene(density=0.15)
+    o = s.opacities.clamp(1e-4, 1 - 1e-4)
+    scene = GaussianScene(s.means.clone(), s.scales.clamp_min(1e-8).log(), s.quats.clone(), torch.log(o / (1 - o)),
+                          (s.rgb - 0.5) / 0.28209479177387814)
+    scene.save_ply(root / "scene" / "scene.ply")
+    write_cameras_json(root / "scene" / "cameras.json", load_dataset(data).cameras)
+    return root / "scene" / "scene.ply", data
+
+
+def _png(path):
+    return torch.from_numpy(np.array(Image.open(path).convert("RGB"))).float() / 255
+
+
+def test_default_views_follow_the_capture_and_reproduce_its_pictures(captured, tmp_path, capsys):
+    ply, data = captured
+    out = tmp_path / "r"
+    assert main(["render", str(ply), "--what", "color", "alpha", "--out", str(out), "--device", "cpu"]) == 0
+    assert "6 of 6 capture path in" in capsys.readouterr().out
+    names = sorted(p.name for p in out.glob("*_color.png"))
+    assert names == [f"{i:03d}_color.png" for i in range(6)]  # the source names, no extension
+    for i in (0, 3):
+        ours, ref = _png(out / f"{i:03d}_color.png"), _png(data / "images" / f"{i:03d}.png")
+        alpha = torch.from_numpy(np.array(Image.open(out / f"{i:03d}_alpha.png"))).float() / 255
+        covered = alpha >= 0.999  # the dataset has a white background, the render a black one
+        assert covered.float().mean() > 0.05
+        assert float((ours - ref)[covered].abs().mean()) < 0.01
+
+
+def test_views_and_downscale(captured, tmp_path, capsys):
+    ply, _ = captured
+    out = tmp_path / "r"
+    assert main(["render", str(ply), "--views", "2", "--downscale", "2", "--what", "color", "--out", str(out),
+                 "--device", "cpu"]) == 0
+    names = sorted(p.name for p in out.glob("*.png"))
+    assert names == ["000_color.png", "005_color.png"]  # the two ends of the path
+    assert Image.open(out / "000_color.png").size == (32, 24)
+    out2 = tmp_path / "r2"
+    assert main(["render", str(ply), "--views", "1,4", "--what", "color", "--out", str(out2)]) == 0
+    assert sorted(p.name for p in out2.glob("*.png")) == ["001_color.png", "004_color.png"]
+    assert main(["render", str(ply), "--views", "9,", "--out", str(tmp_path / "r3")]) == 2
+    assert "view indices [9] are out of range: there are 6 cameras" in capsys.readouterr().err
+    assert main(["render", str(ply), "--orbit", "3", "--views", "2", "--out", str(tmp_path / "r4")]) == 2
+    assert "--views picks views of a camera path" in capsys.readouterr().err
+
+
+def test_without_cameras_an_arc_of_views(captured, tmp_path, capsys):
+    import shutil
+
+    ply, _ = captured
+    lone = tmp_path / "lone.ply"
+    shutil.copy(ply, lone)
+    out = tmp_path / "r"
+    assert main(["render", str(lone), "--orbit", "3", "--size", "40", "30", "--what", "color", "--out",
+                 str(out), "--device", "cpu"]) == 0
+    assert "arc over the observed side, 40x30" in capsys.readouterr().out
+    assert sorted(p.name for p in out.glob("*.png")) == [f"orbit{i:03d}_color.png" for i in range(3)]
+
+
+def test_cameras_json_survives_a_read_back(captured):
+    ply, data = captured
+    cams = read_cameras_json(ply.with_name("cameras.json"))
+    ref = load_dataset(data).cameras
+    assert [c.image_name for c in cams] == [c.image_name for c in ref]
+    assert all(torch.allclose(a.viewmat.double(), b.viewmat.double(), atol=1e-6) for a, b in zip(cams, ref))
