@@ -200,6 +200,43 @@ def test_relevancy_maps_render_and_pictures(tmp_path):
     assert len(paths) == 2 and all(p.stat().st_size > 1000 for p in paths)
 
 
+def test_relevancy_picture_reads_high_at_the_target(tmp_path):
+    """The heat map is drawn alone beside the render: at the target it is the colour map's colour
+    of the target's score (high end), not that colour blended over the object's own colour; where
+    no Gaussian is, it is black, not the colour of the score of empty space."""
+    import matplotlib
+    import numpy as np
+    from PIL import Image
+
+    from tiger.retrieval import relevancy_maps, write_relevancy_pictures
+    from tiger.retrieval.maps import GAP, TITLE_H
+    from tiger.retrieval.synthetic import label_masks
+
+    ls = _scene_with_oracle_lang(noise=0.0)
+    cam = ls.cameras[0]
+    target = ls.labels.index("red mug")
+    p, = write_relevancy_pictures(ls.scene, [cam], "red mug", tmp_path, encoder=ls.encoder, score="cosine")
+    q = embed_queries(["red mug"], dim=64, encoder=ls.encoder, pca=ls.scene)
+    m = relevancy_maps(ls.scene, cam, q)
+    h, w = cam.height, cam.width
+    pic = np.asarray(Image.open(p).convert("RGB")).astype(np.float64)
+    heat = pic[TITLE_H:TITLE_H + h, w + GAP:2 * w + GAP]
+    mug = label_masks(ls, cam)[target].numpy()
+    cos = m["cosine"][0].numpy()
+    expect = matplotlib.colormaps["turbo"](np.clip((cos + 1) / 2, 0, 1))[..., :3] * 255
+    assert mug.sum() > 10
+    assert np.abs(heat[mug] - expect[mug]).max() <= 1.0
+    high = matplotlib.colormaps["turbo"](0.95)[:3]
+    assert np.abs(heat[mug].mean(0) / 255 - high).max() < 0.15  # reads as the top of the bar
+    empty = m["alpha"].numpy() < 0.5
+    assert empty.sum() > 10 and (heat[empty] == 0).all()
+    # the left panel is the render itself
+    from tiger.retrieval.maps import render_rgb
+
+    rgb = render_rgb(ls.scene, cam).numpy() * 255
+    assert np.abs(pic[TITLE_H:TITLE_H + h, :w] - rgb).max() <= 1.0
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_retrieve_on_cuda_matches_cpu():

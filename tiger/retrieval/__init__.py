@@ -1,7 +1,8 @@
 """Text -> 3D Gaussians: relevance scores, selection, object bounds and 2D relevancy maps."""
 from __future__ import annotations
 
-from .maps import relevancy_maps, render_language, render_rgb, save_heatmap, write_relevancy_pictures
+from .maps import (relevancy_maps, render_language, render_rgb, save_heatmap, save_relevancy_picture,
+                   write_relevancy_pictures)
 from .relevance import DEFAULT_TEMPERATURE, relevancy
 from .select import (Retrieval, choose_tau, min_error_threshold, otsu_threshold, retrieve, robust_bounds,
                      subset, valley_threshold)
@@ -10,4 +11,4 @@ from .text import CANONICAL_NEGATIVES, TextEncoder, embed_negatives, embed_queri
 __all__ = ["CANONICAL_NEGATIVES", "DEFAULT_TEMPERATURE", "Retrieval", "TextEncoder", "choose_tau",
            "embed_negatives", "embed_queries", "min_error_threshold", "otsu_threshold", "pca_of", "project", "relevancy",
            "relevancy_maps", "render_language", "render_rgb", "retrieve", "robust_bounds",
-           "save_heatmap", "subset", "valley_threshold", "write_relevancy_pictures"]
+           "save_heatmap", "save_relevancy_picture", "subset", "valley_threshold", "write_relevancy_pictures"]

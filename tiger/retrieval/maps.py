@@ -133,15 +133,61 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")[:80] or "query"
 
 
+# Layout of :func:`save_relevancy_picture` (pixels): a title strip, then the panels side by side.
+TITLE_H, GAP, BAR_W, LABEL_W = 14, 6, 12, 40
+EMPTY = (0, 0, 0)  # heat-panel pixels with no Gaussian behind them
+
+
+def save_relevancy_picture(path: PathLike, values: torch.Tensor, alpha: torch.Tensor,
+                           image: Optional[torch.Tensor] = None, *, vmin: float, vmax: float,
+                           title: str = "", cmap: str = "turbo") -> Path:
+    """One view's relevancy as ``[render | heat map | colour bar]`` at the view's resolution.
+
+    The heat map is drawn alone (not blended over the render, whose colours would shift it:
+    a red high over a blue object reads purple), so the colour bar reads directly; pixels
+    where ``alpha`` [H, W] < 0.5 (no Gaussian) are black instead of the colour of the score
+    of empty space. ``values`` [H, W] are clipped to [vmin, vmax]; ``image`` [H, W, 3] in
+    [0, 1] is the render shown on the left (omitted when None). Panels start ``TITLE_H``
+    pixels from the top, ``GAP`` apart. Written atomically as PNG.
+    """
+    from PIL import Image, ImageDraw
+
+    from tiger.utils.images import colorize, to_uint8
+
+    h, w = values.shape
+    if alpha.shape != (h, w) or (image is not None and tuple(image.shape[:2]) != (h, w)):
+        raise ValueError(f"tiger.retrieval: relevancy picture: values {tuple(values.shape)}, alpha "
+                         f"{tuple(alpha.shape)} and image {None if image is None else tuple(image.shape)} "
+                         "must share H and W")
+    heat = colorize(values, alpha.detach().cpu() >= 0.5, cmap, vmin, vmax)
+    bar_values = torch.linspace(vmax, vmin, h)[:, None].expand(h, BAR_W)
+    bar = colorize(bar_values, None, cmap, vmin, vmax)
+    panels = ([image.detach().float().cpu()[..., :3].clamp(0, 1)] if image is not None else []) + [heat]
+    x_bar = len(panels) * (w + GAP)
+    canvas = Image.new("RGB", (x_bar + BAR_W + LABEL_W, TITLE_H + h), (255, 255, 255))
+    for k, panel in enumerate(panels):
+        canvas.paste(Image.fromarray(to_uint8(panel)), (k * (w + GAP), TITLE_H))
+    canvas.paste(Image.fromarray(to_uint8(bar)), (x_bar, TITLE_H))
+    draw = ImageDraw.Draw(canvas)
+    draw.text((2, 1), title, fill=(0, 0, 0))
+    draw.text((x_bar + BAR_W + 3, TITLE_H), f"{vmax:g}", fill=(0, 0, 0))
+    draw.text((x_bar + BAR_W + 3, TITLE_H + h - 11), f"{vmin:g}", fill=(0, 0, 0))
+    path = Path(path)
+    with atomic_write(path, "wb") as fh:
+        canvas.save(fh, format="PNG")
+    return path
+
+
 def write_relevancy_pictures(scene: Any, cameras: Sequence[Any], query: Query, out_dir: PathLike, *,
                              encoder: Optional[TextEncoder] = None, pca: Any = None,
                              negatives: Union[None, Sequence[str], torch.Tensor] = CANONICAL_NEGATIVES,
                              score: str = "relevancy", temperature: float = DEFAULT_TEMPERATURE,
                              names: Optional[Sequence[str]] = None) -> list[Path]:
-    """Heat-map pictures of one query for the given views: ``out_dir/<query>_<view>.png``.
+    """Pictures of one query for the given views: ``out_dir/<query>_<view>.png``, each the render
+    beside the heat map alone (:func:`save_relevancy_picture`).
 
-    ``score="relevancy"`` draws the LERF relevancy (colour bar over [0.5, 1], lower values left
-    uncoloured, as LERF shows it); ``"cosine"`` the cosine over [-1, 1].
+    ``score="relevancy"`` maps the LERF relevancy over [0.5, 1] (lower values at the low end, as
+    LERF shows only > 0.5); ``"cosine"`` the cosine over [-1, 1].
     """
     if score not in ("cosine", "relevancy"):
         raise ValueError(f"tiger.retrieval: score must be 'cosine' or 'relevancy', got '{score}'")
@@ -161,9 +207,10 @@ def write_relevancy_pictures(scene: Any, cameras: Sequence[Any], query: Query, o
         view = names[i] if names is not None else (getattr(cam, "image_name", "") or f"view{i:03d}")
         maps = relevancy_maps(scene, cam, q[:1], neg, temperature=temperature)
         vals = maps["relevancy"][0] if score == "relevancy" else maps["cosine"][0]
-        rng = dict(vmin=0.5, vmax=1.0, below=0.5) if score == "relevancy" else dict(vmin=-1.0, vmax=1.0)
+        vmin, vmax = (0.5, 1.0) if score == "relevancy" else (-1.0, 1.0)
         p = out_dir / f"{_slug(text)}_{_slug(Path(view).stem)}.png"
-        save_heatmap(p, vals, render_rgb(scene, cam), title=f"'{text}' ({score})", label=score, **rng)
+        save_relevancy_picture(p, vals, maps["alpha"], render_rgb(scene, cam), vmin=vmin, vmax=vmax,
+                               title=f"'{text}' ({score})")
         paths.append(p)
     log.info("wrote %d relevancy pictures to %s", len(paths), out_dir)
     return paths
