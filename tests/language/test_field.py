@@ -90,15 +90,21 @@ def test_invisible_gaussians_are_reported_and_zero(caplog):
     s = ls.scene
     extra = torch.tensor([[0.0, 0.0, 50.0], [30.0, 30.0, 1.0]])  # above every camera; far outside the views
     n0 = s.means.shape[0]
-    s.means = torch.cat([s.means, extra])
-    s.quats = torch.cat([s.quats, torch.tensor([[1.0, 0, 0, 0]] * 2)])
-    s.scales = torch.cat([s.scales, torch.full((2, 3), 0.01)])
-    s.opacities = torch.cat([s.opacities, torch.full((2,), 0.9)])
+    faint = s.means[:1].clone()  # in view but too faint to reach 1/255 anywhere: culled too
+    s.means = torch.cat([s.means, extra, faint])
+    s.quats = torch.cat([s.quats, torch.tensor([[1.0, 0, 0, 0]] * 3)])
+    s.scales = torch.cat([s.scales, torch.full((3, 3), 0.01)])
+    s.opacities = torch.cat([s.opacities, torch.tensor([0.9, 0.9, 1e-4])])
     with caplog.at_level("WARNING"):
         res = train_field(s, ls.cameras, maps, steps=3, **FAST)
     assert res.invisible[n0:].all() and not res.invisible[:n0].any()
     assert (s.lang[n0:] == 0).all()
-    assert "2 of" in caplog.text and "culled in every view" in caplog.text
+    assert "3 of" in caplog.text and "culled in every view" in caplog.text
+    # one consistent line for the summary: both groups, in the words of the logs
+    n_hidden = int(res.untouched.sum())
+    assert res.coverage() == (f"{3 + n_hidden} of {n0 + 3} Gaussians without a language feature (L = 0): "
+                              f"3 culled in every view (outside it or too faint), {n_hidden} in view but "
+                              "reaching no valid pixel (hidden or masked out)")
 
 
 def test_invalid_pixels_are_ignored():

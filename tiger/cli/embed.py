@@ -61,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
         write_cameras_json(cameras_json_path(out), capture)
     summary.add(f"{len(keep)} views, loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}" if res.losses
                 else f"{len(keep)} views")
-    if res.invisible is not None:
-        summary.add(f"{int(res.invisible.sum())} Gaussians invisible in every view (skipped)")
+    summary.add(res.coverage())
     summary.add(f"scene with language features -> {out}")
     summary.print()
     return 0

@@ -122,8 +122,7 @@ def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str],
     with timer.stage(f"train language field ({steps} steps, features-only backward)"):
         res = train_field(field_scene, cams, maps, steps=steps, lr=0.02, batch_views=2,
                           loss="l1", progress=True, pca=(basis, mean))
-    print(f"  field: loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}; "
-          f"{int(res.invisible.sum())} Gaussians invisible in every view (skipped)")
+    print(f"  field: loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}; {res.coverage()}")
     field_scene.lang_pca_basis, field_scene.lang_pca_mean = basis, mean
     with timer.stage("save scene.ply (with lang_* and PCA) and the text-embedding table"):
         _save_scene(scene, field_scene.lang, basis, mean, out / "scene.ply")

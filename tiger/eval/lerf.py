@@ -378,12 +378,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", action="append", metavar="NAME=DATASET",
                    help="its cameras: COLMAP folder or transforms.json (tiger.scene.load_dataset)")
     p.add_argument("--clip", default=None, help="CLIP model folder (save_pretrained layout) for the text encoder")
+    p.add_argument("--models", default=None,
+                   help="model folder or JSON config {name: path} to find CLIP in when no --clip "
+                        "(default: $TIGER_MODELS)")
     p.add_argument("--text-embeddings", default=None, help="torch.save'd {text: [F] tensor} instead of --clip")
     p.add_argument("--score", choices=("relevancy", "cosine"), default="relevancy")
     p.add_argument("--filter-size", type=int, default=30)
     p.add_argument("--mask-thresh", type=float, default=0.4)
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--device", default="auto",
+                   help="cpu, cuda, cuda:N or auto (cuda when available; default: %(default)s)")
     p.add_argument("--out", required=True, help="output folder (results.json, table.md, pictures)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out folder")
     p.add_argument("--no-pictures", action="store_true")
     return p
 
@@ -391,16 +396,24 @@ def build_parser() -> argparse.ArgumentParser:
 def _load_encoder(args: argparse.Namespace) -> Any:
     if args.text_embeddings:
         return EmbeddingTable(args.text_embeddings)
-    if args.clip:
-        from tiger.language.maskclip import MaskCLIP
+    from tiger.language.maskclip import MaskCLIP
+    from tiger.models.paths import ModelNotFoundError
 
-        return MaskCLIP.from_pretrained(args.clip, device=args.device)
-    raise SystemExit("tiger eval-lerf: give --clip MODEL_DIR (openai/clip-vit-base-patch16) or --text-embeddings FILE")
+    try:
+        return MaskCLIP.from_pretrained(args.clip, device=args.device, config=args.models)
+    except ModelNotFoundError as e:
+        raise SystemExit(f"tiger eval-lerf: {e}\n(give --clip MODEL_DIR, --models CONFIG or "
+                         "--text-embeddings FILE)") from None
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """CLI entry (``python -m tiger.eval.lerf``); returns the exit status."""
     args = build_parser().parse_args(argv)
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    out = Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not args.force:
+        raise SystemExit(f"tiger eval-lerf: {out} already exists and is not empty; pass --force to write into it")
     scenes, data = _pairs(args.scene, "--scene"), _pairs(args.data, "--data")
     if not scenes:
         raise SystemExit("tiger eval-lerf: give at least one --scene NAME=PLY")

@@ -74,8 +74,10 @@ class FieldResult:
     Attributes:
         lang: [N, D] the trained embeddings (also written to ``scene.lang``).
         losses: loss per step (the whole run, resumed parts included).
-        invisible: [N] bool, culled in every view (skipped, L = 0).
-        untouched: [N] bool, in view somewhere but never given a gradient (L reset to 0).
+        invisible: [N] bool, culled in every view: outside it or too faint (skipped, L = 0).
+        untouched: [N] bool, in view somewhere but reaching no valid pixel (hidden behind others,
+            or only over masked-out pixels), so never given a gradient (L reset to 0).
+            :meth:`coverage` says both in one line.
         steps: steps done in total; seconds: wall time of this call.
     """
 
@@ -85,6 +87,15 @@ class FieldResult:
     untouched: Optional[torch.Tensor] = None
     steps: int = 0
     seconds: float = 0.0
+
+    def coverage(self) -> str:
+        """One line on the Gaussians left without a feature, in the words the logs use."""
+        n = int(self.lang.shape[0])
+        out_of_view = int(self.invisible.sum()) if self.invisible is not None else 0
+        silent = int(self.untouched.sum()) if self.untouched is not None else 0
+        return (f"{out_of_view + silent} of {n} Gaussians without a language feature (L = 0): "
+                f"{out_of_view} culled in every view (outside it or too faint), {silent} in view but "
+                f"reaching no valid pixel (hidden or masked out)")
 
 
 # ------------------------------------------------------------------------------------ inputs
@@ -263,7 +274,8 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
         lang_full[~visible] = 0
     n_invisible = int((~visible).sum())
     if n_invisible:
-        log.warning("train_field: %d of %d Gaussians are culled in every view; skipped (L = 0)", n_invisible, n)
+        log.warning("train_field: %d of %d Gaussians are culled in every view (outside it or too faint); "
+                    "skipped (L = 0)", n_invisible, n)
 
     vis_idx = torch.nonzero(visible).reshape(-1)
     lang = lang_full[vis_idx].clone().requires_grad_(True)
@@ -328,7 +340,8 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
     untouched = visible & ~touched
     n_untouched = int(untouched.sum())
     if n_untouched and step > 0:
-        log.warning("train_field: %d visible Gaussians never contributed to a pixel; L reset to 0", n_untouched)
+        log.warning("train_field: %d Gaussians are in view but reach no valid pixel (hidden or masked "
+                    "out); L reset to 0", n_untouched)
         lang_full[untouched] = 0
     scene.lang = lang_full
     if pca is not None:
