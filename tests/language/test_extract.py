@@ -159,6 +159,23 @@ def test_two_ranks_share_the_images(tiny_models, tmp_path):
     fs = FeatureSet(out, ["00000", "00001", "00002"], extract_mod.PCABasis.load(out / "pca.pt"))
     for name in fs.names:
         assert fs.load(name)[0].shape[-1] == 4
+    # Sharding changes nothing: one process (same thread count as each rank) writes the same files.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        clip = MaskCLIP.from_pretrained(tiny_models / "clip-vit-base-patch16")
+        sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", mask_config=LENIENT)
+        one = extract_features(images(3), tmp_path / "one", clip=clip, sam=sam, config=config(), progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    for name in one.names:
+        for sub in ("features", "cache"):
+            a = torch.load(tmp_path / "one" / sub / f"{name}.pt", weights_only=True)
+            b = torch.load(out / sub / f"{name}.pt", weights_only=True)
+            for key, value in a.items():
+                if torch.is_tensor(value):
+                    assert torch.equal(value, b[key]), (sub, name, key)
+    assert torch.equal(one.pca.components, fs.pca.components)
 
 
 def _pixel_features(record):
