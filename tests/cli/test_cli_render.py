@@ -63,6 +63,7 @@ def test_views_and_downscale(captured, tmp_path, capsys):
     assert sorted(p.name for p in out2.glob("*.png")) == ["001_color.png", "004_color.png"]
     assert main(["render", str(ply), "--views", "9,", "--out", str(tmp_path / "r3")]) == 2
     assert "view indices [9] are out of range: there are 6 cameras" in capsys.readouterr().err
+    assert not (tmp_path / "r3").exists()  # a refused render leaves no folder
     assert main(["render", str(ply), "--orbit", "3", "--views", "2", "--out", str(tmp_path / "r4")]) == 2
     assert "--views picks views of a camera path" in capsys.readouterr().err
 

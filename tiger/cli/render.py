@@ -94,13 +94,14 @@ def run(args: argparse.Namespace) -> int:
     from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
 
     dev = device_of(args.device)
-    out = output_dir(args.out, args.force)
+    output_dir(args.out, args.force, create=False)  # refusals below leave no folder behind
     scene = load_scene(args.scene, dev)
     if ("features" in args.what or "relevancy" in args.what) and scene.lang is None:
         raise CliError(f"{args.scene} has no language features: drop 'features'/'relevancy' from --what")
     if "relevancy" in args.what and not args.query:
         raise CliError("--what relevancy needs --query TEXT")
     cams, source = _cameras(args, scene, dev)
+    out = output_dir(args.out, args.force)
     summary = Summary("tiger render")
     frames, basis = [], None
     from tqdm.auto import tqdm
