@@ -42,6 +42,8 @@ class ReconConfig:
     max_screen_size: Optional[float] = None  # px; INRIA's screen rule is inert in practice
     max_world_size: Optional[float] = 0.1    # x extent, after the first opacity reset
     max_gaussians: Optional[int] = None
+    appearance: bool = False               # per-training-image affine colour correction
+    lr_appearance: float = 1e-3
     background: tuple = (0.0, 0.0, 0.0)
     random_background: bool = False
     init_random_points: int = 100_000

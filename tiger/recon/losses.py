@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -89,9 +90,12 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11,
     return ((2 * mu12 + SSIM_C1) * (2 * s12 + SSIM_C2)) / ((mu1_sq + mu2_sq + SSIM_C1) * (s1 + s2 + SSIM_C2))
 
 
-def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM (scalar tensor, differentiable); see :func:`ssim_map`."""
-    return ssim_map(img1, img2, window_size, sigma).mean()
+def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
+         mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Mean SSIM (scalar tensor, differentiable) of [H, W, C] images, over the pixels where
+    ``mask`` [H, W] is True (default all); see :func:`ssim_map`."""
+    m = ssim_map(img1, img2, window_size, sigma)
+    return m.mean() if mask is None else m[0].permute(1, 2, 0)[mask.to(m.device)].mean()
 
 
 def l1(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
@@ -106,7 +110,9 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     return loss
 
 
-def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
-    """PSNR in dB of images in [0, 1] (both clamped to [0, 1] first)."""
-    mse = float(((img1.detach().clamp(0, 1) - img2.detach().clamp(0, 1)) ** 2).mean())
+def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
+    """PSNR in dB of [H, W, C] images in [0, 1] (both clamped to [0, 1] first), over the
+    pixels where ``mask`` [H, W] is True (default all)."""
+    err = (img1.detach().clamp(0, 1) - img2.detach().clamp(0, 1)) ** 2
+    mse = float(err.mean() if mask is None else err[mask.to(err.device)].mean())
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)

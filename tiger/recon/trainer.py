@@ -15,6 +15,7 @@ from tiger.scene.checkpoint import load_checkpoint, save_checkpoint
 from tiger.scene.dataset import points_in_views
 from tiger.scene.gaussian_scene import GaussianScene
 
+from .appearance import AffineAppearance
 from .config import ReconConfig, expon_lr
 from .losses import photometric_loss, psnr, ssim
 from .step import SceneOptimizer
@@ -41,13 +42,18 @@ class Trainer:
         device: where to train (default: the images' device).
         out_dir: where checkpoints go (``checkpoint.pt``).
         test_cameras, test_images: held-out views for :meth:`evaluate` during/after training.
+        masks, test_masks: optional [H, W] bool per image, the pixels that count (e.g.
+            :func:`tiger.scene.images.undistortion_valid_mask`: not the black border that
+            undistortion leaves); the loss ignores the others, PSNR/SSIM are taken over them.
     """
 
     def __init__(self, cameras: Sequence[Camera], images: Sequence[torch.Tensor],
                  config: Optional[ReconConfig] = None, scene: Optional[GaussianScene] = None,
                  init_points: Optional[torch.Tensor] = None, init_colors: Optional[torch.Tensor] = None,
                  device: Optional[Union[str, torch.device]] = None, out_dir: Optional[PathLike] = None,
-                 test_cameras: Sequence[Camera] = (), test_images: Sequence[torch.Tensor] = ()) -> None:
+                 test_cameras: Sequence[Camera] = (), test_images: Sequence[torch.Tensor] = (),
+                 masks: Optional[Sequence[torch.Tensor]] = None,
+                 test_masks: Optional[Sequence[torch.Tensor]] = None) -> None:
         self.cfg = config or ReconConfig()
         if len(cameras) == 0:
             raise ValueError("tiger.recon: no training cameras")
@@ -59,6 +65,8 @@ class Trainer:
         self.images = [im.to(self.device, torch.float32) for im in images]
         self.test_cameras = [self._check_view(c, im, i) for i, (c, im) in enumerate(zip(test_cameras, test_images))]
         self.test_images = [im.to(self.device, torch.float32) for im in test_images]
+        self.masks = self._check_masks(masks, self.images, "masks")
+        self.test_masks = self._check_masks(test_masks, self.test_images, "test_masks")
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.extent = float(self.cfg.extent) if self.cfg.extent else scene_extent(self.cameras)
         self.gen = torch.Generator().manual_seed(self.cfg.seed)
@@ -75,6 +83,25 @@ class Trainer:
         self.elapsed = 0.0
         self._build_optimizer()
         self.stats = DensifyStats.zeros(len(self.scene), self.device)
+        self.appearance: Optional[AffineAppearance] = None
+        if self.cfg.appearance:
+            self.appearance = AffineAppearance(len(self.cameras), self.device)
+            self.appearance_optimizer = torch.optim.Adam(self.appearance.parameters(), lr=self.cfg.lr_appearance,
+                                                         eps=self.cfg.adam_eps)
+
+    def _check_masks(self, masks: Optional[Sequence[torch.Tensor]], images: list,
+                     what: str) -> Optional[list]:
+        if masks is None:
+            return None
+        if len(masks) != len(images):
+            raise ValueError(f"tiger.recon: {len(masks)} {what} for {len(images)} images")
+        out = []
+        for i, (m, im) in enumerate(zip(masks, images)):
+            if m.dtype != torch.bool or tuple(m.shape) != tuple(im.shape[:2]):
+                raise ValueError(f"tiger.recon: {what}[{i}] must be [H, W] = {list(im.shape[:2])} bool, got "
+                                 f"{m.dtype} {list(m.shape)}")
+            out.append(m.to(self.device))
+        return out
 
     # -- set-up -------------------------------------------------------------------------
     def _check_view(self, cam: Camera, img: torch.Tensor, i: int) -> Camera:
@@ -138,6 +165,7 @@ class Trainer:
             self.active_sh = min(self.active_sh + 1, c.sh_degree)
         i = self._next_view()
         cam, target = self.cameras[i], self.images[i]
+        mask = self.masks[i] if self.masks is not None else None
         background = self._background()
 
         def render(scene: GaussianScene, view: tuple) -> dict:
@@ -146,14 +174,20 @@ class Trainer:
             return out
 
         def loss(out: dict, view: tuple) -> torch.Tensor:
-            return photometric_loss(out["color"], view[1], c.lambda_dssim)
+            pred = out["color"] if self.appearance is None else self.appearance(out["color"], i)
+            if mask is not None:   # pixels outside the mask: no error, no gradient
+                pred = torch.where(mask[..., None], pred, view[1])
+            return photometric_loss(pred, view[1], c.lambda_dssim)
 
         res = self.opt.step(loss, (cam, target), render)
+        if self.appearance is not None:
+            self.appearance_optimizer.step()
+            self.appearance_optimizer.zero_grad(set_to_none=True)
         out = res.renders
         densifying = c.densify and self.step <= c.densify_until
         if densifying and out["means2d"].grad is not None:
             self.stats.add(out["means2d"].grad, out["radii"], cam.width, cam.height)
-        info = {"loss": float(res.loss), "psnr": psnr(out["color"], target), "gaussians": len(self.scene)}
+        info = {"loss": float(res.loss), "psnr": psnr(out["color"], target, mask), "gaussians": len(self.scene)}
         if densifying and self.step > c.densify_from and self.step % c.densify_interval == 0:
             reset_done = c.opacity_reset_interval and self.step > c.opacity_reset_interval
             info["densify"] = inria_densify(
@@ -210,19 +244,23 @@ class Trainer:
 
     @torch.no_grad()
     def evaluate(self, cameras: Optional[Sequence[Camera]] = None,
-                 images: Optional[Sequence[torch.Tensor]] = None) -> dict:
-        """Mean PSNR (dB) and SSIM over views (default the test views), full SH degree,
-        renders clamped to [0, 1]."""
+                 images: Optional[Sequence[torch.Tensor]] = None,
+                 masks: Optional[Sequence[torch.Tensor]] = None) -> dict:
+        """Mean PSNR (dB) and SSIM over views (default the test views and their masks), full
+        SH degree, renders clamped to [0, 1], over the pixels of ``masks`` (default all)."""
         cams = self.test_cameras if cameras is None else [c.to(self.device, torch.float32) for c in cameras]
         imgs = self.test_images if images is None else [im.to(self.device, torch.float32) for im in images]
+        if cameras is None and masks is None:
+            masks = self.test_masks
         if not cams:
             raise ValueError("tiger.recon: evaluate needs views (no test views were given)")
         scene = self.scene.detach()
         bg = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
         per = []
-        for cam, img in zip(cams, imgs):
+        for j, (cam, img) in enumerate(zip(cams, imgs)):
+            m = masks[j] if masks is not None else None
             out = scene.render(cam, background=bg, check_finite=False)["color"].clamp(0, 1)
-            per.append((psnr(out, img), float(ssim(out, img))))
+            per.append((psnr(out, img, m), float(ssim(out, img, mask=m))))
         return {"psnr": sum(p for p, _ in per) / len(per), "ssim": sum(s for _, s in per) / len(per),
                 "per_view": per}
 
@@ -232,6 +270,9 @@ class Trainer:
         extra = {"config": self.cfg.to_dict(), "stats": self.stats.state_dict(), "active_sh": self.active_sh,
                  "generator": self.gen.get_state(), "order": list(self._order), "extent": self.extent,
                  "history": self.history, "elapsed": self.elapsed, "finetune": self.finetune}
+        if self.appearance is not None:
+            extra["appearance"] = self.appearance.state_dict()
+            extra["appearance_optimizer"] = self.appearance_optimizer.state_dict()
         save_checkpoint(path, self.scene, self.optimizer, self.step, extra)
 
     def load(self, path: PathLike) -> None:
@@ -252,4 +293,7 @@ class Trainer:
         self._order = list(ex.get("order", []))
         self.history = list(ex.get("history", []))
         self.elapsed = float(ex.get("elapsed", 0.0))
+        if self.appearance is not None and "appearance" in ex:
+            self.appearance.load_state_dict(ex["appearance"])
+            self.appearance_optimizer.load_state_dict(ex["appearance_optimizer"])
         log.info("resumed from %s at step %d (%d Gaussians)", path, self.step, len(self.scene))
