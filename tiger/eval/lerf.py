@@ -32,7 +32,7 @@ import torch
 
 from tiger.retrieval.text import EmbeddingTable, PCASource, TextEncoder
 from tiger.scene import Camera, GaussianScene
-from tiger.utils.io import atomic_write
+from tiger.utils.io import atomic_write, file_slug
 
 from .filters import argmax_points, majority_smooth, mean_filter
 from .polygon import polygon_mask
@@ -238,15 +238,11 @@ def evaluate_scene(name: str, labels: Sequence[FrameLabels], relevancy_fn: Relev
             iou = mask_iou(langsplat_mask(maps[q], size, mask_thresh), lab.mask)
             res.queries.append(QueryResult(fr.name, cat, hit, pts.tolist(), float(smoothed.max()), iou))
             if pictures and out_dir is not None:
-                _picture(Path(out_dir) / name / fr.name / f"{_slug(cat)}.png", maps[q], smoothed, image,
+                _picture(Path(out_dir) / name / fr.name / f"{file_slug(cat)}.png", maps[q], smoothed, image,
                          lab.boxes, pts, f"{cat}: {'hit' if hit else 'miss'}")
     log.info("lerf %s: %d/%d hits (%.1f %%), mIoU %.3f", name, res.hits, len(res.queries),
              100 * res.accuracy, res.miou)
     return res
-
-
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")[:80] or "query"
 
 
 def _read_image(fr: FrameLabels) -> Optional[torch.Tensor]:
