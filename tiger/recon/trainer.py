@@ -17,6 +17,7 @@ from tiger.scene.gaussian_scene import GaussianScene
 
 from .appearance import AffineAppearance
 from .config import ReconConfig, expon_lr
+from .init import colors_from_views
 from .losses import photometric_loss, psnr, ssim
 from .step import SceneOptimizer
 from .strategy import DensifyStats, inria_densify, reset_opacity
@@ -119,7 +120,10 @@ class Trainer:
         if points is None:
             pts = points_in_views(self.cameras, self.cfg.init_random_points, self.cfg.init_min_view_fraction,
                                   generator=self.gen, radius_fraction=self.cfg.init_radius_fraction)
-            colors = torch.rand(pts.shape, generator=self.gen)
+            if self.cfg.init_colors == "views":
+                colors = colors_from_views(pts, self.cameras, self.images, self.masks)
+            else:
+                colors = torch.rand(pts.shape, generator=self.gen)
             log.info("random initialisation: %d points seen by >= %.0f%% of the views", len(pts),
                      100 * self.cfg.init_min_view_fraction)
         else:
