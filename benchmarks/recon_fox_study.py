@@ -28,14 +28,15 @@ VARIANTS: dict[str, tuple[dict, bool, float]] = {
     "base": ({}, False, 1.0),
     "mask": ({}, True, 1.0),
     "appearance": ({"appearance": True}, False, 1.0),
+    "init_colors": ({"init_colors": "views"}, False, 1.0),
     "init_wide": ({"init_radius_fraction": 1.0}, False, 1.0),
+    "init_colors_wide": ({"init_colors": "views", "init_radius_fraction": 1.0}, False, 1.0),
     "init_dense": ({"init_random_points": 20_000, "init_radius_fraction": 1.0}, False, 1.0),
     "no_reset": ({"opacity_reset_interval": 0}, False, 1.0),
     "sh1": ({"sh_degree": 1}, False, 1.0),
     "more_gaussians": ({"max_gaussians": 200_000}, False, 1.0),
     "long": ({}, False, 4.0),
-    "combined": ({"appearance": True, "opacity_reset_interval": 0}, True, 1.0),
-    "combined_long": ({"appearance": True, "opacity_reset_interval": 0, "max_gaussians": 200_000}, True, 4.0),
+    "combined": ({"init_colors": "views", "appearance": True}, True, 1.0),
 }
 
 

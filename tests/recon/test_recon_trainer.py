@@ -179,3 +179,31 @@ def test_appearance_fits_per_image_colour_and_resumes_exactly(tmp_path):
     c.fit()
     assert c.scene.detach().equal(a.scene.detach())
     assert torch.equal(c.appearance.matrix, a.appearance.matrix) and torch.equal(c.appearance.bias, a.appearance.bias)
+
+
+def test_finetune_a_region_leaves_the_rest_bit_identical_and_resumes(tmp_path):
+    gt, cams, imgs = small_setup()
+    start = gt.with_sh_degree(1)
+    start.sh_dc = start.sh_dc + 0.3
+    region = torch.arange(len(start)) < 8
+    cfg = small_config(iterations=30, densify_from=2, densify_interval=5, densify_grad_threshold=1e-9,
+                       opacity_reset_interval=0, random_background=False)
+    a = Trainer(cams, imgs, cfg, scene=start, trainable=region)
+    a.fit()
+    n_region = int(a.opt.trainable.sum())
+    assert len(a.scene) > len(start) and n_region > 8                   # the region densified
+    frozen = ~a.opt.trainable
+    assert int(frozen.sum()) == 12
+    for name, t in start.params().items():
+        assert torch.equal(getattr(a.scene, name)[frozen], t[~region]), name
+    assert a.opt.optimizer_state_bytes() == 2 * 4 * n_region * (3 + 3 + 4 + 1 + 3 + 9)
+    b = Trainer(cams, imgs, cfg, scene=start, trainable=region)
+    for _ in range(13):
+        b.train_step()
+    b.save(tmp_path / "half.pt")
+    c = Trainer(cams, imgs, cfg, scene=start, trainable=region)
+    c.load(tmp_path / "half.pt")
+    c.fit()
+    assert c.scene.detach().equal(a.scene.detach())
+    with pytest.raises(ValueError, match="needs a starting scene"):
+        Trainer(cams, imgs, cfg, trainable=region)

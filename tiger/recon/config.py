@@ -50,6 +50,7 @@ class ReconConfig:
     init_min_view_fraction: float = 0.5
     init_radius_fraction: float = 1.0      # random init within this x the camera distance
     init_opacity: float = 0.1
+    init_colors: str = "random"            # random init: "random" (INRIA) or "views" (mean pixel colour)
     extent: Optional[float] = None         # None: from the cameras (INRIA's rule)
     seed: int = 0
     checkpoint_every: int = 0              # 0: only when asked / at the end with out_dir
@@ -64,6 +65,8 @@ class ReconConfig:
             raise ValueError(f"tiger.recon: sh_degree must be in 0..3, got {self.sh_degree}")
         if self.densify_interval <= 0:
             raise ValueError("tiger.recon: densify_interval must be positive")
+        if self.init_colors not in ("random", "views"):
+            raise ValueError(f"tiger.recon: init_colors must be 'random' or 'views', got {self.init_colors!r}")
         self.background = tuple(float(v) for v in self.background)
 
     @classmethod

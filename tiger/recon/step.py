@@ -182,6 +182,8 @@ class SceneOptimizer:
         ``render`` may render any number of views with any channels (and may call
         ``retain_grad`` on what it wants to read afterwards); ``loss`` must return a scalar.
         """
+        if self.optimizer is None:
+            raise ValueError("tiger.recon: SceneOptimizer.step: nothing to optimise (no learning rates given)")
         renders = render(self.render_scene(), batch)
         value = loss(renders, batch)
         if not isinstance(value, torch.Tensor) or value.numel() != 1:

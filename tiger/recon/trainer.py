@@ -17,6 +17,7 @@ from tiger.scene.gaussian_scene import GaussianScene
 
 from .appearance import AffineAppearance
 from .config import ReconConfig, expon_lr
+from .init import colors_from_views
 from .losses import photometric_loss, psnr, ssim
 from .step import SceneOptimizer
 from .strategy import DensifyStats, inria_densify, reset_opacity
@@ -45,6 +46,8 @@ class Trainer:
         masks, test_masks: optional [H, W] bool per image, the pixels that count (e.g.
             :func:`tiger.scene.images.undistortion_valid_mask`: not the black border that
             undistortion leaves); the loss ignores the others, PSNR/SSIM are taken over them.
+        trainable: [N] bool over ``scene`` (fine-tuning only): only these Gaussians are
+            parameters and only they are densified or pruned; the others stay bit-identical.
     """
 
     def __init__(self, cameras: Sequence[Camera], images: Sequence[torch.Tensor],
@@ -53,7 +56,8 @@ class Trainer:
                  device: Optional[Union[str, torch.device]] = None, out_dir: Optional[PathLike] = None,
                  test_cameras: Sequence[Camera] = (), test_images: Sequence[torch.Tensor] = (),
                  masks: Optional[Sequence[torch.Tensor]] = None,
-                 test_masks: Optional[Sequence[torch.Tensor]] = None) -> None:
+                 test_masks: Optional[Sequence[torch.Tensor]] = None,
+                 trainable: Optional[torch.Tensor] = None) -> None:
         self.cfg = config or ReconConfig()
         if len(cameras) == 0:
             raise ValueError("tiger.recon: no training cameras")
@@ -71,6 +75,9 @@ class Trainer:
         self.extent = float(self.cfg.extent) if self.cfg.extent else scene_extent(self.cameras)
         self.gen = torch.Generator().manual_seed(self.cfg.seed)
         self.finetune = scene is not None
+        if trainable is not None and scene is None:
+            raise ValueError("tiger.recon: a trainable mask needs a starting scene (scene=...)")
+        self._trainable = trainable
         if scene is None:
             scene = self._initial_scene(init_points, init_colors)
         elif scene.sh_degree != self.cfg.sh_degree:
@@ -119,7 +126,10 @@ class Trainer:
         if points is None:
             pts = points_in_views(self.cameras, self.cfg.init_random_points, self.cfg.init_min_view_fraction,
                                   generator=self.gen, radius_fraction=self.cfg.init_radius_fraction)
-            colors = torch.rand(pts.shape, generator=self.gen)
+            if self.cfg.init_colors == "views":
+                colors = colors_from_views(pts, self.cameras, self.images, self.masks)
+            else:
+                colors = torch.rand(pts.shape, generator=self.gen)
             log.info("random initialisation: %d points seen by >= %.0f%% of the views", len(pts),
                      100 * self.cfg.init_min_view_fraction)
         else:
@@ -132,7 +142,7 @@ class Trainer:
         lrs = {"means": self._means_lr(), "log_scales": c.lr_log_scales, "quats": c.lr_quats,
                "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
         names = [n for n in lrs if n != "sh_rest" or self.scene.sh_rest.shape[1] > 0]
-        self.opt = SceneOptimizer(self.scene, {n: lrs[n] for n in names}, eps=c.adam_eps)
+        self.opt = SceneOptimizer(self.scene, {n: lrs[n] for n in names}, eps=c.adam_eps, trainable=self._trainable)
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
@@ -270,6 +280,8 @@ class Trainer:
         extra = {"config": self.cfg.to_dict(), "stats": self.stats.state_dict(), "active_sh": self.active_sh,
                  "generator": self.gen.get_state(), "order": list(self._order), "extent": self.extent,
                  "history": self.history, "elapsed": self.elapsed, "finetune": self.finetune}
+        if self.opt.trainable is not None:
+            extra["trainable"] = self.opt.trainable
         if self.appearance is not None:
             extra["appearance"] = self.appearance.state_dict()
             extra["appearance_optimizer"] = self.appearance_optimizer.state_dict()
@@ -284,6 +296,7 @@ class Trainer:
         self.extent = float(ex.get("extent", self.extent))
         self.active_sh = int(ex.get("active_sh", self.active_sh))
         self.finetune = bool(ex.get("finetune", self.finetune))
+        self._trainable = ex["trainable"].to(self.device) if "trainable" in ex else None
         self._build_optimizer()
         if ck["optimizer"] is not None:
             self.optimizer.load_state_dict(ck["optimizer"])
