@@ -1,6 +1,8 @@
 #pragma once
 // Raw-pointer pieces of the CUDA tile binning (no torch headers). The glue allocates
 // every buffer through torch (caching allocator) and runs, on one stream:
+//   0. bin_candidates + bin_scan: bounding-box tiles per Gaussian -> cand_ends (inclusive
+//      int64 scan), the work list the balanced kernels split into equal chunks
 //   1. bin_count: per-Gaussian number of touched tiles (exact ellipse-tile test) -> int64
 //   2. bin_scan: inclusive int64 scan of the counts (offsets; total = offsets[N-1])
 //   3. bin_emit: 64-bit keys (tile << 32 | depth order bits) and Gaussian ids
@@ -19,20 +21,27 @@ struct BinGeometry {
 };
 
 template <typename T>
+cudaError_t bin_candidates_cuda(const T* means2d, const int32_t* radii, int64_t n, BinGeometry g,
+                                int64_t* candidates, cudaStream_t stream);
+
+// cand_ends == nullptr: the former one-thread-per-Gaussian kernel (comparisons only).
+template <typename T>
 cudaError_t bin_count_cuda(const T* means2d, const T* conics, const T* opacities,
-                           const int32_t* radii, int64_t n, BinGeometry g, T alpha_threshold,
-                           int64_t* counts, cudaStream_t stream);
+                           const int32_t* radii, const int64_t* cand_ends, int64_t n,
+                           BinGeometry g, T alpha_threshold, int64_t* counts, cudaStream_t stream);
 
 // temp == nullptr: writes the needed temp_bytes and returns.
 cudaError_t bin_scan_cuda(void* temp, size_t& temp_bytes, const int64_t* counts, int64_t* offsets,
                           int64_t n, cudaStream_t stream);
 
 // depth_rank (optional): per-Gaussian depth rank used instead of the float depth bits.
+// cursor: n int64 of scratch (balanced path only); cand_ends as for bin_count.
 template <typename T>
 cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities, const T* depths,
-                          const int32_t* radii, const int32_t* depth_rank, int64_t n,
-                          BinGeometry g, T alpha_threshold, const int64_t* offsets,
-                          uint64_t* keys, int32_t* ids, cudaStream_t stream);
+                          const int32_t* radii, const int32_t* depth_rank,
+                          const int64_t* cand_ends, int64_t n, BinGeometry g, T alpha_threshold,
+                          const int64_t* offsets, int64_t* cursor, uint64_t* keys, int32_t* ids,
+                          cudaStream_t stream);
 
 // Sorts (keys, ids) of length m by key bits [0, end_bit). On return *keys_out / *ids_out
 // point at whichever of the two buffers holds the result.

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# One device call for the load-balanced binning and the real-scene benchmarks (issue 15):
+#   build (check.sh), the test suite, compute-sanitizer (memcheck on every kernel, racecheck on
+#   the rasterizer and the balanced binning kernels), benchmarks/gpu/real_scenes.py (ours, ours
+#   with the former binning, gsplat: per stage, C = 3 and 64) and train_vs_gsplat.py.
+# Usage, from the repo root:
+#   OUT=... bash benchmarks/gpu/binning.sh GSPLAT_WHEEL_DIR EIGEN_DEB DATA_DIR [STEPS]
+# DATA_DIR holds snowmiku/ (points3D.bin, cameras.bin, cameras.json) and fox/ (transforms.json,
+# images/). STEPS (default "check real train") picks the parts; REAL_ARGS, TRAIN_ARGS,
+# CHECK_STEPS pass options on.
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+OUT="${OUT:-/tmp/tiger-binning}"
+mkdir -p "$OUT"
+WHEELS="$1"; DEB="$2"; DATA="$3"; STEPS="${4:-check real train}"
+has() { [[ " $STEPS " == *" $1 "* ]]; }
+export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_CUDA_ARCH_LIST=9.0
+status=0
+CHECK_STEPS="${CHECK_STEPS:-build tests sanitizer}" bash benchmarks/gpu/check.sh "$WHEELS" "$DEB" || status=1
+export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
+if has check; then
+  SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
+  timeout 300 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=balanced \
+    python3 benchmarks/gpu/sanitize_case.py > "$OUT/racecheck_binning.log" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  echo "racecheck (balanced binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
+fi
+if has real; then
+  echo "== real_scenes.py $(date -u +%T)"
+  timeout "${REAL_TIMEOUT:-420}" python3 benchmarks/gpu/real_scenes.py --snowmiku "$DATA/snowmiku" \
+    --fox-data "$DATA/fox" --out "$OUT" ${REAL_ARGS:-} > "$OUT/real_scenes.txt" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  echo "real_scenes rc=$rc"; sed -n '/^== Screen radii/,$p' "$OUT/real_scenes.txt"
+  [ $rc -ne 0 ] && tail -30 "$OUT/real_scenes.txt"
+fi
+if has train; then
+  echo "== train_vs_gsplat.py $(date -u +%T)"
+  timeout "${TRAIN_TIMEOUT:-300}" python3 benchmarks/gpu/train_vs_gsplat.py --data "$DATA/fox" \
+    --json "$OUT/train_vs_gsplat.json" ${TRAIN_ARGS:-} > "$OUT/train_vs_gsplat.txt" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  echo "train rc=$rc"; tail -12 "$OUT/train_vs_gsplat.txt"
+fi
+# At most 8 files come back: the secondary logs travel as one archive.
+(cd "$OUT" && ls *.log | grep -v '^check.log$' | tar czf logs.tgz -T - && ls *.log | grep -v '^check.log$' | xargs rm -f)
+echo "== done status=$status $(date -u +%T)"
+exit $status
