@@ -25,6 +25,13 @@ if has check; then
   rc=$?; [ $rc -ne 0 ] && status=1
   echo "racecheck (balanced binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
 fi
+if has cudatests; then
+  python3 -m pytest -q -p no:cacheprovider tests/render/test_binning.py tests/render/test_cuda.py \
+    tests/render/test_ops.py > "$OUT/cudatests.log" 2>&1
+  rc=$?; [ $rc -ne 0 ] && status=1
+  echo "render + binning tests (CPU and CUDA) rc=$rc: $(tail -1 "$OUT/cudatests.log")" | tee -a "$OUT/check.log"
+  grep -E "^(FAILED|ERROR)" "$OUT/cudatests.log" | head -20
+fi
 if has real; then
   echo "== real_scenes.py $(date -u +%T)"
   timeout "${REAL_TIMEOUT:-420}" python3 benchmarks/gpu/real_scenes.py --snowmiku "$DATA/snowmiku" \

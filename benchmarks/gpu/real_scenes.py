@@ -272,7 +272,7 @@ def main() -> None:
     p.add_argument("--snowmiku", type=Path, default=REPO / ".carry" / "realscene" / "snowmiku")
     p.add_argument("--fox-data", type=Path, default=REPO.parent / "shared" / "data" / "fox")
     p.add_argument("--fox-iterations", type=int, default=3000)
-    p.add_argument("--fox-budget", type=float, default=60.0, help="seconds of training")
+    p.add_argument("--fox-budget", type=float, default=40.0, help="seconds of training")
     p.add_argument("--n", type=int, default=1_000_000, help="Gaussians of the synthetic cases")
     p.add_argument("--no-gsplat", action="store_true")
     p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "outputs/real_scenes")))
