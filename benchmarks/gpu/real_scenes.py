@@ -208,6 +208,23 @@ def same_lists(scene, V, K, w, h) -> bool:
     return bool(torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]))
 
 
+def bin_op_times(scene, V, K, w, h, iters) -> dict:
+    """ms of the binning op alone (bin + sort), balanced with chunks of 32 and 16 candidate
+    tiles per thread (TIGER_BIN_CHUNK), and the former one-thread-per-Gaussian binning."""
+    m2, cn, d, op, r = project(scene, V, K, w, h)
+    out = {}
+    for name, env in (("bin_op_chunk32", {}), ("bin_op_chunk16", {"TIGER_BIN_CHUNK": "16"}),
+                      ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
+        os.environ.update(env)
+        try:
+            out[name] = cuda_time_ms(lambda: torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16,
+                                                                           1 / 255), iters=iters)
+        finally:
+            for k in env:
+                os.environ.pop(k)
+    return out
+
+
 def time_pair(render, scene, V, K, w, h, iters):
     C = scene["colors"].shape[1]
     vc = torch.randn(h, w, C, device="cuda", generator=torch.Generator(device="cuda").manual_seed(1))
@@ -224,7 +241,8 @@ def time_pair(render, scene, V, K, w, h, iters):
 
 def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
     res = {"case": name, "width": w, "height": h, "radii": radii_stats(scene, V, K, w, h)}
-    log(f"== {name} {w}x{h}: radii {fmt(res['radii'])}")
+    res["bin_op"] = bin_op_times(scene, V, K, w, h, args.iters)
+    log(f"== {name} {w}x{h}: radii {fmt(res['radii'])}; {fmt(res['bin_op'])}")
     res["rows"], res["stages"], res["kernels"] = [], [], {}
     for C in args.channels:
         sc = with_channels(scene, C)
@@ -318,7 +336,8 @@ def main() -> None:
     log("")
     done = [r for r in results if "rows" in r]
     log("== Screen radii (px, max of the two radii, visible Gaussians) and 16-px bounding-box tiles")
-    radii = [{"case": r["case"], "size": f"{r['width']}x{r['height']}", **r["radii"]} for r in done]
+    radii = [{"case": r["case"], "size": f"{r['width']}x{r['height']}", **r["radii"], **r["bin_op"]}
+             for r in done]
     log(table([fmt(x) for x in radii], list(radii[0].keys())) if radii else "(none)")
     log("\n== Speed (median ms of CUDA events); before = former binning (TIGER_BIN_SERIAL=1)")
     rows = [x for r in done for x in r["rows"]]

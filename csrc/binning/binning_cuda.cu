@@ -8,6 +8,8 @@
 #include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
 
+#include <stdlib.h>
+
 #include "binning_cuda.h"
 #include "common/cuda_helpers.cuh"
 #include "common/raster_math.h"
@@ -16,11 +18,10 @@ namespace tiger {
 namespace {
 
 constexpr int kThreads = 256;
-// Candidate tiles (bounding-box tiles of all Gaussians, concatenated in Gaussian order)
-// handed to one thread at a time: one binary search per chunk, then a linear walk. Every
-// thread tests at most this many tiles, whatever the size of the Gaussians (load balance).
-constexpr int kChunk = 16;
-static_assert(kChunk <= 32, "hit masks are 32-bit");
+// Candidate tiles (bounding-box tiles of all Gaussians, concatenated in Gaussian order) are
+// handed out in chunks of kChunk, one chunk per thread: one binary search per chunk, then a
+// linear walk. Every thread tests at most kChunk tiles, whatever the size of the Gaussians
+// (load balance). 32 by default (TIGER_BIN_CHUNK=16 for comparisons).
 
 template <typename T>
 __device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const int32_t* radii,
@@ -85,10 +86,11 @@ struct TileTester {
 // [c * kChunk, (c + 1) * kChunk), possibly of several Gaussians. For each run of one
 // Gaussian inside a chunk, flush(i, tester, hits, k0) gets the bit mask of touched tiles
 // (bit b = candidate k0 + b). cand_ends = inclusive scan of the per-Gaussian candidates.
-template <typename T, typename Flush>
+template <int kChunk, typename T, typename Flush>
 __device__ void walk_candidates(const T* means2d, const T* conics, const T* opacities,
                                 const int32_t* radii, const int64_t* cand_ends, int64_t n,
                                 const BinGeometry& g, T alpha_threshold, Flush&& flush) {
+  static_assert(kChunk >= 1 && kChunk <= 32, "hit masks are 32-bit");
   const int64_t total = cand_ends[n - 1];
   const int64_t n_chunks = (total + kChunk - 1) / kChunk;
   const int64_t stride = int64_t(gridDim.x) * blockDim.x;
@@ -108,20 +110,20 @@ __device__ void walk_candidates(const T* means2d, const T* conics, const T* opac
         t.load(i, first, means2d, conics, opacities, radii, g, alpha_threshold);
         end = cand_ends[i];
       }
-      if (t.touches(t.tile(k, g), g)) hits |= 1u << int(k - k0);
+      if (t.touches(t.tile(k, g), g)) hits |= 1u << int(k - k0);  // kChunk <= 32
     }
     flush(i, t, hits, k0);
   }
 }
 
 // counts[i] += touched tiles of Gaussian i (counts zeroed before).
-template <typename T>
+template <int kChunk, typename T>
 __global__ void __launch_bounds__(kThreads)
     count_balanced_kernel(const T* means2d, const T* conics, const T* opacities,
                           const int32_t* radii, const int64_t* cand_ends, int64_t n, BinGeometry g,
                           T alpha_threshold, int64_t* counts) {
-  walk_candidates(means2d, conics, opacities, radii, cand_ends, n, g, alpha_threshold,
-                  [&](int64_t i, const TileTester<T>&, uint32_t hits, int64_t) {
+  walk_candidates<kChunk>(means2d, conics, opacities, radii, cand_ends, n, g, alpha_threshold,
+                  [&](int64_t i, TileTester<T>, uint32_t hits, int64_t) {
                     if (hits)
                       atomicAdd(reinterpret_cast<unsigned long long*>(counts + i),
                                 static_cast<unsigned long long>(__popc(hits)));
@@ -138,15 +140,15 @@ __device__ __forceinline__ uint32_t depth_bits(T d) {
 // (zeroed before), so the order inside a segment varies from run to run; the keys of one
 // segment are distinct (one per tile) and the radix sort is stable, so the sorted lists
 // are the same as with any fixed order: (tile, depth, id).
-template <typename T>
+template <int kChunk, typename T>
 __global__ void __launch_bounds__(kThreads)
     emit_balanced_kernel(const T* means2d, const T* conics, const T* opacities, const T* depths,
                          const int32_t* radii, const int32_t* depth_rank, const int64_t* cand_ends,
                          int64_t n, BinGeometry g, T alpha_threshold, const int64_t* offsets,
                          int64_t* cursor, uint64_t* keys, int32_t* ids) {
-  walk_candidates(
+  walk_candidates<kChunk>(
       means2d, conics, opacities, radii, cand_ends, n, g, alpha_threshold,
-      [&](int64_t i, const TileTester<T>& t, uint32_t hits, int64_t k0) {
+      [&](int64_t i, TileTester<T> t, uint32_t hits, int64_t k0) {
         if (!hits) return;
         int64_t slot = (i == 0 ? 0 : offsets[i - 1]) +
                        int64_t(atomicAdd(reinterpret_cast<unsigned long long*>(cursor + i),
@@ -231,6 +233,12 @@ __global__ void scatter_rank_kernel(const int32_t* sorted_ids, int64_t n, int32_
 
 }  // namespace
 
+// Chunk size of the balanced kernels: TIGER_BIN_CHUNK=16 or 32 (default).
+static bool small_chunks() {
+  const char* v = getenv("TIGER_BIN_CHUNK");
+  return v != nullptr && v[0] == '1' && v[1] == '6';
+}
+
 // A grid that fills the GPU once; the balanced kernels loop over their chunks.
 static cudaError_t balanced_grid(int& blocks) {
   int dev = 0, sms = 0;
@@ -263,8 +271,9 @@ cudaError_t bin_count_cuda(const T* means2d, const T* conics, const T* opacities
   cudaError_t err = balanced_grid(blocks);
   if (err == cudaSuccess) err = cudaMemsetAsync(counts, 0, sizeof(int64_t) * n, stream);
   if (err != cudaSuccess) return err;
-  count_balanced_kernel<T><<<blocks, kThreads, 0, stream>>>(
-      means2d, conics, opacities, radii, cand_ends, n, g, alpha_threshold, counts);
+  auto kernel = small_chunks() ? count_balanced_kernel<16, T> : count_balanced_kernel<32, T>;
+  kernel<<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, radii, cand_ends, n, g,
+                                          alpha_threshold, counts);
   return cudaGetLastError();
 }
 
@@ -290,9 +299,10 @@ cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities,
   cudaError_t err = balanced_grid(blocks);
   if (err == cudaSuccess) err = cudaMemsetAsync(cursor, 0, sizeof(int64_t) * n, stream);
   if (err != cudaSuccess) return err;
-  emit_balanced_kernel<T><<<blocks, kThreads, 0, stream>>>(
-      means2d, conics, opacities, depths, radii, depth_rank, cand_ends, n, g, alpha_threshold,
-      offsets, cursor, keys, ids);
+  auto kernel = small_chunks() ? emit_balanced_kernel<16, T> : emit_balanced_kernel<32, T>;
+  kernel<<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, depths, radii, depth_rank,
+                                          cand_ends, n, g, alpha_threshold, offsets, cursor, keys,
+                                          ids);
   return cudaGetLastError();
 }
 
