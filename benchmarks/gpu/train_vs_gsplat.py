@@ -6,7 +6,9 @@ initialised at random in the views (tiger.recon's default initialisation), SH de
 from the start, densification off so that every variant trains the same number of Gaussians.
 Each step is tiger.recon.Trainer.train_step (render, L1 + D-SSIM loss, backward, Adam); only
 ``scene.render`` is swapped. Variants run in the order ours, gsplat (packed=False, its
-trainer's default), gsplat (packed=True), ours again; median wall ms per step after warm-up.
+trainer's default), gsplat (packed=True), ours again; median wall ms per step after warm-up,
+and the GPU time of a step (sum of kernel times, profiler) with its costliest kernels, which
+tells the rasteriser's share of the step from the rest (loss, Adam, Python).
 """
 from __future__ import annotations
 
@@ -34,12 +36,12 @@ def gsplat_renderer(scene, packed: bool):
         cam = camera.to(device=scene.device, dtype=scene.dtype)
         col, alpha, meta = rasterization(
             scene.means, scene.quats, scene.scales, scene.opacities, scene.sh[:, :num_sh_bases(deg)],
-            cam.viewmat[None], cam.K[None], cam.width, cam.height, sh_degree=deg,
-            backgrounds=None if background is None else background[None], near_plane=0.01,
+            cam.viewmat[None], cam.K[None], cam.width, cam.height, sh_degree=deg, near_plane=0.01,
             far_plane=1e10, eps2d=0.3, packed=packed, tile_size=16, rasterize_mode="classic")
-        means2d = meta["means2d"]
-        return {"color": col[0], "alpha": alpha[0, ..., 0], "means2d": means2d,
-                "radii": meta["radii"]}
+        color, alpha = col[0], alpha[0, ..., 0]
+        if background is not None:  # composited here: gsplat 1.5.3 rejected a [1, 3] background
+            color = color + (1 - alpha)[..., None] * background  # with packed=True on the H100
+        return {"color": color, "alpha": alpha, "means2d": meta["means2d"], "radii": meta["radii"]}
     return render
 
 
@@ -53,6 +55,24 @@ def time_steps(tr, steps: int, warmup: int) -> tuple[float, float]:
         if i >= warmup:
             times.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(times), info["psnr"]
+
+
+def step_profile(tr, steps: int = 3) -> tuple[float, list]:
+    """GPU ms per step (sum of kernel times) and the 12 costliest kernels, over ``steps``."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(steps):
+            tr.train_step()
+        torch.cuda.synchronize()
+    per: dict = {}
+    for e in prof.events():
+        if e.device_type == DeviceType.CUDA:
+            per[e.name] = per.get(e.name, 0.0) + e.time_range.elapsed_us() / 1e3 / steps
+    top = sorted(per.items(), key=lambda kv: -kv[1])[:12]
+    return sum(per.values()), [(round(ms, 3), name[:100]) for ms, name in ((v, k) for k, v in top)]
 
 
 def main() -> None:
@@ -90,16 +110,21 @@ def main() -> None:
             tr.scene.render = gsplat_renderer(tr.scene, packed)
         torch.cuda.reset_peak_memory_stats()
         ms, ps = time_steps(tr, args.steps, args.warmup)
+        gpu_ms, top = step_profile(tr)
         rows.append({"variant": name, "ms_per_step": ms, "steps_per_s": 1e3 / ms,
-                     "peak_GiB": torch.cuda.max_memory_allocated() / 2**30, "psnr_last": ps})
-        print(rows[-1], flush=True)
+                     "peak_GiB": torch.cuda.max_memory_allocated() / 2**30, "psnr_last": ps,
+                     "gpu_ms_per_step": gpu_ms, "top_kernels": top})
+        print({k: v for k, v in rows[-1].items() if k != "top_kernels"}, flush=True)
+        for t in top:
+            print("   ", t, flush=True)
     best_gs = min(r["ms_per_step"] for r in rows if r["variant"].startswith("gsplat"))
     ours_ms = statistics.median([r["ms_per_step"] for r in rows if r["variant"].startswith("ours")])
     print(f"\n== Training iteration at {cams[0].width}x{cams[0].height}, {n} Gaussians "
           f"(median of {args.steps} steps after {args.warmup})")
-    print("| variant | ms / step | steps / s | peak GiB |\n|---|---:|---:|---:|")
+    print("| variant | ms / step | GPU ms / step (kernels) | steps / s | peak GiB |\n|---|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['variant']} | {r['ms_per_step']:.2f} | {r['steps_per_s']:.1f} | {r['peak_GiB']:.2f} |")
+        print(f"| {r['variant']} | {r['ms_per_step']:.2f} | {r['gpu_ms_per_step']:.2f} | "
+              f"{r['steps_per_s']:.1f} | {r['peak_GiB']:.2f} |")
     print(f"speed-up of ours over the faster gsplat variant: {best_gs / ours_ms:.2f}x")
     if args.json:
         args.json.write_text(json.dumps({"gaussians": n, "width": cams[0].width,
