@@ -174,9 +174,10 @@ class StandardScene:
 
 
 def standard_view(n: int, width: int, height: int, seed: int = 0,
-                  dtype: torch.dtype = torch.float32) -> StandardScene:
-    """The standard scene (RGB + 64-d features, drawn as C = 67) with its camera, on the CPU."""
-    s = standard_scene(n, 67, dtype=torch.float64, seed=seed)
+                  dtype: torch.dtype = torch.float32, heavy_tailed: bool = False) -> StandardScene:
+    """The standard scene (RGB + 64-d features, drawn as C = 67) with its camera, on the CPU;
+    ``heavy_tailed``: :func:`heavy_tailed_scene` instead (same camera, channels and seed rules)."""
+    s = (heavy_tailed_scene if heavy_tailed else standard_scene)(n, 67, dtype=torch.float64, seed=seed)
     V, K = standard_camera(width, height, dtype=torch.float64)
     c = s["colors"]
     return StandardScene(s["means"], s["quats"], s["scales"], s["opacities"], c[:, :3].contiguous(),

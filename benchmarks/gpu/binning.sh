@@ -26,10 +26,10 @@ if has sanitize; then  # the binning kernels changed: memcheck on every kernel, 
     python3 benchmarks/gpu/sanitize_case.py > "$OUT/memcheck.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   echo "memcheck (every kernel) rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/memcheck.log" | tail -1)" | tee -a "$OUT/check.log"
-  timeout 200 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=balanced \
+  timeout 200 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=large_kernel \
     python3 benchmarks/gpu/sanitize_case.py > "$OUT/racecheck_binning.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
-  echo "racecheck (balanced binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
+  echo "racecheck (chunked binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
 fi
 if has cudatests; then
   python3 -m pytest -q -p no:cacheprovider ${CUDATESTS:-tests/render/test_binning.py tests/render/test_cuda.py} \

@@ -158,8 +158,9 @@ def stage_kind(name: str) -> str:
     if "project" in n or "sh_kernel" in n or "harmonics" in n:
         return "project"
     if any(k in n for k in ("candidates_kernel", "count_balanced", "emit_balanced", "count_serial",
-                            "emit_serial", "ranges_kernel", "scan", "isect", "intersect",
-                            "depth_keys", "scatter_rank")):
+                            "emit_serial", "count_small", "emit_small", "count_large", "emit_large",
+                            "ranges_kernel", "scan", "isect", "intersect", "depth_keys",
+                            "scatter_rank")):
         return "bin"
     if "raster" in n or "forward_kernel" in n:
         return "raster"
@@ -209,11 +210,12 @@ def same_lists(scene, V, K, w, h) -> bool:
 
 
 def bin_op_times(scene, V, K, w, h, iters) -> dict:
-    """ms of the binning op alone (bin + sort), balanced with chunks of 32 and 16 candidate
-    tiles per thread (TIGER_BIN_CHUNK), and the former one-thread-per-Gaussian binning."""
+    """ms of the binning op alone (bin + sort + its host synchronisation): the default (large
+    Gaussians in chunks of 16 candidate tiles per thread), chunks of 32 (TIGER_BIN_CHUNK=32),
+    and the former one-thread-per-Gaussian binning (TIGER_BIN_SERIAL=1)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
     out = {}
-    for name, env in (("bin_op_chunk32", {}), ("bin_op_chunk16", {"TIGER_BIN_CHUNK": "16"}),
+    for name, env in (("bin_op", {}), ("bin_op_chunk32", {"TIGER_BIN_CHUNK": "32"}),
                       ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
         os.environ.update(env)
         try:

@@ -58,30 +58,36 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
   auto offsets = at::empty({n}, means2d.options().dtype(at::kLong));
   int64_t m = 0;
   at::Tensor rank;
-  // Candidate tiles per Gaussian, scanned: the work list of the balanced count and emit.
-  // TIGER_BIN_SERIAL=1 selects the former one-thread-per-Gaussian kernels (comparisons).
+  // Small Gaussians are counted one per thread; the candidate tiles of the large ones,
+  // scanned, are the work list of the chunked count and emit (load balance).
+  // TIGER_BIN_SERIAL=1 selects the former one-thread-per-Gaussian binning (comparisons).
   at::Tensor cand_ends;
-  if (!serial_binning()) {
-    cand_ends = at::empty({n}, means2d.options().dtype(at::kLong));
-    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_candidates", [&] {
-      using T = scalar_t;
-      TIGER_CUDA_OK(bin_candidates_cuda<T>(m2.data_ptr<T>(), r.data_ptr<int32_t>(), n, g,
-                                           counts.data_ptr<int64_t>(), stream));
-    });
-    size_t bytes = 0;
-    TIGER_CUDA_OK(bin_scan_cuda(nullptr, bytes, counts.data_ptr<int64_t>(),
-                                cand_ends.data_ptr<int64_t>(), n, stream));
-    auto temp = temp_buffer(bytes, means2d);
-    TIGER_CUDA_OK(bin_scan_cuda(temp.data_ptr(), bytes, counts.data_ptr<int64_t>(),
-                                cand_ends.data_ptr<int64_t>(), n, stream));
-  }
-  const int64_t* cand = cand_ends.defined() ? cand_ends.data_ptr<int64_t>() : nullptr;
+  at::Tensor large = serial_binning() ? at::Tensor() : at::empty({n}, means2d.options().dtype(at::kLong));
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_count", [&] {
     using T = scalar_t;
     TIGER_CUDA_OK(bin_count_cuda<T>(m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(),
-                                    r.data_ptr<int32_t>(), cand, n, g, T(alpha_threshold),
-                                    counts.data_ptr<int64_t>(), stream));
+                                    r.data_ptr<int32_t>(), n, g, T(alpha_threshold),
+                                    counts.data_ptr<int64_t>(),
+                                    large.defined() ? large.data_ptr<int64_t>() : nullptr, stream));
   });
+  if (large.defined()) {
+    cand_ends = at::empty({n}, means2d.options().dtype(at::kLong));
+    size_t bytes = 0;
+    TIGER_CUDA_OK(bin_scan_cuda(nullptr, bytes, large.data_ptr<int64_t>(),
+                                cand_ends.data_ptr<int64_t>(), n, stream));
+    auto temp = temp_buffer(bytes, means2d);
+    TIGER_CUDA_OK(bin_scan_cuda(temp.data_ptr(), bytes, large.data_ptr<int64_t>(),
+                                cand_ends.data_ptr<int64_t>(), n, stream));
+    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_count_large", [&] {
+      using T = scalar_t;
+      TIGER_CUDA_OK(bin_count_large_cuda<T>(m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(),
+                                            r.data_ptr<int32_t>(), cand_ends.data_ptr<int64_t>(),
+                                            n, g, T(alpha_threshold), counts.data_ptr<int64_t>(),
+                                            stream));
+    });
+    large = at::Tensor();
+  }
+  const int64_t* cand = cand_ends.defined() ? cand_ends.data_ptr<int64_t>() : nullptr;
   size_t scan_bytes = 0;
   TIGER_CUDA_OK(bin_scan_cuda(nullptr, scan_bytes, counts.data_ptr<int64_t>(),
                               offsets.data_ptr<int64_t>(), n, stream));
