@@ -123,7 +123,7 @@ class InstructPix2PixGuidance:
         self.generator = generator
         self.collect_stats = collect_stats
         self.device, self.dtype = model_device_dtype(models.unet)
-        self.text_embeddings = models.prompts([instruction, ""])  # [2, 77, D]
+        self.text_embeddings = models.prompts([instruction, ""]).to(self.dtype)  # [2, 77, D]
         if not keep_text_encoder:
             models.prompts.release()
         self._cond_cache: dict[tuple[int, int, int], torch.Tensor] = {}
@@ -185,7 +185,8 @@ class InstructPix2PixGuidance:
         z_t = m.schedule.add_noise(z, noise, t)
         cond3 = torch.cat([cond, cond, torch.zeros_like(cond)]).to(z_t.dtype)
         inp = torch.cat([torch.cat([z_t, z_t, z_t]), cond3], dim=1)
-        emb = self.text_embeddings[torch.tensor([0, 1, 1], device=self.device).repeat_interleave(v)]
+        e = self.text_embeddings  # branches: instruction, "", "" (device ops only: graph capturable)
+        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(2 * v, -1, -1)])
         eps = m.unet(inp, torch.cat([t, t, t]), encoder_hidden_states=emb).sample.float()
         e_text, e_img, e_unc = eps.chunk(3)
         eps_hat = e_unc + self.text_scale * (e_text - e_img) + self.image_scale * (e_img - e_unc)

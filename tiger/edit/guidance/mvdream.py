@@ -199,7 +199,7 @@ class MVDreamGuidance:
         self.device, self.dtype = model_device_dtype(models.unet)
         if self.cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.mvdream: cuda_graph=True needs the models on a CUDA device")
-        self.text_embeddings = models.prompts([self.prompt, self.negative_prompt])  # [2, 77, D]
+        self.text_embeddings = models.prompts([self.prompt, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
         if not self.keep_text_encoder:
             models.prompts.release()
         self._graphed = GraphedStep(self.step) if self.cuda_graph else None
@@ -239,7 +239,8 @@ class MVDreamGuidance:
         v = z.shape[0]
         tt = t.reshape(1).expand(v)
         z_t = m.schedule.add_noise(z, noise, tt)
-        emb = self.text_embeddings[torch.tensor([0, 1], device=self.device).repeat_interleave(v)]
+        e = self.text_embeddings  # branches: prompt, negative prompt
+        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(v, -1, -1)])
         cams = torch.cat([cameras, cameras]).to(self.dtype)
         eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
                      class_labels=cams).sample.float()
