@@ -26,8 +26,8 @@ from tiger.utils.lazy import require
 
 from .base import GuidanceInfo, ViewBatch, check_renders
 from .cuda_graph import GraphedStep
-from .sds import (draw_noise, NoiseSchedule, PromptEncoder, check_t_range, encode_latents, finite_clamped, freeze,
-                  latent_shape, model_device_dtype, require_diffusers, resize, resolution_for,
+from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, encode_latents, finite_clamped, freeze,
+                  latent_shape, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
                   vae_downsampling_factor)
 
 logger = logging.getLogger(__name__)
@@ -170,12 +170,7 @@ class InstructPix2PixGuidance:
         m = self.models
         f = vae_downsampling_factor(m.vae)
         size = (cond.shape[-2] * f, cond.shape[-1] * f)
-        with torch.enable_grad():
-            x = renders.detach().requires_grad_(True)
-            z = encode_latents(m.vae, resize(x, size), vae_noise)
-            g = self.latent_grad(z.detach(), cond, t, noise)
-            (gx,) = torch.autograd.grad(z, x, grad_outputs=g.to(z.dtype))
-        return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0)
+        return render_gradient(m.vae, renders, size, vae_noise, lambda z: self.latent_grad(z, cond, t, noise))
 
     @torch.no_grad()
     def latent_grad(self, z: torch.Tensor, cond: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
