@@ -13,7 +13,7 @@ from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
 from tiger.edit.guidance.ldm_checkpoint import convert_ldm_checkpoint
 from tiger.edit.guidance.mvdream_cameras import mvdream_cameras
 from tiger.edit.guidance.random_models import mvdream_ldm_config
-from tiger.models import ENV_VAR
+from tiger.models import ENV_VAR, ModelNotFoundError
 
 diffusers = pytest.importorskip("diffusers")
 transformers = pytest.importorskip("transformers")
@@ -99,7 +99,12 @@ def test_diffusers_folder_gives_the_same_gradient(models, tiny_models, ring_came
     assert torch.allclose(a, b, rtol=1e-5, atol=1e-7)
 
 
-def test_lazy_loading_and_release(tiny_models, ring_cameras, monkeypatch):
+def test_lazy_loading_and_release(tiny_models, ring_cameras, monkeypatch, tmp_path):
+    monkeypatch.setenv(ENV_VAR, str(tmp_path))
+    with pytest.raises(ModelNotFoundError) as err:  # resolved at construction, loaded later
+        MVDreamGuidance.from_registry("a fox")
+    for part in ("MVDream/MVDream", "sd-v2.1-base-4view.pt", "unet/config.json", str(tmp_path)):
+        assert part in str(err.value)
     monkeypatch.setenv(ENV_VAR, str(tiny_models))
     g = MVDreamGuidance.from_registry("a fox", image_size=S)
     assert not g.loaded  # λ2 = 0 runs never pay for MVDream

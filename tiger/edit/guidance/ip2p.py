@@ -160,6 +160,10 @@ class InstructPix2PixGuidance:
                 self._cond_cache[(ids[k], *size)] = z
         return torch.stack([self._cond_cache[(i, *size)] for i in ids])
 
+    def clear_condition_cache(self) -> None:
+        """Forget the cached image-condition latents (when the original renders change)."""
+        self._cond_cache.clear()
+
     def step(self, renders: torch.Tensor, cond: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
              vae_noise: torch.Tensor) -> torch.Tensor:
         """dL/drenders for given condition latents, timesteps [V], noise and VAE posterior noise.
