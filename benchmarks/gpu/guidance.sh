@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # GPU run of the diffusion guidances (issue 12): full-size random-weight InstructPix2Pix and MVDream,
 # every variant of benchmarks/guidance.py in one call. Run from the repo root on the device with
-# the diffusers wheel and Eigen's .deb carried:
+# the diffusers wheel and Eigen's .deb carried (first the CUDA-graph test, then the benchmark):
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb bash benchmarks/gpu/guidance.sh
 # tiger's C++ core is built without CUDA (the guidances need only torch/diffusers, but importing
 # tiger loads the core). Results: $OUT/guidance_h100.{json,txt}, $OUT/profile_*.txt, $OUT/build.log.
@@ -27,5 +27,8 @@ if ! TIGER_CUDA=0 CMAKE_BUILD_PARALLEL_LEVEL=$(nproc) $PY -m pip install --no-bu
 fi
 echo "setup done in $(( $(date +%s) - t0 )) s"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+echo "== CUDA-graph replay vs eager (tiny models)"
+timeout 150 $PY -m pytest -q tests/edit/test_cuda_graph.py -p no:cacheprovider 2>&1 | tail -5
+echo "== benchmark"
 $PY benchmarks/guidance.py --device cuda --out "$OUT/guidance_h100.json" --profile-dir "$OUT" \
-    --budget-s "${BUDGET_S:-300}" 2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/guidance_h100.txt"
+    --budget-s "${BUDGET_S:-220}" 2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/guidance_h100.txt"
