@@ -75,6 +75,14 @@ def _build_from_state(cls, config: dict, state: dict[str, torch.Tensor], what: s
     return model
 
 
+def _load_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    """A tensors-only checkpoint, memory-mapped when it is in the zip format (legacy files are read)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except RuntimeError:  # pre-zip serialization cannot be memory-mapped
+        return torch.load(path, map_location="cpu", weights_only=True)
+
+
 def _tokenizer(folder: Optional[Path], checkpoint_dir: Path):
     """OpenCLIP's tokenizer: CLIP's BPE, padded with token 0 ('!'), 77 tokens. From ``folder``,
     ``<checkpoint dir>/tokenizer`` or the ``clip`` registry model (the same vocabulary)."""
@@ -110,7 +118,7 @@ def load_mvdream(
     if found.is_file():
         if ldm_config is None:
             ldm_config = next((found.parent / n for n in LDM_CONFIG_NAMES if (found.parent / n).is_file()), None)
-        state = torch.load(found, map_location="cpu", weights_only=True, mmap=True)
+        state = _load_state_dict(found)
         comp = convert_ldm_checkpoint(state, ldm_config)
         unet = _build_from_state(diffusers.UNet2DConditionModel, comp.unet_config, comp.unet_state, "UNet")
         vae = _build_from_state(diffusers.AutoencoderKL, comp.vae_config, comp.vae_state, "VAE")
