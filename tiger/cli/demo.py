@@ -21,7 +21,7 @@ def add_parser(sub) -> None:
     p.add_argument("--queries", nargs="*", default=["mug", "ball", "plant"],
                    help="text queries to retrieve (default: %(default)s; none: render only)")
     p.add_argument("--steps", type=int, default=300, help="language-field training steps")
-    p.add_argument("--edit-steps", type=int, default=100,
+    p.add_argument("--edit-steps", type=int, default=40,
                    help="steps of the 'make the ball red' recolour edit (0: skip; needs 'ball' in --queries)")
     p.add_argument("--models", default=None,
                    help="model folder or config (default: $TIGER_MODELS); CLIP enables free text")

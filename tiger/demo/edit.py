@@ -19,7 +19,7 @@ from .scene import orbit_viewmats, pinhole_K
 
 
 def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "make the ball red",
-                 models: Optional[str] = None, steps: int = 100, size: int = 96,
+                 models: Optional[str] = None, steps: int = 40, size: int = 64,
                  picture_size=(480, 360)) -> dict:
     """Edit ``out/scene.ply`` (written by the language stage) and write before/after pictures.
 
@@ -32,8 +32,8 @@ def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "mak
     encoder, _ = load_text_encoder(scene.metadata.get("labels", []), models)
     with timer.stage(f"edit '{instruction}' (recolor, {steps} steps at {size}x{size})"):
         tgt = resolve_target(scene, target, encoder=encoder, tau=0.5)
-        cfg = EditConfig(steps=steps, width=size, height=size, lrs={"sh_dc": 0.05}, densify_every=25,
-                         densify_from=25, background=(1.0, 1.0, 1.0), checkpoint_every=0)
+        cfg = EditConfig(steps=steps, width=size, height=size, lrs={"sh_dc": 0.1}, densify_every=10,
+                         densify_from=10, background=(1.0, 1.0, 1.0), checkpoint_every=0)
         res = edit(scene, instruction, tgt, RecolorGuidance(instruction), config=cfg)
         res.scene.save_ply(out / "scene_ball_red.ply")
     pw, ph = picture_size
@@ -43,7 +43,7 @@ def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "mak
         grid = before_after_grid(scene, res.scene, pics, white)
         save_png(out / "edit_before_after.png", grid)
         close = ObjectViews(tgt.center, tgt.bbox_min, tgt.bbox_max, force_360=True, width=256, height=256)
-        save_png(out / "edit_ball_closeup.png", before_after_grid(scene, res.scene, close.fixed(4), white))
+        save_png(out / "edit_ball_closeup.png", before_after_grid(scene, res.scene, close.fixed(4, 35.0), white))
         loc = locality(scene, res.scene, pics, tgt.mask, res.editable, background=white)
     rgb = res.scene.rgb[res.editable].mean(0).tolist()
     print(f"  edit: {tgt.count} Gaussians of '{target}' recoloured; mean colour now "

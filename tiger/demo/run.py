@@ -86,7 +86,7 @@ DEFAULT_QUERIES = ("mug", "ball", "plant")
 
 def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
              n_views: int = 4, density: float = 1.0, queries=DEFAULT_QUERIES,
-             models: str | None = None, steps: int = 300, edit_steps: int = 100) -> dict:
+             models: str | None = None, steps: int = 300, edit_steps: int = 40) -> dict:
     """Run the demo end to end: build, render, language-embed, query, and (when "ball" is among the
     queries and ``edit_steps`` > 0) recolour the ball red. Returns what it did."""
     out = Path(out_dir)
