@@ -9,10 +9,10 @@ from typing import Iterator
 
 import torch
 
-from tiger.render import rasterize_gaussians
+from tiger.scene.labelled import LabelledScene
 from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
 
-from .scene import LabelledGaussians, orbit_viewmats, pinhole_K, tabletop_scene
+from .scene import orbit_cameras, tabletop_scene
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class StageTimer:
                          [f"{'total':<40s} {total:7.2f} s"])
 
 
-def label_features(scene: LabelledGaussians, dim: int = 64, seed: int = 0,
+def label_features(scene: LabelledScene, dim: int = 64, seed: int = 0,
                    noise: float = 0.05) -> torch.Tensor:
     """Per-Gaussian 64-d features: a fixed unit vector per label plus a little noise → [N, dim]."""
     g = torch.Generator().manual_seed(seed)
@@ -47,17 +47,16 @@ def label_features(scene: LabelledGaussians, dim: int = 64, seed: int = 0,
     return f / f.norm(dim=1, keepdim=True)
 
 
-def render_views(scene: LabelledGaussians, features: torch.Tensor, out: Path, width: int,
-                 height: int, n_views: int, timer: StageTimer) -> list[dict]:
-    K = pinhole_K(width, height)
-    colors = torch.cat([scene.rgb, features], dim=1).contiguous()  # 67 channels, one pass
+def render_pictures(scene: LabelledScene, features: torch.Tensor, out: Path, width: int,
+                    height: int, n_views: int, timer: StageTimer) -> list[dict]:
+    """Colour, depth, alpha and a PCA picture of ``features`` [N, D] from ``n_views`` orbit views."""
+    colors = torch.cat([scene.scene.rgb, features], dim=1).contiguous()  # 67 channels, one pass
     bg = torch.cat([torch.ones(3), torch.zeros(features.shape[1])])
     results, basis = [], None
-    for i, V in enumerate(orbit_viewmats(n_views)):
+    for i, cam in enumerate(orbit_cameras(n_views, width, height)):
         with timer.stage(f"render view {i} ({width}x{height}, C=67, one pass)"):
             with torch.no_grad():
-                r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
-                                        colors, V, K, width, height, background=bg)
+                r = scene.scene.render(cam, colors, background=bg)
         mask = r["alpha"] > 0.5
         feats = r["color"][..., 3:] / r["alpha"].clamp_min(1e-6)[..., None]
         if basis is None:
@@ -73,11 +72,8 @@ def render_views(scene: LabelledGaussians, features: torch.Tensor, out: Path, wi
         for kind, path in files.items():
             print(f"    wrote {path}  ({kind}; coverage {float(mask.float().mean()):.0%}, "
                   f"depth {float(r['depth'][mask].min()):.2f}-{float(r['depth'][mask].max()):.2f})")
-        results.append({"viewmat": V, "K": K, "render": r, "files": files})
+        results.append({"viewmat": cam.viewmat, "K": cam.K, "render": r, "files": files})
     return results
-
-
-
 
 
 
@@ -98,7 +94,7 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
         feats = label_features(scene)
     counts = {n: int((scene.labels == i).sum()) for i, n in enumerate(scene.names)}
     print(f"  scene: {len(scene)} Gaussians " + ", ".join(f"{k}={v}" for k, v in counts.items()))
-    views = render_views(scene, feats, out, width, height, n_views, timer)
+    views = render_pictures(scene, feats, out, width, height, n_views, timer)
     found = []
     if queries:
         from .language import embed_and_query
