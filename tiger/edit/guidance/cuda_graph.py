@@ -16,6 +16,20 @@ logger = logging.getLogger(__name__)
 
 StepFn = Callable[..., torch.Tensor]
 
+_SHARED_POOL = None
+
+
+def shared_graph_pool():
+    """One CUDA-graph memory pool for every guidance step of the process.
+
+    The steps run one after the other on one stream and each returns a copy of its output, so
+    their intermediates can share memory: with both guidances graphed, the peak is the larger
+    step's activations, not their sum (a graph's private pool is never released between replays)."""
+    global _SHARED_POOL
+    if _SHARED_POOL is None:
+        _SHARED_POOL = torch.cuda.graph_pool_handle()
+    return _SHARED_POOL
+
 
 class GraphedStep:
     """``fn(*tensors) -> tensor`` replayed from a CUDA graph captured per input signature.
@@ -24,12 +38,14 @@ class GraphedStep:
     autotuning, lazy initialisation, torch.compile happen there), then captures. Later calls copy
     the inputs into the captured buffers and replay. ``fn`` must be free of host synchronisation
     (no ``.item()``, no data-dependent Python branches) and draw no random numbers itself.
-    Returns a fresh tensor (a copy of the graph's output buffer).
+    Returns a fresh tensor (a copy of the graph's output buffer). ``share_pool``: capture into the
+    pool shared by all guidance steps replayed on the same stream (:func:`shared_graph_pool`).
     """
 
-    def __init__(self, fn: StepFn, warmup: int = 3) -> None:
+    def __init__(self, fn: StepFn, warmup: int = 3, share_pool: bool = True) -> None:
         self.fn = fn
         self.warmup = int(warmup)
+        self.share_pool = share_pool
         self._graphs: dict[tuple, tuple[torch.cuda.CUDAGraph, list[torch.Tensor], torch.Tensor]] = {}
 
     @staticmethod
@@ -59,7 +75,7 @@ class GraphedStep:
                 self.fn(*static_in)
         torch.cuda.current_stream().wait_stream(side)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
+        with torch.cuda.graph(graph, pool=shared_graph_pool() if self.share_pool else None):
             static_out = self.fn(*static_in)
         logger.info("captured a CUDA graph for input shapes %s", [tuple(a.shape) for a in args])
         return graph, static_in, static_out

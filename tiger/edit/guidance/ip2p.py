@@ -26,8 +26,8 @@ from tiger.utils.lazy import require
 
 from .base import GuidanceInfo, ViewBatch, check_renders
 from .cuda_graph import GraphedStep
-from .sds import (draw_noise, NoiseSchedule, PromptEncoder, check_t_range, encode_latents, finite_clamped, freeze,
-                  latent_shape, model_device_dtype, require_diffusers, resize, resolution_for,
+from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, encode_latents, finite_clamped, freeze,
+                  latent_shape, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
                   vae_downsampling_factor)
 
 logger = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ class InstructPix2PixGuidance:
         self.generator = generator
         self.collect_stats = collect_stats
         self.device, self.dtype = model_device_dtype(models.unet)
-        self.text_embeddings = models.prompts([instruction, ""])  # [2, 77, D]
+        self.text_embeddings = models.prompts([instruction, ""]).to(self.dtype)  # [2, 77, D]
         if not keep_text_encoder:
             models.prompts.release()
         self._cond_cache: dict[tuple[int, int, int], torch.Tensor] = {}
@@ -160,6 +160,10 @@ class InstructPix2PixGuidance:
                 self._cond_cache[(ids[k], *size)] = z
         return torch.stack([self._cond_cache[(i, *size)] for i in ids])
 
+    def clear_condition_cache(self) -> None:
+        """Forget the cached image-condition latents (when the original renders change)."""
+        self._cond_cache.clear()
+
     def step(self, renders: torch.Tensor, cond: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
              vae_noise: torch.Tensor) -> torch.Tensor:
         """dL/drenders for given condition latents, timesteps [V], noise and VAE posterior noise.
@@ -170,12 +174,7 @@ class InstructPix2PixGuidance:
         m = self.models
         f = vae_downsampling_factor(m.vae)
         size = (cond.shape[-2] * f, cond.shape[-1] * f)
-        with torch.enable_grad():
-            x = renders.detach().requires_grad_(True)
-            z = encode_latents(m.vae, resize(x, size), vae_noise)
-            g = self.latent_grad(z.detach(), cond, t, noise)
-            (gx,) = torch.autograd.grad(z, x, grad_outputs=g.to(z.dtype))
-        return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0)
+        return render_gradient(m.vae, renders, size, vae_noise, lambda z: self.latent_grad(z, cond, t, noise))
 
     @torch.no_grad()
     def latent_grad(self, z: torch.Tensor, cond: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -185,7 +184,8 @@ class InstructPix2PixGuidance:
         z_t = m.schedule.add_noise(z, noise, t)
         cond3 = torch.cat([cond, cond, torch.zeros_like(cond)]).to(z_t.dtype)
         inp = torch.cat([torch.cat([z_t, z_t, z_t]), cond3], dim=1)
-        emb = self.text_embeddings[torch.tensor([0, 1, 1], device=self.device).repeat_interleave(v)]
+        e = self.text_embeddings  # branches: instruction, "", "" (device ops only: graph capturable)
+        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(2 * v, -1, -1)])
         eps = m.unet(inp, torch.cat([t, t, t]), encoder_hidden_states=emb).sample.float()
         e_text, e_img, e_unc = eps.chunk(3)
         eps_hat = e_unc + self.text_scale * (e_text - e_img) + self.image_scale * (e_img - e_unc)

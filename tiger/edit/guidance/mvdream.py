@@ -34,8 +34,8 @@ from .cuda_graph import GraphedStep
 from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
 from .mvdream_cameras import mvdream_cameras
-from .sds import (draw_noise, NoiseSchedule, PromptEncoder, check_t_range, encode_latents, finite_clamped, freeze,
-                  latent_shape, model_device_dtype, require_diffusers, resize)
+from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, finite_clamped, freeze, latent_shape,
+                  model_device_dtype, render_gradient, require_diffusers)
 
 logger = logging.getLogger(__name__)
 
@@ -199,7 +199,7 @@ class MVDreamGuidance:
         self.device, self.dtype = model_device_dtype(models.unet)
         if self.cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.mvdream: cuda_graph=True needs the models on a CUDA device")
-        self.text_embeddings = models.prompts([self.prompt, self.negative_prompt])  # [2, 77, D]
+        self.text_embeddings = models.prompts([self.prompt, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
         if not self.keep_text_encoder:
             models.prompts.release()
         self._graphed = GraphedStep(self.step) if self.cuda_graph else None
@@ -225,12 +225,8 @@ class MVDreamGuidance:
         """dL/drenders for given camera conditions [V, 16], t [1] (shared), noise and VAE noise [V, c, h, w].
 
         Deterministic and free of host syncs (CUDA-graph capturable)."""
-        with torch.enable_grad():
-            x = renders.detach().requires_grad_(True)
-            z = encode_latents(self.models.vae, resize(x, (self.image_size, self.image_size)), vae_noise)
-            g = self.latent_grad(z.detach(), cameras, t, noise)
-            (gx,) = torch.autograd.grad(z, x, grad_outputs=g.to(z.dtype))
-        return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0)
+        return render_gradient(self.models.vae, renders, (self.image_size, self.image_size), vae_noise,
+                               lambda z: self.latent_grad(z, cameras, t, noise))
 
     @torch.no_grad()
     def latent_grad(self, z: torch.Tensor, cameras: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -239,7 +235,8 @@ class MVDreamGuidance:
         v = z.shape[0]
         tt = t.reshape(1).expand(v)
         z_t = m.schedule.add_noise(z, noise, tt)
-        emb = self.text_embeddings[torch.tensor([0, 1], device=self.device).repeat_interleave(v)]
+        e = self.text_embeddings  # branches: prompt, negative prompt
+        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(v, -1, -1)])
         cams = torch.cat([cameras, cameras]).to(self.dtype)
         eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
                      class_labels=cams).sample.float()

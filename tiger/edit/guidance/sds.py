@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 import torch.nn.functional as F
@@ -122,6 +122,19 @@ def encode_latents(vae, images01: torch.Tensor, vae_noise: Optional[torch.Tensor
     if vae_noise is None:
         return dist.mean
     return (dist.mean + dist.std * vae_noise.to(dist.std.dtype)) * vae.config.scaling_factor
+
+
+def render_gradient(vae, renders: torch.Tensor, size: tuple[int, int], vae_noise: torch.Tensor,
+                    latent_grad: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """dL/drenders [V, 3, H, W]: the renders resized to ``size`` and encoded with autograd on,
+    ``latent_grad(z)`` (no grad) gives dL/dz, back-propagated through the encoder and the resize;
+    non-finite entries zeroed. Free of host syncs (CUDA-graph capturable)."""
+    with torch.enable_grad():
+        x = renders.detach().requires_grad_(True)
+        z = encode_latents(vae, resize(x, size), vae_noise)
+        g = latent_grad(z.detach())
+        (gx,) = torch.autograd.grad(z, x, grad_outputs=g.to(z.dtype))
+    return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0)
 
 
 def latent_shape(vae, n: int, size: tuple[int, int]) -> tuple[int, int, int, int]:
