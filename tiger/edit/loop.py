@@ -181,8 +181,8 @@ class EditSession:
             out["means2d"].retain_grad()
             x = out["color"].permute(0, 3, 1, 2).clamp(0, 1)
         batch = ViewBatch(cameras=cams, originals=originals, masks=masks, step=self.step,
-                          total_steps=cfg.steps, object_center=self.target.center.to(self.device),
-                          world_up=self.views.layout.up.to(self.device))
+                          total_steps=cfg.steps, object_center=self.views.center,
+                          world_up=self.views.layout.up)  # float64 on the CPU, like the cameras
         with T("guidance"):
             g, info = self.guidance.grad(x.detach(), batch)
         if g.shape != x.shape:
