@@ -165,9 +165,11 @@ class EditSession:
     def _render_originals(self, cams: Sequence[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
         """Original renders [V, 3, H, W] (full SH) and the object's footprint [V, 1, H, W]."""
         s = self.original
-        rgb = render_views(s, cams, "rgb", background=self.background, check_finite=False)["color"]
-        foot = render_views(s, cams, self.orig_indicator, check_finite=False)["color"]
-        return rgb.clamp(0, 1).permute(0, 3, 1, 2), foot.clamp(0, 1).permute(0, 3, 1, 2)
+        bg = torch.cat([self.background, self.background.new_zeros(1)])
+        # one pass per view: the view's SH colour and the object indicator as a 4th channel
+        out = torch.stack([s.render(c, torch.cat([s.view_colors(c.to(s.device, s.dtype)), self.orig_indicator], 1),
+                                    background=bg, check_finite=False)["color"] for c in cams])
+        return out[..., :3].clamp(0, 1).permute(0, 3, 1, 2), out[..., 3:].clamp(0, 1).permute(0, 3, 1, 2)
 
     # -- one step -------------------------------------------------------------------------------
     def step_once(self) -> dict:
