@@ -6,11 +6,11 @@ import torch
 
 from tiger.scene.cameras import Camera
 
-pytest.importorskip("diffusers")
 
 
 @pytest.fixture(scope="session")
 def tiny_models(tmp_path_factory):
+    pytest.importorskip("diffusers")
     from tiger.edit.guidance.random_models import save_random_ip2p, save_random_mvdream
 
     root = tmp_path_factory.mktemp("guidance_models")

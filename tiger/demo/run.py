@@ -82,8 +82,9 @@ DEFAULT_QUERIES = ("mug", "ball", "plant")
 
 def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
              n_views: int = 4, density: float = 1.0, queries=DEFAULT_QUERIES,
-             models: str | None = None, steps: int = 300) -> dict:
-    """Run the demo end to end: build, render, language-embed, query. Returns what it did."""
+             models: str | None = None, steps: int = 300, edit_steps: int = 40) -> dict:
+    """Run the demo end to end: build, render, language-embed, query, and (when "ball" is among the
+    queries and ``edit_steps`` > 0) recolour the ball red. Returns what it did."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     timer = StageTimer()
@@ -100,6 +101,11 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
 
         found = embed_and_query(scene, out, list(queries), timer, models=models, steps=steps,
                                 picture_size=(width, height))
+    edited = None
+    if found and "ball" in queries and edit_steps > 0:
+        from .edit import recolor_demo
+
+        edited = recolor_demo(out, timer, models=models, steps=edit_steps)
     print("\nstage timings\n" + timer.summary())
     if found:
         print("\nqueries")
@@ -107,5 +113,5 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
             print(f"  {r['query']!r:>14} -> {r['object']:<8} {r['selected']:6d} Gaussians, "
                   f"precision {r['precision']:.3f}, recall {r['recall']:.3f}")
     print(f"\npictures in {out}/: view*_{{color,depth,alpha,features_pca}}.png, "
-          "relevancy/*.png, highlight_*.png, retrieved_*.png")
-    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found}
+          "relevancy/*.png, highlight_*.png, retrieved_*.png" + (", edit_before_after.png" if edited else ""))
+    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found, "edit": edited}
