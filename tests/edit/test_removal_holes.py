@@ -1,0 +1,69 @@
+"""The floater rule (planted floaters near and far from an object) and the hole masks."""
+import pytest
+import torch
+
+from tiger.edit.holes import disk_dilate, hole_masks
+from tiger.edit.removal import removal_mask
+
+
+def _planted(seed=0):
+    """An object (cube of side 0.4 at the origin, score ~0.85), a background (score ~0.05, some of
+    it inside the object's box), floaters near the object (score 0.3-0.45) and far away ones."""
+    g = torch.Generator().manual_seed(seed)
+    obj = (torch.rand(500, 3, generator=g) - 0.5) * 0.4
+    bg = (torch.rand(3000, 3, generator=g) - 0.5) * 4.0
+    near = (torch.rand(40, 3, generator=g) - 0.5) * 0.44  # inside the box grown by 10 %
+    far = (torch.rand(30, 3, generator=g) - 0.5) * 0.4 + torch.tensor([1.5, 0.0, 0.0])
+    means = torch.cat([obj, bg, near, far])
+    scores = torch.cat([0.85 + 0.03 * torch.randn(500, generator=g),
+                        0.05 + 0.05 * torch.randn(3000, generator=g),
+                        0.3 + 0.15 * torch.rand(40, generator=g),
+                        0.3 + 0.15 * torch.rand(30, generator=g)])
+    kind = torch.cat([torch.full((n,), k) for k, n in enumerate((500, 3000, 40, 30))])
+    return means, scores, kind
+
+
+def test_floater_rule_removes_near_floaters_only():
+    means, scores, kind = _planted()
+    tau = 0.5
+    r = removal_mask(scores, scores > tau, means, tau)
+    assert torch.equal(r.retrieved, kind == 0)
+    assert torch.equal(r.floaters, kind == 2)  # every near floater, nothing else
+    assert torch.equal(r.mask, (kind == 0) | (kind == 2))
+    bg_in_box = (kind == 1) & ((means >= r.box_min) & (means <= r.box_max)).all(1)
+    assert int(bg_in_box.sum()) > 0 and not bool(r.mask[bg_in_box].any())  # table under the mug stays
+    med = float(scores.double().median())
+    assert r.floater_tau == pytest.approx(med + 0.5 * (tau - med))
+    assert r.counts() == {"retrieved": 500, "floaters": 40, "removed": 540, "total": 3570, "kept": 3030}
+
+
+def test_floater_rule_knobs():
+    means, scores, kind = _planted()
+    off = removal_mask(scores, scores > 0.5, means, 0.5, floater_fraction=1.0)
+    assert int(off.floaters.sum()) == 0
+    strict = removal_mask(scores, scores > 0.5, means, 0.5, floater_tau=0.4)
+    assert torch.equal(strict.floaters, (kind == 2) & (scores > 0.4))
+    with pytest.raises(ValueError, match="selected no Gaussian"):
+        removal_mask(scores, torch.zeros_like(scores, dtype=torch.bool), means, 0.5)
+    with pytest.raises(ValueError, match="means must be"):
+        removal_mask(scores, scores > 0.5, means[:, :2], 0.5)
+
+
+def test_hole_masks_visible_and_thin_then_dilated():
+    vis = torch.zeros(1, 20, 20)
+    rest = torch.ones(1, 20, 20)
+    vis[0, 5:10, 5:10] = 0.9   # object seen here ...
+    rest[0, 5:10, 5:8] = 0.1   # ... and only these columns are thin afterwards
+    rest[0, 15, 15] = 0.0      # thin but the object was not there: not a hole
+    h0 = hole_masks(vis, rest, dilate=0)
+    ref = torch.zeros(1, 20, 20, dtype=torch.bool)
+    ref[0, 5:10, 5:8] = True
+    assert torch.equal(h0, ref)
+    h2 = hole_masks(vis, rest, dilate=2)
+    assert torch.equal(h2, disk_dilate(ref, 2))
+    # disk of radius 2 around a single pixel: 13 pixels
+    one = torch.zeros(9, 9, dtype=torch.bool)
+    one[4, 4] = True
+    assert int(disk_dilate(one, 2).sum()) == 13
+    with pytest.raises(ValueError, match="hole_masks"):
+        hole_masks(vis, rest[0])

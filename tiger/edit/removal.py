@@ -1,0 +1,95 @@
+"""Which Gaussians a deletion removes: the retrieved object plus the floaters that belong to it.
+
+Retrieval (``s > tau``) finds the object's body, but an object's reconstruction also leaves
+semi-transparent floaters and border Gaussians whose language embedding is a blend of the object
+and its surroundings: their relevance sits between the background's and ``tau``. Left in the
+scene they show up as ghosts after the deletion (GaussianEditor's users report exactly that).
+
+The floater rule: a Gaussian is also removed when
+  1. its centre lies inside the object's robust box (per-axis quantiles ``box_quantiles`` of the
+     retrieved centres), grown on every side by ``box_margin`` times the box's largest side, and
+  2. its score is above the lower threshold
+     ``floater_tau = median(scores) + floater_fraction * (tau - median(scores))``
+     (half-way between a typical Gaussian and the retrieval threshold by default).
+Gaussians of the surroundings inside the box (the table under a mug) score near the median and
+stay; stray Gaussians far from the object stay whatever their score (they may be another
+instance). ``floater_fraction = 1`` turns the rule off.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from tiger.retrieval import robust_bounds
+
+
+@dataclass
+class Removal:
+    """The Gaussians a deletion removes (all masks [N] bool over the scene before deletion).
+
+    Attributes:
+        mask: everything removed (``retrieved | floaters``).
+        retrieved: the retrieval's selection (``scores > tau``).
+        floaters: added by the floater rule (not retrieved).
+        tau, floater_tau: the two thresholds on the scores.
+        box_min, box_max: [3] the grown robust box of the retrieved centres (world units).
+    """
+
+    mask: torch.Tensor
+    retrieved: torch.Tensor
+    floaters: torch.Tensor
+    tau: float
+    floater_tau: float
+    box_min: torch.Tensor
+    box_max: torch.Tensor
+
+    def counts(self) -> dict[str, int]:
+        return {"retrieved": int(self.retrieved.sum()), "floaters": int(self.floaters.sum()),
+                "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
+                "kept": int((~self.mask).sum())}
+
+
+def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Tensor, tau: float, *,
+                 floater_fraction: float = 0.5, box_margin: float = 0.1,
+                 box_quantiles: tuple[float, float] = (0.02, 0.98),
+                 floater_tau: Optional[float] = None) -> Removal:
+    """Apply the floater rule (module docstring) around a retrieval.
+
+    Args:
+        scores: [N] the retrieval's per-Gaussian scores (cosine or relevancy).
+        retrieved: [N] bool, the retrieval's selection.
+        means: [N, 3] Gaussian centres.
+        tau: the retrieval threshold (``retrieved == scores > tau`` for a text retrieval).
+        floater_fraction: where the lower threshold sits between the median score (0) and tau (1).
+        box_margin: growth of the robust box on each side, as a fraction of its largest side.
+        box_quantiles: per-axis quantiles of the retrieved centres spanning the box.
+        floater_tau: an explicit lower threshold (overrides ``floater_fraction``).
+    Returns:
+        a :class:`Removal`.
+    """
+    n = means.shape[0] if means.dim() == 2 else -1
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"tiger.edit.removal_mask: means must be [N, 3], got {list(means.shape)}")
+    if scores.shape != (n,) or retrieved.shape != (n,) or retrieved.dtype != torch.bool:
+        raise ValueError(f"tiger.edit.removal_mask: scores and retrieved must be [N={n}] (float, bool), "
+                         f"got {list(scores.shape)} {scores.dtype} and {list(retrieved.shape)} {retrieved.dtype}")
+    if not 0.0 <= floater_fraction <= 1.0 or box_margin < 0:
+        raise ValueError(f"tiger.edit.removal_mask: need 0 <= floater_fraction <= 1 and box_margin >= 0, "
+                         f"got {floater_fraction} and {box_margin}")
+    retrieved = retrieved.to(means.device)
+    if not bool(retrieved.any()):
+        raise ValueError("tiger.edit.removal_mask: the retrieval selected no Gaussian: nothing to delete")
+    s = scores.detach().to(means.device, torch.float64)
+    _, lo, hi = robust_bounds(means.detach()[retrieved], box_quantiles)
+    grow = box_margin * float((hi - lo).max())
+    lo, hi = lo - grow, hi + grow
+    m = means.detach().to(torch.float64)
+    inside = ((m >= lo.to(m.device)) & (m <= hi.to(m.device))).all(dim=1)
+    if floater_tau is None:
+        med = float(s.median())
+        floater_tau = med + floater_fraction * (float(tau) - med)
+    floaters = inside & (s > float(floater_tau)) & ~retrieved
+    return Removal(mask=retrieved | floaters, retrieved=retrieved, floaters=floaters, tau=float(tau),
+                   floater_tau=float(floater_tau), box_min=lo.float(), box_max=hi.float())
