@@ -14,8 +14,14 @@ from tiger.scene.sh import rgb_to_sh
 MUG_CENTER = (-0.45, -0.13, 0.1)
 
 
-def _tabletop(density=0.5):
+def _tabletop(density=0.5, carve=True):
+    """The demo tabletop with language features; ``carve``: without the table surface under the
+    mug (a reconstruction has none there: no camera sees it), so deleting the mug leaves a hole."""
     lab = tabletop_scene(density)
+    if carve:
+        xz = lab.means[:, [0, 2]] - torch.tensor([MUG_CENTER[0] + 0.05, MUG_CENTER[2]])
+        under = (lab.labels == lab.names.index("table")) & (xz.norm(dim=1) < 0.1)
+        lab = lab.select(~under)
     feats = label_features(lab)
     o = lab.opacities.clamp(1e-4, 1 - 1e-4)
     scene = GaussianScene(lab.means.clone(), lab.scales.log(), lab.quats.clone(), torch.log(o / (1 - o)),

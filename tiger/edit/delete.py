@@ -9,10 +9,10 @@ Stages (each timed in ``DeleteResult.timings``):
      backward per view).
   3. **inpaint**: the view with the object gone (the remainder's render; with captured
      ``images``, the captured pixels outside the object's dilated footprint) is inpainted inside
-     its hole, in a window around the hole; the remainder's depth is filled into the thin part of
-     the hole the same way, for the seeds (:mod:`tiger.edit.seeds`).
-  4. **refit**: only the Gaussians seen in a hole (weight >= ``near_weight``) and the seeds are
-     trainable; the loss is L1 + D-SSIM against the inpainted views in a window around each
+     its hole, in a window around the hole; the remainder's inverse depth is filled into the thin
+     part of the hole the same way (linear across a plane), for the seeds (:mod:`tiger.edit.seeds`).
+  4. **refit**: only the Gaussians seen mostly inside the holes (``near_weight``, ``hole_share``)
+     and the seeds are trainable; the loss is L1 + D-SSIM against the inpainted views in a window around each
      view's hole; the rest of the scene is bit-identical. Resumable from ``checkpoint_dir``.
 """
 from __future__ import annotations
@@ -50,10 +50,13 @@ class DeleteConfig:
     Removal: ``score``/``tau`` of the retrieval; ``floater_fraction``, ``box_margin`` of the floater
     rule. Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
     ``inpaint_margin`` (pixels of context around a hole given to the inpainter; None: the whole
-    view). Refit: ``steps`` (one view each), ``near_weight`` (minimal summed compositing weight in
-    the holes for a remaining Gaussian to be trainable), ``window_margin`` (pixels around a view's
+    view); ``depth_source_alpha`` (pixels at least this opaque give the depth filled into the
+    holes for the seeds). Refit: ``steps`` (one view each), ``near_weight`` and ``hole_share`` (a remaining
+    Gaussian is trainable when its summed compositing weight inside the holes is at least
+    ``near_weight`` and at least ``hole_share`` of its weight over all the views, so changing it
+    changes mostly hole pixels), ``window_margin`` (pixels around a view's
     hole and footprint rendered for the loss), seeds (``seed_stride`` px, ``seed_min_change``,
-    ``seed_opacity``), ``densify_every`` / ``densify_fraction`` (top fraction of the trainable
+    ``seed_opacity``, ``seed_depth_tolerance``: see :mod:`tiger.edit.seeds`), ``densify_every`` / ``densify_fraction`` (top fraction of the trainable
     Gaussians by screen-space gradient, split or cloned), ``lambda_dssim``, learning rates ``lrs``
     (GaussianScene parameter names; means in world units), ``background`` (RGB behind the scene).
     """
@@ -66,12 +69,15 @@ class DeleteConfig:
     thin_alpha: float = 0.5
     dilate: int = 3
     inpaint_margin: Optional[int] = 32
+    depth_source_alpha: float = 0.95
     steps: int = 150
     near_weight: float = 0.05
+    hole_share: float = 0.5
     window_margin: int = 16
     seed_stride: int = 4
     seed_min_change: float = 0.05
     seed_opacity: float = 0.5
+    seed_depth_tolerance: float = 0.05
     densify_every: int = 50
     densify_fraction: float = 0.01
     lambda_dssim: float = 0.2
@@ -162,6 +168,7 @@ class ViewStack:
     holes: torch.Tensor
     footprint: torch.Tensor
     hole_weight: torch.Tensor  # [N_rest] summed compositing weight of each remaining Gaussian in holes
+    view_weight: torch.Tensor  # [N_rest] ... over the whole of every view
 
 
 def _render(scene: GaussianScene, cam: Camera, colors: torch.Tensor, bg: torch.Tensor) -> dict:
@@ -180,26 +187,28 @@ def render_stage(scene: GaussianScene, rest: GaussianScene, removed: torch.Tenso
     bg3 = torch.tensor(cfg.background, dtype=scene.dtype, device=dev)
     bg4 = torch.cat([bg3, bg3.new_zeros(1)])
     flag = removed.to(scene.dtype)[:, None]
-    ones = torch.ones(len(rest), 1, dtype=rest.dtype, device=dev, requires_grad=True)
+    # two unit channels whose colour gradients are each Gaussian's compositing weight inside the
+    # hole (channel 3) and over the whole view (channel 4): one features-only backward per view
+    ones = torch.ones(len(rest), 2, dtype=rest.dtype, device=dev, requires_grad=True)
+    bg5 = torch.cat([bg3, bg3.new_zeros(2)])
+    scene_d, rest_d = scene.detach(), rest.detach()
     rows = []
-    with torch.no_grad():
-        scene_d, rest_d = scene.detach(), rest.detach()
     for cam in cameras:
         with torch.no_grad():
             b = _render(scene_d, cam, torch.cat([scene_d.view_colors(cam), flag], 1), bg4)["color"]
             rest_colors = rest_d.view_colors(cam)
-        r = _render(rest_d, cam, torch.cat([rest_colors, ones], 1), bg4)
+        r = _render(rest_d, cam, torch.cat([rest_colors, ones], 1), bg5)
         vis = b[..., 3]
         hole = hole_masks(vis[None], r["alpha"].detach()[None], visible_alpha=cfg.visible_alpha,
                           thin_alpha=cfg.thin_alpha, dilate=cfg.dilate)[0]
-        if bool(hole.any()):  # compositing weight of each remaining Gaussian inside the hole
-            (r["color"][..., 3] * hole).sum().backward()
+        ((r["color"][..., 3] * hole).sum() + r["color"][..., 4].sum()).backward()
         rows.append((b[..., :3], vis, r["color"][..., :3].detach(), r["alpha"].detach(),
                      r["depth"].detach(), hole))
-    weight = ones.grad[:, 0].detach() if ones.grad is not None else torch.zeros(len(rest), device=dev)
+    grad = ones.grad.detach() if ones.grad is not None else torch.zeros(len(rest), 2, device=dev)
     before, vis, rgb, alpha, depth, holes = (torch.stack(t) for t in zip(*rows))
     footprint = disk_dilate(vis >= cfg.visible_alpha, cfg.dilate)
-    return ViewStack(before.clamp(0, 1), vis, rgb.clamp(0, 1), alpha, depth, holes, footprint, weight)
+    return ViewStack(before.clamp(0, 1), vis, rgb.clamp(0, 1), alpha, depth, holes, footprint, grad[:, 0],
+                     grad[:, 1])
 
 
 def inpaint_stage(views: ViewStack, images: Optional[torch.Tensor], inpainter: Inpainter,
@@ -221,11 +230,13 @@ def inpaint_stage(views: ViewStack, images: Optional[torch.Tensor], inpainter: I
         win = (slice(y0, y0 + ch), slice(x0, x0 + cw))
         img = base[i][win].permute(2, 0, 1)[None]
         targets[i][win] = inpainter(img, hole[win][None, None])[0].permute(1, 2, 0)
-        fill = thin[i][win]
-        if bool((fill & hole[win]).any()):
-            d = depth[i][win].float().cpu().numpy()[..., None]
-            filled = depth_filler.fill_channels(d, fill.cpu().numpy())[..., 0]
-            depth[i][win] = torch.from_numpy(filled).to(depth)
+        if bool((thin[i][win] & hole[win]).any()):  # filled as inverse depth: linear across a plane
+            inv = (1.0 / depth[i][win].clamp_min(1e-6)).float().cpu().numpy()[..., None]
+            # only nearly opaque pixels are sources: elsewhere the expected depth mixes in what
+            # lies behind the first surface
+            sources = views.rest_alpha[i][win] >= cfg.depth_source_alpha
+            filled = depth_filler.fill_channels(inv, (~sources).cpu().numpy())[..., 0]
+            depth[i][win] = 1.0 / torch.from_numpy(filled).to(depth).clamp_min(1e-6)
     return targets.clamp(0, 1), depth
 
 
@@ -311,10 +322,12 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     times["inpaint"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    near = views.hole_weight >= cfg.near_weight
+    near = (views.hole_weight >= cfg.near_weight) & \
+        (views.hole_weight >= cfg.hole_share * views.view_weight)
     seeds = seed_points(cameras, views.holes, views.rest_alpha < cfg.thin_alpha, depth, targets,
                         views.rest_rgb, views.rest_depth, views.rest_alpha, stride=cfg.seed_stride,
-                        min_change=cfg.seed_min_change, opaque=cfg.thin_alpha)
+                        min_change=cfg.seed_min_change, opaque=cfg.thin_alpha, allowed=views.footprint,
+                        depth_tolerance=cfg.seed_depth_tolerance)
     start = GaussianScene.concat([rest, seeds_scene(seeds, rest, near, cfg.seed_opacity)])
     trainable = torch.cat([near, torch.ones(len(seeds), dtype=torch.bool, device=near.device)])
     windows = [mask_window(views.holes[i] | views.footprint[i], cfg.window_margin)

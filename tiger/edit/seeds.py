@@ -6,20 +6,25 @@ grid of ``stride`` pixels are lifted to 3D at an inpainted depth (the remainder'
 into the thin region from the surrounding surface), coloured with the inpainted target.
 
 A seed is kept only if the other views agree: in every other view it projects either outside
-the image, inside that view's hole, or behind the remainder's surface (occluded). A seed that
-would show up in another view outside its hole is dropped, so seeding never changes what a view
-showed outside its hole. Seeds are only made where the target differs from the remainder's
+the image, inside that view's ``allowed`` region (the hole, or in :func:`tiger.edit.delete` the
+removed object's dilated footprint: pixels that change anyway), or behind the remainder's surface
+(occluded). A seed that would show up in another view where the object was not is dropped, so
+seeding never changes what a view showed away from the object. Seeds are only made where the target differs from the remainder's
 render (``min_change``): where the inpainting just continued the background, nothing is added.
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
+
+import logging
 
 import torch
 
 from tiger.scene.cameras import Camera
+
+log = logging.getLogger(__name__)
 
 
 def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
@@ -67,7 +72,8 @@ class Seeds:
 def seed_points(cameras: Sequence[Camera], holes: torch.Tensor, thin: torch.Tensor, depth: torch.Tensor,
                 targets: torch.Tensor, rest_rgb: torch.Tensor, rest_depth: torch.Tensor,
                 rest_alpha: torch.Tensor, *, stride: int = 4, min_change: float = 0.05,
-                depth_tolerance: float = 0.02, opaque: float = 0.5, max_views: int = 8) -> Seeds:
+                depth_tolerance: float = 0.02, opaque: float = 0.5, max_views: int = 8,
+                allowed: Optional[torch.Tensor] = None) -> Seeds:
     """Lift thin hole pixels to seed Gaussians (module docstring).
 
     Args:
@@ -82,6 +88,7 @@ def seed_points(cameras: Sequence[Camera], holes: torch.Tensor, thin: torch.Tens
         depth_tolerance: relative depth margin of the occlusion test in other views.
         opaque: remainder alpha above which a pixel counts as a surface for the occlusion test.
         max_views: seeds come from at most this many views (those with the largest thin holes).
+        allowed: [V, H, W] bool, where a seed may be seen in the other views (default ``holes``).
     """
     v, h, w = holes.shape
     dev = depth.device
@@ -111,13 +118,18 @@ def seed_points(cameras: Sequence[Camera], holes: torch.Tensor, thin: torch.Tens
         return Seeds(e, e.clone(), torch.zeros(0, device=dev), torch.zeros(0, dtype=torch.long, device=dev))
     seeds = Seeds(torch.cat(means), torch.cat(rgb), torch.cat(scales), torch.cat(views))
     keep = torch.ones(len(seeds), dtype=torch.bool, device=dev)
+    reasons = torch.zeros(len(cameras), dtype=torch.long)
     for j, cam in enumerate(cameras):
         uv, z = cam.to(dev, torch.float32).project(seeds.means)
         px, py = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
         inside = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h) & (seeds.views != j)
         pxc, pyc = px.clamp(0, w - 1), py.clamp(0, h - 1)
-        in_hole = holes[j, pyc, pxc]
+        in_hole = (holes if allowed is None else allowed)[j, pyc, pxc]
         surface = rest_alpha[j, pyc, pxc] > opaque
         occluded = surface & (rest_depth[j, pyc, pxc] < z * (1 - depth_tolerance))
-        keep &= ~inside | in_hole | occluded
+        ok = ~inside | in_hole | occluded
+        reasons[j] = int((~ok).sum())
+        keep &= ok
+    log.debug("seeds: %d candidates, %d kept; dropped as visible outside the hole per view: %s",
+              len(seeds), int(keep.sum()), reasons.tolist())
     return Seeds(seeds.means[keep], seeds.rgb[keep], seeds.scales[keep], seeds.views[keep])

@@ -87,7 +87,10 @@ def delete_metrics(cameras: Sequence[Camera], before: torch.Tensor, remaining: t
     - ``locality_psnr``: result vs the scene before deletion, outside the removed object's
       dilated footprint (what should not change did not);
     - ``rest_psnr``: result vs the scene right after removal, outside the holes;
-    - ``hole_psnr``: result vs the inpainted targets inside the holes;
+    - ``hole_psnr``: result vs the inpainted targets inside the holes; ``hole_surface_psnr`` the
+      same over the hole pixels the result covers with a surface (alpha > 0.5), and
+      ``hole_surface_fraction`` their share: where a hole borders empty space, the views' 2D
+      inpaints disagree and the refit keeps them empty, as the other views require;
     - ``fill_reprojection_psnr`` / ``inpaint_reprojection_psnr`` and ``reprojected_pixels``:
       the consistency of the fill between neighbouring views (module docstring).
     """
@@ -101,10 +104,14 @@ def delete_metrics(cameras: Sequence[Camera], before: torch.Tensor, remaining: t
                                 c.K, c.width, c.height, check_finite=False)
         depth.append(r["depth"])
         alpha.append(r["alpha"])
-    pairs = reprojection_pairs(cameras, holes, torch.stack(depth), torch.stack(alpha))
+    alpha_t = torch.stack(alpha)
+    pairs = reprojection_pairs(cameras, holes, torch.stack(depth), alpha_t)
+    surface = holes & (alpha_t > 0.5)
     return {"locality_psnr": masked_psnr(after, before, ~footprint),
             "rest_psnr": masked_psnr(after, remaining, ~holes),
             "hole_psnr": masked_psnr(after, targets, holes),
+            "hole_surface_psnr": masked_psnr(after, targets, surface),
+            "hole_surface_fraction": float(surface.sum()) / max(int(holes.sum()), 1),
             "fill_reprojection_psnr": pair_psnr(after, pairs),
             "inpaint_reprojection_psnr": pair_psnr(targets, pairs),
             "reprojected_pixels": int(sum(p.shape[0] for _, _, p, _ in pairs))}
