@@ -34,7 +34,26 @@ def test_floater_rule_removes_near_floaters_only():
     assert int(bg_in_box.sum()) > 0 and not bool(r.mask[bg_in_box].any())  # table under the mug stays
     med = float(scores.double().median())
     assert r.floater_tau == pytest.approx(med + 0.5 * (tau - med))
-    assert r.counts() == {"retrieved": 500, "floaters": 40, "removed": 540, "total": 3570, "kept": 3030}
+    assert r.counts() == {"retrieved": 500, "floaters": 40, "unseen": 0, "removed": 540, "total": 3570,
+                          "kept": 3030}
+
+
+def test_unseen_rule_removes_hidden_gaussians_inside_the_box_only():
+    means, scores, kind = _planted()
+    norms = torch.ones_like(scores)
+    g = torch.Generator().manual_seed(1)
+    hidden_in = (torch.rand(25, 3, generator=g) - 0.5) * 0.3  # inside the object, never seen
+    hidden_out = (torch.rand(25, 3, generator=g) - 0.5) * 0.3 + torch.tensor([0.0, 1.2, 0.0])
+    means = torch.cat([means, hidden_in, hidden_out])
+    scores = torch.cat([scores, torch.zeros(50)])  # cosine of a zero feature
+    norms = torch.cat([norms, torch.zeros(25), 0.05 * torch.ones(25)])
+    kind = torch.cat([kind, torch.full((25,), 4), torch.full((25,), 5)])
+    r = removal_mask(scores, scores > 0.5, means, 0.5, lang_norms=norms)
+    assert torch.equal(r.unseen, kind == 4)
+    assert torch.equal(r.mask, (kind == 0) | (kind == 2) | (kind == 4))
+    assert r.counts()["unseen"] == 25
+    off = removal_mask(scores, scores > 0.5, means, 0.5)
+    assert int(off.unseen.sum()) == 0
 
 
 def test_floater_rule_knobs():

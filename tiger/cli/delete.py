@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -57,19 +56,6 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def views_around(box_min: torch.Tensor, box_max: torch.Tensor, n: int, width: int, height: int,
-                 fov_y_deg: float = 45.0, elevation_deg: float = 30.0, up=(0.0, -1.0, 0.0)) -> list:
-    """``n`` cameras on a circle around the box centre, ``elevation_deg`` up, at the distance at
-    which the box's bounding sphere fills about half the view's height."""
-    from tiger.render.views import orbit_cameras
-
-    center = ((box_min + box_max) / 2).double()
-    r = float((box_max - box_min).double().norm()) / 2
-    dist = max(r, 1e-3) / math.sin(math.radians(fov_y_deg) / 4)
-    return orbit_cameras(n, width, height, fov_y_deg, center=center.tolist(), radius=dist,
-                         elevation_deg=elevation_deg, up=up)
-
-
 def _dataset_views(data: str, n: int, downscale: float, device):
     from tiger.scene.dataset import load_dataset
     from tiger.scene.images import load_image
@@ -81,8 +67,7 @@ def _dataset_views(data: str, n: int, downscale: float, device):
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiger.edit.delete import DeleteConfig, delete, resolve_target
-    from tiger.utils.io import atomic_write
+    from tiger.edit.delete import DeleteConfig, delete, resolve_target, views_around
 
     dev = device_of(args.device)
     if args.resume and not Path(args.out).is_dir():
@@ -117,15 +102,12 @@ def run(args: argparse.Namespace) -> int:
         cams = views_around(box.box_min, box.box_max, args.views, *_size(args.size))
     res = delete(scene, retrieval, cams, images, inpainter=args.inpainter, encoder=encoder, config=cfg,
                  checkpoint_dir=out, resume=args.resume, models=args.models)
-    res.scene.save_ply(out / "scene.ply")
-    write_pictures(res, out)
-    report = {"text": args.text, "inpainter": args.inpainter, "scene": str(args.scene),
-              "data": args.data, **res.report(), "config": {k: v for k, v in vars(cfg).items()}}
-    with atomic_write(out / "delete.json", "w") as fh:
-        json.dump(report, fh, indent=2, default=str)
+    res.save(out, extra={"text": args.text, "inpainter": args.inpainter, "scene": str(args.scene),
+                         "data": args.data, "config": vars(cfg)})
     summary = Summary("tiger delete")
     c, t, m = res.counts, res.timings, res.metrics
-    summary.add(f"removed {c['removed']} Gaussians ({c['retrieved']} retrieved + {c['floaters']} floaters) "
+    summary.add(f"removed {c['removed']} Gaussians ({c['retrieved']} retrieved + {c['floaters']} floaters + "
+                f"{c['unseen']} unseen) "
                 f"of {c['total']}; {c['trainable']} trainable, {c['seeded']} seeded; {c['final']} now")
     summary.add("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
     summary.add(f"locality PSNR {m['locality_psnr']:.1f} dB outside the object; hole PSNR "
@@ -133,22 +115,3 @@ def run(args: argparse.Namespace) -> int:
     summary.add(f"{out / 'scene.ply'}; pictures in {out}; details in {out / 'delete.json'}")
     summary.print()
     return 0
-
-
-def write_pictures(res, out: Path, n_pairs: int = 4) -> list[Path]:
-    """before_i/after_i for the ``n_pairs`` views that saw most of the object, and every view's
-    hole mask (holes/) and inpainted image (inpainted/). Returns the before/after paths."""
-    from tiger.utils.images import save_png
-
-    seen = res.footprint.flatten(1).sum(1)
-    best = torch.argsort(seen, descending=True)[:n_pairs].tolist()
-    paths = []
-    for k, i in enumerate(best):
-        paths.append(save_png(out / f"before_{k}.png", res.before[i]))
-        paths.append(save_png(out / f"after_{k}.png", res.after[i]))
-    for i, cam in enumerate(res.cameras):
-        name = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in (cam.image_name or f"view{i}"))
-        name = Path(name).stem or f"view{i}"
-        save_png(out / "holes" / f"{i:03d}_{name}.png", res.holes[i].float())
-        save_png(out / "inpainted" / f"{i:03d}_{name}.png", res.targets[i])
-    return paths

@@ -104,6 +104,7 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
 
         found = embed_and_query(scene, out, list(queries), timer, models=models, steps=steps,
                                 picture_size=(width, height))
+    deleted = _delete_demo(out, timer, scene.names, models) if queries else None
     print("\nstage timings\n" + timer.summary())
     if found:
         print("\nqueries")
@@ -111,5 +112,13 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
             print(f"  {r['query']!r:>14} -> {r['object']:<8} {r['selected']:6d} Gaussians, "
                   f"precision {r['precision']:.3f}, recall {r['recall']:.3f}")
     print(f"\npictures in {out}/: view*_{{color,depth,alpha,features_pca}}.png, "
-          "relevancy/*.png, highlight_*.png, retrieved_*.png")
-    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found}
+          "relevancy/*.png, highlight_*.png, retrieved_*.png, delete_mug.png (before above after), "
+          "delete_mug/")
+    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found, "delete": deleted}
+
+
+def _delete_demo(out: Path, timer: StageTimer, names: list, models) -> dict:
+    """"delete the mug" on the language-embedded scene (tiger.demo.delete)."""
+    from .delete import delete_stage
+
+    return delete_stage(out, timer, names, "mug", models=models)

@@ -1,8 +1,8 @@
 """Object deletion (paper appendix; SPEC §6): remove what a text names, inpaint the views, refit.
 
 Stages (each timed in ``DeleteResult.timings``):
-  1. **remove**: retrieve the target, add the floaters that belong to it
-     (:mod:`tiger.edit.removal`), drop them.
+  1. **remove**: retrieve the target, add the floaters that belong to it and the Gaussians it
+     hid from every view (:mod:`tiger.edit.removal`), drop them.
   2. **render**: every view before (RGB + the removed part's visible share) and after removal
      (RGB, alpha, depth); the hole masks (:mod:`tiger.edit.holes`); which remaining Gaussians
      are seen inside a hole (their summed compositing weight there, from one features-only
@@ -48,7 +48,7 @@ class DeleteConfig:
     """Parameters of :func:`delete` (defaults are the CLI's).
 
     Removal: ``score``/``tau`` of the retrieval; ``floater_fraction``, ``box_margin`` of the floater
-    rule. Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
+    rule, ``unseen_norm`` of the unseen rule (:mod:`tiger.edit.removal`). Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
     ``inpaint_margin`` (pixels of context around a hole given to the inpainter; None: the whole
     view); ``depth_source_alpha`` (pixels at least this opaque give the depth filled into the
     holes for the seeds). Refit: ``steps`` (one view each), ``near_weight`` and ``hole_share`` (a remaining
@@ -64,6 +64,7 @@ class DeleteConfig:
     score: str = "cosine"
     tau: Tau = "auto"
     floater_fraction: float = 0.5
+    unseen_norm: float = 0.1
     box_margin: float = 0.1
     visible_alpha: float = 0.3
     thin_alpha: float = 0.5
@@ -124,6 +125,36 @@ class DeleteResult:
     metrics: dict
     losses: list
 
+    def save(self, folder: PathLike, n_pairs: int = 4, extra: Optional[dict] = None) -> list[Path]:
+        """Write ``scene.ply``, ``before_k.png``/``after_k.png`` for the ``n_pairs`` views that saw
+        most of the object, every view's hole mask (``holes/``) and inpainted view
+        (``inpainted/``), and ``delete.json`` (:meth:`report` plus ``extra``), atomically.
+        Returns the before/after paths."""
+        import json
+
+        from tiger.utils.images import save_png
+        from tiger.utils.io import atomic_write
+
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        self.scene.save_ply(out / "scene.ply")
+        paths = []
+        for k, i in enumerate(self.best_views(n_pairs)):
+            paths.append(save_png(out / f"before_{k}.png", self.before[i]))
+            paths.append(save_png(out / f"after_{k}.png", self.after[i]))
+        for i, cam in enumerate(self.cameras):
+            stem = Path(cam.image_name or f"view{i}").stem
+            stem = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in stem) or f"view{i}"
+            save_png(out / "holes" / f"{i:03d}_{stem}.png", self.holes[i].float())
+            save_png(out / "inpainted" / f"{i:03d}_{stem}.png", self.targets[i])
+        with atomic_write(out / "delete.json", "w") as fh:
+            json.dump({**(extra or {}), **self.report()}, fh, indent=2, default=str)
+        return paths
+
+    def best_views(self, n: int = 4) -> list[int]:
+        """Indices of the ``n`` views that saw most of the removed object."""
+        return torch.argsort(self.footprint.flatten(1).sum(1), descending=True)[:n].tolist()
+
     def report(self) -> dict:
         """JSON-ready summary: counts, timings, metrics, thresholds."""
         return {"counts": self.counts, "timings_s": self.timings, "metrics": self.metrics,
@@ -152,8 +183,10 @@ def resolve_target(scene: GaussianScene, target: Target, cfg: DeleteConfig,
     if r.count == 0:
         raise ValueError(f"tiger.edit.delete: the target {target if isinstance(target, str) else ''!r} "
                          f"selected no Gaussian ({r.score} > {r.tau:.3f}); nothing to delete")
+    norms = scene.lang.detach().norm(dim=1) if scene.lang is not None else None
     return removal_mask(r.scores.to(scene.device), r.mask.to(scene.device), scene.means, r.tau,
-                        floater_fraction=cfg.floater_fraction, box_margin=cfg.box_margin)
+                        floater_fraction=cfg.floater_fraction, box_margin=cfg.box_margin,
+                        lang_norms=norms, unseen_norm=cfg.unseen_norm)
 
 
 @dataclass
@@ -307,7 +340,9 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     if len(sizes) != 1:
         raise ValueError(f"tiger.edit.delete: all views must have one size, got {sorted(sizes)}")
     times: dict[str, float] = {}
-    t_all = t0 = time.perf_counter()
+    t_all = time.perf_counter()
+    inp = make_inpainter(inpainter, models=models, device=scene.device) if isinstance(inpainter, str) else inpainter
+    t0 = time.perf_counter()
     removal = resolve_target(scene, target, cfg, encoder)
     rest = scene.subset(~removal.mask)
     times["remove"] = time.perf_counter() - t0
@@ -317,7 +352,6 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     times["render"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    inp = make_inpainter(inpainter, models=models, device=scene.device) if isinstance(inpainter, str) else inpainter
     targets, depth = inpaint_stage(views, images, inp, cfg)
     times["inpaint"] = time.perf_counter() - t0
 
@@ -359,3 +393,18 @@ def render_rgb(scene: GaussianScene, cameras: Sequence[Camera], background=(0.0,
     bg = torch.tensor(background, dtype=scene.dtype, device=scene.device)
     s = scene.detach()
     return torch.stack([_render(s, c, s.view_colors(c), bg)["color"] for c in cameras]).clamp(0, 1)
+
+
+def views_around(box_min: torch.Tensor, box_max: torch.Tensor, n: int, width: int, height: int,
+                 fov_y_deg: float = 45.0, elevation_deg: float = 30.0,
+                 up: Sequence[float] = (0.0, -1.0, 0.0)) -> list[Camera]:
+    """``n`` cameras on a circle around the centre of the box [box_min, box_max] (world units),
+    ``elevation_deg`` above it (``up``: the world's up, -y by the OpenCV/COLMAP habit), at the
+    distance where the box's bounding sphere fills about half of the view's height."""
+    from tiger.render.views import orbit_cameras
+
+    center = ((box_min + box_max) / 2).double()
+    r = float((box_max - box_min).double().norm()) / 2
+    dist = max(r, 1e-3) / math.sin(math.radians(fov_y_deg) / 4)
+    return orbit_cameras(n, width, height, fov_y_deg, center=center.tolist(), radius=dist,
+                         elevation_deg=elevation_deg, up=tuple(up))

@@ -14,6 +14,12 @@ The floater rule: a Gaussian is also removed when
 Gaussians of the surroundings inside the box (the table under a mug) score near the median and
 stay; stray Gaussians far from the object stay whatever their score (they may be another
 instance). ``floater_fraction = 1`` turns the rule off.
+
+The unseen rule: a Gaussian inside the same box whose language feature is (nearly) zero, with a
+norm below ``unseen_norm`` times the median norm of the retrieved ones, is removed too. Language
+training leaves a Gaussian's feature at zero when no training view sees it: inside the box these
+are the parts the object hid from every view (a mug's inner wall and bottom). Their relevance
+says nothing; left in place they would surface once the object is gone.
 """
 from __future__ import annotations
 
@@ -33,6 +39,7 @@ class Removal:
         mask: everything removed (``retrieved | floaters``).
         retrieved: the retrieval's selection (``scores > tau``).
         floaters: added by the floater rule (not retrieved).
+        unseen: added by the unseen rule (neither retrieved nor floaters).
         tau, floater_tau: the two thresholds on the scores.
         box_min, box_max: [3] the grown robust box of the retrieved centres (world units).
     """
@@ -40,6 +47,7 @@ class Removal:
     mask: torch.Tensor
     retrieved: torch.Tensor
     floaters: torch.Tensor
+    unseen: torch.Tensor
     tau: float
     floater_tau: float
     box_min: torch.Tensor
@@ -47,14 +55,15 @@ class Removal:
 
     def counts(self) -> dict[str, int]:
         return {"retrieved": int(self.retrieved.sum()), "floaters": int(self.floaters.sum()),
-                "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
+                "unseen": int(self.unseen.sum()), "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
                 "kept": int((~self.mask).sum())}
 
 
 def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Tensor, tau: float, *,
                  floater_fraction: float = 0.5, box_margin: float = 0.1,
                  box_quantiles: tuple[float, float] = (0.02, 0.98),
-                 floater_tau: Optional[float] = None) -> Removal:
+                 floater_tau: Optional[float] = None, lang_norms: Optional[torch.Tensor] = None,
+                 unseen_norm: float = 0.1) -> Removal:
     """Apply the floater rule (module docstring) around a retrieval.
 
     Args:
@@ -66,6 +75,8 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         box_margin: growth of the robust box on each side, as a fraction of its largest side.
         box_quantiles: per-axis quantiles of the retrieved centres spanning the box.
         floater_tau: an explicit lower threshold (overrides ``floater_fraction``).
+        lang_norms: [N] norms of the language features, for the unseen rule (None: rule off).
+        unseen_norm: the unseen rule's relative norm threshold.
     Returns:
         a :class:`Removal`.
     """
@@ -91,5 +102,12 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         med = float(s.median())
         floater_tau = med + floater_fraction * (float(tau) - med)
     floaters = inside & (s > float(floater_tau)) & ~retrieved
-    return Removal(mask=retrieved | floaters, retrieved=retrieved, floaters=floaters, tau=float(tau),
+    unseen = torch.zeros_like(retrieved)
+    if lang_norms is not None:
+        if lang_norms.shape != (n,):
+            raise ValueError(f"tiger.edit.removal_mask: lang_norms must be [N={n}], got {list(lang_norms.shape)}")
+        norms = lang_norms.detach().to(means.device, torch.float64)
+        unseen = inside & (norms <= unseen_norm * float(norms[retrieved].median())) & ~retrieved & ~floaters
+    return Removal(mask=retrieved | floaters | unseen, retrieved=retrieved, floaters=floaters, unseen=unseen,
+                   tau=float(tau),
                    floater_tau=float(floater_tau), box_min=lo.float(), box_max=hi.float())
