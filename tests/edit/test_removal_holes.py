@@ -34,8 +34,8 @@ def test_floater_rule_removes_near_floaters_only():
     assert int(bg_in_box.sum()) > 0 and not bool(r.mask[bg_in_box].any())  # table under the mug stays
     med = float(scores.double().median())
     assert r.floater_tau == pytest.approx(med + 0.5 * (tau - med))
-    assert r.counts() == {"retrieved": 500, "floaters": 40, "unseen": 0, "removed": 540, "total": 3570,
-                          "kept": 3030}
+    assert r.counts() == {"retrieved": 500, "floaters": 40, "unseen": 0, "similar": 0, "removed": 540,
+                          "total": 3570, "kept": 3030}
 
 
 def test_unseen_rule_removes_hidden_gaussians_inside_the_box_only():
@@ -54,6 +54,36 @@ def test_unseen_rule_removes_hidden_gaussians_inside_the_box_only():
     assert r.counts()["unseen"] == 25
     off = removal_mask(scores, scores > 0.5, means, 0.5)
     assert int(off.unseen.sum()) == 0
+
+
+def test_appearance_rule_grows_along_the_object_not_into_its_support():
+    """A white cylinder standing on a brown plane; the language field missed a band of it (scores
+    like the plane's). The band is white and touches the retrieved part: removed; the brown plane
+    under and around the cylinder stays, as does a white patch away from the object."""
+    g = torch.Generator().manual_seed(2)
+    th = torch.rand(3000, generator=g) * 6.2832
+    y = -torch.rand(3000, generator=g) * 0.3  # cylinder from the plane (y=0) up to y=-0.3
+    cyl = torch.stack([0.1 * torch.cos(th), y, 0.1 * torch.sin(th)], 1)
+    plane = torch.cat([(torch.rand(4000, 1, generator=g) - 0.5) * 1.0, torch.zeros(4000, 1),
+                       (torch.rand(4000, 1, generator=g) - 0.5) * 1.0], 1)
+    patch = torch.cat([0.4 + 0.05 * torch.rand(50, 1, generator=g), torch.zeros(50, 1),
+                       0.4 + 0.05 * torch.rand(50, 1, generator=g)], 1)
+    means = torch.cat([cyl, plane, patch])
+    white, brown = torch.tensor([0.9, 0.9, 0.88]), torch.tensor([0.55, 0.35, 0.2])
+    colors = torch.cat([white.expand(3000, 3), brown.expand(4000, 3), white.expand(50, 3)])
+    colors = (colors + 0.03 * torch.randn(7050, 3, generator=g)).clamp(0, 1)
+    band = torch.zeros(7050, dtype=torch.bool)
+    band[:3000] = (y > -0.2) & (y < -0.12)
+    scores = torch.cat([torch.where(band[:3000], 0.05, 0.9), torch.full((4050,), 0.05)])
+    scores = scores + 0.02 * torch.randn(7050, generator=g)
+    r = removal_mask(scores, scores > 0.5, means, 0.5, colors=colors)
+    assert int(band.sum()) > 400
+    missed = int((~r.mask[:3000]).sum())
+    assert missed <= 0.01 * int(band.sum()), missed  # the cylinder, all but a few isolated ones
+    assert not bool((r.similar & ~band).any())  # the rule added band Gaussians only
+    assert not bool(r.mask[3000:].any())  # the plane and the far white patch stay
+    off = removal_mask(scores, scores > 0.5, means, 0.5, colors=colors, appearance_margin=None)
+    assert int(off.similar.sum()) == 0 and int((band & ~off.mask).sum()) > 0
 
 
 def test_floater_rule_knobs():

@@ -48,7 +48,8 @@ class DeleteConfig:
     """Parameters of :func:`delete` (defaults are the CLI's).
 
     Removal: ``score``/``tau`` of the retrieval; ``floater_fraction``, ``box_margin`` of the floater
-    rule, ``unseen_norm`` of the unseen rule (:mod:`tiger.edit.removal`). Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
+    rule, ``unseen_norm`` of the unseen rule, ``appearance_margin`` of the appearance rule (None:
+    off; see :mod:`tiger.edit.removal`). Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
     ``inpaint_margin`` (pixels of context around a hole given to the inpainter; None: the whole
     view); ``depth_source_alpha`` (pixels at least this opaque give the depth filled into the
     holes for the seeds). Refit: ``steps`` (one view each), ``near_weight`` and ``hole_share`` (a remaining
@@ -65,6 +66,7 @@ class DeleteConfig:
     tau: Tau = "auto"
     floater_fraction: float = 0.5
     unseen_norm: float = 0.1
+    appearance_margin: Optional[float] = 0.5
     box_margin: float = 0.1
     visible_alpha: float = 0.3
     thin_alpha: float = 0.5
@@ -186,7 +188,8 @@ def resolve_target(scene: GaussianScene, target: Target, cfg: DeleteConfig,
     norms = scene.lang.detach().norm(dim=1) if scene.lang is not None else None
     return removal_mask(r.scores.to(scene.device), r.mask.to(scene.device), scene.means, r.tau,
                         floater_fraction=cfg.floater_fraction, box_margin=cfg.box_margin,
-                        lang_norms=norms, unseen_norm=cfg.unseen_norm)
+                        lang_norms=norms, unseen_norm=cfg.unseen_norm, colors=scene.rgb,
+                        appearance_margin=cfg.appearance_margin)
 
 
 @dataclass

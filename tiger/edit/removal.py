@@ -20,6 +20,17 @@ norm below ``unseen_norm`` times the median norm of the retrieved ones, is remov
 training leaves a Gaussian's feature at zero when no training view sees it: inside the box these
 are the parts the object hid from every view (a mug's inner wall and bottom). Their relevance
 says nothing; left in place they would surface once the object is gone.
+
+The appearance rule (when ``colors`` are given): where the language field blurs the object into
+its support (a mug's bottom band trained toward "table"), a kept Gaussian inside the box that
+touches the removed ones (within ``radius``; default 3x the median nearest-neighbour spacing of
+the removed Gaussians) is removed when its colour is much closer to the object's colours than to
+the surroundings' (the kept Gaussians in the margin between the object's robust box and the
+grown box): mean colour distance to its nearest eighth of the object's colours <
+``appearance_margin`` x the mean distance to its nearest quarter of the surrounding colours
+(fractions, not single neighbours, so that a few misretrieved Gaussians in the object or a few
+object-coloured ones in the margin do not decide). Repeated up to ``appearance_iters`` times, so it grows along the object inside the box
+only. ``appearance_margin = None`` turns it off.
 """
 from __future__ import annotations
 
@@ -40,6 +51,7 @@ class Removal:
         retrieved: the retrieval's selection (``scores > tau``).
         floaters: added by the floater rule (not retrieved).
         unseen: added by the unseen rule (neither retrieved nor floaters).
+        similar: added by the appearance rule (none of the above).
         tau, floater_tau: the two thresholds on the scores.
         box_min, box_max: [3] the grown robust box of the retrieved centres (world units).
     """
@@ -48,6 +60,7 @@ class Removal:
     retrieved: torch.Tensor
     floaters: torch.Tensor
     unseen: torch.Tensor
+    similar: torch.Tensor
     tau: float
     floater_tau: float
     box_min: torch.Tensor
@@ -55,7 +68,7 @@ class Removal:
 
     def counts(self) -> dict[str, int]:
         return {"retrieved": int(self.retrieved.sum()), "floaters": int(self.floaters.sum()),
-                "unseen": int(self.unseen.sum()), "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
+                "unseen": int(self.unseen.sum()), "similar": int(self.similar.sum()), "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
                 "kept": int((~self.mask).sum())}
 
 
@@ -63,7 +76,9 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
                  floater_fraction: float = 0.5, box_margin: float = 0.1,
                  box_quantiles: tuple[float, float] = (0.02, 0.98),
                  floater_tau: Optional[float] = None, lang_norms: Optional[torch.Tensor] = None,
-                 unseen_norm: float = 0.1) -> Removal:
+                 unseen_norm: float = 0.1, colors: Optional[torch.Tensor] = None,
+                 appearance_margin: Optional[float] = 0.5, appearance_iters: int = 10,
+                 radius: Optional[float] = None) -> Removal:
     """Apply the floater rule (module docstring) around a retrieval.
 
     Args:
@@ -77,6 +92,8 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         floater_tau: an explicit lower threshold (overrides ``floater_fraction``).
         lang_norms: [N] norms of the language features, for the unseen rule (None: rule off).
         unseen_norm: the unseen rule's relative norm threshold.
+        colors: [N, 3] Gaussian colours for the appearance rule (None: rule off).
+        appearance_margin, appearance_iters, radius: the appearance rule's parameters.
     Returns:
         a :class:`Removal`.
     """
@@ -94,6 +111,7 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         raise ValueError("tiger.edit.removal_mask: the retrieval selected no Gaussian: nothing to delete")
     s = scores.detach().to(means.device, torch.float64)
     _, lo, hi = robust_bounds(means.detach()[retrieved], box_quantiles)
+    tight_lo, tight_hi = lo.clone(), hi.clone()
     grow = box_margin * float((hi - lo).max())
     lo, hi = lo - grow, hi + grow
     m = means.detach().to(torch.float64)
@@ -108,6 +126,53 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
             raise ValueError(f"tiger.edit.removal_mask: lang_norms must be [N={n}], got {list(lang_norms.shape)}")
         norms = lang_norms.detach().to(means.device, torch.float64)
         unseen = inside & (norms <= unseen_norm * float(norms[retrieved].median())) & ~retrieved & ~floaters
-    return Removal(mask=retrieved | floaters | unseen, retrieved=retrieved, floaters=floaters, unseen=unseen,
-                   tau=float(tau),
+    similar = torch.zeros_like(retrieved)
+    if colors is not None and appearance_margin is not None:
+        if colors.shape != (n, 3):
+            raise ValueError(f"tiger.edit.removal_mask: colors must be [N={n}, 3], got {list(colors.shape)}")
+        shell = inside & ~((m >= tight_lo.to(m.device)) & (m <= tight_hi.to(m.device))).all(dim=1)
+        similar = _appearance(m, colors.detach().to(means.device, torch.float64), inside, shell,
+                              retrieved | floaters | unseen, appearance_margin, appearance_iters, radius)
+    return Removal(mask=retrieved | floaters | unseen | similar, retrieved=retrieved, floaters=floaters,
+                   unseen=unseen, similar=similar, tau=float(tau),
                    floater_tau=float(floater_tau), box_min=lo.float(), box_max=hi.float())
+
+
+def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor, shell: torch.Tensor,
+                removed: torch.Tensor, margin: float, iters: int, radius: Optional[float],
+                k: int = 8) -> torch.Tensor:
+    """The appearance rule (module docstring) on float64 means [N,3] and colours [N,3]."""
+    idx = torch.nonzero(inside).reshape(-1)
+    added = torch.zeros_like(removed)
+    gone = removed[idx].clone()
+    if idx.numel() < 2 or int(gone.sum()) < 2 or bool(gone.all()):
+        return added
+    p, c = means[idx], colors[idx]
+    ref_kept = shell[idx] & ~gone  # the surroundings: kept, in the margin around the object's box
+    if int(ref_kept.sum()) == 0:
+        return added
+    d = torch.cdist(p, p)
+    if radius is None:
+        obj = d[gone][:, gone].fill_diagonal_(float("inf"))
+        radius = 3.0 * float(obj.min(1).values.median())
+    near = d <= radius
+    cd = torch.cdist(c, c)
+    for _ in range(max(int(iters), 0)):
+        cand = ~gone & (near & gone[None, :]).any(1)
+        if not bool(cand.any()):
+            break
+        # colour distance to the k nearest object colours vs the k nearest surrounding colours
+        k_obj = min(max(k, int(gone.sum()) // 8), int(gone.sum()))
+        k_ref = min(max(k, int(ref_kept.sum()) // 4), int(ref_kept.sum()))
+        to_obj = cd[cand][:, gone].topk(k_obj, dim=1, largest=False).values.mean(1)
+        to_rest = cd[cand][:, ref_kept].topk(k_ref, dim=1, largest=False).values.mean(1)
+        new = torch.zeros_like(gone)
+        new[torch.nonzero(cand).reshape(-1)] = to_obj < margin * to_rest
+        if not bool(new.any()):
+            break
+        gone |= new
+        ref_kept &= ~new
+        if int(ref_kept.sum()) == 0:
+            break
+    added[idx] = gone & ~removed[idx]
+    return added
