@@ -166,14 +166,9 @@ def _views_by_coverage(scene: Any, mask: torch.Tensor, cams: Sequence[Any]) -> l
     seen = []
     for cam in cams:
         s = 64 / max(cam.width, cam.height)  # a thumbnail render is enough to rank views
-        c = cam.to(device=scene.device, dtype=scene.dtype)
-        K = c.K.clone()
-        K[:2] *= s
-        from tiger.render import rasterize_gaussians
-
+        thumb = cam.resized(max(1, round(cam.width * s)), max(1, round(cam.height * s)))
         with torch.no_grad():
-            r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, sel, c.viewmat,
-                                    K, max(1, round(cam.width * s)), max(1, round(cam.height * s)))
+            r = scene.render(thumb, sel)
         seen.append(float(r["color"].sum()))
     return sorted(range(len(cams)), key=lambda i: -seen[i])
 

@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Optional
 
 import torch
+
+from tiger.scene import Camera, GaussianScene
+from tiger.utils.io import file_slug
 
 from .common import Summary, add_common, device_of, load_scene, output_dir
 from .text import text_encoder
@@ -33,20 +37,18 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def pick_cameras(scene, data, n: int, device):
+def pick_cameras(scene: GaussianScene, data: Optional[str], n: int,
+                 device: torch.device) -> list[Camera]:
     """n cameras from a dataset (evenly spread) or an orbit around the scene."""
     if data:
         from tiger.scene.dataset import load_dataset
 
         cams = load_dataset(data).cameras
         step = max(len(cams) // max(n, 1), 1)
-        return [c.to(device) if hasattr(c, "to") else c for c in cams[::step][:n]]
-    from tiger.render.views import orbit_cameras
+        return [c.to(device) for c in cams[::step][:n]]
+    from tiger.render.views import orbit_cameras_around
 
-    m = scene.means.detach().float().cpu()
-    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
-    center, radius = (lo + hi) / 2, float((hi - lo).norm()) * 1.1
-    return orbit_cameras(n, 480, 360, center=center.tolist(), radius=max(radius, 1e-3))
+    return orbit_cameras_around(scene.means, n, 480, 360)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     report = {}
     for text in args.text:
         r = retrieve(scene, text, encoder=encoder, score=args.score, tau=tau)
-        slug = "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+        slug = file_slug(text)
         if r.count:
             scene.subset(r.mask).save_ply(out / f"{slug}.ply")
         write_relevancy_pictures(scene, cams, text, out / "relevancy", encoder=encoder,
@@ -74,14 +76,9 @@ def run(args: argparse.Namespace) -> int:
         rgb = scene.rgb.detach()
         tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
                            0.35 * rgb + 0.3)
-        from tiger.render import rasterize_gaussians
-
         for i, cam in enumerate(cams):
             with torch.no_grad():
-                img = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
-                                          tint, torch.as_tensor(cam.viewmat).to(rgb),
-                                          torch.as_tensor(cam.K).to(rgb), int(cam.width),
-                                          int(cam.height), background=torch.ones(3, device=rgb.device))
+                img = scene.render(cam, tint, background=torch.ones(3, device=rgb.device))
             save_png(out / f"{slug}_highlight_{i}.png", img["color"])
         report[text] = {"selected": r.count, "tau": r.tau, "score": r.score,
                         "center": None if r.center is None else r.center.tolist(),

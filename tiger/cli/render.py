@@ -47,12 +47,9 @@ def run(args: argparse.Namespace) -> int:
     if args.data:
         cams = pick_cameras(scene, args.data, 10**9, dev)
     else:
-        from tiger.render.views import orbit_cameras
+        from tiger.render.views import orbit_cameras_around
 
-        m = scene.means.detach().float().cpu()
-        lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
-        cams = orbit_cameras(args.orbit, args.size[0], args.size[1], center=((lo + hi) / 2).tolist(),
-                             radius=max(float((hi - lo).norm()) * 1.1, 1e-3))
+        cams = orbit_cameras_around(scene.means, args.orbit, args.size[0], args.size[1])
     summary = Summary("tiger render")
     frames, basis = [], None
     from tqdm.auto import tqdm

@@ -16,8 +16,9 @@ from tiger.scene.dataset import points_in_views
 from tiger.scene.gaussian_scene import GaussianScene
 
 from .config import ReconConfig, expon_lr
-from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .losses import photometric_loss, psnr, ssim
+from .step import SceneOptimizer
+from .strategy import DensifyStats, inria_densify, reset_opacity
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -25,6 +26,10 @@ PathLike = Union[str, os.PathLike]
 
 class Trainer:
     """Fit a :class:`GaussianScene` to images with the 3DGS recipe.
+
+    The recipe on top of :class:`tiger.recon.step.SceneOptimizer` (``self.opt``; every
+    Gaussian trainable): one view per step, the photometric loss, INRIA's schedule and
+    densification rule (:func:`tiger.recon.strategy.inria_densify`).
 
     Args:
         cameras: training views (pinhole; sizes must match ``images``).
@@ -100,8 +105,12 @@ class Trainer:
         lrs = {"means": self._means_lr(), "log_scales": c.lr_log_scales, "quats": c.lr_quats,
                "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
         names = [n for n in lrs if n != "sh_rest" or self.scene.sh_rest.shape[1] > 0]
-        groups = self.scene.parameter_groups(lrs, names=names)
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=c.adam_eps)
+        self.opt = SceneOptimizer(self.scene, {n: lrs[n] for n in names}, eps=c.adam_eps)
+
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        """The torch Adam inside :attr:`opt` (its state dict is what checkpoints hold)."""
+        return self.opt.optimizer
 
     def _means_lr(self) -> float:
         c = self.cfg
@@ -124,32 +133,35 @@ class Trainer:
         """One optimizer step on one view; returns {'loss', 'psnr', 'gaussians'}."""
         c = self.cfg
         self.step += 1
-        for g in self.optimizer.param_groups:
-            if g["name"] == "means":
-                g["lr"] = self._means_lr()
+        self.opt.set_lr("means", self._means_lr())
         if c.sh_increase_every and self.step % c.sh_increase_every == 0:
             self.active_sh = min(self.active_sh + 1, c.sh_degree)
         i = self._next_view()
         cam, target = self.cameras[i], self.images[i]
-        out = self.scene.render(cam, sh_degree=self.active_sh, background=self._background(),
-                                check_finite=False)
-        out["means2d"].retain_grad()
-        loss = photometric_loss(out["color"], target, c.lambda_dssim)
-        loss.backward()
+        background = self._background()
+
+        def render(scene: GaussianScene, view: tuple) -> dict:
+            out = scene.render(view[0], sh_degree=self.active_sh, background=background, check_finite=False)
+            out["means2d"].retain_grad()
+            return out
+
+        def loss(out: dict, view: tuple) -> torch.Tensor:
+            return photometric_loss(out["color"], view[1], c.lambda_dssim)
+
+        res = self.opt.step(loss, (cam, target), render)
+        out = res.renders
         densifying = c.densify and self.step <= c.densify_until
         if densifying and out["means2d"].grad is not None:
             self.stats.add(out["means2d"].grad, out["radii"], cam.width, cam.height)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        info = {"loss": float(loss.detach()), "psnr": psnr(out["color"], target), "gaussians": len(self.scene)}
+        info = {"loss": float(res.loss), "psnr": psnr(out["color"], target), "gaussians": len(self.scene)}
         if densifying and self.step > c.densify_from and self.step % c.densify_interval == 0:
             reset_done = c.opacity_reset_interval and self.step > c.opacity_reset_interval
-            info["densify"] = densify_and_prune(
-                self.scene, self.optimizer, self.stats, c.densify_grad_threshold, self.extent, c.percent_dense,
+            info["densify"] = inria_densify(
+                self.opt, self.stats, c.densify_grad_threshold, self.extent, c.percent_dense,
                 c.min_opacity, c.max_screen_size if reset_done else None,
                 c.max_world_size if (reset_done or self.finetune) else None, c.max_gaussians, self.gen)
         if densifying and c.opacity_reset_interval and self.step % c.opacity_reset_interval == 0:
-            reset_opacity(self.scene, self.optimizer)
+            reset_opacity(self.opt)
         return info
 
     def fit(self) -> GaussianScene:

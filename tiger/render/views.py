@@ -7,6 +7,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from .camera import Camera
+
 
 def look_at(eye: Sequence[float], target: Sequence[float],
             up: Sequence[float] = (0.0, -1.0, 0.0)) -> Tensor:
@@ -57,10 +59,19 @@ def orbit_viewmats(n: int, center: Sequence[float] = (0.0, 0.0, 0.0), radius: fl
     return out
 
 
-def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0, **orbit) -> list:
-    """``tiger.scene.Camera`` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
-    from tiger.scene.cameras import Camera
-
+def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0,
+                  **orbit: float | Sequence[float]) -> list[Camera]:
+    """:class:`Camera` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
     K = pinhole_K(width, height, fov_y_deg)
     return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=f"orbit{i:03d}")
             for i, V in enumerate(orbit_viewmats(n, **orbit))]
+
+
+def orbit_cameras_around(points: Tensor, n: int, width: int, height: int,
+                         fov_y_deg: float = 45.0) -> list[Camera]:
+    """``n`` orbit cameras (:func:`orbit_cameras`) around the bulk of ``points`` [P, 3]: centred on
+    the middle of their 2%-98% quantile box, at 1.1 x that box's diagonal (outliers ignored)."""
+    m = points.detach().float().cpu()
+    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
+    return orbit_cameras(n, width, height, fov_y_deg, center=((lo + hi) / 2).tolist(),
+                         radius=max(float((hi - lo).norm()) * 1.1, 1e-3))

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from .cameras import Camera, Distortion, scene_extent
 from .errors import SceneFormatError
-from .gaussian_scene import DEFAULT_LRS, PARAM_NAMES, GaussianScene
-from .ply import read_ply, write_ply
+from .gaussian_scene import (DEFAULT_LRS, PARAM_NAMES, ColorSpec, GaussianScene, read_ply, render_views,
+                             write_ply)
 
 __all__ = ["Camera", "Distortion", "GaussianScene", "SceneFormatError", "DEFAULT_LRS", "PARAM_NAMES",
-           "read_ply", "write_ply", "scene_extent"]
+           "read_ply", "write_ply", "scene_extent", "render_views", "ColorSpec"]
