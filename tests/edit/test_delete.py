@@ -8,8 +8,6 @@ from tiger.edit.delete import DeleteConfig, delete
 from tiger.edit.refit import refit
 from tiger.render.views import orbit_cameras
 from tiger.retrieval import retrieve
-from tiger.scene import GaussianScene
-from tiger.scene.sh import rgb_to_sh
 
 MUG_CENTER = (-0.45, -0.13, 0.1)
 
@@ -19,13 +17,12 @@ def _tabletop(density=0.5, carve=True):
     mug (a reconstruction has none there: no camera sees it), so deleting the mug leaves a hole."""
     lab = tabletop_scene(density)
     if carve:
-        xz = lab.means[:, [0, 2]] - torch.tensor([MUG_CENTER[0] + 0.05, MUG_CENTER[2]])
+        xz = lab.scene.means[:, [0, 2]] - torch.tensor([MUG_CENTER[0] + 0.05, MUG_CENTER[2]])
         under = (lab.labels == lab.names.index("table")) & (xz.norm(dim=1) < 0.1)
-        lab = lab.select(~under)
+        lab = lab.subset(~under)
     feats = label_features(lab)
-    o = lab.opacities.clamp(1e-4, 1 - 1e-4)
-    scene = GaussianScene(lab.means.clone(), lab.scales.log(), lab.quats.clone(), torch.log(o / (1 - o)),
-                          rgb_to_sh(lab.rgb), lang=feats)
+    scene = lab.scene.clone()
+    scene.lang = feats
     mug = lab.names.index("mug")
     query = feats[lab.labels == mug].mean(0)
     return scene, lab.labels == mug, query
@@ -56,15 +53,42 @@ def test_mug_is_gone_and_not_retrievable(deleted):
     assert float(d.min()) > 0  # no original mug Gaussian survived
 
 
+def _table_hole_pixels(res):
+    """[V, H, W] hole pixels whose ray meets the table top (y = 0) inside the carved disk: where
+    the table has a real hole that the seeds and the refit must fill (known geometry)."""
+    out = []
+    for cam, hole in zip(res.cameras, res.holes):
+        h, w = hole.shape
+        ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+        K, c2w = cam.K.double(), cam.c2w.double()
+        d = torch.stack([(xs + 0.5 - K[0, 2]) / K[0, 0], (ys + 0.5 - K[1, 2]) / K[1, 1], torch.ones(h, w, dtype=torch.float64)], -1)
+        d = d @ c2w[:3, :3].T
+        t = -c2w[1, 3] / d[..., 1]
+        hit = c2w[:3, 3] + t[..., None] * d
+        xz = hit[..., [0, 2]] - torch.tensor([MUG_CENTER[0] + 0.05, MUG_CENTER[2]], dtype=torch.float64)
+        out.append(hole & (t > 0) & (xz.norm(dim=-1) < 0.08))
+    return torch.stack(out)
+
+
 def test_renders_outside_hole_unchanged_and_hole_filled(deleted):
+    from tiger.eval.reprojection import _psnr_inside
+
     _, _, _, res = deleted
     m = res.metrics
     assert int(res.holes.sum()) > 0
-    assert m["locality_psnr"] >= 40.0, m
-    assert m["rest_psnr"] >= 40.0, m
-    # inside the hole the refit render follows the inpainted targets
-    assert m["hole_psnr"] >= 25.0, m
-    print("delete metrics:", m, "counts:", res.counts, "times:", res.timings)
+    assert m["locality_psnr"] >= 40.0, m  # outside the object's dilated footprint, vs before
+    assert m["rest_psnr"] >= 40.0, m  # outside the dilated holes, vs the scene right after removal
+    # the table's real hole: the refit render matches the inpainted targets, and the remainder
+    # (white background showing through) did not
+    table = _table_hole_pixels(res)
+    assert int(table.sum()) > 100
+    filled = _psnr_inside(res.after, res.targets, table)
+    empty = _psnr_inside(res.remaining, res.targets, table)
+    print(f"table hole: {int(table.sum())} px, PSNR after refit {filled:.1f} dB, before refit {empty:.1f} dB; "
+          f"metrics {m}; counts {res.counts}; times {res.timings}")
+    assert filled >= 28.0 and filled >= empty + 10.0, (filled, empty)
+    # the refit makes the fill more consistent between neighbouring views than the 2D inpaints
+    assert m["fill_reprojection_psnr"] > m["inpaint_reprojection_psnr"], m
 
 
 def test_frozen_part_bit_identical(deleted):

@@ -67,7 +67,7 @@ def _dataset_views(data: str, n: int, downscale: float, device):
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiger.edit.delete import DeleteConfig, delete, resolve_target, views_around
+    from tiger.edit.delete import DeleteConfig, delete, views_around
 
     dev = device_of(args.device)
     if args.resume and not Path(args.out).is_dir():
@@ -98,8 +98,7 @@ def run(args: argparse.Namespace) -> int:
     if args.data:
         cams, images = _dataset_views(args.data, args.views, args.downscale, dev)
     else:
-        box = resolve_target(scene, retrieval, cfg, encoder)
-        cams = views_around(box.box_min, box.box_max, args.views, *_size(args.size))
+        cams = [c.to(dev) for c in views_around(retrieval, args.views, *_size(args.size))]
     res = delete(scene, retrieval, cams, images, inpainter=args.inpainter, encoder=encoder, config=cfg,
                  checkpoint_dir=out, resume=args.resume, models=args.models)
     res.save(out, extra={"text": args.text, "inpainter": args.inpainter, "scene": str(args.scene),

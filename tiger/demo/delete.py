@@ -2,20 +2,20 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional
 
 import torch
 
 from tiger.utils.images import save_png
 
 
-def delete_stage(out: Path, timer, names: Sequence[str], text: str = "mug", models: Optional[str] = None,
+def delete_stage(out: Path, timer, text: str = "mug", models: Optional[str] = None,
                  n_views: int = 8, size: tuple[int, int] = (240, 180), steps: int = 100) -> dict:
     """Delete ``text`` from ``out/scene.ply`` (written by the language stage) with the built-in
     OpenCV inpainting and views around the object. Writes ``out/delete_<text>/`` (scene.ply,
     before_k/after_k.png for 4 views, holes/, inpainted/, delete.json) and
     ``out/delete_<text>.png`` (before above after). Returns the deletion's report."""
-    from tiger.edit.delete import DeleteConfig, delete, resolve_target, views_around
+    from tiger.edit.delete import DeleteConfig, delete, views_around
     from tiger.retrieval import retrieve
     from tiger.scene import GaussianScene
 
@@ -25,12 +25,11 @@ def delete_stage(out: Path, timer, names: Sequence[str], text: str = "mug", mode
     folder = out / f"delete_{slug}"
     with timer.stage(f"delete '{text}': retrieve"):
         scene = GaussianScene.load_ply(out / "scene.ply")
-        encoder, _ = load_text_encoder(names, models)
+        encoder, _ = load_text_encoder(scene.metadata.get("labels", []), models)
         # the demo's cosine cut (see the language stage)
         r = retrieve(scene, text, encoder=encoder, score="cosine", tau=0.5, negatives=None)
         cfg = DeleteConfig(tau=0.5, steps=steps, background=(1.0, 1.0, 1.0))
-        box = resolve_target(scene, r, cfg, encoder)
-        cams = views_around(box.box_min, box.box_max, n_views, *size)
+        cams = views_around(r, n_views, *size)
     with timer.stage(f"delete '{text}': remove, inpaint (OpenCV), refit {steps} steps"):
         res = delete(scene, r, cams, inpainter="opencv", config=cfg, progress=False)
     with timer.stage(f"delete '{text}': pictures"):

@@ -30,7 +30,7 @@ import torch
 from tiger.retrieval import CANONICAL_NEGATIVES, Retrieval, TextEncoder, retrieve
 from tiger.retrieval.select import Tau
 from tiger.scene.cameras import Camera
-from tiger.scene.gaussian_scene import GaussianScene, inverse_sigmoid
+from tiger.scene.gaussian_scene import GaussianScene, inverse_sigmoid, render_views
 from tiger.scene.sh import rgb_to_sh
 
 from .holes import disk_dilate, hole_masks
@@ -69,7 +69,7 @@ class DeleteConfig:
     appearance_margin: Optional[float] = 0.5
     box_margin: float = 0.1
     visible_alpha: float = 0.3
-    thin_alpha: float = 0.5
+    thin_alpha: float = 0.9
     dilate: int = 3
     inpaint_margin: Optional[int] = 32
     depth_source_alpha: float = 0.95
@@ -77,12 +77,12 @@ class DeleteConfig:
     near_weight: float = 0.05
     hole_share: float = 0.5
     window_margin: int = 16
-    seed_stride: int = 4
+    seed_stride: int = 2
     seed_min_change: float = 0.05
     seed_opacity: float = 0.5
     seed_depth_tolerance: float = 0.05
     densify_every: int = 50
-    densify_fraction: float = 0.01
+    densify_fraction: float = 0.1
     lambda_dssim: float = 0.2
     lrs: dict = field(default_factory=lambda: {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3,
                                                  "opacity_logits": 5e-2, "sh_dc": 1e-2, "sh_rest": 5e-4})
@@ -165,7 +165,7 @@ class DeleteResult:
                 "views": len(self.cameras), "hole_pixels": int(self.holes.sum())}
 
 
-def resolve_target(scene: GaussianScene, target: Target, cfg: DeleteConfig,
+def select_removal(scene: GaussianScene, target: Target, cfg: DeleteConfig,
                    encoder: Optional[TextEncoder]) -> Removal:
     """Stage 1: the Gaussians to remove, from a text or query embedding (retrieved here), a
     :class:`Retrieval`, or a [N] bool mask."""
@@ -207,15 +207,6 @@ class ViewStack:
     view_weight: torch.Tensor  # [N_rest] ... over the whole of every view
 
 
-def _render(scene: GaussianScene, cam: Camera, colors: torch.Tensor, bg: torch.Tensor) -> dict:
-    from tiger.render import rasterize_gaussians
-
-    cam = cam.to(scene.device, scene.dtype)
-    return rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, colors,
-                               cam.viewmat, cam.K, cam.width, cam.height, background=bg,
-                               check_finite=False)
-
-
 def render_stage(scene: GaussianScene, rest: GaussianScene, removed: torch.Tensor,
                  cameras: Sequence[Camera], cfg: DeleteConfig) -> ViewStack:
     """Stage 2 (module docstring)."""
@@ -231,9 +222,10 @@ def render_stage(scene: GaussianScene, rest: GaussianScene, removed: torch.Tenso
     rows = []
     for cam in cameras:
         with torch.no_grad():
-            b = _render(scene_d, cam, torch.cat([scene_d.view_colors(cam), flag], 1), bg4)["color"]
+            b = scene_d.render(cam, torch.cat([scene_d.view_colors(cam), flag], 1), background=bg4,
+                               check_finite=False)["color"]
             rest_colors = rest_d.view_colors(cam)
-        r = _render(rest_d, cam, torch.cat([rest_colors, ones], 1), bg5)
+        r = rest_d.render(cam, torch.cat([rest_colors, ones], 1), background=bg5, check_finite=False)
         vis = b[..., 3]
         hole = hole_masks(vis[None], r["alpha"].detach()[None], visible_alpha=cfg.visible_alpha,
                           thin_alpha=cfg.thin_alpha, dilate=cfg.dilate)[0]
@@ -346,7 +338,7 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     t_all = time.perf_counter()
     inp = make_inpainter(inpainter, models=models, device=scene.device) if isinstance(inpainter, str) else inpainter
     t0 = time.perf_counter()
-    removal = resolve_target(scene, target, cfg, encoder)
+    removal = select_removal(scene, target, cfg, encoder)
     rest = scene.subset(~removal.mask)
     times["remove"] = time.perf_counter() - t0
 
@@ -394,20 +386,19 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
 def render_rgb(scene: GaussianScene, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0)) -> torch.Tensor:
     """[V, H, W, 3] RGB renders in [0, 1] of ``scene`` from ``cameras`` over ``background``."""
     bg = torch.tensor(background, dtype=scene.dtype, device=scene.device)
-    s = scene.detach()
-    return torch.stack([_render(s, c, s.view_colors(c), bg)["color"] for c in cameras]).clamp(0, 1)
+    return render_views(scene.detach(), cameras, background=bg, check_finite=False)["color"].clamp(0, 1)
 
 
-def views_around(box_min: torch.Tensor, box_max: torch.Tensor, n: int, width: int, height: int,
-                 fov_y_deg: float = 45.0, elevation_deg: float = 30.0,
-                 up: Sequence[float] = (0.0, -1.0, 0.0)) -> list[Camera]:
-    """``n`` cameras on a circle around the centre of the box [box_min, box_max] (world units),
-    ``elevation_deg`` above it (``up``: the world's up, -y by the OpenCV/COLMAP habit), at the
-    distance where the box's bounding sphere fills about half of the view's height."""
-    from tiger.render.views import orbit_cameras
 
-    center = ((box_min + box_max) / 2).double()
-    r = float((box_max - box_min).double().norm()) / 2
-    dist = max(r, 1e-3) / math.sin(math.radians(fov_y_deg) / 4)
-    return orbit_cameras(n, width, height, fov_y_deg, center=center.tolist(), radius=dist,
-                         elevation_deg=elevation_deg, up=tuple(up))
+def views_around(retrieval: Retrieval, n: int, width: int, height: int, fill: float = 2.0,
+                 elevation_deg: float = 30.0) -> list[Camera]:
+    """``n`` evenly spread views around the retrieved object for a scene without its capture
+    (:class:`tiger.edit.views.ObjectViews`, 360° about -y): the object's box fills about
+    1 / ``fill`` of the view, so the hole keeps surroundings for the inpainter and the refit."""
+    from .views import ObjectViews
+
+    if retrieval.center is None:
+        raise ValueError("tiger.edit.delete: the retrieval selected nothing; no object to look at")
+    ov = ObjectViews(retrieval.center, retrieval.bbox_min, retrieval.bbox_max, n_views=n, width=width,
+                     height=height, fill=fill, force_360=True)
+    return ov.fixed(n, elevation_deg=elevation_deg)

@@ -17,16 +17,15 @@ import torch
 
 from tiger.scene.cameras import Camera
 
+from .edit import PSNR_CAP, psnr_outside
 
-def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
-    """PSNR (dB) of images in [0, 1] over the pixels of ``mask`` ([..., H, W] against
-    [..., H, W, C] images); NaN for an empty mask, inf for identical pixels."""
-    m = mask.to(a.device)
-    if not bool(m.any()):
+
+def _psnr_inside(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    """PSNR (dB, capped as :func:`tiger.eval.edit.psnr_outside`) of images [V,H,W,C] over the
+    pixels of ``mask`` [V,H,W]; NaN for an empty mask."""
+    if not bool(mask.any()):
         return float("nan")
-    d = (a.clamp(0, 1) - b.clamp(0, 1))[m].double()
-    mse = float((d * d).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    return psnr_outside(a.clamp(0, 1), b.clamp(0, 1), ~mask.to(a.device), 0)["psnr"]
 
 
 def _nearest_views(cameras: Sequence[Camera]) -> list[int]:
@@ -75,7 +74,7 @@ def pair_psnr(images: torch.Tensor, pairs) -> float:
         return float("nan")
     d = (torch.cat(a).clamp(0, 1) - torch.cat(b).clamp(0, 1)).double()
     mse = float((d * d).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    return PSNR_CAP if mse <= 10 ** (-PSNR_CAP / 10) else -10.0 * math.log10(mse)
 
 
 @torch.no_grad()
@@ -85,7 +84,8 @@ def delete_metrics(cameras: Sequence[Camera], before: torch.Tensor, remaining: t
     """Metrics of a deletion on its V views (images [V,H,W,3], masks [V,H,W] bool).
 
     - ``locality_psnr``: result vs the scene before deletion, outside the removed object's
-      dilated footprint (what should not change did not);
+      dilated footprint (what should not change did not; :func:`tiger.eval.edit.psnr_outside`,
+      capped at ``PSNR_CAP`` like every PSNR here);
     - ``rest_psnr``: result vs the scene right after removal, outside the holes;
     - ``hole_psnr``: result vs the inpainted targets inside the holes; ``hole_surface_psnr`` the
       same over the hole pixels the result covers with a surface (alpha > 0.5), and
@@ -94,23 +94,19 @@ def delete_metrics(cameras: Sequence[Camera], before: torch.Tensor, remaining: t
     - ``fill_reprojection_psnr`` / ``inpaint_reprojection_psnr`` and ``reprojected_pixels``:
       the consistency of the fill between neighbouring views (module docstring).
     """
-    from tiger.render import rasterize_gaussians
-
     s = scene.detach()
     depth, alpha = [], []
     for cam in cameras:
-        c = cam.to(s.device, s.dtype)
-        r = rasterize_gaussians(s.means, s.quats, s.scales, s.opacities, s.opacities[:, None], c.viewmat,
-                                c.K, c.width, c.height, check_finite=False)
+        r = s.render(cam, s.opacities[:, None], check_finite=False)
         depth.append(r["depth"])
         alpha.append(r["alpha"])
     alpha_t = torch.stack(alpha)
     pairs = reprojection_pairs(cameras, holes, torch.stack(depth), alpha_t)
     surface = holes & (alpha_t > 0.5)
-    return {"locality_psnr": masked_psnr(after, before, ~footprint),
-            "rest_psnr": masked_psnr(after, remaining, ~holes),
-            "hole_psnr": masked_psnr(after, targets, holes),
-            "hole_surface_psnr": masked_psnr(after, targets, surface),
+    return {"locality_psnr": _psnr_inside(after, before, ~footprint),
+            "rest_psnr": _psnr_inside(after, remaining, ~holes),
+            "hole_psnr": _psnr_inside(after, targets, holes),
+            "hole_surface_psnr": _psnr_inside(after, targets, surface),
             "hole_surface_fraction": float(surface.sum()) / max(int(holes.sum()), 1),
             "fill_reprojection_psnr": pair_psnr(after, pairs),
             "inpaint_reprojection_psnr": pair_psnr(targets, pairs),
