@@ -56,7 +56,7 @@ class DeleteConfig:
     Gaussian is trainable when its summed compositing weight inside the holes is at least
     ``near_weight`` and at least ``hole_share`` of its weight over all the views, so changing it
     changes mostly hole pixels), ``window_margin`` (pixels around a view's
-    hole and footprint rendered for the loss), seeds (``seed_stride`` px, ``seed_min_change``,
+    hole rendered for the loss; views without a hole are not refitted on), seeds (``seed_stride`` px, ``seed_min_change``,
     ``seed_opacity``, ``seed_depth_tolerance``: see :mod:`tiger.edit.seeds`), ``densify_every`` / ``densify_fraction`` (top fraction of the trainable
     Gaussians by screen-space gradient, split or cloned), ``lambda_dssim``, learning rates ``lrs``
     (GaussianScene parameter names; means in world units), ``background`` (RGB behind the scene).
@@ -335,22 +335,29 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     if len(sizes) != 1:
         raise ValueError(f"tiger.edit.delete: all views must have one size, got {sorted(sizes)}")
     times: dict[str, float] = {}
-    t_all = time.perf_counter()
+    dev = scene.device
+
+    def now() -> float:  # stage boundaries wait for queued GPU work, so each stage gets its own time
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        return time.perf_counter()
+
+    t_all = now()
     inp = make_inpainter(inpainter, models=models, device=scene.device) if isinstance(inpainter, str) else inpainter
-    t0 = time.perf_counter()
+    t0 = now()
     removal = select_removal(scene, target, cfg, encoder)
     rest = scene.subset(~removal.mask)
-    times["remove"] = time.perf_counter() - t0
+    times["remove"] = now() - t0
 
-    t0 = time.perf_counter()
+    t0 = now()
     views = render_stage(scene, rest, removal.mask, cameras, cfg)
-    times["render"] = time.perf_counter() - t0
+    times["render"] = now() - t0
 
-    t0 = time.perf_counter()
+    t0 = now()
     targets, depth = inpaint_stage(views, images, inp, cfg)
-    times["inpaint"] = time.perf_counter() - t0
+    times["inpaint"] = now() - t0
 
-    t0 = time.perf_counter()
+    t0 = now()
     near = (views.hole_weight >= cfg.near_weight) & \
         (views.hole_weight >= cfg.hole_share * views.view_weight)
     seeds = seed_points(cameras, views.holes, views.rest_alpha < cfg.thin_alpha, depth, targets,
@@ -359,12 +366,12 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
                         depth_tolerance=cfg.seed_depth_tolerance)
     start = GaussianScene.concat([rest, seeds_scene(seeds, rest, near, cfg.seed_opacity)])
     trainable = torch.cat([near, torch.ones(len(seeds), dtype=torch.bool, device=near.device)])
-    windows = [mask_window(views.holes[i] | views.footprint[i], cfg.window_margin)
-               if bool(views.footprint[i].any()) else None for i in range(len(cameras))]
+    windows = [mask_window(views.holes[i], cfg.window_margin) if bool(views.holes[i].any()) else None
+               for i in range(len(cameras))]
     fit = refit(start, trainable, cameras, targets, windows, cfg, checkpoint_dir=checkpoint_dir,
                 resume=resume, progress=progress)
-    times["refit"] = time.perf_counter() - t0
-    times["total"] = time.perf_counter() - t_all
+    times["refit"] = now() - t0
+    times["total"] = now() - t_all
 
     after = render_rgb(fit.scene, cameras, cfg.background)
     from tiger.eval.reprojection import delete_metrics

@@ -111,9 +111,24 @@ def refit(scene: GaussianScene, trainable: torch.Tensor, cameras: Sequence[Camer
         step, losses, added, order = int(ck["step"]), list(ck["losses"]), int(ck["added"]), list(ck["order"])
         log.info("refit resumed at step %d of %d from %s", step, cfg.steps, ckpt)
 
+    visible: dict[int, torch.Tensor] = {}
+
+    def rows_for(i: int) -> torch.Tensor:
+        """Rows that can touch view i's window: the trainable ones and the frozen ones the window
+        sees (computed once per view and again after each densification)."""
+        if i not in visible:
+            with torch.no_grad():
+                radii = opt.scene.render(crops[i], opt.scene.opacities[:, None], check_finite=False)["radii"]
+            visible[i] = torch.nonzero((radii > 0) | opt.trainable_mask()).reshape(-1)
+        return visible[i]
+
     def render(s: GaussianScene, i: int) -> dict:
-        out = s.render(crops[i], background=bg, check_finite=False)
+        idx = rows_for(i)
+        sub = GaussianScene(**{n: getattr(s, n).index_select(0, idx)
+                               for n in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")})
+        out = sub.render(crops[i], background=bg, check_finite=False)
         out["means2d"].retain_grad()
+        out["rows"] = idx
         return out
 
     def loss(out: dict, i: int) -> torch.Tensor:
@@ -126,13 +141,17 @@ def refit(scene: GaussianScene, trainable: torch.Tensor, cameras: Sequence[Camer
         i = order.pop()
         res = opt.step(loss, i, render)
         grad = res.renders["means2d"].grad
-        if grad is not None:
-            stats.add(grad, res.renders["radii"], crops[i].width, crops[i].height)
+        if cfg.densify_every and grad is not None:  # screen-space gradients, scattered to all rows
+            rows = res.renders["rows"]
+            g_full = grad.new_zeros(len(opt.scene), 2).index_copy_(0, rows, grad)
+            r_full = res.renders["radii"].new_zeros(len(opt.scene)).index_copy_(0, rows, res.renders["radii"])
+            stats.add(g_full, r_full, crops[i].width, crops[i].height)
         step += 1
         losses.append(float(res.loss))
         if cfg.densify_every and step % cfg.densify_every == 0 and step < cfg.steps:
             d = region_topk_densify(opt, stats, extent, top_percent=100.0 * cfg.densify_fraction, generator=gen)
             added += int(d["cloned"]) + int(d["split"])
+            visible.clear()
         bar.update(1)
         bar.set_postfix(loss=f"{losses[-1]:.4f}", trainable=opt.num_trainable, refresh=False)
         if ckpt is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:

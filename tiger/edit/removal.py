@@ -138,41 +138,57 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
                    floater_tau=float(floater_tau), box_min=lo.float(), box_max=hi.float())
 
 
+_EXACT = "donot_use_mm_for_euclid_dist"  # the matmul form is off by ~1e-4 for identical points
+
+
+def _min_dist(a: torch.Tensor, b: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
+    """[A] distance from each row of ``a`` to its nearest row of ``b`` (chunked: no A x B matrix)."""
+    if b.shape[0] == 0:
+        return torch.full((a.shape[0],), float("inf"), dtype=a.dtype, device=a.device)
+    return torch.cat([torch.cdist(a[s:s + chunk], b, compute_mode=_EXACT).min(1).values for s in range(0, a.shape[0], chunk)]) \
+        if a.shape[0] else a.new_zeros(0)
+
+
+def _mean_nearest(a: torch.Tensor, b: torch.Tensor, k: int, chunk: int = 1024) -> torch.Tensor:
+    """[A] mean distance from each row of ``a`` to its ``k`` nearest rows of ``b`` (chunked)."""
+    return torch.cat([torch.cdist(a[s:s + chunk], b, compute_mode=_EXACT).topk(k, dim=1, largest=False).values.mean(1)
+                      for s in range(0, a.shape[0], chunk)]) if a.shape[0] else a.new_zeros(0)
+
+
 def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor, shell: torch.Tensor,
                 removed: torch.Tensor, margin: float, iters: int, radius: Optional[float],
                 k: int = 8) -> torch.Tensor:
-    """The appearance rule (module docstring) on float64 means [N,3] and colours [N,3]."""
+    """The appearance rule (module docstring) on means [N,3] and colours [N,3]; memory O(N), no
+    N x N matrices (scenes of millions of Gaussians have boxes of tens of thousands)."""
     idx = torch.nonzero(inside).reshape(-1)
     added = torch.zeros_like(removed)
     gone = removed[idx].clone()
     if idx.numel() < 2 or int(gone.sum()) < 2 or bool(gone.all()):
         return added
-    p, c = means[idx], colors[idx]
+    p, c = means[idx].float(), colors[idx].float()
     ref_kept = shell[idx] & ~gone  # the surroundings: kept, in the margin around the object's box
     if int(ref_kept.sum()) == 0:
         return added
-    d = torch.cdist(p, p)
     if radius is None:
-        obj = d[gone][:, gone].fill_diagonal_(float("inf"))
-        radius = 3.0 * float(obj.min(1).values.median())
-    near = d <= radius
-    cd = torch.cdist(c, c)
+        obj = p[gone]
+        pick = torch.randperm(obj.shape[0], generator=torch.Generator().manual_seed(0))[:4096].to(obj.device)
+        d = torch.cdist(obj[pick], obj, compute_mode=_EXACT)
+        d[torch.arange(pick.numel(), device=d.device), pick] = float("inf")  # the point itself
+        radius = 3.0 * float(d.min(1).values.median())
+    dist = _min_dist(p, p[gone])  # distance of every box Gaussian to the removed ones so far
     for _ in range(max(int(iters), 0)):
-        cand = ~gone & (near & gone[None, :]).any(1)
-        if not bool(cand.any()):
+        cand = ~gone & (dist <= radius)
+        if not bool(cand.any()) or int(ref_kept.sum()) == 0:
             break
-        # colour distance to the k nearest object colours vs the k nearest surrounding colours
-        k_obj = min(max(k, int(gone.sum()) // 8), int(gone.sum()))
-        k_ref = min(max(k, int(ref_kept.sum()) // 4), int(ref_kept.sum()))
-        to_obj = cd[cand][:, gone].topk(k_obj, dim=1, largest=False).values.mean(1)
-        to_rest = cd[cand][:, ref_kept].topk(k_ref, dim=1, largest=False).values.mean(1)
+        n_obj, n_ref = int(gone.sum()), int(ref_kept.sum())
+        to_obj = _mean_nearest(c[cand], c[gone], min(max(k, n_obj // 8), n_obj))
+        to_rest = _mean_nearest(c[cand], c[ref_kept], min(max(k, n_ref // 4), n_ref))
         new = torch.zeros_like(gone)
         new[torch.nonzero(cand).reshape(-1)] = to_obj < margin * to_rest
         if not bool(new.any()):
             break
         gone |= new
         ref_kept &= ~new
-        if int(ref_kept.sum()) == 0:
-            break
+        dist = torch.minimum(dist, _min_dist(p, p[new]))
     added[idx] = gone & ~removed[idx]
     return added
