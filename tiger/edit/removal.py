@@ -155,9 +155,16 @@ def _mean_nearest(a: torch.Tensor, b: torch.Tensor, k: int, chunk: int = 1024) -
                       for s in range(0, a.shape[0], chunk)]) if a.shape[0] else a.new_zeros(0)
 
 
+def _subsample(x: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
+    """At most ``n`` random rows of ``x``."""
+    if x.shape[0] <= n:
+        return x
+    return x[torch.randperm(x.shape[0], generator=gen)[:n].to(x.device)]
+
+
 def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor, shell: torch.Tensor,
                 removed: torch.Tensor, margin: float, iters: int, radius: Optional[float],
-                k: int = 8) -> torch.Tensor:
+                k: int = 8, max_refs: int = 4096) -> torch.Tensor:
     """The appearance rule (module docstring) on means [N,3] and colours [N,3]; memory O(N), no
     N x N matrices (scenes of millions of Gaussians have boxes of tens of thousands)."""
     idx = torch.nonzero(inside).reshape(-1)
@@ -175,20 +182,26 @@ def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor,
         d = torch.cdist(obj[pick], obj, compute_mode=_EXACT)
         d[torch.arange(pick.numel(), device=d.device), pick] = float("inf")  # the point itself
         radius = 3.0 * float(d.min(1).values.median())
-    dist = _min_dist(p, p[gone])  # distance of every box Gaussian to the removed ones so far
+    # distance of each kept box Gaussian to the removed ones (only kept ones can be candidates)
+    dist = torch.full((p.shape[0],), float("inf"), dtype=p.dtype, device=p.device)
+    dist[~gone] = _min_dist(p[~gone], p[gone])
+    gen = torch.Generator().manual_seed(1)
     for _ in range(max(int(iters), 0)):
         cand = ~gone & (dist <= radius)
         if not bool(cand.any()) or int(ref_kept.sum()) == 0:
             break
-        n_obj, n_ref = int(gone.sum()), int(ref_kept.sum())
-        to_obj = _mean_nearest(c[cand], c[gone], min(max(k, n_obj // 8), n_obj))
-        to_rest = _mean_nearest(c[cand], c[ref_kept], min(max(k, n_ref // 4), n_ref))
+        # the nearest eighth of the object's colours and the nearest quarter of the surroundings',
+        # on random subsets of at most ``max_refs`` each (the fractions are what matter)
+        obj_c, ref_c = _subsample(c[gone], max_refs, gen), _subsample(c[ref_kept], max_refs, gen)
+        to_obj = _mean_nearest(c[cand], obj_c, min(max(k, obj_c.shape[0] // 8), obj_c.shape[0]))
+        to_rest = _mean_nearest(c[cand], ref_c, min(max(k, ref_c.shape[0] // 4), ref_c.shape[0]))
         new = torch.zeros_like(gone)
         new[torch.nonzero(cand).reshape(-1)] = to_obj < margin * to_rest
         if not bool(new.any()):
             break
         gone |= new
         ref_kept &= ~new
-        dist = torch.minimum(dist, _min_dist(p, p[new]))
+        rest = ~gone
+        dist[rest] = torch.minimum(dist[rest], _min_dist(p[rest], p[new]))
     added[idx] = gone & ~removed[idx]
     return added
