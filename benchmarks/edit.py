@@ -9,7 +9,8 @@ Guidances:
   analytic       the ideal denoiser of a ground-truth recoloured scene (SPEC §8): reports the PSNR
                  of the edited renders to the ground truth on the object's pixels (the error column)
   ip2p+mvdream   CSD with InstructPix2Pix + MVDream; ``--random-models full|tiny`` builds randomly
-                 initialised models of the real architectures (same cost as the real weights)
+                 initialised models of the real architectures (same cost as the real weights) directly
+                 on the device (benchmarks/guidance.py's build_models), in ``--dtype``
 
 Per step: render (4 views + the 4 original renders the guidance is conditioned on), guidance,
 backward through the rasterizer, optimizer (relevance-scaled Adam), densification (amortised).
@@ -17,11 +18,12 @@ Peak memory is torch.cuda.max_memory_allocated on CUDA.
 
     python benchmarks/edit.py                                      # CPU, demo scene, recolor + analytic
     python benchmarks/edit.py --device cuda --density 15 --guidance ip2p+mvdream --random-models full \\
-        --steps 1200 --size 512
+        --steps 1200 --size 512 --warmup 20 --cuda-graph         # or: bash benchmarks/gpu/edit.sh
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -48,63 +50,93 @@ RED = (0.86, 0.08, 0.08)
 def demo_scene(density: float, device: str) -> tuple[GaussianScene, torch.Tensor]:
     """(scene with lang [N, 64], the ball's label vector [64])."""
     lab = tabletop_scene(density)
-    feats = label_features(lab)
-    o = lab.opacities.clamp(1e-4, 1 - 1e-4)
-    s = GaussianScene(lab.means, lab.scales.log(), lab.quats, torch.log(o / (1 - o)), rgb_to_sh(lab.rgb),
-                      sh_rest=torch.zeros(len(lab), 15, 3), lang=feats)
-    g = torch.Generator().manual_seed(0)
+    s = lab.scene.with_sh_degree(3)
+    s.lang = label_features(lab)
+    g = torch.Generator().manual_seed(0)  # label_features' table (same seed, same draw)
     table = torch.randn(len(lab.names), 64, generator=g)
     query = table[lab.names.index("ball")] / table[lab.names.index("ball")].norm()
     return s.to(device), query.to(device)
 
 
-def build(kind: str, scene: GaussianScene, mask: torch.Tensor, models: str, device: str, instruction: str):
+def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cuda_graph: bool, seed: int = 0):
+    """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
+    SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py)."""
+    from guidance import build_models, tokenizer
+
+    from tiger.edit import CSDGuidance
+    from tiger.edit.guidance import InstructPix2PixGuidance, MVDreamGuidance
+
+    tok = tokenizer(Path("outputs/bench_edit_tokenizer"))
+    ip2p_models, mv_models = build_models(size, device, dtype, tok)
+    kw = {} if size == "full" else {"short_side": 64}
+    ip = InstructPix2PixGuidance(ip2p_models, "make the ball look like a watermelon", cuda_graph=cuda_graph,
+                                 generator=torch.Generator(device).manual_seed(seed), **kw) if "ip2p" in kind else None
+    mv = MVDreamGuidance(mv_models, "a watermelon", cuda_graph=cuda_graph, image_size=256 if size == "full" else 32,
+                         generator=torch.Generator(device).manual_seed(seed + 1)) if "mvdream" in kind else None
+    return CSDGuidance(ip, mv)
+
+
+def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
     if kind == "recolor":
-        return RecolorGuidance(instruction), None
+        return RecolorGuidance("make the ball red"), None
     if kind == "analytic":
         truth = scene.clone()
         truth.sh_dc[mask] = rgb_to_sh(torch.tensor(RED, device=scene.device)).expand(int(mask.sum()), 3)
         return IdealDenoiserGuidance(render_targets(truth, torch.ones(3, device=scene.device))), truth
-    from tiger.edit.build import build_guidance
-
-    if models in ("full", "tiny"):
-        from tiger.edit.guidance.random_init import save_random_guidance_models
-
-        root = Path("outputs/bench_edit_models") / models
-        save_random_guidance_models(root, size=models)
-        models = str(root)
-    return build_guidance(kind, instruction, models=models, device=device), None
+    dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}[args.dtype]
+    return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph), None
 
 
 def run(args) -> dict:
     dev = args.device
+    cuda = dev.startswith("cuda")
     scene, query = demo_scene(args.density, dev)
     tgt = resolve_target(scene, query, tau=0.5)
-    guidance, truth = build(args.guidance, scene, tgt.mask, args.random_models, dev, "make the ball red")
+    t0 = time.perf_counter()
+    guidance, truth = build(args.guidance, scene, tgt.mask, args)
+    build_s = time.perf_counter() - t0
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
                      densify_every=args.densify_every, densify_from=args.densify_every,
                      background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0)
-    if dev.startswith("cuda"):
+    projected = None
+    if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
+        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        if cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        if cuda:
+            torch.cuda.synchronize()
+        per_step = (time.perf_counter() - t0) / args.warmup
+        projected = per_step * args.steps
+        if args.time_budget_s and projected > args.time_budget_s:  # keep within the device call
+            cfg = dataclasses.replace(cfg, steps=max(args.warmup, int(args.time_budget_s / per_step)))
+            print(f"projected {projected:.0f} s for {args.steps} steps > budget: timing {cfg.steps} steps", flush=True)
+    if cuda:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     res = edit(scene, "make the ball red", tgt, guidance, config=cfg)
-    if dev.startswith("cuda"):
+    if cuda:
         torch.cuda.synchronize()
     total = time.perf_counter() - t0
+    n = cfg.steps
     row = {"device": dev, "gaussians": len(scene), "editable": tgt.count, "guidance": args.guidance,
-           "steps": args.steps, "size": args.size, "total_s": total}
+           "steps": n, "size": args.size, "models_build_s": build_s, "edit_s": total,
+           f"edit_{args.steps}_steps_s": total * args.steps / n}
+    if projected is not None:
+        row["warmup_projection_s"] = projected
     for k, v in res.timings_s.items():
-        row[f"{k}_ms/step"] = 1e3 * v / args.steps
-    row["other_ms/step"] = 1e3 * (total - sum(res.timings_s.values())) / args.steps
-    if dev.startswith("cuda"):
+        row[f"{k}_ms/step"] = 1e3 * v / n
+    row["other_ms/step"] = 1e3 * (total - sum(res.timings_s.values())) / n
+    if cuda:
         row["peak_GiB"] = torch.cuda.max_memory_allocated() / 2**30
     row["after"] = len(res.scene)
     white = torch.ones(3, device=scene.device)
     cams = ObjectViews(tgt.center, tgt.bbox_min, tgt.bbox_max, force_360=True, width=128, height=128).fixed(6, 15.0)
     row["locality_dB"] = locality(scene, res.scene, cams, tgt.mask, res.editable, background=white)["psnr"]
     if truth is not None or args.guidance == "recolor":
-        ref = truth if truth is not None else build("analytic", scene, tgt.mask, "", dev, "")[1]
+        ref = truth if truth is not None else build("analytic", scene, tgt.mask, args)[1]
         got, _ = render_rgb_and_footprint(res.scene, cams, res.editable, white)
         want, foot = render_rgb_and_footprint(ref, cams, tgt.mask, white)
         mse = float((got.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[foot > 0.5].mean())
@@ -117,7 +149,12 @@ def main() -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--density", type=float, default=1.0, help="demo scene density (15 = ~300k Gaussians)")
     p.add_argument("--guidance", nargs="+", default=["recolor", "analytic"])
-    p.add_argument("--random-models", default="full", help="full | tiny | a model folder (diffusion guidances)")
+    p.add_argument("--random-models", default="full", help="full | tiny: random diffusion models of that size")
+    p.add_argument("--dtype", default="bf16", help="diffusion models' dtype: bf16 | fp16 | fp32")
+    p.add_argument("--cuda-graph", action="store_true", help="replay each guidance step as a CUDA graph")
+    p.add_argument("--warmup", type=int, default=0, help="untimed warm-up steps before the timed edit")
+    p.add_argument("--time-budget-s", type=float, default=None,
+                   help="time fewer steps when the warm-up projects more than this (the row says so)")
     p.add_argument("--steps", type=int, default=100)
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--lr-color", type=float, default=0.05)
@@ -129,10 +166,11 @@ def main() -> None:
     for kind in args.guidance:
         a = argparse.Namespace(**{**vars(args), "guidance": kind})
         rows.append(run(a))
+        print(json.dumps(rows[-1]), flush=True)
+        if args.json:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(rows, indent=2))
     print_table(rows, "edit loop: time per stage (ms/step), total (s), quality (dB)")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(rows, indent=2))
 
 
 if __name__ == "__main__":

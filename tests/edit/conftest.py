@@ -1,36 +1,45 @@
-"""A small two-object scene with language features for the edit tests (CPU, float32)."""
+"""Tiny random InstructPix2Pix (diffusers folder) and MVDream (original LDM .pt) shared by the edit tests."""
 import math
 
 import pytest
 import torch
 
-from tiger.scene import GaussianScene
-
-D = 8
+from tiger.scene.cameras import Camera
 
 
-def sphere_points(n, center, radius, g):
-    d = torch.randn(n, 3, generator=g)
-    return torch.tensor(center) + radius * d / d.norm(dim=1, keepdim=True)
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory):
+    pytest.importorskip("diffusers")
+    from tiger.edit.guidance.random_models import save_random_ip2p, save_random_mvdream
+
+    root = tmp_path_factory.mktemp("guidance_models")
+    save_random_ip2p(root / "instruct-pix2pix")
+    save_random_mvdream(root / "mvdream")
+    return root
 
 
-def two_objects(n=300, seed=0, sh_degree=1):
-    """Object A (blue ball at x=-0.4, lang e0) and B (green ball at x=+0.4, lang e1, view-dependent SH)."""
-    g = torch.Generator().manual_seed(seed)
-    pts = torch.cat([sphere_points(n, (-0.4, 0.0, 0.0), 0.25, g), sphere_points(n, (0.4, 0.0, 0.0), 0.25, g)])
-    cols = torch.cat([torch.tensor([0.1, 0.3, 0.85]).expand(n, 3), torch.tensor([0.2, 0.7, 0.2]).expand(n, 3)])
-    s = GaussianScene.from_points(pts, cols, sh_degree=sh_degree, opacity=0.9, scales=torch.full((2 * n,), 0.05))
-    s.sh_rest = 0.05 * torch.randn(s.sh_rest.shape, generator=g)
-    e = torch.eye(D)
-    lang = torch.cat([e[0].expand(n, D), e[1].expand(n, D)]) + 0.05 * torch.randn(2 * n, D, generator=g)
-    s.lang = torch.nn.functional.normalize(lang, dim=1)
-    return s
+def _ring_cameras(center=(0.0, 0.0, 0.0), distance=3.0, elevation_deg=15.0, size=(16, 16)):
+    """4 OpenCV cameras every 90 degrees around ``center`` in a z-up world, looking at it."""
+    c = torch.tensor(center, dtype=torch.float64)
+    cams = []
+    for k in range(4):
+        az, el = math.radians(90.0 * k), math.radians(elevation_deg)
+        pos = c + distance * torch.tensor([math.cos(el) * math.sin(az), -math.cos(el) * math.cos(az), math.sin(el)],
+                                          dtype=torch.float64)
+        fwd = (c - pos) / (c - pos).norm()
+        right = torch.linalg.cross(fwd, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+        right = right / right.norm()
+        down = torch.linalg.cross(fwd, right)
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, fwd, pos
+        w, h = size
+        K = torch.tensor([[w, 0, w / 2], [0, w, h / 2], [0, 0, 1]], dtype=torch.float64)
+        cams.append(Camera(torch.linalg.inv(c2w), K, w, h))
+    return cams
 
 
 @pytest.fixture
-def scene():
-    return two_objects()
-
-
-def query_a():
-    return torch.eye(D)[0]
+def ring_cameras():
+    """The camera-ring builder (4 OpenCV cameras every 90 degrees around a centre, z up)."""
+    return _ring_cameras

@@ -10,7 +10,7 @@ from tiger.edit.guidance import GuidanceInfo, IdealDenoiserGuidance, RecolorGuid
 from tiger.eval.edit import render_rgb_and_footprint
 from tiger.scene.sh import rgb_to_sh
 
-from .conftest import query_a, two_objects
+from .scenes import query_a, two_objects
 
 SMALL = dict(width=48, height=48, progress=False, densify_every=0)
 
@@ -91,22 +91,23 @@ def test_densification_limits_and_inheritance():
     scene = two_objects()
     scene.opacity_logits[:5] = -8.0  # five transparent editable Gaussians: pruned at densification
     cfg = dict(SMALL, densify_every=2, densify_from=2, densify_until=6)
-    sess_target = resolve_target(scene, query_a(), tau=0.5)
-    s = EditSession(scene, sess_target, RecolorGuidance("red"), "red", None, EditConfig(steps=6, **cfg))
-    lang_rows = {tuple(r.tolist()) for r in s.edit.lang[:, :8]}
+    t = resolve_target(scene, query_a(), tau=0.5)
+    s = EditSession(scene, t, RecolorGuidance("red"), "red", None, EditConfig(steps=6, **cfg))
+    parent_lang = {tuple(r.tolist()) for r in scene.lang[t.mask]}
     records = [s.step_once() for _ in range(6)]
     dens = [r["densify"] for r in records if "densify" in r]
     assert len(dens) == 3
     for d in dens:
-        added = d["total"] - d["before"] + d["pruned"]
-        assert 0 < added <= math.floor(0.01 * d["before"])
-    assert dens[0]["pruned"] >= 5
+        grown = d["cloned"] + d["split"]  # a clone adds one Gaussian, a split replaces one by two
+        assert 0 < grown <= math.floor(0.01 * d["editable_before"])
+    assert dens[0]["pruned"] >= 5 and len(s.scene) == len(scene) - sum(d["pruned"] for d in dens) + sum(
+        d["cloned"] + d["split"] for d in dens)
     out, w = s.result_scene()
-    children = len(out) - (len(scene) - sum(d["pruned"] for d in dens)) 
-    assert children > 0
-    kids = out.lang[-children:]
-    assert all(tuple(r.tolist()) in lang_rows for r in kids)  # lang copied from a parent
-    assert bool((w[-children:] > 0).all())
+    last = dens[-1]
+    kids = slice(len(out) - last["cloned"] - 2 * last["split"], None)  # children are appended
+    assert all(tuple(r.tolist()) in parent_lang for r in out.lang[kids])  # lang copied from a parent
+    assert bool((w[kids] > 0).all()) and bool(s.opt.trainable_mask()[kids].all())
+    assert s.optimizer_state_numel == 2 * 14 * s.opt.num_trainable
 
 
 class _InterruptAt:

@@ -91,9 +91,9 @@ def capture_layout(cameras: Sequence[Camera], center: torch.Tensor, up: Optional
     """
     if len(cameras) == 0:
         raise ValueError("tiger.edit.views: capture_layout needs the scene's cameras (got none)")
-    u = capture_up(cameras) if up is None else torch.as_tensor(up, dtype=torch.float64)
+    u = capture_up(cameras) if up is None else torch.as_tensor(up).detach().cpu().double()
     u, e1, e2 = _frame(u)
-    d = camera_centers(cameras) - torch.as_tensor(center, dtype=torch.float64).reshape(1, 3)
+    d = camera_centers(cameras) - torch.as_tensor(center).detach().cpu().double().reshape(1, 3)
     h = d - (d @ u)[:, None] * u
     az = _wrap(torch.atan2(h @ e2, h @ e1))
     el = torch.atan2(d @ u, h.norm(dim=1))
@@ -110,8 +110,8 @@ def capture_layout(cameras: Sequence[Camera], center: torch.Tensor, up: Optional
 
 def fill_distance(bbox_min: torch.Tensor, bbox_max: torch.Tensor, fov_rad: float, fill: float = 1.1) -> float:
     """Camera distance at which the box [bbox_min, bbox_max] (world units) fills a view of ``fov_rad``."""
-    r = 0.5 * float((torch.as_tensor(bbox_max, dtype=torch.float64)
-                     - torch.as_tensor(bbox_min, dtype=torch.float64)).norm())
+    r = 0.5 * float((torch.as_tensor(bbox_max).detach().cpu().double()
+                     - torch.as_tensor(bbox_min).detach().cpu().double()).norm())
     if not (0 < fov_rad < math.pi):
         raise ValueError(f"tiger.edit.views: field of view must be in (0, pi) radians, got {fov_rad}")
     return fill * max(r, 1e-6) / math.sin(fov_rad / 2)
@@ -144,13 +144,14 @@ class ObjectViews:
         if layout is None and not capture:
             if force_360 is not True:
                 raise ValueError("tiger.edit.views: give the scene's cameras (capture=), a layout, or force_360=True")
-            u = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64) if up is None else torch.as_tensor(up).double()
+            u = (torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64) if up is None
+                 else torch.as_tensor(up).detach().cpu().double())
             layout = CaptureLayout(True, u / u.norm(), 0.0, 360.0, float(elevation_deg[0]), float(elevation_deg[1]), 0.0)
         elif layout is None:
             layout = capture_layout(capture, center, up=up)
         self.layout = layout
         self.is_360 = layout.is_360 if force_360 is None else bool(force_360)
-        self.center = torch.as_tensor(center, dtype=torch.float64).reshape(3)
+        self.center = torch.as_tensor(center).detach().cpu().double().reshape(3)  # cameras live on the CPU
         self.n_views, self.width, self.height = int(n_views), int(width), int(height)
         self.K = pinhole_K(self.width, self.height, fov_deg)
         fov = min(math.radians(fov_deg), 2 * math.atan(0.5 * self.width / float(self.K[0, 0])))

@@ -7,7 +7,8 @@ For a target image x* the ideal noise prediction at noise level t is
 so the SDS gradient ``w(t) (ε̂ − ε)`` equals ``w(t) √(ᾱ_t / (1 − ᾱ_t)) (x − x*)``: it pulls every
 render toward its target, and its optimum is exactly x*. This module runs the real SDS path
 (noise drawn, x_t formed, ε̂ computed from x_t), so it exercises the same arithmetic a diffusion
-guidance does, in image space ([0, 1] mapped to [-1, 1]) with Stable Diffusion's noise schedule.
+guidance does, in image space ([0, 1] mapped to [-1, 1]) with Stable Diffusion's noise schedule
+(:class:`~tiger.edit.guidance.sds.NoiseSchedule`, t drawn as the diffusion guidances draw it).
 ``w(t) = 1 − ᾱ_t`` (DreamFusion). The targets are rendered by a callable from the step's views,
 typically the renders of a ground-truth edited scene from the same cameras.
 """
@@ -19,13 +20,7 @@ from typing import Callable, Optional
 import torch
 
 from .base import GuidanceInfo, ViewBatch, check_renders
-
-
-def scaled_linear_alphas_cumprod(steps: int = 1000, beta_start: float = 0.00085,
-                                 beta_end: float = 0.012) -> torch.Tensor:
-    """[steps] ᾱ_t of Stable Diffusion's "scaled_linear" schedule (float64)."""
-    betas = torch.linspace(beta_start ** 0.5, beta_end ** 0.5, steps, dtype=torch.float64) ** 2
-    return torch.cumprod(1 - betas, 0)
+from .sds import NoiseSchedule, check_t_range
 
 
 class IdealDenoiserGuidance:
@@ -42,11 +37,8 @@ class IdealDenoiserGuidance:
 
     def __init__(self, targets: Callable[[ViewBatch], torch.Tensor],
                  t_range: tuple[float, float] = (0.02, 0.2), seed: int = 0) -> None:
-        lo, hi = map(float, t_range)
-        if not 0.0 < lo <= hi < 1.0:
-            raise ValueError(f"tiger.edit.analytic: t_range must satisfy 0 < lo <= hi < 1, got {t_range}")
-        self.targets, self.t_range = targets, (lo, hi)
-        self.alphas_cumprod = scaled_linear_alphas_cumprod()
+        self.targets, self.t_range = targets, check_t_range(t_range)
+        self.schedule = NoiseSchedule.from_betas(0.00085, 0.012)  # Stable Diffusion's
         self.generator = torch.Generator().manual_seed(seed)
 
     def grad(self, renders: torch.Tensor, views: ViewBatch) -> tuple[torch.Tensor, GuidanceInfo]:
@@ -56,11 +48,9 @@ class IdealDenoiserGuidance:
         if target.shape != renders.shape:
             raise ValueError(f"tiger.edit.analytic: targets {list(target.shape)} must match renders "
                              f"{list(renders.shape)}")
-        n = len(self.alphas_cumprod)
         V = renders.shape[0]
-        lo, hi = int(round(self.t_range[0] * n)), int(round(self.t_range[1] * n))
-        t = torch.randint(lo, hi + 1, (V,), generator=self.generator).clamp(0, n - 1)
-        a = self.alphas_cumprod[t].to(renders).view(V, 1, 1, 1)
+        t = self.schedule.sample(V, self.t_range, self.generator)
+        a = self.schedule.alphas_cumprod[t].to(renders).view(V, 1, 1, 1)
         x = renders * 2 - 1
         x_star = target.to(renders) * 2 - 1
         eps = torch.randn(renders.shape, generator=self.generator, dtype=renders.dtype).to(renders.device)
@@ -69,7 +59,7 @@ class IdealDenoiserGuidance:
         g = (1 - a) * (eps_hat - eps) * 2  # d/drenders of the [-1, 1] image
         g = torch.where(torch.isfinite(g), g, torch.zeros_like(g))
         loss = 0.5 * float(((renders - target.to(renders)) ** 2).mean())
-        return g, GuidanceInfo(loss=loss, t=t.float() / n,
+        return g, GuidanceInfo(loss=loss, t=t.float() / self.schedule.num_steps,
                                timings_ms={"analytic": 1e3 * (time.perf_counter() - t0)})
 
 
@@ -93,4 +83,4 @@ def render_targets(target_scene, background: Optional[torch.Tensor] = None
     return fn
 
 
-__all__ = ["IdealDenoiserGuidance", "render_targets", "scaled_linear_alphas_cumprod"]
+__all__ = ["IdealDenoiserGuidance", "render_targets"]
