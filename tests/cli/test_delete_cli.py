@@ -27,7 +27,7 @@ def test_cli_delete_writes_scene_pictures_and_report(tmp_path, capsys):
     path, n_mug, n = _scene_file(tmp_path)
     out = tmp_path / "out"
     args = [str(path), "mug", "--text-embeddings", str(tmp_path / "text.pt"), "--out", str(out),
-            "--views", "4", "--size", "96x72", "--steps", "6", "--tau", "0.5", "--background", "1,1,1",
+            "--views", "4", "--size", "96x72", "--steps", "4", "--tau", "0.5", "--background", "1,1,1",
             "--device", "cpu"]
     assert main(["delete", *args]) == 0
     rep = json.loads((out / "delete.json").read_text())

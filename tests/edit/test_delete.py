@@ -37,7 +37,7 @@ def _cameras(n=6, size=(160, 120)):
 def deleted():
     scene, is_mug, query = _tabletop()
     cams = _cameras()
-    cfg = DeleteConfig(tau=0.5, steps=60, background=(1.0, 1.0, 1.0), densify_every=30)
+    cfg = DeleteConfig(tau=0.5, steps=40, background=(1.0, 1.0, 1.0), densify_every=20)
     res = delete(scene, query, cams, inpainter="opencv", config=cfg, progress=False)
     return scene, is_mug, query, res
 
