@@ -56,3 +56,18 @@ def test_cli_delete_errors(tmp_path, capsys):
                  "--inpainter", "lama", "--models", str(cfg)]) == 1
     err = capsys.readouterr().err
     assert "model 'lama' not found" in err and "big-lama.pt" in err
+
+
+def test_cli_delete_on_a_capture(tmp_path):
+    """--data: the capture's views (every other of 6, named after its images) and its images as
+    the inpainter's context."""
+    from tests.cli.test_cli_pipeline import _dataset
+
+    path, _, _ = _scene_file(tmp_path)
+    data = _dataset(tmp_path / "data", n_views=6)
+    out = tmp_path / "out"
+    assert main(["delete", str(path), "cup", "--text-embeddings", str(tmp_path / "text.pt"), "--out", str(out),
+                 "--data", str(data), "--views", "3", "--steps", "2", "--tau", "0.5", "--device", "cpu"]) == 0
+    rep = json.loads((out / "delete.json").read_text())
+    assert rep["views"] == 3 and rep["data"] == str(data)
+    assert sorted(p.name for p in (out / "holes").glob("*.png")) == ["000_000.png", "001_002.png", "002_004.png"]
