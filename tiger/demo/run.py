@@ -106,6 +106,7 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
         from .edit import recolor_demo
 
         edited = recolor_demo(out, timer, models=models, steps=edit_steps)
+    deleted = _delete_demo(out, timer, models) if found and "mug" in queries else None
     print("\nstage timings\n" + timer.summary())
     if found:
         print("\nqueries")
@@ -113,5 +114,14 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
             print(f"  {r['query']!r:>14} -> {r['object']:<8} {r['selected']:6d} Gaussians, "
                   f"precision {r['precision']:.3f}, recall {r['recall']:.3f}")
     print(f"\npictures in {out}/: view*_{{color,depth,alpha,features_pca}}.png, "
-          "relevancy/*.png, highlight_*.png, retrieved_*.png" + (", edit_before_after.png" if edited else ""))
-    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found, "edit": edited}
+          "relevancy/*.png, highlight_*.png, retrieved_*.png" + (", edit_before_after.png" if edited else "")
+          + (", delete_mug.png (before above after), delete_mug/" if deleted else ""))
+    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found, "edit": edited,
+            "delete": deleted}
+
+
+def _delete_demo(out: Path, timer: StageTimer, models) -> dict:
+    """"delete the mug" on the language-embedded scene (tiger.demo.delete)."""
+    from .delete import delete_stage
+
+    return delete_stage(out, timer, "mug", models=models)

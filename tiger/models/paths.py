@@ -71,6 +71,14 @@ REGISTRY: dict[str, ModelSpec] = {
         files=("maskclip_jbu_stack_cocostuff.ckpt",),
         source="FeatUp's released MaskCLIP JBU checkpoint",
     ),
+    "lama": ModelSpec(
+        name="lama",
+        public_id="advimman/lama big-lama (TorchScript export of lama-cleaner)",
+        folder="lama",
+        required=(),
+        files=("big-lama.pt",),
+        source="LaMa's big-lama as a TorchScript file: net(image [B,3,H,W] in [0,1], mask [B,1,H,W]) -> [B,3,H,W]",
+    ),
 }
 
 
@@ -156,7 +164,7 @@ def resolve_model_path(
     config: ConfigLike = None,
     allow_download: bool = False,
 ) -> Path:
-    """Find the weights of registry model ``name`` ('clip', 'sam', 'featup_jbu', 'ip2p', 'mvdream').
+    """Find the weights of registry model ``name`` ('clip', 'sam', 'featup_jbu', 'ip2p', 'mvdream', 'lama').
 
     Returns a folder (Hugging Face layout) or a checkpoint file. Raises
     :class:`ModelNotFoundError` naming the expected files, the public id and every place looked at.
