@@ -6,7 +6,7 @@ import torch
 
 from tiger.scene import Camera, GaussianScene
 from tiger.scene.cameras import intrinsics
-from tiger.scene.labelled import LabelledScene
+from tiger.scene import LabelledScene
 
 
 def _two_blobs() -> LabelledScene:

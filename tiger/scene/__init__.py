@@ -5,6 +5,8 @@ from .cameras import Camera, Distortion, scene_extent
 from .errors import SceneFormatError
 from .gaussian_scene import (DEFAULT_LRS, PARAM_NAMES, ColorSpec, GaussianScene, read_ply, render_views,
                              write_ply)
+from .labelled import LabelledScene
 
 __all__ = ["Camera", "Distortion", "GaussianScene", "SceneFormatError", "DEFAULT_LRS", "PARAM_NAMES",
-           "read_ply", "write_ply", "scene_extent", "render_views", "ColorSpec"]
+           "read_ply", "write_ply", "scene_extent", "render_views", "ColorSpec",
+           "LabelledScene"]
