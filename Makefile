@@ -6,7 +6,7 @@ PIP       := $(PY) -m pip
 TORCH_PIN ?= torch==2.13.0
 DEPS      := scikit-build-core pybind11 ninja cmake numpy tqdm pillow matplotlib scipy \
              pytest pytest-timeout hypothesis nbclient nbformat ipykernel transformers safetensors \
-             opencv-python-headless
+             opencv-python-headless diffusers==0.42.*
 CSRC      := $(shell find csrc -type f 2>/dev/null) CMakeLists.txt pyproject.toml
 BUILT     := $(VENV)/.tiger-built
 PYTEST_ARGS ?=

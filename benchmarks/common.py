@@ -6,6 +6,9 @@ uniform in [0.05, 0.95], colours uniform in [0, 1] and 64-d features standard no
 Camera: 3.5 units from the origin looking at it, vertical field of view 50 degrees,
 pinhole with the principal point at the image centre, OpenCV axes.
 
+:func:`heavy_tailed_scene` is its counterpart with real-scene statistics (log-normal scales
+with a long tail, some Gaussians close to the camera), small enough for CI on the CPU.
+
 Two views of the same definition: :func:`standard_scene` (tensors in a dict, channels chosen
 up front) and :func:`standard_view` (a :class:`StandardScene` bundling the camera, with RGB
 and features that ``.colors(C)`` combines for C in {3, 64, 67}).
@@ -51,6 +54,30 @@ def standard_scene(n: int, channels: int = 3, *, device: str = "cpu",
         colors = torch.cat([rgb, feats], dim=1)
     out = {"means": means, "quats": quats, "scales": scales, "opacities": opac, "colors": colors}
     return {k: v.to(device=device, dtype=dtype) for k, v in out.items()}
+
+
+HEAVY_SCALE_MEDIAN = 0.01   # world units
+HEAVY_SCALE_LOG_SIGMA = 1.2  # log-normal: p99 ~ 16x, p99.9 ~ 40x the median
+HEAVY_NEAR_FRACTION = 0.03   # share of Gaussians 0.15-1.0 units in front of the camera
+
+
+def heavy_tailed_scene(n: int, channels: int = 3, *, device: str = "cpu",
+                       dtype: torch.dtype = torch.float32, seed: int = 0) -> dict[str, Tensor]:
+    """The standard scene's layout with real-scene statistics, for :func:`standard_camera`:
+    per-axis scales log-normal (median HEAVY_SCALE_MEDIAN, sigma HEAVY_SCALE_LOG_SIGMA in
+    log space: a long tail of large Gaussians) and HEAVY_NEAR_FRACTION of the means inside
+    the view frustum 0.15-1 units from the camera, where they cover hundreds to thousands
+    of tiles. Same keys, channels and seeding rules as :func:`standard_scene`."""
+    s = standard_scene(n, channels, dtype=torch.float64, seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    f64 = torch.float64
+    s["scales"] = HEAVY_SCALE_MEDIAN * torch.exp(HEAVY_SCALE_LOG_SIGMA * torch.randn(n, 3, generator=g, dtype=f64))
+    n_near = int(round(HEAVY_NEAR_FRACTION * n))
+    depth = 0.15 + 0.85 * torch.rand(n_near, generator=g, dtype=f64)
+    half = math.tan(math.radians(FOV_Y_DEG) / 2) * depth  # stay inside the vertical field of view
+    xy = (torch.rand(n_near, 2, generator=g, dtype=f64) * 2 - 1) * half[:, None]
+    s["means"][:n_near] = torch.stack([xy[:, 0], xy[:, 1], depth - CAMERA_DISTANCE], dim=1)
+    return {k: v.to(device=device, dtype=dtype) for k, v in s.items()}
 
 
 def standard_camera(width: int, height: int, *, device: str = "cpu",
@@ -147,9 +174,10 @@ class StandardScene:
 
 
 def standard_view(n: int, width: int, height: int, seed: int = 0,
-                  dtype: torch.dtype = torch.float32) -> StandardScene:
-    """The standard scene (RGB + 64-d features, drawn as C = 67) with its camera, on the CPU."""
-    s = standard_scene(n, 67, dtype=torch.float64, seed=seed)
+                  dtype: torch.dtype = torch.float32, heavy_tailed: bool = False) -> StandardScene:
+    """The standard scene (RGB + 64-d features, drawn as C = 67) with its camera, on the CPU;
+    ``heavy_tailed``: :func:`heavy_tailed_scene` instead (same camera, channels and seed rules)."""
+    s = (heavy_tailed_scene if heavy_tailed else standard_scene)(n, 67, dtype=torch.float64, seed=seed)
     V, K = standard_camera(width, height, dtype=torch.float64)
     c = s["colors"]
     return StandardScene(s["means"], s["quats"], s["scales"], s["opacities"], c[:, :3].contiguous(),

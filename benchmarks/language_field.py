@@ -94,12 +94,9 @@ def convergence(device: str, steps: int, lr: float = 0.05) -> list[dict]:
     logging.getLogger("tiger.language.field").setLevel(logging.ERROR)
     ls = make_labelled_scene(per_object=80, floor=400, views=12, size=96)
     maps = [(f.to(device), v.to(device)) for f, v in oracle_feature_maps(ls)]  # rendered on the CPU
-    s = ls.scene
-    for k in ("means", "quats", "scales", "opacities", "lang_pca_basis", "lang_pca_mean"):
-        setattr(s, k, getattr(s, k).to(device))
-    ls.label_of = ls.label_of.to(device)
-    for c in ls.cameras:
-        c.viewmat, c.K = c.viewmat.to(device), c.K.to(device)
+    s = ls.scene.to(device)
+    labels = ls.labelled.labels.to(device)
+    ls.cameras = [c.to(device) for c in ls.cameras]
     rows, seconds = [], 0.0
     every = max(10, steps // 10)
     with tempfile.TemporaryDirectory() as tmp:
@@ -109,13 +106,13 @@ def convergence(device: str, steps: int, lr: float = 0.05) -> list[dict]:
                             checkpoint=ck, checkpoint_every=0)
             seconds += r.seconds
             prec, rec = [], []
-            for i, name in enumerate(ls.labels):
+            for i, name in enumerate(ls.labelled.names):
                 rr = retrieve(s, name, encoder=ls.encoder)
-                gt = ls.label_of == i
+                gt = labels == i
                 tp = int((rr.mask & gt).sum())
                 prec.append(tp / max(rr.count, 1))
                 rec.append(tp / int(gt.sum()))
-            rows.append({"N": len(ls.label_of), "views": len(ls.cameras), "W=H": 96, "lr": lr, "step": milestone,
+            rows.append({"N": len(labels), "views": len(ls.cameras), "W=H": 96, "lr": lr, "step": milestone,
                          "seconds": seconds, "loss": sum(r.losses[-10:]) / len(r.losses[-10:]),
                          "min_precision": min(prec), "min_recall": min(rec)})
     final = rows[-1]["loss"]

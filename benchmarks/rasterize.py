@@ -1,4 +1,6 @@
-"""Rasterizer benchmark: run time against error on the standard scene.
+"""Rasterizer benchmark: run time against error on the standard scene (or, with
+``--scene heavy``, the heavy-tailed scene of benchmarks/common.py: long-tailed scales and
+Gaussians close to the camera, the case that stresses tile binning).
 
 Prints (1) a table over N, resolution and channel count C with forward, forward+backward,
 backward alone (every input requiring grad) and features-only backward alone (only the
@@ -12,6 +14,7 @@ channels where the device supports them) as a time-against-error table and PNG p
     python benchmarks/rasterize.py                 # CPU, full table
     python benchmarks/rasterize.py --device cuda   # same on a GPU
     python benchmarks/rasterize.py --quick         # small subset (smoke run)
+    python benchmarks/rasterize.py --scene heavy --n 1e4 --res 512 --channels 3 --no-sweep
 """
 from __future__ import annotations
 
@@ -101,7 +104,7 @@ def main_table(args, device):
     rows = []
     for n in args.n:
         for res in args.res:
-            sc = standard_view(int(n), res, res).to(device=device)
+            sc = standard_view(int(n), res, res, heavy_tailed=args.scene == "heavy").to(device=device)
             for c in args.channels:
                 t_f, t_fb, bwd, feat_bwd, evals = time_case(sc, c, args.repeats, cuda)
                 errs, ref = error_case(sc, c) if not args.no_error else ([float("nan")] * 3, "-")
@@ -111,14 +114,15 @@ def main_table(args, device):
                              "isects": int(evals), "isect_px/s": evals * 256 / t_f,
                              "err_fwd": errs[0], "err_gcol": errs[1], "err_gmean": errs[2],
                              "vs": ref})
-    return print_table(rows, f"rasterize on {device} ({torch.get_num_threads()} threads), float32")
+    return print_table(rows, f"rasterize on {device} ({torch.get_num_threads()} threads), float32, "
+                             f"{args.scene} scene")
 
 
 def sweep(args, device):
     """Time against error for each accuracy knob, one varied at a time."""
     cuda = device.type == "cuda"
     n, res, c = args.sweep_n, args.sweep_res, 3
-    sc = standard_view(n, res, res).to(device=device)
+    sc = standard_view(n, res, res, heavy_tailed=args.scene == "heavy").to(device=device)
     sc64 = sc.to(dtype=torch.float64)
     exact = dict(t_min=0.0, alpha_threshold=1e-7, eps2d=0.3)
     with torch.no_grad():
@@ -180,6 +184,7 @@ def plot_sweep(rows, path: Path):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--scene", choices=["standard", "heavy"], default="standard")
     p.add_argument("--n", type=float, nargs="+", default=[1e3, 1e4, 1e5])
     p.add_argument("--res", type=int, nargs="+", default=[128, 512, 800])
     p.add_argument("--channels", type=int, nargs="+", default=[3, 64, 67])

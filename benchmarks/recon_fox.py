@@ -3,6 +3,7 @@ point cloud) and print held-out PSNR/SSIM against steps and time.
 
     python benchmarks/recon_fox.py                       # CPU: downscale 8, 700 steps, <= 10 min
     python benchmarks/recon_fox.py --device cuda --downscale 2 --iterations 7000 --time-budget 240
+    python benchmarks/recon_fox.py --downscale 4 --init-colors views --mask-border   # issue 15's fixes
 
 The data is looked up at ``<repo>/../shared/data/fox`` unless ``--data`` is given. Test
 views are every 8th image in name order (INRIA's rule); images are undistorted once and
@@ -34,6 +35,11 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("--init-radius", type=float, default=0.35, help="random init within this x camera distance")
     ap.add_argument("--max-gaussians", type=int, default=20_000)
     ap.add_argument("--sh-degree", type=int, default=3)
+    ap.add_argument("--init-colors", choices=("random", "views"), default="random",
+                    help="colours of the random initial points: random (INRIA) or their mean pixel colour")
+    ap.add_argument("--mask-border", action="store_true",
+                    help="leave the black border of undistortion out of the loss and of PSNR/SSIM")
+    ap.add_argument("--appearance", action="store_true", help="per-training-image affine colour correction")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     ap.add_argument("--cache", type=Path, default=None, help="undistorted-image cache folder")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "recon_fox")
@@ -49,21 +55,27 @@ def main(argv: list | None = None) -> int:
     from tiger.recon import ReconConfig, Trainer, load_views
     from tiger.scene import GaussianScene
     from tiger.scene.dataset import load_dataset
+    from tiger.scene.images import undistortion_valid_mask
 
     ds = load_dataset(args.data)
-    train_c, test_c = ds.split(8)
+    train_raw, test_raw = ds.split(8)
     t0 = time.perf_counter()
     cache = args.cache or (args.out / "cache")
-    train_c, train_i = load_views(train_c, args.downscale, cache_dir=cache, progress=True)
-    test_c, test_i = load_views(test_c, args.downscale, cache_dir=cache, progress=True)
+    train_c, train_i = load_views(train_raw, args.downscale, cache_dir=cache, progress=True)
+    test_c, test_i = load_views(test_raw, args.downscale, cache_dir=cache, progress=True)
+    masks = test_masks = None
+    if args.mask_border:
+        masks = [undistortion_valid_mask(c, args.downscale) for c in train_raw]
+        test_masks = [undistortion_valid_mask(c, args.downscale) for c in test_raw]
     t_load = time.perf_counter() - t0
     H, W = train_i[0].shape[:2]
     cfg = ReconConfig.scaled(args.iterations, sh_degree=args.sh_degree, init_random_points=args.init_points,
-                             init_radius_fraction=args.init_radius,
+                             init_radius_fraction=args.init_radius, init_colors=args.init_colors,
+                             appearance=args.appearance,
                              max_gaussians=args.max_gaussians, eval_every=args.eval_every,
                              time_budget_s=args.time_budget, progress=sys.stderr.isatty())
     tr = Trainer(train_c, train_i, cfg, device=args.device, out_dir=args.out, test_cameras=test_c,
-                 test_images=test_i)
+                 test_images=test_i, masks=masks, test_masks=test_masks)
     print(f"fox: {len(train_c)} train / {len(test_c)} test views at {W}x{H} (downscale {args.downscale:g}), "
           f"device {args.device}, {torch.get_num_threads()} CPU threads; images loaded+undistorted in "
           f"{t_load:.1f} s; scene extent {tr.extent:.3f}; {len(tr.scene)} initial Gaussians")
@@ -72,7 +84,8 @@ def main(argv: list | None = None) -> int:
     scene.save_ply(ply)
     same = GaussianScene.load_ply(ply).equal(scene.to("cpu"))
 
-    print("\n| step | train time (s) | test PSNR (dB) | test SSIM | Gaussians |")
+    over = " (undistorted pixels only)" if args.mask_border else ""
+    print(f"\n| step | train time (s) | test PSNR{over} (dB) | test SSIM | Gaussians |")
     print("|---:|---:|---:|---:|---:|")
     for h in tr.history:
         print(f"| {h['step']} | {h['time_s']:.1f} | {h['psnr']:.2f} | {h['ssim']:.4f} | {h['gaussians']} |")
@@ -82,7 +95,8 @@ def main(argv: list | None = None) -> int:
           f"({'reloads identically' if same else 'RELOAD MISMATCH'})")
     if args.json:
         args.json.write_text(json.dumps({"history": tr.history, "resolution": [W, H], "device": args.device,
-                                         "downscale": args.downscale, "reload_identical": same}, indent=1))
+                                         "downscale": args.downscale, "reload_identical": same,
+                                         "config": cfg.to_dict(), "mask_border": args.mask_border}, indent=1))
     return 0 if same else 1
 
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import re
 import sys
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -66,10 +65,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--heatmap-views", type=int, default=2, help="training views drawn per query")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     return p
-
-
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")[:60] or "query"
 
 
 def model_config(args: argparse.Namespace, out: Path) -> Optional[Any]:
@@ -113,6 +108,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from tiger.retrieval import retrieve, write_relevancy_pictures
     from tiger.scene import GaussianScene
     from tiger.scene.dataset import load_colmap
+    from tiger.utils.io import file_slug
 
     data, ply, out = Path(args.data), Path(args.ply), Path(args.out)
     if not data.is_dir():
@@ -153,7 +149,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         order = _views_by_coverage(scene, r.mask, cams) if r.count else list(range(len(cams)))
         views = [cams[i] for i in order[:args.heatmap_views]]
         pics = write_relevancy_pictures(scene, views, q, out / "heatmaps", encoder=clip, score=args.score)
-        sel_path = out / f"selection_{_slug(q)}.ply"
+        sel_path = out / f"selection_{file_slug(q)}.ply"
         r.subscene(scene).save_ply(sel_path)
         print(f"'{q}': {r.count} of {len(scene)} Gaussians ({args.score} > {r.tau:.3f}) -> {sel_path}; "
               f"heat maps: {', '.join(p.name for p in pics)}")
@@ -166,14 +162,9 @@ def _views_by_coverage(scene: Any, mask: torch.Tensor, cams: Sequence[Any]) -> l
     seen = []
     for cam in cams:
         s = 64 / max(cam.width, cam.height)  # a thumbnail render is enough to rank views
-        c = cam.to(device=scene.device, dtype=scene.dtype)
-        K = c.K.clone()
-        K[:2] *= s
-        from tiger.render import rasterize_gaussians
-
+        thumb = cam.resized(max(1, round(cam.width * s)), max(1, round(cam.height * s)))
         with torch.no_grad():
-            r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, sel, c.viewmat,
-                                    K, max(1, round(cam.width * s)), max(1, round(cam.height * s)))
+            r = scene.render(thumb, sel)
         seen.append(float(r["color"].sum()))
     return sorted(range(len(cams)), key=lambda i: -seen[i])
 

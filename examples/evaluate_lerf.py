@@ -60,10 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def text_encoder(args: argparse.Namespace) -> Any:
     """The encoder of the category names: an embedding table, or CLIP's text tower."""
-    from tiger.eval.lerf import EmbeddingTable
+    from tiger.retrieval.text import EmbeddingTable
 
     if args.text_embeddings:
-        return EmbeddingTable(args.text_embeddings)
+        return EmbeddingTable.load(args.text_embeddings)
     from tiger.language.maskclip import MaskCLIP
     from tiger.models.paths import resolve_model_path
 

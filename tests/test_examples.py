@@ -45,13 +45,9 @@ def cli_error(script: str, *args) -> str:
 
 def tabletop_gaussian_scene(density: float = 0.1):
     from tiger.demo import tabletop_scene
-    from tiger.scene import GaussianScene
-    from tiger.scene.sh import rgb_to_sh
 
     lab = tabletop_scene(density)
-    return lab, GaussianScene(means=lab.means, log_scales=lab.scales.log(), quats=lab.quats,
-                              opacity_logits=torch.logit(lab.opacities.clamp(1e-6, 1 - 1e-6)),
-                              sh_dc=rgb_to_sh(lab.rgb))
+    return lab, lab.scene
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -88,7 +84,7 @@ def test_render_turntable(tmp_path):
     views = orbit_viewmats(n, center=(0, -0.2, 0), radius=3.0, elevation_deg=30)
     for i in (0, 2):
         with torch.no_grad():
-            ref = rasterize_gaussians(lab.means, lab.quats, lab.scales, lab.opacities,
+            ref = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
                                       sh_to_rgb(scene.sh_dc).clamp_min(0), views[i], pinhole_K(w, h), w, h,
                                       background=torch.ones(3))["color"].clamp(0, 1)
         got = np.asarray(Image.open(frames[i]), dtype=np.float64) / 255
@@ -157,7 +153,7 @@ def write_colmap_text(root: Path, lab, scene, n: int = 3, w: int = 64, h: int = 
             save_png(root / "images" / f"img{i}.png",
                      scene.render(Camera(V, K, w, h), background=torch.ones(3))["color"].clamp(0, 1))
     (model / "images.txt").write_text("\n".join(lines) + "\n")
-    pts = lab.means[:: max(1, len(lab) // 50)]
+    pts = scene.means[:: max(1, len(scene) // 50)]
     (model / "points3D.txt").write_text("".join(
         f"{k + 1} {float(p[0])} {float(p[1])} {float(p[2])} 128 128 128 0.5\n" for k, p in enumerate(pts)))
     return views
@@ -225,30 +221,23 @@ def test_embed_and_query_colmap_errors(tmp_path, monkeypatch):
 def write_lerf_fixture(root: Path, name: str, seed: int, size: int = 128, views: int = 3):
     """A LERF-OVS-layout scene: ``root/label/<name>/frame_XXXXX.{json,jpg}`` (boxes and polygons of
     the rendered objects), ``root/<name>/transforms.json`` (its cameras) and a PLY with ``lang_*``."""
-    import copy
-
     from tiger.retrieval.maps import render_rgb
     from tiger.retrieval.synthetic import label_masks, make_labelled_scene
-    from tiger.scene import GaussianScene
-    from tiger.scene.sh import rgb_to_sh
 
     ls = make_labelled_scene(views=views, seed=seed)
     g = torch.Generator().manual_seed(seed)
     s = ls.scene
-    s.lang = ls.label_lang[ls.label_of] + 0.3 * torch.randn(len(ls.label_of), 64, generator=g) / 8
+    s.lang = ls.label_lang[ls.labelled.labels] + 0.3 * torch.randn(len(ls.labelled.labels), 64, generator=g) / 8
     labels, data = root / "label" / name, root / name
     labels.mkdir(parents=True)
     data.mkdir(parents=True)
     gl = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
     frames = []
     for v, cam in enumerate(ls.cameras):
-        c = copy.copy(cam)
-        c.K = cam.K.clone()
-        c.K[:2] *= size / cam.width
-        c.width = c.height = size
+        c = cam.resized(size, size)
         masks = label_masks(ls, c)
         objects = []
-        for k, lab in enumerate(ls.labels):
+        for k, lab in enumerate(ls.labelled.names):
             if masks[k].sum() < 100:
                 continue
             ys, xs = torch.nonzero(masks[k], as_tuple=True)
@@ -265,9 +254,7 @@ def write_lerf_fixture(root: Path, name: str, seed: int, size: int = 128, views:
     (data / "transforms.json").write_text(json.dumps(
         {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
          "w": size, "h": size, "frames": frames}))
-    GaussianScene(means=s.means, log_scales=s.scales.log(), quats=s.quats, opacity_logits=torch.logit(s.opacities),
-                  sh_dc=rgb_to_sh(s.colors), lang=s.lang, lang_pca_basis=s.lang_pca_basis,
-                  lang_pca_mean=s.lang_pca_mean).save_ply(tmp_ply(root, name))
+    s.save_ply(tmp_ply(root, name))
     return ls
 
 
@@ -278,7 +265,7 @@ def tmp_ply(root: Path, name: str) -> Path:
 def test_evaluate_lerf(tmp_path):
     root = tmp_path / "lerf_ovs"
     ls = write_lerf_fixture(root, "toyroom", 0)
-    torch.save(dict(ls.encoder.table), tmp_path / "text.pt")  # CLIP-space embeddings of the labels
+    ls.encoder.save(tmp_path / "text.pt")  # CLIP-space embeddings of the labels
     r = run("evaluate_lerf.py", root, "--ply", str(root / "outputs" / "{scene}" / "scene_lang.ply"),
             "--out", tmp_path / "out", "--text-embeddings", tmp_path / "text.pt", "--device", "cpu",
             "--filter-size", 15,  # the 30 px filter is for ~1000 px frames; these are 128 px

@@ -58,7 +58,7 @@ def kernel_name() -> str:
 
 
 def test_notebooks_exist():
-    assert [p.name for p in NOTEBOOKS] == ["01_render_and_formats.ipynb", "02_language_retrieval.ipynb"]
+    assert [p.name for p in NOTEBOOKS] == ["01_render_and_formats.ipynb", "02_language_retrieval.ipynb", "03_edit.ipynb"]
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)

@@ -14,7 +14,7 @@ export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
   "$PY" -c "import torch, transformers, tiger; print('torch', torch.__version__, 'transformers', transformers.__version__, 'tiger CUDA kernels:', tiger.ops.cuda_enabled())"
   echo "== CUDA tests (ops: CPU vs CUDA values, gradients, opcheck; pipeline on the GPU)"
-  timeout 240 "$PY" -m pytest -q -m cuda tests/language tests/models -p no:cacheprovider 2>&1 | tail -25
+  timeout 240 "$PY" -m pytest -q -m cuda tests/language tests/models tests/ops/test_jbu.py tests/ops/test_nms.py tests/ops/test_masked_average.py -p no:cacheprovider 2>&1 | tail -25
   echo "== benchmark: feature maps at 1920x1080 (full resolution)"
   timeout 420 "$PY" benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 1920 2>&1
   echo "== benchmark: feature maps at 960x540 (pipeline with JBU only)"

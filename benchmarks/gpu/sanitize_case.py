@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from benchmarks.common import standard_camera, standard_scene  # noqa: E402
+from benchmarks.common import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
 
 import tiger  # noqa: E402
 
@@ -48,6 +48,25 @@ def run(n: int, C: int, dtype: torch.dtype, cdtype: torch.dtype | None, sh: int 
           f"isects={out['n_isects']}", flush=True)
 
 
+def run_heavy_binning(n: int, w: int, h: int, dtype: torch.dtype) -> None:
+    """Load-balanced binning on a heavy-tailed scene (Gaussians spanning the whole image, many
+    culled ones): the lists must equal the former one-thread-per-Gaussian binning's."""
+    import os
+    s = heavy_tailed_scene(n, 3, device="cuda", dtype=dtype, seed=5)
+    V, K = standard_camera(w, h, device="cuda", dtype=dtype)
+    ops = torch.ops.tiger
+    m2, cn, d, op, r = ops.project_gaussians(s["means"], s["quats"], s["scales"], s["opacities"],
+                                             V, K, w, h, 0.3, 0.01, 1e10, 1 / 255, False)
+    a = ops.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
+    os.environ["TIGER_BIN_SERIAL"] = "1"
+    b = ops.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
+    os.environ.pop("TIGER_BIN_SERIAL")
+    torch.cuda.synchronize()
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]), "balanced != serial binning"
+    print(f"ok heavy binning n={n} {w}x{h} {dtype} isects={a[1].numel()} "
+          f"culled={int((r[:, 0] == 0).sum())}", flush=True)
+
+
 def main() -> None:
     assert tiger.ops.cuda_enabled() and torch.cuda.is_available()
     for C in (3, 67, 40):
@@ -59,6 +78,8 @@ def main() -> None:
     run(300, 12, torch.float64, None, None, True)
     run(300, 3, torch.float32, None, 3, False)
     run(0, 3, torch.float32, None, None, False)
+    run_heavy_binning(600, 200, 150, torch.float32)
+    run_heavy_binning(300, 97, 61, torch.float64)
 
 
 if __name__ == "__main__":

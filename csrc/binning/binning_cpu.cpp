@@ -1,4 +1,5 @@
-// CPU tile binning: count and list (tile, Gaussian) pairs in parallel, bucket
+// CPU tile binning: count and list (tile, Gaussian) pairs in parallel (ranges of equal
+// candidate-tile counts, not of equal Gaussian counts), bucket
 // them by tile with a counting sort (stable, so ids stay ascending), then sort
 // each tile's list by depth in parallel.
 #include <ATen/Parallel.h>
@@ -15,19 +16,20 @@
 namespace tiger {
 
 namespace {
-struct TileRect {
-  int x0, x1, y0, y1;  // [x0, x1) x [y0, y1) in tile units
-};
-
-template <typename T>
-TileRect tile_rect(T u, T v, int32_t rx, int32_t ry, int tiles_x, int tiles_y, int ts) {
-  auto clampi = [](double a, int lo, int hi) {
-    return static_cast<int>(std::min<double>(std::max<double>(a, lo), hi));
-  };
-  return {clampi(std::floor((double(u) - rx) / ts), 0, tiles_x),
-          clampi(std::floor((double(u) + rx) / ts) + 1, 0, tiles_x),
-          clampi(std::floor((double(v) - ry) / ts), 0, tiles_y),
-          clampi(std::floor((double(v) + ry) / ts) + 1, 0, tiles_y)};
+// Splits [0, n) into about `parts` ranges of similar total cost (cost_ends = inclusive
+// scan of per-item costs), so that threads get equal numbers of tile tests rather than
+// equal numbers of Gaussians (a few Gaussians can cover thousands of tiles each).
+std::vector<int64_t> balanced_bounds(const std::vector<int64_t>& cost_ends, int64_t parts) {
+  const int64_t n = int64_t(cost_ends.size());
+  const int64_t total = n ? cost_ends.back() : 0;
+  std::vector<int64_t> bounds{0};
+  for (int64_t p = 1; p < parts; ++p) {
+    const int64_t target = total / parts * p + std::min<int64_t>(p, total % parts);
+    const int64_t b = std::upper_bound(cost_ends.begin(), cost_ends.end(), target) - cost_ends.begin();
+    if (b > bounds.back() && b < n) bounds.push_back(b);
+  }
+  bounds.push_back(n);
+  return bounds;
 }
 }  // namespace
 
@@ -57,7 +59,7 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
     auto visit = [&](int64_t i, auto&& emit) {
       if (rp[2 * i] <= 0 || rp[2 * i + 1] <= 0) return;
       const T u = mp[2 * i], v = mp[2 * i + 1];
-      const TileRect r = tile_rect(u, v, rp[2 * i], rp[2 * i + 1], tiles_x, tiles_y, ts);
+      const TileRect r = tile_rect(u, v, rp[2 * i], rp[2 * i + 1], ts, tiles_x, tiles_y);
       const T qcut = cutoff_quadratic<T>(op[i], T(alpha_threshold));
       for (int ty = r.y0; ty < r.y1; ++ty)
         for (int tx = r.x0; tx < r.x1; ++tx) {
@@ -67,8 +69,22 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
             emit(ty * tiles_x + tx);
         }
     };
-    at::parallel_for(0, n, 1024, [&](int64_t b, int64_t e) {
-      for (int64_t i = b; i < e; ++i) {
+    // Work ranges of equal candidate-tile counts (+1 per Gaussian for its fixed cost).
+    std::vector<int64_t> cost_ends(n);
+    at::parallel_for(0, n, 16384, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i)
+        cost_ends[i] = 1 + ((rp[2 * i] > 0 && rp[2 * i + 1] > 0)
+                                ? tile_rect(mp[2 * i], mp[2 * i + 1], rp[2 * i], rp[2 * i + 1], ts,
+                                            tiles_x, tiles_y).count()
+                                : 0);
+    });
+    for (int64_t i = 1; i < n; ++i) cost_ends[i] += cost_ends[i - 1];
+    const int64_t total_cost = n ? cost_ends[n - 1] : 0;
+    const int64_t parts = total_cost < 65536 ? 1 : 8 * int64_t(at::get_num_threads());
+    const std::vector<int64_t> bounds = balanced_bounds(cost_ends, parts);
+    const int64_t n_parts = int64_t(bounds.size()) - 1;
+    at::parallel_for(0, n_parts, 1, [&](int64_t pb, int64_t pe) {
+      for (int64_t i = bounds[pb]; i < bounds[pe]; ++i) {
         int64_t c = 0;
         visit(i, [&](int32_t) { ++c; });
         g_offsets[i + 1] = c;
@@ -76,8 +92,8 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
     });
     for (int64_t i = 0; i < n; ++i) g_offsets[i + 1] += g_offsets[i];
     pair_tiles.resize(g_offsets[n]);
-    at::parallel_for(0, n, 1024, [&](int64_t b, int64_t e) {
-      for (int64_t i = b; i < e; ++i) {
+    at::parallel_for(0, n_parts, 1, [&](int64_t pb, int64_t pe) {
+      for (int64_t i = bounds[pb]; i < bounds[pe]; ++i) {
         int64_t k = g_offsets[i];
         visit(i, [&](int32_t t) { pair_tiles[k++] = t; });
       }

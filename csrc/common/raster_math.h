@@ -1,6 +1,7 @@
 #pragma once
 // Per-pixel alpha of a projected Gaussian, and the opacity-aware tile test.
 #include <math.h>
+#include <stdint.h>
 
 #include "macros.h"
 
@@ -68,6 +69,27 @@ TIGER_HD bool tile_touches(T u, T v, T ca, T cb, T cc, T qcut, int px0, int px1,
   const T x0 = T(px0) + T(0.5) - u, x1 = T(px1) - T(0.5) - u;
   const T y0 = T(py0) + T(0.5) - v, y1 = T(py1) - T(0.5) - v;
   return min_quadratic_on_rect(ca, cb, cc, x0, x1, y0, y1) <= qcut;
+}
+
+// Tiles [x0, x1) x [y0, y1) under a Gaussian's screen-space bounding box (centre u, v;
+// radii rx, ry in pixels), clamped to the tile grid. Binning tests only these tiles
+// (CPU and CUDA alike), so both walk the same candidates in the same row-major order.
+struct TileRect {
+  int x0, x1, y0, y1;
+  TIGER_HD int width() const { return x1 - x0; }
+  TIGER_HD int64_t count() const { return int64_t(x1 - x0) * int64_t(y1 - y0); }
+};
+
+TIGER_HD int clamp_tile(double a, int hi) { return a < 0.0 ? 0 : (a > double(hi) ? hi : int(a)); }
+
+template <typename T>
+TIGER_HD TileRect tile_rect(T u, T v, int32_t rx, int32_t ry, int tile_size, int tiles_x,
+                            int tiles_y) {
+  const double ts = tile_size;
+  return {clamp_tile(floor((double(u) - rx) / ts), tiles_x),
+          clamp_tile(floor((double(u) + rx) / ts) + 1.0, tiles_x),
+          clamp_tile(floor((double(v) - ry) / ts), tiles_y),
+          clamp_tile(floor((double(v) + ry) / ts) + 1.0, tiles_y)};
 }
 
 }  // namespace tiger

@@ -6,6 +6,7 @@ import sys
 
 import pytest
 
+import tiger.scene
 from tiger.cli.main import build_parser, main
 
 
@@ -18,7 +19,7 @@ def test_every_subcommand_has_help_with_example(capsys):
     parser = build_parser()
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     assert set(sub.choices) >= {"reconstruct", "features", "embed", "query", "render",
-                                "eval-lerf", "info", "demo"}
+                                "eval-lerf", "info", "demo", "edit", "eval-edit"}
     for name in sub.choices:
         try:
             code = main([name, "--help"])
@@ -35,8 +36,9 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
     r = _run("demo", "--out", str(out), "--width", "64", "--height", "48", "--views", "1")
     assert r.returncode == 2 and "--force" in r.stderr and "Traceback" not in r.stderr
     r = _run("demo", "--out", str(out), "--width", "64", "--height", "48", "--views", "1",
-             "--steps", "40", "--queries", "ball", "--force")
+             "--steps", "40", "--queries", "ball", "--edit-steps", "10", "--force")
     assert r.returncode == 0, r.stderr
+    assert (out / "edit_before_after.png").stat().st_size > 100 and (out / "scene_ball_red.ply").is_file()
     for kind in ("color", "depth", "alpha", "features_pca"):
         assert (out / f"view0_{kind}.png").stat().st_size > 100
     for name in ("highlight_ball.png", "retrieved_ball.png"):
@@ -62,6 +64,26 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
              "color", "depth", "features", "--video", "--out", str(rd))
     assert r.returncode == 0, r.stderr
     assert len(list(rd.glob("*_features.png"))) == 2 and list(rd.glob("turntable.*"))
+    # tiger edit (recolor, no weights) and tiger eval-edit on the demo's scene
+    ed = tmp_path / "edit"
+    emb = str(out / "text_embeddings.pt")
+    r = _run("edit", str(out / "scene.ply"), "make it red", "--target", "ball", "--guidance", "recolor",
+             "--text-embeddings", emb, "--tau", "0.5", "--steps", "12", "--size", "48", "--video", "gif",
+             "--device", "cpu", "--out", str(ed))
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((ed / "edit.json").read_text())
+    assert rep["selected"] > 0 and rep["metrics"]["locality"]["psnr"] > 30 and rep["settings"]["steps"] == 12
+    assert (ed / "before_after.png").stat().st_size > 100 and (ed / "turntable.gif").is_file()
+    edited = tiger.scene.GaussianScene.load_ply(ed / "edited.ply")
+    assert edited.lang is not None and edited.metadata["tiger_edits"][-1]["instruction"] == "make it red"
+    r = _run("eval-edit", str(out / "scene.ply"), str(ed / "edited.ply"), "--target", "ball", "--text-embeddings",
+             emb, "--tau", "0.5", "--views", "3", "--size", "48", "--out", str(tmp_path / "ev"))
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "ev" / "metrics.json").read_text())["locality"]["psnr"] > 30
+    r = _run("edit", str(out / "scene.ply"), "make it red", "--target", "ball", "--guidance", "ip2p",
+             "--text-embeddings", emb, "--tau", "0.5", "--models", str(tmp_path / "no_models"),
+             "--out", str(tmp_path / "e2"))
+    assert r.returncode != 0 and "Traceback" not in r.stderr and "instruct-pix2pix" in r.stderr.lower(), r.stderr
     r = _run("query", str(out / "scene.ply"), "unicorn", "--text-embeddings",
              str(out / "text_embeddings.pt"), "--out", str(tmp_path / "q2"))
     assert r.returncode != 0 and "no embedding for ['unicorn']" in r.stderr

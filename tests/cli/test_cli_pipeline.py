@@ -23,7 +23,7 @@ def _run(*args, timeout=900):
 
 def _dataset(root, n_views=6, w=64, h=48):
     """Renders of the demo scene + transforms.json (OpenGL camera-to-world, as NeRF stores it)."""
-    scene = tabletop_scene(density=0.15)
+    scene = tabletop_scene(density=0.15).scene
     (root / "images").mkdir(parents=True)
     K = pinhole_K(w, h)
     frames = []

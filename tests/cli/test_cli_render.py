@@ -8,7 +8,6 @@ import torch
 from PIL import Image
 
 from tiger.cli.main import main
-from tiger.scene import GaussianScene
 from tiger.scene.cameras_json import read_cameras_json, write_cameras_json
 from tiger.scene.dataset import load_dataset
 
@@ -22,10 +21,7 @@ def captured(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("render")
     data = _dataset(root / "data")
-    s = tabletop_scene(density=0.15)
-    o = s.opacities.clamp(1e-4, 1 - 1e-4)
-    scene = GaussianScene(s.means.clone(), s.scales.clamp_min(1e-8).log(), s.quats.clone(), torch.log(o / (1 - o)),
-                          (s.rgb - 0.5) / 0.28209479177387814)
+    scene = tabletop_scene(density=0.15).scene
     scene.save_ply(root / "scene" / "scene.ply")
     write_cameras_json(root / "scene" / "cameras.json", load_dataset(data).cameras)
     return root / "scene" / "scene.ply", data

@@ -1,9 +1,7 @@
 """End to end on a LERF-OVS-layout fixture: label JSONs + images written from a synthetic scene."""
 from __future__ import annotations
 
-import copy
 import json
-import math
 
 import numpy as np
 import pytest
@@ -17,11 +15,7 @@ SIZE = 256
 
 
 def _view(cam, size):
-    c = copy.copy(cam)
-    c.K = cam.K.clone()
-    c.K[:2] *= size / cam.width
-    c.width = c.height = size
-    return c
+    return cam.resized(size, size)
 
 
 def _hull(mask: torch.Tensor) -> list:
@@ -39,7 +33,7 @@ def write_fixture(root, name: str, seed: int, views: int = 3):
 
     ls = make_labelled_scene(views=views, seed=seed)
     g = torch.Generator().manual_seed(seed)
-    ls.scene.lang = ls.label_lang[ls.label_of] + 0.3 * torch.randn(len(ls.label_of), 64, generator=g) / 8
+    ls.scene.lang = ls.label_lang[ls.labelled.labels] + 0.3 * torch.randn(len(ls.labelled.labels), 64, generator=g) / 8
     folder = root / "label" / name
     folder.mkdir(parents=True)
     cams = []
@@ -48,7 +42,7 @@ def write_fixture(root, name: str, seed: int, views: int = 3):
         cams.append(c)
         masks = label_masks(ls, c)
         objects = []
-        for k, lab in enumerate(ls.labels):
+        for k, lab in enumerate(ls.labelled.names):
             if masks[k].sum() < 300:
                 continue
             ys, xs = torch.nonzero(masks[k], as_tuple=True)
@@ -94,16 +88,10 @@ def _write_transforms(path, cams):
 
 
 def test_end_to_end_cli(tmp_path, capsys):
-    scene_mod = pytest.importorskip("tiger.scene", reason="GaussianScene / load_dataset not merged into this branch yet")
     ls, cams = write_fixture(tmp_path, "toyroom", 0)
-    s = ls.scene
-    gs = scene_mod.GaussianScene(means=s.means, log_scales=s.scales.log(), quats=s.quats,
-                                 opacity_logits=torch.logit(s.opacities),
-                                 sh_dc=(s.colors - 0.5) / (0.5 / math.sqrt(math.pi)), lang=s.lang,
-                                 lang_pca_basis=s.lang_pca_basis, lang_pca_mean=s.lang_pca_mean)
-    gs.save_ply(tmp_path / "toyroom.ply")
+    ls.scene.save_ply(tmp_path / "toyroom.ply")
     _write_transforms(tmp_path / "transforms.json", cams)
-    torch.save({k: v for k, v in ls.encoder.table.items()}, tmp_path / "text.pt")
+    ls.encoder.save(tmp_path / "text.pt")
     rc = lerf.main(["--labels", str(tmp_path / "label"), "--scene", f"toyroom={tmp_path / 'toyroom.ply'}",
                     "--data", f"toyroom={tmp_path / 'transforms.json'}", "--text-embeddings",
                     str(tmp_path / "text.pt"), "--out", str(tmp_path / "out"), "--device", "cpu"])

@@ -166,3 +166,13 @@ def test_cuda_opcheck_and_grad():
     n = torch.randn(3, 16, device="cuda", dtype=torch.float64)
     torch.library.opcheck(OP, (f, q, n, 10.0, 1e-12))
     assert torch.autograd.gradcheck(lambda a: OP(a, q, n, 2.0), (f[:6].detach().requires_grad_(),))
+
+
+def test_public_function_is_the_op():
+    from tiger.ops.relevancy import relevancy_scores
+
+    g = torch.Generator().manual_seed(5)
+    f, q, n = torch.randn(40, 16, generator=g), torch.randn(2, 16, generator=g), torch.randn(3, 16, generator=g)
+    got = relevancy_scores(f, q, n, temperature=7.0)
+    want = OP(f, q, n, 7.0, 1e-12)
+    assert all(torch.equal(a, b) for a, b in zip(got, want))

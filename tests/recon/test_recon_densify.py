@@ -1,11 +1,12 @@
-"""Densification: clone small, split large, prune transparent/huge; optimizer rows follow."""
+"""INRIA's densification rule: clone small, split large, prune transparent/huge; optimizer rows follow."""
 from __future__ import annotations
 
 import math
 
 import torch
 
-from tiger.recon.densify import DensifyStats, densify_and_prune, reset_opacity
+from tiger.recon.step import SceneOptimizer
+from tiger.recon.strategy import DensifyStats, inria_densify, reset_opacity
 from tiger.scene import GaussianScene
 from tiger.scene.gaussian_scene import inverse_sigmoid
 
@@ -19,24 +20,26 @@ def make():
     op = inverse_sigmoid(torch.tensor([0.5, 0.6, 0.7, 0.001, 0.9]))
     sh_dc = torch.arange(15.0).reshape(5, 3)
     s = GaussianScene(means, scales, quats, op, sh_dc, torch.zeros(5, 3, 3))
-    opt = torch.optim.Adam(s.parameter_groups(), eps=1e-15)
+    so = SceneOptimizer(s, {n: 1e-3 for n in s.params()})
     for p in s.params().values():
         p.grad = torch.ones_like(p)
-    opt.step()   # non-zero Adam moments for every Gaussian
+    so.update()   # non-zero Adam moments for every Gaussian
+    opt = so.optimizer
     stats = DensifyStats.zeros(5, torch.device("cpu"))
     # gradients in pixels of a 100x50 image: NDC norm = |(gx * 50, gy * 25)|
     g2d = torch.tensor([[1e-5, 0], [0, 2e-5], [1e-7, 0], [0, 0], [0, 0]])
     stats.add(g2d, torch.tensor([3, 3, 3, 3, 3]), 100, 50)
-    return s, opt, stats
+    return s, so, stats
 
 
 def test_clone_split_prune():
-    s, opt, stats = make()
+    s, so, stats = make()
+    opt = so.optimizer
     torch.testing.assert_close(stats.grad_accum, torch.tensor([5e-4, 5e-4, 5e-6, 0, 0]))
     old_dc = s.sh_dc.detach().clone()
     old_avg = opt.state[s.sh_dc]["exp_avg"].clone()
     big = s.scales[1].detach().clone()
-    out = densify_and_prune(s, opt, stats, grad_threshold=2e-4, extent=1.0, percent_dense=0.01,
+    out = inria_densify(so, stats, grad_threshold=2e-4, extent=1.0, percent_dense=0.01,
                             min_opacity=0.005, max_world_size=1.0, generator=torch.Generator().manual_seed(0))
     assert out == {"cloned": 1, "split": 1, "pruned": 2, "total": 5, "before": 5}
     # order: kept originals (0, 2), then the clone of 0, then the two halves of 1
@@ -57,17 +60,18 @@ def test_clone_split_prune():
 
 def test_max_gaussians_caps_growth():
     s, opt, stats = make()
-    densify_and_prune(s, opt, stats, 2e-4, 1.0, min_opacity=0.0, max_gaussians=5)
+    inria_densify(opt, stats, 2e-4, 1.0, min_opacity=0.0, max_gaussians=5)
     assert len(s) == 5     # 5 existing, room for 0 more: nothing densified, nothing pruned
     s, opt, stats = make()
-    out = densify_and_prune(s, opt, stats, 2e-4, 1.0, min_opacity=0.0, max_gaussians=6)
+    out = inria_densify(opt, stats, 2e-4, 1.0, min_opacity=0.0, max_gaussians=6)
     assert out["cloned"] + out["split"] == 1
 
 
 def test_reset_opacity_clamps_and_clears_moments():
-    s, opt, _ = make()
+    s, so, _ = make()
+    opt = so.optimizer
     before = s.opacities.detach().clone()
-    reset_opacity(s, opt, 0.01)
+    reset_opacity(so, 0.01)
     expected = torch.minimum(before, torch.tensor(0.01))
     torch.testing.assert_close(s.opacities.detach(), expected, rtol=1e-5, atol=1e-7)
     st = opt.state[s.opacity_logits]

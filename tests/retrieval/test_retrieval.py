@@ -11,7 +11,7 @@ from tiger.retrieval import (CANONICAL_NEGATIVES, choose_tau, embed_queries, min
                              valley_threshold,
                              pca_of, project,
                              relevancy, retrieve, robust_bounds, save_heatmap)
-from tiger.retrieval.synthetic import DictTextEncoder, make_labelled_scene
+from tiger.retrieval.synthetic import make_labelled_scene
 
 
 def test_project_matches_definition():
@@ -39,7 +39,7 @@ def test_project_matches_definition():
 def test_text_encoder_path_and_templates_are_the_encoders_business():
     ls = make_labelled_scene(views=1, per_object=4, floor=4)
     q = embed_queries(["red mug", "floor"], dim=64, encoder=ls.encoder, pca=ls.scene)
-    torch.testing.assert_close(q, ls.label_lang[[0, len(ls.labels) - 1]], atol=1e-5, rtol=0)
+    torch.testing.assert_close(q, ls.label_lang[[0, len(ls.labelled.names) - 1]], atol=1e-5, rtol=0)
     with pytest.raises(KeyError, match="no embedding"):
         embed_queries("a unicorn", dim=64, encoder=ls.encoder, pca=ls.scene)
 
@@ -126,7 +126,7 @@ def test_robust_bounds_ignore_outliers():
 def _scene_with_oracle_lang(noise: float = 0.3, seed: int = 3):
     ls = make_labelled_scene(views=2)
     g = torch.Generator().manual_seed(seed)
-    lang = ls.label_lang[ls.label_of] + noise * torch.randn(len(ls.label_of), 64, generator=g) / 8
+    lang = ls.label_lang[ls.labelled.labels] + noise * torch.randn(len(ls.labelled.labels), 64, generator=g) / 8
     ls.scene.lang = lang
     return ls
 
@@ -134,9 +134,9 @@ def _scene_with_oracle_lang(noise: float = 0.3, seed: int = 3):
 @pytest.mark.parametrize("score", ["cosine", "relevancy"])
 def test_retrieve_each_label_exactly(score):
     ls = _scene_with_oracle_lang()
-    for i, name in enumerate(ls.labels):
+    for i, name in enumerate(ls.labelled.names):
         r = retrieve(ls.scene, name, encoder=ls.encoder, score=score)
-        gt = ls.label_of == i
+        gt = ls.labelled.labels == i
         assert torch.equal(r.mask, gt), (name, r.tau)
         c_true = torch.quantile(ls.scene.means[gt].double(), 0.5, dim=0)
         torch.testing.assert_close(r.center, c_true)
@@ -152,11 +152,11 @@ def test_retrieve_from_embeddings_and_tensors():
     e = ls.encoder.encode_text(["teddy bear"])[0]
     r1 = retrieve(ls.scene, e)  # a CLIP-space embedding, projected with the scene's PCA
     r2 = retrieve(ls.scene.lang, ls.label_lang[1], tau=0.5)  # plain tensors
-    assert torch.equal(r1.mask, ls.label_of == 1) and torch.equal(r2.mask, ls.label_of == 1)
+    assert torch.equal(r1.mask, ls.labelled.labels == 1) and torch.equal(r2.mask, ls.labelled.labels == 1)
     assert r2.center is None and r1.relevancy is None
     negs = ls.encoder.encode_text(list(CANONICAL_NEGATIVES))
     r3 = retrieve(ls.scene, e, negatives=negs, score="relevancy")
-    assert torch.equal(r3.mask, ls.label_of == 1)
+    assert torch.equal(r3.mask, ls.labelled.labels == 1)
     with pytest.raises(ValueError, match="needs negatives"):
         retrieve(ls.scene, e, score="relevancy")
     with pytest.raises(ValueError, match="no language features"):
@@ -214,7 +214,7 @@ def test_relevancy_picture_reads_high_at_the_target(tmp_path):
 
     ls = _scene_with_oracle_lang(noise=0.0)
     cam = ls.cameras[0]
-    target = ls.labels.index("red mug")
+    target = ls.labelled.names.index("red mug")
     p, = write_relevancy_pictures(ls.scene, [cam], "red mug", tmp_path, encoder=ls.encoder, score="cosine")
     q = embed_queries(["red mug"], dim=64, encoder=ls.encoder, pca=ls.scene)
     m = relevancy_maps(ls.scene, cam, q)
@@ -246,7 +246,7 @@ def test_retrieve_on_cuda_matches_cpu():
         pytest.skip("tiger built without CUDA kernels")
     ls = _scene_with_oracle_lang()
     cpu = retrieve(ls.scene, "green apple", encoder=ls.encoder, score="relevancy")
-    gpu_scene = types.SimpleNamespace(**{k: (v.cuda() if torch.is_tensor(v) else v) for k, v in vars(ls.scene).items()})
+    gpu_scene = ls.scene.to("cuda")
     for dt in (torch.float32, torch.float16):
         gpu_scene.lang = ls.scene.lang.to("cuda", dt)
         gpu = retrieve(gpu_scene, "green apple", encoder=ls.encoder, score="relevancy")
@@ -257,22 +257,20 @@ def test_retrieve_on_cuda_matches_cpu():
 
 
 def test_pictures_and_retrieval_with_a_gaussian_scene(tmp_path):
-    scene_mod = pytest.importorskip("tiger.scene")
     from tiger.retrieval import write_relevancy_pictures
+    from tiger.retrieval.maps import render_rgb
+    from tiger.scene import GaussianScene
 
     ls = _scene_with_oracle_lang()
-    s = ls.scene
-    gs = scene_mod.GaussianScene(means=s.means, log_scales=s.scales.log(), quats=s.quats,
-                                 opacity_logits=torch.logit(s.opacities),
-                                 sh_dc=(s.colors - 0.5) / (0.5 / math.sqrt(math.pi)), lang=s.lang,
-                                 lang_pca_basis=s.lang_pca_basis, lang_pca_mean=s.lang_pca_mean)
+    gs = ls.scene
     r = retrieve(gs, "blue book", encoder=ls.encoder, score="relevancy")
-    assert torch.equal(r.mask, ls.label_of == 3)
+    assert torch.equal(r.mask, ls.labelled.labels == 3)
     sub = r.subscene(gs)
-    assert isinstance(sub, scene_mod.GaussianScene) and len(sub) == int(r.mask.sum())
-    from tiger.retrieval.maps import render_rgb
-
-    rgb = render_rgb(gs, ls.cameras[0])  # SH colour through the rasterizer, plain camera objects
+    assert isinstance(sub, GaussianScene) and len(sub) == int(r.mask.sum())
+    rgb = render_rgb(gs, ls.cameras[0])  # SH colour through the rasterizer
+    # degree-0 SH colour is the palette colour: the same picture as rendering the colours as channels
+    flat = gs.render(ls.cameras[0], (gs.sh_dc * (0.5 / math.sqrt(math.pi)) + 0.5).clamp_min(0))["color"]
+    torch.testing.assert_close(rgb, flat.clamp(0, 1), atol=1e-6, rtol=0)
     assert rgb.shape == (48, 48, 3) and float(rgb.max()) > 0.2
     paths = write_relevancy_pictures(gs, ls.cameras[:1], "blue book", tmp_path, encoder=ls.encoder)
     assert paths[0].stat().st_size > 1000

@@ -19,7 +19,7 @@ from tiger.scene.colmap import (read_cameras_binary, read_cameras_text, read_ima
                                 read_points3d_binary, read_points3d_text)
 from tiger.scene.dataset import load_colmap
 from tiger.scene.nerf import load_transforms
-from tiger.scene.ply import read_ply
+from tiger.scene import read_ply
 
 FUZZ = settings(max_examples=300, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

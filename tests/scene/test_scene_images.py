@@ -111,3 +111,22 @@ def test_load_image_rgba_and_errors(tmp_path):
     gone = Camera(torch.eye(4), intrinsics(5, 5, 3, 2), 6, 4, image_path=tmp_path / "gone.png", image_name="g")
     with pytest.raises(SceneFormatError, match="gone.png.*not found"):
         load_image(gone)
+
+
+@pytest.mark.parametrize("downscale", [1.0, 2.0, 3.0])
+def test_undistortion_valid_mask_marks_exactly_the_unblended_pixels(downscale):
+    """Undistorting an all-white file: the valid pixels are exactly those that come out
+    fully white (no blend with the black outside), after the same downscale."""
+    from tiger.scene.images import resize_image, undistortion_valid_mask
+
+    W, H = 96, 72
+    K = intrinsics(60.0, 62.0, 47.0, 37.5)                       # wide: a real border
+    cam = Camera(torch.eye(4, dtype=torch.float64), K, W, H, distortion=Distortion(k1=0.25, k2=0.05))
+    white = undistort_image(torch.ones(H, W, 3, dtype=torch.float64), K, cam.distortion)
+    t = cam.scaled(downscale)
+    white = resize_image(white, t.width, t.height)[..., 0]
+    mask = undistortion_valid_mask(cam, downscale)
+    assert mask.shape == (t.height, t.width) and 0 < int((~mask).sum()) < mask.numel() // 2
+    assert torch.equal(mask, white >= 1.0 - 1e-6)                  # float32 sampling inside
+    plain = Camera(torch.eye(4, dtype=torch.float64), K, W, H)
+    assert undistortion_valid_mask(plain, downscale).all()

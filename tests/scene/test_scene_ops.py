@@ -89,8 +89,8 @@ def test_render_is_the_rasterizer_on_the_scene_tensors():
     ref = tiger.rasterize_gaussians(s.means, s.quats, torch.exp(s.log_scales), torch.sigmoid(s.opacity_logits),
                                     s.sh[:, :4], cam.viewmat.float(), cam.K.float(), 40, 30, sh_degree=1)
     assert torch.equal(out["color"], ref["color"]) and out["alpha"].max() > 0.1
-    lang = s.render(cam, features="lang")["color"]
-    both = s.render(cam, features="rgb+lang")["color"]
+    lang = s.render(cam, "lang")["color"]
+    both = s.render(cam, "rgb+lang")["color"]
     torch.testing.assert_close(both[..., 3:], lang, atol=1e-6, rtol=1e-5)
     torch.testing.assert_close(both[..., :3], s.render(cam)["color"], atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="sh_degree must be in 0..2"):

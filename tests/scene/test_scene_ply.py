@@ -7,7 +7,8 @@ import torch
 
 from plyref import inria_names, random_columns, write_ply
 from tiger.scene import GaussianScene, SceneFormatError
-from tiger.scene.ply import lang_pca_path, read_ply
+from tiger.scene import read_ply
+from tiger.scene.ply import lang_pca_path
 
 
 def random_scene(n: int = 50, degree: int = 3, lang: int = 0, seed: int = 0) -> GaussianScene:

@@ -21,6 +21,8 @@ def add_parser(sub) -> None:
     p.add_argument("--queries", nargs="*", default=["mug", "ball", "plant"],
                    help="text queries to retrieve (default: %(default)s; none: render only)")
     p.add_argument("--steps", type=int, default=300, help="language-field training steps")
+    p.add_argument("--edit-steps", type=int, default=40,
+                   help="steps of the 'make the ball red' recolour edit (0: skip; needs 'ball' in --queries)")
     p.add_argument("--models", default=None,
                    help="model folder or config (default: $TIGER_MODELS); CLIP enables free text")
     p.add_argument("--force", action="store_true", help="overwrite an existing output folder")
@@ -33,10 +35,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
         raise CliError(f"{out} already exists and is not empty; pass --force to overwrite it")
-    if args.width <= 0 or args.height <= 0 or args.views <= 0 or args.steps < 0:
-        raise CliError("--width, --height and --views must be positive, --steps non-negative")
+    if args.width <= 0 or args.height <= 0 or args.views <= 0 or args.steps < 0 or args.edit_steps < 0:
+        raise CliError("--width, --height and --views must be positive, --steps and --edit-steps non-negative")
     from tiger.demo.run import run_demo
 
     run_demo(str(out), args.width, args.height, args.views, queries=args.queries,
-             models=args.models, steps=args.steps)
+             models=args.models, steps=args.steps, edit_steps=args.edit_steps)
     return 0

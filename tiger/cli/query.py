@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Optional
 
 import torch
+
+from tiger.scene import Camera, GaussianScene
+from tiger.utils.io import atomic_write, file_slug
 
 from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset, output_dir
 from .text import text_encoder
@@ -34,25 +38,23 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def pick_cameras(scene, data, n: int, device, skip_missing: bool = False):
+def pick_cameras(scene: GaussianScene, data: Optional[str], n: int,
+                 device: torch.device, skip_missing: bool = False) -> list[Camera]:
     """n cameras from a dataset (evenly spread) or an orbit around the scene."""
     if data:
         cams = open_dataset(data, skip_missing).cameras
         step = max(len(cams) // max(n, 1), 1)
-        return [c.to(device) if hasattr(c, "to") else c for c in cams[::step][:n]]
-    from tiger.render.views import orbit_cameras
+        return [c.to(device) for c in cams[::step][:n]]
+    from tiger.render.views import orbit_cameras_around
 
-    m = scene.means.detach().float().cpu()
-    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
-    center, radius = (lo + hi) / 2, float((hi - lo).norm()) * 1.1
-    return orbit_cameras(n, 480, 360, center=center.tolist(), radius=max(radius, 1e-3))
+    return orbit_cameras_around(scene.means, n, 480, 360)
 
 
 def _slugs(texts: list[str]) -> list[str]:
     """File-name stems of the texts, made unique ("fox ears" and "fox-ears" both give fox_ears)."""
     out: list[str] = []
     for text in texts:
-        slug = "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
+        slug = file_slug(text)
         stem, k = slug, 2
         while slug in out:
             slug, k = f"{stem}_{k}", k + 1
@@ -63,7 +65,6 @@ def _slugs(texts: list[str]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from tiger.retrieval import retrieve, write_relevancy_pictures
     from tiger.utils.images import save_png
-    from tiger.utils.io import atomic_write
 
     # Everything that can refuse runs before the output folder is made: a refused query
     # leaves nothing behind, and no text's outputs are written unless every text is known.
@@ -83,8 +84,6 @@ def run(args: argparse.Namespace) -> int:
     out = output_dir(args.out, args.force)
     summary = Summary("tiger query")
     report = {}
-    from tiger.render import rasterize_gaussians
-
     for text, slug in zip(texts, _slugs(texts)):
         r = results[text]
         if r.count:
@@ -96,10 +95,7 @@ def run(args: argparse.Namespace) -> int:
                            0.35 * rgb + 0.3)
         for i, cam in enumerate(cams):
             with torch.no_grad():
-                img = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
-                                          tint, torch.as_tensor(cam.viewmat).to(rgb),
-                                          torch.as_tensor(cam.K).to(rgb), int(cam.width),
-                                          int(cam.height), background=torch.ones(3, device=rgb.device))
+                img = scene.render(cam, tint, background=torch.ones(3, device=rgb.device))
             save_png(out / f"{slug}_highlight_{i}.png", img["color"])
         report[text] = {"selected": r.count, "tau": r.tau, "score": r.score, "files": slug,
                         "center": None if r.center is None else r.center.tolist(),

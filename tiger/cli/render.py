@@ -5,6 +5,8 @@ import argparse
 
 import torch
 
+from tiger.scene import Camera, GaussianScene
+
 from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, output_dir
 
 KINDS = ("color", "depth", "alpha", "features", "relevancy")
@@ -45,7 +47,8 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _cameras(args: argparse.Namespace, scene, dev) -> tuple[list, str]:
+def _cameras(args: argparse.Namespace, scene: GaussianScene,
+             dev: torch.device) -> tuple[list[Camera], str]:
     """The views to render and where they come from (see the command's description)."""
     from tiger.render.views import observed_orbit_cameras, path_view_indices
     from tiger.scene.cameras_json import cameras_json_path, read_cameras_json
@@ -75,13 +78,13 @@ def _cameras(args: argparse.Namespace, scene, dev) -> tuple[list, str]:
     return cams, f"{len(cams)} of {len(path)} {source}"
 
 
-def _stems(cams: list) -> list[str]:
+def _stems(cams: list[Camera]) -> list[str]:
     """File stems: the source image's name without folder or extension (0001), made unique."""
     from pathlib import Path
 
     out: list[str] = []
     for i, cam in enumerate(cams):
-        name = Path(str(getattr(cam, "image_name", "") or f"view{i:03d}")).stem
+        name = Path(cam.image_name or f"view{i:03d}").stem
         stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or f"view{i:03d}"
         base, k = stem, 2
         while stem in out:

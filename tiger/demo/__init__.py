@@ -1,4 +1,4 @@
 """The built-in demo: a procedural tabletop scene, rendered, language-embedded and queried."""
-from .scene import LabelledGaussians, orbit_viewmats, pinhole_K, tabletop_scene
+from .scene import orbit_cameras, orbit_viewmats, pinhole_K, tabletop_scene
 
-__all__ = ["LabelledGaussians", "tabletop_scene", "orbit_viewmats", "pinhole_K"]
+__all__ = ["tabletop_scene", "orbit_viewmats", "orbit_cameras", "pinhole_K"]

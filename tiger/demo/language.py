@@ -11,7 +11,6 @@ built-in embeddings of the label names and a few synonyms.
 from __future__ import annotations
 
 import logging
-import types
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -19,11 +18,14 @@ import torch
 
 from tiger.language.field import train_field
 from tiger.language.pca import StreamingPCA
-from tiger.render import rasterize_gaussians
 from tiger.retrieval import retrieve, write_relevancy_pictures
+from tiger.retrieval.text import EmbeddingTable, TextEncoder
+from tiger.scene import Camera
+from tiger.scene.labelled import LabelledScene
 from tiger.utils.images import save_png
+from tiger.utils.io import file_slug
 
-from .scene import LabelledGaussians, orbit_viewmats, pinhole_K
+from .scene import orbit_cameras
 
 log = logging.getLogger(__name__)
 
@@ -36,61 +38,49 @@ SYNONYMS = {
 }
 
 
-class BuiltinTextEncoder:
-    """``encode_text`` for the demo's vocabulary without CLIP: one fixed random unit vector per
-    label (dimension 512, like CLIP ViT-B/16), shared by its synonyms; other texts are an error
-    that lists the known words."""
-
-    def __init__(self, names: Sequence[str], dim: int = 512, seed: int = 7) -> None:
-        g = torch.Generator().manual_seed(seed)
-        vecs = torch.nn.functional.normalize(torch.randn(len(names), dim, generator=g), dim=1)
-        self.table = {}
-        for name, v in zip(names, vecs):
-            for word in SYNONYMS.get(name, [name]):
-                self.table[word] = v
-        self.table.update({w: torch.nn.functional.normalize(torch.randn(dim, generator=g), dim=0)
-                           for w in ("object", "things", "stuff", "texture")})
-
-    def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
-        unknown = [t for t in texts if t.lower().strip() not in self.table]
-        if unknown:
-            words = sorted(w for w in self.table if w not in ("object", "things", "stuff", "texture"))
-            raise ValueError(f"without CLIP weights the demo knows only these words: {words}; "
-                             f"got {unknown} (configure CLIP to query freely)")
-        return torch.stack([self.table[t.lower().strip()] for t in texts])
+def builtin_text_table(names: Sequence[str], dim: int = 512, seed: int = 7) -> EmbeddingTable:
+    """The demo's vocabulary without CLIP: one fixed random unit vector per label (dimension 512,
+    like CLIP ViT-B/16), shared by its synonyms, plus LERF's canonical negatives; texts are
+    looked up case-folded, other texts are an error that lists the known words."""
+    g = torch.Generator().manual_seed(seed)
+    vecs = torch.nn.functional.normalize(torch.randn(len(names), dim, generator=g), dim=1)
+    table = {}
+    for name, v in zip(names, vecs):
+        for word in SYNONYMS.get(name, [name]):
+            table[word] = v
+    table.update({w: torch.nn.functional.normalize(torch.randn(dim, generator=g), dim=0)
+                  for w in ("object", "things", "stuff", "texture")})
+    return EmbeddingTable(table, source="the demo's built-in vocabulary", fold_case=True,
+                          hint="; configure CLIP weights to query freely")
 
 
-def load_text_encoder(names: Sequence[str], models: Optional[str] = None):
+def load_text_encoder(names: Sequence[str], models: Optional[str] = None) -> tuple[TextEncoder, str]:
     """(encoder, description): CLIP's text tower when its weights are found, else built-in."""
     try:
         from tiger.language.maskclip import MaskCLIP
         from tiger.models.paths import ModelNotFoundError, resolve_model_path
     except ImportError as e:  # transformers missing
-        return BuiltinTextEncoder(names), f"built-in label embeddings ({e})"
+        return builtin_text_table(names), f"built-in label embeddings ({e})"
     try:
         path = resolve_model_path("clip", models)
     except ModelNotFoundError:
-        return BuiltinTextEncoder(names), (
+        return builtin_text_table(names), (
             "CLIP weights not configured (put openai/clip-vit-base-patch16 under $TIGER_MODELS or "
             "pass --models): using the scene's built-in label embeddings")
     return MaskCLIP.from_pretrained(path), f"CLIP text encoder from {path}"
 
 
-def label_feature_maps(scene: LabelledGaussians, label_vecs: torch.Tensor, cameras: list,
+def label_feature_maps(scene: LabelledScene, label_vecs: torch.Tensor, cameras: Sequence[Camera],
                        pca_dim: int = 64) -> tuple[list[dict], tuple[torch.Tensor, torch.Tensor]]:
     """Per view: each pixel takes the CLIP-space vector of the object it shows (one vector per
     object mask, i.e. the masked average), reduced to ``pca_dim`` with a PCA over all views.
 
     Returns ([{"features" [H,W,D], "valid" [H,W]}], (basis [F,D], mean [F])).
     """
-    onehot = torch.nn.functional.one_hot(scene.labels, len(scene.names)).float()
     per_view, pca = [], StreamingPCA(label_vecs.shape[1], pca_dim)
     for cam in cameras:
-        with torch.no_grad():
-            r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, onehot,
-                                    cam.viewmat, cam.K, cam.width, cam.height)
-        label = r["color"].argmax(-1)
-        valid = r["alpha"] > 0.5
+        label, alpha = scene.label_image(cam)
+        valid = alpha > 0.5
         counts = torch.bincount(label[valid], minlength=len(scene.names)).double()
         pca.update(label_vecs, weights=counts)  # each mask's vector, weighted by its pixels
         per_view.append((label, valid))
@@ -100,7 +90,7 @@ def label_feature_maps(scene: LabelledGaussians, label_vecs: torch.Tensor, camer
     return maps, (basis.components, basis.mean)
 
 
-def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str], timer,
+def embed_and_query(scene: LabelledScene, out: Path, queries: Sequence[str], timer,
                     models: Optional[str] = None, train_size=(160, 120), n_train_views: int = 8,
                     steps: int = 300, picture_size=(480, 360), tau: float = 0.5) -> list[dict]:
     """Train the language field of ``scene`` and answer ``queries``; writes pictures and PLYs."""
@@ -110,31 +100,22 @@ def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str],
     with timer.stage("label embeddings of the objects"):
         texts = [SYNONYMS.get(n, [n])[0] for n in scene.names]
         label_vecs = encoder.encode_text(texts).float()
-    w, h = train_size
-    cams = [types.SimpleNamespace(viewmat=V, K=pinhole_K(w, h), width=w, height=h,
-                                  image_name=f"train{i}")
-            for i, V in enumerate(orbit_viewmats(n_train_views, start_deg=5.0))]
+    cams = orbit_cameras(n_train_views, *train_size, start_deg=5.0, prefix="train")
     with timer.stage(f"language feature maps ({n_train_views} views, PCA 512->64)"):
         maps, (basis, mean) = label_feature_maps(scene, label_vecs, cams)
-    field_scene = types.SimpleNamespace(means=scene.means, quats=scene.quats, scales=scene.scales,
-                                        opacities=scene.opacities, lang=None, rgb=scene.rgb,
-                                        colors=scene.rgb)
+    field_scene = scene.scene
     with timer.stage(f"train language field ({steps} steps, features-only backward)"):
         res = train_field(field_scene, cams, maps, steps=steps, lr=0.02, batch_views=2,
                           loss="l1", progress=True, pca=(basis, mean))
     print(f"  field: loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}; {res.coverage()}")
-    field_scene.lang_pca_basis, field_scene.lang_pca_mean = basis, mean
     with timer.stage("save scene.ply (with lang_* and PCA) and the text-embedding table"):
-        _save_scene(scene, field_scene.lang, basis, mean, out / "scene.ply")
-        if isinstance(encoder, BuiltinTextEncoder):
-            from tiger.utils.io import atomic_torch_save
+        field_scene.metadata.update({"source": "tiger demo", "labels": list(scene.names)})
+        field_scene.save_ply(out / "scene.ply")
+        builtin = isinstance(encoder, EmbeddingTable)
+        if builtin:
+            encoder.save(out / "text_embeddings.pt")
 
-            atomic_torch_save(encoder.table, out / "text_embeddings.pt")
-
-    pw, ph = picture_size
-    pic_cams = [types.SimpleNamespace(viewmat=V, K=pinhole_K(pw, ph), width=pw, height=ph,
-                                      image_name=f"view{i}")
-                for i, V in enumerate(orbit_viewmats(4))]
+    pic_cams = orbit_cameras(4, *picture_size, start_deg=20.0, prefix="view")
     results = []
     for q in queries:
         with timer.stage(f"query '{q}'"):
@@ -143,70 +124,44 @@ def embed_and_query(scene: LabelledGaussians, out: Path, queries: Sequence[str],
             r = retrieve(field_scene, q, encoder=encoder, score="cosine", tau=tau)
             # LERF's relevancy needs real canonical negatives ("object", "stuff", ...): with the
             # built-in vocabulary the heat maps show the cosine instead.
-            builtin = isinstance(encoder, BuiltinTextEncoder)
             views = _views_showing(scene, r.mask, pic_cams)
             write_relevancy_pictures(field_scene, views[:2], q, out / "relevancy",
                                      encoder=encoder, score="cosine" if builtin else "relevancy")
-            _write_selection(scene, r.mask, views[0], out / f"retrieved_{_slug(q)}.png")
-            _write_highlight(scene, r.mask, views[0], out / f"highlight_{_slug(q)}.png")
+            _write_selection(scene, r.mask, views[0], out / f"retrieved_{file_slug(q)}.png")
+            _write_highlight(scene, r.mask, views[0], out / f"highlight_{file_slug(q)}.png")
         results.append(_report(scene, q, r))
     return results
 
 
-def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() else "_" for c in text).strip("_") or "query"
-
-
-def _save_scene(scene: LabelledGaussians, lang: torch.Tensor, basis: torch.Tensor,
-                mean: torch.Tensor, path: Path) -> None:
-    """The demo scene as an INRIA-layout PLY with its language features, for the other commands."""
-    from tiger.scene import GaussianScene
-
-    sh_c0 = 0.28209479177387814
-    o = scene.opacities.clamp(1e-4, 1 - 1e-4)
-    gs = GaussianScene(scene.means.clone(), scene.scales.clamp_min(1e-8).log(), scene.quats.clone(),
-                       torch.log(o / (1 - o)), (scene.rgb - 0.5) / sh_c0, lang=lang.detach().float(),
-                       lang_pca_basis=basis.float(), lang_pca_mean=mean.float(),
-                       metadata={"source": "tiger demo", "labels": list(scene.names)})
-    gs.save_ply(path)
-
-
-def _views_showing(scene: LabelledGaussians, mask: torch.Tensor, cams: list) -> list:
+def _views_showing(scene: LabelledScene, mask: torch.Tensor, cams: Sequence[Camera]) -> list[Camera]:
     """The cameras ordered by how much of the selection they see (visible alpha of it)."""
-    sel = mask.float()[:, None]
+    sel = mask.to(scene.scene.dtype)[:, None]
     seen = []
     for cam in cams:
-        K = cam.K.clone()
-        K[:2] /= 4  # a quarter-size render is enough to compare views
-        with torch.no_grad():
-            r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, sel,
-                                    cam.viewmat, K, cam.width // 4, cam.height // 4)
+        with torch.no_grad():  # a quarter-size render is enough to compare views
+            r = scene.scene.render(cam.resized(cam.width // 4, cam.height // 4), sel)
         seen.append(float(r["color"].sum()))
     order = sorted(range(len(cams)), key=lambda i: -seen[i])
     return [cams[i] for i in order]
 
 
-def _write_selection(scene: LabelledGaussians, mask: torch.Tensor, cam, path: Path) -> None:
-    sub = scene.select(mask)
+def _write_selection(scene: LabelledScene, mask: torch.Tensor, cam: Camera, path: Path) -> None:
     with torch.no_grad():
-        r = rasterize_gaussians(sub.means, sub.quats, sub.scales, sub.opacities, sub.rgb,
-                                cam.viewmat, cam.K, cam.width, cam.height,
-                                background=torch.ones(3))
+        r = scene.scene.subset(mask).render(cam, background=torch.ones(3))
     save_png(path, r["color"])
 
 
-def _write_highlight(scene: LabelledGaussians, mask: torch.Tensor, cam, path: Path) -> None:
+def _write_highlight(scene: LabelledScene, mask: torch.Tensor, cam: Camera, path: Path) -> None:
     """The whole scene with the selection tinted orange and everything else greyed out."""
-    grey = scene.rgb.mean(1, keepdim=True).expand(-1, 3) * 0.6 + 0.2
-    rgb = torch.where(mask[:, None], 0.45 * scene.rgb + 0.55 * torch.tensor([1.0, 0.5, 0.0]), grey)
+    rgb = scene.scene.rgb
+    grey = rgb.mean(1, keepdim=True).expand(-1, 3) * 0.6 + 0.2
+    tint = torch.where(mask[:, None], 0.45 * rgb + 0.55 * torch.tensor([1.0, 0.5, 0.0]), grey)
     with torch.no_grad():
-        r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, rgb,
-                                cam.viewmat, cam.K, cam.width, cam.height,
-                                background=torch.ones(3))
+        r = scene.scene.render(cam, tint, background=torch.ones(3))
     save_png(path, r["color"])
 
 
-def _report(scene: LabelledGaussians, query: str, r) -> dict:
+def _report(scene: LabelledScene, query: str, r) -> dict:
     sel = r.mask
     best = int(torch.bincount(scene.labels[sel], minlength=len(scene.names)).argmax()) if r.count else -1
     truth = scene.labels == best

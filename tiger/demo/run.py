@@ -9,10 +9,10 @@ from typing import Iterator
 
 import torch
 
-from tiger.render import rasterize_gaussians
+from tiger.scene.labelled import LabelledScene
 from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
 
-from .scene import LabelledGaussians, orbit_viewmats, pinhole_K, tabletop_scene
+from .scene import orbit_cameras, tabletop_scene
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class StageTimer:
                          [f"{'total':<40s} {total:7.2f} s"])
 
 
-def label_features(scene: LabelledGaussians, dim: int = 64, seed: int = 0,
+def label_features(scene: LabelledScene, dim: int = 64, seed: int = 0,
                    noise: float = 0.05) -> torch.Tensor:
     """Per-Gaussian 64-d features: a fixed unit vector per label plus a little noise → [N, dim]."""
     g = torch.Generator().manual_seed(seed)
@@ -47,17 +47,16 @@ def label_features(scene: LabelledGaussians, dim: int = 64, seed: int = 0,
     return f / f.norm(dim=1, keepdim=True)
 
 
-def render_views(scene: LabelledGaussians, features: torch.Tensor, out: Path, width: int,
-                 height: int, n_views: int, timer: StageTimer) -> list[dict]:
-    K = pinhole_K(width, height)
-    colors = torch.cat([scene.rgb, features], dim=1).contiguous()  # 67 channels, one pass
+def render_pictures(scene: LabelledScene, features: torch.Tensor, out: Path, width: int,
+                    height: int, n_views: int, timer: StageTimer) -> list[dict]:
+    """Colour, depth, alpha and a PCA picture of ``features`` [N, D] from ``n_views`` orbit views."""
+    colors = torch.cat([scene.scene.rgb, features], dim=1).contiguous()  # 67 channels, one pass
     bg = torch.cat([torch.ones(3), torch.zeros(features.shape[1])])
     results, basis = [], None
-    for i, V in enumerate(orbit_viewmats(n_views)):
+    for i, cam in enumerate(orbit_cameras(n_views, width, height)):
         with timer.stage(f"render view {i} ({width}x{height}, C=67, one pass)"):
             with torch.no_grad():
-                r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
-                                        colors, V, K, width, height, background=bg)
+                r = scene.scene.render(cam, colors, background=bg)
         mask = r["alpha"] > 0.5
         feats = r["color"][..., 3:] / r["alpha"].clamp_min(1e-6)[..., None]
         if basis is None:
@@ -73,11 +72,8 @@ def render_views(scene: LabelledGaussians, features: torch.Tensor, out: Path, wi
         for kind, path in files.items():
             print(f"    wrote {path}  ({kind}; coverage {float(mask.float().mean()):.0%}, "
                   f"depth {float(r['depth'][mask].min()):.2f}-{float(r['depth'][mask].max()):.2f})")
-        results.append({"viewmat": V, "K": K, "render": r, "files": files})
+        results.append({"viewmat": cam.viewmat, "K": cam.K, "render": r, "files": files})
     return results
-
-
-
 
 
 
@@ -86,8 +82,9 @@ DEFAULT_QUERIES = ("mug", "ball", "plant")
 
 def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
              n_views: int = 4, density: float = 1.0, queries=DEFAULT_QUERIES,
-             models: str | None = None, steps: int = 300) -> dict:
-    """Run the demo end to end: build, render, language-embed, query. Returns what it did."""
+             models: str | None = None, steps: int = 300, edit_steps: int = 40) -> dict:
+    """Run the demo end to end: build, render, language-embed, query, and (when "ball" is among the
+    queries and ``edit_steps`` > 0) recolour the ball red. Returns what it did."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     timer = StageTimer()
@@ -97,13 +94,19 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
         feats = label_features(scene)
     counts = {n: int((scene.labels == i).sum()) for i, n in enumerate(scene.names)}
     print(f"  scene: {len(scene)} Gaussians " + ", ".join(f"{k}={v}" for k, v in counts.items()))
-    views = render_views(scene, feats, out, width, height, n_views, timer)
+    views = render_pictures(scene, feats, out, width, height, n_views, timer)
     found = []
     if queries:
         from .language import embed_and_query
 
         found = embed_and_query(scene, out, list(queries), timer, models=models, steps=steps,
                                 picture_size=(width, height))
+    edited = None
+    if found and "ball" in queries and edit_steps > 0:
+        from .edit import recolor_demo
+
+        edited = recolor_demo(out, timer, models=models, steps=edit_steps)
+    deleted = _delete_demo(out, timer, models) if found and "mug" in queries else None
     print("\nstage timings\n" + timer.summary())
     if found:
         print("\nqueries")
@@ -111,5 +114,14 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
             print(f"  {r['query']!r:>14} -> {r['object']:<8} {r['selected']:6d} Gaussians, "
                   f"precision {r['precision']:.3f}, recall {r['recall']:.3f}")
     print(f"\npictures in {out}/: view*_{{color,depth,alpha,features_pca}}.png, "
-          "relevancy/*.png, highlight_*.png, retrieved_*.png")
-    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found}
+          "relevancy/*.png, highlight_*.png, retrieved_*.png" + (", edit_before_after.png" if edited else "")
+          + (", delete_mug.png (before above after), delete_mug/" if deleted else ""))
+    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found, "edit": edited,
+            "delete": deleted}
+
+
+def _delete_demo(out: Path, timer: StageTimer, models) -> dict:
+    """"delete the mug" on the language-embedded scene (tiger.demo.delete)."""
+    from .delete import delete_stage
+
+    return delete_stage(out, timer, "mug", models=models)

@@ -7,46 +7,20 @@ y = 0 and objects sit at y < 0). Units are arbitrary (the table is 1.6 wide).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from tiger.render.views import orbit_viewmats as _orbit
 from tiger.render.views import pinhole_K
+from tiger.scene import Camera, GaussianScene
+from tiger.scene.labelled import LabelledScene
+from tiger.scene.sh import rgb_to_sh
 
-__all__ = ["LabelledGaussians", "tabletop_scene", "orbit_viewmats", "pinhole_K"]
+__all__ = ["tabletop_scene", "orbit_viewmats", "orbit_cameras", "pinhole_K"]
 
-
-@dataclass
-class LabelledGaussians:
-    """Gaussians with a per-Gaussian object label.
-
-    means [N,3], quats [N,4] (w,x,y,z), scales [N,3] (linear), opacities [N] in [0,1],
-    rgb [N,3] in [0,1], labels [N] int64 indexing ``names``.
-    """
-
-    means: Tensor
-    quats: Tensor
-    scales: Tensor
-    opacities: Tensor
-    rgb: Tensor
-    labels: Tensor
-    names: list[str] = field(default_factory=list)
-
-    def __len__(self) -> int:
-        return int(self.means.shape[0])
-
-    def select(self, mask: Tensor) -> "LabelledGaussians":
-        return LabelledGaussians(self.means[mask], self.quats[mask], self.scales[mask],
-                                 self.opacities[mask], self.rgb[mask], self.labels[mask],
-                                 list(self.names))
-
-    @staticmethod
-    def cat(parts: list["LabelledGaussians"], names: list[str]) -> "LabelledGaussians":
-        return LabelledGaussians(*(torch.cat([getattr(p, f) for p in parts]) for f in
-                                   ("means", "quats", "scales", "opacities", "rgb", "labels")),
-                                 names=names)
+#: The demo's objects; a Gaussian's label indexes this list.
+_NAMES = ["table", "mug", "ball", "box", "plant"]
 
 
 def _frame_quats(normals: Tensor) -> Tensor:
@@ -62,14 +36,19 @@ def _frame_quats(normals: Tensor) -> Tensor:
 
 
 def _surfels(points: Tensor, normals: Tensor, rgb: Tensor, size: float, label: int,
-             g: torch.Generator, opacity: float = 0.95, jitter: float = 0.08) -> LabelledGaussians:
+             g: torch.Generator, opacity: float = 0.95, jitter: float = 0.08) -> LabelledScene:
     """Flat Gaussians (thin along the normal) covering a sampled surface."""
     n = points.shape[0]
     s = size * (1 + jitter * torch.randn(n, 1, generator=g)).clamp(0.5, 1.5)
     scales = torch.cat([s, s, 0.15 * s], dim=1)
     col = (rgb.expand(n, 3) * (1 + 0.06 * torch.randn(n, 1, generator=g))).clamp(0, 1)
-    return LabelledGaussians(points, _frame_quats(normals), scales, torch.full((n,), opacity),
-                             col, torch.full((n,), label, dtype=torch.long))
+    gs = GaussianScene.from_values(points, _frame_quats(normals), scales, torch.full((n,), opacity), col)
+    return LabelledScene(gs, torch.full((n,), label, dtype=torch.long), _NAMES)
+
+
+def _recolor(part: LabelledScene, rgb: Tensor) -> None:
+    """Give the Gaussians of ``part`` the colours ``rgb`` [N, 3]."""
+    part.scene.sh_dc = rgb_to_sh(rgb)
 
 
 def _box(center, size, n, g):
@@ -113,10 +92,9 @@ def _sphere(center, radius, n, g, squash=(1.0, 1.0, 1.0)):
     return torch.tensor(center) + radius * d * sq, d / sq
 
 
-def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledGaussians:
+def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledScene:
     """The demo scene (~20k Gaussians at density 1). Labels: table, mug, ball, box, plant."""
     g = torch.Generator().manual_seed(seed)
-    names = ["table", "mug", "ball", "box", "plant"]
     k = lambda n: max(int(n * density), 16)  # noqa: E731
     parts = []
     top, nt = _box((0.0, 0.03, 0.0), (1.6, 0.06, 1.0), k(6000), g)
@@ -130,7 +108,7 @@ def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledGaussians:
     col = torch.where((p[:, 1:2] > -0.17) & (p[:, 1:2] < -0.09), torch.tensor([0.85, 0.1, 0.1]),
                       torch.tensor([0.93, 0.93, 0.9]))
     mug = _surfels(p, nn, torch.ones(3), 0.014, 1, g)
-    mug.rgb = (col * (1 + 0.04 * torch.randn(p.shape[0], 1, generator=g))).clamp(0, 1)
+    _recolor(mug, (col * (1 + 0.04 * torch.randn(p.shape[0], 1, generator=g))).clamp(0, 1))
     parts.append(mug)
     th = torch.rand(k(500), generator=g) * math.pi * 1.2 - 0.6 * math.pi
     ph = torch.rand(k(500), generator=g) * 2 * math.pi
@@ -143,8 +121,8 @@ def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledGaussians:
     # ball: blue with a yellow stripe
     p, nn = _sphere((0.05, -0.16, -0.25), 0.16, k(2600), g)
     ball = _surfels(p, nn, torch.ones(3), 0.016, 2, g)
-    ball.rgb = torch.where(((p[:, 1:2] + 0.16).abs() < 0.035), torch.tensor([0.95, 0.8, 0.1]),
-                           torch.tensor([0.1, 0.3, 0.85]))
+    _recolor(ball, torch.where(((p[:, 1:2] + 0.16).abs() < 0.035), torch.tensor([0.95, 0.8, 0.1]),
+                               torch.tensor([0.1, 0.3, 0.85])))
     parts.append(ball)
     # box: cardboard cube
     p, nn = _box((0.45, -0.14, 0.15), (0.28, 0.28, 0.28), k(3000), g)
@@ -157,10 +135,19 @@ def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledGaussians:
         cen = (-0.05 + 0.09 * math.cos(a), -0.3 - 0.05 * (j % 3), 0.3 + 0.09 * math.sin(a))
         p, nn = _sphere(cen, 0.08, k(350), g, squash=(1.0, 0.45, 1.0))
         parts.append(_surfels(p, nn, torch.tensor([0.15, 0.55 + 0.05 * (j % 3), 0.18]), 0.016, 4, g))
-    return LabelledGaussians.cat(parts, names)
+    return LabelledScene.concat(parts, _NAMES)
 
 
 def orbit_viewmats(n: int, start_deg: float = 20.0) -> list[Tensor]:
     """The demo's views: ``n`` cameras circling the table, looking slightly down at it."""
     return _orbit(n, center=(0.0, -0.1, 0.0), radius=3.0, elevation_deg=25.7,
                   start_deg=start_deg, up=(0.0, -1.0, 0.0))
+
+
+def orbit_cameras(n: int, width: int, height: int, start_deg: float = 20.0,
+                  prefix: str = "view") -> list[Camera]:
+    """:func:`orbit_viewmats` as cameras of ``width x height`` px (45 degree vertical field of view)
+    named ``<prefix><i>``."""
+    K = pinhole_K(width, height)
+    return [Camera(V, K.clone(), width, height, image_name=f"{prefix}{i}")
+            for i, V in enumerate(orbit_viewmats(n, start_deg=start_deg))]

@@ -30,7 +30,9 @@ from typing import Any, Callable, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from tiger.utils.io import atomic_write
+from tiger.retrieval.text import EmbeddingTable, PCASource, TextEncoder
+from tiger.scene import Camera, GaussianScene
+from tiger.utils.io import atomic_write, file_slug
 
 from .filters import argmax_points, majority_smooth, mean_filter
 from .polygon import polygon_mask
@@ -236,15 +238,11 @@ def evaluate_scene(name: str, labels: Sequence[FrameLabels], relevancy_fn: Relev
             iou = mask_iou(langsplat_mask(maps[q], size, mask_thresh), lab.mask)
             res.queries.append(QueryResult(fr.name, cat, hit, pts.tolist(), float(smoothed.max()), iou))
             if pictures and out_dir is not None:
-                _picture(Path(out_dir) / name / fr.name / f"{_slug(cat)}.png", maps[q], smoothed, image,
+                _picture(Path(out_dir) / name / fr.name / f"{file_slug(cat)}.png", maps[q], smoothed, image,
                          lab.boxes, pts, f"{cat}: {'hit' if hit else 'miss'}")
     log.info("lerf %s: %d/%d hits (%.1f %%), mIoU %.3f", name, res.hits, len(res.queries),
              100 * res.accuracy, res.miou)
     return res
-
-
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")[:80] or "query"
 
 
 def _read_image(fr: FrameLabels) -> Optional[torch.Tensor]:
@@ -302,11 +300,11 @@ def write_results(results: Sequence[SceneResult], out_dir: PathLike) -> tuple[Pa
 
 
 # --------------------------------------------------------------------- scenes -> relevancy
-def match_cameras(labels: Sequence[FrameLabels], cameras: Sequence[Any]) -> dict[str, Any]:
+def match_cameras(labels: Sequence[FrameLabels], cameras: Sequence[Camera]) -> dict[str, Camera]:
     """frame name -> camera: by image name stem (``frame_00041``), else by LangSplat's index
     (frame number - 1 into the cameras sorted by name)."""
-    by_stem = {Path(str(getattr(c, "image_name", ""))).stem: c for c in cameras}
-    ordered = sorted(cameras, key=lambda c: str(getattr(c, "image_name", "")))
+    by_stem = {Path(c.image_name).stem: c for c in cameras}
+    ordered = sorted(cameras, key=lambda c: c.image_name)
     out = {}
     for fr in labels:
         if fr.name in by_stem:
@@ -320,9 +318,10 @@ def match_cameras(labels: Sequence[FrameLabels], cameras: Sequence[Any]) -> dict
     return out
 
 
-def scene_relevancy_fn(scene: Any, cameras: Sequence[Any], labels: Sequence[FrameLabels], *,
-                       encoder: Any = None, pca: Any = None, score: str = "relevancy",
-                       negatives: Any = None) -> RelevancyFn:
+def scene_relevancy_fn(scene: GaussianScene, cameras: Sequence[Camera], labels: Sequence[FrameLabels],
+                       *, encoder: Optional[TextEncoder] = None, pca: PCASource = None,
+                       score: str = "relevancy",
+                       negatives: Union[None, Sequence[str], torch.Tensor] = None) -> RelevancyFn:
     """A ``relevancy_fn`` that renders the scene's L at each frame's camera and scores the pixels
     (one render per frame, all of its categories in one relevancy pass)."""
     from tiger.retrieval.maps import relevancy_maps
@@ -340,23 +339,6 @@ def scene_relevancy_fn(scene: Any, cameras: Sequence[Any], labels: Sequence[Fram
         return maps["relevancy"] if score == "relevancy" else maps["cosine"]
 
     return fn
-
-
-class EmbeddingTable:
-    """A text encoder over a saved table ``{text: [F] tensor}`` (``torch.save``-d dict): lets the
-    evaluation run with embeddings computed elsewhere (no CLIP weights needed here)."""
-
-    def __init__(self, path: PathLike) -> None:
-        d = torch.load(str(path), map_location="cpu", weights_only=True)
-        if not isinstance(d, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in d.items()):
-            raise ValueError(f"tiger.eval.lerf: {path} must hold a dict {{text: embedding tensor}}")
-        self.table, self.path = d, Path(path)
-
-    def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
-        missing = [t for t in texts if t not in self.table]
-        if missing:
-            raise KeyError(f"tiger.eval.lerf: {self.path} has no embedding for {missing}")
-        return torch.stack([self.table[t].float().reshape(-1) for t in texts])
 
 
 # -------------------------------------------------------------------------------------- CLI
@@ -393,9 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _load_encoder(args: argparse.Namespace) -> Any:
+def _load_encoder(args: argparse.Namespace) -> TextEncoder:
     if args.text_embeddings:
-        return EmbeddingTable(args.text_embeddings)
+        return EmbeddingTable.load(args.text_embeddings)
     from tiger.language.maskclip import MaskCLIP
     from tiger.models.paths import ModelNotFoundError
 
@@ -420,7 +402,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     missing = sorted(set(scenes) - set(data))
     if missing:
         raise SystemExit(f"tiger eval-lerf: no --data NAME=DATASET for {missing}")
-    from tiger.scene import GaussianScene
     from tiger.scene.dataset import load_dataset
 
     encoder = _load_encoder(args)
@@ -431,7 +412,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         scene = GaussianScene.load_ply(ply).to(args.device)
         if scene.lang is None:
             raise SystemExit(f"tiger eval-lerf: {ply} has no language features (lang_*); train them first")
-        cams = [c.to(args.device) if hasattr(c, "to") else c for c in load_dataset(data[name]).cameras]
+        cams = [c.to(args.device) for c in load_dataset(data[name]).cameras]
         fn = scene_relevancy_fn(scene, cams, labels, encoder=encoder, score=args.score)
         results.append(evaluate_scene(name, labels, fn, out_dir=args.out, size=args.filter_size,
                                       mask_thresh=args.mask_thresh, pictures=not args.no_pictures))

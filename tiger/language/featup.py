@@ -22,6 +22,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from tiger.ops.jbu import adaptive_conv
+from tiger.utils.filters import gaussian_blur
+from tiger.utils.pca import fit_pca
 
 logger = logging.getLogger(__name__)
 
@@ -187,7 +189,7 @@ class AttentionDownsampler(nn.Module):
         b, c, h, w = hr.shape
         fh, fw = size
         k = min(self.kernel, h, w)
-        x = _gaussian_blur(hr)
+        x = gaussian_blur(hr, 5, 1.0, padding="reflect")
         sh = max(1, (h - k) // max(fh - 1, 1))
         sw = max(1, (w - k) // max(fw - 1, 1))
         patches = F.unfold(x, k, stride=(sh, sw))  # [B, C*k*k, L]
@@ -200,16 +202,6 @@ class AttentionDownsampler(nn.Module):
         bk = self.b[:k, :k].reshape(1, 1, 1, -1)
         attn = F.softmax(logits * wk + bk, dim=-1)
         return torch.einsum("bhwpc,bhwp->bchw", patches, attn)
-
-
-def _gaussian_blur(x: torch.Tensor, size: int = 5, sigma: float = 1.0) -> torch.Tensor:
-    r = torch.arange(size, device=x.device, dtype=x.dtype) - (size - 1) / 2
-    g = torch.exp(-r.square() / (2 * sigma**2))
-    g = g / g.sum()
-    c = x.shape[1]
-    x = F.pad(x, [size // 2] * 4, mode="reflect")
-    x = F.conv2d(x, g.view(1, 1, 1, size).expand(c, 1, 1, size), groups=c)
-    return F.conv2d(x, g.view(1, 1, size, 1).expand(c, 1, size, 1), groups=c)
 
 
 @dataclass
@@ -358,7 +350,7 @@ class ImplicitUpsampler:
             if cfg.mag_tv_weight > 0:
                 loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
             if cfg.blur_pin > 0:
-                loss = loss + cfg.blur_pin * (_gaussian_blur(hr) - hr).square().mean()
+                loss = loss + cfg.blur_pin * (gaussian_blur(hr, 5, 1.0, padding="reflect") - hr).square().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -379,12 +371,8 @@ class ImplicitUpsampler:
 
 def _pca_basis(views: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean [D] and the top-k principal directions [D, k] of the feature vectors in views [N, D, h, w]."""
-    x = views.permute(0, 2, 3, 1).reshape(-1, views.shape[1]).double()
-    mean = x.mean(0)
-    cov = (x - mean).T @ (x - mean) / max(x.shape[0] - 1, 1)
-    evals, evecs = torch.linalg.eigh(cov)
-    k = min(k, x.shape[1])
-    return mean.float(), evecs[:, -k:].flip(1).float()
+    mean, comps, _ = fit_pca(views.permute(0, 2, 3, 1).reshape(-1, views.shape[1]), min(k, views.shape[1]))
+    return mean.float(), comps.float()
 
 
 def _project(views: torch.Tensor, mean: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:

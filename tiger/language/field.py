@@ -15,15 +15,29 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence, Union
+from typing import Callable, Mapping, Optional, Protocol, Sequence, Union
 
 import torch
 
+from tiger.retrieval.text import PCASource
+from tiger.scene import Camera, GaussianScene
 from tiger.utils.io import atomic_torch_save
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
-FeatureSource = Union[Sequence[Any], Callable[[int], Any], Any]
+#: One view's target: features [H, W, D], (features, valid [H, W]) or {"features", "valid"}.
+FeatureMap = Union[torch.Tensor, tuple[torch.Tensor, Optional[torch.Tensor]], Mapping[str, torch.Tensor]]
+
+
+class FeatureStore(Protocol):
+    """Feature maps on disk by image name (``tiger.language.FeatureSet``)."""
+
+    names: Sequence[str]
+
+    def load(self, name: str) -> FeatureMap: ...
+
+
+FeatureSource = Union[Sequence[FeatureMap], Callable[[int], FeatureMap], FeatureStore]
 
 
 @dataclass
@@ -99,16 +113,7 @@ class FieldResult:
 
 
 # ------------------------------------------------------------------------------------ inputs
-def _scaled_K(camera: Any, height: int, width: int, ref: torch.Tensor) -> torch.Tensor:
-    """K for rendering ``camera`` at ``width x height`` (a feature map's size)."""
-    K = torch.as_tensor(camera.K).to(ref).clone()
-    sx, sy = width / int(camera.width), height / int(camera.height)
-    K[0, :] *= sx
-    K[1, :] *= sy
-    return K
-
-
-def _as_map(item: Any, index: int) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+def _as_map(item: FeatureMap, index: int) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
     """(features [H, W, D], valid [H, W] bool or None) from a tensor, a pair or a dict."""
     if isinstance(item, dict):
         feats, valid = item.get("features"), item.get("valid", item.get("mask"))
@@ -128,7 +133,7 @@ def _as_map(item: Any, index: int) -> tuple[torch.Tensor, Optional[torch.Tensor]
     return feats, valid
 
 
-def _map_loader(feature_maps: FeatureSource, cameras: Sequence[Any]) -> Callable[[int], Any]:
+def _map_loader(feature_maps: FeatureSource, cameras: Sequence[Camera]) -> Callable[[int], FeatureMap]:
     """index -> raw map item. Accepts a sequence, a callable, or a store with ``names``/``load(name)``
     (``tiger.language.FeatureSet``), matched to cameras by image name (or its stem)."""
     n = len(cameras)
@@ -138,7 +143,7 @@ def _map_loader(feature_maps: FeatureSource, cameras: Sequence[Any]) -> Callable
         by_name.update({Path(nm).stem: nm for nm in names})
         chosen = []
         for i, cam in enumerate(cameras):
-            img = str(getattr(cam, "image_name", "") or "")
+            img = cam.image_name
             key = img if img in by_name else Path(img).stem if Path(img).stem in by_name else None
             if key is None:
                 if len(names) != n:
@@ -155,29 +160,19 @@ def _map_loader(feature_maps: FeatureSource, cameras: Sequence[Any]) -> Callable
     return lambda i: feature_maps[i]
 
 
-def _render(scene: Any, camera: Any, lang: torch.Tensor, height: int, width: int,
-            visible: Optional[torch.Tensor], geometry_grad: bool = False) -> dict:
-    from tiger import rasterize_gaussians
-
-    def g(t: torch.Tensor) -> torch.Tensor:
-        t = t if geometry_grad else t.detach()
-        return t if visible is None else t[visible]
-
-    means = g(scene.means)
-    return rasterize_gaussians(
-        means=means, quats=g(scene.quats), scales=g(scene.scales), opacities=g(scene.opacities),
-        colors=lang, viewmat=torch.as_tensor(camera.viewmat).to(means),
-        K=_scaled_K(camera, height, width, means), width=width, height=height, check_finite=False)
+def _render(scene: GaussianScene, camera: Camera, lang: torch.Tensor, height: int, width: int) -> dict:
+    """``lang`` rendered at ``width x height`` (K rescaled); ``scene`` is detached, so the backward
+    is the features-only kernel."""
+    return scene.render(camera.resized(width, height), lang, check_finite=False)
 
 
-def _visibility(scene: Any, cameras: Sequence[Any], sizes: Sequence[tuple[int, int]]) -> torch.Tensor:
+def _visibility(scene: GaussianScene, cameras: Sequence[Camera]) -> torch.Tensor:
     """[N] bool: projected into at least one view (radius > 0)."""
-    means = scene.means.detach()
-    vis = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
-    one = means.new_zeros((means.shape[0], 1))
+    vis = torch.zeros(len(scene), dtype=torch.bool, device=scene.device)
+    one = scene.means.new_zeros((len(scene), 1))
     with torch.no_grad():
-        for cam, (h, w) in zip(cameras, sizes):
-            vis |= _render(scene, cam, one, h, w, None)["radii"] > 0
+        for cam in cameras:
+            vis |= scene.render(cam, one, check_finite=False)["radii"] > 0
     return vis
 
 
@@ -214,19 +209,18 @@ def _load_ckpt(path: Path, n: int, d: int) -> dict:
 
 
 # ------------------------------------------------------------------------------------ train
-def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource, *,
-                config: Optional[FieldConfig] = None, pca: Any = None,
+def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureSource, *,
+                config: Optional[FieldConfig] = None, pca: PCASource = None,
                 checkpoint: Optional[PathLike] = None, resume: bool = True,
-                callback: Optional[Callable[[int, float], None]] = None, **overrides: Any) -> FieldResult:
+                callback: Optional[Callable[[int, float], None]] = None,
+                **overrides: Union[int, float, str, bool, None]) -> FieldResult:
     """Optimise each Gaussian's language embedding L so that rendered features match the maps.
 
     Args:
-        scene: a ``GaussianScene`` or any object with ``means`` [N, 3], ``quats`` [N, 4], ``scales``
-            [N, 3] (linear), ``opacities`` [N] (in [0, 1]) and ``lang`` ([N, D] or None); its
-            ``lang`` is replaced by the result, and with ``pca`` its ``lang_pca_basis`` [F, D] /
-            ``lang_pca_mean`` [F] are set, so ``scene.save_ply`` writes ``lang_*`` and the basis.
-        cameras: V views with ``viewmat`` [4, 4] (world->camera, OpenCV), ``K`` [3, 3], ``width``,
-            ``height``; rendering happens at each feature map's size (K rescaled).
+        scene: the scene; its geometry stays frozen, its ``lang`` ([N, D] or None) is replaced by
+            the result, and with ``pca`` its ``lang_pca_basis`` [F, D] / ``lang_pca_mean`` [F] are
+            set, so ``scene.save_ply`` writes ``lang_*`` and the basis.
+        cameras: V views; rendering happens at each feature map's size (K rescaled).
         feature_maps: per view ``[H, W, D]`` (any float dtype), ``(features, valid)`` or
             ``{"features", "valid"}`` with ``valid`` [H, W] bool (False: ignored pixel); a
             sequence, a callable ``i -> map`` (for maps on disk), or a ``tiger.language.FeatureSet``.
@@ -248,10 +242,8 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
 
     # Only the first map is read up front (for D): maps may live on disk, one per view.
     first, _ = _as_map(load(0), 0)
-    d = cfg.dim or (scene.lang.shape[1] if getattr(scene, "lang", None) is not None else first.shape[2])
+    d = cfg.dim or (scene.lang.shape[1] if scene.lang is not None else first.shape[2])
     del first
-    # Culling does not depend on the resolution (K scales with it), so the cameras' own sizes do.
-    sizes = [(int(c.height), int(c.width)) for c in cameras]
 
     gen = torch.Generator().manual_seed(cfg.seed)
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
@@ -262,9 +254,10 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
         lang_full = ck["lang"].to(device=device, dtype=dtype)
         log.info("train_field: resuming %s at step %d", ckpt_path, ck["step"])
     else:
-        visible = _visibility(scene, cameras, sizes)
+        # Culling does not depend on the resolution (K scales with it): the cameras' own sizes do.
+        visible = _visibility(scene.detach(), cameras)
         if cfg.init == "keep":
-            if getattr(scene, "lang", None) is None or scene.lang.shape != (n, d):
+            if scene.lang is None or scene.lang.shape != (n, d):
                 raise ValueError("tiger.train_field: init='keep' needs scene.lang of shape [N, D]")
             lang_full = scene.lang.detach().to(dtype).clone()
         elif cfg.init == "zeros":
@@ -288,7 +281,9 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
         gen.set_state(ck["generator"])
         step, order, losses = int(ck["step"]), list(ck["order"]), list(ck["losses"])
         touched = ck["touched"].to(device)
-    vis_mask = visible if n_invisible else None
+    # The frozen geometry of the Gaussians in view, detached once for every step.
+    frozen = scene.detach() if not n_invisible else scene.subset(visible)
+    frozen.lang = None
 
     def save() -> None:
         if ckpt_path is not None:
@@ -315,7 +310,7 @@ def train_field(scene: Any, cameras: Sequence[Any], feature_maps: FeatureSource,
                 if feats.shape[2] != d:
                     raise ValueError(f"tiger.train_field: feature map {v} has {feats.shape[2]} channels, L has {d}")
                 h, w = int(feats.shape[0]), int(feats.shape[1])
-                out = _render(scene, cameras[v], lang, h, w, vis_mask)
+                out = _render(frozen, cameras[v], lang, h, w)
                 target = feats.to(device=device, dtype=dtype)
                 loss = _loss(out["color"], target, None if valid is None else valid.to(device), cfg.loss)
                 (loss / len(views)).backward()

@@ -15,6 +15,7 @@ from typing import Union
 import torch
 
 from tiger.utils.io import atomic_torch_save
+from tiger.utils.pca import moments, principal_axes
 
 PathLike = Union[str, os.PathLike]
 
@@ -84,17 +85,9 @@ class StreamingPCA:
 
     @staticmethod
     def statistics(x: torch.Tensor, weights: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """(count, sum [D], outer [D, D]) of rows x [N, D] in float64 (on x's device, returned on CPU)."""
-        if x.dim() != 2:
-            raise ValueError(f"tiger.StreamingPCA: x must be [N, D], got {tuple(x.shape)}")
-        xd = x.double()
-        if weights is None:
-            return {"count": torch.tensor(float(x.shape[0]), dtype=torch.float64), "sum": xd.sum(0).cpu(),
-                    "outer": (xd.T @ xd).cpu()}
-        if weights.shape != (x.shape[0],):
-            raise ValueError(f"tiger.StreamingPCA: weights must be [N] = [{x.shape[0]}], got {tuple(weights.shape)}")
-        wd = weights.to(xd)
-        return {"count": wd.sum().cpu(), "sum": (wd[:, None] * xd).sum(0).cpu(), "outer": ((xd * wd[:, None]).T @ xd).cpu()}
+        """(count, sum [D], outer [D, D]) of rows x [N, D] in float64 on the CPU
+        (:func:`tiger.utils.pca.moments`)."""
+        return moments(x, weights)
 
     def add_statistics(self, stats: dict[str, torch.Tensor]) -> None:
         if stats["sum"].shape != (self.dim,):
@@ -107,15 +100,5 @@ class StreamingPCA:
         self.add_statistics(self.statistics(x, weights))
 
     def fit(self) -> PCABasis:
-        if float(self.count) <= 1:
-            raise ValueError("tiger.StreamingPCA: fit needs more than one (weighted) sample")
-        mean = self.sum / self.count
-        cov = (self.outer - self.count * torch.outer(mean, mean)) / (self.count - 1)
-        cov = 0.5 * (cov + cov.T)
-        evals, evecs = torch.linalg.eigh(cov)
-        k = self.n_components
-        comps = evecs[:, -k:].flip(1)
-        var = evals[-k:].flip(0).clamp_min(0)
-        sign = torch.sign(comps.gather(0, comps.abs().argmax(0, keepdim=True)))
-        comps = comps * torch.where(sign == 0, torch.ones_like(sign), sign)
+        mean, comps, var = principal_axes(self.count, self.sum, self.outer, self.n_components)
         return PCABasis(mean.float(), comps.float(), var.float())

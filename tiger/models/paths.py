@@ -71,7 +71,47 @@ REGISTRY: dict[str, ModelSpec] = {
         files=("maskclip_jbu_stack_cocostuff.ckpt",),
         source="FeatUp's released MaskCLIP JBU checkpoint",
     ),
+    "lama": ModelSpec(
+        name="lama",
+        public_id="advimman/lama big-lama (TorchScript export of lama-cleaner)",
+        folder="lama",
+        required=(),
+        files=("big-lama.pt",),
+        source="LaMa's big-lama as a TorchScript file: net(image [B,3,H,W] in [0,1], mask [B,1,H,W]) -> [B,3,H,W]",
+    ),
 }
+
+
+def _diffusers_folder(text: str) -> tuple[tuple[str, ...], ...]:
+    """The files of a diffusers pipeline folder with a UNet, a VAE and a CLIP text encoder."""
+    def weights_of(sub: str, stem: str) -> tuple[str, ...]:
+        return (f"{sub}/{stem}.safetensors", f"{sub}/{stem}.bin")
+
+    return (
+        ("unet/config.json",), weights_of("unet", "diffusion_pytorch_model"),
+        ("vae/config.json",), weights_of("vae", "diffusion_pytorch_model"),
+        (f"{text}/config.json",), (f"{text}/model.safetensors", f"{text}/pytorch_model.bin"),
+        ("tokenizer/vocab.json", "tokenizer/tokenizer.json"),
+        ("scheduler/scheduler_config.json",),
+    )
+
+
+REGISTRY["ip2p"] = ModelSpec(
+    name="ip2p",
+    public_id="timbrooks/instruct-pix2pix",
+    folder="instruct-pix2pix",
+    required=_diffusers_folder("text_encoder"),
+    source="Hugging Face diffusers folder (unet/ with in_channels 8, vae/, text_encoder/, tokenizer/, scheduler/)",
+)
+REGISTRY["mvdream"] = ModelSpec(
+    name="mvdream",
+    public_id="MVDream/MVDream",
+    folder="mvdream",
+    required=_diffusers_folder("text_encoder"),
+    files=("sd-v2.1-base-4view.pt",),
+    source="MVDream's original LDM checkpoint, or a diffusers folder of it (unet/ with the camera "
+           "embedding as a projection class embedding)",
+)
 
 
 class ModelNotFoundError(FileNotFoundError):
@@ -124,7 +164,7 @@ def resolve_model_path(
     config: ConfigLike = None,
     allow_download: bool = False,
 ) -> Path:
-    """Find the weights of registry model ``name`` ('clip', 'sam', 'featup_jbu').
+    """Find the weights of registry model ``name`` ('clip', 'sam', 'featup_jbu', 'ip2p', 'mvdream', 'lama').
 
     Returns a folder (Hugging Face layout) or a checkpoint file. Raises
     :class:`ModelNotFoundError` naming the expected files, the public id and every place looked at.

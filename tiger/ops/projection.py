@@ -1,11 +1,39 @@
-"""Fake kernel and autograd of ``tiger::project_gaussians``."""
+"""``tiger::project_gaussians``: EWA projection of 3D Gaussians (public function, fake kernel,
+autograd; semantics in ``csrc/projection/projection.h``)."""
 from __future__ import annotations
 
 from typing import Any
 
 import torch
+from torch import Tensor
 
 _OP = "tiger::project_gaussians"
+
+__all__ = ["project_gaussians"]
+
+
+def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                      viewmat: Tensor, K: Tensor, width: int, height: int, eps2d: float,
+                      near: float, far: float, alpha_threshold: float,
+                      antialiased: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Project N Gaussians into one pinhole camera, differentiably (viewmat and K included).
+
+    Args:
+        means: [N, 3] world centres; quats: [N, 4] (w, x, y, z), any non-zero norm;
+        scales: [N, 3] linear standard deviations; opacities: [N] in [0, 1];
+        viewmat: [4, 4] world→camera (OpenCV axes); K: [3, 3] intrinsics (px); one float dtype.
+        width, height: image size (px); eps2d: dilation of the 2D covariance diagonal (px^2);
+        near, far: camera-z range kept; alpha_threshold: opacity-aware extent rule;
+        antialiased: scale opacity by sqrt(det Σ2d / det(Σ2d + eps2d I)).
+    Returns:
+        means2d [N, 2] px, conics [N, 3] (a, b, c of the inverse dilated 2D covariance),
+        depths [N] camera z, opacities [N] (after the antialiasing factor), radii [N, 2] int32
+        half extents in px (0 = culled; not differentiable).
+    """
+    return torch.ops.tiger.project_gaussians(
+        means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
+        viewmat.contiguous(), K.contiguous(), int(width), int(height), float(eps2d), float(near),
+        float(far), float(alpha_threshold), bool(antialiased))
 
 
 @torch.library.register_fake(_OP)

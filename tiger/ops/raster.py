@@ -1,4 +1,5 @@
-"""Fake kernels and autograd of ``tiger::rasterize``.
+"""``tiger::rasterize``: tile-based alpha compositing (public function, fake kernels, autograd;
+semantics in ``csrc/raster/raster.h``).
 
 The backward picks the features-only kernel when no geometry input (means2d,
 conics, opacities, depths) needs a gradient: language-field training then pays
@@ -6,11 +7,39 @@ for no geometry term at all.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import torch
+from torch import Tensor
 
 _OP = "tiger::rasterize"
+
+__all__ = ["rasterize"]
+
+
+def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
+              background: Optional[Tensor], tile_offsets: Tensor, gaussian_ids: Tensor, width: int,
+              height: int, tile_size: int, alpha_max: float, alpha_threshold: float,
+              t_min: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Composite projected Gaussians front to back, differentiably.
+
+    Args:
+        means2d: [N, 2] px; conics: [N, 3]; opacities: [N]; depths: [N] (from
+            :func:`project_gaussians`); colors: [N, C] any C >= 1 (float16/bfloat16 with float32
+            geometry on CUDA); background: [C] or None (zeros);
+        tile_offsets, gaussian_ids: from :func:`bin_gaussians`; width, height, tile_size: px;
+        alpha_max: per-Gaussian alpha clamp; alpha_threshold: smaller alphas are skipped;
+        t_min: a pixel stops once its transmittance would drop below this.
+    Returns:
+        color [H, W, C] = Σ c_i a_i T_i + T_final background, alpha [H, W] = 1 - T_final,
+        depth_accum [H, W] = Σ z_i a_i T_i, n_contrib [H, W] int32 and transmittance [H, W]
+        (T_final; both not differentiable, kept for the backward).
+    """
+    return torch.ops.tiger.rasterize(
+        means2d, conics, opacities, colors, depths,
+        background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
+        int(width), int(height), int(tile_size), float(alpha_max), float(alpha_threshold),
+        float(t_min))
 
 
 @torch.library.register_fake(_OP)

@@ -19,6 +19,22 @@ import torch
 
 _OP = "tiger::relevancy"
 
+__all__ = ["relevancy_scores"]
+
+
+def relevancy_scores(features: torch.Tensor, positives: torch.Tensor, negatives: torch.Tensor,
+                     temperature: float = 10.0, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cosines and LERF relevancy of N features against Q positives and M negatives (fused).
+
+    Args:
+        features: [N, D] float16/32/64; positives: [Q, D]; negatives: [M, D] (M may be 0), on
+            the features' device; temperature: the softmax temperature t; eps: norm floor.
+    Returns:
+        cos [N, Q] and rel [N, Q] = sigmoid(t (cos - max_j cos'_j)) (an empty [0] tensor when
+        M == 0); float32 for float16/32 features, float64 for float64. Differentiable.
+    """
+    return torch.ops.tiger.relevancy(features, positives, negatives, float(temperature), float(eps))
+
 
 def _acc_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float64 if dtype == torch.float64 else torch.float32

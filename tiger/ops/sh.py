@@ -1,11 +1,27 @@
-"""Fake kernel and autograd of ``tiger::sh_to_color``."""
+"""``tiger::sh_to_color``: spherical-harmonics colour per Gaussian (public function, fake kernel,
+autograd)."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import torch
+from torch import Tensor
 
 _OP = "tiger::sh_to_color"
+
+
+def sh_to_color(dirs: Tensor, coeffs: Tensor, degree: int, visible: Optional[Tensor] = None) -> Tensor:
+    """Real SH (INRIA order) evaluated per Gaussian for its view direction, differentiably.
+
+    Args:
+        dirs: [N, 3] view directions (Gaussian centre minus camera centre; any non-zero norm).
+        coeffs: [N, K, 3] SH coefficients, K >= (degree + 1)^2, DC first.
+        degree: SH degree in 0..3 (bands used).
+        visible: [N] bool; rows that are False are skipped (output 0, gradient 0). None: all.
+    Returns:
+        [N, 3] ``SH(dirs)`` without the +0.5 offset and without clamping (same dtype as ``dirs``).
+    """
+    return torch.ops.tiger.sh_to_color(dirs.contiguous(), coeffs.contiguous(), int(degree), visible)
 
 
 @torch.library.register_fake(_OP)
@@ -33,3 +49,5 @@ def _backward(ctx: Any, v_colors: torch.Tensor):
 
 
 torch.library.register_autograd(_OP, _backward, setup_context=_setup)
+
+__all__ = ["sh_to_color"]

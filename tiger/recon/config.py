@@ -42,12 +42,15 @@ class ReconConfig:
     max_screen_size: Optional[float] = None  # px; INRIA's screen rule is inert in practice
     max_world_size: Optional[float] = 0.1    # x extent, after the first opacity reset
     max_gaussians: Optional[int] = None
+    appearance: bool = False               # per-training-image affine colour correction
+    lr_appearance: float = 1e-3
     background: tuple = (0.0, 0.0, 0.0)
     random_background: bool = False
     init_random_points: int = 100_000
     init_min_view_fraction: float = 0.5
     init_radius_fraction: float = 1.0      # random init within this x the camera distance
     init_opacity: float = 0.1
+    init_colors: str = "random"            # random init: "random" (INRIA) or "views" (mean pixel colour)
     extent: Optional[float] = None         # None: from the cameras (INRIA's rule)
     seed: int = 0
     checkpoint_every: int = 0              # 0: only when asked / at the end with out_dir
@@ -62,6 +65,8 @@ class ReconConfig:
             raise ValueError(f"tiger.recon: sh_degree must be in 0..3, got {self.sh_degree}")
         if self.densify_interval <= 0:
             raise ValueError("tiger.recon: densify_interval must be positive")
+        if self.init_colors not in ("random", "views"):
+            raise ValueError(f"tiger.recon: init_colors must be 'random' or 'views', got {self.init_colors!r}")
         self.background = tuple(float(v) for v in self.background)
 
     @classmethod

@@ -2,20 +2,16 @@
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from typing import Optional
 
 import torch
-import torch.nn.functional as F
+
+from tiger.utils.filters import gaussian_blur
+
+__all__ = ["gaussian_blur", "ssim_map", "ssim", "l1", "photometric_loss", "psnr", "SSIM_C1", "SSIM_C2"]
 
 SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2
-
-
-@lru_cache(maxsize=8)
-def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
-    g = torch.exp(-(x * x) / (2 * sigma * sigma))
-    return g / g.sum()
 
 
 def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
@@ -24,47 +20,6 @@ def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
     if img.ndim == 4:
         return img
     raise ValueError(f"tiger.recon: {name} must be [H, W, C] or [B, C, H, W], got {list(img.shape)}")
-
-
-@lru_cache(maxsize=16)
-def _band(n: int, size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """[n, n] matrix M with (M @ x) = the 1-D Gaussian filter of x with zero padding."""
-    g = _gauss_1d(size, sigma)
-    M = torch.zeros(n, n, dtype=torch.float64)
-    for i in range(size):
-        off = i - size // 2
-        if abs(off) < n:
-            M += torch.diag(torch.full((n - abs(off),), float(g[i]), dtype=torch.float64), off)
-    return M.to(dtype=dtype, device=device)
-
-
-def gaussian_blur(x: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
-                  method: str = "auto") -> torch.Tensor:
-    """Separable Gaussian filter of [B, C, H, W] with zero padding ("same" size).
-
-    ``method``: ``"conv"`` (conv2d), ``"matmul"`` (products with banded [H, H] and [W, W]
-    matrices), ``"shift"`` (sum of shifted slices) or ``"auto"``: conv on CUDA, matmul on
-    CPU up to 1024 px a side (10-20x cheaper than CPU conv2d there), shift beyond. All
-    compute the same sums (``benchmarks/recon_ssim.py`` times them).
-    """
-    B, C, H, W = x.shape
-    if method == "auto":
-        method = "conv" if x.is_cuda else ("matmul" if max(H, W) <= 1024 else "shift")
-    if method == "matmul":
-        bh = _band(H, window_size, float(sigma), x.dtype, x.device)
-        bw = _band(W, window_size, float(sigma), x.dtype, x.device)
-        return bh @ (x @ bw)   # both bands are symmetric
-    g = _gauss_1d(window_size, float(sigma)).to(x)
-    pad = window_size // 2
-    xp = F.pad(x, (pad, pad, pad, pad))
-    if method == "conv":
-        y = xp.reshape(B * C, 1, H + 2 * pad, W + 2 * pad)
-        y = F.conv2d(y, g.view(1, 1, 1, -1))
-        return F.conv2d(y, g.view(1, 1, -1, 1)).reshape(B, C, H, W)
-    if method != "shift":
-        raise ValueError(f"tiger.recon: gaussian_blur method must be auto, conv, matmul or shift, got {method}")
-    rows = sum(g[i] * xp[..., i:i + W] for i in range(window_size))
-    return sum(g[i] * rows[..., i:i + H, :] for i in range(window_size))
 
 
 def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11,
@@ -89,9 +44,12 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11,
     return ((2 * mu12 + SSIM_C1) * (2 * s12 + SSIM_C2)) / ((mu1_sq + mu2_sq + SSIM_C1) * (s1 + s2 + SSIM_C2))
 
 
-def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM (scalar tensor, differentiable); see :func:`ssim_map`."""
-    return ssim_map(img1, img2, window_size, sigma).mean()
+def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
+         mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Mean SSIM (scalar tensor, differentiable) of [H, W, C] images, over the pixels where
+    ``mask`` [H, W] is True (default all); see :func:`ssim_map`."""
+    m = ssim_map(img1, img2, window_size, sigma)
+    return m.mean() if mask is None else m[0].permute(1, 2, 0)[mask.to(m.device)].mean()
 
 
 def l1(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
@@ -106,7 +64,9 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     return loss
 
 
-def psnr(img1: torch.Tensor, img2: torch.Tensor) -> float:
-    """PSNR in dB of images in [0, 1] (both clamped to [0, 1] first)."""
-    mse = float(((img1.detach().clamp(0, 1) - img2.detach().clamp(0, 1)) ** 2).mean())
+def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
+    """PSNR in dB of [H, W, C] images in [0, 1] (both clamped to [0, 1] first), over the
+    pixels where ``mask`` [H, W] is True (default all)."""
+    err = (img1.detach().clamp(0, 1) - img2.detach().clamp(0, 1)) ** 2
+    mse = float(err.mean() if mask is None else err[mask.to(err.device)].mean())
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)

@@ -15,9 +15,12 @@ from tiger.scene.checkpoint import load_checkpoint, save_checkpoint
 from tiger.scene.dataset import points_in_views
 from tiger.scene.gaussian_scene import GaussianScene
 
+from .appearance import AffineAppearance
 from .config import ReconConfig, expon_lr
-from .densify import DensifyStats, densify_and_prune, reset_opacity
+from .init import colors_from_views
 from .losses import photometric_loss, psnr, ssim
+from .step import SceneOptimizer
+from .strategy import DensifyStats, inria_densify, reset_opacity
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -25,6 +28,10 @@ PathLike = Union[str, os.PathLike]
 
 class Trainer:
     """Fit a :class:`GaussianScene` to images with the 3DGS recipe.
+
+    The recipe on top of :class:`tiger.recon.step.SceneOptimizer` (``self.opt``; every
+    Gaussian trainable): one view per step, the photometric loss, INRIA's schedule and
+    densification rule (:func:`tiger.recon.strategy.inria_densify`).
 
     Args:
         cameras: training views (pinhole; sizes must match ``images``).
@@ -36,13 +43,21 @@ class Trainer:
         device: where to train (default: the images' device).
         out_dir: where checkpoints go (``checkpoint.pt``).
         test_cameras, test_images: held-out views for :meth:`evaluate` during/after training.
+        masks, test_masks: optional [H, W] bool per image, the pixels that count (e.g.
+            :func:`tiger.scene.images.undistortion_valid_mask`: not the black border that
+            undistortion leaves); the loss ignores the others, PSNR/SSIM are taken over them.
+        trainable: [N] bool over ``scene`` (fine-tuning only): only these Gaussians are
+            parameters and only they are densified or pruned; the others stay bit-identical.
     """
 
     def __init__(self, cameras: Sequence[Camera], images: Sequence[torch.Tensor],
                  config: Optional[ReconConfig] = None, scene: Optional[GaussianScene] = None,
                  init_points: Optional[torch.Tensor] = None, init_colors: Optional[torch.Tensor] = None,
                  device: Optional[Union[str, torch.device]] = None, out_dir: Optional[PathLike] = None,
-                 test_cameras: Sequence[Camera] = (), test_images: Sequence[torch.Tensor] = ()) -> None:
+                 test_cameras: Sequence[Camera] = (), test_images: Sequence[torch.Tensor] = (),
+                 masks: Optional[Sequence[torch.Tensor]] = None,
+                 test_masks: Optional[Sequence[torch.Tensor]] = None,
+                 trainable: Optional[torch.Tensor] = None) -> None:
         self.cfg = config or ReconConfig()
         if len(cameras) == 0:
             raise ValueError("tiger.recon: no training cameras")
@@ -54,11 +69,16 @@ class Trainer:
         self.images = [im.to(self.device, torch.float32) for im in images]
         self.test_cameras = [self._check_view(c, im, i) for i, (c, im) in enumerate(zip(test_cameras, test_images))]
         self.test_images = [im.to(self.device, torch.float32) for im in test_images]
+        self.masks = self._check_masks(masks, self.images, "masks")
+        self.test_masks = self._check_masks(test_masks, self.test_images, "test_masks")
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.extent = float(self.cfg.extent) if self.cfg.extent else scene_extent(self.cameras)
         self.gen = torch.Generator().manual_seed(self.cfg.seed)
         self.finetune = scene is not None
         self.checkpoint_step: Optional[int] = None  # step held by the last checkpoint saved or loaded
+        if trainable is not None and scene is None:
+            raise ValueError("tiger.recon: a trainable mask needs a starting scene (scene=...)")
+        self._trainable = trainable
         if scene is None:
             scene = self._initial_scene(init_points, init_colors)
         elif scene.sh_degree != self.cfg.sh_degree:
@@ -71,6 +91,25 @@ class Trainer:
         self.elapsed = 0.0
         self._build_optimizer()
         self.stats = DensifyStats.zeros(len(self.scene), self.device)
+        self.appearance: Optional[AffineAppearance] = None
+        if self.cfg.appearance:
+            self.appearance = AffineAppearance(len(self.cameras), self.device)
+            self.appearance_optimizer = torch.optim.Adam(self.appearance.parameters(), lr=self.cfg.lr_appearance,
+                                                         eps=self.cfg.adam_eps)
+
+    def _check_masks(self, masks: Optional[Sequence[torch.Tensor]], images: list,
+                     what: str) -> Optional[list]:
+        if masks is None:
+            return None
+        if len(masks) != len(images):
+            raise ValueError(f"tiger.recon: {len(masks)} {what} for {len(images)} images")
+        out = []
+        for i, (m, im) in enumerate(zip(masks, images)):
+            if m.dtype != torch.bool or tuple(m.shape) != tuple(im.shape[:2]):
+                raise ValueError(f"tiger.recon: {what}[{i}] must be [H, W] = {list(im.shape[:2])} bool, got "
+                                 f"{m.dtype} {list(m.shape)}")
+            out.append(m.to(self.device))
+        return out
 
     # -- set-up -------------------------------------------------------------------------
     def _check_view(self, cam: Camera, img: torch.Tensor, i: int) -> Camera:
@@ -88,7 +127,10 @@ class Trainer:
         if points is None:
             pts = points_in_views(self.cameras, self.cfg.init_random_points, self.cfg.init_min_view_fraction,
                                   generator=self.gen, radius_fraction=self.cfg.init_radius_fraction)
-            colors = torch.rand(pts.shape, generator=self.gen)
+            if self.cfg.init_colors == "views":
+                colors = colors_from_views(pts, self.cameras, self.images, self.masks)
+            else:
+                colors = torch.rand(pts.shape, generator=self.gen)
             log.info("random initialisation: %d points seen by >= %.0f%% of the views", len(pts),
                      100 * self.cfg.init_min_view_fraction)
         else:
@@ -101,8 +143,12 @@ class Trainer:
         lrs = {"means": self._means_lr(), "log_scales": c.lr_log_scales, "quats": c.lr_quats,
                "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
         names = [n for n in lrs if n != "sh_rest" or self.scene.sh_rest.shape[1] > 0]
-        groups = self.scene.parameter_groups(lrs, names=names)
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=c.adam_eps)
+        self.opt = SceneOptimizer(self.scene, {n: lrs[n] for n in names}, eps=c.adam_eps, trainable=self._trainable)
+
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        """The torch Adam inside :attr:`opt` (its state dict is what checkpoints hold)."""
+        return self.opt.optimizer
 
     def _means_lr(self) -> float:
         c = self.cfg
@@ -125,32 +171,42 @@ class Trainer:
         """One optimizer step on one view; returns {'loss', 'psnr', 'gaussians'}."""
         c = self.cfg
         self.step += 1
-        for g in self.optimizer.param_groups:
-            if g["name"] == "means":
-                g["lr"] = self._means_lr()
+        self.opt.set_lr("means", self._means_lr())
         if c.sh_increase_every and self.step % c.sh_increase_every == 0:
             self.active_sh = min(self.active_sh + 1, c.sh_degree)
         i = self._next_view()
         cam, target = self.cameras[i], self.images[i]
-        out = self.scene.render(cam, sh_degree=self.active_sh, background=self._background(),
-                                check_finite=False)
-        out["means2d"].retain_grad()
-        loss = photometric_loss(out["color"], target, c.lambda_dssim)
-        loss.backward()
+        mask = self.masks[i] if self.masks is not None else None
+        background = self._background()
+
+        def render(scene: GaussianScene, view: tuple) -> dict:
+            out = scene.render(view[0], sh_degree=self.active_sh, background=background, check_finite=False)
+            out["means2d"].retain_grad()
+            return out
+
+        def loss(out: dict, view: tuple) -> torch.Tensor:
+            pred = out["color"] if self.appearance is None else self.appearance(out["color"], i)
+            if mask is not None:   # pixels outside the mask: no error, no gradient
+                pred = torch.where(mask[..., None], pred, view[1])
+            return photometric_loss(pred, view[1], c.lambda_dssim)
+
+        res = self.opt.step(loss, (cam, target), render)
+        if self.appearance is not None:
+            self.appearance_optimizer.step()
+            self.appearance_optimizer.zero_grad(set_to_none=True)
+        out = res.renders
         densifying = c.densify and self.step <= c.densify_until
         if densifying and out["means2d"].grad is not None:
             self.stats.add(out["means2d"].grad, out["radii"], cam.width, cam.height)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        info = {"loss": float(loss.detach()), "psnr": psnr(out["color"], target), "gaussians": len(self.scene)}
+        info = {"loss": float(res.loss), "psnr": psnr(out["color"], target, mask), "gaussians": len(self.scene)}
         if densifying and self.step > c.densify_from and self.step % c.densify_interval == 0:
             reset_done = c.opacity_reset_interval and self.step > c.opacity_reset_interval
-            info["densify"] = densify_and_prune(
-                self.scene, self.optimizer, self.stats, c.densify_grad_threshold, self.extent, c.percent_dense,
+            info["densify"] = inria_densify(
+                self.opt, self.stats, c.densify_grad_threshold, self.extent, c.percent_dense,
                 c.min_opacity, c.max_screen_size if reset_done else None,
                 c.max_world_size if (reset_done or self.finetune) else None, c.max_gaussians, self.gen)
         if densifying and c.opacity_reset_interval and self.step % c.opacity_reset_interval == 0:
-            reset_opacity(self.scene, self.optimizer)
+            reset_opacity(self.opt)
         return info
 
     def fit(self) -> GaussianScene:
@@ -199,19 +255,23 @@ class Trainer:
 
     @torch.no_grad()
     def evaluate(self, cameras: Optional[Sequence[Camera]] = None,
-                 images: Optional[Sequence[torch.Tensor]] = None) -> dict:
-        """Mean PSNR (dB) and SSIM over views (default the test views), full SH degree,
-        renders clamped to [0, 1]."""
+                 images: Optional[Sequence[torch.Tensor]] = None,
+                 masks: Optional[Sequence[torch.Tensor]] = None) -> dict:
+        """Mean PSNR (dB) and SSIM over views (default the test views and their masks), full
+        SH degree, renders clamped to [0, 1], over the pixels of ``masks`` (default all)."""
         cams = self.test_cameras if cameras is None else [c.to(self.device, torch.float32) for c in cameras]
         imgs = self.test_images if images is None else [im.to(self.device, torch.float32) for im in images]
+        if cameras is None and masks is None:
+            masks = self.test_masks
         if not cams:
             raise ValueError("tiger.recon: evaluate needs views (no test views were given)")
         scene = self.scene.detach()
         bg = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
         per = []
-        for cam, img in zip(cams, imgs):
+        for j, (cam, img) in enumerate(zip(cams, imgs)):
+            m = masks[j] if masks is not None else None
             out = scene.render(cam, background=bg, check_finite=False)["color"].clamp(0, 1)
-            per.append((psnr(out, img), float(ssim(out, img))))
+            per.append((psnr(out, img, m), float(ssim(out, img, mask=m))))
         return {"psnr": sum(p for p, _ in per) / len(per), "ssim": sum(s for _, s in per) / len(per),
                 "per_view": per}
 
@@ -221,6 +281,11 @@ class Trainer:
         extra = {"config": self.cfg.to_dict(), "stats": self.stats.state_dict(), "active_sh": self.active_sh,
                  "generator": self.gen.get_state(), "order": list(self._order), "extent": self.extent,
                  "history": self.history, "elapsed": self.elapsed, "finetune": self.finetune}
+        if self.opt.trainable is not None:
+            extra["trainable"] = self.opt.trainable
+        if self.appearance is not None:
+            extra["appearance"] = self.appearance.state_dict()
+            extra["appearance_optimizer"] = self.appearance_optimizer.state_dict()
         save_checkpoint(path, self.scene, self.optimizer, self.step, extra)
         self.checkpoint_step = self.step
 
@@ -233,6 +298,7 @@ class Trainer:
         self.extent = float(ex.get("extent", self.extent))
         self.active_sh = int(ex.get("active_sh", self.active_sh))
         self.finetune = bool(ex.get("finetune", self.finetune))
+        self._trainable = ex["trainable"].to(self.device) if "trainable" in ex else None
         self._build_optimizer()
         if ck["optimizer"] is not None:
             self.optimizer.load_state_dict(ck["optimizer"])
@@ -242,4 +308,7 @@ class Trainer:
         self._order = list(ex.get("order", []))
         self.history = list(ex.get("history", []))
         self.elapsed = float(ex.get("elapsed", 0.0))
+        if self.appearance is not None and "appearance" in ex:
+            self.appearance.load_state_dict(ex["appearance"])
+            self.appearance_optimizer.load_state_dict(ex["appearance_optimizer"])
         log.info("resumed from %s at step %d (%d Gaussians)", path, self.step, len(self.scene))

@@ -1,4 +1,5 @@
-"""Rendering: the public rasterizer and its float64 dense reference."""
-from .rasterize import RasterDefaults, camera_center, rasterize_gaussians
+"""Rendering: cameras, the public rasterizer and its float64 dense reference."""
+from .camera import Camera, Distortion
+from .rasterize import RasterDefaults, camera_center, rasterize_gaussians, sh_colors
 
-__all__ = ["rasterize_gaussians", "RasterDefaults", "camera_center"]
+__all__ = ["rasterize_gaussians", "RasterDefaults", "camera_center", "sh_colors", "Camera", "Distortion"]

@@ -1,14 +1,19 @@
 """The public rasterization entry point: projection → (SH) → tile binning → compositing."""
 from __future__ import annotations
 
-from typing import Optional
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
 
 import torch
 from torch import Tensor
 
-import tiger.ops  # noqa: F401  (registers torch.ops.tiger)
+from tiger.ops.binning import bin_gaussians
+from tiger.ops.projection import project_gaussians
+from tiger.ops.raster import rasterize
+from tiger.ops.sh import sh_to_color
 
-__all__ = ["rasterize_gaussians", "RasterDefaults"]
+__all__ = ["rasterize_gaussians", "RasterDefaults", "RasterSettings", "Projection", "project_for_raster",
+           "composite", "camera_center", "sh_colors"]
 
 
 class RasterDefaults:
@@ -21,6 +26,35 @@ class RasterDefaults:
     alpha_threshold: float = 1.0 / 255.0
     t_min: float = 1e-4
     tile_size: int = 16
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """The rasterizer's accuracy and speed keywords (see :func:`rasterize_gaussians`)."""
+
+    near: float = RasterDefaults.near
+    far: float = RasterDefaults.far
+    eps2d: float = RasterDefaults.eps2d
+    antialiased: bool = False
+    alpha_max: float = RasterDefaults.alpha_max
+    alpha_threshold: float = RasterDefaults.alpha_threshold
+    t_min: float = RasterDefaults.t_min
+    tile_size: int = RasterDefaults.tile_size
+    check_finite: bool = True
+
+
+class Projection(NamedTuple):
+    """One view's projected Gaussians, what :func:`composite` draws: means2d [N, 2] px, conics
+    [N, 3], depths [N], opacities [N] (antialiasing applied), radii [N, 2] int32, features
+    [N, C] (SH already evaluated), background [C] or None."""
+
+    means2d: Tensor
+    conics: Tensor
+    depths: Tensor
+    opacities: Tensor
+    radii: Tensor
+    features: Tensor
+    background: Optional[Tensor]
 
 
 _NAME = "tiger.rasterize_gaussians"
@@ -90,6 +124,23 @@ def camera_center(viewmat: Tensor) -> Tensor:
     return -(R.transpose(0, 1) @ t)
 
 
+def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
+              visible: Optional[Tensor] = None) -> Tensor:
+    """[N, 3] RGB of each Gaussian seen from the camera of ``viewmat``: max(SH(dir) + 0.5, 0).
+
+    The one SH→RGB step of the renderer (INRIA's convention), differentiable.
+
+    Args:
+        means: [N, 3] world-space centres.
+        sh: [N, K, 3] coefficients (INRIA order, DC first), K >= (sh_degree + 1)^2.
+        viewmat: [4, 4] world→camera (its centre gives each Gaussian's view direction).
+        sh_degree: bands evaluated, 0..3.
+        visible: [N] bool; rows that are False get colour max(0.5, 0) and no gradient.
+    """
+    dirs = means - camera_center(viewmat.to(means))
+    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible) + 0.5, 0.0)
+
+
 def rasterize_gaussians(
     means: Tensor,
     quats: Tensor,
@@ -149,6 +200,21 @@ def rasterize_gaussians(
         When only ``colors``/``background`` require grad, the backward runs the features-only
         kernel (no geometry gradient is computed).
     """
+    settings = RasterSettings(near=near, far=far, eps2d=eps2d, antialiased=antialiased,
+                              alpha_max=alpha_max, alpha_threshold=alpha_threshold, t_min=t_min,
+                              tile_size=tile_size, check_finite=check_finite)
+    p = project_for_raster(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                           background=background, sh_degree=sh_degree, settings=settings)
+    return composite(p, width, height, settings)
+
+
+def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                       colors: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, *,
+                       background: Optional[Tensor] = None, sh_degree: Optional[int] = None,
+                       settings: RasterSettings = RasterSettings()) -> Projection:
+    """The first half of :func:`rasterize_gaussians` (same arguments, checked the same way):
+    projection and the SH colour step. Batched renders project every view first, so that
+    a tensor stacking the views' ``means2d`` can sit in the graph (see ``render_views``)."""
     _check_tensor(means, "means", (None, 3))
     n = means.shape[0]
     if means.dtype not in (torch.float32, torch.float64):
@@ -178,46 +244,48 @@ def rasterize_gaussians(
     if colors.dtype != means.dtype and not half_colors:
         raise TypeError(f"{_NAME}: colors has dtype {colors.dtype} but means has {means.dtype} "
                         "(float16/bfloat16 colors are accepted with float32 geometry)")
-    if means.is_cuda and not 1 <= int(tile_size) <= 16:
-        raise ValueError(f"{_NAME}: the CUDA kernels take tile_size in [1, 16], got {tile_size}")
+    if means.is_cuda and not 1 <= int(settings.tile_size) <= 16:
+        raise ValueError(f"{_NAME}: the CUDA kernels take tile_size in [1, 16], got {settings.tile_size}")
     width, height = _check_size(width, height)
     channels = 3 if sh_degree is not None else colors.shape[1]
     if background is not None:
         _check_tensor(background, "background", (channels,), means)
         background = background.to(means.dtype)
-    if check_finite:
+    if settings.check_finite:
         _check_finite({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
                        "colors": colors, "viewmat": viewmat, "K": K, "background": background})
         _check_values(quats, scales, opacities)
     viewmat = viewmat.to(means.dtype)
     K = K.to(means.dtype)
 
-    means2d, conics, depths, opac, radii = torch.ops.tiger.project_gaussians(
-        means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
-        viewmat.contiguous(), K.contiguous(), width, height, float(eps2d), float(near), float(far),
-        float(alpha_threshold), bool(antialiased))
+    means2d, conics, depths, opac, radii = project_gaussians(
+        means, quats, scales, opacities, viewmat, K, width, height, settings.eps2d, settings.near,
+        settings.far, settings.alpha_threshold, settings.antialiased)
     visible = radii[:, 0] > 0
 
     if sh_degree is not None:
-        dirs = means - camera_center(viewmat)
-        rgb = torch.ops.tiger.sh_to_color(dirs.contiguous(), colors.contiguous(), int(sh_degree),
-                                          visible)
-        feats = torch.clamp_min(rgb + 0.5, 0.0)
+        feats = sh_colors(means, colors, viewmat, int(sh_degree), visible)
     elif half_colors and not colors.is_cuda:
         feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:
         # CUDA reads float16/bfloat16 channels directly and accumulates in float32.
         feats = colors.contiguous()
+    return Projection(means2d, conics, depths, opac, radii, feats, background)
 
+
+def composite(p: Projection, width: int, height: int,
+              settings: RasterSettings = RasterSettings()) -> dict[str, Tensor]:
+    """The second half of :func:`rasterize_gaussians`: tile binning and compositing of a
+    :class:`Projection`; returns the rasterizer's dict."""
+    width, height = int(width), int(height)
+    means2d, conics, depths, opac, radii, feats, background = p
     with torch.no_grad():
-        tile_offsets, gaussian_ids = torch.ops.tiger.bin_gaussians(
-            means2d.detach(), conics.detach(), opac.detach(), depths.detach(), radii, width,
-            height, int(tile_size), float(alpha_threshold))
+        tile_offsets, gaussian_ids = bin_gaussians(means2d, conics, opac, depths, radii, width,
+                                                   height, settings.tile_size, settings.alpha_threshold)
 
-    color, alpha, depth_accum, _, _ = torch.ops.tiger.rasterize(
-        means2d, conics, opac, feats, depths,
-        background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
-        width, height, int(tile_size), float(alpha_max), float(alpha_threshold), float(t_min))
+    color, alpha, depth_accum, _, _ = rasterize(
+        means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,
+        height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min)
     covered = alpha > 0
     depth = torch.where(covered, depth_accum / torch.where(covered, alpha, torch.ones_like(alpha)),
                         torch.zeros_like(alpha))

@@ -10,6 +10,10 @@ from typing import TYPE_CHECKING, Optional, Sequence, Union
 import torch
 from torch import Tensor
 
+from tiger.ops.sh import sh_to_color
+
+from .camera import Camera
+
 if TYPE_CHECKING:
     from tiger.scene import GaussianScene
 
@@ -42,34 +46,60 @@ def pinhole_K(width: int, height: int, fov_y_deg: float = 45.0) -> Tensor:
 
 def orbit_viewmats(n: int, center: Sequence[float] = (0.0, 0.0, 0.0), radius: float = 3.0,
                    elevation_deg: float = 25.0, start_deg: float = 0.0,
-                   up: Sequence[float] = (0.0, -1.0, 0.0)) -> list[Tensor]:
+                   up: Sequence[float] = (0.0, -1.0, 0.0), front: Optional[Sequence[float]] = None,
+                   arc_deg: Optional[float] = None) -> list[Tensor]:
     """``n`` world→camera [4,4] matrices evenly spaced on a circle around ``center``,
-    ``elevation_deg`` above its horizontal plane (the plane normal to ``up``)."""
+    ``elevation_deg`` above its horizontal plane (the plane normal to ``up``).
+
+    Angle 0 lies towards ``front`` [3] (its part in that plane; default world x, or z when up
+    is near x). With ``arc_deg`` the views spread over an arc of that many degrees centred on
+    angle ``start_deg`` (first and last view at its ends) instead of the whole circle.
+    """
     c = torch.tensor(center, dtype=torch.float64)
     u = torch.tensor(up, dtype=torch.float64)
     u = u / u.norm()
-    a = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-    if abs(float(a @ u)) > 0.9:
-        a = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    e1 = a - (a @ u) * u
+    e1 = None
+    if front is not None:
+        f = torch.as_tensor(front, dtype=torch.float64).cpu()
+        e1 = f - (f @ u) * u
+        if float(e1.norm()) < 1e-6 * float(f.norm()):  # front along up: any horizontal axis
+            e1 = None
+    if e1 is None:
+        a = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+        if abs(float(a @ u)) > 0.9:
+            a = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        e1 = a - (a @ u) * u
     e1 = e1 / e1.norm()
     e2 = torch.linalg.cross(u, e1)
     el = math.radians(elevation_deg)
     out = []
     for i in range(n):
-        t = math.radians(start_deg) + 2 * math.pi * i / n
+        if arc_deg is None:
+            t = math.radians(start_deg) + 2 * math.pi * i / n
+        else:
+            t = math.radians(start_deg) + math.radians(arc_deg) * ((i / (n - 1) - 0.5) if n > 1 else 0.0)
         eye = c + radius * (math.cos(el) * (math.cos(t) * e1 + math.sin(t) * e2) + math.sin(el) * u)
         out.append(look_at(eye.tolist(), c.tolist(), u.tolist()))
     return out
 
 
-def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0, **orbit) -> list:
-    """``tiger.scene.Camera`` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
-    from tiger.scene.cameras import Camera
-
+def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0,
+                  **orbit: float | Sequence[float]) -> list[Camera]:
+    """:class:`Camera` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
     K = pinhole_K(width, height, fov_y_deg)
     return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=f"orbit{i:03d}")
             for i, V in enumerate(orbit_viewmats(n, **orbit))]
+
+
+def orbit_cameras_around(points: Tensor, n: int, width: int, height: int, fov_y_deg: float = 45.0,
+                         **orbit: float | Sequence[float]) -> list[Camera]:
+    """``n`` orbit cameras (:func:`orbit_cameras`) around the bulk of ``points`` [P, 3]: centred on
+    the middle of their 2%-98% quantile box, at 1.1 x that box's diagonal (outliers ignored).
+    ``orbit``: the other keywords of :func:`orbit_viewmats` (elevation_deg, up, front, arc_deg, ...)."""
+    m = points.detach().float().cpu()
+    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
+    return orbit_cameras(n, width, height, fov_y_deg, center=((lo + hi) / 2).tolist(),
+                         radius=max(float((hi - lo).norm()) * 1.1, 1e-3), **orbit)
 
 
 # -- views for scenes of a capture (forward-facing or not) ------------------------------------
@@ -134,8 +164,8 @@ def observed_direction(scene: "GaussianScene", candidates: int = 64) -> Optional
         dirs = fibonacci_directions(candidates).float().to(sh.device)
         scores = []
         for d in dirs:
-            view = (-d).expand(sh.shape[0], 3).contiguous()
-            rgb = torch.ops.tiger.sh_to_color(view, sh.contiguous(), scene.sh_degree, None) + 0.5
+            view = (-d).expand(sh.shape[0], 3)
+            rgb = sh_to_color(view, sh, scene.sh_degree) + 0.5
             outside = (rgb - 1).clamp_min(0) + (-rgb).clamp_min(0)
             scores.append(float((outside.sum(1) * w).sum() / w.sum().clamp_min(1e-12)))
     sc = torch.tensor(scores, dtype=torch.float64)
@@ -149,38 +179,15 @@ def observed_direction(scene: "GaussianScene", candidates: int = 64) -> Optional
 
 def observed_orbit_cameras(scene: "GaussianScene", n: int, width: int, height: int, *,
                            arc_deg: float = 120.0, elevation_deg: float = 15.0,
-                           up: Sequence[float] = (0.0, -1.0, 0.0), fov_y_deg: float = 45.0) -> list:
+                           up: Sequence[float] = (0.0, -1.0, 0.0), fov_y_deg: float = 45.0) -> list[Camera]:
     """``n`` views on an arc of ``arc_deg`` around the observed side of a scene with no cameras.
 
-    The centre and radius come from the 2-98 % quantiles of the means (radius 1.1 times the
-    box diagonal); the arc is centred on :func:`observed_direction` (the full circle when the
+    The centre and radius are :func:`orbit_cameras_around`'s (the 2-98 % quantile box of the
+    means); the arc is centred on :func:`observed_direction` (the full circle when the
     scene's colours do not say: SH degree 0), ``elevation_deg`` above the plane normal to
     ``up`` (the COLMAP/OpenCV habit: -y).
     """
-    m = scene.means.detach().float().cpu()
-    lo, hi = torch.quantile(m, 0.02, dim=0), torch.quantile(m, 0.98, dim=0)
-    center, radius = ((lo + hi) / 2).double(), max(float((hi - lo).norm()) * 1.1, 1e-3)
     front = observed_direction(scene)
-    u = torch.tensor(up, dtype=torch.float64)
-    u = u / u.norm()
-    if front is None:
-        return orbit_cameras(n, width, height, fov_y_deg, center=center.tolist(), radius=radius,
-                             elevation_deg=elevation_deg, up=u.tolist())
-    e1 = front - (front @ u) * u  # the front direction in the horizontal plane
-    if float(e1.norm()) < 1e-6:  # seen from straight above or below: any horizontal axis
-        e1 = torch.linalg.cross(u, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
-        if float(e1.norm()) < 1e-6:
-            e1 = torch.linalg.cross(u, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(u, e1)
-    el = math.radians(elevation_deg)
-    K = pinhole_K(width, height, fov_y_deg)
-    from tiger.scene.cameras import Camera
-
-    cams = []
-    for i in range(n):
-        t = math.radians(arc_deg) * ((i / (n - 1) - 0.5) if n > 1 else 0.0)
-        eye = center + radius * (math.cos(el) * (math.cos(t) * e1 + math.sin(t) * e2) + math.sin(el) * u)
-        cams.append(Camera(viewmat=look_at(eye.tolist(), center.tolist(), u.tolist()), K=K.clone(),
-                           width=width, height=height, image_name=f"orbit{i:03d}"))
-    return cams
+    arc = {} if front is None else {"front": front.tolist(), "arc_deg": arc_deg}
+    return orbit_cameras_around(scene.means, n, width, height, fov_y_deg, elevation_deg=elevation_deg,
+                                up=up, **arc)

@@ -6,9 +6,11 @@ from .maps import (relevancy_maps, render_language, render_rgb, save_heatmap, sa
 from .relevance import DEFAULT_TEMPERATURE, relevancy
 from .select import (Retrieval, choose_tau, min_error_threshold, otsu_threshold, retrieve, robust_bounds,
                      subset, valley_threshold)
-from .text import CANONICAL_NEGATIVES, TextEncoder, embed_negatives, embed_queries, pca_of, project
+from .text import (CANONICAL_NEGATIVES, EmbeddingTable, TextEncoder, UnknownTextError, embed_negatives,
+                   embed_queries, pca_of, project)
 
-__all__ = ["CANONICAL_NEGATIVES", "DEFAULT_TEMPERATURE", "Retrieval", "TextEncoder", "choose_tau",
+__all__ = ["CANONICAL_NEGATIVES", "DEFAULT_TEMPERATURE", "EmbeddingTable", "Retrieval", "TextEncoder",
+           "UnknownTextError", "choose_tau",
            "embed_negatives", "embed_queries", "min_error_threshold", "otsu_threshold", "pca_of", "project", "relevancy",
            "relevancy_maps", "render_language", "render_rgb", "retrieve", "robust_bounds",
            "save_heatmap", "save_relevancy_picture", "subset", "valley_threshold", "write_relevancy_pictures"]

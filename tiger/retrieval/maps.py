@@ -3,59 +3,40 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 from pathlib import Path
-from typing import Any, Optional, Sequence, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
 
-from tiger.utils.io import atomic_write
+from tiger.scene import Camera, GaussianScene
+from tiger.scene.gaussian_scene import RasterOption
+from tiger.utils.io import atomic_write, file_slug
 
 from .relevance import DEFAULT_TEMPERATURE, relevancy
-from .text import CANONICAL_NEGATIVES, Query, TextEncoder, embed_negatives, embed_queries
+from .text import CANONICAL_NEGATIVES, PCASource, Query, TextEncoder, embed_negatives, embed_queries
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
 
 
-def _render(scene: Any, camera: Any, colors: torch.Tensor, **kwargs: Any) -> dict:
-    from tiger import rasterize_gaussians
-
-    means = scene.means.detach()
-    return rasterize_gaussians(
-        means=means, quats=scene.quats.detach(), scales=scene.scales.detach(),
-        opacities=scene.opacities.detach(), colors=colors.to(means.dtype),
-        viewmat=torch.as_tensor(camera.viewmat).to(means), K=torch.as_tensor(camera.K).to(means),
-        width=int(camera.width), height=int(camera.height), **kwargs)
-
-
-def render_language(scene: Any, camera: Any, **kwargs: Any) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render the language features: ([H, W, D] features, [H, W] alpha); background 0.
-
-    ``scene`` needs ``means, quats, scales, opacities, lang``; ``camera`` ``viewmat, K, width, height``.
-    """
-    if getattr(scene, "lang", None) is None:
+def render_language(scene: GaussianScene, camera: Camera,
+                    **options: RasterOption) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render the language features: ([H, W, D] features, [H, W] alpha); background 0, no grad."""
+    if scene.lang is None:
         raise ValueError("tiger.retrieval: the scene has no language features to render (scene.lang)")
     with torch.no_grad():
-        out = _render(scene, camera, scene.lang.detach(), **kwargs)
+        out = scene.render(camera, "lang", **options)
     return out["color"], out["alpha"]
 
 
-def render_rgb(scene: Any, camera: Any) -> Optional[torch.Tensor]:
-    """[H, W, 3] colour render for the picture background, or None when the scene has no colour."""
+def render_rgb(scene: GaussianScene, camera: Camera) -> torch.Tensor:
+    """[H, W, 3] SH colour render in [0, 1], the picture behind a heat-map (no grad)."""
     with torch.no_grad():
-        sh = getattr(scene, "sh", None)
-        if torch.is_tensor(sh) and sh.dim() == 3:  # a GaussianScene: SH colour of every band
-            return _render(scene, camera, sh.detach(), sh_degree=int(scene.sh_degree))["color"].clamp(0, 1)
-        if getattr(scene, "colors", None) is not None:
-            return _render(scene, camera, scene.colors.detach())["color"].clamp(0, 1)
-        if hasattr(scene, "render"):
-            return scene.render(camera)["color"].clamp(0, 1)
-    return None
+        return scene.render(camera)["color"].clamp(0, 1)
 
 
-def relevancy_maps(scene: Any, camera: Any, queries: torch.Tensor, negatives: Optional[torch.Tensor] = None,
+def relevancy_maps(scene: GaussianScene, camera: Camera, queries: torch.Tensor, negatives: Optional[torch.Tensor] = None,
                    *, temperature: float = DEFAULT_TEMPERATURE) -> dict[str, Optional[torch.Tensor]]:
     """Per-pixel cosine and LERF relevancy of the rendered language features.
 
@@ -129,10 +110,6 @@ def save_heatmap(path: PathLike, values: torch.Tensor, image: Optional[torch.Ten
     return path
 
 
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")[:80] or "query"
-
-
 # Layout of :func:`save_relevancy_picture` (pixels): a title strip, then the panels side by side.
 TITLE_H, GAP, BAR_W, LABEL_W = 14, 6, 12, 40
 EMPTY = (0, 0, 0)  # heat-panel pixels with no Gaussian behind them
@@ -178,8 +155,9 @@ def save_relevancy_picture(path: PathLike, values: torch.Tensor, alpha: torch.Te
     return path
 
 
-def write_relevancy_pictures(scene: Any, cameras: Sequence[Any], query: Query, out_dir: PathLike, *,
-                             encoder: Optional[TextEncoder] = None, pca: Any = None,
+def write_relevancy_pictures(scene: GaussianScene, cameras: Sequence[Camera], query: Query,
+                             out_dir: PathLike, *, encoder: Optional[TextEncoder] = None,
+                             pca: PCASource = None,
                              negatives: Union[None, Sequence[str], torch.Tensor] = CANONICAL_NEGATIVES,
                              score: str = "relevancy", temperature: float = DEFAULT_TEMPERATURE,
                              names: Optional[Sequence[str]] = None) -> list[Path]:
@@ -204,11 +182,11 @@ def write_relevancy_pictures(scene: Any, cameras: Sequence[Any], query: Query, o
     out_dir = Path(out_dir)
     paths = []
     for i, cam in enumerate(cameras):
-        view = names[i] if names is not None else (getattr(cam, "image_name", "") or f"view{i:03d}")
+        view = names[i] if names is not None else (cam.image_name or f"view{i:03d}")
         maps = relevancy_maps(scene, cam, q[:1], neg, temperature=temperature)
         vals = maps["relevancy"][0] if score == "relevancy" else maps["cosine"][0]
         vmin, vmax = (0.5, 1.0) if score == "relevancy" else (-1.0, 1.0)
-        p = out_dir / f"{_slug(text)}_{_slug(Path(view).stem)}.png"
+        p = out_dir / f"{file_slug(text)}_{file_slug(Path(view).stem)}.png"
         save_relevancy_picture(p, vals, maps["alpha"], render_rgb(scene, cam), vmin=vmin, vmax=vmax,
                                title=f"'{text}' ({score})")
         paths.append(p)

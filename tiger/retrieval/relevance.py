@@ -5,7 +5,7 @@ from typing import Optional
 
 import torch
 
-import tiger.ops  # noqa: F401  (registers torch.ops.tiger.relevancy)
+from tiger.ops.relevancy import relevancy_scores
 
 #: LERF's softmax temperature.
 DEFAULT_TEMPERATURE = 10.0
@@ -51,7 +51,7 @@ def relevancy(features: torch.Tensor, positives: torch.Tensor, negatives: Option
     flat = features.reshape(-1, d)
     pos = positives.to(device=features.device)
     neg = negatives.to(device=features.device)
-    cos, rel = torch.ops.tiger.relevancy(flat, pos, neg, float(temperature), 1e-12)
+    cos, rel = relevancy_scores(flat, pos, neg, temperature)
     q = pos.shape[0]
     cos = cos.reshape(*lead, q)
     rel = rel.reshape(*lead, q) if neg.shape[0] > 0 else None

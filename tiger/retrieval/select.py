@@ -2,14 +2,15 @@
 from __future__ import annotations
 
 import logging
-import types
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Optional, Sequence, Union
+from typing import NamedTuple, Optional, Sequence, Union
 
 import torch
 
+from tiger.scene import GaussianScene
+
 from .relevance import DEFAULT_TEMPERATURE, relevancy
-from .text import CANONICAL_NEGATIVES, Query, TextEncoder, embed_negatives, embed_queries
+from .text import CANONICAL_NEGATIVES, PCASource, Query, TextEncoder, embed_negatives, embed_queries
 
 log = logging.getLogger(__name__)
 
@@ -233,32 +234,27 @@ class Retrieval:
     def count(self) -> int:
         return int(self.mask.sum())
 
-    def subscene(self, scene: Any) -> Any:
-        """The selected Gaussians as a scene (``scene.subset(mask)`` when the scene has it)."""
-        return subset(scene, self.mask)
+    def subscene(self, scene: GaussianScene) -> GaussianScene:
+        """The selected Gaussians of ``scene`` as a scene of their own."""
+        return scene.subset(self.mask)
 
 
-def subset(scene: Any, mask: torch.Tensor) -> Any:
-    """``scene.subset(mask)``; for plain objects, a namespace with every [N, ...] tensor indexed."""
-    if hasattr(scene, "subset"):
-        return scene.subset(mask)
-    n = mask.shape[0]
-    fields = {k: (v.detach()[mask.to(v.device)] if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == n else v)
-              for k, v in vars(scene).items()}
-    return types.SimpleNamespace(**fields)
+def subset(scene: GaussianScene, mask: torch.Tensor) -> GaussianScene:
+    """``scene.subset(mask)``: the Gaussians where ``mask`` [N] bool is True."""
+    return scene.subset(mask)
 
 
-def _features_of(scene: Any) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+def _features_of(scene: Union[GaussianScene, torch.Tensor]) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
     if torch.is_tensor(scene):
         return scene, None
-    lang = getattr(scene, "lang", None)
-    if lang is None:
+    if scene.lang is None:
         raise ValueError("tiger.retrieval: the scene has no language features (scene.lang is None): "
                          "train them with tiger.language.train_field")
-    return lang, getattr(scene, "means", None)
+    return scene.lang, scene.means
 
 
-def retrieve(scene: Any, query: Query, *, encoder: Optional[TextEncoder] = None, pca: Any = None,
+def retrieve(scene: Union[GaussianScene, torch.Tensor], query: Query, *,
+             encoder: Optional[TextEncoder] = None, pca: PCASource = None,
              negatives: Union[None, Sequence[str], torch.Tensor] = CANONICAL_NEGATIVES,
              score: str = "cosine", tau: Tau = "auto", temperature: float = DEFAULT_TEMPERATURE,
              quantiles: tuple[float, float] = (0.02, 0.98), check_finite: bool = True) -> Retrieval:

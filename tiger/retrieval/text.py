@@ -8,9 +8,16 @@ testable without CLIP weights.
 """
 from __future__ import annotations
 
-from typing import Any, Optional, Protocol, Sequence, Union
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Mapping, Optional, Protocol, Sequence, Union
 
 import torch
+
+from tiger.utils.io import atomic_torch_save
+
+if TYPE_CHECKING:
+    from tiger.scene import GaussianScene
 
 #: LERF's canonical negative phrases for the relevancy score.
 CANONICAL_NEGATIVES: tuple[str, ...] = ("object", "things", "stuff", "texture")
@@ -24,7 +31,83 @@ class TextEncoder(Protocol):
     def encode_text(self, texts: Sequence[str]) -> torch.Tensor: ...
 
 
-def pca_of(source: Any) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+class PCAComponents(Protocol):
+    """A fitted PCA (``tiger.language.PCABasis``): ``components`` [F, D] and ``mean`` [F]."""
+
+    components: torch.Tensor
+    mean: torch.Tensor
+
+
+#: Where a PCA basis can be read from (see :func:`pca_of`).
+PCASource = Union[None, "GaussianScene", PCAComponents, tuple[torch.Tensor, torch.Tensor],
+                  Mapping[str, torch.Tensor]]
+
+
+class UnknownTextError(KeyError, ValueError):
+    """A text that an :class:`EmbeddingTable` has no embedding for (a KeyError and a ValueError)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class EmbeddingTable:
+    """A text encoder over a fixed table ``{text: [F] embedding}``: ``encode_text`` looks up.
+
+    Stands in for CLIP wherever embeddings were computed elsewhere (``--text-embeddings``
+    files) or are made up (synthetic scenes, the demo without CLIP weights).
+
+    Args:
+        table: text -> embedding (any shape with F elements; stored as float32 [F]).
+        source: how errors name the table (e.g. its file).
+        fold_case: look texts up lower-cased and stripped (the table's keys are folded too).
+        hint: appended to the error for an unknown text.
+    """
+
+    def __init__(self, table: Mapping[str, torch.Tensor], *, source: str = "the text-embedding table",
+                 fold_case: bool = False, hint: str = "") -> None:
+        if not table:
+            raise ValueError(f"tiger: {source} is empty: expected {{text: [F] tensor}}")
+        self.source, self.fold_case, self.hint = source, fold_case, hint
+        self.table: dict[str, torch.Tensor] = {}
+        for k, v in table.items():
+            if not isinstance(k, str) or not torch.is_tensor(v):
+                raise ValueError(f"tiger: {source} must map texts to tensors, got "
+                                 f"{type(k).__name__} -> {type(v).__name__}")
+            self.table[self._key(k)] = v.detach().to(torch.float32).reshape(-1)
+        sizes = {v.shape[0] for v in self.table.values()}
+        if len(sizes) != 1:
+            raise ValueError(f"tiger: {source} mixes embedding sizes {sorted(sizes)}")
+
+    def _key(self, text: str) -> str:
+        return text.lower().strip() if self.fold_case else text
+
+    @classmethod
+    def load(cls, path: Union[str, os.PathLike], *, fold_case: bool = False,
+             hint: str = "") -> "EmbeddingTable":
+        """Read a ``torch.save``-d ``{text: [F] tensor}`` file."""
+        d = torch.load(str(path), map_location="cpu", weights_only=True)
+        if not isinstance(d, dict):
+            raise ValueError(f"tiger: {path} must hold a dict {{text: [F] tensor}}, got {type(d).__name__}")
+        return cls(d, source=str(path), fold_case=fold_case, hint=hint)
+
+    def save(self, path: Union[str, os.PathLike]) -> Path:
+        """Write the table as a ``torch.save``-d dict, atomically (what :meth:`load` reads)."""
+        atomic_torch_save(dict(self.table), path)
+        return Path(path)
+
+    def __contains__(self, text: str) -> bool:
+        return self._key(text) in self.table
+
+    def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
+        """[Q, F] float32 embeddings of ``texts``; an unknown text raises :class:`UnknownTextError`."""
+        missing = [t for t in texts if self._key(t) not in self.table]
+        if missing:
+            raise UnknownTextError(f"no embedding for {missing} in {self.source} (it has "
+                                   f"{sorted(self.table)[:20]}){self.hint}")
+        return torch.stack([self.table[self._key(t)] for t in texts])
+
+
+def pca_of(source: PCASource) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
     """The (basis [F, D], mean [F]) PCA pair of a scene, a PCA object or a tuple; None if absent.
 
     Accepts a scene with ``lang_pca_basis``/``lang_pca_mean``, a ``tiger.language.PCABasis``
@@ -67,7 +150,7 @@ def project(embeddings: torch.Tensor, basis: torch.Tensor, mean: torch.Tensor) -
 
 
 def embed_queries(query: Query, *, dim: int, encoder: Optional[TextEncoder] = None,
-                  pca: Any = None) -> torch.Tensor:
+                  pca: PCASource = None) -> torch.Tensor:
     """Text or embeddings -> [Q, dim] float32 unit vectors in the language space.
 
     Args:
@@ -107,7 +190,7 @@ def embed_queries(query: Query, *, dim: int, encoder: Optional[TextEncoder] = No
 
 
 def embed_negatives(negatives: Union[None, Sequence[str], torch.Tensor], *, dim: int,
-                    encoder: Optional[TextEncoder] = None, pca: Any = None) -> torch.Tensor:
+                    encoder: Optional[TextEncoder] = None, pca: PCASource = None) -> torch.Tensor:
     """The canonical negatives ([M, dim]); ``None`` -> an empty [0, dim] (cosine only).
 
     Strings need ``encoder``; tensors are treated like query embeddings.

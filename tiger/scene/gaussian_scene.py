@@ -4,16 +4,22 @@ from __future__ import annotations
 import copy
 import math
 import os
-from typing import TYPE_CHECKING, Any, Iterable, Optional, Sequence, Union
+from typing import Any, Iterable, Literal, Optional, Sequence, Union
 
 import torch
 
+from tiger.render.camera import Camera
+from tiger.render.rasterize import Projection, RasterSettings, composite, project_for_raster, sh_colors
+
+from .ply import read_ply_state, write_ply_state
 from .sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh, sh_degree_from_rest, sh_to_rgb
 
-if TYPE_CHECKING:
-    from .cameras import Camera
-
 PathLike = Union[str, os.PathLike]
+#: What :meth:`GaussianScene.render` draws: SH colour (None/"rgb"), language features, both, or
+#: any per-Gaussian channels [N, C].
+ColorSpec = Union[None, Literal["rgb", "lang", "rgb+lang"], torch.Tensor]
+#: A rasterizer keyword's value (near, far, eps2d, antialiased, tile_size, check_finite, ...).
+RasterOption = Union[float, int, bool]
 
 #: Per-Gaussian tensors, in the order used by optimizers and files.
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "lang")
@@ -102,6 +108,23 @@ class GaussianScene:
         sh_dc = rgb_to_sh(colors.to(points))
         sh_rest = points.new_zeros((P, num_sh_bases(sh_degree) - 1, 3))
         return cls(points.clone(), log_s, quats, op, sh_dc, sh_rest)
+
+    @classmethod
+    def from_values(cls, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                    opacities: torch.Tensor, rgb: torch.Tensor, lang: Optional[torch.Tensor] = None,
+                    metadata: Optional[dict] = None) -> "GaussianScene":
+        """A degree-0 scene from rendered values rather than stored parameters.
+
+        Args:
+            means: [N, 3]; quats: [N, 4] (w, x, y, z); scales: [N, 3] linear standard deviations
+                (> 0); opacities: [N] in (0, 1); rgb: [N, 3] colours in [0, 1];
+            lang: [N, D] language embeddings or None.
+        The stored parameters are log(scales), logit(opacities) and rgb_to_sh(rgb).
+        """
+        if not bool((scales > 0).all()):
+            raise ValueError("tiger: GaussianScene.from_values needs scales > 0")
+        return cls(means, torch.log(scales), quats, inverse_sigmoid(opacities), rgb_to_sh(rgb),
+                   lang=lang, metadata=metadata)
 
     @classmethod
     def random_in_box(cls, n: int, lo: Sequence[float], hi: Sequence[float], sh_degree: int = 3,
@@ -325,66 +348,62 @@ class GaussianScene:
         return groups
 
     # -- rendering ----------------------------------------------------------------------
-    def render(self, camera: "Camera", *, background: Optional[torch.Tensor] = None,
-               sh_degree: Optional[int] = None, features: str = "rgb", **kwargs: Any) -> dict:
+    def render(self, camera: Camera, colors: ColorSpec = None, *,
+               background: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None,
+               **options: RasterOption) -> dict[str, torch.Tensor]:
         """Render the scene from ``camera`` with :func:`tiger.rasterize_gaussians`.
 
         Args:
             camera: the view (its viewmat and K are cast to the scene's dtype/device).
+            colors: what each Gaussian carries into the image:
+                ``None`` or ``"rgb"``: its SH colour for this view ([H, W, 3]);
+                ``"lang"``: its language embedding ([H, W, D]);
+                ``"rgb+lang"``: both in one pass ([H, W, 3 + D]);
+                a tensor [N, C]: any per-Gaussian channels (gradients flow into it).
             background: [C] colour behind the Gaussians (default zeros).
-            sh_degree: SH bands used for ``rgb`` (default: all of the scene's).
-            features: ``"rgb"`` (SH colour, [H, W, 3]), ``"lang"`` ([H, W, D] language
-                features, rendered as plain colours) or ``"rgb+lang"`` (one pass, [H, W, 3 + D]).
-            **kwargs: passed on (near, far, eps2d, antialiased, ...).
+            sh_degree: SH bands used for the colour (default: all of the scene's).
+            **options: rasterizer keywords (near, far, eps2d, antialiased, check_finite, ...).
         Returns:
             the rasterizer's dict: 'color' [H, W, C], 'alpha' [H, W], 'depth' [H, W],
-            'radii' [N], 'means2d' [N, 2].
+            'depth_accum' [H, W], 'radii' [N], 'means2d' [N, 2], 'conics' [N, 3], 'depths' [N],
+            'n_isects' (int). Differentiable w.r.t. the scene's tensors and a ``colors`` tensor.
         """
-        from tiger.render import rasterize_gaussians
+        p = _project_each(self, [camera], colors, background, sh_degree, options)[0]
+        return composite(p, camera.width, camera.height, _settings(options))
 
-        cam = camera.to(device=self.device, dtype=self.dtype)
-        common = dict(means=self.means, quats=self.quats, scales=self.scales,
-                      opacities=self.opacities, viewmat=cam.viewmat, K=cam.K,
-                      width=cam.width, height=cam.height, background=background)
+    def view_colors(self, camera: Camera, sh_degree: Optional[int] = None) -> torch.Tensor:
+        """[N, 3] RGB of each Gaussian seen from ``camera``: max(SH(dir) + 0.5, 0), the
+        rasterizer's own SH step (:func:`tiger.render.sh_colors`, differentiable)."""
+        deg = self._check_sh_degree(sh_degree)
+        return sh_colors(self.means, self.sh[:, : num_sh_bases(deg)],
+                         camera.viewmat.to(self.means), deg)
+
+    def _check_sh_degree(self, sh_degree: Optional[int]) -> int:
         deg = self.sh_degree if sh_degree is None else int(sh_degree)
         if not 0 <= deg <= self.sh_degree:
             raise ValueError(f"tiger: render sh_degree must be in 0..{self.sh_degree}, got {deg}")
-        if features == "rgb":
-            sh = self.sh[:, : num_sh_bases(deg)]
-            return rasterize_gaussians(colors=sh, sh_degree=deg, **common, **kwargs)
-        if features in ("lang", "rgb+lang"):
-            if self.lang is None:
-                raise ValueError(f"tiger: render(features='{features}'): the scene has no language features")
-            if features == "lang":
-                return rasterize_gaussians(colors=self.lang, **common, **kwargs)
-            return rasterize_gaussians(colors=torch.cat([self.view_colors(cam, deg), self.lang], 1),
-                                       **common, **kwargs)
-        raise ValueError(f"tiger: render features must be 'rgb', 'lang' or 'rgb+lang', got '{features}'")
-
-    def view_colors(self, camera: "Camera", sh_degree: Optional[int] = None) -> torch.Tensor:
-        """[N, 3] RGB of each Gaussian seen from ``camera``: max(SH(dir) + 0.5, 0), the
-        rasterizer's own SH op (differentiable)."""
-        import tiger.ops  # noqa: F401  (registers torch.ops.tiger)
-
-        deg = self.sh_degree if sh_degree is None else int(sh_degree)
-        vm = camera.viewmat.to(self.means)
-        dirs = self.means + (vm[:3, :3].T @ vm[:3, 3])  # means - camera centre
-        rgb = torch.ops.tiger.sh_to_color(dirs.contiguous(), self.sh.contiguous(), deg, None)
-        return torch.clamp_min(rgb + 0.5, 0.0)
+        return deg
 
     # -- files ----------------------------------------------------------------------------
     @classmethod
-    def load_ply(cls, path: PathLike, **kwargs: Any) -> "GaussianScene":
-        """Read an INRIA-layout 3DGS PLY (see :func:`tiger.scene.ply.read_ply`)."""
-        from .ply import read_ply
+    def load_ply(cls, path: PathLike, allow_nonfinite: bool = False,
+                 dtype: torch.dtype = torch.float32) -> "GaussianScene":
+        """Read a 3DGS PLY (INRIA, gsplat, nerfstudio, SuperSplat... exports; see
+        :func:`tiger.scene.ply.read_ply_state`): ``lang`` when ``lang_*`` properties exist, PCA
+        data from the sidecar ``<stem>.lang_pca.npz``, metadata from the header comment.
 
-        return read_ply(path, **kwargs)
+        Raises:
+            SceneFormatError naming the file and the missing or malformed property.
+        """
+        return cls.from_state_dict(read_ply_state(path, allow_nonfinite=allow_nonfinite, dtype=dtype))
 
-    def save_ply(self, path: PathLike, **kwargs: Any) -> None:
-        """Write an INRIA-layout 3DGS PLY atomically (see :func:`tiger.scene.ply.write_ply`)."""
-        from .ply import write_ply
-
-        write_ply(self, path, **kwargs)
+    def save_ply(self, path: PathLike, include_language: bool = True,
+                 include_metadata: bool = True) -> None:
+        """Write an INRIA-layout binary PLY (float32), atomically (see
+        :func:`tiger.scene.ply.write_ply_state`); ``include_language=False`` leaves out
+        ``lang_*`` for viewers that need INRIA's exact vertex size."""
+        write_ply_state(self.detach().to("cpu", torch.float32).state_dict(), path,
+                        include_language=include_language, include_metadata=include_metadata)
 
     def state_dict(self) -> dict[str, Any]:
         """Plain dict of tensors + metadata (for checkpoints)."""
@@ -405,6 +424,101 @@ class GaussianScene:
         lang = f", lang={self.lang.shape[1]}" if self.lang is not None else ""
         return (f"GaussianScene(N={len(self)}, sh_degree={self.sh_degree}{lang}, "
                 f"dtype={self.dtype}, device={self.device})")
+
+
+def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec = None, *,
+                 background: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None,
+                 **options: RasterOption) -> dict[str, torch.Tensor]:
+    """Render ``scene`` from V cameras of one image size; the outputs are stacked.
+
+    ``colors``, ``background``, ``sh_degree`` and ``options`` are those of
+    :meth:`GaussianScene.render` (one ``colors`` tensor [N, C] serves every view). The scene's
+    activations (scales, opacities) are computed once for all views, so gradients of a loss
+    over the V renders reach the scene's tensors and ``colors`` through one graph.
+
+    Returns:
+        dict with 'color' [V, H, W, C], 'alpha' [V, H, W], 'depth' [V, H, W],
+        'depth_accum' [V, H, W], 'radii' [V, N] int32, 'means2d' [V, N, 2] (``retain_grad()``
+        gives the per-view screen-space gradients), 'conics' [V, N, 3], 'depths' [V, N],
+        'n_isects' [V] int64. View v equals ``scene.render(cameras[v], ...)``.
+    """
+    cameras = list(cameras)
+    if not cameras:
+        raise ValueError("tiger: render_views needs at least one camera")
+    size = (cameras[0].width, cameras[0].height)
+    for i, cam in enumerate(cameras):
+        if (cam.width, cam.height) != size:
+            raise ValueError(f"tiger: render_views stacks views of one size: camera {i} "
+                             f"('{cam.image_name}') is {cam.width}x{cam.height}, camera 0 is "
+                             f"{size[0]}x{size[1]}")
+    projections = _project_each(scene, cameras, colors, background, sh_degree, options)
+    # Composite from slices of one stacked means2d, so that its retain_grad() sees every view.
+    means2d = torch.stack([p.means2d for p in projections])
+    settings = _settings(options)
+    outs = [composite(p._replace(means2d=m), size[0], size[1], settings)
+            for p, m in zip(projections, means2d.unbind(0))]
+    stacked = {k: torch.stack([o[k] for o in outs]) for k in outs[0] if k not in ("n_isects", "means2d")}
+    stacked["means2d"] = means2d
+    stacked["n_isects"] = torch.tensor([o["n_isects"] for o in outs], dtype=torch.int64)
+    return stacked
+
+
+def _settings(options: dict[str, RasterOption]) -> RasterSettings:
+    try:
+        return RasterSettings(**options)
+    except TypeError:
+        known = sorted(RasterSettings.__dataclass_fields__)
+        raise TypeError(f"tiger: render got unknown rasterizer keyword(s) {sorted(set(options) - set(known))}; "
+                        f"known: {known}") from None
+
+
+def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec,
+                  background: Optional[torch.Tensor], sh_degree: Optional[int],
+                  options: dict[str, RasterOption]) -> list[Projection]:
+    """Each camera's projection, sharing the activated geometry and the colour input."""
+    settings = _settings(options)
+    deg = scene._check_sh_degree(sh_degree)
+    n = len(scene)
+    raster_deg: Optional[int] = None
+    per_view_rgb = False
+    if colors is None or (isinstance(colors, str) and colors == "rgb"):
+        feats, raster_deg = scene.sh[:, : num_sh_bases(deg)], deg
+    elif isinstance(colors, str) and colors in ("lang", "rgb+lang"):
+        if scene.lang is None:
+            raise ValueError(f"tiger: render(colors='{colors}'): the scene has no language features")
+        feats, per_view_rgb = scene.lang, colors == "rgb+lang"
+    elif isinstance(colors, torch.Tensor):
+        if colors.dim() != 2 or colors.shape[0] != n:
+            raise ValueError(f"tiger: render colors must be a per-Gaussian tensor [N={n}, C], got "
+                             f"{list(colors.shape)}")
+        feats = colors
+    else:
+        raise ValueError("tiger: render colors must be None, 'rgb', 'lang', 'rgb+lang' or a tensor "
+                         f"[N, C], got {colors!r}")
+    means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
+    sh = scene.sh[:, : num_sh_bases(deg)] if per_view_rgb else None
+    out = []
+    for camera in cameras:
+        cam = camera.to(device=scene.device, dtype=scene.dtype)
+        view_feats = feats
+        if per_view_rgb:
+            view_feats = torch.cat([sh_colors(means, sh, cam.viewmat, deg), feats], 1)
+        out.append(project_for_raster(means, quats, scales, opacities, view_feats, cam.viewmat, cam.K,
+                                      cam.width, cam.height, background=background,
+                                      sh_degree=raster_deg, settings=settings))
+    return out
+
+
+def read_ply(path: PathLike, allow_nonfinite: bool = False,
+             dtype: torch.dtype = torch.float32) -> GaussianScene:
+    """:meth:`GaussianScene.load_ply` as a function."""
+    return GaussianScene.load_ply(path, allow_nonfinite=allow_nonfinite, dtype=dtype)
+
+
+def write_ply(scene: GaussianScene, path: PathLike, include_language: bool = True,
+              include_metadata: bool = True) -> None:
+    """:meth:`GaussianScene.save_ply` as a function."""
+    scene.save_ply(path, include_language=include_language, include_metadata=include_metadata)
 
 
 def knn_mean_distance(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tensor:
@@ -433,5 +547,5 @@ def knn_mean_distance(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> to
     return torch.cat(out).to(points.dtype)
 
 
-__all__ = ["GaussianScene", "PARAM_NAMES", "DEFAULT_LRS", "inverse_sigmoid", "knn_mean_distance",
+__all__ = ["GaussianScene", "read_ply", "write_ply", "ColorSpec", "RasterOption", "render_views", "PARAM_NAMES", "DEFAULT_LRS", "inverse_sigmoid", "knn_mean_distance",
            "MAX_SH_DEGREE"]

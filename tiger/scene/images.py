@@ -75,18 +75,37 @@ def undistort_image(image: torch.Tensor, K: torch.Tensor, d: Distortion) -> torc
     if image.ndim != 3:
         raise ValueError(f"tiger: undistort_image expects [H, W, C], got {list(image.shape)}")
     H, W, _ = image.shape
-    Kd = K.double()
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5,
-                          torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")
-    xy = torch.stack([(u - Kd[0, 2]) / Kd[0, 0], (v - Kd[1, 2]) / Kd[1, 1]], -1)
-    xyd = distort_points(xy, d)
-    us = xyd[..., 0] * Kd[0, 0] + Kd[0, 2]
-    vs = xyd[..., 1] * Kd[1, 1] + Kd[1, 2]
+    us, vs = _undistortion_sources(H, W, K, d)
     # grid_sample with align_corners=False: -1 and +1 are the outer pixel edges.
     grid = torch.stack([us / W * 2 - 1, vs / H * 2 - 1], -1).float()[None]
     src = image.permute(2, 0, 1)[None].float()
     out = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     return out[0].permute(1, 2, 0).to(image.dtype if image.is_floating_point() else torch.float32)
+
+
+def _undistortion_sources(H: int, W: int, K: torch.Tensor, d: Distortion) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each pinhole pixel centre of an [H, W] image lands in the distorted file:
+    (u [H, W], v [H, W]) in pixels, float64."""
+    Kd = K.double()
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5,
+                          torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")
+    xy = torch.stack([(u - Kd[0, 2]) / Kd[0, 0], (v - Kd[1, 2]) / Kd[1, 1]], -1)
+    xyd = distort_points(xy, d)
+    return xyd[..., 0] * Kd[0, 0] + Kd[0, 2], xyd[..., 1] * Kd[1, 1] + Kd[1, 2]
+
+
+def undistortion_valid_mask(camera: Camera, downscale: float = 1.0) -> torch.Tensor:
+    """[h, w] bool: the pixels of ``camera``'s undistorted image at ``1/downscale`` (as
+    :func:`load_image` makes it) that are fully inside the distorted file, i.e. not in the
+    black border that undistortion leaves. All True for a camera without distortion."""
+    target = camera.scaled(downscale)
+    if camera.distortion is None:
+        return torch.ones(target.height, target.width, dtype=torch.bool)
+    us, vs = _undistortion_sources(camera.height, camera.width, camera.K, camera.distortion)
+    # bilinear sampling reads the two pixel centres around a source point: both must exist
+    inside = (us >= 0.5) & (us <= camera.width - 0.5) & (vs >= 0.5) & (vs <= camera.height - 0.5)
+    frac = resize_image(inside.float()[..., None], target.width, target.height)[..., 0]
+    return frac >= 1.0 - 1e-6
 
 
 def resize_image(image: torch.Tensor, width: int, height: int) -> torch.Tensor:

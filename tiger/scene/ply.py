@@ -28,8 +28,10 @@ import torch
 from tiger.utils.io import atomic_write
 
 from .errors import SceneFormatError
-from .gaussian_scene import GaussianScene
 from .sh import num_sh_bases, sh_degree_from_rest
+
+#: The tensors of a scene by name, plus "metadata" (``GaussianScene.state_dict`` form).
+SceneState = dict[str, Union[torch.Tensor, dict, None]]
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -284,17 +286,20 @@ def _indexed(props: dict, prefix: str) -> list:
     return [n for _, n in found]
 
 
-def read_ply(path: PathLike, allow_nonfinite: bool = False,
-             dtype: torch.dtype = torch.float32) -> GaussianScene:
-    """Load a 3DGS PLY (INRIA, gsplat, nerfstudio, SuperSplat... exports).
+def read_ply_state(path: PathLike, allow_nonfinite: bool = False,
+                   dtype: torch.dtype = torch.float32) -> SceneState:
+    """Read a 3DGS PLY (INRIA, gsplat, nerfstudio, SuperSplat... exports) into a scene's tensors
+    (``GaussianScene.load_ply`` / :func:`tiger.scene.read_ply` build the scene from them).
 
     Args:
         path: the ``.ply`` file.
         allow_nonfinite: keep NaN/Inf values instead of raising.
-        dtype: floating dtype of the returned scene.
+        dtype: floating dtype of the tensors.
     Returns:
-        the scene; ``lang`` when ``lang_*`` properties exist; PCA data from the sidecar
-        ``<stem>.lang_pca.npz`` when present; metadata from the ``tiger_metadata`` comment.
+        ``means`` [N, 3], ``log_scales`` [N, 3], ``quats`` [N, 4], ``opacity_logits`` [N],
+        ``sh_dc`` [N, 3], ``sh_rest`` [N, K, 3], ``lang`` [N, D] when ``lang_*`` properties
+        exist (else None), ``lang_pca_basis`` [F, D] / ``lang_pca_mean`` [F] from the sidecar
+        ``<stem>.lang_pca.npz`` when present, ``metadata`` from the ``tiger_metadata`` comment.
     Raises:
         SceneFormatError naming the file and the missing or malformed property.
     """
@@ -361,7 +366,9 @@ def read_ply(path: PathLike, allow_nonfinite: bool = False,
         if lang is not None and basis.shape[1] != lang.shape[1]:
             raise SceneFormatError(side, f"basis maps to {basis.shape[1]} dims but the PLY has "
                                          f"{lang.shape[1]} lang_* properties", "basis")
-    return GaussianScene(means, log_scales, quats, opacity, sh_dc, sh_rest, lang, basis, mean, metadata)
+    return {"means": means, "log_scales": log_scales, "quats": quats, "opacity_logits": opacity,
+            "sh_dc": sh_dc, "sh_rest": sh_rest, "lang": lang, "lang_pca_basis": basis,
+            "lang_pca_mean": mean, "metadata": metadata}
 
 
 def _read_pca(path: Path, dtype: torch.dtype) -> tuple:
@@ -385,24 +392,27 @@ def ply_property_names(sh_degree: int, lang_dim: int = 0) -> list:
             + ["rot_0", "rot_1", "rot_2", "rot_3"] + [f"lang_{i}" for i in range(lang_dim)])
 
 
-def write_ply(scene: GaussianScene, path: PathLike, include_language: bool = True,
-              include_metadata: bool = True) -> None:
-    """Write ``scene`` as an INRIA-layout binary PLY (float32), atomically.
+def write_ply_state(state: SceneState, path: PathLike, include_language: bool = True,
+                    include_metadata: bool = True) -> None:
+    """Write a scene's tensors (as :func:`read_ply_state` returns them, float32 on the CPU) as an
+    INRIA-layout binary PLY, atomically (``GaussianScene.save_ply`` converts and calls this).
 
     Args:
-        scene: the scene (any dtype/device; values are converted to float32).
+        state: ``means`` [N, 3], ``log_scales`` [N, 3], ``quats`` [N, 4], ``opacity_logits`` [N],
+            ``sh_dc`` [N, 3], ``sh_rest`` [N, K, 3], ``lang`` [N, D] or None, ``lang_pca_basis``
+            / ``lang_pca_mean`` or None, ``metadata`` dict.
         path: destination ``.ply``.
         include_language: also write ``lang_*`` (and the PCA sidecar) when present; turn
             off for viewers that require INRIA's exact vertex size (SIBR).
         include_metadata: write the ``tiger_metadata`` comment.
     """
     path = Path(path)
-    s = scene.detach().to("cpu", torch.float32)
-    N, K = len(s), s.sh_rest.shape[1]
-    lang = s.lang if (include_language and s.lang is not None) else None
-    names = ply_property_names(s.sh_degree, 0 if lang is None else lang.shape[1])
-    cols = [s.means, torch.zeros_like(s.means), s.sh_dc,
-            s.sh_rest.transpose(1, 2).reshape(N, 3 * K), s.opacity_logits[:, None], s.log_scales, s.quats]
+    means, sh_rest = state["means"], state["sh_rest"]
+    N, K = means.shape[0], sh_rest.shape[1]
+    lang = state["lang"] if include_language else None
+    names = ply_property_names(sh_degree_from_rest(K), 0 if lang is None else lang.shape[1])
+    cols = [means, torch.zeros_like(means), state["sh_dc"], sh_rest.transpose(1, 2).reshape(N, 3 * K),
+            state["opacity_logits"][:, None], state["log_scales"], state["quats"]]
     if lang is not None:
         cols.append(lang)
     table = torch.cat(cols, 1).contiguous().numpy()
@@ -410,8 +420,8 @@ def write_ply(scene: GaussianScene, path: PathLike, include_language: bool = Tru
     rec = np.empty(N, dtype=np.dtype([(n, "<f4") for n in names]))
     rec.view("<f4").reshape(N, len(names))[:] = table
     header = ["ply", "format binary_little_endian 1.0"]
-    if include_metadata and s.metadata:
-        meta = json.dumps(s.metadata, separators=(",", ":"), ensure_ascii=True)
+    if include_metadata and state["metadata"]:
+        meta = json.dumps(state["metadata"], separators=(",", ":"), ensure_ascii=True)
         header.append(f"comment {_META_PREFIX}{meta}")
     header.append(f"element vertex {N}")
     header += [f"property float {n}" for n in names]
@@ -420,8 +430,8 @@ def write_ply(scene: GaussianScene, path: PathLike, include_language: bool = Tru
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rec.tobytes())
     side = lang_pca_path(path)
-    if lang is not None and s.lang_pca_basis is not None:
+    if lang is not None and state["lang_pca_basis"] is not None:
         with atomic_write(side, "wb") as fh:
-            np.savez(fh, basis=s.lang_pca_basis.numpy(), mean=s.lang_pca_mean.numpy())
+            np.savez(fh, basis=state["lang_pca_basis"].numpy(), mean=state["lang_pca_mean"].numpy())
     elif side.exists():
         side.unlink()  # a stale basis from an earlier save would be mis-attributed

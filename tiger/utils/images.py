@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from .io import atomic_write
+from .pca import fit_pca
 
 
 def to_uint8(img: Union[Tensor, np.ndarray]) -> np.ndarray:
@@ -74,8 +75,6 @@ def feature_pca_image(features: Tensor, mask: Optional[Tensor] = None,
 
 
 def pca_basis(x: Tensor, k: int) -> Tensor:
-    """Top-k principal directions [D,k] of rows x [M,D] (deterministic sign)."""
-    xc = x - x.mean(0)
-    _, _, vh = torch.linalg.svd(xc[: min(len(xc), 200_000)], full_matrices=False)
-    b = vh[:k].T
-    return b * torch.sign(b.sum(0, keepdim=True) + 1e-12)
+    """Top-k principal directions [D,k] of rows x [M,D] (deterministic sign; the first 200k rows
+    are enough for a picture)."""
+    return fit_pca(x[:200_000], min(k, x.shape[1]))[1].to(device=x.device, dtype=x.dtype)

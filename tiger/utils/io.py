@@ -54,3 +54,9 @@ def atomic_torch_save(obj: object, path: PathLike) -> None:
     """``torch.save`` through :func:`atomic_write`."""
     with atomic_write(path, "wb") as fh:
         torch.save(obj, fh)
+
+
+def file_slug(text: str, default: str = "query", max_len: int = 80) -> str:
+    """``text`` as a file-name part: every character that is not a letter or digit becomes '_',
+    leading/trailing '_' dropped, at most ``max_len`` characters; ``default`` when nothing is left."""
+    return "".join(c if c.isalnum() else "_" for c in text).strip("_")[:max_len] or default

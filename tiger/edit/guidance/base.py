@@ -28,6 +28,7 @@ class ViewBatch:
             can cache per-camera work (e.g. the image-condition latents) across steps.
         step: the edit step (0-based) and ``total_steps``; schedules read them.
         object_center: [3] world position of the edited object's centre (MVDream's camera frame).
+        world_up: [3] the scene's up direction (MVDream's z axis); None: estimated from the cameras.
     """
 
     cameras: Sequence[Camera]
@@ -37,6 +38,7 @@ class ViewBatch:
     step: int = 0
     total_steps: int = 1
     object_center: Optional[torch.Tensor] = None
+    world_up: Optional[torch.Tensor] = None
 
 
 @dataclass

@@ -1,0 +1,177 @@
+"""The edit loop: total time, per-step breakdown and quality of a full edit.
+
+Scene: the demo tabletop at ``--density`` (1 = ~20k Gaussians, 15 = ~300k), language features from
+its labels (one fixed unit vector per object plus noise, as ``tiger demo`` builds them before
+training), target "ball" (cosine > 0.5 to its label vector).
+
+Guidances:
+  recolor        the built-in recolour ("make the ball red")
+  analytic       the ideal denoiser of a ground-truth recoloured scene (SPEC §8): reports the PSNR
+                 of the edited renders to the ground truth on the object's pixels (the error column)
+  ip2p+mvdream   CSD with InstructPix2Pix + MVDream; ``--random-models full|tiny`` builds randomly
+                 initialised models of the real architectures (same cost as the real weights) directly
+                 on the device (benchmarks/guidance.py's build_models), in ``--dtype``
+
+Per step: render (4 views + the 4 original renders the guidance is conditioned on), guidance,
+backward through the rasterizer, optimizer (relevance-scaled Adam), densification (amortised).
+Peak memory is torch.cuda.max_memory_allocated on CUDA.
+
+    python benchmarks/edit.py                                      # CPU, demo scene, recolor + analytic
+    python benchmarks/edit.py --device cuda --density 15 --guidance ip2p+mvdream --random-models full \\
+        --steps 1200 --size 512 --warmup 20 --cuda-graph         # or: bash benchmarks/gpu/edit.sh
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import print_table  # noqa: E402
+
+from tiger.demo.run import label_features  # noqa: E402
+from tiger.demo.scene import tabletop_scene  # noqa: E402
+from tiger.edit import EditConfig, edit, resolve_target  # noqa: E402
+from tiger.edit.guidance import IdealDenoiserGuidance, RecolorGuidance, render_targets  # noqa: E402
+from tiger.edit.views import ObjectViews  # noqa: E402
+from tiger.eval.edit import locality, render_rgb_and_footprint  # noqa: E402
+from tiger.scene import GaussianScene  # noqa: E402
+from tiger.scene.sh import rgb_to_sh  # noqa: E402
+
+RED = (0.86, 0.08, 0.08)
+
+
+def demo_scene(density: float, device: str) -> tuple[GaussianScene, torch.Tensor]:
+    """(scene with lang [N, 64], the ball's label vector [64])."""
+    lab = tabletop_scene(density)
+    s = lab.scene.with_sh_degree(3)
+    s.lang = label_features(lab)
+    g = torch.Generator().manual_seed(0)  # label_features' table (same seed, same draw)
+    table = torch.randn(len(lab.names), 64, generator=g)
+    query = table[lab.names.index("ball")] / table[lab.names.index("ball")].norm()
+    return s.to(device), query.to(device)
+
+
+def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cuda_graph: bool, seed: int = 0):
+    """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
+    SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py)."""
+    from guidance import build_models, tokenizer
+
+    from tiger.edit import CSDGuidance
+    from tiger.edit.guidance import InstructPix2PixGuidance, MVDreamGuidance
+
+    tok = tokenizer(Path("outputs/bench_edit_tokenizer"))
+    ip2p_models, mv_models = build_models(size, device, dtype, tok)
+    kw = {} if size == "full" else {"short_side": 64}
+    ip = InstructPix2PixGuidance(ip2p_models, "make the ball look like a watermelon", cuda_graph=cuda_graph,
+                                 generator=torch.Generator(device).manual_seed(seed), **kw) if "ip2p" in kind else None
+    mv = MVDreamGuidance(mv_models, "a watermelon", cuda_graph=cuda_graph, image_size=256 if size == "full" else 32,
+                         generator=torch.Generator(device).manual_seed(seed + 1)) if "mvdream" in kind else None
+    return CSDGuidance(ip, mv)
+
+
+def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
+    if kind == "recolor":
+        return RecolorGuidance("make the ball red"), None
+    if kind == "analytic":
+        truth = scene.clone()
+        truth.sh_dc[mask] = rgb_to_sh(torch.tensor(RED, device=scene.device)).expand(int(mask.sum()), 3)
+        return IdealDenoiserGuidance(render_targets(truth, torch.ones(3, device=scene.device))), truth
+    dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}[args.dtype]
+    return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph), None
+
+
+def run(args) -> dict:
+    dev = args.device
+    cuda = dev.startswith("cuda")
+    scene, query = demo_scene(args.density, dev)
+    tgt = resolve_target(scene, query, tau=0.5)
+    t0 = time.perf_counter()
+    guidance, truth = build(args.guidance, scene, tgt.mask, args)
+    build_s = time.perf_counter() - t0
+    cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
+                     densify_every=args.densify_every, densify_from=args.densify_every,
+                     background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0)
+    projected = None
+    if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
+        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        if cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        if cuda:
+            torch.cuda.synchronize()
+        per_step = (time.perf_counter() - t0) / args.warmup
+        projected = per_step * args.steps
+        if args.time_budget_s and projected > args.time_budget_s:  # keep within the device call
+            cfg = dataclasses.replace(cfg, steps=max(args.warmup, int(args.time_budget_s / per_step)))
+            print(f"projected {projected:.0f} s for {args.steps} steps > budget: timing {cfg.steps} steps", flush=True)
+    if cuda:
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    t0 = time.perf_counter()
+    res = edit(scene, "make the ball red", tgt, guidance, config=cfg)
+    if cuda:
+        torch.cuda.synchronize()
+    total = time.perf_counter() - t0
+    n = cfg.steps
+    row = {"device": dev, "gaussians": len(scene), "editable": tgt.count, "guidance": args.guidance,
+           "steps": n, "size": args.size, "models_build_s": build_s, "edit_s": total,
+           f"edit_{args.steps}_steps_s": total * args.steps / n}
+    if projected is not None:
+        row["warmup_projection_s"] = projected
+    for k, v in res.timings_s.items():
+        row[f"{k}_ms/step"] = 1e3 * v / n
+    row["other_ms/step"] = 1e3 * (total - sum(res.timings_s.values())) / n
+    if cuda:
+        row["peak_GiB"] = torch.cuda.max_memory_allocated() / 2**30
+    row["after"] = len(res.scene)
+    white = torch.ones(3, device=scene.device)
+    cams = ObjectViews(tgt.center, tgt.bbox_min, tgt.bbox_max, force_360=True, width=128, height=128).fixed(6, 15.0)
+    row["locality_dB"] = locality(scene, res.scene, cams, tgt.mask, res.editable, background=white)["psnr"]
+    if truth is not None or args.guidance == "recolor":
+        ref = truth if truth is not None else build("analytic", scene, tgt.mask, args)[1]
+        got, _ = render_rgb_and_footprint(res.scene, cams, res.editable, white)
+        want, foot = render_rgb_and_footprint(ref, cams, tgt.mask, white)
+        mse = float((got.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[foot > 0.5].mean())
+        row["object_PSNR_dB"] = -10 * math.log10(max(mse, 1e-12))
+    return row
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--density", type=float, default=1.0, help="demo scene density (15 = ~300k Gaussians)")
+    p.add_argument("--guidance", nargs="+", default=["recolor", "analytic"])
+    p.add_argument("--random-models", default="full", help="full | tiny: random diffusion models of that size")
+    p.add_argument("--dtype", default="bf16", help="diffusion models' dtype: bf16 | fp16 | fp32")
+    p.add_argument("--cuda-graph", action="store_true", help="replay each guidance step as a CUDA graph")
+    p.add_argument("--warmup", type=int, default=0, help="untimed warm-up steps before the timed edit")
+    p.add_argument("--time-budget-s", type=float, default=None,
+                   help="time fewer steps when the warm-up projects more than this (the row says so)")
+    p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--size", type=int, default=128)
+    p.add_argument("--lr-color", type=float, default=0.05)
+    p.add_argument("--densify-every", type=int, default=25)
+    p.add_argument("--progress", action="store_true")
+    p.add_argument("--json", default=None, help="also write the rows here")
+    args = p.parse_args()
+    rows = []
+    for kind in args.guidance:
+        a = argparse.Namespace(**{**vars(args), "guidance": kind})
+        rows.append(run(a))
+        print(json.dumps(rows[-1]), flush=True)
+        if args.json:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(rows, indent=2))
+    print_table(rows, "edit loop: time per stage (ms/step), total (s), quality (dB)")
+
+
+if __name__ == "__main__":
+    main()

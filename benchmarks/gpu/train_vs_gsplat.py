@@ -1,0 +1,136 @@
+"""Time per training iteration of our trainer with our rasteriser and with gsplat 1.5.3's
+swapped in, same process, same loop (issue 15, deliverable 3).
+
+The fox capture at full resolution (1080x1920, 43 training views), 1,000,000 Gaussians
+initialised at random in the views (tiger.recon's default initialisation), SH degree 3 active
+from the start, densification off so that every variant trains the same number of Gaussians.
+Each step is tiger.recon.Trainer.train_step (render, L1 + D-SSIM loss, backward, Adam); only
+``scene.render`` is swapped. Variants run in the order ours, gsplat (packed=False, its
+trainer's default), gsplat (packed=True), ours again; median wall ms per step after warm-up,
+and the GPU time of a step (sum of kernel times, profiler) with its costliest kernels, which
+tells the rasteriser's share of the step from the rest (loss, Adam, Python).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+
+def gsplat_renderer(scene, packed: bool):
+    """A drop-in for GaussianScene.render (the keys the trainer reads) backed by gsplat."""
+    from gsplat import rasterization
+
+    from tiger.scene.sh import num_sh_bases
+
+    def render(camera, *, sh_degree=None, background=None, **_):
+        deg = scene.sh_degree if sh_degree is None else int(sh_degree)
+        cam = camera.to(device=scene.device, dtype=scene.dtype)
+        col, alpha, meta = rasterization(
+            scene.means, scene.quats, scene.scales, scene.opacities, scene.sh[:, :num_sh_bases(deg)],
+            cam.viewmat[None], cam.K[None], cam.width, cam.height, sh_degree=deg, near_plane=0.01,
+            far_plane=1e10, eps2d=0.3, packed=packed, tile_size=16, rasterize_mode="classic")
+        color, alpha = col[0], alpha[0, ..., 0]
+        if background is not None:  # composited here: gsplat 1.5.3 rejected a [1, 3] background
+            color = color + (1 - alpha)[..., None] * background  # with packed=True on the H100
+        return {"color": color, "alpha": alpha, "means2d": meta["means2d"], "radii": meta["radii"]}
+    return render
+
+
+def time_steps(tr, steps: int, warmup: int) -> tuple[float, float]:
+    times = []
+    for i in range(warmup + steps):
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        info = tr.train_step()
+        torch.cuda.synchronize()
+        if i >= warmup:
+            times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times), info["psnr"]
+
+
+def step_profile(tr, steps: int = 3) -> tuple[float, list]:
+    """GPU ms per step (sum of kernel times) and the 12 costliest kernels, over ``steps``."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(steps):
+            tr.train_step()
+        torch.cuda.synchronize()
+    per: dict = {}
+    for e in prof.events():
+        if e.device_type == DeviceType.CUDA:
+            per[e.name] = per.get(e.name, 0.0) + e.time_range.elapsed_us() / 1e3 / steps
+    top = sorted(per.items(), key=lambda kv: -kv[1])[:12]
+    return sum(per.values()), [(round(ms, 3), name[:100]) for ms, name in ((v, k) for k, v in top)]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "fox")
+    p.add_argument("--gaussians", type=int, default=1_000_000)
+    p.add_argument("--steps", type=int, default=60)
+    p.add_argument("--warmup", type=int, default=10)
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args()
+    from tiger.recon import ReconConfig, Trainer, load_views
+    from tiger.scene.dataset import load_dataset
+
+    ds = load_dataset(args.data)
+    train_c, _ = ds.split(8)
+    out = Path("/tmp/tiger_fox_cache_full")
+    t0 = time.perf_counter()
+    cams, imgs = load_views(train_c, 1.0, cache_dir=out)
+    print(f"fox: {len(cams)} views at {cams[0].width}x{cams[0].height}, loaded in "
+          f"{time.perf_counter() - t0:.1f} s", flush=True)
+    cfg = ReconConfig(iterations=10**6, densify=False, init_random_points=args.gaussians,
+                      sh_degree=3, sh_increase_every=0, eval_every=0, progress=False)
+    tr = Trainer(cams, imgs, cfg, device="cuda")
+    tr.active_sh = 3
+    n = len(tr.scene)
+    print(f"{n} Gaussians, SH degree {tr.active_sh}", flush=True)
+    own_render = tr.scene.render
+    rows = []
+    variants = [("ours", None), ("gsplat packed=False", False), ("gsplat packed=True", True),
+                ("ours (again)", None)]
+    for name, packed in variants:
+        if packed is None:
+            tr.scene.render = own_render
+        else:
+            tr.scene.render = gsplat_renderer(tr.scene, packed)
+        torch.cuda.reset_peak_memory_stats()
+        ms, ps = time_steps(tr, args.steps, args.warmup)
+        gpu_ms, top = step_profile(tr)
+        rows.append({"variant": name, "ms_per_step": ms, "steps_per_s": 1e3 / ms,
+                     "peak_GiB": torch.cuda.max_memory_allocated() / 2**30, "psnr_last": ps,
+                     "gpu_ms_per_step": gpu_ms, "top_kernels": top})
+        print({k: v for k, v in rows[-1].items() if k != "top_kernels"}, flush=True)
+        for t in top:
+            print("   ", t, flush=True)
+    best_gs = min(r["ms_per_step"] for r in rows if r["variant"].startswith("gsplat"))
+    ours_ms = statistics.median([r["ms_per_step"] for r in rows if r["variant"].startswith("ours")])
+    print(f"\n== Training iteration at {cams[0].width}x{cams[0].height}, {n} Gaussians "
+          f"(median of {args.steps} steps after {args.warmup})")
+    print("| variant | ms / step | GPU ms / step (kernels) | steps / s | peak GiB |\n|---|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['variant']} | {r['ms_per_step']:.2f} | {r['gpu_ms_per_step']:.2f} | "
+              f"{r['steps_per_s']:.1f} | {r['peak_GiB']:.2f} |")
+    print(f"speed-up of ours over the faster gsplat variant: {best_gs / ours_ms:.2f}x")
+    if args.json:
+        args.json.write_text(json.dumps({"gaussians": n, "width": cams[0].width,
+                                         "height": cams[0].height, "rows": rows,
+                                         "speedup": best_gs / ours_ms}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,35 @@
+"""On a GPU: the CUDA-graph replay of a guidance step equals the eager step (same noise and t), also
+after the inputs change (the captured buffers are refilled), for both guidances."""
+import pytest
+import torch
+
+from tiger.edit.guidance import ViewBatch
+from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
+from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
+
+pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
+
+
+def _check(eager, graphed, renders_fn, views, lat, t_fn):
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        renders, t = renders_fn(), t_fn()
+        noise, vae_noise = torch.randn(lat, device="cuda"), torch.randn(lat, device="cuda")
+        a, _ = eager.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)
+        b, _ = graphed.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(a.abs().max())), (seed, float((a - b).abs().max()))
+
+
+def test_graph_equals_eager(tiny_models, ring_cameras):
+    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
+                      view_ids=torch.arange(4), object_center=torch.zeros(3))
+    ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
+    eager = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True)
+    graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)
+    _check(eager, graphed, lambda: torch.rand(4, 3, 16, 16, device="cuda"), views, (4, 4, 8, 8),
+           lambda: torch.randint(20, 201, (4,), device="cuda"))
+    mv = load_mvdream(tiny_models / "mvdream", device="cuda")
+    eager = MVDreamGuidance(mv, "a fox", image_size=16, keep_text_encoder=True)
+    graphed = MVDreamGuidance(mv, "a fox", image_size=16, cuda_graph=True)
+    _check(eager, graphed, lambda: torch.rand(4, 3, 16, 16, device="cuda"), views, (4, 4, 8, 8),
+           lambda: torch.randint(20, 201, (1,), device="cuda"))

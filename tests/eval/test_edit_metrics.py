@@ -1,0 +1,81 @@
+"""Edit metrics against hand-computed answers: CLIP direction similarity/consistency, locality PSNR."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tiger.eval.edit import (PSNR_CAP, clip_direction_consistency, clip_direction_similarity, dilate_mask,
+                             locality, psnr_outside)
+from tiger.render.views import orbit_cameras
+from tiger.scene import GaussianScene
+
+
+def _np_cos(a, b):
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def test_direction_similarity_matches_numpy():
+    g = torch.Generator().manual_seed(0)
+    ib, ia = torch.randn(3, 8, generator=g), torch.randn(3, 8, generator=g)
+    tb, ta = torch.randn(8, generator=g), torch.randn(8, generator=g)
+    got = clip_direction_similarity(ib, ia, tb, ta)
+    n = lambda v: v / np.linalg.norm(v)  # noqa: E731
+    for k in range(3):
+        want = _np_cos(n(ia[k].double().numpy()) - n(ib[k].double().numpy()), n(ta.double().numpy()) - n(tb.double().numpy()))
+        assert float(got[k]) == pytest.approx(want, abs=1e-9)
+    # an image change exactly along the caption change scores 1, the opposite -1
+    tb1, ta1 = torch.tensor([1.0, 0, 0]), torch.tensor([0.0, 1, 0])
+    assert float(clip_direction_similarity(tb1[None], ta1[None], tb1, ta1)[0]) == pytest.approx(1.0)
+    assert float(clip_direction_similarity(ta1[None], tb1[None], tb1, ta1)[0]) == pytest.approx(-1.0)
+
+
+def test_direction_consistency_matches_numpy():
+    g = torch.Generator().manual_seed(1)
+    b, a = torch.randn(4, 6, generator=g), torch.randn(4, 6, generator=g)
+    got = clip_direction_consistency(b, a)
+    bn = b.double().numpy() / np.linalg.norm(b.double().numpy(), axis=1, keepdims=True)
+    an = a.double().numpy() / np.linalg.norm(a.double().numpy(), axis=1, keepdims=True)
+    for i in range(3):
+        assert float(got[i]) == pytest.approx(_np_cos(an[i + 1] - an[i], bn[i + 1] - bn[i]), abs=1e-9)
+    # an edit that adds the same offset in every view keeps the path's direction: 1
+    same = clip_direction_consistency(b, b + 0.0)
+    assert torch.allclose(same, torch.ones(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="2 views"):
+        clip_direction_consistency(b[:1], a[:1])
+
+
+def test_dilate_and_psnr_outside():
+    m = torch.zeros(1, 9, 9, dtype=torch.bool)
+    m[0, 4, 4] = True
+    d = dilate_mask(m, 2)
+    assert int(d.sum()) == 25 and bool(d[0, 2:7, 2:7].all())
+    before = torch.rand(1, 9, 9, 3, generator=torch.Generator().manual_seed(2))
+    after = before.clone()
+    after[0, 3:6, 3:6] += 0.5  # inside the dilated mask only
+    assert psnr_outside(before, after, m, dilate_px=2)["psnr"] == PSNR_CAP
+    after[0, 0, 0] += 0.1  # one leaking pixel outside
+    r = psnr_outside(before, after, m, dilate_px=2)
+    mse = 0.1 ** 2 / (81 - 25)
+    assert r["pixels"] == 81 - 25 and r["mse"] == pytest.approx(mse, rel=1e-5)
+    assert r["psnr"] == pytest.approx(-10 * math.log10(mse), rel=1e-5)
+
+
+def _two_blobs():
+    means = torch.tensor([[-0.6, 0.0, 0.0], [0.6, 0.0, 0.0]]).repeat_interleave(50, 0)
+    means += 0.05 * torch.randn(means.shape, generator=torch.Generator().manual_seed(3))
+    s = GaussianScene.from_points(means, torch.full_like(means, 0.5), sh_degree=1, opacity=0.9,
+                                  scales=torch.full((100,), 0.05))
+    return s
+
+
+def test_locality_sees_leaks_only():
+    before = _two_blobs()
+    obj = torch.arange(100) < 50
+    cams = orbit_cameras(3, 64, 48, center=(0.0, 0.0, 0.0), radius=3.0, elevation_deg=10.0)
+    after = before.clone()
+    after.sh_dc[obj] += 1.0  # the object recoloured: nothing outside changes
+    assert locality(before, after, cams, obj, obj)["psnr"] == PSNR_CAP
+    after.sh_dc[~obj] += 2.0  # the other blob changes too: a leak
+    leak = locality(before, after, cams, obj, obj)
+    assert leak["psnr"] < 30

@@ -1,0 +1,126 @@
+"""The one render path: GaussianScene.render with any colours, and render_views over V cameras."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import tiger
+from tiger.render.reference import sh_to_color_ref
+from tiger.scene import Camera, GaussianScene, render_views
+from tiger.scene.cameras import intrinsics
+
+
+def _scene(n=40, degree=2, lang=6, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2 - 1
+    r = lambda *s: torch.randn(*s, generator=g, dtype=dtype)  # noqa: E731
+    return GaussianScene(r(n, 3) * 0.5, r(n, 3) * 0.3 - 2.3, r(n, 4), r(n) + 1, r(n, 3),
+                         r(n, k, 3) * 0.2, r(n, lang) if lang else None)
+
+
+def _camera(angle: float, w=24, h=18) -> Camera:
+    """A camera 3 units from the origin, turned ``angle`` radians about the y axis, facing it."""
+    c, s = torch.cos(torch.tensor(angle, dtype=torch.float64)), torch.sin(torch.tensor(angle, dtype=torch.float64))
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3] = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64)
+    vm[2, 3] = 3.0
+    return Camera(vm, intrinsics(22.0, 22.0, w / 2, h / 2), w, h, image_name=f"cam{angle:.2f}")
+
+
+KEYS = ("color", "alpha", "depth", "depth_accum", "radii", "means2d", "conics", "depths")
+
+
+def test_render_with_a_colour_tensor_is_the_rasterizer():
+    s = _scene(dtype=torch.float32)
+    cam = _camera(0.3)
+    cols = torch.rand(len(s), 5, generator=torch.Generator().manual_seed(1))
+    bg = torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5])
+    out = s.render(cam, cols, background=bg, eps2d=0.2)
+    ref = tiger.rasterize_gaussians(s.means, s.quats, torch.exp(s.log_scales),
+                                    torch.sigmoid(s.opacity_logits), cols, cam.viewmat.float(),
+                                    cam.K.float(), cam.width, cam.height, background=bg, eps2d=0.2)
+    for k in KEYS:
+        assert torch.equal(out[k], ref[k]), k
+    assert out["n_isects"] == ref["n_isects"] > 0 and out["alpha"].max() > 0.3
+
+
+def test_render_view_colors_are_the_sh_colour():
+    s = _scene()
+    cam = _camera(0.5)
+    dirs = s.means - cam.center
+    want = (sh_to_color_ref(dirs, s.sh, 1) + 0.5).clamp_min(0)
+    torch.testing.assert_close(s.view_colors(cam, 1), want, rtol=1e-12, atol=1e-12)
+    # the SH render and a render of those colours as plain channels are the same picture
+    torch.testing.assert_close(s.render(cam, "rgb", sh_degree=1)["color"],
+                               s.render(cam, s.view_colors(cam, 1))["color"], rtol=1e-12, atol=1e-12)
+    both = s.render(cam, "rgb+lang", sh_degree=1)["color"]
+    assert torch.equal(both[..., 3:], s.render(cam, torch.cat([s.view_colors(cam, 1), s.lang], 1))["color"][..., 3:])
+
+
+def test_render_views_equals_per_camera_renders():
+    s = _scene()
+    cams = [_camera(a) for a in (0.0, 0.4, -0.7, 1.1)]
+    for colors in (None, "lang", "rgb+lang", torch.rand(len(s), 3, dtype=torch.float64)):
+        out = render_views(s, cams, colors, sh_degree=1)
+        assert out["color"].shape[:3] == (4, 18, 24) and out["radii"].shape == (4, len(s))
+        for v, cam in enumerate(cams):
+            one = s.render(cam, colors, sh_degree=1)
+            for k in KEYS:
+                assert torch.equal(out[k][v], one[k]), (colors, k, v)
+            assert int(out["n_isects"][v]) == one["n_isects"]
+
+
+def test_render_views_gradients_agree_with_per_camera_renders():
+    cams = [_camera(a) for a in (0.0, 0.6, -0.9, 1.3)]
+    weights = torch.rand(4, 18, 24, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+
+    def grads(batched: bool, colors_kind: str):
+        s = _scene(seed=3)
+        s.parameter_groups()
+        cols = torch.rand(len(s), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+        cols.requires_grad_(True)
+        colors = cols if colors_kind == "tensor" else None
+        if batched:
+            out = render_views(s, cams, colors)
+            out["means2d"].retain_grad()
+            loss = (out["color"] * weights).sum() + out["depth"].sum()
+            loss.backward()
+            m2d = out["means2d"].grad
+        else:
+            loss, parts = 0.0, []
+            for v, cam in enumerate(cams):
+                o = s.render(cam, colors)
+                o["means2d"].retain_grad()
+                parts.append(o["means2d"])
+                loss = loss + (o["color"] * weights[v]).sum() + o["depth"].sum()
+            loss.backward()
+            m2d = torch.stack([p.grad for p in parts])
+        g = {k: t.grad for k, t in s.params().items()}
+        g["means2d"] = m2d
+        if colors_kind == "tensor":
+            g["colors"] = cols.grad
+        return g
+
+    for kind in ("sh", "tensor"):
+        a, b = grads(True, kind), grads(False, kind)
+        assert set(a) == set(b)
+        for k in a:
+            if a[k] is None:
+                assert b[k] is None, k
+                continue
+            assert a[k].abs().max() > 0 or k == "lang", (kind, k)
+            torch.testing.assert_close(a[k], b[k], rtol=1e-10, atol=1e-12, msg=f"{kind} {k}")
+
+
+def test_render_views_checks_its_inputs():
+    s = _scene()
+    with pytest.raises(ValueError, match="camera 1 .* is 30x18"):
+        render_views(s, [_camera(0.0), _camera(0.2, w=30)])
+    with pytest.raises(ValueError, match="at least one camera"):
+        render_views(s, [])
+    with pytest.raises(ValueError, match=r"colors must be a per-Gaussian tensor \[N=40, C\], got \[39, 3\]"):
+        s.render(_camera(0.0), torch.zeros(39, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="'depth'"):
+        s.render(_camera(0.0), "depth")
+    with pytest.raises(ValueError, match="no language features"):
+        _scene(lang=0).render(_camera(0.0), "lang")

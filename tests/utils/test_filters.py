@@ -1,0 +1,38 @@
+"""The one Gaussian blur: every method and padding against scipy's 1-D correlation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import correlate1d
+
+from tiger.utils.filters import gaussian_blur
+
+
+def _scipy_blur(x: np.ndarray, size: int, sigma: float, mode: str) -> np.ndarray:
+    r = np.arange(size) - (size - 1) / 2
+    w = np.exp(-r * r / (2 * sigma * sigma))
+    w /= w.sum()
+    # torch's "reflect" (no edge repeat) is scipy's "mirror"; zero padding is "constant".
+    y = correlate1d(x, w, axis=-1, mode=mode, cval=0.0)
+    return correlate1d(y, w, axis=-2, mode=mode, cval=0.0)
+
+
+@pytest.mark.parametrize("padding,mode", [("zeros", "constant"), ("reflect", "mirror")])
+def test_blur_matches_scipy_for_every_method(padding, mode):
+    x = torch.rand(2, 3, 13, 17, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    want = torch.from_numpy(_scipy_blur(x.numpy(), 5, 1.0, mode))
+    methods = ["conv", "shift", "auto"] + (["matmul"] if padding == "zeros" else [])
+    for m in methods:
+        torch.testing.assert_close(gaussian_blur(x, 5, 1.0, method=m, padding=padding), want,
+                                   rtol=0, atol=1e-14, msg=m)
+
+
+def test_blur_errors_name_the_problem():
+    x = torch.zeros(1, 1, 8, 8)
+    with pytest.raises(ValueError, match="padding must be"):
+        gaussian_blur(x, padding="wrap")
+    with pytest.raises(ValueError, match="zero padding only"):
+        gaussian_blur(x, method="matmul", padding="reflect")
+    with pytest.raises(ValueError, match=r"\[B, C, H, W\]"):
+        gaussian_blur(torch.zeros(8, 8))

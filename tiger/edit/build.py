@@ -1,0 +1,64 @@
+"""Build a guidance by name for the CLI and the notebooks: ``recolor``, ``ip2p``, ``mvdream``, ``ip2p+mvdream``."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Union
+
+import torch
+
+from .csd import CSDGuidance, CSDSchedule
+from .guidance.base import Guidance
+from .guidance.recolor import RecolorGuidance
+
+KINDS = ("recolor", "ip2p", "mvdream", "ip2p+mvdream")
+
+
+def build_guidance(kind: str, instruction: str, *, models: Optional[str] = None,
+                   device: Union[str, torch.device] = "cpu", color: Optional[str] = None, seed: int = 0,
+                   schedule: CSDSchedule = CSDSchedule(), dtype: torch.dtype = torch.float32,
+                   ip2p_kwargs: Optional[dict] = None, mvdream_kwargs: Optional[dict] = None) -> Guidance:
+    """The guidance ``kind`` for ``instruction``.
+
+    ``recolor`` takes its colour from ``color`` or from a colour word in the instruction. The
+    diffusion guidances load their weights from ``models`` / ``$TIGER_MODELS`` (an error names the
+    files and the public id when they are missing); ``ip2p+mvdream`` is their CSD combination.
+    Their noise comes from generators seeded with ``seed`` and ``seed + 1`` (checkpointed by the
+    edit loop); ``dtype`` is the models' (float16 on a GPU halves their memory); the ``*_kwargs``
+    go to the guidance constructors (``t_range``, ``cuda_graph``, ...).
+    """
+    ip2p_kwargs, mvdream_kwargs = dict(ip2p_kwargs or {}), dict(mvdream_kwargs or {})
+    if kind not in KINDS:
+        raise ValueError(f"tiger.edit: guidance must be one of {KINDS}, got {kind!r}")
+    if kind == "recolor":
+        return RecolorGuidance(color if color is not None else instruction)
+    models = _model_config(models)
+    ip2p = mv = None
+    if "ip2p" in kind:
+        from .guidance.ip2p import InstructPix2PixGuidance
+
+        ip2p = InstructPix2PixGuidance.from_registry(instruction, config=models, device=device, dtype=dtype,
+                                                     generator=torch.Generator().manual_seed(seed), **ip2p_kwargs)
+    if "mvdream" in kind:
+        from .guidance.mvdream import MVDreamGuidance
+
+        mv = MVDreamGuidance.from_registry(instruction, config=models, device=device, dtype=dtype,
+                                           generator=torch.Generator().manual_seed(seed + 1), **mvdream_kwargs)
+    return CSDGuidance(ip2p, mv, schedule)
+
+
+def _model_config(models: Optional[str]) -> Union[None, str, dict]:
+    """``--models``: a JSON config {name: path} as is; a folder is read like ``$TIGER_MODELS``
+    (``instruct-pix2pix/``, ``mvdream/`` or ``sd-v2.1-base-4view.pt`` inside it)."""
+    if models is None:
+        return None
+    root = Path(models).expanduser()
+    if root.suffix == ".json" or root.is_file():
+        return str(root)
+    from tiger.models.paths import REGISTRY
+
+    mv = root / "sd-v2.1-base-4view.pt"
+    return {"ip2p": str(root / REGISTRY["ip2p"].folder),
+            "mvdream": str(mv if mv.is_file() else root / REGISTRY["mvdream"].folder)}
+
+
+__all__ = ["KINDS", "build_guidance"]

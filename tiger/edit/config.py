@@ -1,0 +1,90 @@
+"""Settings of one edit round (paper §3.2 and appendix; SPEC §6)."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from .csd import CSDSchedule
+
+#: Learning rates of the editable parameters (Adam). ``means`` is multiplied by the object's
+#: radius (half-diagonal of its robust box), as INRIA scales it by the scene's extent.
+DEFAULT_EDIT_LRS = {
+    "means": 1e-3,
+    "log_scales": 5e-3,
+    "quats": 1e-3,
+    "opacity_logits": 2.5e-2,
+    "sh_dc": 1e-2,
+}
+
+
+@dataclass
+class EditConfig:
+    """Hyper-parameters of :func:`tiger.edit.edit`.
+
+    Attributes:
+        steps: optimisation steps (the paper: 1200-3000).
+        n_views: cameras per step (4), re-drawn every step around the object (tiger.edit.views).
+        width, height, fov_deg: render size and vertical field of view of those cameras.
+        elevation_deg: elevation range of the cameras for 360° captures.
+        fill: margin of the camera distance (1 = the object's bounding sphere touches the frame).
+        lrs: Adam learning rates by parameter (missing ones: :data:`DEFAULT_EDIT_LRS`).
+        densify_every: densify every K steps (0: never); densify_from/until: step window.
+        densify_fraction: at most this fraction of the editable Gaussians (top by accumulated
+            screen-space gradient) is cloned or split per densification (the paper: 1 %).
+        percent_dense: a Gaussian is split rather than cloned when its largest scale exceeds this
+            fraction of the object's radius.
+        min_opacity: editable Gaussians below this opacity are pruned at each densification.
+        view_independent: edited Gaussians drop their higher SH bands (zeroed at the start of the
+            round, not optimised), so every view sees the same colour (paper appendix).
+        background: RGB behind the Gaussians in the edit renders.
+        schedule: the CSD λ schedule (used when the guidance is a CSDGuidance built by the loop).
+        seed: seed of the view sampler.
+        checkpoint_every: write the checkpoint every this many steps (0: only on interrupt/end).
+        progress: show a progress bar.
+    """
+
+    steps: int = 1200
+    n_views: int = 4
+    width: int = 512
+    height: int = 512
+    fov_deg: float = 49.1
+    elevation_deg: tuple[float, float] = (0.0, 30.0)
+    fill: float = 1.1
+    lrs: dict[str, float] = field(default_factory=dict)
+    densify_every: int = 100
+    densify_from: int = 100
+    densify_until: Optional[int] = None
+    densify_fraction: float = 0.01
+    percent_dense: float = 0.05
+    min_opacity: float = 0.005
+    view_independent: bool = True
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    schedule: CSDSchedule = CSDSchedule()
+    seed: int = 0
+    checkpoint_every: int = 100
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.steps < 1 or self.n_views < 1 or self.width < 1 or self.height < 1:
+            raise ValueError("tiger.edit: steps, n_views, width and height must be positive")
+        if not 0.0 < self.densify_fraction <= 1.0:
+            raise ValueError(f"tiger.edit: densify_fraction must be in (0, 1], got {self.densify_fraction}")
+        unknown = set(self.lrs) - set(DEFAULT_EDIT_LRS)
+        if unknown:
+            raise ValueError(f"tiger.edit: unknown learning-rate names {sorted(unknown)}; "
+                             f"known: {sorted(DEFAULT_EDIT_LRS)}")
+
+    def learning_rates(self) -> dict[str, float]:
+        return {**DEFAULT_EDIT_LRS, **self.lrs}
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["schedule"] = {"ratio": list(self.schedule.ratio), "mv_end": self.schedule.mv_end}
+        d["elevation_deg"] = list(self.elevation_deg)
+        d["background"] = list(self.background)
+        d.pop("progress")
+        return d
+
+
+__all__ = ["DEFAULT_EDIT_LRS", "EditConfig"]

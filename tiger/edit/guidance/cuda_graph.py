@@ -1,0 +1,85 @@
+"""Replay a whole guidance step as one CUDA graph.
+
+A guidance step (VAE encode, UNet passes, VAE backward) launches thousands of small kernels;
+at the sizes used here the launches, not the arithmetic, bound the UNet passes. The step's
+inputs are all tensors of fixed shape (renders, condition latents, noise, timesteps drawn by the
+caller), so it can be captured once per input signature and replayed.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Sequence
+
+import torch
+
+logger = logging.getLogger(__name__)
+
+StepFn = Callable[..., torch.Tensor]
+
+_SHARED_POOL = None
+
+
+def shared_graph_pool():
+    """One CUDA-graph memory pool for every guidance step of the process.
+
+    The steps run one after the other on one stream and each returns a copy of its output, so
+    their intermediates can share memory: with both guidances graphed, the peak is the larger
+    step's activations, not their sum (a graph's private pool is never released between replays)."""
+    global _SHARED_POOL
+    if _SHARED_POOL is None:
+        _SHARED_POOL = torch.cuda.graph_pool_handle()
+    return _SHARED_POOL
+
+
+class GraphedStep:
+    """``fn(*tensors) -> tensor`` replayed from a CUDA graph captured per input signature.
+
+    The first call with a new signature runs ``warmup`` eager calls on a side stream (cuDNN
+    autotuning, lazy initialisation, torch.compile happen there), then captures. Later calls copy
+    the inputs into the captured buffers and replay. ``fn`` must be free of host synchronisation
+    (no ``.item()``, no data-dependent Python branches) and draw no random numbers itself.
+    Returns a fresh tensor (a copy of the graph's output buffer). ``share_pool``: capture into the
+    pool shared by all guidance steps replayed on the same stream (:func:`shared_graph_pool`).
+    """
+
+    def __init__(self, fn: StepFn, warmup: int = 3, share_pool: bool = True) -> None:
+        self.fn = fn
+        self.warmup = int(warmup)
+        self.share_pool = share_pool
+        self._graphs: dict[tuple, tuple[torch.cuda.CUDAGraph, list[torch.Tensor], torch.Tensor]] = {}
+
+    @staticmethod
+    def _signature(args: Sequence[torch.Tensor]) -> tuple:
+        return tuple((tuple(a.shape), a.dtype, a.device) for a in args)
+
+    def __call__(self, *args: torch.Tensor) -> torch.Tensor:
+        if not all(isinstance(a, torch.Tensor) and a.is_cuda for a in args):
+            raise ValueError("tiger.edit: GraphedStep takes CUDA tensors only")
+        key = self._signature(args)
+        entry = self._graphs.get(key)
+        if entry is None:
+            entry = self._capture(args)
+            self._graphs[key] = entry
+        graph, static_in, static_out = entry
+        for dst, src in zip(static_in, args):
+            dst.copy_(src)
+        graph.replay()
+        return static_out.clone()
+
+    def _capture(self, args: Sequence[torch.Tensor]):
+        static_in = [a.detach().clone() for a in args]
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(self.warmup):
+                self.fn(*static_in)
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, pool=shared_graph_pool() if self.share_pool else None):
+            static_out = self.fn(*static_in)
+        logger.info("captured a CUDA graph for input shapes %s", [tuple(a.shape) for a in args])
+        return graph, static_in, static_out
+
+    def reset(self) -> None:
+        """Forget the captured graphs (and free their memory pools)."""
+        self._graphs.clear()

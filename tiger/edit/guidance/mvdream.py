@@ -1,0 +1,293 @@
+"""MVDream multi-view score distillation (paper §3.2 and appendix, SPEC §6).
+
+Model: SD-2.1-base UNet whose self-attention runs jointly over the 4 views
+(:mod:`.mvdream_attention`) plus a camera MLP added to the timestep embedding (diffusers'
+``class_embed_type="projection"``, cameras passed as ``class_labels``). Loaded from the original
+``sd-v2.1-base-4view.pt`` (via :mod:`.ldm_checkpoint`) or a diffusers folder.
+
+Per step (the official 3D-generation setting with ``max_step_percent = 0.2``): the 4 renders are
+resized to 256x256, encoded (posterior sample × scaling factor); ONE t for the 4 views; 2 branches
+(prompt, negative prompt) with guidance scale 50; reconstruction form: ``x0`` predicted from the
+guided ε, its standard deviation over the 4-view group rescaled toward that of the text-conditional
+(un-guided) prediction's x0 (factor 0.5), loss ``0.5·‖z − x0‖² / 4`` → ``dL/dz = (z − x0) / 4``;
+plain SDS ``w(t)(ε̂ − ε) / 4`` with ``recon=False``.
+
+MVDream is never loaded for runs that do not use it: pass a loader (``from_registry`` does) and
+the weights are read on the first ``grad`` call; ``release()`` frees them once λ2 reaches 0.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Union
+
+import torch
+
+from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
+from tiger.utils.lazy import require
+
+from .base import GuidanceInfo, ViewBatch, check_renders
+from .cuda_graph import GraphedStep
+from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
+from .mvdream_attention import install_multiview_attention
+from .mvdream_cameras import mvdream_cameras
+from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, finite_clamped, freeze, latent_shape,
+                  model_device_dtype, render_gradient, require_diffusers)
+
+logger = logging.getLogger(__name__)
+
+NUM_VIEWS = 4
+GUIDANCE_SCALE = 50.0
+RECON_STD_RESCALE = 0.5
+IMAGE_SIZE = 256
+# MVDream-threestudio's configs/mvdream-sd21.yaml negative prompt.
+NEGATIVE_PROMPT = ("ugly, bad anatomy, blurry, pixelated obscure, unnatural colors, poor lighting, dull, and unclear, "
+                   "cropped, lowres, low quality, artifacts, duplicate, morbid, mutilated, poorly drawn face, deformed, "
+                   "dehydrated, bad proportions")
+CHECKPOINT_NAME = "sd-v2.1-base-4view.pt"
+LDM_CONFIG_NAMES = ("sd-v2-base.json", "sd-v2-base.yaml")
+
+
+@dataclass
+class MVDreamModels:
+    """UNet (multi-view attention installed, camera embedding), VAE (encoder used), prompt encoder, schedule."""
+
+    unet: torch.nn.Module
+    vae: torch.nn.Module
+    prompts: PromptEncoder
+    schedule: NoiseSchedule
+    num_views: int = NUM_VIEWS
+
+
+def _build_from_state(cls, config: dict, state: dict[str, torch.Tensor], what: str) -> torch.nn.Module:
+    """Instantiate on the meta device and assign the converted weights (no random init of 865M params)."""
+    with torch.device("meta"):
+        model = cls(**config)
+    result = model.load_state_dict(state, strict=False, assign=True)
+    if result.missing_keys or result.unexpected_keys:
+        raise ValueError(f"tiger.edit.mvdream: the checkpoint's {what} does not match its config: missing "
+                         f"{result.missing_keys[:5]}, unexpected {result.unexpected_keys[:5]}")
+    if any(t.is_meta for t in list(model.parameters()) + list(model.buffers())):
+        raise ValueError(f"tiger.edit.mvdream: {what} has tensors the checkpoint does not provide")
+    return model
+
+
+def _load_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    """A tensors-only checkpoint, memory-mapped when it is in the zip format (legacy files are read)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except RuntimeError:  # pre-zip serialization cannot be memory-mapped
+        return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def _tokenizer(folder: Optional[Path], checkpoint_dir: Path):
+    """OpenCLIP's tokenizer: CLIP's BPE, padded with token 0 ('!'), 77 tokens. From ``folder``,
+    ``<checkpoint dir>/tokenizer`` or the ``clip`` registry model (the same vocabulary)."""
+    transformers = require("transformers", purpose="MVDream's tokenizer")
+    if folder is None:
+        local = checkpoint_dir / "tokenizer"
+        folder = local if local.is_dir() else resolve_model_path("clip")
+    return transformers.CLIPTokenizer.from_pretrained(str(folder), local_files_only=True, pad_token="!",
+                                                      model_max_length=77)
+
+
+def load_mvdream(
+    path: PathLike | None = None,
+    *,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float32,
+    config: ConfigLike = None,
+    allow_download: bool = False,
+    ldm_config: ConfigSource = None,
+    tokenizer: PathLike | None = None,
+) -> MVDreamModels:
+    """Load MVDream (registry name ``mvdream``): the original LDM checkpoint or a diffusers folder.
+
+    For the ``.pt``, the LDM config is ``ldm_config`` (mapping, .json or .yaml), else a
+    ``sd-v2-base.json``/``.yaml`` beside the checkpoint, else MVDream's sd-v2-base; the tokenizer is
+    ``tokenizer``, else ``tokenizer/`` beside the checkpoint, else the ``clip`` model's (same BPE).
+    """
+    found = resolve_model_path("mvdream", path, config=config, allow_download=allow_download)
+    diffusers = require_diffusers("loading MVDream")
+    transformers = require("transformers", purpose="loading MVDream's text encoder")
+    if found.is_dir() and (found / CHECKPOINT_NAME).is_file() and not (found / "unet" / "config.json").is_file():
+        found = found / CHECKPOINT_NAME
+    if found.is_file():
+        if ldm_config is None:
+            ldm_config = next((found.parent / n for n in LDM_CONFIG_NAMES if (found.parent / n).is_file()), None)
+        state = _load_state_dict(found)
+        comp = convert_ldm_checkpoint(state, ldm_config)
+        unet = _build_from_state(diffusers.UNet2DConditionModel, comp.unet_config, comp.unet_state, "UNet")
+        vae = _build_from_state(diffusers.AutoencoderKL, comp.vae_config, comp.vae_state, "VAE")
+        text_encoder = transformers.CLIPTextModel(transformers.CLIPTextConfig(**comp.text_config))
+        result = text_encoder.load_state_dict(comp.text_state, strict=False)
+        if result.unexpected_keys or [k for k in result.missing_keys if not k.endswith("position_ids")]:
+            raise ValueError(f"tiger.edit.mvdream: text tower mismatch in {found}: missing {result.missing_keys[:5]}, "
+                             f"unexpected {result.unexpected_keys[:5]}")
+        tok = _tokenizer(Path(tokenizer) if tokenizer is not None else None, found.parent)
+        schedule = comp.schedule
+    else:
+        unet = diffusers.UNet2DConditionModel.from_pretrained(str(found), subfolder="unet", local_files_only=True)
+        vae = diffusers.AutoencoderKL.from_pretrained(str(found), subfolder="vae", local_files_only=True)
+        text_encoder = transformers.CLIPTextModel.from_pretrained(str(found / "text_encoder"), local_files_only=True)
+        tok = transformers.CLIPTokenizer.from_pretrained(str(found / "tokenizer"), local_files_only=True)
+        schedule = NoiseSchedule.from_scheduler_config(json.loads((found / "scheduler" / "scheduler_config.json").read_text()))
+    if unet.config.class_embed_type != "projection" or not unet.config.projection_class_embeddings_input_dim:
+        raise ValueError(f"tiger.edit.mvdream: {found} has no camera embedding (class_embed_type='projection')")
+    install_multiview_attention(unet, NUM_VIEWS)
+    vae.decoder = None
+    vae.post_quant_conv = None
+    logger.info("loaded MVDream from %s (%s, %s)", found, device, dtype)
+    return MVDreamModels(
+        unet=freeze(unet, device, dtype), vae=freeze(vae, device, dtype),
+        prompts=PromptEncoder(tok, freeze(text_encoder, device), device, dtype), schedule=schedule.to(device))
+
+
+class MVDreamGuidance:
+    """SDS gradient of MVDream on exactly 4 rendered views (module docstring).
+
+    Args:
+        models: :class:`MVDreamModels`, or a zero-argument loader called on the first ``grad``.
+        prompt: the text describing the edited object (encoded once with ``negative_prompt``).
+        guidance_scale: classifier-free guidance scale (50).
+        t_range: fractions of the schedule for t, one t for the 4 views (paper: max 0.2).
+        image_size: the square size renders are resized to (256).
+        recon: reconstruction-form gradient (official 3D setting); False: plain SDS ``w(t)(ε̂ − ε)``.
+        recon_std_rescale: the x0 std rescale factor (0.5).
+        grad_clip, cuda_graph, generator, collect_stats, keep_text_encoder: as for InstructPix2Pix.
+    """
+
+    name = "mvdream"
+
+    def __init__(self, models: Union[MVDreamModels, Callable[[], MVDreamModels]], prompt: str, *,
+                 negative_prompt: str = NEGATIVE_PROMPT, guidance_scale: float = GUIDANCE_SCALE,
+                 t_range: tuple[float, float] = (0.02, 0.2), image_size: int = IMAGE_SIZE, recon: bool = True,
+                 recon_std_rescale: float = RECON_STD_RESCALE, grad_clip: Optional[float] = None,
+                 cuda_graph: bool = False, generator: Optional[torch.Generator] = None,
+                 collect_stats: bool = False, keep_text_encoder: bool = False) -> None:
+        if not isinstance(prompt, str) or not prompt.strip():
+            raise ValueError("tiger.edit.mvdream: the prompt must be a non-empty string")
+        if image_size <= 0:
+            raise ValueError(f"tiger.edit.mvdream: image_size must be positive, got {image_size}")
+        self.prompt, self.negative_prompt = prompt, negative_prompt
+        self.guidance_scale = float(guidance_scale)
+        self.t_range = check_t_range(t_range)
+        self.image_size = int(image_size)
+        self.recon, self.recon_std_rescale = bool(recon), float(recon_std_rescale)
+        self.grad_clip, self.generator, self.collect_stats = grad_clip, generator, collect_stats
+        self.keep_text_encoder = keep_text_encoder
+        self.cuda_graph = cuda_graph
+        self._loader = None if isinstance(models, MVDreamModels) else models
+        self.models: Optional[MVDreamModels] = None
+        self._graphed: Optional[GraphedStep] = None
+        if isinstance(models, MVDreamModels):
+            self._setup(models)
+
+    @classmethod
+    def from_registry(cls, prompt: str, path: PathLike | None = None, *, device: str | torch.device = "cpu",
+                      dtype: torch.dtype = torch.float32, config: ConfigLike = None, allow_download: bool = False,
+                      lazy: bool = True, **kwargs) -> "MVDreamGuidance":
+        """Resolve ``mvdream`` now (a missing model fails here), load it on first use when ``lazy``."""
+        resolve_model_path("mvdream", path, config=config, allow_download=allow_download)
+
+        def loader() -> MVDreamModels:
+            return load_mvdream(path, device=device, dtype=dtype, config=config, allow_download=allow_download)
+
+        return cls(loader if lazy else loader(), prompt, **kwargs)
+
+    @property
+    def loaded(self) -> bool:
+        return self.models is not None
+
+    def _setup(self, models: MVDreamModels) -> None:
+        self.models = models
+        self.device, self.dtype = model_device_dtype(models.unet)
+        if self.cuda_graph and self.device.type != "cuda":
+            raise ValueError("tiger.edit.mvdream: cuda_graph=True needs the models on a CUDA device")
+        self.text_embeddings = models.prompts([self.prompt, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
+        if not self.keep_text_encoder:
+            models.prompts.release()
+        self._graphed = GraphedStep(self.step) if self.cuda_graph else None
+
+    def load(self) -> MVDreamModels:
+        """Load the models now (if built with a loader) and return them."""
+        if self.models is None:
+            if self._loader is None:
+                raise RuntimeError("tiger.edit.mvdream: the models were released and there is no loader")
+            self._setup(self._loader())
+        return self.models
+
+    def release(self) -> None:
+        """Free the models (e.g. once λ2 reached 0); a later ``grad`` reloads them through the loader."""
+        self.models = None
+        self._graphed = None
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+
+    # -- pieces -------------------------------------------------------------------------------
+    def step(self, renders: torch.Tensor, cameras: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
+             vae_noise: torch.Tensor) -> torch.Tensor:
+        """dL/drenders for given camera conditions [V, 16], t [1] (shared), noise and VAE noise [V, c, h, w].
+
+        Deterministic and free of host syncs (CUDA-graph capturable)."""
+        return render_gradient(self.models.vae, renders, (self.image_size, self.image_size), vae_noise,
+                               lambda z: self.latent_grad(z, cameras, t, noise))
+
+    @torch.no_grad()
+    def latent_grad(self, z: torch.Tensor, cameras: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """dL/dz [V, c, h, w] float32: the 2-branch multi-view UNet call, CFG and the gradient form."""
+        m = self.models
+        v = z.shape[0]
+        tt = t.reshape(1).expand(v)
+        z_t = m.schedule.add_noise(z, noise, tt)
+        e = self.text_embeddings  # branches: prompt, negative prompt
+        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(v, -1, -1)])
+        cams = torch.cat([cameras, cameras]).to(self.dtype)
+        eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
+                     class_labels=cams).sample.float()
+        e_text, e_unc = eps.chunk(2)
+        eps_hat = e_unc + self.guidance_scale * (e_text - e_unc)
+        if self.recon:
+            x0 = m.schedule.predict_x0(z_t, eps_hat, tt)
+            if self.recon_std_rescale > 0:
+                x0_text = m.schedule.predict_x0(z_t, e_text, tt)
+                factor = (x0_text.std() + 1e-8) / (x0.std() + 1e-8)
+                x0 = self.recon_std_rescale * (x0 * factor) + (1.0 - self.recon_std_rescale) * x0
+            g = z.float() - x0
+        else:
+            g = m.schedule.sds_weight(tt) * (eps_hat - noise.float())
+        return finite_clamped(g, self.grad_clip) / v
+
+    def camera_conditions(self, views: ViewBatch) -> torch.Tensor:
+        """[4, 16] MVDream cameras of the batch (needs ``views.object_center``)."""
+        if views.object_center is None:
+            raise ValueError("tiger.edit.mvdream: views.object_center is required (MVDream's cameras are "
+                             "relative to the object)")
+        if len(views.cameras) != NUM_VIEWS:
+            raise ValueError(f"tiger.edit.mvdream: needs exactly {NUM_VIEWS} cameras, got {len(views.cameras)}")
+        return mvdream_cameras(views.cameras, views.object_center, views.world_up).to(self.device)
+
+    # -- Guidance protocol --------------------------------------------------------------------
+    def grad(self, renders: torch.Tensor, views: ViewBatch, *, t: Optional[torch.Tensor] = None,
+             noise: Optional[torch.Tensor] = None, vae_noise: Optional[torch.Tensor] = None
+             ) -> tuple[torch.Tensor, GuidanceInfo]:
+        """dL/drenders [4, 3, H, W]; ``t`` ([1]), ``noise``, ``vae_noise`` fix the random draws (tests)."""
+        check_renders(renders, self.name, views=NUM_VIEWS)
+        start = time.perf_counter()
+        self.load()
+        cams = self.camera_conditions(views)
+        shape = latent_shape(self.models.vae, NUM_VIEWS, (self.image_size, self.image_size))
+        if t is None:
+            t = self.models.schedule.sample(1, self.t_range, self.generator, self.device)
+        t = t.to(self.device, torch.long).reshape(1)
+        noise = draw_noise(noise, shape, "mvdream.noise", self.generator, self.device)
+        vae_noise = draw_noise(vae_noise, shape, "mvdream.vae_noise", self.generator, self.device)
+        run = self._graphed if self._graphed is not None else self.step
+        g = run(renders.to(self.device, torch.float32), cams, t, noise, vae_noise).to(renders.device, renders.dtype)
+        info = GuidanceInfo(t=t, timings_ms={"total": 1e3 * (time.perf_counter() - start)})
+        if self.collect_stats:
+            info.extra["grad_norm"] = float(g.float().norm())
+        return g, info

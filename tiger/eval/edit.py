@@ -1,0 +1,177 @@
+"""Edit quality metrics (SPEC §6): CLIP direction similarity, CLIP direction consistency, locality.
+
+* **CLIP text-image direction similarity** (Instruct-NeRF2NeRF §5, after StyleGAN-NADA): for each
+  view, the cosine between the change of the image embedding and the change of the caption
+  embedding, ``cos(E_I(after) - E_I(before), E_T(caption_after) - E_T(caption_before))``; the
+  embeddings are L2-normalised before the differences are taken. Reported per view and as the mean.
+* **CLIP direction consistency** (Instruct-NeRF2NeRF §5): along a camera path, for each pair of
+  neighbouring views i, i+1, the cosine between the embedding change of the edited renders and
+  that of the original renders, ``cos(E_I(after_{i+1}) - E_I(after_i), E_I(before_{i+1}) -
+  E_I(before_i))``: an edit that flickers between views changes the path's direction.
+* **Locality**: PSNR between the renders before and after the edit over the pixels *outside* the
+  edited object's footprint, dilated by ``dilate_px`` pixels. The footprint is where the object's
+  Gaussians (before, and after: children included) cover at least ``coverage`` of a pixel. An edit
+  that leaks into the rest of the scene lowers it; a perfectly local edit gives MSE 0, reported as
+  :data:`PSNR_CAP` dB (JSON has no infinity).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from tiger.render import rasterize_gaussians
+
+PSNR_CAP = 100.0
+
+
+def _check_pairs(before: torch.Tensor, after: torch.Tensor, what: str) -> None:
+    if before.shape != after.shape or before.dim() != 2:
+        raise ValueError(f"tiger.eval.edit: {what} before/after must both be [V, F], got "
+                         f"{list(before.shape)} and {list(after.shape)}")
+
+
+def clip_direction_similarity(image_before: torch.Tensor, image_after: torch.Tensor,
+                              text_before: torch.Tensor, text_after: torch.Tensor) -> torch.Tensor:
+    """[V] cosine between each view's image-embedding change and the caption-embedding change.
+
+    Args:
+        image_before, image_after: [V, F] CLIP image embeddings of the same views before / after.
+        text_before, text_after: [F] CLIP text embeddings of the captions before / after.
+    """
+    _check_pairs(image_before, image_after, "image embeddings")
+    if text_before.shape != (image_before.shape[1],) or text_after.shape != text_before.shape:
+        raise ValueError(f"tiger.eval.edit: text embeddings must be [F={image_before.shape[1]}], got "
+                         f"{list(text_before.shape)} and {list(text_after.shape)}")
+    di = F.normalize(image_after.double(), dim=-1) - F.normalize(image_before.double(), dim=-1)
+    dt = F.normalize(text_after.double(), dim=-1) - F.normalize(text_before.double(), dim=-1)
+    return F.cosine_similarity(di, dt.expand_as(di), dim=-1, eps=1e-12)
+
+
+def clip_direction_consistency(image_before: torch.Tensor, image_after: torch.Tensor) -> torch.Tensor:
+    """[V-1] cosine between the edited and the original embedding change from view i to view i+1.
+
+    Args:
+        image_before, image_after: [V, F] CLIP image embeddings of V views along a path (V >= 2).
+    """
+    _check_pairs(image_before, image_after, "image embeddings")
+    if image_before.shape[0] < 2:
+        raise ValueError("tiger.eval.edit: direction consistency needs at least 2 views along a path")
+    b = F.normalize(image_before.double(), dim=-1)
+    a = F.normalize(image_after.double(), dim=-1)
+    return F.cosine_similarity(a[1:] - a[:-1], b[1:] - b[:-1], dim=-1, eps=1e-12)
+
+
+def dilate_mask(mask: torch.Tensor, px: int) -> torch.Tensor:
+    """[V, H, W] bool mask grown by ``px`` pixels (a (2 px + 1)² square max filter)."""
+    if mask.dim() != 3:
+        raise ValueError(f"tiger.eval.edit: masks must be [V, H, W], got {list(mask.shape)}")
+    if px <= 0:
+        return mask.bool()
+    m = F.max_pool2d(mask.float()[:, None], kernel_size=2 * px + 1, stride=1, padding=px)
+    return m[:, 0] > 0.5
+
+
+def psnr_outside(before: torch.Tensor, after: torch.Tensor, masks: torch.Tensor, dilate_px: int = 4) -> dict:
+    """PSNR (dB, peak 1) of ``after`` vs ``before`` over the pixels outside the dilated ``masks``.
+
+    Args:
+        before, after: [V, H, W, C] images in [0, 1].
+        masks: [V, H, W] bool, the edited object's footprint per view.
+        dilate_px: dilation of the footprint before it is excluded.
+    Returns:
+        {"psnr": dB (capped at PSNR_CAP), "mse": mean squared error, "pixels": pixels compared,
+        "fraction": their share of all pixels}.
+    """
+    if before.shape != after.shape or before.dim() != 4:
+        raise ValueError(f"tiger.eval.edit: before/after renders must both be [V, H, W, C], got "
+                         f"{list(before.shape)} and {list(after.shape)}")
+    if masks.shape != before.shape[:3]:
+        raise ValueError(f"tiger.eval.edit: masks must be [V, H, W] = {list(before.shape[:3])}, got {list(masks.shape)}")
+    outside = ~dilate_mask(masks.to(before.device), dilate_px)
+    n = int(outside.sum())
+    if n == 0:
+        raise ValueError("tiger.eval.edit: the dilated object mask covers every pixel; nothing to compare")
+    err = (after.double() - before.double()).square().mean(-1)
+    mse = float(err[outside].mean())
+    p = PSNR_CAP if mse <= 10 ** (-PSNR_CAP / 10) else -10 * math.log10(mse)
+    return {"psnr": p, "mse": mse, "pixels": n, "fraction": n / outside.numel()}
+
+
+def _render(scene: Any, cam: Any, colors: torch.Tensor, background: Optional[torch.Tensor] = None) -> dict:
+    c = cam.to(device=scene.device, dtype=scene.dtype)
+    return rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, colors,
+                               c.viewmat, c.K, c.width, c.height, background=background, check_finite=False)
+
+
+@torch.no_grad()
+def render_rgb_and_footprint(scene: Any, cameras: Sequence[Any], selected: torch.Tensor,
+                             background: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rgb [V, H, W, 3], footprint [V, H, W] in [0, 1]) of ``scene`` (full SH colour) and of the
+    Gaussians in ``selected`` [N] bool (their share of each pixel's colour)."""
+    if selected.shape != (len(scene),) or selected.dtype != torch.bool:
+        raise ValueError(f"tiger.eval.edit: selected must be [N={len(scene)}] bool, got "
+                         f"{list(selected.shape)} {selected.dtype}")
+    bg = None if background is None else background.to(scene.means)
+    rgbs, feet = [], []
+    ind = selected.to(scene.means)[:, None]
+    for cam in cameras:
+        rgbs.append(_render(scene, cam, scene.view_colors(cam.to(scene.device, scene.dtype)), bg)["color"])
+        feet.append(_render(scene, cam, ind)["color"][..., 0])
+    return torch.stack(rgbs), torch.stack(feet)
+
+
+def locality(before: Any, after: Any, cameras: Sequence[Any], edited_before: torch.Tensor,
+             edited_after: torch.Tensor, dilate_px: int = 4, coverage: float = 0.02,
+             background: Optional[torch.Tensor] = None) -> dict:
+    """Locality PSNR of an edit over ``cameras``: renders of ``before`` and ``after`` (scenes)
+    compared outside the union of the edited Gaussians' footprints (``edited_before`` [N_before]
+    and ``edited_after`` [N_after] bool), dilated by ``dilate_px``. See :func:`psnr_outside`."""
+    rb, fb = render_rgb_and_footprint(before, cameras, edited_before, background)
+    ra, fa = render_rgb_and_footprint(after, cameras, edited_after, background)
+    masks = (fb > coverage) | (fa > coverage)
+    out = psnr_outside(rb.clamp(0, 1), ra.clamp(0, 1), masks, dilate_px)
+    out["dilate_px"] = int(dilate_px)
+    return out
+
+
+@torch.no_grad()
+def clip_image_embeddings(clip: Any, images: torch.Tensor, size: int = 224) -> torch.Tensor:
+    """[V, F] L2-normalised CLIP image embeddings of ``images`` [V, 3, H, W] in [0, 1].
+
+    ``clip`` is a :class:`tiger.language.maskclip.MaskCLIP` (its ``clip`` CLIPModel is used, with
+    CLIP's own normalisation) or a ``transformers.CLIPModel``. Images are resized (bilinear,
+    antialiased) to ``size`` x ``size``, CLIP's input (its ``image_size`` when it has one).
+    """
+    from tiger.language.maskclip import normalize_images
+
+    model = getattr(clip, "clip", clip)
+    if images.dim() != 4 or images.shape[1] != 3:
+        raise ValueError(f"tiger.eval.edit: images must be [V, 3, H, W], got {list(images.shape)}")
+    size = int(getattr(getattr(model.config, "vision_config", None), "image_size", size) or size)
+    w = model.visual_projection.weight
+    x = F.interpolate(images.to(w.device, torch.float32), size=(size, size), mode="bilinear",
+                      align_corners=False, antialias=True)
+    out = model.get_image_features(pixel_values=normalize_images(x, "clip").to(w.dtype))
+    out = out if isinstance(out, torch.Tensor) else out.pooler_output
+    return F.normalize(out.float(), dim=-1)
+
+
+def clip_metrics(clip: Any, before: torch.Tensor, after: torch.Tensor, caption_before: str,
+                 caption_after: str) -> dict:
+    """CLIP direction similarity and consistency for renders ``before``/``after`` [V, 3, H, W]
+    along a path, with captions embedded by ``clip.encode_text`` (no templates)."""
+    eb, ea = clip_image_embeddings(clip, before), clip_image_embeddings(clip, after)
+    t = clip.encode_text([caption_before, caption_after], templates=None).float().to(eb.device)
+    sim = clip_direction_similarity(eb, ea, t[0], t[1])
+    out = {"clip_direction_similarity": float(sim.mean()), "clip_direction_similarity_per_view": sim.tolist()}
+    if before.shape[0] >= 2:
+        cons = clip_direction_consistency(eb, ea)
+        out.update(clip_direction_consistency=float(cons.mean()), clip_direction_consistency_per_pair=cons.tolist())
+    return out
+
+
+__all__ = ["PSNR_CAP", "clip_direction_consistency", "clip_direction_similarity", "clip_image_embeddings",
+           "clip_metrics", "dilate_mask", "locality", "psnr_outside", "render_rgb_and_footprint"]
