@@ -17,7 +17,9 @@ def _check(eager, graphed, renders_fn, views, lat, t_fn):
         noise, vae_noise = torch.randn(lat, device="cuda"), torch.randn(lat, device="cuda")
         a, _ = eager.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)
         b, _ = graphed.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)
-        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(a.abs().max())), (seed, float((a - b).abs().max()))
+        # cuDNN/cuBLAS may pick other float32 algorithms under capture: ~1e-5 of the gradient's
+        # scale on the H100 (3.2e-7 of 0.039); stale or unrefilled buffers differ by O(1).
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-4 * float(a.abs().max())), (seed, float((a - b).abs().max()))
 
 
 def test_graph_equals_eager(tiny_models, ring_cameras):

@@ -26,19 +26,19 @@ class _Recording:
 def test_three_csd_steps_tiny_models(tiny_models, tmp_path):
     scene = two_objects(n=150)
     csd = build_guidance("ip2p+mvdream", "make it look like a watermelon", models=str(tiny_models), seed=0,
-                         ip2p_kwargs={"short_side": 64}, mvdream_kwargs={"image_size": 64})
+                         ip2p_kwargs={"short_side": 32}, mvdream_kwargs={"image_size": 32})
     assert isinstance(csd, CSDGuidance)
     assert csd.ip2p.t_range == (0.02, 0.2) and csd.mvdream.t_range == (0.02, 0.2)  # paper: t in [0.02, 0.2]
     rec = _Recording(csd)
     t = resolve_target(scene, query_a(), tau=0.5)
     s = EditSession(scene, t, rec, "make it look like a watermelon", None,
-                    EditConfig(steps=3, width=64, height=64, densify_every=0, progress=False))
+                    EditConfig(steps=3, width=32, height=32, densify_every=0, progress=False))
     before = s.scene.detach().clone()
     for _ in range(3):
         s.step_once()
     assert len(rec.seen) == 3
     for g, info in rec.seen:
-        assert g.shape == (4, 3, 64, 64) and bool(torch.isfinite(g).all()) and float(g.abs().sum()) > 0
+        assert g.shape == (4, 3, 32, 32) and bool(torch.isfinite(g).all()) and float(g.abs().sum()) > 0
         assert info.extra["lambda_ip2p"] > 0 and info.extra["lambda_mvdream"] > 0
     out, w = s.result_scene()
     assert not torch.equal(out.sh_dc[w > 0], before.sh_dc[w > 0])  # the editable Gaussians moved

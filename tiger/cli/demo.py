@@ -11,7 +11,8 @@ def add_parser(sub) -> None:
         "demo", help="run the built-in tabletop demo and write pictures",
         description="Build a procedural tabletop scene (table, mug, ball, box, plant), render it, "
                     "train its language field, retrieve objects by text and write pictures "
-                    "(renders, relevancy heat maps, highlighted and retrieved objects).",
+                    "(renders, relevancy heat maps, highlighted and retrieved objects), then recolour the ball "
+                    "red through the edit loop (edit_before_after.png).",
         epilog="example: tiger demo --out outputs/demo --force",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")

@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
         "edit", help="edit the object a text names with an instruction (CSD, or a plain recolour)",
         description="Retrieve the Gaussians the --target text names, place 4 cameras around them every "
                     "step, and optimise only those Gaussians (updates scaled by relevance, colour "
-                    "view-independent, top-1 %% densification) so that the renders follow the guidance: "
+                    "view-independent, top-1 % densification) so that the renders follow the guidance: "
                     "Coherent Score Distillation of InstructPix2Pix and MVDream (needs their weights, "
                     "--models), or 'recolor' (no weights: the object's pixels pulled toward a colour "
                     "named in the instruction, shading kept). Writes edited.ply (with lang_*), "
