@@ -3,7 +3,8 @@ point cloud) and print held-out PSNR/SSIM against steps and time.
 
     python benchmarks/recon_fox.py                       # CPU: downscale 8, 700 steps, <= 10 min
     python benchmarks/recon_fox.py --device cuda --downscale 2 --iterations 7000 --time-budget 240
-    python benchmarks/recon_fox.py --downscale 4 --init-colors views --mask-border   # issue 15's fixes
+    python benchmarks/recon_fox.py --downscale 4 --mask-border --appearance
+    python benchmarks/recon_fox.py --init-colors random --init-radius 0.35   # the settings before issue 15
 
 The data is looked up at ``<repo>/../shared/data/fox`` unless ``--data`` is given. Test
 views are every 8th image in name order (INRIA's rule); images are undistorted once and
@@ -32,11 +33,12 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("--time-budget", type=float, default=600.0, help="seconds of training before stopping")
     ap.add_argument("--eval-every", type=int, default=500)
     ap.add_argument("--init-points", type=int, default=3000)
-    ap.add_argument("--init-radius", type=float, default=0.35, help="random init within this x camera distance")
+    ap.add_argument("--init-radius", type=float, default=1.0,
+                    help="random init within this x camera distance (0.35 before issue 15: left views uncovered)")
     ap.add_argument("--max-gaussians", type=int, default=20_000)
     ap.add_argument("--sh-degree", type=int, default=3)
-    ap.add_argument("--init-colors", choices=("random", "views"), default="random",
-                    help="colours of the random initial points: random (INRIA) or their mean pixel colour")
+    ap.add_argument("--init-colors", choices=("random", "views"), default="views",
+                    help="colours of the random initial points: their mean pixel colour (default) or random (INRIA)")
     ap.add_argument("--mask-border", action="store_true",
                     help="leave the black border of undistortion out of the loss and of PSNR/SSIM")
     ap.add_argument("--appearance", action="store_true", help="per-training-image affine colour correction")

@@ -36,7 +36,7 @@ VARIANTS: dict[str, tuple[dict, bool, float]] = {
     "sh1": ({"sh_degree": 1}, False, 1.0),
     "more_gaussians": ({"max_gaussians": 200_000}, False, 1.0),
     "long": ({}, False, 4.0),
-    "combined": ({"init_colors": "views", "appearance": True}, True, 1.0),
+    "combined": ({"init_colors": "views", "init_radius_fraction": 1.0, "appearance": True}, True, 1.0),
 }
 
 
