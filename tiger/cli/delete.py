@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     summary = Summary("tiger delete")
     c, t, m = res.counts, res.timings, res.metrics
     summary.add(f"removed {c['removed']} Gaussians ({c['retrieved']} retrieved + {c['floaters']} floaters + "
-                f"{c['unseen']} unseen) "
+                f"{c['unseen']} unseen + {c['similar']} similar) "
                 f"of {c['total']}; {c['trainable']} trainable, {c['seeded']} seeded; {c['final']} now")
     summary.add("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
     summary.add(f"locality PSNR {m['locality_psnr']:.1f} dB outside the object; hole PSNR "

@@ -40,6 +40,6 @@ def delete_stage(out: Path, timer, text: str = "mug", models: Optional[str] = No
         save_png(out / f"delete_{slug}.png", grid)
     c, m = res.counts, res.metrics
     print(f"  delete '{text}': removed {c['removed']} Gaussians ({c['retrieved']} retrieved + "
-          f"{c['floaters']} floaters + {c['unseen']} unseen), refit {c['trainable']} (+{c['seeded']} seeds); locality "
+          f"{c['floaters']} floaters + {c['unseen']} unseen + {c['similar']} similar), refit {c['trainable']} (+{c['seeded']} seeds); locality "
           f"{m['locality_psnr']:.1f} dB; {out / f'delete_{slug}.png'} (before above after)")
     return res.report()

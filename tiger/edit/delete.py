@@ -18,10 +18,9 @@ Stages (each timed in ``DeleteResult.timings``):
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
@@ -36,7 +35,7 @@ from tiger.scene.sh import rgb_to_sh
 from .holes import disk_dilate, hole_masks
 from .inpaint import Inpainter, OpenCVInpainter, make_inpainter
 from .removal import Removal, removal_mask
-from .seeds import Seeds, crop_camera, mask_window, seed_points
+from .seeds import Seeds, mask_window, seed_points
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -57,7 +56,8 @@ class DeleteConfig:
     ``near_weight`` and at least ``hole_share`` of its weight over all the views, so changing it
     changes mostly hole pixels), ``window_margin`` (pixels around a view's
     hole rendered for the loss; views without a hole are not refitted on), seeds (``seed_stride`` px, ``seed_min_change``,
-    ``seed_opacity``, ``seed_depth_tolerance``: see :mod:`tiger.edit.seeds`), ``densify_every`` / ``densify_fraction`` (top fraction of the trainable
+    ``seed_opacity``, ``seed_depth_tolerance``, ``seed_slack``: a seed may show in another view
+    only inside that view's hole grown by this many pixels; see :mod:`tiger.edit.seeds`), ``densify_every`` / ``densify_fraction`` (top fraction of the trainable
     Gaussians by screen-space gradient, split or cloned), ``lambda_dssim``, learning rates ``lrs``
     (GaussianScene parameter names; means in world units), ``background`` (RGB behind the scene).
     """
@@ -81,6 +81,7 @@ class DeleteConfig:
     seed_min_change: float = 0.05
     seed_opacity: float = 0.5
     seed_depth_tolerance: float = 0.05
+    seed_slack: int = 4
     densify_every: int = 50
     densify_fraction: float = 0.1
     lambda_dssim: float = 0.2
@@ -362,7 +363,8 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
         (views.hole_weight >= cfg.hole_share * views.view_weight)
     seeds = seed_points(cameras, views.holes, views.rest_alpha < cfg.thin_alpha, depth, targets,
                         views.rest_rgb, views.rest_depth, views.rest_alpha, stride=cfg.seed_stride,
-                        min_change=cfg.seed_min_change, opaque=cfg.thin_alpha, allowed=views.footprint,
+                        min_change=cfg.seed_min_change, opaque=cfg.thin_alpha,
+                        allowed=disk_dilate(views.holes, cfg.seed_slack),
                         depth_tolerance=cfg.seed_depth_tolerance)
     start = GaussianScene.concat([rest, seeds_scene(seeds, rest, near, cfg.seed_opacity)])
     trainable = torch.cat([near, torch.ones(len(seeds), dtype=torch.bool, device=near.device)])
@@ -380,9 +382,9 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
                              views.footprint, fit.scene, cfg.background)
     counts = {**removal.counts(), "trainable_kept": int(near.sum()), "seeded": len(seeds),
               "added_by_densify": fit.added, "trainable": int(fit.trainable.sum()), "final": len(fit.scene)}
-    log.info("delete: removed %d (retrieved %d + floaters %d), %d trainable, %d seeds, %d final",
-             counts["removed"], counts["retrieved"], counts["floaters"], counts["trainable"],
-             counts["seeded"], counts["final"])
+    log.info("delete: removed %d (retrieved %d + floaters %d + unseen %d + similar %d), %d trainable, "
+             "%d seeds, %d final", counts["removed"], counts["retrieved"], counts["floaters"], counts["unseen"],
+             counts["similar"], counts["trainable"], counts["seeded"], counts["final"])
     return DeleteResult(scene=fit.scene, removal=removal, cameras=list(cameras), before=views.before,
                         remaining=views.rest_rgb, targets=targets, after=after, holes=views.holes,
                         footprint=views.footprint, trainable=fit.trainable, near=near, counts=counts,

@@ -7,7 +7,8 @@ rasterized), takes L1 + D-SSIM against the inpainted target, and steps Adam. Eve
 ``densify_every`` steps :func:`tiger.recon.strategy.region_topk_densify` clones or splits the top
 ``densify_fraction`` of the trainable Gaussians by screen-space gradient (children inherit every
 attribute, ``lang`` included, and are trainable). A checkpoint (``delete_refit.pt``) every
-``checkpoint_every`` steps makes the refit resumable bit for bit.
+``checkpoint_every`` steps and at the end makes the refit resumable bit for bit (also to continue
+a finished refit with more ``steps``).
 """
 from __future__ import annotations
 
@@ -154,7 +155,7 @@ def refit(scene: GaussianScene, trainable: torch.Tensor, cameras: Sequence[Camer
             visible.clear()
         bar.update(1)
         bar.set_postfix(loss=f"{losses[-1]:.4f}", trainable=opt.num_trainable, refresh=False)
-        if ckpt is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+        if ckpt is not None and ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or step == cfg.steps):
             ckpt.parent.mkdir(parents=True, exist_ok=True)
             atomic_torch_save({"fingerprint": fingerprint, "optimizer": opt.state_dict(), "step": step,
                                "stats": stats.state_dict(), "generator": gen.get_state(), "losses": losses,

@@ -6,10 +6,10 @@ grid of ``stride`` pixels are lifted to 3D at an inpainted depth (the remainder'
 into the thin region from the surrounding surface), coloured with the inpainted target.
 
 A seed is kept only if the other views agree: in every other view it projects either outside
-the image, inside that view's ``allowed`` region (the hole, or in :func:`tiger.edit.delete` the
-removed object's dilated footprint: pixels that change anyway), or behind the remainder's surface
-(occluded). A seed that would show up in another view where the object was not is dropped, so
-seeding never changes what a view showed away from the object. Seeds are only made where the target differs from the remainder's
+the image, inside that view's ``allowed`` region (the hole; :func:`tiger.edit.delete` grows it by
+a few pixels of slack for the filled depth's error), or behind the remainder's surface
+(occluded). A seed that would show up in another view outside its hole is dropped, so seeding
+does not change what a view showed elsewhere. Seeds are only made where the target differs from the remainder's
 render (``min_change``): where the inpainting just continued the background, nothing is added.
 """
 from __future__ import annotations
