@@ -220,7 +220,7 @@ def test_retrieve_on_cuda_matches_cpu():
 
 
 def test_pictures_and_retrieval_with_a_gaussian_scene(tmp_path):
-    scene_mod = pytest.importorskip("tiger.scene")
+    import tiger.scene as scene_mod
     from tiger.retrieval import write_relevancy_pictures
 
     ls = _scene_with_oracle_lang()
