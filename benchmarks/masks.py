@@ -152,6 +152,8 @@ def realistic_masks(m: int, h: int, w: int, device="cpu", seed: int = 0) -> tupl
         for r in radii.unique().tolist():
             sel = (radii == r).nonzero().flatten().to(device)
             grown[sel] = _grow(src[sel], int(r))
+        gone = ~grown.flatten(1).any(1)  # a small segment eroded away: SAM returns no empty masks
+        grown[gone] = src[gone]
         out.append(grown)
     if n_part:
         src = seg[torch.randint(0, n_seg, (n_part,), generator=g).to(device)]

@@ -82,12 +82,12 @@ def test_alpha_max_is_0_99():
 
 
 def test_t_min_is_1e_4():
-    # Four opaque layers (alpha 0.95) on one pixel, one channel each: T before them is
+    # Three layers of alpha 0.95 and one of 0.5 on one pixel, one channel each: T before them is
     # 1, 0.05, 2.5e-3, 1.25e-4. The third ends at T = 1.25e-4 >= 1e-4 and counts (T_min 2e-4
-    # would drop it); the fourth would end at 6.25e-6 < 1e-4 and stops the pixel (T_min 1e-5
-    # would keep it).
+    # would drop it); the fourth would end at 6.25e-5 < 1e-4 and stops the pixel (T_min 5e-5 or
+    # 1e-5 would keep it).
     a = 0.95
-    out = _render([(5.5, 5.5)] * 4, [a] * 4, w=12, h=12, colors=torch.eye(4).tolist(),
+    out = _render([(5.5, 5.5)] * 4, [a, a, a, 0.5], w=12, h=12, colors=torch.eye(4).tolist(),
                   depths=[Z, Z + 1, Z + 2, Z + 3])
     px = out["color"][5, 5].double()
     want = [a, a * (1 - a), a * (1 - a) ** 2, 0.0]
@@ -107,3 +107,40 @@ def test_tiles_are_16_pixels():
     counts = {t: _render(*scene, w=64, h=64, tile_size=t)["n_isects"] for t in (8, 12, 15, 17, 32)}
     assert all(c != 5 for c in counts.values()), counts
     assert _render(*scene, w=64, h=64, tile_size=TILE)["n_isects"] == 5
+
+
+def test_mask_nms_op_defaults_are_langsplats():
+    # LangSplat's masks_update(..., iou_thr=0.8, score_thr=0.7, inner_thr=0.5): a square and the
+    # same square with a 1-px tail at mask IoU 0.820 (the lower score goes), another pair at 0.780
+    # (both stay), a mask scored 0.69 (goes) and a part holding 44 % of a mask (goes).
+    from tiger.ops.nms import mask_nms
+
+    m = torch.zeros(7, 64, 160, dtype=torch.bool)
+    m[0, 0:20, 0:20] = True
+    m[1] = m[0]
+    m[1, 10, 20:108] = True  # 400 / 488 = 0.820
+    m[2, 30:50, 0:20] = True
+    m[3] = m[2]
+    m[3, 40, 20:133] = True  # 400 / 513 = 0.780
+    m[4, 0:10, 120:140] = True
+    m[5, 30:55, 140:160] = True  # 500 px
+    m[6, 30:41, 140:160] = True  # its top 11 rows: 44 %
+    scores = torch.tensor([0.85, 0.9, 0.85, 0.9, 0.69, 0.9, 0.95])
+    for op in (lambda: mask_nms(m, scores), lambda: torch.ops.tiger.mask_nms(m, scores)):
+        assert sorted(op().tolist()) == [1, 2, 3, 5]
+
+
+def test_mask_nms_decides_in_float32_as_langsplat():
+    # LangSplat's IoU is a float32 tensor compared with 0.8 in float32: an IoU of
+    # 5,600,001 / 7,000,001 = 0.80000002857 rounds to 0.8f and passes "<= 0.8" there (in float64
+    # it would not). Two nested masks of a 2048 x 4096 frame with exactly that IoU: both stay.
+    from tiger.ops.nms import mask_nms
+
+    p, q = 5_600_001, 7_000_001
+    m = torch.zeros(2, 2048 * 4096, dtype=torch.bool)
+    m[0, :q] = True
+    m[1, :p] = True
+    inter, union = torch.tensor(float(p)), torch.tensor(float(q))  # float32, as LangSplat's sums
+    assert bool(inter / union <= 0.8) and p / q > 0.8
+    keep = mask_nms(m.view(2, 2048, 4096), torch.tensor([0.9, 0.8]))
+    assert keep.tolist() == [0, 1]
