@@ -5,6 +5,10 @@ CPU (here):  python benchmarks/features.py --device cpu --models tiny
 GPU:         python benchmarks/features.py --device cuda --models full --out-long-side 1920
 ``--models full`` builds CLIP ViT-B/16 and SAM ViT-H with random weights from their configs (the
 real models' cost); ``tiny`` uses the test-size models. Input images are 1920x1080.
+The mask stages (box NMS, clean-up, mask NMS, id map, masked average, PCA statistics) and the
+mask-NMS table run on SAM-like synthetic mask sets of 100 / 300 / 1000 masks
+(``benchmarks/masks.py``): random SAM weights produce no realistic masks. The NMS table runs the
+pairwise baselines in full (nothing extrapolated) and asserts they keep the masks ours keeps.
 """
 from __future__ import annotations
 
@@ -28,6 +32,7 @@ from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator, SamMasks, 
 from tiger.ops.jbu import adaptive_conv  # noqa: E402
 from tiger.ops.masked_average import masked_average  # noqa: E402
 from tiger.ops.nms import box_nms, mask_intersections, mask_nms  # noqa: E402
+from masks import langsplat_loop, matmul_counts, pairwise_loop, realistic_masks  # noqa: E402
 
 
 def sync(dev: torch.device) -> None:
@@ -54,58 +59,6 @@ def synthetic_image(h: int, w: int, seed: int = 0) -> torch.Tensor:
         sel = (yy - cy) ** 2 + ((xx - cx) * w / h) ** 2 <= (0.03 + 0.15 * r) ** 2
         img[:, sel] = col
     return img.clamp(0, 1)
-
-
-def blob_masks(m: int, h: int, w: int, dev, seed: int = 0) -> torch.Tensor:
-    """m overlapping disc masks (with duplicates and nested ones), the load mask NMS sees."""
-    g = torch.Generator().manual_seed(seed)
-    c = torch.rand(m, 3, generator=g)
-    yy = torch.arange(h, device=dev).view(1, h, 1).float()
-    xx = torch.arange(w, device=dev).view(1, 1, w).float()
-    cy, cx = (c[:, 0] * h).to(dev).view(m, 1, 1), (c[:, 1] * w).to(dev).view(m, 1, 1)
-    r = ((0.02 + 0.2 * c[:, 2] ** 2) * min(h, w)).to(dev).view(m, 1, 1)
-    out = (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
-    out[1::7] = out[0::7][: out[1::7].shape[0]]  # exact duplicates
-    return out
-
-
-def langsplat_mask_nms(masks, scores, iou_thr=0.8, score_thr=0.7, inner_thr=0.5, max_pairs=None):
-    """LangSplat's Python mask NMS (pairwise loop over masks). With ``max_pairs`` only the first
-    pairs are run and the returned time is extrapolated to all pairs."""
-    scores, idx = scores.sort(0, descending=True)
-    n = idx.shape[0]
-    mo = masks[idx]
-    area = mo.sum((1, 2), dtype=torch.float)
-    iou_m = torch.zeros(n, n, device=masks.device)
-    inner_m = torch.zeros(n, n, device=masks.device)
-    pairs = [(i, j) for i in range(n) for j in range(i, n)]
-    run = pairs if max_pairs is None else pairs[:max_pairs]
-    for i, j in run:
-        inter = torch.sum(torch.logical_and(mo[i], mo[j]), dtype=torch.float)
-        union = torch.sum(torch.logical_or(mo[i], mo[j]), dtype=torch.float)
-        iou_m[i, j] = inter / union
-        if inter / area[i] < 0.5 and inter / area[j] >= 0.85:
-            inner_m[i, j] = 1 - (inter / area[j]) * (inter / area[i])
-        if inter / area[i] >= 0.85 and inter / area[j] < 0.5:
-            inner_m[j, i] = 1 - (inter / area[j]) * (inter / area[i])
-    iou_m.triu_(diagonal=1)
-    keep = (iou_m.max(0).values <= iou_thr) & (scores > score_thr)
-    keep &= torch.triu(inner_m, diagonal=1).max(0).values <= 1 - inner_thr
-    keep &= torch.tril(inner_m, diagonal=1).max(0).values <= 1 - inner_thr
-    return idx[keep], len(pairs) / len(run)
-
-
-def matmul_intersections(masks: torch.Tensor) -> torch.Tensor:
-    """A vectorised PyTorch intersection count: one (half/float) matmul of the flattened masks."""
-    dt = torch.float16 if masks.is_cuda else torch.float32
-    a = masks.flatten(1).to(dt)
-    if masks.is_cuda:  # fp16 sums are exact only below 2048 per product: accumulate in fp32 chunks
-        out = torch.zeros(a.shape[0], a.shape[0], device=a.device, dtype=torch.float64)
-        for s in range(0, a.shape[1], 1 << 20):
-            blk = a[:, s : s + (1 << 20)]
-            out += (blk @ blk.T).double()
-        return out.round().long()
-    return (a @ a.T).round().long()
 
 
 def bench_ops(dev: torch.device, h: int, w: int) -> list[dict]:
@@ -143,33 +96,57 @@ def bench_ops(dev: torch.device, h: int, w: int) -> list[dict]:
         t = median_time(fn, repeats=5 if cuda else 3, cuda=cuda)
         rows.append({"op": "adaptive conv", "impl": name, "size": f"512x{hh}x{ww}, k=7", "seconds": t,
                      "rel_err_vs_f64": rel_err(fn(), ref), "note": ""})
-    # mask NMS at the working resolution
-    for mm in ([100, 300, 1000] if cuda else [60, 200]):
-        masks = blob_masks(mm, h, w, dev)
-        scores = torch.rand(mm, generator=torch.Generator().manual_seed(1)).to(dev) * 0.3 + 0.7
-        keep_ref = None
-        t_op = median_time(lambda: mask_nms(masks, scores), repeats=3, cuda=cuda)
-        keep = mask_nms(masks, scores)
-        budget = 400 if cuda else 60
-        (keep_ls, factor), t_ls = timed(lambda: langsplat_mask_nms(masks, scores, max_pairs=budget), dev)
-        if factor == 1.0:
-            keep_ref = keep_ls
-        t_ls *= factor
-        t_mm = median_time(lambda: matmul_intersections(masks), repeats=3, cuda=cuda)
-        exact = bool(torch.equal(matmul_intersections(masks), mask_intersections(masks)))
-        same = "n/a (extrapolated)" if keep_ref is None else str(keep.tolist() == keep_ref.tolist())
-        rows.append({"op": f"mask NMS M={mm}", "impl": "tiger::mask_nms", "size": f"{h}x{w}", "seconds": t_op,
-                     "rel_err_vs_f64": 0.0, "note": f"same keep as LangSplat: {same}"})
-        rows.append({"op": f"mask NMS M={mm}", "impl": "LangSplat python loop", "size": f"{h}x{w}",
-                     "seconds": t_ls, "rel_err_vs_f64": 0.0,
-                     "note": f"speed-up {t_ls / t_op:.0f}x" + (" (extrapolated)" if factor > 1 else "")})
-        rows.append({"op": f"mask NMS M={mm}", "impl": "torch matmul counts only", "size": f"{h}x{w}",
-                     "seconds": t_mm, "rel_err_vs_f64": 0.0, "note": f"counts exact: {exact}"})
-    boxes = masks_to_boxes(blob_masks(1000, h // 4, w // 4, dev)).float()
+    boxes = masks_to_boxes(realistic_masks(1000, h // 4, w // 4, dev)[0]).float()
     sc = torch.rand(1000, device=dev)
     rows.append({"op": "box NMS M=1000", "impl": "tiger::box_nms", "size": "", "seconds":
                  median_time(lambda: box_nms(boxes, sc, 0.7), repeats=5, cuda=cuda), "rel_err_vs_f64": 0.0,
                  "note": ""})
+    return rows
+
+
+def bench_mask_nms(dev: torch.device, h: int, w: int, counts: list[int], langsplat_max: int) -> list[dict]:
+    """tiger::mask_nms against full runs of the pairwise algorithm (same kept set asserted) and
+    against matrix-product intersection counts, on SAM-like mask sets (benchmarks/masks.py)."""
+    rows = []
+    cuda = dev.type == "cuda"
+
+    def row(op, impl, seconds, note):
+        rows.append({"op": op, "impl": impl, "size": f"{h}x{w}", "seconds": seconds, "note": note})
+        print(f"  {op} | {impl}: {seconds:.4f} s  {note}", flush=True)  # survives a time-out
+
+    for mm in counts:
+        masks, scores = realistic_masks(mm, h, w, dev, seed=mm)
+        op = f"mask NMS M={mm}"
+        keep = mask_nms(masks, scores)
+        t_op = median_time(lambda: mask_nms(masks, scores), repeats=5, cuda=cuda)
+        counts_ref = mask_intersections(masks)
+        ov = counts_ref.double()
+        iou = ov / (ov.diagonal()[:, None] + ov.diagonal()[None] - ov).clamp_min(1)
+        iou.fill_diagonal_(0)
+        row(op, "tiger::mask_nms", t_op, f"{mm} -> {keep.numel()} kept; {int((iou > 0.8).sum()) // 2} pairs "
+            f"IoU > 0.8, {int(((iou > 0.5) & (iou <= 0.8)).sum()) // 2} in (0.5, 0.8]")
+        t_cnt = median_time(lambda: mask_intersections(masks), repeats=5, cuda=cuda)
+        row(op, "tiger::mask_intersections (counts only)", t_cnt, "popcount of bit-packed masks")
+        for kind in (["float32", "tf32", "int8"] if cuda else ["float32"]):
+            try:
+                exact = bool(torch.equal(matmul_counts(masks, kind), counts_ref))
+                t = median_time(lambda: matmul_counts(masks, kind), repeats=5, cuda=cuda)
+                row(op, f"torch matmul {kind} (counts only)", t, f"counts exact: {exact}")
+            except (RuntimeError, torch.cuda.OutOfMemoryError) as exc:  # pragma: no cover - device dependent
+                row(op, f"torch matmul {kind} (counts only)", float("nan"), f"failed: {str(exc)[:80]}")
+        keep_pw, t_pw = timed(lambda: pairwise_loop(masks, scores), dev)
+        same = keep_pw.tolist() == keep.tolist()
+        row(op, "pairwise loop, one host read per pair (full run)", t_pw,
+            f"same kept set: {same}; ours {t_pw / t_op:.0f}x faster")
+        assert same, f"mask NMS M={mm}: tiger keeps {keep.tolist()}, the pairwise loop {keep_pw.tolist()}"
+        if mm <= langsplat_max:
+            keep_ls, t_ls = timed(lambda: langsplat_loop(masks, scores), dev)
+            same = keep_ls.tolist() == keep.tolist()
+            row(op, "LangSplat's loop as written (full run)", t_ls, f"same kept set: {same}; ours {t_ls / t_op:.0f}x faster")
+            assert same, f"mask NMS M={mm}: tiger keeps {keep.tolist()}, LangSplat's loop {keep_ls.tolist()}"
+        del masks
+        if cuda:
+            torch.cuda.empty_cache()
     return rows
 
 
@@ -190,7 +167,8 @@ def build_models(kind: str, dev: torch.device, dtype: torch.dtype):
     return clip, sam
 
 
-def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, points_per_batch) -> list[dict]:
+def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, points_per_batch,
+                   mask_counts) -> list[dict]:
     clip, sam_model = build_models(kind, dev, dtype)
     image = synthetic_image(*img_hw).to(dev)
     rows = []
@@ -225,30 +203,46 @@ def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, 
     gen.predict(image, (64, 64))  # warm-up
     pixels, _ = gen.preprocess(image)
     _, t_enc = timed(lambda: sam_model.get_image_embeddings(pixels.to(dtype)), dev)
-    (masks, iou, stab), t_pred = timed(lambda: gen.predict(image, out_hw), dev)
+    (masks, _, _), t_pred = timed(lambda: gen.predict(image, out_hw), dev)
     row("SAM encoder (ViT)", t_enc, f"{sam_model.config.vision_config.num_hidden_layers} blocks, {dtype}")
-    row("SAM 32x32 prompts + upscale", t_pred - t_enc, f"{masks.shape[0]} masks (filters off: worst case)")
-    keep, t_box = timed(lambda: box_nms(masks_to_boxes(masks), iou, 0.7), dev)
-    masks, iou, stab = masks[keep], iou[keep], stab[keep]
-    row("box NMS", t_box, f"{masks.shape[0]} kept")
-    (masks, changed), t_clean = timed(lambda: gen._clean(masks), dev)
-    row("small-region clean-up", t_clean, f"{int(changed.sum())} changed")
-    keep, t_mnms = timed(lambda: mask_nms(masks, iou * stab, 0.8, -1e9, 0.5), dev)
-    row("mask NMS", t_mnms, f"{masks.shape[0]} -> {keep.numel()} masks")
-    sm = SamMasks(masks[keep], iou[keep], stab[keep])
-    ids, t_ids = timed(lambda: sm.id_map().reshape(-1), dev)
+    row("SAM 32x32 prompts + upscale", t_pred - t_enc, f"{masks.shape[0]} masks (random weights, filters off)")
+    del masks
+    shared_fast = sum(r["seconds/image"] for r in rows if r["stage"] != "FeatUp implicit")
+    shared_quality = sum(r["seconds/image"] for r in rows if r["stage"] != "FeatUp JBU")
+    # Random SAM weights give no realistic masks: the mask stages run on SAM-like synthetic sets
+    # (benchmarks/masks.py) of each size, as SAM's real outputs would reach them.
     feats = F.normalize(hr.float(), dim=0).permute(1, 2, 0).reshape(-1, d)
-    (_, means, counts), t_ma = timed(lambda: masked_average(feats, ids, sm.masks.shape[0]), dev)
-    row("id map + masked average", t_ids + t_ma, f"{sm.masks.shape[0]} masks")
-    acc = StreamingPCA(d, min(64, d))
-    _, t_pca = timed(lambda: acc.update(torch.cat([means, feats[ids < 0]]),
-                                        torch.cat([counts.float(), torch.ones(int((ids < 0).sum()), device=dev)])), dev)
-    row("PCA statistics", t_pca)
-    total_fast = sum(r["seconds/image"] for r in rows if r["stage"] != "FeatUp implicit")
-    total_quality = sum(r["seconds/image"] for r in rows if r["stage"] != "FeatUp JBU")
-    if steps > 0:
-        row("TOTAL (implicit, paper)", total_quality)
-    row("TOTAL (JBU, fast)", total_fast)
+    cfg = SamMaskConfig()
+    for mm in mask_counts:
+        masks, scores = realistic_masks(mm, *out_hw, dev, seed=mm)
+        first = len(rows)
+        keep, t_box = timed(lambda: box_nms(masks_to_boxes(masks), scores, cfg.box_nms_thresh), dev)
+        masks, scores = masks[keep], scores[keep]
+        row(f"[M={mm}] box NMS", t_box, f"{mm} -> {masks.shape[0]} masks")
+        (masks, changed), t_clean = timed(lambda: gen._clean(masks), dev)
+        big = masks.flatten(1).sum(1) >= cfg.min_mask_region_area
+        masks, scores = masks[big], scores[big]
+        row(f"[M={mm}] small-region clean-up", t_clean, f"{int(changed.sum())} changed, {masks.shape[0]} >= "
+            f"{cfg.min_mask_region_area} px")
+        keep, t_mnms = timed(lambda: mask_nms(masks, scores, cfg.mask_nms_iou, cfg.mask_nms_score,
+                                              cfg.mask_nms_inner), dev)
+        row(f"[M={mm}] mask NMS", t_mnms, f"{masks.shape[0]} -> {keep.numel()} masks")
+        sm = SamMasks(masks[keep], scores[keep], torch.ones_like(scores[keep]))
+        ids, t_ids = timed(lambda: sm.id_map().reshape(-1), dev)
+        (_, means, counts), t_ma = timed(lambda: masked_average(feats, ids, sm.masks.shape[0]), dev)
+        row(f"[M={mm}] id map + masked average", t_ids + t_ma, f"{sm.masks.shape[0]} masks, "
+            f"{100 * float((ids >= 0).float().mean()):.0f} % of pixels in a mask")
+        acc = StreamingPCA(d, min(64, d))
+        _, t_pca = timed(lambda: acc.update(torch.cat([means, feats[ids < 0]]),
+                                            torch.cat([counts.float(), torch.ones(int((ids < 0).sum()), device=dev)])), dev)
+        row(f"[M={mm}] PCA statistics", t_pca)
+        mask_t = sum(r["seconds/image"] for r in rows[first:])
+        if steps > 0:
+            row(f"[M={mm}] TOTAL (implicit, paper)", shared_quality + mask_t)
+        row(f"[M={mm}] TOTAL (JBU, fast)", shared_fast + mask_t)
+        del masks, sm, ids
+        if dev.type == "cuda":
+            torch.cuda.empty_cache()
     return rows
 
 
@@ -262,7 +256,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=None,
                     help="implicit FeatUp steps (default 1200 GPU, 10 CPU; 0 skips the implicit upsampler)")
     ap.add_argument("--views", type=int, default=None, help="implicit FeatUp jittered views (default 3000 GPU, 20 CPU)")
+    ap.add_argument("--mask-counts", default=None,
+                    help="SAM-like mask set sizes for the mask stages and the NMS table (default 100,300,1000 "
+                         "GPU, 100,300 CPU)")
+    ap.add_argument("--langsplat-max", type=int, default=300,
+                    help="run LangSplat's loop as written up to this mask count (it needs ~0.4 ms per pair)")
     ap.add_argument("--skip-ops", action="store_true")
+    ap.add_argument("--skip-nms", action="store_true")
     ap.add_argument("--skip-pipeline", action="store_true")
     args = ap.parse_args()
     dev = torch.device(args.device)
@@ -275,14 +275,18 @@ def main() -> None:
     out_hw = (round(ih * s), round(iw * s))
     print(f"device {dev} ({torch.cuda.get_device_name(dev) if cuda else os.cpu_count()}), models {kind}, "
           f"image {ih}x{iw}, feature maps {out_hw[0]}x{out_hw[1]}")
-    if not args.skip_ops:
-        print_table(bench_ops(dev, *out_hw), "ops (median seconds; errors vs float64)")
+    counts = [int(c) for c in (args.mask_counts or ("100,300,1000" if cuda else "100,300")).split(",")]
+    # Longest last (LangSplat's loop at the largest count): a time-out then loses only that row.
     if not args.skip_pipeline:
         steps = args.steps if args.steps is not None else (1200 if cuda else 10)
         rows = bench_pipeline(dev, kind, dtype, (ih, iw), out_hw, args.clip_long_side or (448 if cuda else 224),
-                              steps, args.views or (3000 if cuda else 20), 256 if cuda else 64)
+                              steps, args.views or (3000 if cuda else 20), 256 if cuda else 64, counts)
         print_table(rows, f"per-image stage times ({kind} models, {dtype})")
-
+    if not args.skip_ops:
+        print_table(bench_ops(dev, *out_hw), "ops (median seconds; errors vs float64)")
+    if not args.skip_nms:
+        print_table(bench_mask_nms(dev, *out_hw, counts, args.langsplat_max),
+                    "mask NMS on SAM-like mask sets (seconds; kept sets asserted equal)")
 
 if __name__ == "__main__":
     main()

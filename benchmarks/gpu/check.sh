@@ -6,7 +6,11 @@
 #   4. the benchmark against gsplat 1.5.3 (if its wheel is given) and the error sweep
 # Results go under $OUT (check.log, tests.log, sanitizer.log, bench.txt, bench.json).
 # Usage, from the repo root:  OUT=/tmp/out bash benchmarks/gpu/check.sh [WHEEL_DIR] [EIGEN_DEB]
-# Environment: CHECK_STEPS (default "build tests sanitizer bench"), BENCH_ARGS, PYTEST_ARGS.
+# Environment: CHECK_STEPS (default "build tests sanitizer bench"), BENCH_ARGS, PYTEST_ARGS;
+#   TEST_WHEELS: a folder of wheels for the tests only (nbformat, nbclient, ipykernel and their
+#   needs: benchmarks/gpu/test_wheels.sh downloads them), so the notebook tests run;
+#   TEST_DATA: the shared data folder (the fox capture), linked as ../shared/data beside the repo
+#   when that is missing, so the real-data tests run.
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${OUT:-/tmp/tiger-gpu-check}"
@@ -29,6 +33,16 @@ if [ -n "$WHEELS" ] && ls "$WHEELS"/*.whl >/dev/null 2>&1; then
   $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHEELS"/*.whl \
     && export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
   say "wheels installed: $(ls "$WHEELS")"
+fi
+
+if [ -n "${TEST_WHEELS:-}" ] && ls "$TEST_WHEELS"/*.whl >/dev/null 2>&1; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$TEST_WHEELS"/*.whl \
+    && export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
+  say "test wheels installed: $(ls "$TEST_WHEELS" | wc -l) ($($PY -c 'import nbformat, nbclient, ipykernel; print("nbformat", nbformat.__version__)' 2>&1 | tail -1))"
+fi
+if [ -n "${TEST_DATA:-}" ] && [ ! -e ../shared/data ]; then
+  mkdir -p ../shared && ln -s "$(cd "$TEST_DATA" && pwd)" ../shared/data
+  say "test data: ../shared/data -> $TEST_DATA ($(ls ../shared/data | tr '\n' ' '))"
 fi
 
 if has build; then

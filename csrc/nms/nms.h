@@ -9,12 +9,15 @@
 //   (the diagonal holds the areas). Masks are packed into 64-bit words and counted by popcount.
 // mask_nms(masks [M, H, W] bool, scores [M], iou_threshold=0.8, score_threshold=0.7,
 //          inner_threshold=0.5) -> keep [K] int64 (indices into masks, by decreasing score)
-//   LangSplat's mask NMS. In score order, mask j is dropped when
+//   LangSplat's mask NMS, its ratios in float32 as there (so ties within float32 rounding of a
+//   threshold decide as in LangSplat; frames up to 2^24 pixels). In score order, mask j is dropped when
 //     * max_{i before j} IoU(i, j) > iou_threshold (i counted whether or not it is kept), or
 //     * scores[j] <= score_threshold, or
 //     * j is the contained one of a nested pair (i, j): the smaller mask has >= 85 % of its area in
 //       the larger one, the larger has < 50 % in the smaller, and
 //       1 - (inter/area_i)(inter/area_j) > 1 - inner_threshold.
+//   An empty mask has IoU 0 with everything (LangSplat's 0/0 = NaN would drop the second of two
+//   empty masks; the pipeline drops masks under 100 px before this op).
 #include <cstdint>
 
 namespace tiger {

@@ -24,10 +24,13 @@ inline void check_masks(const at::Tensor& masks, const char* op) {
   TORCH_CHECK(masks.scalar_type() == at::kBool, op, ": masks must be bool, got ", masks.scalar_type());
 }
 
-// LangSplat's decision on the [M, M] intersection counts of the score-sorted masks.
+// LangSplat's decision on the [M, M] intersection counts of the score-sorted masks, in float32 as
+// LangSplat computes it (its IoU and nesting ratios are float32 tensors compared with float32
+// thresholds): a ratio within float32 rounding of a threshold decides as it does there. The counts
+// are exact in float32 up to 2^24 pixels per mask (checked by mask_nms_impl).
 inline at::Tensor mask_nms_decide(const at::Tensor& inter_counts, const at::Tensor& sorted_scores,
                                   double iou_threshold, double score_threshold, double inner_threshold) {
-  const auto inter = inter_counts.to(at::kDouble);
+  const auto inter = inter_counts.to(at::kFloat);
   const int64_t M = inter.size(0);
   const auto area = inter.diagonal();
   const auto area_i = area.unsqueeze(1), area_j = area.unsqueeze(0);
@@ -37,13 +40,15 @@ inline at::Tensor mask_nms_decide(const at::Tensor& inter_counts, const at::Tens
   const auto rj = at::where(area_j > 0, inter / area_j.clamp_min(1), at::zeros_like(inter));
   const auto upper = at::ones({M, M}, inter.options().dtype(at::kBool)).triu(1);
   const auto zero = at::zeros_like(inter);
-  const auto inner = 1.0 - ri * rj;
+  const auto inner = 1.0f - rj * ri;
   const auto iou_max = at::where(upper, iou, zero).amax(0);
+  const float nested = 0.85f, outer = 0.5f;  // LangSplat's fixed nesting ratios
   // (i before j) j nested in i: drops j; i nested in j: drops i.
-  const auto a = at::where(upper & (ri < 0.5) & (rj >= 0.85), inner, zero).amax(0);
-  const auto b = at::where(upper & (ri >= 0.85) & (rj < 0.5), inner, zero).amax(1);
-  return (iou_max <= iou_threshold) & (sorted_scores.to(at::kDouble) > score_threshold) &
-         (a <= 1.0 - inner_threshold) & (b <= 1.0 - inner_threshold);
+  const auto a = at::where(upper & (ri < outer) & (rj >= nested), inner, zero).amax(0);
+  const auto b = at::where(upper & (ri >= nested) & (rj < outer), inner, zero).amax(1);
+  const float inner_max = static_cast<float>(1.0 - inner_threshold);
+  return (iou_max <= static_cast<float>(iou_threshold)) & (sorted_scores.to(at::kDouble) > score_threshold) &
+         (a <= inner_max) & (b <= inner_max);
 }
 
 template <typename IntersectFn>
@@ -55,6 +60,8 @@ at::Tensor mask_nms_impl(const at::Tensor& masks, const at::Tensor& scores, doub
   TORCH_CHECK(at::isFloatingType(scores.scalar_type()), "tiger.mask_nms: scores must be floating, got ",
               scores.scalar_type());
   TORCH_CHECK(scores.device() == masks.device(), "tiger.mask_nms: masks and scores must be on one device");
+  TORCH_CHECK(masks.size(1) * masks.size(2) <= (int64_t(1) << 24), "tiger.mask_nms: masks of ",
+              masks.size(1), "x", masks.size(2), " pixels exceed 2^24, where float32 counts stop being exact");
   if (masks.size(0) == 0) return at::empty({0}, scores.options().dtype(at::kLong));
   const auto order = std::get<1>(scores.sort(/*stable=*/true, /*dim=*/0, /*descending=*/true));
   const auto inter = intersections(masks.index_select(0, order));

@@ -13,13 +13,32 @@ def layer_norm(x, ln):
     return (x - mu) / torch.sqrt(var + ln.eps) * ln.weight + ln.bias
 
 
+def featup_positions(emb, embeddings, height, width):
+    """FeatUp's position interpolation (featup/featurizers/maskclip/interpolate.py): bicubic with
+    scale_factor (g + 0.1) / side and recompute_scale_factor=False."""
+    table = emb.position_embedding.weight
+    side = int(round((table.shape[0] - 1) ** 0.5))
+    gh, gw = height // emb.patch_size, width // emb.patch_size
+    if (gh, gw) == (side, side):
+        return table[None]
+    grid = table[1:].reshape(1, side, side, -1).permute(0, 3, 1, 2)
+    grid = F.interpolate(grid, scale_factor=((gh + 0.1) / side, (gw + 0.1) / side), mode="bicubic",
+                         align_corners=False, recompute_scale_factor=False)
+    return torch.cat([table[None, :1], grid.permute(0, 2, 3, 1).reshape(1, gh * gw, -1)], 1)
+
+
 def reference(clip, images):
-    """hidden states from transformers' own forward (its position interpolation), then the last
-    block's value path, post-LN and projection written out from the weights."""
+    """hidden states from transformers' own forward (with FeatUp's position interpolation), then
+    the last block's value path, post-LN and projection written out from the weights."""
     mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
     std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
     vm = clip.vision_model
-    out = vm(pixel_values=(images - mean) / std, interpolate_pos_encoding=True, output_hidden_states=True)
+    emb = vm.embeddings
+    emb.interpolate_pos_encoding = lambda e, h, w: featup_positions(emb, e, h, w)
+    try:
+        out = vm(pixel_values=(images - mean) / std, interpolate_pos_encoding=True, output_hidden_states=True)
+    finally:
+        del emb.interpolate_pos_encoding
     h = out.hidden_states[-2]  # input of the last block
     last = vm.encoder.layers[-1]
     a = last.self_attn

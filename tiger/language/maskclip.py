@@ -72,7 +72,8 @@ class MaskCLIP(torch.nn.Module):
         return self.clip.visual_projection.weight.dtype
 
     def position_embeddings(self, grid_h: int, grid_w: int) -> torch.Tensor:
-        """Class + patch position embeddings [1 + grid_h * grid_w, D], patch part resampled bicubically."""
+        """Class + patch position embeddings [1 + grid_h * grid_w, D], patch part resampled bicubically
+        with FeatUp's scale factors ((grid + 0.1) / side, ``recompute_scale_factor=False``)."""
         table = self.clip.vision_model.embeddings.position_embedding.weight
         n = table.shape[0] - 1
         side = int(round(n**0.5))
@@ -81,7 +82,13 @@ class MaskCLIP(torch.nn.Module):
         cls_pos, patch_pos = table[:1], table[1:]
         if (grid_h, grid_w) != (side, side):
             grid = patch_pos.reshape(1, side, side, -1).permute(0, 3, 1, 2).float()
-            grid = F.interpolate(grid, size=(grid_h, grid_w), mode="bicubic", align_corners=False)
+            # FeatUp's rule (featup/featurizers/maskclip/interpolate.py, from DINO): the scale
+            # (g + 0.1) / side, not the target size, sets the sampling positions.
+            grid = F.interpolate(grid, scale_factor=((grid_h + 0.1) / side, (grid_w + 0.1) / side),
+                                 mode="bicubic", align_corners=False, recompute_scale_factor=False)
+            if tuple(grid.shape[-2:]) != (grid_h, grid_w):  # floor(side * (g + 0.1) / side) == g
+                raise RuntimeError(f"tiger.MaskCLIP: position grid {tuple(grid.shape[-2:])}, "
+                                   f"expected {(grid_h, grid_w)}")
             patch_pos = grid.permute(0, 2, 3, 1).reshape(grid_h * grid_w, -1).to(table.dtype)
         return torch.cat([cls_pos, patch_pos], dim=0)
 

@@ -12,7 +12,20 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .rasterize import RasterDefaults, camera_center
+from .rasterize import camera_center
+
+# The reference's constants are written from their sources, not imported from the kernels'
+# RasterDefaults, so that a wrong kernel default shows up as a difference:
+#   INRIA diff-gaussian-rasterization, cuda_rasterizer/forward.cu: ``cov[0][0] += 0.3f`` (eps2d),
+#   ``alpha = min(0.99f, ...)``, ``if (alpha < 1.0f / 255.0f) continue``,
+#   ``if (test_T < 0.0001f) done = true``; SPEC §3 (the same values).
+#   near/far: gsplat's defaults (near_plane=0.01, far_plane=1e10).
+REF_EPS2D = 0.3
+REF_ALPHA_MAX = 0.99
+REF_ALPHA_THRESHOLD = 1.0 / 255.0
+REF_T_MIN = 1e-4
+REF_NEAR = 0.01
+REF_FAR = 1e10
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -54,10 +67,10 @@ def sh_to_color_ref(dirs: Tensor, coeffs: Tensor, degree: int) -> Tensor:
 
 
 def project_ref(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor,
-                K: Tensor, width: int, height: int, *, near: float = RasterDefaults.near,
-                far: float = RasterDefaults.far, eps2d: float = RasterDefaults.eps2d,
+                K: Tensor, width: int, height: int, *, near: float = REF_NEAR,
+                far: float = REF_FAR, eps2d: float = REF_EPS2D,
                 antialiased: bool = False,
-                alpha_threshold: float = RasterDefaults.alpha_threshold) -> dict[str, Tensor]:
+                alpha_threshold: float = REF_ALPHA_THRESHOLD) -> dict[str, Tensor]:
     """EWA projection of every Gaussian. Returns means2d [N,2], conics [N,3], depths [N],
     opacities [N] (compensated) and ``valid`` [N] bool (not culled by near/far/det/opacity)."""
     R, t = viewmat[:3, :3], viewmat[:3, 3]
@@ -98,9 +111,9 @@ def project_ref(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
 def composite_ref(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
                   depths: Tensor, valid: Tensor, width: int, height: int,
                   background: Optional[Tensor] = None, *,
-                  alpha_max: float = RasterDefaults.alpha_max,
-                  alpha_threshold: float = RasterDefaults.alpha_threshold,
-                  t_min: float = RasterDefaults.t_min, pixel_chunk: int = 1 << 16
+                  alpha_max: float = REF_ALPHA_MAX,
+                  alpha_threshold: float = REF_ALPHA_THRESHOLD,
+                  t_min: float = REF_T_MIN, pixel_chunk: int = 1 << 16
                   ) -> dict[str, Tensor]:
     """Dense front-to-back compositing → color [H,W,C], alpha [H,W], depth_accum [H,W]."""
     order = torch.argsort(torch.where(valid, depths, torch.full_like(depths, float("inf"))),
@@ -139,11 +152,11 @@ def composite_ref(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Te
 def render_ref(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
                viewmat: Tensor, K: Tensor, width: int, height: int, *,
                background: Optional[Tensor] = None, sh_degree: Optional[int] = None,
-               near: float = RasterDefaults.near, far: float = RasterDefaults.far,
-               eps2d: float = RasterDefaults.eps2d, antialiased: bool = False,
-               alpha_max: float = RasterDefaults.alpha_max,
-               alpha_threshold: float = RasterDefaults.alpha_threshold,
-               t_min: float = RasterDefaults.t_min, pixel_chunk: int = 1 << 16
+               near: float = REF_NEAR, far: float = REF_FAR,
+               eps2d: float = REF_EPS2D, antialiased: bool = False,
+               alpha_max: float = REF_ALPHA_MAX,
+               alpha_threshold: float = REF_ALPHA_THRESHOLD,
+               t_min: float = REF_T_MIN, pixel_chunk: int = 1 << 16
                ) -> dict[str, Tensor]:
     """Reference counterpart of :func:`tiger.rasterize_gaussians` (same arguments/outputs)."""
     pr = project_ref(means, quats, scales, opacities, viewmat, K, width, height, near=near,

@@ -1,0 +1,186 @@
+"""Synthetic SAM-like mask sets and the baselines the mask NMS is measured against.
+
+``realistic_masks`` builds what SAM's 32x32 automatic prompts hand to the mask stages of one
+image: segments of a partition of the frame (adjacent, no overlap), near-duplicates of them (the
+same segment found from neighbouring prompts: a boundary one to four pixels off, IoU 0.6-0.98),
+parts of segments (nested, 20-70 % of the area) and unions of two neighbouring segments (a mask
+that contains two others). Scores are SAM's predicted IoU x stability, both above SAM's filters
+(IoU > 0.7, stability >= 0.85), so a few fall under LangSplat's score threshold 0.7. Every rule of
+LangSplat's mask NMS fires on such a set.
+
+Baselines (all exact, none extrapolated):
+  * ``langsplat_loop``: LangSplat's ``mask_nms`` (preprocess.py) as written: a Python loop over
+    the M (M + 1) / 2 pairs, with its three data-dependent ``if``s (three host syncs per pair on
+    a GPU).
+  * ``pairwise_loop``: the same pairwise algorithm with one host read per pair (intersection and
+    union fetched together, the rules evaluated on the host).
+  * ``matmul_counts``: the intersection counts as one matrix product of the flattened masks, in
+    float32 (exact: 0/1 products, float32 sums exact below 2^24 pixels), TF32 or int8.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+
+def _decide(iou_m, inner_m, scores, iou_thr, score_thr, inner_thr):
+    """LangSplat's final step on its [M, M] IoU and nested-pair matrices (score order)."""
+    iou_m = iou_m.triu(diagonal=1)
+    keep = (iou_m.max(0).values <= iou_thr) & (scores > score_thr)
+    keep &= torch.triu(inner_m, diagonal=1).max(0).values <= 1 - inner_thr
+    keep &= torch.tril(inner_m, diagonal=1).max(0).values <= 1 - inner_thr
+    return keep
+
+
+def langsplat_loop(masks: torch.Tensor, scores: torch.Tensor, iou_thr: float = 0.8,
+                   score_thr: float = 0.7, inner_thr: float = 0.5) -> torch.Tensor:
+    """LangSplat's mask NMS, pair by pair as in its repository; kept indices [K] by score."""
+    scores, idx = scores.sort(dim=0, descending=True, stable=True)
+    n = idx.shape[0]
+    mo = masks[idx]
+    area = mo.sum((1, 2), dtype=torch.float)
+    iou_m = torch.zeros(n, n, device=masks.device)
+    inner_m = torch.zeros(n, n, device=masks.device)
+    for i in range(n):
+        for j in range(i, n):
+            inter = torch.sum(torch.logical_and(mo[i], mo[j]), dtype=torch.float)
+            union = torch.sum(torch.logical_or(mo[i], mo[j]), dtype=torch.float)
+            iou_m[i, j] = inter / union
+            if inter / area[i] < 0.5 and inter / area[j] >= 0.85:
+                inner_m[i, j] = 1 - (inter / area[j]) * (inter / area[i])
+            if inter / area[i] >= 0.85 and inter / area[j] < 0.5:
+                inner_m[j, i] = 1 - (inter / area[j]) * (inter / area[i])
+    return idx[_decide(iou_m, inner_m, scores, iou_thr, score_thr, inner_thr)]
+
+
+def pairwise_loop(masks: torch.Tensor, scores: torch.Tensor, iou_thr: float = 0.8,
+                  score_thr: float = 0.7, inner_thr: float = 0.5) -> torch.Tensor:
+    """The same pairwise algorithm with one host read per pair (float32 ratios as LangSplat's)."""
+    scores, idx = scores.sort(dim=0, descending=True, stable=True)
+    n = idx.shape[0]
+    mo = masks[idx]
+    area = mo.sum((1, 2), dtype=torch.float).cpu()
+    iou_m = torch.zeros(n, n)
+    inner_m = torch.zeros(n, n)
+    for i in range(n):
+        for j in range(i, n):
+            pair = torch.stack([torch.sum(torch.logical_and(mo[i], mo[j]), dtype=torch.float),
+                                torch.sum(torch.logical_or(mo[i], mo[j]), dtype=torch.float)]).cpu()
+            inter, union = pair[0], pair[1]
+            iou_m[i, j] = inter / union
+            ri, rj = inter / area[i], inter / area[j]
+            if ri < 0.5 and rj >= 0.85:
+                inner_m[i, j] = 1 - rj * ri
+            if ri >= 0.85 and rj < 0.5:
+                inner_m[j, i] = 1 - rj * ri
+    return idx[_decide(iou_m, inner_m, scores.cpu(), iou_thr, score_thr, inner_thr).to(idx.device)]
+
+
+def matmul_counts(masks: torch.Tensor, kind: str = "float32", chunk: int = 1 << 20) -> torch.Tensor:
+    """Pairwise intersection counts [M, M] int64 as matrix products of the flattened masks.
+
+    kind: 'float32' (TF32 off), 'tf32' (TF32 on: 0/1 inputs are exact in TF32 and the sums are
+    accumulated in float32), or 'int8' (``torch._int_mm``, int32 sums; CUDA, padded to its
+    shape rules). Pixels are taken ``chunk`` at a time to bound the float32 copy.
+    """
+    m = masks.shape[0]
+    flat = masks.reshape(m, -1)
+    if kind == "int8":
+        mp, lp = max(24, -(-m // 8) * 8), -(-flat.shape[1] // 8) * 8
+        a = torch.zeros(mp, lp, dtype=torch.int8, device=masks.device)
+        a[:m, : flat.shape[1]] = flat.view(torch.int8)
+        return torch._int_mm(a, a.t())[:m, :m].long()
+    prev = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = kind == "tf32"
+    try:
+        out = torch.zeros(m, m, dtype=torch.float32, device=masks.device)
+        for s in range(0, flat.shape[1], chunk):
+            blk = flat[:, s : s + chunk].float()
+            out += blk @ blk.T  # partial sums < 2^24: exact
+        return out.long()
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = prev
+
+
+def _partition(h: int, w: int, cells: int, g: torch.Generator, device) -> torch.Tensor:
+    """[h, w] int64 labels of an irregular partition: nearest of ``cells`` seeds under a random
+    per-seed metric, computed at 1/4 resolution and upsampled (blocky edges are fine for NMS)."""
+    hl, wl = max(1, h // 4), max(1, w // 4)
+    seeds = torch.rand(cells, 2, generator=g) * torch.tensor([hl, wl])
+    stretch = 0.5 + torch.rand(cells, 2, generator=g)  # elongated segments of varied size
+    weight = 0.4 + 1.2 * torch.rand(cells, generator=g)
+    yy, xx = torch.meshgrid(torch.arange(hl, dtype=torch.float32), torch.arange(wl, dtype=torch.float32),
+                            indexing="ij")
+    pix = torch.stack([yy.reshape(-1), xx.reshape(-1)], 1).to(device)
+    seeds, stretch, weight = seeds.to(device), stretch.to(device), weight.to(device)
+    labels = torch.empty(pix.shape[0], dtype=torch.int64, device=device)
+    for s in range(0, pix.shape[0], 1 << 14):
+        d = ((pix[s : s + (1 << 14), None, :] - seeds[None]) * stretch[None]).square().sum(-1)
+        labels[s : s + (1 << 14)] = (d * weight[None]).argmin(1)
+    low = labels.view(1, 1, hl, wl).float()
+    return F.interpolate(low, size=(h, w), mode="nearest")[0, 0].long()
+
+
+def _grow(m: torch.Tensor, r: int) -> torch.Tensor:
+    """Dilate (r > 0) or erode (r < 0) masks [K, H, W] by |r| pixels (square structuring element)."""
+    x = m.to(torch.float16)[:, None]
+    k = 2 * abs(r) + 1
+    if r > 0:
+        return F.max_pool2d(x, k, 1, abs(r))[:, 0] > 0.5
+    return -F.max_pool2d(-x, k, 1, abs(r))[:, 0] > 0.5
+
+
+def realistic_masks(m: int, h: int, w: int, device="cpu", seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(masks [m, h, w] bool, scores [m]): a SAM-like mask set (see the module docstring):
+    about 55 % segments, 25 % near-duplicates, 12 % parts and 8 % unions, in random order."""
+    g = torch.Generator().manual_seed(seed)
+    n_dup, n_part, n_union = round(0.25 * m), round(0.12 * m), round(0.08 * m)
+    n_seg = m - n_dup - n_part - n_union
+    labels = _partition(h, w, max(2, math.ceil(1.3 * n_seg)), g, device)
+    present = torch.unique(labels).cpu()
+    if len(present) < n_seg:  # a small frame has fewer segments: more duplicates instead
+        n_dup, n_seg = n_dup + n_seg - len(present), len(present)
+    chosen = present[torch.randperm(len(present), generator=g)[:n_seg]]
+    seg = labels[None] == chosen.to(device)[:, None, None]
+    out = [seg]
+    if n_dup:
+        src = seg[torch.randint(0, n_seg, (n_dup,), generator=g).to(device)]
+        grown = torch.empty_like(src)
+        radii = torch.randint(1, 5, (n_dup,), generator=g) * (torch.randint(0, 2, (n_dup,), generator=g) * 2 - 1)
+        for r in radii.unique().tolist():
+            sel = (radii == r).nonzero().flatten().to(device)
+            grown[sel] = _grow(src[sel], int(r))
+        gone = ~grown.flatten(1).any(1)  # a small segment eroded away: SAM returns no empty masks
+        grown[gone] = src[gone]
+        out.append(grown)
+    if n_part:
+        src = seg[torch.randint(0, n_seg, (n_part,), generator=g).to(device)]
+        yy = torch.arange(h, device=device, dtype=torch.float32).view(1, h, 1)
+        xx = torch.arange(w, device=device, dtype=torch.float32).view(1, 1, w)
+        area = src.sum((1, 2)).clamp_min(1).float()
+        cy = (src * yy).sum((1, 2)) / area
+        cx = (src * xx).sum((1, 2)) / area
+        ang = (torch.rand(n_part, generator=g) * 2 * math.pi).to(device)
+        proj = (yy - cy.view(-1, 1, 1)) * torch.sin(ang).view(-1, 1, 1) + (xx - cx.view(-1, 1, 1)) * torch.cos(ang).view(-1, 1, 1)
+        frac = (0.2 + 0.5 * torch.rand(n_part, generator=g)).to(device)  # kept share of the area
+        vals = torch.where(src, proj, torch.full_like(proj, float("inf"))).flatten(1)
+        k = (frac * area).long().clamp(1, h * w)
+        cut = vals.sort(1).values.gather(1, (k - 1).view(-1, 1)).view(-1, 1, 1)
+        out.append(src & (proj <= cut))
+    if n_union:
+        a = torch.randint(0, n_seg, (n_union,), generator=g).to(device)
+        near = _grow(seg[a], 3)  # touches its neighbours
+        slot = torch.full((int(labels.max()) + 1,), -1, dtype=torch.int64, device=device)
+        slot[chosen.to(device)] = torch.arange(n_seg, device=device)
+        b = torch.empty_like(a)
+        for k in range(n_union):
+            cand = slot[labels[near[k]].unique()]
+            cand = cand[(cand >= 0) & (cand != a[k])]
+            b[k] = cand[0] if len(cand) else (a[k] + 1) % n_seg
+        out.append(seg[a] | seg[b])
+    masks = torch.cat(out)[torch.randperm(m, generator=g).to(device)]
+    iou = 0.7 + 0.3 * torch.rand(m, generator=g) ** 0.5
+    stab = 0.85 + 0.15 * torch.rand(m, generator=g) ** 0.5
+    return masks, (iou * stab).to(device)
