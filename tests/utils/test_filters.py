@@ -36,3 +36,31 @@ def test_blur_errors_name_the_problem():
         gaussian_blur(x, method="matmul", padding="reflect")
     with pytest.raises(ValueError, match=r"\[B, C, H, W\]"):
         gaussian_blur(torch.zeros(8, 8))
+
+
+def test_dilate_matches_scipy_binary_dilation():
+    """Disk and square dilation equal scipy.ndimage.binary_dilation with the same structuring
+    element (an independent implementation), on random masks with a leading batch dimension."""
+    import numpy as np
+    import pytest
+    from scipy import ndimage
+
+    from tiger.utils.filters import dilate
+
+    g = torch.Generator().manual_seed(3)
+    masks = torch.rand(3, 23, 17, generator=g) > 0.97
+    for radius in (0, 1, 2, 4):
+        r = np.arange(-radius, radius + 1)
+        disk = (r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius
+        square = np.ones((2 * radius + 1, 2 * radius + 1), bool)
+        for shape, se in (("disk", disk), ("square", square)):
+            got = dilate(masks, radius, shape)
+            want = np.stack([ndimage.binary_dilation(m.numpy(), structure=se) for m in masks])
+            assert np.array_equal(got.numpy(), want), (shape, radius)
+    one = torch.zeros(9, 9, dtype=torch.bool)
+    one[4, 4] = True
+    assert int(dilate(one, 2, "disk").sum()) == 13 and int(dilate(one, 2, "square").sum()) == 25
+    with pytest.raises(ValueError, match="radius"):
+        dilate(one, -1)
+    with pytest.raises(ValueError, match="shape"):
+        dilate(one, 1, "diamond")

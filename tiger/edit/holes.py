@@ -13,19 +13,12 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from tiger.utils.filters import dilate
+
 
 def disk_dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
     """Dilate bool masks [..., H, W] by a disk of ``radius`` pixels (0: unchanged)."""
-    if radius < 0:
-        raise ValueError(f"tiger.edit.disk_dilate: radius must be >= 0, got {radius}")
-    if radius == 0 or mask.numel() == 0:
-        return mask.clone()
-    lead, (h, w) = mask.shape[:-2], mask.shape[-2:]
-    r = torch.arange(-radius, radius + 1, device=mask.device, dtype=torch.float32)
-    disk = ((r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius + 1e-6).float()
-    x = mask.reshape(-1, 1, h, w).float()
-    y = F.conv2d(x, disk[None, None], padding=radius)
-    return (y > 0.5).reshape(*lead, h, w)
+    return dilate(mask, radius, "disk")
 
 
 def hole_masks(removed_visible: torch.Tensor, remaining_alpha: torch.Tensor, *,

@@ -33,6 +33,7 @@ from typing import Any, Iterator, Optional, Sequence, Union
 
 import torch
 
+from tiger.retrieval.text import TextEncoder
 from tiger.recon.step import SceneOptimizer
 from tiger.recon.strategy.rules import DensifyStats, prune_transparent, region_topk_densify
 from tiger.scene.cameras import Camera
@@ -95,7 +96,7 @@ class _Timer:
         self.total[stage] += time.perf_counter() - t0
 
 
-def _generators(guidance: Any) -> list[torch.Generator]:
+def _generators(guidance: Guidance) -> list[torch.Generator]:
     """Every torch.Generator a guidance (or a CSDGuidance's parts) draws from, in a fixed order."""
     out = []
     for g in (guidance, getattr(guidance, "ip2p", None), getattr(guidance, "mvdream", None)):
@@ -300,7 +301,7 @@ class EditSession:
 
 def edit(scene: GaussianScene, instruction: str, target: TargetLike, guidance: Guidance, *,
          cameras: Optional[Sequence[Camera]] = None, config: Optional[EditConfig] = None,
-         encoder: Any = None, tau: Any = "auto", checkpoint: Optional[Union[str, Path]] = None,
+         encoder: Optional[TextEncoder] = None, tau: Union[float, str] = "auto", checkpoint: Optional[Union[str, Path]] = None,
          resume: bool = False, **overrides: Any) -> EditResult:
     """Edit the Gaussians ``target`` names so that renders follow ``guidance`` (paper §3.2).
 

@@ -5,7 +5,6 @@ from typing import Optional, Sequence
 
 import torch
 
-from tiger.render import rasterize_gaussians
 from tiger.scene.cameras import Camera
 from tiger.scene.gaussian_scene import GaussianScene
 
@@ -18,8 +17,7 @@ def render_color(scene: GaussianScene, cameras: Sequence[Camera],
     bg = None if background is None else torch.as_tensor(background).to(scene.means)
     for cam in cameras:
         c = cam.to(scene.device, scene.dtype)
-        r = rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, scene.view_colors(c),
-                                c.viewmat, c.K, c.width, c.height, background=bg, check_finite=False)
+        r = scene.render(c, "rgb", background=bg, check_finite=False)
         out.append(r["color"].clamp(0, 1).cpu())
     return out
 

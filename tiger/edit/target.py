@@ -13,11 +13,13 @@ edit cameras.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Optional, Union
+from typing import Optional, Union
 
 import torch
 
 from tiger.retrieval import Retrieval, retrieve, robust_bounds
+from tiger.retrieval.text import TextEncoder
+from tiger.scene import GaussianScene
 
 TargetLike = Union[str, Retrieval, torch.Tensor, "EditTarget"]
 
@@ -54,7 +56,8 @@ class EditTarget:
         return int(self.mask.sum())
 
 
-def resolve_target(scene: Any, target: TargetLike, encoder: Any = None, tau: Any = "auto",
+def resolve_target(scene: GaussianScene, target: TargetLike, encoder: Optional[TextEncoder] = None,
+                   tau: Union[float, str] = "auto",
                    score: str = "cosine", quantiles: tuple[float, float] = (0.02, 0.98)) -> EditTarget:
     """Turn ``target`` into per-Gaussian weights, centre and box (see the module docstring).
 

@@ -17,12 +17,19 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
 
-from tiger.render import rasterize_gaussians
+from tiger.render.camera import Camera
+from tiger.scene import ColorSpec, GaussianScene
+from tiger.utils.filters import dilate
+
+if TYPE_CHECKING:
+    from transformers import CLIPModel
+
+    from tiger.language.maskclip import MaskCLIP
 
 PSNR_CAP = 100.0
 
@@ -68,10 +75,7 @@ def dilate_mask(mask: torch.Tensor, px: int) -> torch.Tensor:
     """[V, H, W] bool mask grown by ``px`` pixels (a (2 px + 1)² square max filter)."""
     if mask.dim() != 3:
         raise ValueError(f"tiger.eval.edit: masks must be [V, H, W], got {list(mask.shape)}")
-    if px <= 0:
-        return mask.bool()
-    m = F.max_pool2d(mask.float()[:, None], kernel_size=2 * px + 1, stride=1, padding=px)
-    return m[:, 0] > 0.5
+    return dilate(mask, max(int(px), 0), "square")
 
 
 def psnr_outside(before: torch.Tensor, after: torch.Tensor, masks: torch.Tensor, dilate_px: int = 4) -> dict:
@@ -100,14 +104,14 @@ def psnr_outside(before: torch.Tensor, after: torch.Tensor, masks: torch.Tensor,
     return {"psnr": p, "mse": mse, "pixels": n, "fraction": n / outside.numel()}
 
 
-def _render(scene: Any, cam: Any, colors: torch.Tensor, background: Optional[torch.Tensor] = None) -> dict:
-    c = cam.to(device=scene.device, dtype=scene.dtype)
-    return rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, colors,
-                               c.viewmat, c.K, c.width, c.height, background=background, check_finite=False)
+def _render(scene: GaussianScene, cam: Camera, colors: ColorSpec,
+            background: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
+    return scene.render(cam.to(device=scene.device, dtype=scene.dtype), colors, background=background,
+                        check_finite=False)
 
 
 @torch.no_grad()
-def render_rgb_and_footprint(scene: Any, cameras: Sequence[Any], selected: torch.Tensor,
+def render_rgb_and_footprint(scene: GaussianScene, cameras: Sequence[Camera], selected: torch.Tensor,
                              background: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(rgb [V, H, W, 3], footprint [V, H, W] in [0, 1]) of ``scene`` (full SH colour) and of the
     Gaussians in ``selected`` [N] bool (their share of each pixel's colour)."""
@@ -118,12 +122,12 @@ def render_rgb_and_footprint(scene: Any, cameras: Sequence[Any], selected: torch
     rgbs, feet = [], []
     ind = selected.to(scene.means)[:, None]
     for cam in cameras:
-        rgbs.append(_render(scene, cam, scene.view_colors(cam.to(scene.device, scene.dtype)), bg)["color"])
+        rgbs.append(_render(scene, cam, "rgb", bg)["color"])
         feet.append(_render(scene, cam, ind)["color"][..., 0])
     return torch.stack(rgbs), torch.stack(feet)
 
 
-def locality(before: Any, after: Any, cameras: Sequence[Any], edited_before: torch.Tensor,
+def locality(before: GaussianScene, after: GaussianScene, cameras: Sequence[Camera], edited_before: torch.Tensor,
              edited_after: torch.Tensor, dilate_px: int = 4, coverage: float = 0.02,
              background: Optional[torch.Tensor] = None) -> dict:
     """Locality PSNR of an edit over ``cameras``: renders of ``before`` and ``after`` (scenes)
@@ -138,7 +142,7 @@ def locality(before: Any, after: Any, cameras: Sequence[Any], edited_before: tor
 
 
 @torch.no_grad()
-def clip_image_embeddings(clip: Any, images: torch.Tensor, size: int = 224) -> torch.Tensor:
+def clip_image_embeddings(clip: Union["MaskCLIP", "CLIPModel"], images: torch.Tensor, size: int = 224) -> torch.Tensor:
     """[V, F] L2-normalised CLIP image embeddings of ``images`` [V, 3, H, W] in [0, 1].
 
     ``clip`` is a :class:`tiger.language.maskclip.MaskCLIP` (its ``clip`` CLIPModel is used, with
@@ -159,7 +163,7 @@ def clip_image_embeddings(clip: Any, images: torch.Tensor, size: int = 224) -> t
     return F.normalize(out.float(), dim=-1)
 
 
-def clip_metrics(clip: Any, before: torch.Tensor, after: torch.Tensor, caption_before: str,
+def clip_metrics(clip: Union["MaskCLIP", "CLIPModel"], before: torch.Tensor, after: torch.Tensor, caption_before: str,
                  caption_after: str) -> dict:
     """CLIP direction similarity and consistency for renders ``before``/``after`` [V, 3, H, W]
     along a path, with captions embedded by ``clip.encode_text`` (no templates)."""

@@ -1,4 +1,5 @@
-"""Image filters shared by the photometric losses (SSIM) and FeatUp: one Gaussian blur."""
+"""Image filters shared across the package: one Gaussian blur (SSIM, FeatUp) and one mask dilation
+(edit locality, deletion holes)."""
 from __future__ import annotations
 
 from functools import lru_cache
@@ -6,7 +7,7 @@ from functools import lru_cache
 import torch
 import torch.nn.functional as F
 
-__all__ = ["gaussian_blur"]
+__all__ = ["gaussian_blur", "dilate"]
 
 
 @lru_cache(maxsize=8)
@@ -62,3 +63,34 @@ def gaussian_blur(x: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
         raise ValueError(f"tiger: gaussian_blur method must be auto, conv, matmul or shift, got {method}")
     rows = sum(g[i] * xp[..., i:i + W] for i in range(window_size))
     return sum(g[i] * rows[..., i:i + H, :] for i in range(window_size))
+
+
+def dilate(mask: torch.Tensor, radius: int, shape: str = "disk") -> torch.Tensor:
+    """Grow bool masks [..., H, W] by ``radius`` pixels (0: unchanged copy).
+
+    Args:
+        mask: [..., H, W] bool (any float is read as ``> 0.5``).
+        radius: pixels, >= 0.
+        shape: ``"disk"`` (pixels within Euclidean distance ``radius``) or ``"square"``
+            (a (2 radius + 1)^2 max filter: Chebyshev distance).
+    Returns:
+        [..., H, W] bool.
+    """
+    if radius < 0:
+        raise ValueError(f"tiger.utils.filters.dilate: radius must be >= 0, got {radius}")
+    if shape not in ("disk", "square"):
+        raise ValueError(f"tiger.utils.filters.dilate: shape must be 'disk' or 'square', got {shape!r}")
+    if mask.dim() < 2:
+        raise ValueError(f"tiger.utils.filters.dilate: mask must be [..., H, W], got {list(mask.shape)}")
+    m = mask.bool() if mask.dtype == torch.bool else mask > 0.5
+    if radius == 0 or m.numel() == 0:
+        return m.clone()
+    lead, (h, w) = m.shape[:-2], m.shape[-2:]
+    x = m.reshape(-1, 1, h, w).float()
+    if shape == "square":
+        y = F.max_pool2d(x, kernel_size=2 * radius + 1, stride=1, padding=radius)
+    else:
+        r = torch.arange(-radius, radius + 1, device=m.device, dtype=torch.float32)
+        disk = ((r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius + 1e-6).float()
+        y = F.conv2d(x, disk[None, None], padding=radius)
+    return (y > 0.5).reshape(*lead, h, w)

@@ -66,7 +66,6 @@ class IdealDenoiserGuidance:
 def render_targets(target_scene, background: Optional[torch.Tensor] = None
                    ) -> Callable[[ViewBatch], torch.Tensor]:
     """Targets = renders of ``target_scene`` (a GaussianScene, full SH colour) from the step's cameras."""
-    from tiger.render import rasterize_gaussians
 
     def fn(views: ViewBatch) -> torch.Tensor:
         out = []
@@ -75,8 +74,7 @@ def render_targets(target_scene, background: Optional[torch.Tensor] = None
         for cam in views.cameras:
             c = cam.to(s.device, s.dtype)
             with torch.no_grad():
-                r = rasterize_gaussians(s.means, s.quats, s.scales, s.opacities, s.view_colors(c), c.viewmat, c.K,
-                                        c.width, c.height, background=bg, check_finite=False)
+                r = s.render(c, "rgb", background=bg, check_finite=False)
             out.append(r["color"].clamp(0, 1).permute(2, 0, 1))
         return torch.stack(out)
 
