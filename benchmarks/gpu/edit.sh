@@ -5,26 +5,15 @@
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb OUT=$OUT bash benchmarks/gpu/edit.sh
 # Results: $OUT/edit_h100.json, $OUT/edit_h100.txt, $OUT/build.log.
 set -uo pipefail
-OUT="${OUT:-outputs}"
+cd "$(dirname "$0")/../.."
+export OUT="${OUT:-outputs}"
 mkdir -p "$OUT"
 PY="${PYTHON:-python3}"
 export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 t0=$(date +%s)
-if [ -n "${WHEELS:-}" ]; then
-  $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHEELS"/diffusers-*.whl || exit 1
-  export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
-fi
-EXTRA=()
-if ! [ -f /usr/include/eigen3/Eigen/Core ] && [ -n "${EIGEN_DEB:-}" ]; then
-  dpkg -x "$EIGEN_DEB" /tmp/eigen
-  EXTRA+=(--config-settings=cmake.define.Eigen3_DIR=/tmp/eigen/usr/share/eigen3/cmake)
-fi
-[ -x /usr/bin/g++ ] && export CXX=/usr/bin/g++ CUDAHOSTCXX=/usr/bin/g++ CC=/usr/bin/gcc
-if ! CMAKE_BUILD_PARALLEL_LEVEL=$(nproc) $PY -m pip install --no-build-isolation --no-deps -e . \
-    --config-settings=cmake.define.CMAKE_CUDA_ARCHITECTURES=90 --config-settings=build-dir=build/edit-gpu \
-    "${EXTRA[@]}" > "$OUT/build.log" 2>&1; then
-  echo "BUILD FAILED"; tail -40 "$OUT/build.log"; exit 1
-fi
+# check.sh's build step: the carried wheels (diffusers) go to /tmp/site, tiger is built with CUDA.
+CHECK_STEPS=build bash benchmarks/gpu/check.sh "${WHEELS:-}" "${EIGEN_DEB:-}" || { echo "BUILD FAILED"; exit 1; }
+export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 echo "setup done in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 $PY benchmarks/edit.py --device cuda --density 15 --guidance recolor analytic --steps 200 --size 512 \
