@@ -184,23 +184,17 @@ def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> 
         freeze(models.unet, dtype=DTYPES[dt])
         freeze(models.vae, dtype=DTYPES[dt])
         set_format(models, cl)
-    gc.collect()
-    torch.cuda.empty_cache()
-    torch.cuda.reset_peak_memory_stats()
-    ip, mv = make_guidances(ip2p_models, mv_models, graph=False, size=size)
-    ip.grad(renders, views)
-    mv.grad(renders, views)
-    torch.cuda.synchronize()
-    meta["peak_memory_gib_both_models_eager_step"] = torch.cuda.max_memory_allocated() / 2 ** 30
-    del ip, mv
-    gc.collect()
-    torch.cuda.empty_cache()
-    torch.cuda.reset_peak_memory_stats()
-    ip, mv = make_guidances(ip2p_models, mv_models, graph=True, size=size)
-    ip.grad(renders, views)
-    mv.grad(renders, views)
-    torch.cuda.synchronize()
-    meta["peak_memory_gib_both_models_graph_step"] = torch.cuda.max_memory_allocated() / 2 ** 30
+    for graph, mode in ((False, "eager"), (True, "graph")):
+        gc.collect()
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+        ip, mv = make_guidances(ip2p_models, mv_models, graph=graph, size=size)
+        ip.grad(renders, views)
+        mv.grad(renders, views)
+        torch.cuda.synchronize()
+        meta[f"peak_memory_gib_both_models_{mode}_step"] = torch.cuda.max_memory_allocated() / 2 ** 30
+        if not graph:
+            del ip, mv
     meta["peak_reserved_gib"] = torch.cuda.max_memory_reserved() / 2 ** 30
     meta["memory_config"] = f"{dt} channels_last={cl} cudnn_benchmark={bench} graph"
     print("memory:", {k: v for k, v in meta.items() if "memory" in k or "reserved" in k}, flush=True)
