@@ -35,3 +35,21 @@ def test_graph_equals_eager(tiny_models, ring_cameras):
     graphed = MVDreamGuidance(mv, "a fox", image_size=16, cuda_graph=True)
     _check(eager, graphed, lambda: torch.rand(4, 3, 16, 16, device="cuda"), views, (4, 4, 8, 8),
            lambda: torch.randint(20, 201, (1,), device="cuda"))
+
+
+def test_shared_pool_survives_freed_guidances(tiny_models, ring_cameras):
+    """A second edit in the same process: the first edit's graphed guidances are freed (their pool
+    with them) before the next one captures. Capturing into the freed pool's handle used to fail
+    torch's allocator assertion (``use_count > 0``)."""
+    import gc
+
+    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
+                      view_ids=torch.arange(4), object_center=torch.zeros(3))
+    ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
+    renders = torch.rand(4, 3, 16, 16, device="cuda")
+    for _ in range(2):
+        g = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True, keep_text_encoder=True)
+        out, _ = g.grad(renders, views)
+        assert torch.isfinite(out).all()
+        del g
+        gc.collect()

@@ -102,3 +102,33 @@ def test_bad_inputs_named(models, ring_cameras):
         g.grad(torch.rand(V, 3, H, W), views, noise=torch.zeros(1))
     with pytest.raises(ValueError, match="t_range"):
         InstructPix2PixGuidance(models, "x", t_range=(0.5, 0.2))
+
+
+def test_matmul_vae_attention_keeps_encoder_output_and_gradient(tiny_models):
+    """The VAE's attention switched from SDPA to plain matmul + softmax (speed: see
+    ``matmul_vae_attention``) computes the same latents and the same input gradient."""
+    from diffusers.models.attention_processor import Attention, AttnProcessor
+
+    from tiger.edit.guidance.sds import encode_latents, latent_shape, matmul_vae_attention
+
+    vae = load_ip2p(tiny_models / "instruct-pix2pix").vae
+    attn = [m for m in vae.modules() if isinstance(m, Attention)]
+    assert attn and not any(isinstance(m.processor, AttnProcessor) for m in attn)
+    torch.manual_seed(0)
+    x = torch.rand(2, 3, 32, 32, dtype=torch.float64)
+    vae = vae.double()
+    noise = torch.randn(latent_shape(vae, 2, (32, 32)), dtype=torch.float64)
+
+    def run():
+        xr = x.clone().requires_grad_(True)
+        z = encode_latents(vae, xr, noise)
+        (g,) = torch.autograd.grad((z * torch.linspace(-1, 1, z.numel(), dtype=z.dtype).view_as(z)).sum(), xr)
+        return z.detach(), g
+
+    z0, g0 = run()
+    assert matmul_vae_attention(vae) == len(attn)
+    assert all(isinstance(m.processor, AttnProcessor) for m in attn)
+    z1, g1 = run()
+    # diffusers' plain processor takes the softmax in float32 (upcast_softmax), SDPA in float64 here
+    assert torch.allclose(z0, z1, rtol=1e-5, atol=1e-6 * float(z0.abs().max()))
+    assert torch.allclose(g0, g1, rtol=1e-5, atol=1e-6 * float(g0.abs().max()))

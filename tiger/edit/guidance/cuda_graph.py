@@ -8,6 +8,7 @@ caller), so it can be captured once per input signature and replayed.
 from __future__ import annotations
 
 import logging
+import weakref
 from typing import Callable, Sequence
 
 import torch
@@ -17,16 +18,20 @@ logger = logging.getLogger(__name__)
 StepFn = Callable[..., torch.Tensor]
 
 _SHARED_POOL = None
+_POOL_GRAPHS: "weakref.WeakSet[torch.cuda.CUDAGraph]" = weakref.WeakSet()
 
 
 def shared_graph_pool():
-    """One CUDA-graph memory pool for every guidance step of the process.
+    """One CUDA-graph memory pool for every guidance step alive in the process.
 
     The steps run one after the other on one stream and each returns a copy of its output, so
     their intermediates can share memory: with both guidances graphed, the peak is the larger
-    step's activations, not their sum (a graph's private pool is never released between replays)."""
+    step's activations, not their sum (a graph's private pool is never released between replays).
+    A pool lives only while a graph captured into it does: once every such graph is gone (the
+    guidances of a finished edit were freed), the caching allocator has released the pool and
+    capturing into its old handle fails an internal assertion, so a fresh handle is made."""
     global _SHARED_POOL
-    if _SHARED_POOL is None:
+    if _SHARED_POOL is None or len(_POOL_GRAPHS) == 0:
         _SHARED_POOL = torch.cuda.graph_pool_handle()
     return _SHARED_POOL
 
@@ -77,6 +82,8 @@ class GraphedStep:
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph, pool=shared_graph_pool() if self.share_pool else None):
             static_out = self.fn(*static_in)
+        if self.share_pool:
+            _POOL_GRAPHS.add(graph)
         logger.info("captured a CUDA graph for input shapes %s", [tuple(a.shape) for a in args])
         return graph, static_in, static_out
 

@@ -27,7 +27,7 @@ from tiger.utils.lazy import require
 from .base import GuidanceInfo, ViewBatch, check_renders
 from .cuda_graph import GraphedStep
 from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, encode_latents, finite_clamped, freeze,
-                  latent_shape, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
+                  latent_shape, matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
                   vae_downsampling_factor)
 
 logger = logging.getLogger(__name__)
@@ -123,6 +123,7 @@ class InstructPix2PixGuidance:
         self.generator = generator
         self.collect_stats = collect_stats
         self.device, self.dtype = model_device_dtype(models.unet)
+        matmul_vae_attention(models.vae)
         self.text_embeddings = models.prompts([instruction, ""]).to(self.dtype)  # [2, 77, D]
         if not keep_text_encoder:
             models.prompts.release()

@@ -35,7 +35,7 @@ from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
 from .mvdream_cameras import mvdream_cameras
 from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, finite_clamped, freeze, latent_shape,
-                  model_device_dtype, render_gradient, require_diffusers)
+                  matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers)
 
 logger = logging.getLogger(__name__)
 
@@ -207,6 +207,7 @@ class MVDreamGuidance:
         self.device, self.dtype = model_device_dtype(models.unet)
         if self.cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.mvdream: cuda_graph=True needs the models on a CUDA device")
+        matmul_vae_attention(models.vae)
         self.text_embeddings = models.prompts([self.prompt, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
         if not self.keep_text_encoder:
             models.prompts.release()

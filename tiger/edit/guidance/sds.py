@@ -177,6 +177,25 @@ def freeze(module: torch.nn.Module, device: torch.device | str | None = None,
     return module
 
 
+def matmul_vae_attention(vae: torch.nn.Module) -> int:
+    """Run the VAE's attention layers as two batched matmuls and a softmax; returns how many.
+
+    The Stable Diffusion VAE's mid-block attention has ONE head of width 512 over (H/f)·(W/f)
+    tokens. Flash kernels stop at head width 256, so SDPA falls back to the memory-efficient
+    kernel, whose backward alone took 16.9 ms of a 108 ms InstructPix2Pix step on the H100 (4
+    renders at 512², 4096 tokens each: ``benchmarks/gpu/results/h100_session3_profile_ip2p_bf16.txt``).
+    The score matrix is small here (4 × 4096² floats), so the plain form costs a few GEMMs.
+    The SDS gradient back-propagates through the encoder every step, so this is the VAE's
+    processor in both guidances; the UNets keep SDPA (their heads are 40–160 wide)."""
+    require_diffusers("switching the VAE's attention processor")
+    from diffusers.models.attention_processor import Attention, AttnProcessor
+
+    layers = [m for m in vae.modules() if isinstance(m, Attention)]
+    for m in layers:
+        m.set_processor(AttnProcessor())
+    return len(layers)
+
+
 def check_t_range(t_range: tuple[float, float]) -> tuple[float, float]:
     """The (lo, hi) fractions of the schedule as floats, or a ValueError."""
     lo, hi = float(t_range[0]), float(t_range[1])
