@@ -9,7 +9,7 @@
 # About 6 minutes at 24 images (build 60 s, models 25 s, each run 70-85 s, each comparison ~30 s):
 # give the call 420 s or more.
 # Results under $OUT: multigpu.log, single*.json, two_gpu.json, compare.txt.
-# Usage, from the repo root:  OUT=/tmp/out bash benchmarks/gpu/multigpu_features.sh EIGEN_DEB [N_IMAGES]
+# Usage, from the repo root:  OUT=/tmp/out [SKIP_AGAIN=1] bash benchmarks/gpu/multigpu_features.sh EIGEN_DEB [N_IMAGES]
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${OUT:-/tmp/tiger-multigpu}"
@@ -50,12 +50,14 @@ cp "$WORK/two_gpu/timing.json" "$OUT/two_gpu.json" 2>/dev/null
 $PY benchmarks/multigpu_features.py compare "$WORK" single two_gpu > "$OUT/compare.txt" 2>&1
 say "compare two_gpu rc=$?"
 
+if [ -z "${SKIP_AGAIN:-}" ]; then  # the run-to-run baseline (SKIP_AGAIN=1 leaves it out)
 t0=$(date +%s.%N)
 CUDA_VISIBLE_DEVICES=0 timeout 90 $PY benchmarks/multigpu_features.py run "$WORK" single_again >> "$LOG" 2>&1
 say "single_again (1 process, GPU 0) rc=$? wall $(el "$t0") s"
 cp "$WORK/single_again/timing.json" "$OUT/single_again.json" 2>/dev/null
 $PY benchmarks/multigpu_features.py compare "$WORK" single single_again >> "$OUT/compare.txt" 2>&1
 say "compare single_again rc=$?"
+fi
 cat "$OUT/compare.txt" | tee -a "$LOG"
 $PY - "$OUT" <<'EOF' | tee -a "$LOG"
 import json, sys, pathlib
