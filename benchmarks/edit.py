@@ -12,7 +12,8 @@ Guidances:
                  initialised models of the real architectures (same cost as the real weights) directly
                  on the device (benchmarks/guidance.py's build_models), in ``--dtype``
 
-Per step: render (4 views + the 4 original renders the guidance is conditioned on), guidance,
+Per step: render (4 views + the 4 original renders the guidance is conditioned on, or with
+``--view-pool K`` those of K pre-sampled camera sets once: stage view_pool), guidance,
 backward through the rasterizer, optimizer (relevance-scaled Adam), densification (amortised).
 Peak memory is torch.cuda.max_memory_allocated on CUDA.
 
@@ -97,7 +98,8 @@ def run(args) -> dict:
     build_s = time.perf_counter() - t0
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
                      densify_every=args.densify_every, densify_from=args.densify_every,
-                     background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0)
+                     background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0,
+                     view_pool=args.view_pool)
     projected = None
     if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
         edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
@@ -122,7 +124,7 @@ def run(args) -> dict:
     total = time.perf_counter() - t0
     n = cfg.steps
     row = {"device": dev, "gaussians": len(scene), "editable": tgt.count, "guidance": args.guidance,
-           "steps": n, "size": args.size, "models_build_s": build_s, "edit_s": total,
+           "view_pool": args.view_pool, "steps": n, "size": args.size, "models_build_s": build_s, "edit_s": total,
            f"edit_{args.steps}_steps_s": total * args.steps / n}
     if projected is not None:
         row["warmup_projection_s"] = projected
@@ -156,6 +158,8 @@ def main() -> None:
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")
     p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--view-pool", type=int, default=0,
+                   help="camera sets pre-sampled with their original renders (EditConfig.view_pool; 0: fresh views)")
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--lr-color", type=float, default=0.05)
     p.add_argument("--densify-every", type=int, default=25)

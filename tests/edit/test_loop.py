@@ -159,3 +159,48 @@ def test_errors():
     no_lang.lang = None
     with pytest.raises(ValueError, match="no language features"):
         edit(no_lang, "x", "the ball", RecolorGuidance("red"), **SMALL)
+
+
+def test_view_pool_renders_originals_once_and_resumes_exactly(tmp_path, monkeypatch):
+    """With ``view_pool=K`` the original renders are made once per pooled camera (not per step),
+    every step's cameras come from the pool with their pool ids, and resume stays exact."""
+    scene = two_objects()
+    mask = resolve_target(scene, query_a(), tau=0.5).mask
+    truth = _target_scene(scene, mask)
+    calls = []
+    original = EditSession._render_originals
+
+    def counting(self, cams):
+        calls.append(len(cams))
+        return original(self, cams)
+
+    monkeypatch.setattr(EditSession, "_render_originals", counting)
+    seen = []
+
+    class _Record(IdealDenoiserGuidance):
+        def grad(self, renders, views):
+            seen.append((views.cameras, views.view_ids.tolist()))
+            return super().grad(renders, views)
+
+    cfg = dict(SMALL, steps=8, view_pool=3)
+    full = edit(scene, "red", query_a(), _Record(render_targets(truth), seed=3), tau=0.5, **cfg)
+    assert calls == [4, 4, 4]  # the pool, once; no render of originals per step
+    sessions = EditSession(scene, resolve_target(scene, query_a(), tau=0.5), IdealDenoiserGuidance(
+        render_targets(truth), seed=3), "red", None, EditConfig(**cfg))
+    pool = sessions.pool
+    assert pool.originals.shape == (3, 4, 3, 48, 48) and pool.masks.shape == (3, 4, 1, 48, 48)
+    for cams, ids in seen:
+        k = ids[0] // 4
+        assert ids == list(range(4 * k, 4 * k + 4))
+        assert [c.viewmat.tolist() for c in cams] == [c.viewmat.tolist() for c in pool.cameras[k]]
+    assert len({ids[0] for _, ids in seen}) > 1  # the steps draw different sets
+    ck = tmp_path / "edit.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        edit(scene, "red", query_a(), _InterruptAt(IdealDenoiserGuidance(render_targets(truth), seed=3), 5),
+             tau=0.5, checkpoint=ck, **cfg)
+    res = edit(scene, "red", query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5,
+               checkpoint=ck, resume=True, **cfg)
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc"):
+        assert torch.equal(getattr(full.scene, name), getattr(res.scene, name)), name
+    with pytest.raises(ValueError, match="view_pool"):
+        EditConfig(view_pool=-1)

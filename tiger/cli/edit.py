@@ -37,6 +37,9 @@ def add_parser(sub) -> None:
     p.add_argument("--color", default=None,
                    help="recolor: colour name, #rrggbb or r,g,b (default: the colour named in the instruction)")
     p.add_argument("--steps", type=int, default=1200, help="optimisation steps (default: %(default)s)")
+    p.add_argument("--view-pool", type=int, default=0,
+                   help="pre-sample this many 4-camera sets and render their originals once (0: fresh "
+                        "cameras every step, as the paper; 64 is the fast GPU setting; default: %(default)s)")
     p.add_argument("--size", type=int, default=512, help="edit render size in pixels (square; default: %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
     p.add_argument("--data", default=None,
@@ -69,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.steps < 1 or args.size < 16:
         raise CliError("--steps must be >= 1 and --size >= 16")
+    if args.view_pool < 0:
+        raise CliError("--view-pool must be >= 0 (0: fresh cameras every step)")
     dev = device_of(args.device)
     out = output_dir(args.out, args.force or args.resume)
     scene = load_scene(args.scene, dev)
@@ -84,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
                               color=args.color, seed=args.seed)
     cams = _cameras(args.data, args.skip_missing)
-    cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed)
+    cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
     t0 = time.perf_counter()
     res = edit(scene, args.instruction, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
     res.scene.save_ply(out / "edited.ply")

@@ -25,6 +25,12 @@ class EditConfig:
     Attributes:
         steps: optimisation steps (the paper: 1200-3000).
         n_views: cameras per step (4), re-drawn every step around the object (tiger.edit.views).
+        view_pool: 0 = a fresh set of ``n_views`` cameras every step (the paper). K > 0 = K sets
+            drawn once at the start (same rules, seeded by ``seed``), their original renders and
+            footprints rendered once, and each step takes one of the K sets at random; guidances
+            cache per-camera work by view id (InstructPix2Pix's image-condition latents, a VAE
+            encode of 4 renders per step otherwise). The GPU setting: ``benchmarks/edit.py``
+            uses 64. Memory: K x n_views x 4 x width x height float16 values on the device.
         width, height, fov_deg: render size and vertical field of view of those cameras.
         elevation_deg: elevation range of the cameras for 360° captures.
         fill: margin of the camera distance (1 = the object's bounding sphere touches the frame).
@@ -46,6 +52,7 @@ class EditConfig:
 
     steps: int = 1200
     n_views: int = 4
+    view_pool: int = 0
     width: int = 512
     height: int = 512
     fov_deg: float = 49.1
@@ -68,6 +75,8 @@ class EditConfig:
     def __post_init__(self) -> None:
         if self.steps < 1 or self.n_views < 1 or self.width < 1 or self.height < 1:
             raise ValueError("tiger.edit: steps, n_views, width and height must be positive")
+        if self.view_pool < 0:
+            raise ValueError(f"tiger.edit: view_pool must be >= 0 (0 = fresh views every step), got {self.view_pool}")
         if not 0.0 < self.densify_fraction <= 1.0:
             raise ValueError(f"tiger.edit: densify_fraction must be in (0, 1], got {self.densify_fraction}")
         unknown = set(self.lrs) - set(DEFAULT_EDIT_LRS)

@@ -47,8 +47,9 @@ from .views import ObjectViews
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = "tiger.edit-checkpoint/1"
+POOL_SEED_OFFSET = 7919  # the view pool's generator: seed + this, apart from the per-step draws
 OPTIMISED = ("means", "log_scales", "quats", "opacity_logits", "sh_dc")
-STAGES = ("render", "guidance", "backward", "optimizer", "densify")
+STAGES = ("view_pool", "render", "guidance", "backward", "optimizer", "densify")
 
 
 @dataclass
@@ -63,7 +64,7 @@ class EditResult:
         rounds: one record per edit round applied to this scene so far (earlier rounds come from
             ``scene.metadata["tiger_edits"]``), the last is this one.
         history: per logged step: step, loss, lambdas, Gaussians.
-        timings_s: total seconds per stage (render, guidance, backward, optimizer, densify).
+        timings_s: total seconds per stage (view_pool, render, guidance, backward, optimizer, densify).
     """
 
     scene: GaussianScene
@@ -78,22 +79,58 @@ class EditResult:
         return self.weights > 0
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+@dataclass
+class ViewPool:
+    """Camera sets pre-sampled for an edit (``EditConfig.view_pool``): ``cameras[k]`` is one
+    step's set; ``originals`` [K, V, 3, H, W] and ``masks`` [K, V, 1, H, W] (float16) are the
+    unedited scene's renders and the object's footprint from them."""
+
+    cameras: list[Sequence[Camera]]
+    originals: torch.Tensor
+    masks: torch.Tensor
 
 
 class _Timer:
+    """Seconds per stage. On CUDA each stage is bracketed by CUDA events, read back only when the
+    totals are asked for, so timing adds no host synchronisation to the loop (a sync per stage
+    would leave the GPU idle while the next stage's launches are prepared)."""
+
     def __init__(self, device: torch.device) -> None:
-        self.device, self.total = device, {k: 0.0 for k in STAGES}
+        self.device = device
+        self._done = {k: 0.0 for k in STAGES}
+        self._pending: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []
 
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
-        _sync(self.device)
-        t0 = time.perf_counter()
-        yield
-        _sync(self.device)
-        self.total[stage] += time.perf_counter() - t0
+        if self.device.type == "cuda":
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            yield
+            end.record()
+            self._pending.append((stage, start, end))
+            if len(self._pending) >= 512:  # bounded: resolve (one sync) now and then
+                self._resolve()
+        else:
+            t0 = time.perf_counter()
+            yield
+            self._done[stage] = self._done.get(stage, 0.0) + time.perf_counter() - t0
+
+    def _resolve(self) -> None:
+        if self._pending:
+            self._pending[-1][2].synchronize()
+            for stage, start, end in self._pending:
+                self._done[stage] = self._done.get(stage, 0.0) + 1e-3 * start.elapsed_time(end)
+            self._pending.clear()
+
+    @property
+    def total(self) -> dict[str, float]:
+        """{stage: seconds} so far (reading it waits for the stages still running on the GPU)."""
+        self._resolve()
+        return self._done
+
+    def load(self, totals: dict[str, float]) -> None:
+        self._resolve()
+        self._done.update(totals)
 
 
 def _generators(guidance: Guidance) -> list[torch.Generator]:
@@ -140,6 +177,13 @@ class EditSession:
         self.timer = _Timer(self.device)
         self._rng_at_start: Optional[tuple] = None
         self.stats = DensifyStats.zeros(len(work), self.device)
+        self.pool: Optional[ViewPool] = None
+        for g in (guidance, getattr(guidance, "ip2p", None)):  # ids of an earlier round's cameras
+            if hasattr(g, "clear_condition_cache"):
+                g.clear_condition_cache()
+        if config.view_pool:
+            with self.timer("view_pool"):
+                self.pool = self._build_pool(config.view_pool)
 
     def _lrs(self) -> dict[str, float]:
         lrs = self.cfg.learning_rates()
@@ -172,18 +216,36 @@ class EditSession:
                                     background=bg, check_finite=False)["color"] for c in cams])
         return out[..., :3].clamp(0, 1).permute(0, 3, 1, 2), out[..., 3:].clamp(0, 1).permute(0, 3, 1, 2)
 
+    def _build_pool(self, sets: int) -> "ViewPool":
+        """``sets`` camera sets drawn with the per-step rules from their own seeded generator
+        (a resumed run rebuilds the same pool), with their original renders and footprints."""
+        gen = torch.Generator().manual_seed(self.cfg.seed + POOL_SEED_OFFSET)
+        cams = [self.views.sample(gen) for _ in range(sets)]
+        rendered = [self._render_originals(c) for c in cams]
+        return ViewPool(cams, torch.stack([o for o, _ in rendered]).half(),
+                        torch.stack([m for _, m in rendered]).half())
+
+    def _views(self) -> tuple[Sequence[Camera], torch.Tensor, torch.Tensor, Optional[torch.Tensor]]:
+        """This step's cameras, original renders [V,3,H,W], footprints [V,1,H,W] and pool ids."""
+        if self.pool is None:
+            cams = self.views.sample(self.gen)
+            return (cams, *self._render_originals(cams), None)
+        k = int(torch.randint(len(self.pool.cameras), (1,), generator=self.gen))
+        v = len(self.pool.cameras[k])
+        return (self.pool.cameras[k], self.pool.originals[k].float(), self.pool.masks[k].float(),
+                torch.arange(k * v, (k + 1) * v))
+
     # -- one step -------------------------------------------------------------------------------
     def step_once(self) -> dict:
         """One CSD step (views, renders, guidance, backward, scaled Adam, densification)."""
         cfg, T = self.cfg, self.timer
         self._rng_at_start = (self.gen.get_state(), [g.get_state() for g in _generators(self.guidance)])
-        cams = self.views.sample(self.gen)
         with T("render"):
-            originals, masks = self._render_originals(cams)
+            cams, originals, masks, view_ids = self._views()
             out = render_views(self.opt.render_scene(), cams, "rgb", background=self.background, check_finite=False)
             out["means2d"].retain_grad()
             x = out["color"].permute(0, 3, 1, 2).clamp(0, 1)
-        batch = ViewBatch(cameras=cams, originals=originals, masks=masks, step=self.step,
+        batch = ViewBatch(cameras=cams, originals=originals, masks=masks, view_ids=view_ids, step=self.step,
                           total_steps=cfg.steps, object_center=self.views.center,
                           world_up=self.views.layout.up)  # float64 on the CPU, like the cameras
         with T("guidance"):
@@ -260,7 +322,7 @@ class EditSession:
         for g, st in zip(_generators(self.guidance), ck.get("guidance_rng", [])):
             g.set_state(st.cpu())
         self.step, self.history, self.elapsed = int(ck["step"]), list(ck["history"]), float(ck["elapsed"])
-        self.timer.total.update(ck.get("timings", {}))
+        self.timer.load(ck.get("timings", {}))
         log.info("edit resumed from %s at step %d of %d", path, self.step, self.cfg.steps)
 
     # -- the loop -----------------------------------------------------------------------------------
