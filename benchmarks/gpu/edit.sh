@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # GPU run of the edit loop (issue 13): build tiger with CUDA, then benchmarks/edit.py on a ~300k-Gaussian
 # scene: recolor / analytic (the loop without diffusion) and a 1200-step CSD edit with full-size random
-# InstructPix2Pix + MVDream (bf16, CUDA graphs). From the repo root on the device:
+# InstructPix2Pix + MVDream (bf16, CUDA graphs, a pool of VIEW_POOL=64 camera sets). From the repo root on the device:
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb OUT=$OUT bash benchmarks/gpu/edit.sh
 # Results: $OUT/edit_h100.json, $OUT/edit_h100.txt, $OUT/build.log.
 set -uo pipefail
@@ -20,7 +20,8 @@ $PY benchmarks/edit.py --device cuda --density 15 --guidance recolor analytic --
     --json "$OUT/edit_h100_nodiffusion.json" 2>&1 | tee "$OUT/edit_h100_nodiffusion.txt"
 for graph in --cuda-graph ""; do
   if $PY benchmarks/edit.py --device cuda --density 15 --guidance ip2p+mvdream --random-models full --dtype bf16 \
-      --steps 1200 --size 512 --warmup 5 $graph --time-budget-s "${BUDGET_S:-150}" --json "$OUT/edit_h100.json" \
+      --steps 1200 --size 512 --warmup 5 $graph --view-pool "${VIEW_POOL:-64}" --time-budget-s "${BUDGET_S:-150}" \
+      --json "$OUT/edit_h100.json" \
       2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/edit_h100${graph:+_graph}.txt"; then
     [ -f "$OUT/edit_h100.json" ] && break
   fi

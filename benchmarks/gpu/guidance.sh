@@ -3,8 +3,7 @@
 # every variant of benchmarks/guidance.py in one call. Run from the repo root on the device with
 # the diffusers wheel and Eigen's .deb carried (first the CUDA-graph test, then the benchmark):
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb bash benchmarks/gpu/guidance.sh
-# tiger's C++ core is built without CUDA (the guidances need only torch/diffusers, but importing
-# tiger loads the core). Results: $OUT/guidance_h100.{json,txt}, $OUT/profile_*.txt, $OUT/build.log.
+# Results: $OUT/guidance_h100.{json,txt}, $OUT/profile_*.txt, $OUT/{build,check}.log.
 set -uo pipefail
 OUT="${OUT:-outputs}"
 mkdir -p "$OUT"
@@ -15,20 +14,12 @@ if [ -n "${WHEELS:-}" ]; then
   $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHEELS"/diffusers-*.whl || exit 1
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
-EXTRA=()
-if ! [ -f /usr/include/eigen3/Eigen/Core ] && [ -n "${EIGEN_DEB:-}" ]; then
-  dpkg -x "$EIGEN_DEB" /tmp/eigen
-  EXTRA+=(--config-settings=cmake.define.Eigen3_DIR=/tmp/eigen/usr/share/eigen3/cmake)
-fi
-[ -x /usr/bin/g++ ] && export CXX=/usr/bin/g++ CC=/usr/bin/gcc
-if ! TIGER_CUDA=0 CMAKE_BUILD_PARALLEL_LEVEL=$(nproc) $PY -m pip install --no-build-isolation --no-deps -e . \
-    --config-settings=build-dir=build/guidance-nocuda "${EXTRA[@]}" > "$OUT/build.log" 2>&1; then
-  echo "BUILD FAILED"; tail -40 "$OUT/build.log"; exit 1
-fi
+# check.sh's build step (tiger with CUDA; the same build serves edit.sh and the tests)
+OUT="$OUT" CHECK_STEPS=build bash benchmarks/gpu/check.sh "" "${EIGEN_DEB:-}" || { echo "BUILD FAILED"; exit 1; }
 echo "setup done in $(( $(date +%s) - t0 )) s"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 echo "== CUDA-graph replay vs eager (tiny models)"
 timeout 150 $PY -m pytest -q tests/edit/test_cuda_graph.py -p no:cacheprovider 2>&1 | tail -5
 echo "== benchmark"
 $PY benchmarks/guidance.py --device cuda --out "$OUT/guidance_h100.json" --profile-dir "$OUT" \
-    --budget-s "${BUDGET_S:-220}" 2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/guidance_h100.txt"
+    --budget-s "${BUDGET_S:-220}" ${GUIDANCE_ARGS:-} 2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/guidance_h100.txt"
