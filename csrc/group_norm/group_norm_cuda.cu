@@ -79,6 +79,15 @@ __device__ __forceinline__ int64_t offset_of(const Walk& w, const Tile& t, int64
   return (t.slice * w.rows + r) * w.cols * V + v * V;
 }
 
+// Moments are accumulated relative to a per-(n, c) shift, the channel's first element in the
+// slice, so large-mean inputs lose no variance to cancellation: every chunk and thread of a
+// channel shares it, and the per-(n, g) combine moves each channel into its group's frame.
+// c: the channel (NHWC); NCHW slices hold one channel and start with its first element.
+template <typename T, int V>
+__device__ __forceinline__ float shift_at(const T* x, const Walk& w, int64_t slice, int64_t c) {
+  return load_as<float>(x[w.nhwc ? slice * w.rows * w.C + c : slice * w.rows * V]);
+}
+
 // Chan's merge of (count, mean, M2) b into a.
 __device__ __forceinline__ void merge(float& n, float& mean, float& m2, float nb, float meanb, float m2b) {
   if (nb == 0.f) return;
@@ -109,17 +118,19 @@ __global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x
   for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
     const int64_t v = v0 + t.tx;
     const bool active = t.ty < t.R && v < w.cols;
-    float n = 0.f, mean[V], m2[V];
+    float n = 0.f, mean[V], m2[V], shift[V];
 #pragma unroll
-    for (int j = 0; j < V; ++j) mean[j] = m2[j] = 0.f;
+    for (int j = 0; j < V; ++j) mean[j] = m2[j] = shift[j] = 0.f;
     if (active) {
+#pragma unroll
+      for (int j = 0; j < V; ++j) shift[j] = shift_at<T, V>(x, w, t.slice, v * V + j);
       for (int64_t r = t.r0 + t.ty; r < t.r1; r += t.R) {
         const Vec<T, V> val = *reinterpret_cast<const Vec<T, V>*>(x + offset_of<V>(w, t, r, v));
         n += 1.f;
         const float inv = 1.f / n;
 #pragma unroll
         for (int j = 0; j < V; ++j) {
-          const float xv = load_as<float>(val.v[j]);
+          const float xv = load_as<float>(val.v[j]) - shift[j];
           const float d = xv - mean[j];
           mean[j] += d * inv;
           m2[j] += d * (xv - mean[j]);
@@ -181,23 +192,36 @@ struct Partials {
       c = g * D + kc / K;
       index = ((n * C + c) * K + k) * V + j;
     }
-    count = static_cast<float>(min(chunk, rows - k * chunk));
+    count = static_cast<float>(max(int64_t(0), min(chunk, rows - k * chunk)));
+  }
+  // Element of x whose value is channel c's shift (shift_at).
+  __device__ __forceinline__ int64_t shift_index(int64_t n, int64_t c) const {
+    return nhwc ? n * rows * C + c : (n * C + c) * rows * V;
+  }
+  __device__ __forceinline__ int64_t channel_of_entry(int64_t g, int64_t e) const {
+    const int64_t D = C / G;
+    return nhwc ? g * D + e % D : g * D + e / (V * K);
   }
 };
 
-__global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const float* __restrict__ pmean,
+template <typename T>
+__global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const T* __restrict__ x,
+                                                                       const float* __restrict__ pmean,
                                                                        const float* __restrict__ pm2, float eps,
                                                                        float* __restrict__ mean_out,
                                                                        float* __restrict__ rstd_out) {
   __shared__ float s_n[kFinalThreads], s_mean[kFinalThreads], s_m2[kFinalThreads];
   const int64_t ng = blockIdx.x, n = ng / pt.G, g = ng % pt.G;
+  // The group's frame: the shift of its first channel; each entry's mean moves into it.
+  const float s0 = load_as<float>(x[pt.shift_index(n, g * (pt.C / pt.G))]);
   float cnt = 0.f, mean = 0.f, m2 = 0.f;
   const int64_t E = pt.entries();
   for (int64_t e = threadIdx.x; e < E; e += blockDim.x) {
     int64_t idx;
     float c;
     pt.at(n, g, e, idx, c);
-    merge(cnt, mean, m2, c, pmean[idx], pm2[idx]);
+    const float to_group = load_as<float>(x[pt.shift_index(n, pt.channel_of_entry(g, e))]) - s0;
+    merge(cnt, mean, m2, c, to_group + pmean[idx], pm2[idx]);
   }
   s_n[threadIdx.x] = cnt;
   s_mean[threadIdx.x] = mean;
@@ -214,7 +238,7 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials 
     __syncthreads();
   }
   if (threadIdx.x == 0) {
-    mean_out[ng] = mean;
+    mean_out[ng] = s0 + mean;
     rstd_out[ng] = rsqrtf(fmaxf(cnt > 0.f ? m2 / cnt : 0.f, 0.f) + eps);
   }
 }
@@ -452,8 +476,8 @@ void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int
   const Walk w = make_walk(d, V, chunks);
   const dim3 grid = walk_grid(d, chunks);
   stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
-  finalize_stats_kernel<<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(make_partials(d, w, V, chunks),
-                                                                                   pmean, pm2, eps, mean, rstd);
+  finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
+      make_partials(d, w, V, chunks), x, pmean, pm2, eps, mean, rstd);
   if (silu)
     apply_kernel<T, V, true><<<grid, kThreads, 0, st>>>(x, w, p, d.G, mean, rstd, y);
   else
