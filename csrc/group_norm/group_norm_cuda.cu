@@ -5,8 +5,10 @@
 // NCHW: slice = (n, c), rows = H·W / V pixel vectors, one column whose V lanes all belong to
 // channel c). Block (slice s = blockIdx.x, chunk k = blockIdx.y) covers rows
 // [k·chunk, (k+1)·chunk); thread (tx, ty) owns column tx (+ passes of kMaxCols) and rows ty,
-// ty + R, ... so a warp reads contiguous 16-byte vectors. Per-(slice, chunk, lane) partials are combined per (n, g) by a second
-// kernel in a fixed order: deterministic, and no host synchronisation anywhere.
+// ty + R, ... so a warp reads contiguous 16-byte vectors. Per-(slice, chunk, lane) partials
+// (Welford moments relative to a per-channel shift; sums of dz and dz·x̂ for the backward) are
+// combined per (n, g) by a second kernel in a fixed order: deterministic, and no host
+// synchronisation anywhere.
 #include <cuda_runtime.h>
 
 #include <algorithm>
