@@ -14,19 +14,19 @@ CHECK_STEPS=build bash benchmarks/gpu/check.sh "$1" "$2" || { echo "build failed
 export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"  # check.sh installed the wheels there
 say() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$OUT/check.log"; }
 say "tests"
-timeout "${TESTS_TIMEOUT:-120}" $PY -m pytest -q -p no:cacheprovider -rs tests/ops/test_group_norm.py \
+timeout "${TESTS_TIMEOUT:-100}" $PY -m pytest -q -p no:cacheprovider -rs tests/ops/test_group_norm.py \
   tests/edit/test_fused_norms.py tests/edit/test_cuda_graph.py > "$OUT/tests.log" 2>&1
 say "tests rc=$?: $(tail -1 "$OUT/tests.log")"
 grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -20 | tee -a "$OUT/check.log"
 say "benchmark"
-timeout "${BENCH_TIMEOUT:-150}" $PY benchmarks/group_norm.py --device cuda --json "$OUT/group_norm_h100.json" \
+timeout "${BENCH_TIMEOUT:-140}" $PY benchmarks/group_norm.py --device cuda --json "$OUT/group_norm_h100.json" \
   > "$OUT/group_norm_h100.txt" 2>&1
 say "benchmark rc=$?"
 SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
-PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout "${SANITIZER_TIMEOUT:-60}" "$SAN" --tool memcheck --error-exitcode 99 \
+PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout "${SANITIZER_TIMEOUT:-45}" "$SAN" --tool memcheck --error-exitcode 99 \
   $PY benchmarks/gpu/sanitize_group_norm.py > "$OUT/sanitizer.log" 2>&1
 say "memcheck rc=$?: $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
-timeout "${SANITIZER_TIMEOUT:-60}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=group_norm \
+timeout "${SANITIZER_TIMEOUT:-45}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=group_norm \
   $PY benchmarks/gpu/sanitize_group_norm.py >> "$OUT/sanitizer.log" 2>&1
 say "racecheck rc=$?: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
 say "done"
