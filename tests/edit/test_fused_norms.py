@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from tiger.edit.guidance.fused_norms import SiLUThenLinear, apply_fused_norms, fuse_group_norms
+from tiger.edit.guidance.fused_norms import SiLUThenLinear, apply_fused_norms, fuse_group_norms, fused_norms_default
 from tiger.edit.guidance.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config
 from tiger.ops.group_norm import GroupNormSiLU
 
@@ -126,3 +126,11 @@ def test_loader_option_gives_the_same_gradient(tiny_models):
         grads.append(g.step(renders, cond, torch.tensor([20, 60, 120, 180]), noise, vae_noise))
     assert grads[1].is_contiguous()
     torch.testing.assert_close(grads[1], grads[0], atol=1e-6, rtol=1e-4)
+
+
+def test_default_is_off_on_the_cpu_and_for_unets(tiny_models):
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    m = load_ip2p(tiny_models / "instruct-pix2pix")  # fused_norms=None on the CPU: nothing changes
+    assert not fused_norms_default(m.vae) and not fused_norms_default(m.unet)
+    assert apply_fused_norms(m.vae) == 0 and not any(isinstance(x, GroupNormSiLU) for x in m.vae.modules())

@@ -181,9 +181,9 @@ def freeze(module: torch.nn.Module, device: torch.device | str | None = None,
            dtype: Optional[torch.dtype] = None, fused_norms: Optional[bool] = False) -> torch.nn.Module:
     """Moved/cast, eval() and no parameter gradients: SDS back-propagates to the input only.
 
-    ``fused_norms``: True/None (None: on CUDA only) gives a diffusion model tiger's fused
-    GroupNorm(+SiLU) and channels-last memory (:func:`.fused_norms.apply_fused_norms`); False
-    (the default, e.g. for text encoders) leaves it as is.
+    ``fused_norms``: True gives a diffusion model tiger's fused GroupNorm(+SiLU) and channels-last
+    memory, None decides by :func:`.fused_norms.fused_norms_default` (a VAE on CUDA), False (the
+    default, e.g. for text encoders) leaves it as is (:func:`.fused_norms.apply_fused_norms`).
     The cast uses ``torch.nn.Module.to`` (diffusers' override only adds a warning about
     float32-kept modules, which these models do not have)."""
     torch.nn.Module.to(module, device=device, dtype=dtype)
