@@ -54,11 +54,15 @@ def load_ip2p(
     dtype: torch.dtype = torch.float32,
     config: ConfigLike = None,
     allow_download: bool = False,
+    fused_norms: Optional[bool] = None,
 ) -> IP2PModels:
     """Load InstructPix2Pix from a diffusers folder (registry name ``ip2p``), offline.
 
     UNet and VAE are cast to ``dtype``; the text encoder runs in float32 on ``device`` and is
     freed once the guidance has encoded its prompts. The VAE decoder is dropped (SDS only encodes).
+    ``fused_norms``: True gives UNet and VAE tiger's fused GroupNorm(+SiLU) and channels-last memory
+    (:func:`.fused_norms.apply_fused_norms`); None (default): the VAE only, on CUDA
+    (:func:`.fused_norms.fused_norms_default` says why); False: neither.
     """
     folder = resolve_model_path("ip2p", path, config=config, allow_download=allow_download)
     diffusers = require_diffusers("loading InstructPix2Pix")
@@ -78,8 +82,8 @@ def load_ip2p(
     tokenizer = transformers.CLIPTokenizer.from_pretrained(str(folder / "tokenizer"), local_files_only=True)
     sched_cfg = json.loads((folder / "scheduler" / "scheduler_config.json").read_text())
     models = IP2PModels(
-        unet=freeze(unet, device, dtype),
-        vae=freeze(vae, device, dtype),
+        unet=freeze(unet, device, dtype, fused_norms),
+        vae=freeze(vae, device, dtype, fused_norms),
         prompts=PromptEncoder(tokenizer, freeze(text_encoder, device), device, dtype),
         schedule=NoiseSchedule.from_scheduler_config(sched_cfg).to(device),
     )
@@ -135,9 +139,11 @@ class InstructPix2PixGuidance:
     @classmethod
     def from_registry(cls, instruction: str, path: PathLike | None = None, *, device: str | torch.device = "cpu",
                       dtype: torch.dtype = torch.float32, config: ConfigLike = None,
-                      allow_download: bool = False, **kwargs) -> "InstructPix2PixGuidance":
+                      allow_download: bool = False, fused_norms: Optional[bool] = None,
+                      **kwargs) -> "InstructPix2PixGuidance":
         """Resolve ``ip2p`` (argument, model config, ``$TIGER_MODELS``), load it and build the guidance."""
-        models = load_ip2p(path, device=device, dtype=dtype, config=config, allow_download=allow_download)
+        models = load_ip2p(path, device=device, dtype=dtype, config=config, allow_download=allow_download,
+                           fused_norms=fused_norms)
         return cls(models, instruction, **kwargs)
 
     # -- pieces -------------------------------------------------------------------------------

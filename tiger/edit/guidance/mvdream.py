@@ -103,12 +103,14 @@ def load_mvdream(
     allow_download: bool = False,
     ldm_config: ConfigSource = None,
     tokenizer: PathLike | None = None,
+    fused_norms: Optional[bool] = None,
 ) -> MVDreamModels:
     """Load MVDream (registry name ``mvdream``): the original LDM checkpoint or a diffusers folder.
 
     For the ``.pt``, the LDM config is ``ldm_config`` (mapping, .json or .yaml), else a
     ``sd-v2-base.json``/``.yaml`` beside the checkpoint, else MVDream's sd-v2-base; the tokenizer is
     ``tokenizer``, else ``tokenizer/`` beside the checkpoint, else the ``clip`` model's (same BPE).
+    ``fused_norms``: as for :func:`.ip2p.load_ip2p` (True: both models; None: the VAE on CUDA; False: neither).
     """
     found = resolve_model_path("mvdream", path, config=config, allow_download=allow_download)
     diffusers = require_diffusers("loading MVDream")
@@ -142,7 +144,7 @@ def load_mvdream(
     vae.post_quant_conv = None
     logger.info("loaded MVDream from %s (%s, %s)", found, device, dtype)
     return MVDreamModels(
-        unet=freeze(unet, device, dtype), vae=freeze(vae, device, dtype),
+        unet=freeze(unet, device, dtype, fused_norms), vae=freeze(vae, device, dtype, fused_norms),
         prompts=PromptEncoder(tok, freeze(text_encoder, device), device, dtype), schedule=schedule.to(device))
 
 
@@ -189,12 +191,13 @@ class MVDreamGuidance:
     @classmethod
     def from_registry(cls, prompt: str, path: PathLike | None = None, *, device: str | torch.device = "cpu",
                       dtype: torch.dtype = torch.float32, config: ConfigLike = None, allow_download: bool = False,
-                      lazy: bool = True, **kwargs) -> "MVDreamGuidance":
+                      lazy: bool = True, fused_norms: Optional[bool] = None, **kwargs) -> "MVDreamGuidance":
         """Resolve ``mvdream`` now (a missing model fails here), load it on first use when ``lazy``."""
         resolve_model_path("mvdream", path, config=config, allow_download=allow_download)
 
         def loader() -> MVDreamModels:
-            return load_mvdream(path, device=device, dtype=dtype, config=config, allow_download=allow_download)
+            return load_mvdream(path, device=device, dtype=dtype, config=config, allow_download=allow_download,
+                                fused_norms=fused_norms)
 
         return cls(loader if lazy else loader(), prompt, **kwargs)
 

@@ -111,14 +111,27 @@ def resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return F.interpolate(images, size=size, mode="bilinear", align_corners=False)
 
 
+def is_channels_last(module: torch.nn.Module) -> bool:
+    """True when the module's first conv weight ([out, in, kh, kw], not 1x1 with one input channel,
+    where both layouts coincide) is in channels-last memory (see :mod:`.fused_norms`)."""
+    for p in module.parameters():
+        if p.dim() == 4 and p.shape[1] * p.shape[2] * p.shape[3] > 1:
+            return not p.is_contiguous() and p.is_contiguous(memory_format=torch.channels_last)
+    return False
+
+
 def encode_latents(vae, images01: torch.Tensor, vae_noise: Optional[torch.Tensor]) -> torch.Tensor:
     """VAE latents of images in [0, 1] ([V, 3, H, W] -> [V, c, H/f, W/f]).
 
     ``vae_noise`` given: a posterior sample ``(μ + σ·vae_noise)·scaling_factor`` (the SDS latents);
-    None: the posterior mode ``μ``, NOT scaled (InstructPix2Pix's image condition).
+    None: the posterior mode ``μ``, NOT scaled (InstructPix2Pix's image condition). The 3-channel
+    input is made channels-last when the VAE is (one cheap copy instead of cuDNN converting it).
     """
     dtype = next(vae.parameters()).dtype
-    dist = vae.encode(images01.to(dtype) * 2.0 - 1.0).latent_dist
+    images = images01.to(dtype) * 2.0 - 1.0
+    if is_channels_last(vae):
+        images = images.contiguous(memory_format=torch.channels_last)
+    dist = vae.encode(images).latent_dist
     if vae_noise is None:
         return dist.mean
     return (dist.mean + dist.std * vae_noise.to(dist.std.dtype)) * vae.config.scaling_factor
@@ -134,7 +147,7 @@ def render_gradient(vae, renders: torch.Tensor, size: tuple[int, int], vae_noise
         z = encode_latents(vae, resize(x, size), vae_noise)
         g = latent_grad(z.detach())
         (gx,) = torch.autograd.grad(z, x, grad_outputs=g.to(z.dtype))
-    return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0)
+    return torch.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0).contiguous()  # NCHW even for a channels-last VAE
 
 
 def latent_shape(vae, n: int, size: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -165,15 +178,22 @@ def model_device_dtype(module: torch.nn.Module) -> tuple[torch.device, torch.dty
 
 
 def freeze(module: torch.nn.Module, device: torch.device | str | None = None,
-           dtype: Optional[torch.dtype] = None) -> torch.nn.Module:
+           dtype: Optional[torch.dtype] = None, fused_norms: Optional[bool] = False) -> torch.nn.Module:
     """Moved/cast, eval() and no parameter gradients: SDS back-propagates to the input only.
 
+    ``fused_norms``: True gives a diffusion model tiger's fused GroupNorm(+SiLU) and channels-last
+    memory, None decides by :func:`.fused_norms.fused_norms_default` (a VAE on CUDA), False (the
+    default, e.g. for text encoders) leaves it as is (:func:`.fused_norms.apply_fused_norms`).
     The cast uses ``torch.nn.Module.to`` (diffusers' override only adds a warning about
     float32-kept modules, which these models do not have)."""
     torch.nn.Module.to(module, device=device, dtype=dtype)
     module.eval()
     for p in module.parameters():
         p.requires_grad_(False)
+    if fused_norms is not False:
+        from .fused_norms import apply_fused_norms  # imports tiger.ops (the compiled core)
+
+        apply_fused_norms(module, fused_norms)
     return module
 
 

@@ -1,0 +1,71 @@
+#pragma once
+// tiger::group_norm — GroupNorm with an optional fused SiLU (the diffusion models' norm + act).
+//
+//   x [N, C, H, W], G groups of D = C / G channels; per (n, g) over the D·H·W elements:
+//     mean[n, g], rstd[n, g] = 1 / sqrt(var[n, g] + eps)     (biased variance; float32 [N, G])
+//     z = (x − mean)·rstd·w[c] + b[c]                          (w = 1, b = 0 when absent)
+//     y = silu ? z·σ(z) : z                                    (x's dtype and memory format)
+//
+// Backward (group_norm_backward), with x̂ = (x − mean)·rstd and dz = dy·σ(z)(1 + z(1 − σ(z)))
+// (z recomputed from x, mean and rstd; dz = dy without SiLU), M = D·H·W:
+//   c1[n, g] = Σ_{c∈g, p} w[c]·dz / M,   c2[n, g] = Σ_{c∈g, p} w[c]·dz·x̂ / M
+//   dx = rstd·(w[c]·dz − c1 − x̂·c2),     dw[c] = Σ_{n, p} dz·x̂,   db[c] = Σ_{n, p} dz.
+//
+// The CUDA launchers take raw pointers (no torch headers in the .cu). Layouts: NCHW
+// (contiguous) or NHWC (channels-last); per-(n, c, chunk) partials live in caller-allocated
+// float32 workspaces sized by plan_chunks, so nothing synchronises with the host.
+#include <cstdint>
+#include <initializer_list>
+
+namespace tiger {
+namespace group_norm {
+
+struct Dims {
+  int64_t N, C, HW, G;
+  bool nhwc;
+};
+
+// Row chunks per slice (about 4 blocks per SM of the current device): the partial buffers hold
+// N·C·chunks (NHWC) or N·C·chunks·vector_width (NCHW) floats each.
+int64_t plan_chunks(const Dims& d, int vector_width);
+
+// Affine parameters: dtype of x, or float32 (params_float); null = absent (w = 1, b = 0).
+struct Params {
+  const void* weight;
+  const void* bias;
+  bool params_float;
+};
+
+// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x.
+template <typename T>
+void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks,
+                    float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
+                    void* stream);
+
+// sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces.
+template <typename T>
+void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd,
+                     bool silu, int64_t chunks, float* partial_dz, float* partial_dzx, float* sum_dz,
+                     float* sum_dzx, float* c1, float* c2, T* dx, int vector_width, void* stream);
+
+}  // namespace group_norm
+}  // namespace tiger
+
+namespace tiger {
+namespace group_norm {
+
+constexpr int kThreads = 256;   // threads of the walking kernels
+constexpr int kMaxCols = 64;    // vector columns one block row covers per pass
+
+// 16-byte vectors when every pointer is aligned and the contiguous run (C for NHWC, H·W for
+// NCHW) is a multiple of the vector; otherwise scalar.
+inline int choose_vector_width(const Dims& d, int elem_size, std::initializer_list<const void*> ptrs) {
+  const int v = 16 / elem_size;
+  if ((d.nhwc ? d.C : d.HW) % v != 0) return 1;
+  for (const void* p : ptrs)
+    if (p != nullptr && reinterpret_cast<uintptr_t>(p) % 16 != 0) return 1;
+  return v;
+}
+
+}  // namespace group_norm
+}  // namespace tiger

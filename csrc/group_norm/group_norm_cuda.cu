@@ -1,0 +1,556 @@
+// CUDA kernels of tiger::group_norm (raw pointers, no torch headers).
+//
+// Both layouts are walked the same way: a "slice" is an image row block that shares one set of
+// per-column channels (NHWC: slice = n, rows = pixels, columns = the C / V channel vectors;
+// NCHW: slice = (n, c), rows = H·W / V pixel vectors, one column whose V lanes all belong to
+// channel c). Block (slice s = blockIdx.x, chunk k = blockIdx.y) covers rows
+// [k·chunk, (k+1)·chunk); thread (tx, ty) owns column tx (+ passes of kMaxCols) and rows ty,
+// ty + R, ... so a warp reads contiguous 16-byte vectors. Per-(slice, chunk, lane) partials
+// (Welford moments relative to a per-channel shift; sums of dz and dz·x̂ for the backward) are
+// combined per (n, g) by a second kernel in a fixed order: deterministic, and no host
+// synchronisation anywhere.
+#include <cuda_runtime.h>
+
+#include <algorithm>
+
+#include "common/cuda_helpers.cuh"
+#include "group_norm/group_norm.h"
+
+namespace tiger {
+namespace group_norm {
+namespace {
+
+using tiger::cuda::load_as;
+
+constexpr int kFinalThreads = 128;
+
+template <typename T, int V>
+struct alignas(sizeof(T) * V) Vec {
+  T v[V];
+};
+
+template <typename T>
+__device__ __forceinline__ T store_as(float v);
+template <>
+__device__ __forceinline__ float store_as<float>(float v) { return v; }
+template <>
+__device__ __forceinline__ __half store_as<__half>(float v) { return __float2half(v); }
+template <>
+__device__ __forceinline__ __nv_bfloat16 store_as<__nv_bfloat16>(float v) { return __float2bfloat16(v); }
+
+template <typename T>
+__device__ __forceinline__ float param_at(const Params& p, const void* ptr, int64_t c, float fill) {
+  if (ptr == nullptr) return fill;
+  return p.params_float ? static_cast<const float*>(ptr)[c] : load_as<float>(static_cast<const T*>(ptr)[c]);
+}
+
+__device__ __forceinline__ float sigmoid(float z) { return 1.f / (1.f + __expf(-z)); }
+
+// The walk of one block: geometry shared by the four walking kernels.
+struct Walk {
+  int64_t rows, cols, C, chunk;  // rows and columns (vectors) per slice, channels, rows per chunk
+  int cvt;                       // threads along columns
+  bool nhwc;
+};
+
+struct Tile {
+  int64_t slice, n, r0, r1;
+  int tx, ty, R;
+};
+
+__device__ __forceinline__ Tile tile_of(const Walk& w) {
+  Tile t;
+  t.slice = blockIdx.x;
+  t.n = w.nhwc ? t.slice : t.slice / w.C;
+  t.r0 = static_cast<int64_t>(blockIdx.y) * w.chunk;
+  t.r1 = min(w.rows, t.r0 + w.chunk);
+  t.tx = threadIdx.x % w.cvt;
+  t.ty = threadIdx.x / w.cvt;
+  t.R = blockDim.x / w.cvt;
+  return t;
+}
+
+// Channel of lane j of column v.
+template <int V>
+__device__ __forceinline__ int64_t channel_of(const Walk& w, const Tile& t, int64_t v, int j) {
+  return w.nhwc ? v * V + j : t.slice % w.C;
+}
+
+template <int V>
+__device__ __forceinline__ int64_t offset_of(const Walk& w, const Tile& t, int64_t r, int64_t v) {
+  return (t.slice * w.rows + r) * w.cols * V + v * V;
+}
+
+// Moments are accumulated relative to a per-(n, c) shift, the channel's first element in the
+// slice, so large-mean inputs lose no variance to cancellation: every chunk and thread of a
+// channel shares it, and the per-(n, g) combine moves each channel into its group's frame.
+// c: the channel (NHWC); NCHW slices hold one channel and start with its first element.
+template <typename T, int V>
+__device__ __forceinline__ float shift_at(const T* x, const Walk& w, int64_t slice, int64_t c) {
+  return load_as<float>(x[w.nhwc ? slice * w.rows * w.C + c : slice * w.rows * V]);
+}
+
+// Chan's merge of (count, mean, M2) b into a.
+__device__ __forceinline__ void merge(float& n, float& mean, float& m2, float nb, float meanb, float m2b) {
+  if (nb == 0.f) return;
+  const float tot = n + nb;
+  const float f = nb / tot;
+  const float delta = meanb - mean;
+  mean += delta * f;
+  m2 += m2b + delta * delta * n * f;
+  n = tot;
+}
+
+// Tree over the R thread rows of a block (slot = ty·cvt + tx), fixed order; after it slot tx
+// (ty = 0) holds the column's result. P is the power of two >= R.
+__device__ __forceinline__ int pow2_at_least(int r) {
+  int p = 1;
+  while (p < r) p <<= 1;
+  return p;
+}
+
+// ---- statistics: per-(slice, chunk, lane) Welford moments --------------------------------
+template <typename T, int V>
+__global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x, Walk w, float* __restrict__ pmean,
+                                                         float* __restrict__ pm2) {
+  __shared__ float s_mean[kThreads * V], s_m2[kThreads * V], s_n[kThreads];
+  const Tile t = tile_of(w);
+  const int slot = threadIdx.x;
+  const int P = pow2_at_least(t.R);
+  for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
+    const int64_t v = v0 + t.tx;
+    const bool active = t.ty < t.R && v < w.cols;
+    float n = 0.f, mean[V], m2[V], shift[V];
+#pragma unroll
+    for (int j = 0; j < V; ++j) mean[j] = m2[j] = shift[j] = 0.f;
+    if (active) {
+#pragma unroll
+      for (int j = 0; j < V; ++j) shift[j] = shift_at<T, V>(x, w, t.slice, v * V + j);
+      for (int64_t r = t.r0 + t.ty; r < t.r1; r += t.R) {
+        const Vec<T, V> val = *reinterpret_cast<const Vec<T, V>*>(x + offset_of<V>(w, t, r, v));
+        n += 1.f;
+        const float inv = 1.f / n;
+#pragma unroll
+        for (int j = 0; j < V; ++j) {
+          const float xv = load_as<float>(val.v[j]) - shift[j];
+          const float d = xv - mean[j];
+          mean[j] += d * inv;
+          m2[j] += d * (xv - mean[j]);
+        }
+      }
+    }
+#pragma unroll
+    for (int j = 0; j < V; ++j) {
+      s_mean[slot * V + j] = mean[j];
+      s_m2[slot * V + j] = m2[j];
+    }
+    s_n[slot] = n;
+    __syncthreads();
+    for (int s = P / 2; s >= 1; s >>= 1) {
+      if (active && t.ty < s && t.ty + s < t.R) {
+        const int other = slot + s * w.cvt;
+        const float nb = s_n[other];
+#pragma unroll
+        for (int j = 0; j < V; ++j) {
+          float n_j = n;  // the lanes share the count: each merge starts from it
+          merge(n_j, mean[j], m2[j], nb, s_mean[other * V + j], s_m2[other * V + j]);
+          s_mean[slot * V + j] = mean[j];
+          s_m2[slot * V + j] = m2[j];
+        }
+        n += nb;
+        s_n[slot] = n;
+      }
+      __syncthreads();
+    }
+    if (active && t.ty == 0) {
+      const int64_t base = (t.slice * gridDim.y + blockIdx.y) * w.cols * V + v * V;
+#pragma unroll
+      for (int j = 0; j < V; ++j) {
+        pmean[base + j] = mean[j];
+        pm2[base + j] = m2[j];
+      }
+    }
+    __syncthreads();
+  }
+}
+
+// Number of partial entries of group (n, g) and the address/count of entry e: NHWC partials are
+// [N, K, C], NCHW partials [N·C, K, V] (V lanes of one channel).
+struct Partials {
+  int64_t N, C, G, K, rows, chunk;
+  int V;
+  bool nhwc;
+  __device__ __forceinline__ int64_t entries() const { return (C / G) * K * (nhwc ? 1 : V); }
+  __device__ __forceinline__ void at(int64_t n, int64_t g, int64_t e, int64_t& index, float& count) const {
+    const int64_t D = C / G;
+    int64_t k, c;
+    if (nhwc) {
+      k = e / D;
+      c = g * D + e % D;
+      index = (n * K + k) * C + c;
+    } else {
+      const int64_t j = e % V, kc = e / V;
+      k = kc % K;
+      c = g * D + kc / K;
+      index = ((n * C + c) * K + k) * V + j;
+    }
+    count = static_cast<float>(max(int64_t(0), min(chunk, rows - k * chunk)));
+  }
+  // Element of x whose value is channel c's shift (shift_at).
+  __device__ __forceinline__ int64_t shift_index(int64_t n, int64_t c) const {
+    return nhwc ? n * rows * C + c : (n * C + c) * rows * V;
+  }
+  __device__ __forceinline__ int64_t channel_of_entry(int64_t g, int64_t e) const {
+    const int64_t D = C / G;
+    return nhwc ? g * D + e % D : g * D + e / (V * K);
+  }
+};
+
+template <typename T>
+__global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const T* __restrict__ x,
+                                                                       const float* __restrict__ pmean,
+                                                                       const float* __restrict__ pm2, float eps,
+                                                                       float* __restrict__ mean_out,
+                                                                       float* __restrict__ rstd_out) {
+  __shared__ float s_n[kFinalThreads], s_mean[kFinalThreads], s_m2[kFinalThreads];
+  const int64_t ng = blockIdx.x, n = ng / pt.G, g = ng % pt.G;
+  // The group's frame: the shift of its first channel; each entry's mean moves into it.
+  const float s0 = load_as<float>(x[pt.shift_index(n, g * (pt.C / pt.G))]);
+  float cnt = 0.f, mean = 0.f, m2 = 0.f;
+  const int64_t E = pt.entries();
+  for (int64_t e = threadIdx.x; e < E; e += blockDim.x) {
+    int64_t idx;
+    float c;
+    pt.at(n, g, e, idx, c);
+    const float to_group = load_as<float>(x[pt.shift_index(n, pt.channel_of_entry(g, e))]) - s0;
+    merge(cnt, mean, m2, c, to_group + pmean[idx], pm2[idx]);
+  }
+  s_n[threadIdx.x] = cnt;
+  s_mean[threadIdx.x] = mean;
+  s_m2[threadIdx.x] = m2;
+  __syncthreads();
+  for (int s = blockDim.x / 2; s >= 1; s >>= 1) {
+    if (threadIdx.x < s) {
+      const int o = threadIdx.x + s;
+      merge(cnt, mean, m2, s_n[o], s_mean[o], s_m2[o]);
+      s_n[threadIdx.x] = cnt;
+      s_mean[threadIdx.x] = mean;
+      s_m2[threadIdx.x] = m2;
+    }
+    __syncthreads();
+  }
+  if (threadIdx.x == 0) {
+    mean_out[ng] = s0 + mean;
+    rstd_out[ng] = rsqrtf(fmaxf(cnt > 0.f ? m2 / cnt : 0.f, 0.f) + eps);
+  }
+}
+
+// Per-lane constants of one column: mean, rstd, w, b of its V channels.
+template <typename T, int V>
+struct ColumnConsts {
+  float mean[V], rstd[V], w[V], b[V];
+  __device__ __forceinline__ void load(const Walk& wk, const Tile& t, int64_t v, const Params& p, int64_t G,
+                                       const float* mean_g, const float* rstd_g) {
+    const int64_t D = wk.C / G;
+#pragma unroll
+    for (int j = 0; j < V; ++j) {
+      const int64_t c = channel_of<V>(wk, t, v, j);
+      const int64_t ng = t.n * G + c / D;
+      mean[j] = mean_g[ng];
+      rstd[j] = rstd_g[ng];
+      w[j] = param_at<T>(p, p.weight, c, 1.f);
+      b[j] = param_at<T>(p, p.bias, c, 0.f);
+    }
+  }
+};
+
+// ---- forward apply: y = act((x − mean)·rstd·w + b) ---------------------------------------
+template <typename T, int V, bool SILU>
+__global__ void __launch_bounds__(kThreads) apply_kernel(const T* __restrict__ x, Walk w, Params p, int64_t G,
+                                                         const float* __restrict__ mean_g,
+                                                         const float* __restrict__ rstd_g, T* __restrict__ y) {
+  const Tile t = tile_of(w);
+  if (t.ty >= t.R) return;
+  for (int64_t v = t.tx; v < w.cols; v += w.cvt) {
+    ColumnConsts<T, V> k;
+    k.load(w, t, v, p, G, mean_g, rstd_g);
+    float a[V];
+#pragma unroll
+    for (int j = 0; j < V; ++j) a[j] = k.rstd[j] * k.w[j];
+    for (int64_t r = t.r0 + t.ty; r < t.r1; r += t.R) {
+      const int64_t off = offset_of<V>(w, t, r, v);
+      const Vec<T, V> in = *reinterpret_cast<const Vec<T, V>*>(x + off);
+      Vec<T, V> out;
+#pragma unroll
+      for (int j = 0; j < V; ++j) {
+        float z = (load_as<float>(in.v[j]) - k.mean[j]) * a[j] + k.b[j];
+        if (SILU) z *= sigmoid(z);
+        out.v[j] = store_as<T>(z);
+      }
+      *reinterpret_cast<Vec<T, V>*>(y + off) = out;
+    }
+  }
+}
+
+// dz = dy·silu'(z) (or dy) and x̂ of one element.
+template <bool SILU>
+__device__ __forceinline__ void dz_xhat(float xv, float dy, float mean, float rstd, float w, float b, float& dz,
+                                        float& xh) {
+  xh = (xv - mean) * rstd;
+  dz = dy;
+  if (SILU) {
+    const float z = xh * w + b, s = sigmoid(z);
+    dz *= s * (1.f + z * (1.f - s));
+  }
+}
+
+// ---- backward reductions: per-(slice, chunk, lane) Σ dz and Σ dz·x̂ -----------------------
+template <typename T, int V, bool SILU>
+__global__ void __launch_bounds__(kThreads) backward_reduce_kernel(const T* __restrict__ dy, const T* __restrict__ x,
+                                                                   Walk w, Params p, int64_t G,
+                                                                   const float* __restrict__ mean_g,
+                                                                   const float* __restrict__ rstd_g,
+                                                                   float* __restrict__ pdz, float* __restrict__ pdzx) {
+  __shared__ float s_a[kThreads * V], s_b[kThreads * V];
+  const Tile t = tile_of(w);
+  const int slot = threadIdx.x;
+  const int P = pow2_at_least(t.R);
+  for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
+    const int64_t v = v0 + t.tx;
+    const bool active = t.ty < t.R && v < w.cols;
+    float sa[V], sb[V];
+#pragma unroll
+    for (int j = 0; j < V; ++j) sa[j] = sb[j] = 0.f;
+    if (active) {
+      ColumnConsts<T, V> k;
+      k.load(w, t, v, p, G, mean_g, rstd_g);
+      for (int64_t r = t.r0 + t.ty; r < t.r1; r += t.R) {
+        const int64_t off = offset_of<V>(w, t, r, v);
+        const Vec<T, V> xv = *reinterpret_cast<const Vec<T, V>*>(x + off);
+        const Vec<T, V> gv = *reinterpret_cast<const Vec<T, V>*>(dy + off);
+#pragma unroll
+        for (int j = 0; j < V; ++j) {
+          float dz, xh;
+          dz_xhat<SILU>(load_as<float>(xv.v[j]), load_as<float>(gv.v[j]), k.mean[j], k.rstd[j], k.w[j], k.b[j], dz, xh);
+          sa[j] += dz;
+          sb[j] += dz * xh;
+        }
+      }
+    }
+#pragma unroll
+    for (int j = 0; j < V; ++j) {
+      s_a[slot * V + j] = sa[j];
+      s_b[slot * V + j] = sb[j];
+    }
+    __syncthreads();
+    for (int s = P / 2; s >= 1; s >>= 1) {
+      if (active && t.ty < s && t.ty + s < t.R) {
+        const int other = slot + s * w.cvt;
+#pragma unroll
+        for (int j = 0; j < V; ++j) {
+          sa[j] += s_a[other * V + j];
+          sb[j] += s_b[other * V + j];
+          s_a[slot * V + j] = sa[j];
+          s_b[slot * V + j] = sb[j];
+        }
+      }
+      __syncthreads();
+    }
+    if (active && t.ty == 0) {
+      const int64_t base = (t.slice * gridDim.y + blockIdx.y) * w.cols * V + v * V;
+#pragma unroll
+      for (int j = 0; j < V; ++j) {
+        pdz[base + j] = sa[j];
+        pdzx[base + j] = sb[j];
+      }
+    }
+    __syncthreads();
+  }
+}
+
+// Per (n, g): per-channel totals (for dw, db) and c1, c2 = Σ w·dz / M, Σ w·dz·x̂ / M.
+template <typename T>
+__global__ void __launch_bounds__(kFinalThreads) finalize_backward_kernel(Partials pt, Params p,
+                                                                          const float* __restrict__ pdz,
+                                                                          const float* __restrict__ pdzx,
+                                                                          float* __restrict__ sum_dz,
+                                                                          float* __restrict__ sum_dzx,
+                                                                          float* __restrict__ c1,
+                                                                          float* __restrict__ c2) {
+  __shared__ float s_a[kFinalThreads], s_b[kFinalThreads];
+  const int64_t ng = blockIdx.x, n = ng / pt.G, g = ng % pt.G, D = pt.C / pt.G;
+  const int64_t per_channel = pt.K * (pt.nhwc ? 1 : pt.V);  // entries of one channel, consecutive in e
+  float wa = 0.f, wb = 0.f;
+  for (int64_t j = threadIdx.x; j < D; j += blockDim.x) {
+    float a = 0.f, b = 0.f;
+    for (int64_t q = 0; q < per_channel; ++q) {
+      // Entry order of Partials::at: NHWC e = k·D + j, NCHW e = (j·K + k)·V + lane.
+      const int64_t e = pt.nhwc ? q * D + j : j * per_channel + q;
+      int64_t idx;
+      float unused;
+      pt.at(n, g, e, idx, unused);
+      a += pdz[idx];
+      b += pdzx[idx];
+    }
+    const int64_t c = g * D + j;
+    sum_dz[n * pt.C + c] = a;
+    sum_dzx[n * pt.C + c] = b;
+    const float wc = param_at<T>(p, p.weight, c, 1.f);
+    wa += wc * a;
+    wb += wc * b;
+  }
+  s_a[threadIdx.x] = wa;
+  s_b[threadIdx.x] = wb;
+  __syncthreads();
+  for (int s = blockDim.x / 2; s >= 1; s >>= 1) {
+    if (threadIdx.x < s) {
+      s_a[threadIdx.x] = wa = wa + s_a[threadIdx.x + s];
+      s_b[threadIdx.x] = wb = wb + s_b[threadIdx.x + s];
+    }
+    __syncthreads();
+  }
+  if (threadIdx.x == 0) {
+    const float m = static_cast<float>(D) * static_cast<float>(pt.rows) * (pt.nhwc ? 1.f : pt.V);
+    c1[ng] = wa / m;
+    c2[ng] = wb / m;
+  }
+}
+
+// ---- backward apply: dx = rstd·(w·dz − c1 − x̂·c2) ----------------------------------------
+template <typename T, int V, bool SILU>
+__global__ void __launch_bounds__(kThreads) dx_kernel(const T* __restrict__ dy, const T* __restrict__ x, Walk w,
+                                                      Params p, int64_t G, const float* __restrict__ mean_g,
+                                                      const float* __restrict__ rstd_g, const float* __restrict__ c1,
+                                                      const float* __restrict__ c2, T* __restrict__ dx) {
+  const Tile t = tile_of(w);
+  if (t.ty >= t.R) return;
+  const int64_t D = w.C / G;
+  for (int64_t v = t.tx; v < w.cols; v += w.cvt) {
+    ColumnConsts<T, V> k;
+    k.load(w, t, v, p, G, mean_g, rstd_g);
+    float k1[V], k2[V];
+#pragma unroll
+    for (int j = 0; j < V; ++j) {
+      const int64_t ng = t.n * G + channel_of<V>(w, t, v, j) / D;
+      k1[j] = c1[ng];
+      k2[j] = c2[ng];
+    }
+    for (int64_t r = t.r0 + t.ty; r < t.r1; r += t.R) {
+      const int64_t off = offset_of<V>(w, t, r, v);
+      const Vec<T, V> xv = *reinterpret_cast<const Vec<T, V>*>(x + off);
+      const Vec<T, V> gv = *reinterpret_cast<const Vec<T, V>*>(dy + off);
+      Vec<T, V> out;
+#pragma unroll
+      for (int j = 0; j < V; ++j) {
+        float dz, xh;
+        dz_xhat<SILU>(load_as<float>(xv.v[j]), load_as<float>(gv.v[j]), k.mean[j], k.rstd[j], k.w[j], k.b[j], dz, xh);
+        out.v[j] = store_as<T>(k.rstd[j] * (k.w[j] * dz - k1[j] - xh * k2[j]));
+      }
+      *reinterpret_cast<Vec<T, V>*>(dx + off) = out;
+    }
+  }
+}
+
+// Geometry of the walk for vector width V.
+Walk make_walk(const Dims& d, int V, int64_t chunks) {
+  Walk w;
+  w.nhwc = d.nhwc;
+  w.C = d.C;
+  w.rows = d.nhwc ? d.HW : d.HW / V;
+  w.cols = d.nhwc ? d.C / V : 1;
+  const int64_t passes = (w.cols + kMaxCols - 1) / kMaxCols;
+  w.cvt = static_cast<int>((w.cols + passes - 1) / passes);
+  w.chunk = (w.rows + chunks - 1) / chunks;
+  return w;
+}
+
+Partials make_partials(const Dims& d, const Walk& w, int V, int64_t chunks) {
+  return Partials{d.N, d.C, d.G, chunks, w.rows, w.chunk, V, d.nhwc};
+}
+
+dim3 walk_grid(const Dims& d, int64_t chunks) {
+  return dim3(static_cast<unsigned>(d.nhwc ? d.N : d.N * d.C), static_cast<unsigned>(chunks));
+}
+
+template <typename T, int V>
+void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* pmean, float* pm2,
+                  float* mean, float* rstd, T* y, cudaStream_t st) {
+  const Walk w = make_walk(d, V, chunks);
+  const dim3 grid = walk_grid(d, chunks);
+  stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
+  finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
+      make_partials(d, w, V, chunks), x, pmean, pm2, eps, mean, rstd);
+  if (silu)
+    apply_kernel<T, V, true><<<grid, kThreads, 0, st>>>(x, w, p, d.G, mean, rstd, y);
+  else
+    apply_kernel<T, V, false><<<grid, kThreads, 0, st>>>(x, w, p, d.G, mean, rstd, y);
+}
+
+template <typename T, int V, bool SILU>
+void backward_impl(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd,
+                   int64_t chunks, float* pdz, float* pdzx, float* sum_dz, float* sum_dzx, float* c1, float* c2, T* dx,
+                   cudaStream_t st) {
+  const Walk w = make_walk(d, V, chunks);
+  const dim3 grid = walk_grid(d, chunks);
+  backward_reduce_kernel<T, V, SILU><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, pdz, pdzx);
+  finalize_backward_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
+      make_partials(d, w, V, chunks), p, pdz, pdzx, sum_dz, sum_dzx, c1, c2);
+  dx_kernel<T, V, SILU><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, c1, c2, dx);
+}
+
+}  // namespace
+
+int64_t plan_chunks(const Dims& d, int vector_width) {
+  int dev = 0, sm_count = 0;
+  if (cudaGetDevice(&dev) != cudaSuccess || cudaDeviceGetAttribute(&sm_count, cudaDevAttrMultiProcessorCount, dev) != cudaSuccess)
+    sm_count = 132;
+  const Walk w = make_walk(d, vector_width, 1);
+  const int64_t slices = d.nhwc ? d.N : d.N * d.C;
+  const int64_t R = kThreads / w.cvt;
+  const int64_t target = 4 * static_cast<int64_t>(sm_count);
+  int64_t chunks = slices > 0 ? (target + slices - 1) / slices : 1;
+  const int64_t min_rows = 8 * R;  // at least 8 rows per thread row
+  chunks = std::max<int64_t>(1, std::min<int64_t>(chunks, (w.rows + min_rows - 1) / min_rows));
+  chunks = std::min<int64_t>(chunks, 65535);
+  const int64_t chunk = (w.rows + chunks - 1) / chunks;  // drop empty trailing chunks
+  return std::max<int64_t>(1, (w.rows + chunk - 1) / std::max<int64_t>(chunk, 1));
+}
+
+template <typename T>
+void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* partial_mean,
+                    float* partial_m2, float* mean, float* rstd, T* y, int vector_width, void* stream) {
+  const auto st = static_cast<cudaStream_t>(stream);
+  if (vector_width > 1)
+    forward_impl<T, 16 / sizeof(T)>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);
+  else
+    forward_impl<T, 1>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);
+}
+
+template <typename T>
+void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd, bool silu,
+                     int64_t chunks, float* partial_dz, float* partial_dzx, float* sum_dz, float* sum_dzx, float* c1,
+                     float* c2, T* dx, int vector_width, void* stream) {
+  const auto st = static_cast<cudaStream_t>(stream);
+  constexpr int VV = 16 / sizeof(T);
+#define TIGER_GN_BWD(V, S) \
+  backward_impl<T, V, S>(dy, x, p, d, mean, rstd, chunks, partial_dz, partial_dzx, sum_dz, sum_dzx, c1, c2, dx, st)
+  if (vector_width > 1) {
+    if (silu) TIGER_GN_BWD(VV, true); else TIGER_GN_BWD(VV, false);
+  } else {
+    if (silu) TIGER_GN_BWD(1, true); else TIGER_GN_BWD(1, false);
+  }
+#undef TIGER_GN_BWD
+}
+
+#define TIGER_INSTANTIATE(T)                                                                                     \
+  template void launch_forward<T>(const T*, Params, const Dims&, float, bool, int64_t, float*, float*, float*, \
+                                  float*, T*, int, void*);                                                     \
+  template void launch_backward<T>(const T*, const T*, Params, const Dims&, const float*, const float*, bool,  \
+                                   int64_t, float*, float*, float*, float*, float*, float*, T*, int, void*);
+TIGER_INSTANTIATE(float)
+TIGER_INSTANTIATE(__half)
+TIGER_INSTANTIATE(__nv_bfloat16)
+#undef TIGER_INSTANTIATE
+
+}  // namespace group_norm
+}  // namespace tiger

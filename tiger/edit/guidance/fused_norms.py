@@ -1,0 +1,164 @@
+"""Fused GroupNorm(+SiLU) and channels-last memory for the guidances' frozen diffusers models.
+
+On an H100 a bf16 SDS step of InstructPix2Pix spends about a quarter of its time converting
+NCHW conv inputs to NHWC and back (cuDNN) and in GroupNorm. Channels-last models avoid the
+conversions, but torch's CUDA GroupNorm has no channels-last kernel (it copies to NCHW and
+returns NCHW), so :func:`fuse_group_norms` swaps the models' GroupNorms for
+:class:`tiger.ops.group_norm.GroupNormSiLU` (channels-last in, channels-last out, the SiLU that
+follows fused in) and :func:`apply_fused_norms` then converts the module to channels-last. By
+default only the VAEs are converted (:func:`fused_norms_default`: measured faster for the VAE
+encoder, slower for the UNet).
+
+What is replaced (diffusers 0.42, read from its ``forward`` methods):
+
+- ``ResnetBlock2D``: ``norm1`` and ``norm2``, each followed by ``nonlinearity``. When that is
+  SiLU and ``time_embedding_norm == "default"`` (norm2 directly followed by the activation), both
+  norms fuse the SiLU and ``nonlinearity`` becomes the identity; its third use, the time
+  embedding ``time_emb_proj(nonlinearity(temb))``, keeps its SiLU by turning ``time_emb_proj``
+  into :class:`SiLUThenLinear` (same parameters). Otherwise the norms are replaced without SiLU
+  and ``nonlinearity`` stays.
+- ``Encoder`` / ``Decoder`` / ``UNet2DConditionModel``: ``conv_norm_out`` followed by ``conv_act``
+  (used nowhere else): SiLU fused, ``conv_act`` the identity.
+- ``Attention.group_norm`` and ``Transformer2DModel.norm``: no SiLU. A continuous-input
+  ``Transformer2DModel`` also gets an output method without diffusers' ``.contiguous()``, which
+  otherwise turns every transformer block's output (and the residual sum) back to NCHW.
+"""
+from __future__ import annotations
+
+import logging
+import types
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+
+from tiger.ops.group_norm import GroupNormSiLU
+
+from .sds import require_diffusers
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SiLUThenLinear", "fuse_group_norms", "apply_fused_norms", "fused_norms_default"]
+
+
+class SiLUThenLinear(torch.nn.Linear):
+    """``linear(silu(x))``: a fused ResnetBlock2D's time-embedding projection, whose SiLU used to
+    come from the block's ``nonlinearity`` (now the identity). Parameters keep the names
+    ``weight`` [out, in] and ``bias`` [out], so state dicts are unchanged."""
+
+    @classmethod
+    def from_linear(cls, linear: torch.nn.Linear) -> "SiLUThenLinear":
+        m = cls.__new__(cls)
+        torch.nn.Module.__init__(m)
+        m.in_features, m.out_features = linear.in_features, linear.out_features
+        m.weight, m.bias = linear.weight, linear.bias
+        m.train(linear.training)
+        return m
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.linear(F.silu(x), self.weight, self.bias)
+
+
+def _fused(gn: torch.nn.Module, silu: bool) -> Optional[GroupNormSiLU]:
+    return GroupNormSiLU.from_group_norm(gn, silu) if type(gn) is torch.nn.GroupNorm else None
+
+
+def _fuse_resnet(block) -> int:
+    n1, n2 = _fused(block.norm1, False), _fused(block.norm2, False)
+    if n1 is None or n2 is None:  # already fused, or not a plain GroupNorm
+        return 0
+    silu = type(block.nonlinearity) is torch.nn.SiLU and block.time_embedding_norm == "default"
+    n1.silu = n2.silu = silu
+    block.norm1, block.norm2 = n1, n2
+    if silu:
+        if block.time_emb_proj is not None and not block.skip_time_act:
+            block.time_emb_proj = SiLUThenLinear.from_linear(block.time_emb_proj)
+        block.nonlinearity = torch.nn.Identity()
+    return 2
+
+
+def _fuse_norm_out(module) -> int:
+    norm = getattr(module, "conv_norm_out", None)
+    act = getattr(module, "conv_act", None)
+    if norm is None or type(norm) is not torch.nn.GroupNorm:
+        return 0
+    silu = type(act) is torch.nn.SiLU
+    module.conv_norm_out = GroupNormSiLU.from_group_norm(norm, silu)
+    if silu:
+        module.conv_act = torch.nn.Identity()
+    return 1
+
+
+def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, height, width, inner_dim):
+    """``Transformer2DModel._get_output_for_continuous_inputs`` of diffusers 0.42 without its
+    ``.contiguous()``: the [B, H·W, C] tokens viewed as a [B, C, H, W] map are channels-last, so
+    the output (and the residual sum) stay channels-last. Same values."""
+    if not self.use_linear_projection:
+        hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
+        hidden_states = self.proj_out(hidden_states)
+    else:
+        hidden_states = self.proj_out(hidden_states)
+        hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
+    return hidden_states + residual
+
+
+def fuse_group_norms(module: torch.nn.Module) -> int:
+    """Replace the GroupNorms of diffusers blocks inside ``module`` by fused
+    :class:`GroupNormSiLU` modules (module docstring: which ones, and how the SiLUs move).
+    Idempotent; parameters are shared, not copied. Returns how many norms were replaced."""
+    diffusers = require_diffusers("fusing GroupNorm + SiLU")
+    from diffusers.models.attention_processor import Attention
+    from diffusers.models.autoencoders.vae import Decoder, Encoder
+    from diffusers.models.resnet import ResnetBlock2D
+    from diffusers.models.transformers.transformer_2d import Transformer2DModel
+
+    count = 0
+    for m in list(module.modules()):
+        if type(m) is ResnetBlock2D:
+            count += _fuse_resnet(m)
+        elif type(m) in (Encoder, Decoder) or isinstance(m, diffusers.UNet2DConditionModel):
+            count += _fuse_norm_out(m)
+        elif isinstance(m, Attention) and type(m.group_norm) is torch.nn.GroupNorm:
+            m.group_norm = GroupNormSiLU.from_group_norm(m.group_norm, False)
+            count += 1
+        elif type(m) is Transformer2DModel and m.is_input_continuous and type(m.norm) is torch.nn.GroupNorm:
+            m.norm = GroupNormSiLU.from_group_norm(m.norm, False)
+            m._get_output_for_continuous_inputs = types.MethodType(_continuous_output_keep_layout, m)
+            count += 1
+    return count
+
+
+def fused_norms_default(module: torch.nn.Module) -> bool:
+    """The default of ``fused_norms=None``: on for a VAE (``AutoencoderKL``) on CUDA with tiger's
+    CUDA kernels built, off otherwise. Measured on the H100 in bf16, eager
+    (``benchmarks/gpu/results/h100_groupnorm_bench.txt``): the SD VAE encoder's forward + backward
+    at 4 x 512² goes from 67.9 to 49.8 ms (peak 6.4 -> 4.6 GiB) and at 4 x 256² from 16.7 to
+    17.6 ms, but the InstructPix2Pix UNet's forward from 45.2 to 54.5 ms: its channels-last
+    convolutions cost more than the norms save (channels-last without fused norms: 56.8 ms). On
+    the CPU the op is the slow reference implementation."""
+    from tiger.ops import cuda_enabled
+
+    p = next(module.parameters(), None)
+    if p is None or p.device.type != "cuda" or not cuda_enabled():
+        return False
+    return isinstance(module, require_diffusers("fusing GroupNorm + SiLU").AutoencoderKL)
+
+
+def apply_fused_norms(module: torch.nn.Module, enabled: Optional[bool] = None) -> int:
+    """:func:`fuse_group_norms`, then ``module`` to channels-last memory; ``enabled=None``:
+    :func:`fused_norms_default`. Returns the number of fused norms (0 when not enabled)."""
+    if enabled is None:
+        enabled = fused_norms_default(module)
+    if not enabled:
+        return 0
+    p = next(module.parameters(), None)
+    if p is not None and p.device.type == "cuda":
+        from tiger.ops import cuda_enabled
+
+        if not cuda_enabled():
+            raise ValueError("tiger.edit: fused_norms=True on CUDA needs tiger built with its CUDA kernels "
+                             "(tiger.ops.cuda_enabled() is False); rebuild with nvcc or pass fused_norms=False")
+    count = fuse_group_norms(module)
+    torch.nn.Module.to(module, memory_format=torch.channels_last)
+    logger.info("fused %d GroupNorms of %s; channels-last", count, type(module).__name__)
+    return count

@@ -1,0 +1,129 @@
+"""``tiger::group_norm``: GroupNorm with an optional fused SiLU (fake kernels, autograd, the
+function and the module). Formulas in ``csrc/group_norm/group_norm.h``.
+
+The CUDA kernels work on channels-last (NHWC) memory natively and return channels-last
+output, so a channels-last diffusion model keeps its layout through its norms (PyTorch's CUDA
+GroupNorm copies channels-last input to NCHW and returns NCHW). Statistics are float32
+(float64 for float64 input on the CPU), combined with Welford/Chan merges in a fixed order.
+The backward recomputes the SiLU's pre-activation from x and the saved mean/rstd, so nothing
+beyond x is stored, and computes weight/bias gradients only when they are needed.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+__all__ = ["group_norm", "GroupNormSiLU"]
+
+
+def _output_format(x: torch.Tensor) -> torch.memory_format:
+    """The layout rule of the kernels (group_norm_glue.h): channels-last stays channels-last,
+    everything else becomes contiguous NCHW."""
+    if not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
+        return torch.channels_last
+    return torch.contiguous_format
+
+
+def _stat_dtype(x: torch.Tensor) -> torch.dtype:
+    return torch.float64 if x.dtype == torch.float64 else torch.float32
+
+
+@torch.library.register_fake("tiger::group_norm")
+def _fake(x, weight, bias, num_groups, eps, silu):
+    stats = x.new_empty((x.shape[0], num_groups), dtype=_stat_dtype(x))
+    return torch.empty_like(x, memory_format=_output_format(x)), stats, stats.new_empty(stats.shape)
+
+
+@torch.library.register_fake("tiger::group_norm_backward")
+def _fake_backward(grad_y, x, weight, bias, mean, rstd, num_groups, silu, param_grads):
+    c = x.shape[1] if param_grads else 0
+    return (torch.empty_like(x, memory_format=_output_format(x)), x.new_empty((c,), dtype=_stat_dtype(x)),
+            x.new_empty((c,), dtype=_stat_dtype(x)))
+
+
+def _setup_context(ctx, inputs, output):
+    x, weight, bias, num_groups, _eps, silu = inputs
+    _, mean, rstd = output
+    ctx.save_for_backward(x, weight, bias, mean, rstd)
+    ctx.num_groups, ctx.silu = num_groups, silu
+    ctx.mark_non_differentiable(mean, rstd)
+
+
+def _backward(ctx, grad_y, _grad_mean, _grad_rstd):
+    x, weight, bias, mean, rstd = ctx.saved_tensors
+    need_x, need_w, need_b = ctx.needs_input_grad[:3]
+    if grad_y is None or not (need_x or need_w or need_b):
+        return None, None, None, None, None, None
+    param_grads = bool(need_w or need_b)
+    gx, gw, gb = torch.ops.tiger.group_norm_backward(grad_y, x, weight, bias, mean, rstd, ctx.num_groups,
+                                                     ctx.silu, param_grads)
+    gw = gw.to(weight.dtype) if need_w else None
+    gb = gb.to(bias.dtype) if need_b else None
+    return (gx if need_x else None), gw, gb, None, None, None
+
+
+torch.library.register_autograd("tiger::group_norm", _backward, setup_context=_setup_context)
+
+
+def group_norm(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] = None,
+               bias: Optional[torch.Tensor] = None, eps: float = 1e-5, silu: bool = False) -> torch.Tensor:
+    """GroupNorm of ``x``, optionally followed by SiLU, in one pass.
+
+    Args:
+        x: [N, C, H, W] float32/bfloat16/float16 (float64 on the CPU); channels-last or NCHW.
+        num_groups: G, dividing C.
+        weight, bias: [C] per-channel affine (x's dtype or float32), or None (1 and 0).
+        eps: added to the biased per-group variance.
+        silu: apply ``z·sigmoid(z)`` to the normalised, affine-transformed value.
+
+    Returns:
+        [N, C, H, W] in x's dtype: ``act((x − mean_ng)·rstd_ng·w_c + b_c)`` with mean and the
+        biased variance over each (n, group)'s C/G·H·W elements; channels-last when x is
+        channels-last (and not also contiguous), else contiguous.
+    """
+    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu))[0]
+
+
+class GroupNormSiLU(torch.nn.Module):
+    """``torch.nn.GroupNorm`` (+ SiLU when ``silu``) through :func:`group_norm`.
+
+    Parameters ``weight``/``bias`` [C] keep nn.GroupNorm's names (state dicts are unchanged).
+    Input [N, C, H, W], or [N, C, L] (run as [N, C, L, 1]: diffusers' attention blocks pass
+    their [N, L, C] tokens transposed, which is channels-last in that view).
+    """
+
+    def __init__(self, num_groups: int, num_channels: int, eps: float = 1e-5, affine: bool = True,
+                 silu: bool = False, device: Optional[torch.device] = None, dtype: Optional[torch.dtype] = None) -> None:
+        super().__init__()
+        if num_channels % num_groups != 0:
+            raise ValueError(f"tiger.GroupNormSiLU: num_channels={num_channels} is not divisible by "
+                             f"num_groups={num_groups}")
+        self.num_groups, self.num_channels, self.eps, self.affine, self.silu = (
+            int(num_groups), int(num_channels), float(eps), bool(affine), bool(silu))
+        if affine:
+            self.weight = torch.nn.Parameter(torch.ones(num_channels, device=device, dtype=dtype))
+            self.bias = torch.nn.Parameter(torch.zeros(num_channels, device=device, dtype=dtype))
+        else:
+            self.register_parameter("weight", None)
+            self.register_parameter("bias", None)
+
+    @classmethod
+    def from_group_norm(cls, gn: torch.nn.GroupNorm, silu: bool) -> "GroupNormSiLU":
+        """The same norm (sharing ``gn``'s parameter objects) with SiLU fused when ``silu``."""
+        m = cls.__new__(cls)
+        torch.nn.Module.__init__(m)
+        m.num_groups, m.num_channels, m.eps, m.affine, m.silu = (
+            gn.num_groups, gn.num_channels, float(gn.eps), gn.affine, bool(silu))
+        m.weight, m.bias = gn.weight, gn.bias
+        m.train(gn.training)
+        return m
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() == 3:
+            return group_norm(x.unsqueeze(-1), self.num_groups, self.weight, self.bias, self.eps, self.silu).squeeze(-1)
+        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps, self.silu)
+
+    def extra_repr(self) -> str:
+        return (f"{self.num_groups}, {self.num_channels}, eps={self.eps}, affine={self.affine}, "
+                f"silu={self.silu}")
