@@ -204,3 +204,11 @@ def test_view_pool_renders_originals_once_and_resumes_exactly(tmp_path, monkeypa
         assert torch.equal(getattr(full.scene, name), getattr(res.scene, name)), name
     with pytest.raises(ValueError, match="view_pool"):
         EditConfig(view_pool=-1)
+
+
+def test_default_views_are_fresh_every_step():
+    """The paper (§3.2) re-draws the 4 cameras every step; the pool is an opt-in speed setting."""
+    assert EditConfig().view_pool == 0
+    s = EditSession(two_objects(), resolve_target(two_objects(), query_a(), tau=0.5), RecolorGuidance("red"),
+                    "red", None, EditConfig(**SMALL))
+    assert s.pool is None
