@@ -211,12 +211,11 @@ def same_lists(scene, V, K, w, h) -> bool:
 
 def bin_op_times(scene, V, K, w, h, iters) -> dict:
     """ms of the binning op alone (bin + sort + its host synchronisation): the default (large
-    Gaussians in chunks of 16 candidate tiles per thread), chunks of 32 (TIGER_BIN_CHUNK=32),
-    and the former one-thread-per-Gaussian binning (TIGER_BIN_SERIAL=1)."""
+    Gaussians by one warp or block each) and the former one-thread-per-Gaussian binning
+    (TIGER_BIN_SERIAL=1)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
     out = {}
-    for name, env in (("bin_op", {}), ("bin_op_chunk32", {"TIGER_BIN_CHUNK": "32"}),
-                      ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
+    for name, env in (("bin_op", {}), ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
         os.environ.update(env)
         try:
             out[name] = cuda_time_ms(lambda: torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16,

@@ -157,7 +157,7 @@ def test_cuda_balanced_binning_identical_to_former_and_cpu(dtype):
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_cuda_binning_giant_and_culled(dtype):
     """One Gaussian covering the whole image among thousands of culled ones and a few small
-    ones: the skip over empty Gaussians and chunks spanning several Gaussians."""
+    ones: the giant (one block) and the compact list of large Gaussians among empty ones."""
     w, h = 1000, 700
     n = 5000
     g = torch.Generator().manual_seed(9)
