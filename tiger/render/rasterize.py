@@ -261,10 +261,9 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
     means2d, conics, depths, opac, radii = project_gaussians(
         means, quats, scales, opacities, viewmat, K, width, height, settings.eps2d, settings.near,
         settings.far, settings.alpha_threshold, settings.antialiased)
-    visible = radii[:, 0] > 0
 
     if sh_degree is not None:
-        feats = sh_colors(means, colors, viewmat, int(sh_degree), visible)
+        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0)
     elif half_colors and not colors.is_cuda:
         feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:
@@ -286,9 +285,10 @@ def composite(p: Projection, width: int, height: int,
     color, alpha, depth_accum, _, _ = rasterize(
         means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,
         height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min)
+    # Expected depth, 0 where alpha == 0 (divided by 1 there, so no 0/0 reaches the backward).
+    # Scalar branches: four kernels, no ones/zeros tensors filled for them.
     covered = alpha > 0
-    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
+    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, 1.0), 0.0)
     return {
         "color": color,
         "alpha": alpha,
