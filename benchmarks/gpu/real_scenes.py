@@ -17,7 +17,9 @@ Gaussians) and of bounding-box tiles; then for C = 3 and 64: ours (load-balanced
 ours with the former binning (``TIGER_BIN_SERIAL=1``, whose tile lists must be identical),
 and gsplat (packed, classic, same eps2d/near/far): median forward and forward+backward ms
 (CUDA events), and per-stage GPU time from the profiler (project = projection + SH, bin,
-sort, raster, backward, other), averaged over a few forward+backward passes.
+sort, raster, backward, other) and the number of GPU operations (kernels, memsets, copies)
+launched, averaged over a few forward+backward passes. Ours runs with ``check_finite=False``
+(no input checks), as gsplat does none: like for like.
 """
 from __future__ import annotations
 
@@ -186,14 +188,17 @@ def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
             render(s, V, K, w, h)[0].backward(vc)
         torch.cuda.synchronize()
     per_kernel: dict = {}
+    launches = 0
     for e in prof.events():
         if e.device_type != DeviceType.CUDA:
             continue
+        launches += 1
         per_kernel[e.name] = per_kernel.get(e.name, 0.0) + e.time_range.elapsed_us() / 1e3 / reps
     stages = {k: 0.0 for k in STAGES}
     for name, ms in per_kernel.items():
         stages[stage_kind(name)] += ms
     stages["total"] = sum(stages[k] for k in STAGES)
+    stages["launches"] = launches / reps  # kernels, memsets and copies per forward+backward
     return stages, per_kernel
 
 
