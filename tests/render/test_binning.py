@@ -14,7 +14,7 @@ import torch
 from benchmarks.common import heavy_tailed_scene, standard_camera
 
 from .devices import CUDA_SKIP, DEVICES
-from .f32_tile_test import borderline_gaussians, tile_pairs
+from .tile_test_f32 import borderline_gaussians, tile_pairs
 
 ops = torch.ops.tiger
 F64 = torch.float64
