@@ -20,14 +20,14 @@ def eager_autograd(op: torch._ops.OpOverloadPacket, setup_context: Callable[...,
     """``op``'s positional-argument call with the given autograd formula (one per op)."""
 
     class _Fn(torch.autograd.Function):
+        # forward(ctx, ...) rather than a setup_context staticmethod: with one, every apply()
+        # binds the arguments to forward's signature through inspect (~20 us).
         @staticmethod
-        def forward(*args: Any) -> Any:
+        def forward(ctx: Any, *args: Any) -> Any:
             with torch._C._AutoDispatchBelowAutograd():
-                return op(*args)
-
-        @staticmethod
-        def setup_context(ctx: Any, inputs: tuple, output: Any) -> None:
-            setup_context(ctx, inputs, output)
+                output = op(*args)
+            setup_context(ctx, args, output)
+            return output
 
         @staticmethod
         def backward(ctx: Any, *grads: Any) -> tuple:
@@ -36,8 +36,8 @@ def eager_autograd(op: torch._ops.OpOverloadPacket, setup_context: Callable[...,
     _Fn.__name__ = _Fn.__qualname__ = f"{op._qualified_op_name.replace('::', '_')}_eager"
 
     def call(*args: Any) -> Any:
-        if torch.compiler.is_compiling():  # traced: the registered op and formula
-            return op(*args)
+        if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
+            return op(*args)  # traced or transformed: the registered op and formula
         if torch.is_grad_enabled() and any(isinstance(a, torch.Tensor) and a.requires_grad
                                            for a in args):
             return _Fn.apply(*args)
