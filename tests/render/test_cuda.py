@@ -244,3 +244,26 @@ def test_projection_writes_every_row_without_zero_fills():
         assert torch.equal(cpu_f[4], gpu_f[4].cpu())
         for a, b in zip((*cpu_f[:4], *cpu_b), (*gpu_f[:4], *gpu_b)):
             assert rel(b, a) <= 1e-10
+
+
+def test_host_synchronisations_of_a_render():
+    """One device synchronisation per forward (the binning's list size); the input checks
+    (check_finite=True) add one, whatever the number of tensors checked."""
+    import warnings
+    w, h = 48, 40
+    m, q, s, o, col, V, K, bg = [t.cuda() for t in _pipeline_inputs(300, 3, w, h, F32, seed=4)]
+
+    def syncs(check_finite: bool) -> int:
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, background=bg,
+                                          check_finite=check_finite)
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+        return sum("synchroniz" in str(c.message) for c in caught)
+
+    assert syncs(False) == 1
+    assert syncs(True) == 2
