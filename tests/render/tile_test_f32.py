@@ -69,8 +69,11 @@ def min_quadratic_on_rect(ca, cb, cc, x0, x1, y0, y1, variant: str = "fused") ->
 def cutoff_quadratic(opacities, threshold: float, variant: str = "fused") -> np.ndarray:
     """qcut per Gaussian; the log is float64's rounded to float32 (glibc's logf is within
     about half an ulp: exact for the ratio 1 the crafted cases use)."""
-    k2 = F32(2) * np.log((np.asarray(opacities, F32) / F32(threshold)).astype(F64)).astype(F32)
-    return fma32(k2, F32(1.0001), F32(1e-4)) if variant == "fused" else k2 * F32(1.0001) + F32(1e-4)
+    with np.errstate(divide="ignore", invalid="ignore"):  # culled rows may hold opacity 0
+        k2 = F32(2) * np.log((np.asarray(opacities, F32) / F32(threshold)).astype(F64)).astype(F32)
+        if variant != "fused":
+            return k2 * F32(1.0001) + F32(1e-4)
+        return fma32(k2, F32(1.0001), F32(1e-4))
 
 
 def tile_pairs(means2d, conics, opacities, radii, width: int, height: int, tile_size: int,
