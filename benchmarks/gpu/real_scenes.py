@@ -171,11 +171,9 @@ def stage_kind(name: str) -> str:
     return "other"
 
 
-def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
-    """Per-stage GPU ms of one forward+backward (profiler, mean of ``reps``) and the raw
-    per-kernel ms."""
-    from torch.autograd import DeviceType
-    from torch.profiler import ProfilerActivity, profile
+def profiled_passes(render, scene, V, K, w, h, reps: int, activities: list):
+    """The profiler of ``reps`` forward+backward passes (after two warm-up passes)."""
+    from torch.profiler import profile
 
     C = scene["colors"].shape[1]
     vc = torch.randn(h, w, C, device="cuda", generator=torch.Generator(device="cuda").manual_seed(7))
@@ -183,12 +181,22 @@ def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
     for _ in range(2):
         render(s, V, K, w, h)[0].backward(vc)
     torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+    with profile(activities=activities) as prof:
         for _ in range(reps):
             for t in s.values():
                 t.grad = None
             render(s, V, K, w, h)[0].backward(vc)
         torch.cuda.synchronize()
+    return prof
+
+
+def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
+    """Per-stage GPU ms of one forward+backward (profiler, mean of ``reps``) and the raw
+    per-kernel ms."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity
+
+    prof = profiled_passes(render, scene, V, K, w, h, reps, [ProfilerActivity.CUDA])
     per_kernel: dict = {}
     launches = 0
     for e in prof.events():
@@ -275,20 +283,10 @@ def host_split(render, scene, V, K, w, h, iters) -> dict:
 def host_profile(render, scene, V, K, w, h, path: Path, reps: int = 5) -> None:
     """The CPU side of a few forward+backward passes (profiler, CPU and CUDA activity): the
     ops with the most self CPU time, written to ``path``."""
-    from torch.profiler import ProfilerActivity, profile
+    from torch.profiler import ProfilerActivity
 
-    C = scene["colors"].shape[1]
-    vc = torch.randn(h, w, C, device="cuda", generator=torch.Generator(device="cuda").manual_seed(7))
-    s = leaves(scene, PARAMS)
-    for _ in range(3):
-        render(s, V, K, w, h)[0].backward(vc)
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        for _ in range(reps):
-            for t in s.values():
-                t.grad = None
-            render(s, V, K, w, h)[0].backward(vc)
-        torch.cuda.synchronize()
+    prof = profiled_passes(render, scene, V, K, w, h, reps,
+                           [ProfilerActivity.CPU, ProfilerActivity.CUDA])
     table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
     path.write_text(f"{reps} forward+backward passes\n{table}\n")
 
