@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One device call for the load-balanced binning and the real-scene benchmarks (issue 15):
 #   build (check.sh), the test suite, compute-sanitizer (memcheck on every kernel, racecheck on
-#   the rasterizer and the balanced binning kernels), benchmarks/gpu/real_scenes.py (ours, ours
+#   the binning kernels), benchmarks/gpu/real_scenes.py (ours, ours
 #   with the former binning, gsplat: per stage, C = 3 and 64) and train_vs_gsplat.py.
 # Usage, from the repo root:
 #   OUT=... bash benchmarks/gpu/binning.sh GSPLAT_WHEEL_DIR EIGEN_DEB DATA_DIR [STEPS]
@@ -25,17 +25,17 @@ if has sanitize; then  # the binning kernels changed: memcheck on every kernel, 
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 200 "$SAN" --tool memcheck --error-exitcode 99 \
     python3 benchmarks/gpu/sanitize_case.py > "$OUT/memcheck.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
-  echo "memcheck (every kernel) rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/memcheck.log" | tail -1)" | tee -a "$OUT/check.log"
-  timeout 200 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=large_kernel \
+  echo "[$(date -u +%T)] memcheck (every kernel) rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/memcheck.log" | tail -1)" | tee -a "$OUT/check.log"
+  timeout 200 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=bin_cuda \
     python3 benchmarks/gpu/sanitize_case.py > "$OUT/racecheck_binning.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
-  echo "racecheck (chunked binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
+  echo "[$(date -u +%T)] racecheck (binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
 fi
 if has cudatests; then
   python3 -m pytest -q -p no:cacheprovider ${CUDATESTS:-tests/render/test_binning.py tests/render/test_cuda.py} \
     > "$OUT/cudatests.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
-  echo "render + binning tests (CPU and CUDA) rc=$rc: $(tail -1 "$OUT/cudatests.log")" | tee -a "$OUT/check.log"
+  echo "[$(date -u +%T)] render + binning tests (CPU and CUDA) rc=$rc: $(tail -1 "$OUT/cudatests.log")" | tee -a "$OUT/check.log"
   grep -E "^(FAILED|ERROR)" "$OUT/cudatests.log" | head -20
 fi
 if has train; then

@@ -17,7 +17,11 @@ Gaussians) and of bounding-box tiles; then for C = 3 and 64: ours (load-balanced
 ours with the former binning (``TIGER_BIN_SERIAL=1``, whose tile lists must be identical),
 and gsplat (packed, classic, same eps2d/near/far): median forward and forward+backward ms
 (CUDA events), and per-stage GPU time from the profiler (project = projection + SH, bin,
-sort, raster, backward, other), averaged over a few forward+backward passes.
+sort, raster, backward, other) and the number of GPU operations (kernels, memsets, copies)
+launched, averaged over a few forward+backward passes. Ours runs with ``check_finite=False``
+(no input checks), as gsplat does none: like for like. For C = 3, ours' wall time is also split
+on the host (until the forward returns, the backward call, the GPU tail after both), and the
+case named by ``--host-profile`` gets a CPU-side profile (host_profile_<case>.txt in --out).
 """
 from __future__ import annotations
 
@@ -167,11 +171,9 @@ def stage_kind(name: str) -> str:
     return "other"
 
 
-def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
-    """Per-stage GPU ms of one forward+backward (profiler, mean of ``reps``) and the raw
-    per-kernel ms."""
-    from torch.autograd import DeviceType
-    from torch.profiler import ProfilerActivity, profile
+def profiled_passes(render, scene, V, K, w, h, reps: int, activities: list):
+    """The profiler of ``reps`` forward+backward passes (after two warm-up passes)."""
+    from torch.profiler import profile
 
     C = scene["colors"].shape[1]
     vc = torch.randn(h, w, C, device="cuda", generator=torch.Generator(device="cuda").manual_seed(7))
@@ -179,21 +181,34 @@ def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
     for _ in range(2):
         render(s, V, K, w, h)[0].backward(vc)
     torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+    with profile(activities=activities) as prof:
         for _ in range(reps):
             for t in s.values():
                 t.grad = None
             render(s, V, K, w, h)[0].backward(vc)
         torch.cuda.synchronize()
+    return prof
+
+
+def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
+    """Per-stage GPU ms of one forward+backward (profiler, mean of ``reps``) and the raw
+    per-kernel ms."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity
+
+    prof = profiled_passes(render, scene, V, K, w, h, reps, [ProfilerActivity.CUDA])
     per_kernel: dict = {}
+    launches = 0
     for e in prof.events():
         if e.device_type != DeviceType.CUDA:
             continue
+        launches += 1
         per_kernel[e.name] = per_kernel.get(e.name, 0.0) + e.time_range.elapsed_us() / 1e3 / reps
     stages = {k: 0.0 for k in STAGES}
     for name, ms in per_kernel.items():
         stages[stage_kind(name)] += ms
     stages["total"] = sum(stages[k] for k in STAGES)
+    stages["launches"] = launches / reps  # kernels, memsets and copies per forward+backward
     return stages, per_kernel
 
 
@@ -211,12 +226,11 @@ def same_lists(scene, V, K, w, h) -> bool:
 
 def bin_op_times(scene, V, K, w, h, iters) -> dict:
     """ms of the binning op alone (bin + sort + its host synchronisation): the default (large
-    Gaussians in chunks of 16 candidate tiles per thread), chunks of 32 (TIGER_BIN_CHUNK=32),
-    and the former one-thread-per-Gaussian binning (TIGER_BIN_SERIAL=1)."""
+    Gaussians by one warp or block each) and the former one-thread-per-Gaussian binning
+    (TIGER_BIN_SERIAL=1)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
     out = {}
-    for name, env in (("bin_op", {}), ("bin_op_chunk32", {"TIGER_BIN_CHUNK": "32"}),
-                      ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
+    for name, env in (("bin_op", {}), ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
         os.environ.update(env)
         try:
             out[name] = cuda_time_ms(lambda: torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16,
@@ -241,6 +255,42 @@ def time_pair(render, scene, V, K, w, h, iters):
     return fwd, cuda_time_ms(fb, iters=iters)
 
 
+def host_split(render, scene, V, K, w, h, iters) -> dict:
+    """Where the wall time of one forward+backward goes on the host (median ms): until the
+    forward returns (it includes waiting for the binning's synchronisation), the backward call,
+    and the rest of the GPU work after both returned (the final synchronisation)."""
+    C = scene["colors"].shape[1]
+    vc = torch.randn(h, w, C, device="cuda", generator=torch.Generator(device="cuda").manual_seed(1))
+    s = leaves(scene, PARAMS)
+    rows = []
+    for i in range(iters + 3):
+        for t in s.values():
+            t.grad = None
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        out = render(s, V, K, w, h)[0]
+        t1 = time.perf_counter()
+        out.backward(vc)
+        t2 = time.perf_counter()
+        torch.cuda.synchronize()
+        t3 = time.perf_counter()
+        if i >= 3:
+            rows.append((t1 - t0, t2 - t1, t3 - t2, t3 - t0))
+    med = [sorted(r[k] for r in rows)[len(rows) // 2] * 1e3 for k in range(4)]
+    return {"host_fwd": med[0], "host_bwd_call": med[1], "gpu_tail": med[2], "wall": med[3]}
+
+
+def host_profile(render, scene, V, K, w, h, path: Path, reps: int = 5) -> None:
+    """The CPU side of a few forward+backward passes (profiler, CPU and CUDA activity): the
+    ops with the most self CPU time, written to ``path``."""
+    from torch.profiler import ProfilerActivity
+
+    prof = profiled_passes(render, scene, V, K, w, h, reps,
+                           [ProfilerActivity.CPU, ProfilerActivity.CUDA])
+    table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
+    path.write_text(f"{reps} forward+backward passes\n{table}\n")
+
+
 def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
     res = {"case": name, "width": w, "height": h, "radii": radii_stats(scene, V, K, w, h)}
     res["bin_op"] = bin_op_times(scene, V, K, w, h, args.iters)
@@ -250,6 +300,10 @@ def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
         sc = with_channels(scene, C)
         row = {"case": name, "C": C}
         row["ours_fwd"], row["ours_fwdbwd"] = time_pair(ours, sc, V, K, w, h, args.iters)
+        if C == 3:
+            row.update({f"ours_{k}": v for k, v in host_split(ours, sc, V, K, w, h, args.iters).items()})
+            if args.host_profile == name:
+                host_profile(ours, sc, V, K, w, h, args.out / f"host_profile_{name}.txt")
         os.environ["TIGER_BIN_SERIAL"] = "1"
         try:
             row["before_fwd"], row["before_fwdbwd"] = time_pair(ours, sc, V, K, w, h, args.iters)
@@ -295,6 +349,8 @@ def main() -> None:
     p.add_argument("--fox-budget", type=float, default=40.0, help="seconds of training")
     p.add_argument("--n", type=int, default=1_000_000, help="Gaussians of the synthetic cases")
     p.add_argument("--no-gsplat", action="store_true")
+    p.add_argument("--host-profile", default="snowmiku-1080p",
+                   help="case whose C=3 forward+backward is profiled on the CPU side (file in --out)")
     p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "outputs/real_scenes")))
     args = p.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -80,6 +80,9 @@ def main() -> None:
     run(0, 3, torch.float32, None, None, False)
     run_heavy_binning(600, 200, 150, torch.float32)
     run_heavy_binning(300, 97, 61, torch.float64)
+    # 1280x720: 159 Gaussians for one warp each and 3 beyond 2048 candidate tiles (one block
+    # each, the shared-memory walk racecheck must see)
+    run_heavy_binning(1500, 1280, 720, torch.float32)
 
 
 if __name__ == "__main__":

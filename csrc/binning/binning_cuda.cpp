@@ -58,36 +58,24 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
   auto offsets = at::empty({n}, means2d.options().dtype(at::kLong));
   int64_t m = 0;
   at::Tensor rank;
-  // Small Gaussians are counted one per thread; the candidate tiles of the large ones,
-  // scanned, are the work list of the chunked count and emit (load balance).
-  // TIGER_BIN_SERIAL=1 selects the former one-thread-per-Gaussian binning (comparisons).
-  at::Tensor cand_ends;
-  at::Tensor large = serial_binning() ? at::Tensor() : at::empty({n}, means2d.options().dtype(at::kLong));
+  // Small Gaussians are counted one per thread; the large ones, listed by that kernel, by one
+  // warp or block each (load balance). TIGER_BIN_SERIAL=1 selects the former
+  // one-thread-per-Gaussian binning (comparisons).
+  at::Tensor large_ids, large_counters;
+  if (!serial_binning()) {
+    large_ids = at::empty({n}, means2d.options().dtype(at::kInt));
+    large_counters = at::empty({2}, means2d.options().dtype(at::kInt));
+  }
+  int32_t* large = large_ids.defined() ? large_ids.data_ptr<int32_t>() : nullptr;
+  auto* large_n = large_counters.defined()
+                      ? reinterpret_cast<unsigned int*>(large_counters.data_ptr<int32_t>())
+                      : nullptr;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_count", [&] {
     using T = scalar_t;
     TIGER_CUDA_OK(bin_count_cuda<T>(m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(),
                                     r.data_ptr<int32_t>(), n, g, T(alpha_threshold),
-                                    counts.data_ptr<int64_t>(),
-                                    large.defined() ? large.data_ptr<int64_t>() : nullptr, stream));
+                                    counts.data_ptr<int64_t>(), large, large_n, stream));
   });
-  if (large.defined()) {
-    cand_ends = at::empty({n}, means2d.options().dtype(at::kLong));
-    size_t bytes = 0;
-    TIGER_CUDA_OK(bin_scan_cuda(nullptr, bytes, large.data_ptr<int64_t>(),
-                                cand_ends.data_ptr<int64_t>(), n, stream));
-    auto temp = temp_buffer(bytes, means2d);
-    TIGER_CUDA_OK(bin_scan_cuda(temp.data_ptr(), bytes, large.data_ptr<int64_t>(),
-                                cand_ends.data_ptr<int64_t>(), n, stream));
-    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_count_large", [&] {
-      using T = scalar_t;
-      TIGER_CUDA_OK(bin_count_large_cuda<T>(m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(),
-                                            r.data_ptr<int32_t>(), cand_ends.data_ptr<int64_t>(),
-                                            n, g, T(alpha_threshold), counts.data_ptr<int64_t>(),
-                                            stream));
-    });
-    large = at::Tensor();
-  }
-  const int64_t* cand = cand_ends.defined() ? cand_ends.data_ptr<int64_t>() : nullptr;
   size_t scan_bytes = 0;
   TIGER_CUDA_OK(bin_scan_cuda(nullptr, scan_bytes, counts.data_ptr<int64_t>(),
                               offsets.data_ptr<int64_t>(), n, stream));
@@ -123,14 +111,14 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
     using T = scalar_t;
     TIGER_CUDA_OK(bin_emit_cuda<T>(m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(),
                                    dp.data_ptr<T>(), r.data_ptr<int32_t>(),
-                                   rank.defined() ? rank.data_ptr<int32_t>() : nullptr, cand, n, g,
-                                   T(alpha_threshold), offsets.data_ptr<int64_t>(),
-                                   counts.data_ptr<int64_t>(), kptr(keys),
-                                   ids.data_ptr<int32_t>(), stream));
+                                   rank.defined() ? rank.data_ptr<int32_t>() : nullptr, large,
+                                   large_n, n, g, T(alpha_threshold), offsets.data_ptr<int64_t>(),
+                                   kptr(keys), ids.data_ptr<int32_t>(), stream));
   });
-  counts = at::Tensor();  // the emit's cursors
+  counts = at::Tensor();
   offsets = at::Tensor();
-  cand_ends = at::Tensor();
+  large_ids = at::Tensor();
+  large_counters = at::Tensor();
   int tile_bits = 0;
   while ((int64_t(1) << tile_bits) < n_tiles) ++tile_bits;
   const int end_bit = 32 + tile_bits;

@@ -1,10 +1,12 @@
-// CUDA tile binning: count (small Gaussians per thread; candidate counts of the large ones)
-// -> scan of those -> chunked count of the large ones -> int64 scan -> emit (both kinds) of
-// (tile, depth) keys -> CUB radix sort -> tile ranges. The tile test is tile_touches from
-// common/raster_math.h, so a tile is listed only where the ellipse reaches alpha >= threshold
-// at one of its pixel centres. The large Gaussians' candidate tiles are spread evenly over
-// threads, so a Gaussian covering thousands of tiles no longer stalls its warp (one thread per
-// Gaussian did: 3 ms of a 3.9 ms forward on a real scene).
+// CUDA tile binning: count (one thread per small Gaussian; the larger ones appended to a
+// compact list) -> count of the large ones (one warp, or one block for the giant ones, per
+// Gaussian) -> int64 scan -> emit (both kinds) of (tile, depth) keys -> CUB radix sort -> tile
+// ranges. The tile test is tile_touches from common/raster_math.h, so a tile is listed only
+// where the ellipse reaches alpha >= threshold at one of its pixel centres. A Gaussian covering
+// thousands of tiles is walked by a whole block (256 candidates per step), so it no longer
+// stalls one thread's warp (one thread per Gaussian did: 3 ms of a 3.9 ms forward on a real
+// scene); no scan of candidate counts or binary search is needed (v2 had both: a regression on
+// the uniform standard scene).
 #include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
 
@@ -16,16 +18,21 @@
 #include "common/raster_math.h"
 
 namespace tiger {
-namespace {
+// Named (not anonymous) so that every binning kernel's name holds "bin_cuda": the sanitizer's
+// racecheck selects them by that (benchmarks/gpu/binning.sh).
+namespace bin_cuda {
 
 constexpr int kThreads = 256;
+constexpr int kWarps = kThreads / 32;
 // Gaussians with at most kSmallTiles candidate (bounding-box) tiles are binned by one thread
-// each, walking their box in row-major order; that is balanced for them (every thread of a
-// warp does at most kSmallTiles tests) and needs no search. The candidate tiles of the larger
-// ones are concatenated (in Gaussian order) and handed out in chunks of kChunk per thread:
-// one binary search per chunk, then a linear walk, so no thread tests more than kChunk tiles
-// however large a Gaussian is. TIGER_BIN_CHUNK=32 selects chunks of 32 (comparisons).
+// each, walking their box in row-major order: balanced for them (no thread of a warp does
+// more than kSmallTiles tests) and no coordination. The larger ones go to a compact list
+// (count kernel, block-aggregated appends): up to kGiantTiles candidates one warp per
+// Gaussian (32 tests per step), beyond one block per Gaussian (256 per step). Both walk the
+// candidates in the same row-major order as one thread would and emit the hits in that order
+// (ballot + prefix count), so a Gaussian's segment is written exactly as by the serial kernel.
 constexpr int kSmallTiles = 32;
+constexpr int64_t kGiantTiles = 2048;
 
 template <typename T>
 __device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const int32_t* radii,
@@ -35,26 +42,14 @@ __device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const i
   return tile_rect(means2d[2 * i], means2d[2 * i + 1], rx, ry, g.tile_size, g.tiles_x, g.tiles_y);
 }
 
-// First index i in [lo, hi] with ends[i] > k (ends ascending, ends[hi] > k).
-__device__ __forceinline__ int64_t upper_bound(const int64_t* ends, int64_t lo, int64_t hi,
-                                               int64_t k) {
-  while (lo < hi) {
-    const int64_t mid = lo + (hi - lo) / 2;
-    if (ends[mid] > k) hi = mid; else lo = mid + 1;
-  }
-  return lo;
-}
-
-// The exact test of one Gaussian, loaded once per run of its candidates.
+// The exact test of one Gaussian, loaded once.
 template <typename T>
 struct TileTester {
   T u, v, ca, cb, cc, qcut;
   TileRect r;
-  int64_t first;  // index of this Gaussian's first candidate in the concatenated list
 
-  __device__ void load(int64_t i, int64_t first_candidate, const T* means2d, const T* conics,
-                       const T* opacities, const int32_t* radii, const BinGeometry& g,
-                       T alpha_threshold) {
+  __device__ void load(int64_t i, const T* means2d, const T* conics, const T* opacities,
+                       const int32_t* radii, const BinGeometry& g, T alpha_threshold) {
     u = means2d[2 * i];
     v = means2d[2 * i + 1];
     ca = conics[3 * i];
@@ -62,77 +57,108 @@ struct TileTester {
     cc = conics[3 * i + 2];
     qcut = cutoff_quadratic<T>(opacities[i], alpha_threshold);
     r = rect_of(i, means2d, radii, g);
-    first = first_candidate;
-  }
-  // Row-major tile index of candidate k (a Gaussian has < 2^31 candidates).
-  __device__ int tile(int64_t k, const BinGeometry& g) const {
-    const int j = int(k - first), w = r.width();
-    const int row = j / w;
-    return (r.y0 + row) * g.tiles_x + r.x0 + (j - row * w);
   }
   __device__ bool touches(int tx, int ty, const BinGeometry& g) const {
     const int px0 = tx * g.tile_size, py0 = ty * g.tile_size;
     return tile_touches<T>(u, v, ca, cb, cc, qcut, px0, min(px0 + g.tile_size, g.width), py0,
                            min(py0 + g.tile_size, g.height));
   }
+  // Candidate k (row-major in the box; k < count() < 2^31): its tile if touched, else -1.
+  __device__ int test(int k, const BinGeometry& g) const {
+    const int w = r.width();
+    const int row = k / w, col = k - row * w;
+    const int tx = r.x0 + col, ty = r.y0 + row;
+    return touches(tx, ty, g) ? ty * g.tiles_x + tx : -1;
+  }
 };
 
-// Load-balanced walk over the concatenated candidate tiles of the large Gaussians: chunk c
-// covers candidates [c * kChunk, (c + 1) * kChunk), possibly of two or more Gaussians. For
-// each run of one Gaussian inside a chunk, flush(i, tester, hits, k0) gets the bit mask of
-// touched tiles (bit b = candidate k0 + b). cand_ends = inclusive scan of the candidates
-// (0 for the small Gaussians, which the per-Gaussian kernels bin).
-template <int kChunk, typename T, typename Flush>
-__device__ void walk_candidates(const T* means2d, const T* conics, const T* opacities,
-                                const int32_t* radii, const int64_t* cand_ends, int64_t n,
-                                const BinGeometry& g, T alpha_threshold, Flush&& flush) {
-  static_assert(kChunk >= 1 && kChunk <= 32, "hit masks are 32-bit");
-  const int64_t total = cand_ends[n - 1];
-  const int64_t n_chunks = (total + kChunk - 1) / kChunk;
-  const int64_t stride = int64_t(gridDim.x) * blockDim.x;
-  for (int64_t c = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; c < n_chunks; c += stride) {
-    const int64_t k0 = c * kChunk, k1 = min(k0 + kChunk, total);
-    int64_t i = upper_bound(cand_ends, 0, n - 1, k0);
-    TileTester<T> t;
-    t.load(i, i == 0 ? 0 : cand_ends[i - 1], means2d, conics, opacities, radii, g, alpha_threshold);
-    int64_t end = cand_ends[i];
-    int w = t.r.width(), j = int(k0 - t.first);
-    int row = j / w, col = j - row * w;  // advanced without divisions below
-    uint32_t hits = 0;
-    for (int64_t k = k0; k < k1; ++k) {
-      if (k >= end) {  // next Gaussian with candidates (skips the empty ones)
-        flush(i, t, hits, k0);
-        hits = 0;
-        const int64_t first = end;
-        i = cand_ends[i + 1] > k ? i + 1 : upper_bound(cand_ends, i + 2, n - 1, k);
-        t.load(i, first, means2d, conics, opacities, radii, g, alpha_threshold);
-        end = cand_ends[i];
-        w = t.r.width();
-        row = 0;
-        col = 0;
-      }
-      if (t.touches(t.r.x0 + col, t.r.y0 + row, g)) hits |= 1u << int(k - k0);
-      if (++col == w) {
-        col = 0;
-        ++row;
-      }
+// One warp walks the candidates of one Gaussian, 32 per step; emit(slot, tile) gets each hit
+// with its rank in row-major order. Returns the number of hits (in every lane). All 32 lanes
+// must call it.
+template <typename T, typename Emit>
+__device__ int64_t warp_walk(const TileTester<T>& t, const BinGeometry& g, Emit&& emit) {
+  const int lane = threadIdx.x & 31;
+  const unsigned lower = (1u << lane) - 1u;
+  const int64_t cand = t.r.count();
+  int64_t hits = 0;
+  for (int64_t k0 = 0; k0 < cand; k0 += 32) {
+    const int64_t k = k0 + lane;
+    const int tile = k < cand ? t.test(int(k), g) : -1;
+    const unsigned mask = __ballot_sync(cuda::kFullMask, tile >= 0);
+    if (tile >= 0) emit(hits + __popc(mask & lower), tile);
+    hits += __popc(mask);
+  }
+  return hits;
+}
+
+// The same with the whole block (kThreads threads, 256 candidates per step); every thread of
+// the block must call it. warp_hits: kWarps ints of shared memory.
+template <typename T, typename Emit>
+__device__ int64_t block_walk(const TileTester<T>& t, const BinGeometry& g, int* warp_hits,
+                              Emit&& emit) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  const unsigned lower = (1u << lane) - 1u;
+  const int64_t cand = t.r.count();
+  int64_t hits = 0;
+  for (int64_t k0 = 0; k0 < cand; k0 += kThreads) {
+    const int64_t k = k0 + threadIdx.x;
+    const int tile = k < cand ? t.test(int(k), g) : -1;
+    const unsigned mask = __ballot_sync(cuda::kFullMask, tile >= 0);
+    if (lane == 0) warp_hits[warp] = __popc(mask);
+    __syncthreads();
+    int before = 0, step = 0;
+#pragma unroll
+    for (int w = 0; w < kWarps; ++w) {
+      const int h = warp_hits[w];
+      before += w < warp ? h : 0;
+      step += h;
     }
-    flush(i, t, hits, k0);
+    if (tile >= 0) emit(hits + before + __popc(mask & lower), tile);
+    hits += step;
+    __syncthreads();  // warp_hits is rewritten by the next step
+  }
+  return hits;
+}
+
+// Large Gaussians: large_ids[0, counters[0]) one warp each, large_ids[n - counters[1], n) (the
+// giant ones) one block each. per_gaussian(i, walk, leader) is called by every thread of the
+// warp / block that owns Gaussian i, walk(emit) returning its hits; leader: one thread of them.
+template <typename T, typename PerGaussian>
+__device__ void for_large(const T* means2d, const T* conics, const T* opacities,
+                          const int32_t* radii, const int32_t* large_ids,
+                          const unsigned int* counters, int64_t n, const BinGeometry& g,
+                          T alpha_threshold, PerGaussian&& per_gaussian) {
+  __shared__ int warp_hits[kWarps];
+  const unsigned int n_warp = counters[0], n_giant = counters[1];
+  for (unsigned int j = blockIdx.x; j < n_giant; j += gridDim.x) {  // uniform in the block
+    const int64_t i = large_ids[n - 1 - j];
+    TileTester<T> t;
+    t.load(i, means2d, conics, opacities, radii, g, alpha_threshold);
+    per_gaussian(i, [&](auto&& emit) { return block_walk(t, g, warp_hits, emit); },
+                 threadIdx.x == 0);
+  }
+  const int64_t warps = int64_t(gridDim.x) * kWarps;
+  for (int64_t j = int64_t(blockIdx.x) * kWarps + (threadIdx.x >> 5); j < n_warp; j += warps) {
+    const int64_t i = large_ids[j];  // uniform in the warp
+    TileTester<T> t;
+    t.load(i, means2d, conics, opacities, radii, g, alpha_threshold);
+    per_gaussian(i, [&](auto&& emit) { return warp_walk(t, g, emit); },
+                 (threadIdx.x & 31) == 0);
   }
 }
 
-// counts[i] += touched tiles of large Gaussian i (counts written by count_small_kernel).
-template <int kChunk, typename T>
+// counts[i] = touched tiles of large Gaussian i (the rest written by count_small_kernel).
+template <typename T>
 __global__ void __launch_bounds__(kThreads)
     count_large_kernel(const T* means2d, const T* conics, const T* opacities,
-                       const int32_t* radii, const int64_t* cand_ends, int64_t n, BinGeometry g,
-                       T alpha_threshold, int64_t* counts) {
-  walk_candidates<kChunk>(means2d, conics, opacities, radii, cand_ends, n, g, alpha_threshold,
-                          [&](int64_t i, const TileTester<T>&, uint32_t hits, int64_t) {
-                            if (hits)
-                              atomicAdd(reinterpret_cast<unsigned long long*>(counts + i),
-                                        static_cast<unsigned long long>(__popc(hits)));
-                          });
+                       const int32_t* radii, const int32_t* large_ids,
+                       const unsigned int* counters, int64_t n, BinGeometry g, T alpha_threshold,
+                       int64_t* counts) {
+  for_large(means2d, conics, opacities, radii, large_ids, counters, n, g, alpha_threshold,
+            [&](int64_t i, auto&& walk, bool leader) {
+              const int64_t hits = walk([](int64_t, int) {});
+              if (leader) counts[i] = hits;
+            });
 }
 
 template <typename T>
@@ -145,33 +171,23 @@ __device__ __forceinline__ uint64_t depth_key(int64_t i, const T* depths, const 
   return depth_rank ? uint64_t(uint32_t(depth_rank[i])) : uint64_t(depth_bits(depths[i]));
 }
 
-// Writes the (tile, depth) keys of large Gaussian i's touched tiles into its segment
-// [offsets[i-1], offsets[i]). Threads sharing a Gaussian claim slots through cursor[i]
-// (zeroed before), so the order inside a segment varies from run to run; the keys of one
-// segment are distinct (one per tile) and the radix sort is stable, so the sorted lists
-// are the same as with any fixed order: (tile, depth, id).
-template <int kChunk, typename T>
+// Writes the (tile, depth) keys of large Gaussian i's touched tiles, in row-major order, into
+// its segment [offsets[i-1], offsets[i]): the same layout as the serial emit.
+template <typename T>
 __global__ void __launch_bounds__(kThreads)
     emit_large_kernel(const T* means2d, const T* conics, const T* opacities, const T* depths,
-                      const int32_t* radii, const int32_t* depth_rank, const int64_t* cand_ends,
-                      int64_t n, BinGeometry g, T alpha_threshold, const int64_t* offsets,
-                      int64_t* cursor, uint64_t* keys, int32_t* ids) {
-  walk_candidates<kChunk>(
-      means2d, conics, opacities, radii, cand_ends, n, g, alpha_threshold,
-      [&](int64_t i, const TileTester<T>& t, uint32_t hits, int64_t k0) {
-        if (!hits) return;
-        int64_t slot = (i == 0 ? 0 : offsets[i - 1]) +
-                       int64_t(atomicAdd(reinterpret_cast<unsigned long long*>(cursor + i),
-                                         static_cast<unsigned long long>(__popc(hits))));
-        const uint64_t dkey = depth_key(i, depths, depth_rank);
-        while (hits) {
-          const int b = __ffs(hits) - 1;
-          hits &= hits - 1;
-          keys[slot] = (uint64_t(t.tile(k0 + b, g)) << 32) | dkey;
-          ids[slot] = int32_t(i);
-          ++slot;
-        }
-      });
+                      const int32_t* radii, const int32_t* depth_rank, const int32_t* large_ids,
+                      const unsigned int* counters, int64_t n, BinGeometry g, T alpha_threshold,
+                      const int64_t* offsets, uint64_t* keys, int32_t* ids) {
+  for_large(means2d, conics, opacities, radii, large_ids, counters, n, g, alpha_threshold,
+            [&](int64_t i, auto&& walk, bool) {
+              const int64_t first = i == 0 ? 0 : offsets[i - 1];
+              const uint64_t dkey = depth_key(i, depths, depth_rank);
+              walk([&](int64_t rank, int tile) {
+                keys[first + rank] = (uint64_t(tile) << 32) | dkey;
+                ids[first + rank] = int32_t(i);
+              });
+            });
 }
 
 // One thread per Gaussian walks its bounding box in row-major order, for the Gaussians with
@@ -182,29 +198,64 @@ __device__ void visit_tiles(int64_t i, const TileRect& r, const T* means2d, cons
                             const T* opacities, const int32_t* radii, const BinGeometry& g,
                             T alpha_threshold, F&& f) {
   TileTester<T> t;
-  t.load(i, 0, means2d, conics, opacities, radii, g, alpha_threshold);
+  t.load(i, means2d, conics, opacities, radii, g, alpha_threshold);
   for (int ty = r.y0; ty < r.y1; ++ty)
     for (int tx = r.x0; tx < r.x1; ++tx)
       if (t.touches(tx, ty, g)) f(ty * g.tiles_x + tx);
 }
 
-// counts[i] = touched tiles of small Gaussian i, 0 for a large one, whose candidate count goes
-// to large_candidates[i] (0 for the small ones; large_candidates may be null when small_max
-// covers every Gaussian).
+// Appends the block's large Gaussians to large_ids: those for a warp from the front
+// (counters[0]), the giant ones from the back (counters[1]); one atomic per list and block.
+// Every thread of the block must call it.
+__device__ void append_large(bool to_warp, bool to_block, int64_t i, int64_t n,
+                             int32_t* large_ids, unsigned int* counters) {
+  __shared__ unsigned int warp_base[2][kWarps];
+  __shared__ unsigned int block_base[2];
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  const unsigned mw = __ballot_sync(cuda::kFullMask, to_warp);
+  const unsigned mb = __ballot_sync(cuda::kFullMask, to_block);
+  if (lane == 0) {
+    warp_base[0][warp] = __popc(mw);
+    warp_base[1][warp] = __popc(mb);
+  }
+  __syncthreads();
+  if (threadIdx.x < 2) {
+    unsigned int total = 0;
+    for (int w = 0; w < kWarps; ++w) {
+      const unsigned int c = warp_base[threadIdx.x][w];
+      warp_base[threadIdx.x][w] = total;
+      total += c;
+    }
+    block_base[threadIdx.x] = total ? atomicAdd(counters + threadIdx.x, total) : 0u;
+  }
+  __syncthreads();
+  const unsigned lower = (1u << lane) - 1u;
+  if (to_warp) large_ids[block_base[0] + warp_base[0][warp] + __popc(mw & lower)] = int32_t(i);
+  if (to_block)
+    large_ids[n - 1 - (block_base[1] + warp_base[1][warp] + __popc(mb & lower))] = int32_t(i);
+}
+
+// counts[i] = touched tiles of small Gaussian i, 0 for a large one, which is appended to
+// large_ids (large_ids == nullptr: every Gaussian is small, the former binning).
 template <typename T>
-__global__ void count_small_kernel(const T* means2d, const T* conics, const T* opacities,
-                                   const int32_t* radii, int64_t n, BinGeometry g,
-                                   T alpha_threshold, int64_t small_max, int64_t* counts,
-                                   int64_t* large_candidates) {
+__global__ void __launch_bounds__(kThreads)
+    count_small_kernel(const T* means2d, const T* conics, const T* opacities,
+                       const int32_t* radii, int64_t n, BinGeometry g, T alpha_threshold,
+                       int64_t* counts, int32_t* large_ids, unsigned int* counters) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= n) return;
-  const TileRect r = rect_of(i, means2d, radii, g);
-  const int64_t cand = r.count();
-  int64_t c = 0;
-  if (cand > 0 && cand <= small_max)
-    visit_tiles(i, r, means2d, conics, opacities, radii, g, alpha_threshold, [&](int) { ++c; });
-  counts[i] = c;
-  if (large_candidates) large_candidates[i] = cand > small_max ? cand : 0;
+  const int64_t small_max = large_ids ? kSmallTiles : INT64_MAX;
+  int64_t cand = 0;
+  if (i < n) {
+    const TileRect r = rect_of(i, means2d, radii, g);
+    cand = r.count();
+    int64_t c = 0;
+    if (cand > 0 && cand <= small_max)
+      visit_tiles(i, r, means2d, conics, opacities, radii, g, alpha_threshold, [&](int) { ++c; });
+    counts[i] = c;
+  }
+  if (large_ids)  // uniform: every thread of the block takes part
+    append_large(cand > small_max && cand <= kGiantTiles, cand > kGiantTiles, i, n, large_ids,
+                 counters);
 }
 
 template <typename T>
@@ -250,17 +301,11 @@ __global__ void scatter_rank_kernel(const int32_t* sorted_ids, int64_t n, int32_
   if (r < n) rank[sorted_ids[r]] = int32_t(r);
 }
 
-}  // namespace
+}  // namespace bin_cuda
+using namespace bin_cuda;
 
-// Chunks of 16 candidate tiles per thread by default (faster than 32 on every case measured
-// with the all-Gaussians chunking); TIGER_BIN_CHUNK=32 for comparisons.
-static bool large_chunks() {
-  const char* v = getenv("TIGER_BIN_CHUNK");
-  return v != nullptr && v[0] == '3' && v[1] == '2';
-}
-
-// A grid that fills the GPU once; the chunked kernels loop over their chunks.
-static cudaError_t balanced_grid(int& blocks) {
+// A grid that fills the GPU once; the large-Gaussian kernels loop over their lists.
+static cudaError_t full_grid(int& blocks) {
   int dev = 0, sms = 0;
   cudaError_t err = cudaGetDevice(&dev);
   if (err == cudaSuccess) err = cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
@@ -271,27 +316,24 @@ static cudaError_t balanced_grid(int& blocks) {
 template <typename T>
 cudaError_t bin_count_cuda(const T* means2d, const T* conics, const T* opacities,
                            const int32_t* radii, int64_t n, BinGeometry g, T alpha_threshold,
-                           int64_t* counts, int64_t* large_candidates, cudaStream_t stream) {
+                           int64_t* counts, int32_t* large_ids, unsigned int* large_counters,
+                           cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  const int64_t small_max = large_candidates ? kSmallTiles : INT64_MAX;
+  if (large_ids) {
+    const cudaError_t err = cudaMemsetAsync(large_counters, 0, 2 * sizeof(unsigned int), stream);
+    if (err != cudaSuccess) return err;
+  }
   count_small_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
-      means2d, conics, opacities, radii, n, g, alpha_threshold, small_max, counts,
-      large_candidates);
-  return cudaGetLastError();
-}
-
-template <typename T>
-cudaError_t bin_count_large_cuda(const T* means2d, const T* conics, const T* opacities,
-                                 const int32_t* radii, const int64_t* cand_ends, int64_t n,
-                                 BinGeometry g, T alpha_threshold, int64_t* counts,
-                                 cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
+      means2d, conics, opacities, radii, n, g, alpha_threshold, counts, large_ids,
+      large_counters);
+  cudaError_t err = cudaGetLastError();
+  if (err != cudaSuccess || large_ids == nullptr) return err;
   int blocks = 0;
-  cudaError_t err = balanced_grid(blocks);
+  err = full_grid(blocks);
   if (err != cudaSuccess) return err;
-  auto kernel = large_chunks() ? count_large_kernel<32, T> : count_large_kernel<16, T>;
-  kernel<<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, radii, cand_ends, n, g,
-                                          alpha_threshold, counts);
+  count_large_kernel<T><<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, radii,
+                                                         large_ids, large_counters, n, g,
+                                                         alpha_threshold, counts);
   return cudaGetLastError();
 }
 
@@ -303,24 +345,22 @@ cudaError_t bin_scan_cuda(void* temp, size_t& temp_bytes, const int64_t* counts,
 template <typename T>
 cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities, const T* depths,
                           const int32_t* radii, const int32_t* depth_rank,
-                          const int64_t* cand_ends, int64_t n, BinGeometry g, T alpha_threshold,
-                          const int64_t* offsets, int64_t* cursor, uint64_t* keys, int32_t* ids,
-                          cudaStream_t stream) {
+                          const int32_t* large_ids, const unsigned int* large_counters, int64_t n,
+                          BinGeometry g, T alpha_threshold, const int64_t* offsets,
+                          uint64_t* keys, int32_t* ids, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  const int64_t small_max = cand_ends ? kSmallTiles : INT64_MAX;
+  const int64_t small_max = large_ids ? kSmallTiles : INT64_MAX;
   emit_small_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
       means2d, conics, opacities, depths, radii, depth_rank, n, g, alpha_threshold, small_max,
       offsets, keys, ids);
   cudaError_t err = cudaGetLastError();
-  if (err != cudaSuccess || cand_ends == nullptr) return err;
+  if (err != cudaSuccess || large_ids == nullptr) return err;
   int blocks = 0;
-  err = balanced_grid(blocks);
-  if (err == cudaSuccess) err = cudaMemsetAsync(cursor, 0, sizeof(int64_t) * n, stream);
+  err = full_grid(blocks);
   if (err != cudaSuccess) return err;
-  auto kernel = large_chunks() ? emit_large_kernel<32, T> : emit_large_kernel<16, T>;
-  kernel<<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, depths, radii, depth_rank,
-                                          cand_ends, n, g, alpha_threshold, offsets, cursor, keys,
-                                          ids);
+  emit_large_kernel<T><<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, depths, radii,
+                                                        depth_rank, large_ids, large_counters, n,
+                                                        g, alpha_threshold, offsets, keys, ids);
   return cudaGetLastError();
 }
 
@@ -363,15 +403,14 @@ cudaError_t bin_depth_rank_cuda(void* temp, size_t& temp_bytes, const double* de
   return cudaGetLastError();
 }
 
-#define TIGER_INSTANTIATE(T)                                                                      \
-  template cudaError_t bin_count_cuda<T>(const T*, const T*, const T*, const int32_t*, int64_t,   \
-                                         BinGeometry, T, int64_t*, int64_t*, cudaStream_t);       \
-  template cudaError_t bin_count_large_cuda<T>(const T*, const T*, const T*, const int32_t*,      \
-                                               const int64_t*, int64_t, BinGeometry, T, int64_t*, \
-                                               cudaStream_t);                                     \
-  template cudaError_t bin_emit_cuda<T>(const T*, const T*, const T*, const T*, const int32_t*,   \
-                                        const int32_t*, const int64_t*, int64_t, BinGeometry, T,  \
-                                        const int64_t*, int64_t*, uint64_t*, int32_t*, cudaStream_t);
+#define TIGER_INSTANTIATE(T)                                                                     \
+  template cudaError_t bin_count_cuda<T>(const T*, const T*, const T*, const int32_t*, int64_t,  \
+                                         BinGeometry, T, int64_t*, int32_t*, unsigned int*,      \
+                                         cudaStream_t);                                          \
+  template cudaError_t bin_emit_cuda<T>(const T*, const T*, const T*, const T*, const int32_t*,  \
+                                        const int32_t*, const int32_t*, const unsigned int*,     \
+                                        int64_t, BinGeometry, T, const int64_t*, uint64_t*,      \
+                                        int32_t*, cudaStream_t);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
 #undef TIGER_INSTANTIATE

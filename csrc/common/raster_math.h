@@ -30,25 +30,38 @@ TIGER_HD T splat_alpha(T opacity, T q, T alpha_max, T& gauss, bool& clamped) {
   return clamped ? alpha_max : a;
 }
 
+// a * b + c with one rounding, on the host and the device alike. The tile test spells its
+// multiply-adds out with this: left to the compiler, a * b + c is fused or not depending on
+// the code around it after inlining (a term hoisted out of a loop is rounded on its own), so
+// the same source gave the one-thread-per-Gaussian and the chunked CUDA binning different
+// roundings, and different tile lists for borderline tiles (issue 15, heavy scene).
+template <typename T>
+TIGER_HD T fused_multiply_add(T a, T b, T c) {
+  return fma(a, b, c);
+}
+
 // Quadratic threshold above which alpha surely falls below the threshold:
 // o * exp(-q/2) < thr  <=>  q > 2 log(o / thr). The small relative margin keeps
 // this pre-test conservative under rounding, so the exact alpha test decides.
 template <typename T>
 TIGER_HD T cutoff_quadratic(T opacity, T alpha_threshold) {
   const T k2 = T(2) * log(opacity / alpha_threshold);
-  return k2 * T(1.0001) + T(1e-4);
+  return fused_multiply_add(k2, T(1.0001), T(1e-4));
 }
 
-// Minimum of the 1D quadratic a t^2 + 2 b t + c over t in [lo, hi].
+// Minimum of the 1D quadratic a t^2 + 2 b t + c over t in [lo, hi], evaluated as
+// fma(fma(a, t, 2b), t, c) whatever the compiler (see fused_multiply_add).
 template <typename T>
 TIGER_HD T min_quadratic_on_segment(T a, T b, T c, T lo, T hi) {
   T t = a > T(0) ? -b / a : lo;
   t = t < lo ? lo : (t > hi ? hi : t);
-  return (a * t + T(2) * b) * t + c;
+  return fused_multiply_add(fused_multiply_add(a, t, T(2) * b), t, c);
 }
 
 // Minimum of q(d) = d^T conic d over the rectangle [x0,x1]x[y0,y1] of offsets
 // d = point - mean: zero if the mean lies inside, else the best point on an edge.
+// (Products such as ca * x0 * x0 feed only fused_multiply_add operands: nothing is left for
+// the compiler to contract, so every caller rounds the same way.)
 template <typename T>
 TIGER_HD T min_quadratic_on_rect(T ca, T cb, T cc, T x0, T x1, T y0, T y1) {
   if (x0 <= T(0) && T(0) <= x1 && y0 <= T(0) && T(0) <= y1) return T(0);

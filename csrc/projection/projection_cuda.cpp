@@ -30,11 +30,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_g
   check_projection_inputs(op, means, quats, scales, opacities, viewmat, K, width, height);
   const c10::cuda::CUDAGuard guard(means.device());
   const int64_t n = means.size(0);
-  auto means2d = at::zeros({n, 2}, means.options());
-  auto conics = at::zeros({n, 3}, means.options());
-  auto depths = at::zeros({n}, means.options());
-  auto opac_out = at::zeros({n}, means.options());
-  auto radii = at::zeros({n, 2}, means.options().dtype(at::kInt));
+  // The kernel writes every row (zeros for culled Gaussians): no zero fills to launch.
+  auto means2d = at::empty({n, 2}, means.options());
+  auto conics = at::empty({n, 3}, means.options());
+  auto depths = at::empty({n}, means.options());
+  auto opac_out = at::empty({n}, means.options());
+  auto radii = at::empty({n, 2}, means.options().dtype(at::kInt));
   const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous(),
              o = opacities.contiguous(), V = viewmat.contiguous(), Kc = K.contiguous();
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_gaussians_cuda", [&] {
@@ -69,11 +70,12 @@ project_gaussians_backward_cuda(const at::Tensor& means, const at::Tensor& quats
   for (const auto* t : {&radii, &v_means2d, &v_conics, &v_depths, &v_opacities})
     TORCH_CHECK(t->device() == means.device(), op, ": all tensors must be on ", means.device());
   const c10::cuda::CUDAGuard guard(means.device());
-  auto v_means = at::zeros({n, 3}, means.options());
-  auto v_quats = at::zeros({n, 4}, means.options());
-  auto v_scales = at::zeros({n, 3}, means.options());
-  auto v_opac = at::zeros({n}, means.options());
-  auto v_cam = camera_grad ? at::zeros({n, 16}, means.options()) : at::Tensor();
+  // Every row is written by the kernel (zeros for culled Gaussians).
+  auto v_means = at::empty({n, 3}, means.options());
+  auto v_quats = at::empty({n, 4}, means.options());
+  auto v_scales = at::empty({n, 3}, means.options());
+  auto v_opac = at::empty({n}, means.options());
+  auto v_cam = camera_grad ? at::empty({n, 16}, means.options()) : at::Tensor();
   const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous(),
              o = opacities.contiguous(), V = viewmat.contiguous(), Kc = K.contiguous(),
              r = radii.contiguous(), vm = v_means2d.to(means.scalar_type()).contiguous(),

@@ -33,10 +33,16 @@ __global__ void project_kernel(ProjectLaunch<T> a, T* means2d, T* conics, T* dep
   const Camera<T> cam = load_camera(a.viewmat, a.K, a.width, a.height);
   const ProjectOptions<T> opt{a.eps2d, a.near_plane, a.far_plane, a.alpha_threshold, a.antialiased};
   Projected<T> pr;
-  if (!project_gaussian<T>(a.means + 3 * i, a.quats + 4 * i, a.scales + 3 * i, a.opacities[i], cam,
-                           opt, pr))
+  if (project_gaussian<T>(a.means + 3 * i, a.quats + 4 * i, a.scales + 3 * i, a.opacities[i], cam,
+                          opt, pr)) {
+    store_projected(pr, i, means2d, conics, depths, opac_out, radii);
     return;
-  store_projected(pr, i, means2d, conics, depths, opac_out, radii);
+  }
+  // Culled: zeros, written here so that the outputs need no zero fill before the launch.
+  means2d[2 * i] = means2d[2 * i + 1] = T(0);
+  conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = T(0);
+  depths[i] = opac_out[i] = T(0);
+  radii[2 * i] = radii[2 * i + 1] = 0;
 }
 
 template <typename T>
@@ -45,7 +51,18 @@ __global__ void project_backward_kernel(ProjectLaunch<T> a, const int32_t* radii
                                         const T* v_opac, T* g_means, T* g_quats, T* g_scales,
                                         T* g_opac, T* v_cam) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= a.n || radii[2 * i] == 0) return;
+  if (i >= a.n) return;
+  if (radii[2 * i] == 0) {  // culled: zero gradients (the outputs are not zero-filled)
+#pragma unroll
+    for (int k = 0; k < 3; ++k) g_means[3 * i + k] = g_scales[3 * i + k] = T(0);
+#pragma unroll
+    for (int k = 0; k < 4; ++k) g_quats[4 * i + k] = T(0);
+    g_opac[i] = T(0);
+    if (v_cam)
+#pragma unroll
+      for (int k = 0; k < 16; ++k) v_cam[16 * i + k] = T(0);
+    return;
+  }
   const Camera<T> cam = load_camera(a.viewmat, a.K, a.width, a.height);
   const ProjectOptions<T> opt{a.eps2d, T(0), T(0), T(0), a.antialiased};
   ProjectionGrads<T> g{};

@@ -16,7 +16,7 @@ struct ProjectLaunch {
   bool antialiased;
 };
 
-// Outputs must be zero-filled by the caller (culled Gaussians keep zeros).
+// Every output row is written (zeros for culled Gaussians): no zero fill needed.
 template <typename T>
 cudaError_t project_gaussians_cuda_launch(const ProjectLaunch<T>& a, T* means2d, T* conics,
                                           T* depths, T* opac_out, int32_t* radii,

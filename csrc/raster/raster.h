@@ -10,7 +10,8 @@
 //      transmittance [H,W] = T_final, kept apart from alpha because 1 - (1 - T) loses
 //      T's relative precision in float32 where pixels saturate.
 // rasterize_backward: gradients w.r.t. means2d, conics, opacities, colors, depths, background
-//   from v_color [H,W,C], v_alpha [H,W], v_depth [H,W]; walks each list back to front.
+//   from v_color [H,W,C], v_alpha [H,W] or None, v_depth [H,W] or None (None: zero, nothing is
+//   read); walks each list back to front.
 // rasterize_backward_colors: the features-only backward: gradients w.r.t. colors and
 //   background only (geometry and opacity frozen); walks front to back, no division.
 #include <ATen/ATen.h>
@@ -44,8 +45,8 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width,
                        int64_t height, int64_t tile_size, double alpha_max, double alpha_threshold,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
-                       const at::Tensor& v_color, const at::Tensor& v_alpha,
-                       const at::Tensor& v_depth);
+                       const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
+                       const std::optional<at::Tensor>& v_depth);
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,

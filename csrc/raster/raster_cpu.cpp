@@ -187,8 +187,8 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
     Tfin[p] = Tr[p] = trans[pix];
     cnt[p] = count[pix];
     max_cnt = std::max(max_cnt, cnt[p]);
-    vA[p] = v_alpha[pix];
-    vD[p] = v_depth[pix];
+    vA[p] = v_alpha ? v_alpha[pix] : T(0);  // null: no alpha / depth gradient
+    vD[p] = v_depth ? v_depth[pix] : T(0);
     for (int64_t c = 0; c < C; ++c) {
       vC[p * C + c] = v_color[pix * C + c];
       R[p * C + c] = bg ? bg[c] : T(0);
@@ -387,8 +387,8 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width,
                        int64_t height, int64_t tile_size, double alpha_max, double alpha_threshold,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
-                       const at::Tensor& v_color, const at::Tensor& v_alpha,
-                       const at::Tensor& v_depth) {
+                       const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
+                       const std::optional<at::Tensor>& v_depth) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
   const int64_t n = means2d.size(0);
@@ -400,8 +400,8 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   check_shape(n_contrib, op, "n_contrib", {height, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
   check_shape(v_color, op, "v_color", {height, width, C});
-  check_shape(v_alpha, op, "v_alpha", {height, width});
-  check_shape(v_depth, op, "v_depth", {height, width});
+  if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {height, width});
+  if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {height, width});
   const int64_t S = C + kGeomGrads, m = gaussian_ids.size(0), tiles = num_tiles(a);
   auto rows = at::zeros({m, S}, means2d.options());
   auto v_bg_tiles = at::zeros({tiles, C}, means2d.options());
@@ -409,7 +409,9 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
              d_c = depths.contiguous(), col_c = colors.contiguous(), t_c = tile_offsets.contiguous(),
              i_c = gaussian_ids.contiguous(), a_c = transmittance.contiguous(), n_c = n_contrib.contiguous(),
-             vc_c = v_color.contiguous(), va_c = v_alpha.contiguous(), vd_c = v_depth.contiguous();
+             vc_c = v_color.contiguous();
+  const auto va_c = v_alpha.has_value() ? v_alpha->contiguous() : at::Tensor(),
+             vd_c = v_depth.has_value() ? v_depth->contiguous() : at::Tensor();
   const auto bg_c = background.has_value() ? background->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_cpu", [&] {
     using T = scalar_t;
@@ -418,8 +420,10 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
     at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
         backward_tile<T>(s, t, C, col_c.data_ptr<T>(), bg, a_c.data_ptr<T>(),
-                         n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(), va_c.data_ptr<T>(),
-                         vd_c.data_ptr<T>(), rows.data_ptr<T>(), v_bg_tiles.data_ptr<T>() + t * C);
+                         n_c.data_ptr<int32_t>(), vc_c.data_ptr<T>(),
+                         va_c.defined() ? va_c.data_ptr<T>() : nullptr,
+                         vd_c.defined() ? vd_c.data_ptr<T>() : nullptr, rows.data_ptr<T>(),
+                         v_bg_tiles.data_ptr<T>() + t * C);
     });
     reduce_rows<T>(rows.data_ptr<T>(), m, S, i_c.data_ptr<int32_t>(), grads.data_ptr<T>());
   });

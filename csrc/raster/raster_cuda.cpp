@@ -114,7 +114,8 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         int64_t width, int64_t height, int64_t tile_size, double alpha_max,
                         double alpha_threshold, double t_min, const at::Tensor& transmittance,
                         const at::Tensor& n_contrib, const at::Tensor& v_color,
-                        const at::Tensor& v_alpha, const at::Tensor& v_depth) {
+                        const std::optional<at::Tensor>& v_alpha,
+                        const std::optional<at::Tensor>& v_depth) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
   const int64_t n = means2d.size(0);
@@ -127,8 +128,8 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   check_shape(n_contrib, op, "n_contrib", {height, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
   check_shape(v_color, op, "v_color", {height, width, C});
-  check_shape(v_alpha, op, "v_alpha", {height, width});
-  check_shape(v_depth, op, "v_depth", {height, width});
+  if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {height, width});
+  if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {height, width});
   check_cuda_limits(op, a, C);
   check_device(colors, means2d, op, "colors");
   check_device(tile_offsets, means2d, op, "tile_offsets");
@@ -136,27 +137,34 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   check_device(transmittance, means2d, op, "transmittance");
   check_device(n_contrib, means2d, op, "n_contrib");
   check_device(v_color, means2d, op, "v_color");
-  check_device(v_alpha, means2d, op, "v_alpha");
-  check_device(v_depth, means2d, op, "v_depth");
+  if (v_alpha.has_value()) check_device(*v_alpha, means2d, op, "v_alpha");
+  if (v_depth.has_value()) check_device(*v_depth, means2d, op, "v_depth");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto opts = means2d.options();
-  auto v_geom = at::zeros({n, 8}, opts);  // u, v, conic a, b, c, opacity, depth, pad
+  // The kernel adds into these atomically. The geometry rows and the per-tile background
+  // terms share one zero fill (both are copied or reduced below, never returned as views);
+  // v_colors is returned as is, so it keeps its own buffer.
+  const int64_t tiles = num_tiles(a);
+  auto acc = at::zeros({n * 8 + tiles * C}, opts);
+  auto v_geom = acc.narrow(0, 0, n * 8).view({n, 8});  // u, v, conic a, b, c, opacity, depth, pad
+  auto v_bg_tiles = acc.narrow(0, n * 8, tiles * C).view({tiles, C});
   auto v_colors = at::zeros({n, C}, opts);
-  auto v_bg_tiles = at::zeros({num_tiles(a), C}, opts);
   const auto dt = means2d.scalar_type();
   const auto m = means2d.contiguous(), c = conics.contiguous(), o = opacities.contiguous(),
              d = depths.contiguous(), col = colors.contiguous(), to = tile_offsets.contiguous(),
              ids = gaussian_ids.contiguous(), tr = transmittance.to(dt).contiguous(),
-             cnt = n_contrib.contiguous(), vc = v_color.to(dt).contiguous(),
-             va = v_alpha.to(dt).contiguous(), vd = v_depth.to(dt).contiguous();
+             cnt = n_contrib.contiguous(), vc = v_color.to(dt).contiguous();
+  const auto va = v_alpha.has_value() ? v_alpha->to(dt).contiguous() : at::Tensor(),
+             vd = v_depth.has_value() ? v_depth->to(dt).contiguous() : at::Tensor();
   const auto bg = background.has_value() ? background->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_cuda", [&] {
     using T = scalar_t;
     const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C);
     check_ok(rasterize_backward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
-                 tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), va.data_ptr<T>(),
-                 vd.data_ptr<T>(), v_geom.data_ptr<T>(), v_colors.data_ptr<T>(),
+                 tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(),
+                 va.defined() ? va.data_ptr<T>() : nullptr,
+                 vd.defined() ? vd.data_ptr<T>() : nullptr, v_geom.data_ptr<T>(), v_colors.data_ptr<T>(),
                  v_bg_tiles.data_ptr<T>(), c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });

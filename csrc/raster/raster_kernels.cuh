@@ -223,7 +223,7 @@ struct BackwardIO {
   const T* bg;
   const T* trans;
   const int32_t* count;
-  const T *v_color, *v_alpha, *v_depth;
+  const T *v_color, *v_alpha, *v_depth;  // v_alpha, v_depth may be null (zero)
   T* v_geom;  // [N, 8]: u, v, conic a, b, c, opacity, depth, (pad): one 32-byte row
   T *v_colors, *v_bg_tiles;
 };
@@ -269,8 +269,8 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
   if (p.inside) {
     Tfin = io.trans[pix];
     cnt = io.count[pix];
-    vA = io.v_alpha[pix];
-    vD = io.v_depth[pix];
+    vA = io.v_alpha ? io.v_alpha[pix] : T(0);  // null: no alpha / depth gradient
+    vD = io.v_depth ? io.v_depth[pix] : T(0);
 #pragma unroll
     for (int c = 0; c < CB; ++c)
       if (c0 + c < C) {

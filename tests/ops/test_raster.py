@@ -85,3 +85,55 @@ def test_public_function_is_the_op(device):
     got = rasterize(*args, tile_size=16, alpha_max=0.99, alpha_threshold=1 / 255, t_min=1e-4)
     want = ops.rasterize(*args, 16, 0.99, 1 / 255, 1e-4)
     assert all(torch.equal(a, b) for a, b in zip(got, want))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_backward_without_alpha_and_depth_gradients(device):
+    """v_alpha / v_depth may be None (a colour-only loss): the same gradients as zeros, and the
+    op's schema and fake kernel accept it."""
+    m2, cn, op, col, d, bg, to, ids, w, h = _raster_args(device=device)
+    args = (m2, cn, op, col, d, bg, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
+    c, a, dep, cnt, tr = ops.rasterize(*args)
+    vc = torch.randn_like(c)
+    got = ops.rasterize_backward(*args, tr, cnt, vc, None, None)
+    want = ops.rasterize_backward(*args, tr, cnt, vc, torch.zeros_like(a), torch.zeros_like(dep))
+    assert all(torch.equal(x, y) for x, y in zip(got, want))
+    va = torch.randn_like(a)
+    got = ops.rasterize_backward(*args, tr, cnt, vc, va, None)
+    want = ops.rasterize_backward(*args, tr, cnt, vc, va, torch.zeros_like(dep))
+    assert all(torch.equal(x, y) for x, y in zip(got, want))
+    torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, None, None))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_eager_entry_matches_the_registered_autograd(device):
+    """tiger.ops' functions run the kernels through an autograd.Function with the registered
+    formula (no per-call schema walk): same outputs and gradients as torch.ops.tiger.* with
+    inputs that require grad, for losses on each output (unused outputs get no zero tensors)."""
+    w, h = 30, 22
+    m, q, s, o, col = random_scene(60, 3, seed=31, scale_range=(0.05, 0.3))
+    V, K = camera(w, h)
+    m, q, s, o, col, V, K = [t.to(device) for t in (m, q, s, o, col, V, K)]
+    wgt = torch.randn(h, w, 3, dtype=F64, generator=torch.Generator().manual_seed(2)).to(device)
+
+    def run(eager: bool, loss_of: str):
+        ins = [t.clone().requires_grad_() for t in (m, q, s, o, col)]
+        if eager:
+            p = tiger.ops.projection.project_gaussians(*ins[:4], V, K, w, h, 0.3, 0.01, 1e10, 1 / 255, False)
+        else:
+            p = ops.project_gaussians(*ins[:4], V, K, w, h, 0.3, 0.01, 1e10, 1 / 255, False)
+        m2, cn, d, op, r = p
+        to, ids = ops.bin_gaussians(m2.detach(), cn.detach(), op.detach(), d.detach(), r, w, h, 16, 1 / 255)
+        args = (m2, cn, op, ins[4], d, None, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
+        out = rasterize(*args) if eager else ops.rasterize(*args)
+        loss = {"color": (out[0] * wgt).sum(), "alpha": out[1].square().sum(),
+                "depth": out[2].sum(), "all": (out[0] * wgt).sum() + out[1].sum() + out[2].sum()}[loss_of]
+        loss.backward()
+        return [t.detach() for t in out] + [t.grad for t in ins]
+
+    for loss_of in ("color", "alpha", "depth", "all"):
+        got, want = run(True, loss_of), run(False, loss_of)
+        assert all(torch.equal(x, y) for x, y in zip(got, want)), loss_of
+    with torch.no_grad():
+        out = rasterize(*_raster_args(device=device), 16, 0.99, 1 / 255, 1e-4)
+    assert not any(t.requires_grad for t in out)

@@ -216,3 +216,54 @@ def test_cuda_glue_errors_are_clear():
         ops.rasterize(m2, cn, op, ins[4], d, None, to32, ids32, w, h, 32, 0.99, 1 / 255, 1e-4)
     with pytest.raises(ValueError, match=r"tile_size in \[1, 16\]"):
         tiger.rasterize_gaussians(*ins[:7], w, h, tile_size=32)
+
+
+def test_projection_writes_every_row_without_zero_fills():
+    """The CUDA projection (and its backward) allocate their outputs uninitialised and write
+    every row: culled Gaussians get exact zeros even where the allocator hands out memory that
+    held NaNs, and everything matches the CPU kernels."""
+    w, h = 64, 48
+    m, q, s, o, _, V, K, _ = _pipeline_inputs(500, 1, w, h, F64, seed=7)
+    m = m.clone()
+    m[::2, 2] = -50.0  # half of them behind the camera: culled
+    g = torch.Generator().manual_seed(3)
+    vs = [torch.randn(500, k, generator=g, dtype=F64).squeeze(1) for k in (2, 3, 1, 1)]
+    cpu_f = ops.project_gaussians(m, q, s, o, V, K, w, h, 0.3, 0.01, 1e10, 1 / 255, False)
+    cpu_b = ops.project_gaussians_backward(m, q, s, o, V, K, cpu_f[4], w, h, 0.3, False, *vs, True)
+    for _ in range(2):
+        poison = torch.full((1 << 22,), float("nan"), device="cuda", dtype=F64)
+        del poison  # its block goes back to the caching allocator, NaNs and all
+        args = [t.cuda() for t in (m, q, s, o, V, K)]
+        gpu_f = ops.project_gaussians(*args, w, h, 0.3, 0.01, 1e10, 1 / 255, False)
+        gpu_b = ops.project_gaussians_backward(*args, gpu_f[4], w, h, 0.3, False,
+                                               *[v.cuda() for v in vs], True)
+        culled = (gpu_f[4][:, 0] == 0).cpu()
+        assert int(culled.sum()) >= 250
+        for t in (*gpu_f, *gpu_b[:4]):
+            assert int(t.cpu()[culled].count_nonzero()) == 0
+        assert torch.equal(cpu_f[4], gpu_f[4].cpu())
+        for a, b in zip((*cpu_f[:4], *cpu_b), (*gpu_f[:4], *gpu_b)):
+            assert rel(b, a) <= 1e-10
+
+
+def test_host_synchronisations_of_a_render():
+    """One device synchronisation per forward (the binning's list size); the input checks
+    (check_finite=True) add one, whatever the number of tensors checked."""
+    import warnings
+    w, h = 48, 40
+    m, q, s, o, col, V, K, bg = [t.cuda() for t in _pipeline_inputs(300, 3, w, h, F32, seed=4)]
+
+    def syncs(check_finite: bool) -> int:
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, background=bg,
+                                          check_finite=check_finite)
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+        return sum("synchroniz" in str(c.message) for c in caught)
+
+    assert syncs(False) == 1
+    assert syncs(True) == 2

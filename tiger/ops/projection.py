@@ -7,6 +7,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from tiger.ops._eager_autograd import eager_autograd
+
 _OP = "tiger::project_gaussians"
 
 __all__ = ["project_gaussians"]
@@ -30,7 +32,7 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         depths [N] camera z, opacities [N] (after the antialiasing factor), radii [N, 2] int32
         half extents in px (0 = culled; not differentiable).
     """
-    return torch.ops.tiger.project_gaussians(
+    return _project_eager(
         means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
         viewmat.contiguous(), K.contiguous(), int(width), int(height), float(eps2d), float(near),
         float(far), float(alpha_threshold), bool(antialiased))
@@ -56,6 +58,7 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     ctx.save_for_backward(means, quats, scales, opacities, viewmat, K, output[4])
     ctx.args = (width, height, eps2d, antialiased)
     ctx.mark_non_differentiable(output[4])
+    ctx.set_materialize_grads(False)  # no zero fills for unused outputs (radii, ...): see _backward
 
 
 def _backward(ctx: Any, v_means2d, v_conics, v_depths, v_opac, _v_radii):
@@ -78,3 +81,4 @@ def _backward(ctx: Any, v_means2d, v_conics, v_depths, v_opac, _v_radii):
 
 
 torch.library.register_autograd(_OP, _backward, setup_context=_setup)
+_project_eager = eager_autograd(torch.ops.tiger.project_gaussians, _setup, _backward)

@@ -12,6 +12,8 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
+from tiger.ops._eager_autograd import eager_autograd
+
 _OP = "tiger::rasterize"
 
 __all__ = ["rasterize"]
@@ -35,7 +37,7 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         depth_accum [H, W] = Σ z_i a_i T_i, n_contrib [H, W] int32 and transmittance [H, W]
         (T_final; both not differentiable, kept for the backward).
     """
-    return torch.ops.tiger.rasterize(
+    return _rasterize_eager(
         means2d, conics, opacities, colors, depths,
         background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
         int(width), int(height), int(tile_size), float(alpha_max), float(alpha_threshold),
@@ -77,6 +79,9 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
                           gaussian_ids, transmittance, n_contrib)
     ctx.args = tuple(args)
     ctx.mark_non_differentiable(n_contrib, transmittance)
+    # Unused outputs (alpha and depth in a colour-only loss) reach the backward as None, not as
+    # [H, W] zero tensors filled for nothing; the kernel reads no gradient for them.
+    ctx.set_materialize_grads(False)
 
 
 def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
@@ -94,12 +99,11 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         v_colors = v_colors.to(colors.dtype)  # half-precision storage: grads in its dtype
         return (None, None, None, v_colors if need[3] else None, None,
                 v_bg if need[5] else None) + (None,) * 8
-    v_alpha = torch.zeros_like(trans) if v_alpha is None else v_alpha
-    v_depth = torch.zeros_like(trans) if v_depth is None else v_depth
     g = torch.ops.tiger.rasterize_backward(
         means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
-        *ctx.args, trans, n_contrib, v_color.contiguous(), v_alpha.contiguous(),
-        v_depth.contiguous())
+        *ctx.args, trans, n_contrib, v_color.contiguous(),
+        None if v_alpha is None else v_alpha.contiguous(),
+        None if v_depth is None else v_depth.contiguous())
     v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg = g
     v_colors = v_colors.to(colors.dtype)
     return (v_means2d if need[0] else None, v_conics if need[1] else None,
@@ -108,3 +112,4 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
 
 
 torch.library.register_autograd(_OP, _backward, setup_context=_setup)
+_rasterize_eager = eager_autograd(torch.ops.tiger.rasterize, _setup, _backward)

@@ -74,34 +74,35 @@ def _check_tensor(t: object, name: str, shape: tuple, ref: Optional[Tensor] = No
     return t
 
 
-def _check_finite(tensors: dict[str, Tensor]) -> None:
-    for name, t in tensors.items():
-        if t is not None and not bool(torch.isfinite(t).all()):
-            bad = int((~torch.isfinite(t)).sum())
-            raise ValueError(f"{_NAME}: {name} contains {bad} non-finite value(s) (NaN or Inf); "
-                             "pass check_finite=False to skip this check")
-
-
-def _check_values(quats: Tensor, scales: Tensor, opacities: Tensor) -> None:
-    """Zero quaternions (no rotation), negative scales and opacities outside [0, 1] are input
-    mistakes the kernels would render without complaint; name the tensor and its first bad row.
-    One device sync for the three tests; the rows are looked up only on failure."""
+def _check_inputs(tensors: dict[str, Optional[Tensor]], quats: Tensor, scales: Tensor,
+                  opacities: Tensor) -> None:
+    """check_finite's tests, read back in one device synchronisation (was one per tensor):
+    NaN/Inf in any tensor, then zero quaternions (no rotation), negative scales and opacities
+    outside [0, 1] -- input mistakes the kernels would render without complaint. The message
+    names the tensor (and its first bad row); the details are looked up only on failure."""
+    named = [(name, t) for name, t in tensors.items() if t is not None]
     with torch.no_grad():
         zero_q = (quats == 0).all(dim=1)
         neg_s = (scales < 0).any(dim=1)
         bad_o = (opacities < 0) | (opacities > 1)
-        if not bool(torch.stack([zero_q.any(), neg_s.any(), bad_o.any()]).any()):
-            return
-        hint = "; pass check_finite=False to skip the input checks"
-        for name, bad, t, what in (("quats", zero_q, quats, "is zero, not a rotation"),
-                                   ("opacities", bad_o, opacities, "is outside [0, 1]"),
-                                   ("scales", neg_s, scales, "has a negative entry (scales are linear"
-                                                             " standard deviations, not logs)")):
-            rows = bad.nonzero().flatten()
-            if rows.numel():
-                row = int(rows[0])
-                raise ValueError(f"{_NAME}: {name}[{row}] = {t[row].tolist()} {what} "
-                                 f"({rows.numel()} bad row(s) of {t.shape[0]}){hint}")
+        flags = [~torch.isfinite(t).all() for _, t in named] + [zero_q.any(), bad_o.any(), neg_s.any()]
+        bad = torch.stack(flags).tolist()
+    for (name, t), b in zip(named, bad):
+        if b:
+            count = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{_NAME}: {name} contains {count} non-finite value(s) (NaN or Inf); "
+                             "pass check_finite=False to skip this check")
+    hint = "; pass check_finite=False to skip the input checks"
+    for b, (name, rows_bad, t, what) in zip(bad[len(named):], (
+            ("quats", zero_q, quats, "is zero, not a rotation"),
+            ("opacities", bad_o, opacities, "is outside [0, 1]"),
+            ("scales", neg_s, scales, "has a negative entry (scales are linear standard "
+                                      "deviations, not logs)"))):
+        if b:
+            rows = rows_bad.nonzero().flatten()
+            row = int(rows[0])
+            raise ValueError(f"{_NAME}: {name}[{row}] = {t[row].tolist()} {what} "
+                             f"({rows.numel()} bad row(s) of {t.shape[0]}){hint}")
 
 
 def _check_size(width: object, height: object) -> tuple[int, int]:
@@ -252,19 +253,18 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
         _check_tensor(background, "background", (channels,), means)
         background = background.to(means.dtype)
     if settings.check_finite:
-        _check_finite({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-                       "colors": colors, "viewmat": viewmat, "K": K, "background": background})
-        _check_values(quats, scales, opacities)
+        _check_inputs({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+                       "colors": colors, "viewmat": viewmat, "K": K, "background": background},
+                      quats, scales, opacities)
     viewmat = viewmat.to(means.dtype)
     K = K.to(means.dtype)
 
     means2d, conics, depths, opac, radii = project_gaussians(
         means, quats, scales, opacities, viewmat, K, width, height, settings.eps2d, settings.near,
         settings.far, settings.alpha_threshold, settings.antialiased)
-    visible = radii[:, 0] > 0
 
     if sh_degree is not None:
-        feats = sh_colors(means, colors, viewmat, int(sh_degree), visible)
+        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0)
     elif half_colors and not colors.is_cuda:
         feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:
@@ -286,9 +286,10 @@ def composite(p: Projection, width: int, height: int,
     color, alpha, depth_accum, _, _ = rasterize(
         means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,
         height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min)
+    # Expected depth, 0 where alpha == 0 (divided by 1 there, so no 0/0 reaches the backward).
+    # Scalar branches: four kernels, no ones/zeros tensors filled for them.
     covered = alpha > 0
-    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
+    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, 1.0), 0.0)
     return {
         "color": color,
         "alpha": alpha,

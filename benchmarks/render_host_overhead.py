@@ -1,0 +1,74 @@
+"""Host-side cost of one render on a tiny scene (CPU; the kernels are negligible there, so the
+time is Python, dispatch and autograd): median us of a forward, a forward+backward, and a
+forward+backward with the input checks (check_finite=True), and the ATen ops of one
+forward+backward that would each launch a GPU kernel (fills, copies, elementwise, reductions;
+the custom ops' own kernels not counted). Usage: python benchmarks/render_host_overhead.py
+[--repo PATH] (PATH: another checkout with its own build, to compare)."""
+from __future__ import annotations
+
+import argparse
+import collections
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[1])
+p.add_argument("--n", type=int, default=64)
+p.add_argument("--size", type=int, default=16)
+args = p.parse_args()
+sys.path.insert(0, str(args.repo))
+import tiger  # noqa: E402
+from benchmarks.common import standard_camera, standard_scene  # noqa: E402
+
+LAUNCHING = {"aten::zero_", "aten::fill_", "aten::copy_", "aten::gt", "aten::where", "aten::div",
+             "aten::amax", "aten::sum", "aten::mul", "aten::add", "aten::clamp_min"}
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    n, w = args.n, args.size
+    s = standard_scene(n, 3)
+    V, K = standard_camera(w, w)
+    leaves = {k: v.detach().clone().requires_grad_() for k, v in s.items()}
+    vc = torch.randn(w, w, 3)
+
+    def fwd():
+        with torch.no_grad():
+            tiger.rasterize_gaussians(s["means"], s["quats"], s["scales"], s["opacities"],
+                                      s["colors"], V, K, w, w, check_finite=False)
+
+    def fb(check=False):
+        for t in leaves.values():
+            t.grad = None
+        out = tiger.rasterize_gaussians(leaves["means"], leaves["quats"], leaves["scales"],
+                                        leaves["opacities"], leaves["colors"], V, K, w, w,
+                                        check_finite=check)
+        out["color"].backward(vc)
+
+    def median_us(f, iters=2000):
+        for _ in range(50):
+            f()
+        ts = []
+        for _ in range(iters):
+            t0 = time.perf_counter()
+            f()
+            ts.append(time.perf_counter() - t0)
+        return sorted(ts)[iters // 2] * 1e6
+
+    best = [min(x) for x in zip(*[(median_us(fwd), median_us(fb), median_us(lambda: fb(True)))
+                                  for _ in range(3)])]
+    print(f"{args.repo}: n={n} {w}x{w}, CPU, 1 thread: forward {best[0]:.0f} us, forward+backward "
+          f"{best[1]:.0f} us, forward+backward with check_finite {best[2]:.0f} us")
+    from torch.profiler import ProfilerActivity, profile
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fb()
+    ops = collections.Counter(e.name for e in prof.events() if e.name in LAUNCHING)
+    print(f"  ATen ops that launch a kernel on a GPU, per forward+backward: {sum(ops.values())} "
+          f"{dict(ops)}")
+
+
+if __name__ == "__main__":
+    main()
