@@ -13,6 +13,15 @@ from ..render.scenes import camera, random_scene
 from .opargs import F64, _raster_args, ops
 
 
+def _same(got, want, device: str) -> bool:
+    """Bit-equal on the CPU; on CUDA the backward accumulates per-Gaussian gradients with
+    atomics, whose order changes between calls, so float64 sums agree to rounding only."""
+    if device == "cpu":
+        return all(torch.equal(x, y) for x, y in zip(got, want))
+    return all(torch.allclose(x, y, rtol=1e-12, atol=1e-13 * float(y.abs().max().clamp_min(1)))
+               for x, y in zip(got, want))
+
+
 @pytest.mark.parametrize("device", DEVICES)
 class TestRasterize:
     def test_gradcheck(self, device):
@@ -97,11 +106,11 @@ def test_backward_without_alpha_and_depth_gradients(device):
     vc = torch.randn_like(c)
     got = ops.rasterize_backward(*args, tr, cnt, vc, None, None)
     want = ops.rasterize_backward(*args, tr, cnt, vc, torch.zeros_like(a), torch.zeros_like(dep))
-    assert all(torch.equal(x, y) for x, y in zip(got, want))
+    assert _same(got, want, device)
     va = torch.randn_like(a)
     got = ops.rasterize_backward(*args, tr, cnt, vc, va, None)
     want = ops.rasterize_backward(*args, tr, cnt, vc, va, torch.zeros_like(dep))
-    assert all(torch.equal(x, y) for x, y in zip(got, want))
+    assert _same(got, want, device)
     torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, None, None))
 
 
@@ -133,7 +142,7 @@ def test_eager_entry_matches_the_registered_autograd(device):
 
     for loss_of in ("color", "alpha", "depth", "all"):
         got, want = run(True, loss_of), run(False, loss_of)
-        assert all(torch.equal(x, y) for x, y in zip(got, want)), loss_of
+        assert _same(got, want, device), loss_of
     with torch.no_grad():
         out = rasterize(*_raster_args(device=device), 16, 0.99, 1 / 255, 1e-4)
     assert not any(t.requires_grad for t in out)
