@@ -42,7 +42,7 @@ def test_ssim_matches_scipy_reference(shape):
 def test_blur_methods_agree_and_ssim_properties():
     x = torch.rand(2, 5, 20, 17, dtype=torch.float64)
     ref = gaussian_blur(x, method="conv")
-    for m in ("shift", "matmul", "auto"):
+    for m in ("depthwise", "shift", "matmul", "auto"):
         torch.testing.assert_close(gaussian_blur(x, method=m), ref, rtol=0, atol=1e-14)
     a = torch.rand(16, 16, 3, requires_grad=True)
     assert float(ssim(a.detach(), a.detach())) == pytest.approx(1.0, abs=1e-6)

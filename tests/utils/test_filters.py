@@ -22,10 +22,26 @@ def _scipy_blur(x: np.ndarray, size: int, sigma: float, mode: str) -> np.ndarray
 def test_blur_matches_scipy_for_every_method(padding, mode):
     x = torch.rand(2, 3, 13, 17, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     want = torch.from_numpy(_scipy_blur(x.numpy(), 5, 1.0, mode))
-    methods = ["conv", "shift", "auto"] + (["matmul"] if padding == "zeros" else [])
+    methods = ["conv", "depthwise", "shift", "auto"] + (["matmul"] if padding == "zeros" else [])
     for m in methods:
         torch.testing.assert_close(gaussian_blur(x, 5, 1.0, method=m, padding=padding), want,
                                    rtol=0, atol=1e-14, msg=m)
+
+
+@pytest.mark.parametrize("method", ["conv", "depthwise", "matmul", "shift"])
+def test_zero_padded_blur_backward_is_its_adjoint(method):
+    """The zero-padded blur's backward is the blur itself (a symmetric map): gradcheck against
+    finite differences, and the same gradient as autograd through scipy's transpose written as
+    an explicit [HW, HW] matrix."""
+    x = torch.rand(1, 2, 9, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(1),
+                   requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: gaussian_blur(t, 5, 1.0, method=method), (x,))
+    eye = np.eye(9 * 7).reshape(9 * 7, 9, 7)
+    M = _scipy_blur(eye, 5, 1.0, "constant").reshape(9 * 7, 9 * 7)   # row k: blur of basis k
+    v = torch.rand(1, 2, 9, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    (gaussian_blur(x, 5, 1.0, method=method) * v).sum().backward()
+    want = (torch.from_numpy(M) @ v.reshape(2, -1).T).T.reshape(1, 2, 9, 7)
+    torch.testing.assert_close(x.grad, want, rtol=0, atol=1e-14)
 
 
 def test_blur_errors_name_the_problem():
@@ -34,6 +50,8 @@ def test_blur_errors_name_the_problem():
         gaussian_blur(x, padding="wrap")
     with pytest.raises(ValueError, match="zero padding only"):
         gaussian_blur(x, method="matmul", padding="reflect")
+    with pytest.raises(ValueError, match="method must be"):
+        gaussian_blur(x, method="fft")
     with pytest.raises(ValueError, match=r"\[B, C, H, W\]"):
         gaussian_blur(torch.zeros(8, 8))
 

@@ -34,35 +34,67 @@ def gaussian_blur(x: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
     """Separable Gaussian filter of [B, C, H, W] ("same" size), taps exp(-d²/2σ²) normalised.
 
     ``padding``: ``"zeros"`` (SSIM's convention) or ``"reflect"`` (FeatUp's). ``method``:
-    ``"conv"`` (conv2d), ``"matmul"`` (products with banded [H, H] and [W, W] matrices; zero
-    padding only), ``"shift"`` (sum of shifted slices) or ``"auto"``: conv on CUDA, matmul on
-    CPU up to 1024 px a side (10-20x cheaper than CPU conv2d there), shift otherwise. All
-    compute the same sums (``benchmarks/recon_ssim.py`` times them).
+    ``"conv"`` (conv2d over B·C single-channel images), ``"depthwise"`` (conv2d with one group
+    per channel), ``"matmul"`` (products with banded [H, H] and [W, W] matrices; zero padding
+    only), ``"shift"`` (sum of shifted slices) or ``"auto"`` (depthwise: the fastest on the CPU
+    and on the H100 from 64 px to 1080p, ``benchmarks/recon_ssim.py``). All compute the same sums.
+
+    With zero padding the filter is a symmetric linear map (symmetric taps, symmetric band), so
+    its backward is the same filter applied to the incoming gradient: one forward pass instead
+    of cuDNN's data-gradient convolution (the costliest kernel of a 1080p training step).
     """
     if x.dim() != 4:
         raise ValueError(f"tiger: gaussian_blur takes [B, C, H, W], got {list(x.shape)}")
     if padding not in ("zeros", "reflect"):
         raise ValueError(f"tiger: gaussian_blur padding must be 'zeros' or 'reflect', got '{padding}'")
-    B, C, H, W = x.shape
     if method == "auto":
-        method = "conv" if x.is_cuda else ("matmul" if max(H, W) <= 1024 and padding == "zeros" else "shift")
+        method = "depthwise"
+    if method not in _METHODS:
+        raise ValueError(f"tiger: gaussian_blur method must be auto, {', '.join(_METHODS)}, got {method}")
     if method == "matmul" and padding != "zeros":
         raise ValueError("tiger: gaussian_blur method 'matmul' implements zero padding only")
+    if padding == "zeros" and x.requires_grad:
+        return _SelfAdjointBlur.apply(x, window_size, float(sigma), method)
+    return _blur(x, window_size, float(sigma), method, padding)
+
+
+def _blur(x: torch.Tensor, window_size: int, sigma: float, method: str, padding: str) -> torch.Tensor:
+    B, C, H, W = x.shape
     if method == "matmul":
-        bh = _band(H, window_size, float(sigma), x.dtype, x.device)
-        bw = _band(W, window_size, float(sigma), x.dtype, x.device)
+        bh = _band(H, window_size, sigma, x.dtype, x.device)
+        bw = _band(W, window_size, sigma, x.dtype, x.device)
         return bh @ (x @ bw)   # both bands are symmetric
-    g = _gauss_1d(window_size, float(sigma)).to(x)
+    g = _gauss_1d(window_size, sigma).to(x)
     pad = window_size // 2
+    if method == "depthwise" and padding == "zeros":
+        y = F.conv2d(x, g.view(1, 1, 1, -1).expand(C, 1, 1, -1), padding=(0, pad), groups=C)
+        return F.conv2d(y, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), padding=(pad, 0), groups=C)
     xp = F.pad(x, (pad, pad, pad, pad), mode="constant" if padding == "zeros" else "reflect")
+    if method == "depthwise":
+        y = F.conv2d(xp, g.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
+        return F.conv2d(y, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
     if method == "conv":
         y = xp.reshape(B * C, 1, H + 2 * pad, W + 2 * pad)
         y = F.conv2d(y, g.view(1, 1, 1, -1))
         return F.conv2d(y, g.view(1, 1, -1, 1)).reshape(B, C, H, W)
-    if method != "shift":
-        raise ValueError(f"tiger: gaussian_blur method must be auto, conv, matmul or shift, got {method}")
     rows = sum(g[i] * xp[..., i:i + W] for i in range(window_size))
     return sum(g[i] * rows[..., i:i + H, :] for i in range(window_size))
+
+
+_METHODS = ("conv", "depthwise", "matmul", "shift")
+
+
+class _SelfAdjointBlur(torch.autograd.Function):
+    """Zero-padded Gaussian filter whose backward is itself (see :func:`gaussian_blur`)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, window_size: int, sigma: float, method: str) -> torch.Tensor:
+        ctx.args = (window_size, sigma, method)
+        return _blur(x, window_size, sigma, method, "zeros")
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return _blur(grad.contiguous(), *ctx.args, "zeros"), None, None, None
 
 
 def dilate(mask: torch.Tensor, radius: int, shape: str = "disk") -> torch.Tensor:
