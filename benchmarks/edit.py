@@ -30,6 +30,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -59,16 +60,18 @@ def demo_scene(density: float, device: str) -> tuple[GaussianScene, torch.Tensor
     return s.to(device), query.to(device)
 
 
-def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cuda_graph: bool, seed: int = 0):
+def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cuda_graph: bool, seed: int = 0,
+                       fused_norms: Optional[bool] = None):
     """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
-    SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py)."""
+    SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py);
+    ``fused_norms`` as for the real loaders (None, their default: the VAEs fused on CUDA)."""
     from guidance import build_models, tokenizer
 
     from tiger.edit import CSDGuidance
     from tiger.edit.guidance import InstructPix2PixGuidance, MVDreamGuidance
 
     tok = tokenizer(Path("outputs/bench_edit_tokenizer"))
-    ip2p_models, mv_models = build_models(size, device, dtype, tok)
+    ip2p_models, mv_models = build_models(size, device, dtype, tok, fused_norms)
     kw = {} if size == "full" else {"short_side": 64}
     ip = InstructPix2PixGuidance(ip2p_models, "make the ball look like a watermelon", cuda_graph=cuda_graph,
                                  generator=torch.Generator(device).manual_seed(seed), **kw) if "ip2p" in kind else None
@@ -85,7 +88,8 @@ def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
         truth.sh_dc[mask] = rgb_to_sh(torch.tensor(RED, device=scene.device)).expand(int(mask.sum()), 3)
         return IdealDenoiserGuidance(render_targets(truth, torch.ones(3, device=scene.device))), truth
     dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}[args.dtype]
-    return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph), None
+    fused = {"auto": None, "on": True, "off": False}[args.fused_norms]
+    return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph, fused_norms=fused), None
 
 
 def run(args) -> dict:
@@ -154,6 +158,9 @@ def main() -> None:
     p.add_argument("--random-models", default="full", help="full | tiny: random diffusion models of that size")
     p.add_argument("--dtype", default="bf16", help="diffusion models' dtype: bf16 | fp16 | fp32")
     p.add_argument("--cuda-graph", action="store_true", help="replay each guidance step as a CUDA graph")
+    p.add_argument("--fused-norms", default="auto", choices=("auto", "on", "off"),
+                   help="tiger's fused GroupNorm+SiLU in channels-last: auto = the loaders' default "
+                        "(the VAEs on CUDA), on = VAEs and UNets, off = torch's GroupNorm")
     p.add_argument("--warmup", type=int, default=0, help="untimed warm-up steps before the timed edit")
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")

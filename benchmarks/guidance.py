@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -30,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
 
 from tiger.edit.guidance.base import ViewBatch  # noqa: E402
+from tiger.edit.guidance.fused_norms import apply_fused_norms  # noqa: E402
 from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, IP2PModels  # noqa: E402
 from tiger.edit.guidance.ldm_checkpoint import unet_config_from_ldm, vae_config_from_ldm  # noqa: E402
 from tiger.edit.guidance.mvdream import MVDreamGuidance, MVDreamModels  # noqa: E402
@@ -51,8 +53,10 @@ def tokenizer(folder: Path):
                                       pad_token="!")
 
 
-def build_models(size: str, device: str, dtype: torch.dtype, tok) -> tuple[IP2PModels, MVDreamModels]:
-    """Both guidances' models, random weights, built directly on ``device``."""
+def build_models(size: str, device: str, dtype: torch.dtype, tok,
+                 fused_norms: Optional[bool] = False) -> tuple[IP2PModels, MVDreamModels]:
+    """Both guidances' models, random weights, built directly on ``device``; ``fused_norms`` as
+    for ``load_ip2p`` / ``load_mvdream`` (None: their default, the VAEs fused on CUDA)."""
     import diffusers
     import transformers
 
@@ -66,7 +70,7 @@ def build_models(size: str, device: str, dtype: torch.dtype, tok) -> tuple[IP2PM
             vocab_size=vocab, hidden_size=w, intermediate_size=4 * w, num_hidden_layers=layers,
             num_attention_heads=heads, max_position_embeddings=77))
     vae.decoder = vae.post_quant_conv = None
-    ip2p = IP2PModels(freeze(unet, device, dtype), freeze(vae, device, dtype),
+    ip2p = IP2PModels(freeze(unet, device, dtype, fused_norms), freeze(vae, device, dtype, fused_norms),
                       PromptEncoder(tok, freeze(text, device), device, dtype), schedule)
     ldm = mvdream_ldm_config(size)
     with torch.device(device):
@@ -78,7 +82,7 @@ def build_models(size: str, device: str, dtype: torch.dtype, tok) -> tuple[IP2PM
             num_attention_heads=max(1, w // 64), max_position_embeddings=77, hidden_act="gelu"))
     install_multiview_attention(unet, 4)
     vae.decoder = vae.post_quant_conv = None
-    mv = MVDreamModels(freeze(unet, device, dtype), freeze(vae, device, dtype),
+    mv = MVDreamModels(freeze(unet, device, dtype, fused_norms), freeze(vae, device, dtype, fused_norms),
                        PromptEncoder(tok, freeze(text, device), device, dtype), schedule)
     return ip2p, mv
 
@@ -98,10 +102,11 @@ def ring(n: int, res: int) -> list[Camera]:
     return cams
 
 
-def set_format(models, channels_last: bool) -> None:
+def set_format(models, channels_last: bool, vae_fused: bool) -> None:
+    """UNet and VAE memory format; a VAE with fused norms stays channels-last (their layout)."""
     fmt = torch.channels_last if channels_last else torch.contiguous_format
     models.unet.to(memory_format=fmt)
-    models.vae.to(memory_format=fmt)
+    models.vae.to(memory_format=torch.channels_last if vae_fused else fmt)
 
 
 def split_ms(guidance, renders: torch.Tensor, views: ViewBatch, cuda: bool, reps: int) -> dict[str, float]:
@@ -183,7 +188,7 @@ def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> 
     for models in (ip2p_models, mv_models):
         freeze(models.unet, dtype=DTYPES[dt])
         freeze(models.vae, dtype=DTYPES[dt])
-        set_format(models, cl)
+        set_format(models, cl, best.get("vae_fused", False))
     for graph, mode in ((False, "eager"), (True, "graph")):
         gc.collect()
         torch.cuda.empty_cache()
@@ -196,7 +201,7 @@ def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> 
         if not graph:
             del ip, mv
     meta["peak_reserved_gib"] = torch.cuda.max_memory_reserved() / 2 ** 30
-    meta["memory_config"] = f"{dt} channels_last={cl} cudnn_benchmark={bench} graph"
+    meta["memory_config"] = f"{dt} channels_last={cl} cudnn_benchmark={bench} vae_fused={best.get('vae_fused', False)} graph"
     print("memory:", {k: v for k, v in meta.items() if "memory" in k or "reserved" in k}, flush=True)
     del ip, mv
     gc.collect()
@@ -214,6 +219,11 @@ def main() -> None:
     ap.add_argument("--budget-s", type=float, default=420.0, help="skip remaining variants after this many seconds")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the raw rows")
     ap.add_argument("--profile-dir", type=Path, default=None, help="write torch.profiler tables here (CUDA)")
+    ap.add_argument("--vae-fused", default=None,
+                    help="comma list of off,on: the VAEs with torch's GroupNorm or tiger's fused GroupNorm+SiLU "
+                         "in channels-last (the loaders' default on CUDA); default off,on on CUDA, off on CPU")
+    ap.add_argument("--quick", action="store_true",
+                    help="eager and graph only in NCHW with cuDNN autotuning (no channels-last UNet variants)")
     args = ap.parse_args()
     t_start = time.perf_counter()
     cuda = args.device.startswith("cuda")
@@ -221,6 +231,7 @@ def main() -> None:
     res = args.render or (512 if size == "full" else 64)
     dtypes = (args.dtypes or ("bf16,fp16" if cuda else "fp32")).split(",")
     modes = (args.modes or ("eager,graph,compile_vae,compile" if cuda else "eager")).split(",")
+    vae_fused_list = [v == "on" for v in (args.vae_fused or ("off,on" if cuda else "off")).split(",")]
     torch.manual_seed(0)
     tok = tokenizer(Path(tempfile.mkdtemp()))
     ip2p_models, mv_models = build_models(size, args.device, DTYPES[dtypes[0]], tok)
@@ -244,29 +255,40 @@ def main() -> None:
 
     flops: dict[str, float] = {}
     variants = []  # most informative first: the time budget cuts the tail
-    for mode in modes:
-        for dt in dtypes:
-            if not cuda:
-                variants.append((dt, mode, False, False))
-            elif mode == "eager":
-                variants += [(dt, mode, cl, bench) for cl in (False, True) for bench in (False, True)]
-            elif mode == "graph":
-                variants += [(dt, mode, cl, True) for cl in (False, True)]
-            else:  # compiled: channels-last lets inductor's GroupNorm kernels and cuDNN's NHWC convs meet
-                variants += [(dt, mode, cl, True) for cl in (True, False)]
-    if cuda:  # all bf16 compiled variants before the fp16 ones
-        variants.sort(key=lambda v: (v[1].startswith("compile"), v[1].startswith("compile") and v[0] != dtypes[0]))
-    for dt, mode, cl, bench in variants:
+    for fused in vae_fused_list:
+        for mode in modes:
+            for dt in dtypes:
+                if not cuda:
+                    variants.append((fused, dt, mode, False, False))
+                elif args.quick and mode in ("eager", "graph"):
+                    variants.append((fused, dt, mode, False, True))
+                elif mode == "eager":
+                    variants += [(fused, dt, mode, cl, bench) for cl in (False, True) for bench in (False, True)]
+                elif mode == "graph":
+                    variants += [(fused, dt, mode, cl, True) for cl in (False, True)]
+                else:  # compiled: channels-last lets inductor's GroupNorm kernels and cuDNN's NHWC convs meet
+                    variants += [(fused, dt, mode, cl, True) for cl in (True, False)]
+    # the fused norms replace modules for good: every unfused variant first; then, on CUDA,
+    # all bf16 compiled variants before the fp16 ones
+    variants.sort(key=lambda v: (v[0], cuda and v[2].startswith("compile"),
+                                 cuda and v[2].startswith("compile") and v[1] != dtypes[0]))
+    vae_is_fused = False
+    for vae_fused, dt, mode, cl, bench in variants:
         if time.perf_counter() - t_start > args.budget_s:
-            print(f"budget reached: skipping {dt} {mode} channels_last={cl} cudnn_benchmark={bench}", flush=True)
+            print(f"budget reached: skipping {dt} {mode} channels_last={cl} cudnn_benchmark={bench} "
+                  f"vae_fused={vae_fused}", flush=True)
             continue
+        if vae_fused and not vae_is_fused:
+            for models in (ip2p_models, mv_models):
+                apply_fused_norms(models.vae, True)
+            vae_is_fused = True
         if cuda and mode.startswith("compile") and "peak_memory_gib_both_models_graph_step" not in meta:
             measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size)
         torch.backends.cudnn.benchmark = bench
         for models in (ip2p_models, mv_models):
             freeze(models.unet, dtype=DTYPES[dt])
             freeze(models.vae, dtype=DTYPES[dt])
-            set_format(models, cl)
+            set_format(models, cl, vae_fused)
         if mode.startswith("compile"):
             for models in (ip2p_models, mv_models):
                 if mode == "compile":
@@ -275,7 +297,8 @@ def main() -> None:
         ip, mv = make_guidances(ip2p_models, mv_models, graph=mode != "eager", size=size)
         for name, g in (("ip2p", ip), ("mvdream", mv)):
             t0 = time.perf_counter()
-            row = {"guidance": name, "dtype": dt, "mode": mode, "channels_last": cl, "cudnn_benchmark": bench}
+            row = {"guidance": name, "dtype": dt, "mode": mode, "channels_last": cl, "cudnn_benchmark": bench,
+                   "vae_fused": vae_fused}
             if mode == "eager":
                 row.update(split_ms(g, renders, views, cuda, args.reps))
             row["total_ms"] = timer(lambda: g.grad(renders, views))
@@ -293,8 +316,9 @@ def main() -> None:
             save()
         if cuda and args.profile_dir is not None and mode == "eager" and not cl and bench and dt == dtypes[0]:
             args.profile_dir.mkdir(parents=True, exist_ok=True)
-            profile_table(lambda: ip.grad(renders, views), args.profile_dir / f"profile_ip2p_{dt}.txt")
-            profile_table(lambda: mv.grad(renders, views), args.profile_dir / f"profile_mvdream_{dt}.txt")
+            tag = f"{dt}_vae_fused" if vae_fused else dt
+            profile_table(lambda: ip.grad(renders, views), args.profile_dir / f"profile_ip2p_{tag}.txt")
+            profile_table(lambda: mv.grad(renders, views), args.profile_dir / f"profile_mvdream_{tag}.txt")
         if mode.startswith("compile"):
             for models in (ip2p_models, mv_models):
                 for module in (models.unet, models.vae.encoder):
@@ -308,7 +332,7 @@ def main() -> None:
         measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size)
     meta["wall_s"] = time.perf_counter() - t_start
     save()
-    cols = ["guidance", "dtype", "mode", "channels_last", "cudnn_benchmark", "encode_ms", "unet_ms", "backward_ms",
+    cols = ["guidance", "dtype", "mode", "channels_last", "cudnn_benchmark", "vae_fused", "encode_ms", "unet_ms", "backward_ms",
             "total_ms", "tflop", "tflop_per_s", "fraction_of_790", "setup_s"]
     print_table([{c: r.get(c, "-") for c in cols} for r in rows], title=f"one 4-view SDS gradient, {meta}")
     if cuda and rows:
@@ -318,7 +342,7 @@ def main() -> None:
             if mine:
                 b = min(mine, key=lambda r: r["total_ms"])
                 print(f"best {name}: {b['total_ms']:.1f} ms ({b['dtype']} {b['mode']} channels_last={b['channels_last']} "
-                      f"cudnn_benchmark={b['cudnn_benchmark']}), target <= {target} ms: "
+                      f"cudnn_benchmark={b['cudnn_benchmark']} vae_fused={b['vae_fused']}), target <= {target} ms: "
                       f"{'met' if b['total_ms'] <= target else 'NOT met'}")
         peak = meta.get("peak_memory_gib_both_models_graph_step")
         if peak is not None:

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# One device call: does the fused GroupNorm+SiLU channels-last VAE (the loaders' default on CUDA) speed up
+# the graphed guidance step and the edit loop? benchmarks/guidance.py --quick with the VAEs unfused and
+# fused (bf16; eager and graph), then a CSD edit with the loaders' default (edit.sh's settings, BUDGET_S).
+# From the repo root with .whl and .carry/deb carried; results under $OUT.
+cd "$(dirname "$0")/../.."
+export OUT="${OUT:-outputs}" PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
+CHECK_STEPS=build bash benchmarks/gpu/check.sh .whl .carry/deb/libeigen3-dev_3.4.0-4_all.deb >/dev/null 2>&1
+tail -1 "$OUT/check.log"
+export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
+echo "guidance $(date -u +%T)"
+timeout 200 python3 benchmarks/guidance.py --device cuda --dtypes bf16 --modes graph,eager --quick \
+  --vae-fused off,on --budget-s 150 --out "$OUT/guidance_fused.json" --profile-dir "$OUT" 2>&1 \
+  | grep -v -i -e warn -e "Model config" > "$OUT/guidance_fused.txt"
+tail -9 "$OUT/guidance_fused.txt"
+echo "edit $(date -u +%T)"
+timeout 240 python3 benchmarks/edit.py --device cuda --density 15 --guidance ip2p+mvdream --random-models full \
+  --dtype bf16 --steps 1200 --size 512 --warmup 5 --cuda-graph --view-pool 64 --fused-norms auto \
+  --time-budget-s "${BUDGET_S:-120}" --json "$OUT/edit_fused.json" 2>&1 | grep -v -i -e warn -e "Model config" \
+  > "$OUT/edit_fused.txt"
+tail -4 "$OUT/edit_fused.txt"
+echo "end $(date -u +%T)"
