@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# GPU run of the edit loop (issue 13): build tiger with CUDA, then benchmarks/edit.py on a ~300k-Gaussian
+# GPU run of the edit loop (issue 13): build tiger with CUDA, then benchmarks/edit.py on a 317,600-Gaussian
 # scene: recolor / analytic (the loop without diffusion) and a 1200-step CSD edit with full-size random
 # InstructPix2Pix + MVDream (bf16, CUDA graphs, a pool of VIEW_POOL=64 camera sets). From the repo root on the device:
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb OUT=$OUT bash benchmarks/gpu/edit.sh
@@ -16,10 +16,10 @@ CHECK_STEPS=build bash benchmarks/gpu/check.sh "${WHEELS:-}" "${EIGEN_DEB:-}" ||
 export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 echo "setup done in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-$PY benchmarks/edit.py --device cuda --density 15 --guidance recolor analytic --steps 200 --size 512 \
+$PY benchmarks/edit.py --device cuda --density 16 --guidance recolor analytic --steps 200 --size 512 \
     --json "$OUT/edit_h100_nodiffusion.json" 2>&1 | tee "$OUT/edit_h100_nodiffusion.txt"
 for graph in --cuda-graph ""; do
-  if $PY benchmarks/edit.py --device cuda --density 15 --guidance ip2p+mvdream --random-models full --dtype bf16 \
+  if $PY benchmarks/edit.py --device cuda --density 16 --guidance ip2p+mvdream --random-models full --dtype bf16 \
       --steps 1200 --size 512 --warmup 5 $graph --view-pool "${VIEW_POOL:-64}" --time-budget-s "${BUDGET_S:-150}" \
       --json "$OUT/edit_h100.json" \
       2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/edit_h100${graph:+_graph}.txt"; then
