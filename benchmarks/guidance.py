@@ -102,11 +102,14 @@ def ring(n: int, res: int) -> list[Camera]:
     return cams
 
 
-def set_format(models, channels_last: bool, vae_fused: bool) -> None:
-    """UNet and VAE memory format; a VAE with fused norms stays channels-last (their layout)."""
+FUSED_LEVELS = ("off", "vae", "all")  # tiger's fused GroupNorm+SiLU in: neither model, the VAEs, both
+
+
+def set_format(models, channels_last: bool, fused: str) -> None:
+    """UNet and VAE memory format; a model with fused norms stays channels-last (their layout)."""
     fmt = torch.channels_last if channels_last else torch.contiguous_format
-    models.unet.to(memory_format=fmt)
-    models.vae.to(memory_format=torch.channels_last if vae_fused else fmt)
+    models.unet.to(memory_format=torch.channels_last if fused == "all" else fmt)
+    models.vae.to(memory_format=torch.channels_last if fused != "off" else fmt)
 
 
 def split_ms(guidance, renders: torch.Tensor, views: ViewBatch, cuda: bool, reps: int) -> dict[str, float]:
@@ -188,7 +191,7 @@ def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> 
     for models in (ip2p_models, mv_models):
         freeze(models.unet, dtype=DTYPES[dt])
         freeze(models.vae, dtype=DTYPES[dt])
-        set_format(models, cl, best.get("vae_fused", False))
+        set_format(models, cl, best.get("fused", "off"))
     for graph, mode in ((False, "eager"), (True, "graph")):
         gc.collect()
         torch.cuda.empty_cache()
@@ -201,7 +204,7 @@ def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> 
         if not graph:
             del ip, mv
     meta["peak_reserved_gib"] = torch.cuda.max_memory_reserved() / 2 ** 30
-    meta["memory_config"] = f"{dt} channels_last={cl} cudnn_benchmark={bench} vae_fused={best.get('vae_fused', False)} graph"
+    meta["memory_config"] = f"{dt} channels_last={cl} cudnn_benchmark={bench} fused={best.get('fused', 'off')} graph"
     print("memory:", {k: v for k, v in meta.items() if "memory" in k or "reserved" in k}, flush=True)
     del ip, mv
     gc.collect()
@@ -219,9 +222,10 @@ def main() -> None:
     ap.add_argument("--budget-s", type=float, default=420.0, help="skip remaining variants after this many seconds")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the raw rows")
     ap.add_argument("--profile-dir", type=Path, default=None, help="write torch.profiler tables here (CUDA)")
-    ap.add_argument("--vae-fused", default=None,
-                    help="comma list of off,on: the VAEs with torch's GroupNorm or tiger's fused GroupNorm+SiLU "
-                         "in channels-last (the loaders' default on CUDA); default off,on on CUDA, off on CPU")
+    ap.add_argument("--fused", default=None,
+                    help="comma list of off,vae,all: torch's GroupNorm everywhere, tiger's fused GroupNorm+SiLU "
+                         "in channels-last for the VAEs (the loaders' default on CUDA) or for the VAEs and the "
+                         "UNets; default off,vae on CUDA, off on CPU")
     ap.add_argument("--quick", action="store_true",
                     help="eager and graph only in NCHW with cuDNN autotuning (no channels-last UNet variants)")
     args = ap.parse_args()
@@ -231,7 +235,9 @@ def main() -> None:
     res = args.render or (512 if size == "full" else 64)
     dtypes = (args.dtypes or ("bf16,fp16" if cuda else "fp32")).split(",")
     modes = (args.modes or ("eager,graph,compile_vae,compile" if cuda else "eager")).split(",")
-    vae_fused_list = [v == "on" for v in (args.vae_fused or ("off,on" if cuda else "off")).split(",")]
+    fused_levels = (args.fused or ("off,vae" if cuda else "off")).split(",")
+    if any(f not in FUSED_LEVELS for f in fused_levels):
+        ap.error(f"--fused takes a comma list of {', '.join(FUSED_LEVELS)}, got '{args.fused}'")
     torch.manual_seed(0)
     tok = tokenizer(Path(tempfile.mkdtemp()))
     ip2p_models, mv_models = build_models(size, args.device, DTYPES[dtypes[0]], tok)
@@ -255,7 +261,7 @@ def main() -> None:
 
     flops: dict[str, float] = {}
     variants = []  # most informative first: the time budget cuts the tail
-    for fused in vae_fused_list:
+    for fused in fused_levels:
         for mode in modes:
             for dt in dtypes:
                 if not cuda:
@@ -270,25 +276,25 @@ def main() -> None:
                     variants += [(fused, dt, mode, cl, True) for cl in (True, False)]
     # the fused norms replace modules for good: every unfused variant first; then, on CUDA,
     # all bf16 compiled variants before the fp16 ones
-    variants.sort(key=lambda v: (v[0], cuda and v[2].startswith("compile"),
+    variants.sort(key=lambda v: (FUSED_LEVELS.index(v[0]), cuda and v[2].startswith("compile"),
                                  cuda and v[2].startswith("compile") and v[1] != dtypes[0]))
-    vae_is_fused = False
-    for vae_fused, dt, mode, cl, bench in variants:
+    fused_now = "off"
+    for fused, dt, mode, cl, bench in variants:
         if time.perf_counter() - t_start > args.budget_s:
             print(f"budget reached: skipping {dt} {mode} channels_last={cl} cudnn_benchmark={bench} "
-                  f"vae_fused={vae_fused}", flush=True)
+                  f"fused={fused}", flush=True)
             continue
-        if vae_fused and not vae_is_fused:
+        while FUSED_LEVELS.index(fused_now) < FUSED_LEVELS.index(fused):  # replacing modules is for good
+            fused_now = FUSED_LEVELS[FUSED_LEVELS.index(fused_now) + 1]
             for models in (ip2p_models, mv_models):
-                apply_fused_norms(models.vae, True)
-            vae_is_fused = True
+                apply_fused_norms(models.vae if fused_now == "vae" else models.unet, True)
         if cuda and mode.startswith("compile") and "peak_memory_gib_both_models_graph_step" not in meta:
             measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size)
         torch.backends.cudnn.benchmark = bench
         for models in (ip2p_models, mv_models):
             freeze(models.unet, dtype=DTYPES[dt])
             freeze(models.vae, dtype=DTYPES[dt])
-            set_format(models, cl, vae_fused)
+            set_format(models, cl, fused)
         if mode.startswith("compile"):
             for models in (ip2p_models, mv_models):
                 if mode == "compile":
@@ -298,7 +304,7 @@ def main() -> None:
         for name, g in (("ip2p", ip), ("mvdream", mv)):
             t0 = time.perf_counter()
             row = {"guidance": name, "dtype": dt, "mode": mode, "channels_last": cl, "cudnn_benchmark": bench,
-                   "vae_fused": vae_fused}
+                   "fused": fused}
             if mode == "eager":
                 row.update(split_ms(g, renders, views, cuda, args.reps))
             row["total_ms"] = timer(lambda: g.grad(renders, views))
@@ -316,7 +322,7 @@ def main() -> None:
             save()
         if cuda and args.profile_dir is not None and mode == "eager" and not cl and bench and dt == dtypes[0]:
             args.profile_dir.mkdir(parents=True, exist_ok=True)
-            tag = f"{dt}_vae_fused" if vae_fused else dt
+            tag = dt if fused == "off" else f"{dt}_fused_{fused}"
             profile_table(lambda: ip.grad(renders, views), args.profile_dir / f"profile_ip2p_{tag}.txt")
             profile_table(lambda: mv.grad(renders, views), args.profile_dir / f"profile_mvdream_{tag}.txt")
         if mode.startswith("compile"):
@@ -332,7 +338,7 @@ def main() -> None:
         measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size)
     meta["wall_s"] = time.perf_counter() - t_start
     save()
-    cols = ["guidance", "dtype", "mode", "channels_last", "cudnn_benchmark", "vae_fused", "encode_ms", "unet_ms", "backward_ms",
+    cols = ["guidance", "dtype", "mode", "channels_last", "cudnn_benchmark", "fused", "encode_ms", "unet_ms", "backward_ms",
             "total_ms", "tflop", "tflop_per_s", "fraction_of_790", "setup_s"]
     print_table([{c: r.get(c, "-") for c in cols} for r in rows], title=f"one 4-view SDS gradient, {meta}")
     if cuda and rows:
@@ -342,7 +348,7 @@ def main() -> None:
             if mine:
                 b = min(mine, key=lambda r: r["total_ms"])
                 print(f"best {name}: {b['total_ms']:.1f} ms ({b['dtype']} {b['mode']} channels_last={b['channels_last']} "
-                      f"cudnn_benchmark={b['cudnn_benchmark']} vae_fused={b['vae_fused']}), target <= {target} ms: "
+                      f"cudnn_benchmark={b['cudnn_benchmark']} fused={b['fused']}), target <= {target} ms: "
                       f"{'met' if b['total_ms'] <= target else 'NOT met'}")
         peak = meta.get("peak_memory_gib_both_models_graph_step")
         if peak is not None:

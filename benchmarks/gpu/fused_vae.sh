@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# One device call: does the fused GroupNorm+SiLU channels-last VAE (the loaders' default on CUDA) speed up
-# the graphed guidance step and the edit loop? benchmarks/guidance.py --quick with the VAEs unfused and
-# fused (bf16; eager and graph), then a CSD edit with the loaders' default (edit.sh's settings, BUDGET_S).
+# One device call: does tiger's fused GroupNorm+SiLU in channels-last speed up the graphed guidance step and
+# the edit loop? benchmarks/guidance.py --quick with torch's GroupNorm, the VAEs fused (the loaders'
+# default on CUDA) and the UNets fused too (bf16; eager and graph), then a CSD edit with the loaders'
+# default (edit.sh's settings, BUDGET_S).
 # From the repo root with .whl and .carry/deb carried; results under $OUT.
 cd "$(dirname "$0")/../.."
 export OUT="${OUT:-outputs}" PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
@@ -10,7 +11,7 @@ tail -1 "$OUT/check.log"
 export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 echo "guidance $(date -u +%T)"
 timeout 200 python3 benchmarks/guidance.py --device cuda --dtypes bf16 --modes graph,eager --quick \
-  --vae-fused off,on --budget-s 150 --out "$OUT/guidance_fused.json" --profile-dir "$OUT" 2>&1 \
+  --fused off,vae,all --budget-s 200 --out "$OUT/guidance_fused.json" --profile-dir "$OUT" 2>&1 \
   | grep -v -i -e warn -e "Model config" > "$OUT/guidance_fused.txt"
 tail -9 "$OUT/guidance_fused.txt"
 echo "edit $(date -u +%T)"
