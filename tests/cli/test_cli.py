@@ -73,6 +73,7 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
     assert r.returncode == 0, r.stderr
     rep = json.loads((ed / "edit.json").read_text())
     assert rep["selected"] > 0 and rep["metrics"]["locality"]["psnr"] > 30 and rep["settings"]["steps"] == 12
+    assert rep["models"] == {}  # recolor loads no diffusion model
     assert (ed / "before_after.png").stat().st_size > 100 and (ed / "turntable.gif").is_file()
     edited = tiger.scene.GaussianScene.load_ply(ed / "edited.ply")
     assert edited.lang is not None and edited.metadata["tiger_edits"][-1]["instruction"] == "make it red"
@@ -84,6 +85,10 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
              "--text-embeddings", emb, "--tau", "0.5", "--models", str(tmp_path / "no_models"),
              "--out", str(tmp_path / "e2"))
     assert r.returncode != 0 and "Traceback" not in r.stderr and "instruct-pix2pix" in r.stderr.lower(), r.stderr
+    r = _run("edit", str(out / "scene.ply"), "make it red", "--target", "ball", "--cuda-graph", "--device", "cpu",
+             "--text-embeddings", emb, "--out", str(tmp_path / "e3"))
+    assert r.returncode != 0 and "--cuda-graph needs a CUDA --device" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "e3").exists()  # refused before anything was written
     r = _run("query", str(out / "scene.ply"), "unicorn", "--text-embeddings",
              str(out / "text_embeddings.pt"), "--out", str(tmp_path / "q2"))
     assert r.returncode != 0 and "no embedding for ['unicorn']" in r.stderr

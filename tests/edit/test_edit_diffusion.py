@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from tiger.edit import CSDGuidance, EditConfig, EditSession, resolve_target
-from tiger.edit.build import build_guidance
+from tiger.edit.build import build_guidance, default_model_dtype
 from tiger.scene import GaussianScene
 
 from .scenes import query_a, two_objects
@@ -28,6 +28,8 @@ def test_three_csd_steps_tiny_models(tiny_models, tmp_path):
     csd = build_guidance("ip2p+mvdream", "make it look like a watermelon", models=str(tiny_models), seed=0,
                          ip2p_kwargs={"short_side": 32}, mvdream_kwargs={"image_size": 32})
     assert isinstance(csd, CSDGuidance)
+    # on the CPU the defaults are float32 models, no CUDA graphs (bf16 + graphs on a GPU)
+    assert csd.ip2p.dtype == torch.float32 and not csd.ip2p.cuda_graph and not csd.mvdream.cuda_graph
     assert csd.ip2p.t_range == (0.02, 0.2) and csd.mvdream.t_range == (0.02, 0.2)  # paper: t in [0.02, 0.2]
     rec = _Recording(csd)
     t = resolve_target(scene, query_a(), tau=0.5)
@@ -48,3 +50,13 @@ def test_three_csd_steps_tiny_models(tiny_models, tmp_path):
     assert len(back) == len(out) and back.lang is not None
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc"):
         assert bool(torch.isfinite(getattr(back, name)).all()), name
+
+
+def test_model_defaults_follow_the_device(tiny_models):
+    assert default_model_dtype("cpu") == torch.float32
+    if torch.cuda.is_available():
+        want = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+        assert default_model_dtype("cuda") == want
+    with pytest.raises(ValueError, match="cuda_graph=True needs the models on a CUDA device"):
+        build_guidance("ip2p", "make it red", models=str(tiny_models), cuda_graph=True,
+                       ip2p_kwargs={"short_side": 32})

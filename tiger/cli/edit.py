@@ -41,6 +41,10 @@ def add_parser(sub) -> None:
                    help="pre-sample this many 4-camera sets and render their originals once (0: fresh "
                         "cameras every step, as the paper; 64 is the fast GPU setting; default: %(default)s)")
     p.add_argument("--size", type=int, default=512, help="edit render size in pixels (square; default: %(default)s)")
+    p.add_argument("--dtype", choices=("auto", "fp32", "fp16", "bf16"), default="auto",
+                   help="diffusion models' dtype (auto: bf16 on a GPU that has it, else fp16; fp32 on the CPU)")
+    p.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
+                   help="replay each guidance step as a CUDA graph (default: on with a CUDA --device)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
     p.add_argument("--data", default=None,
                    help="the scene's dataset: its cameras decide 360° vs forward-facing views (default: 360°)")
@@ -53,6 +57,21 @@ def add_parser(sub) -> None:
     p.add_argument("--video", choices=("auto", "mp4", "gif", "none"), default="auto",
                    help="turntable video format (default: %(default)s)")
     p.set_defaults(func=run)
+
+
+MODEL_DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
+
+
+def _model_settings(guidance) -> dict:
+    """The diffusion guidances' dtype and CUDA-graph setting, for edit.json (empty for recolor)."""
+    out = {}
+    for name in ("ip2p", "mvdream"):
+        g = getattr(guidance, name, None)
+        if g is not None:
+            dtype = getattr(g, "dtype", None)  # a lazy MVDream never loaded has none
+            out[name] = {"dtype": None if dtype is None else str(dtype).removeprefix("torch."),
+                         "cuda_graph": bool(g.cuda_graph)}
+    return out
 
 
 def _cameras(data, skip_missing: bool = False):
@@ -75,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
     if args.view_pool < 0:
         raise CliError("--view-pool must be >= 0 (0: fresh cameras every step)")
     dev = device_of(args.device)
+    if args.cuda_graph and dev.type != "cuda":
+        raise CliError(f"--cuda-graph needs a CUDA --device, got {dev}")
     out = output_dir(args.out, args.force or args.resume)
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
@@ -86,8 +107,9 @@ def run(args: argparse.Namespace) -> int:
     except EmptyTargetError as e:
         raise CliError(f"--target {args.target!r} retrieves no Gaussian (tau={args.tau}); try another text "
                        "or a lower --tau") from e
+    dtype = None if args.dtype == "auto" else MODEL_DTYPES[args.dtype]
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
-                              color=args.color, seed=args.seed)
+                              color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)
     cams = _cameras(args.data, args.skip_missing)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
     t0 = time.perf_counter()
@@ -111,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         metrics["clip"] = clip_metrics(encoder, before, after, args.target, args.instruction)
     report = {"instruction": args.instruction, "target": args.target, "guidance": args.guidance,
               "selected": target.count, "tau": target.tau, "settings": cfg.to_dict(),
+              "models": _model_settings(guidance),
               "time_s": round(time.perf_counter() - t0, 3), "stage_times_s": res.timings_s,
               "gaussians_before": len(scene), "gaussians_after": len(res.scene), "metrics": metrics,
               "rounds": res.rounds}

@@ -132,6 +132,7 @@ class InstructPix2PixGuidance:
         if not keep_text_encoder:
             models.prompts.release()
         self._cond_cache: dict[tuple[int, int, int], torch.Tensor] = {}
+        self.cuda_graph = bool(cuda_graph)
         self._graphed = GraphedStep(self.step) if cuda_graph else None
         if cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.ip2p: cuda_graph=True needs the models on a CUDA device")
