@@ -45,6 +45,7 @@ from tiger.edit.views import ObjectViews  # noqa: E402
 from tiger.eval.edit import locality, render_rgb_and_footprint  # noqa: E402
 from tiger.scene import GaussianScene  # noqa: E402
 from tiger.scene.sh import rgb_to_sh  # noqa: E402
+from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 
 RED = (0.86, 0.08, 0.08)
 
@@ -87,7 +88,7 @@ def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
         truth = scene.clone()
         truth.sh_dc[mask] = rgb_to_sh(torch.tensor(RED, device=scene.device)).expand(int(mask.sum()), 3)
         return IdealDenoiserGuidance(render_targets(truth, torch.ones(3, device=scene.device))), truth
-    dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}[args.dtype]
+    dtype = DTYPE_NAMES[args.dtype]
     fused = {"auto": None, "on": True, "off": False}[args.fused_norms]
     return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph, fused_norms=fused), None
 
@@ -156,7 +157,7 @@ def main() -> None:
     p.add_argument("--density", type=float, default=1.0, help="demo scene density (15 = ~300k Gaussians)")
     p.add_argument("--guidance", nargs="+", default=["recolor", "analytic"])
     p.add_argument("--random-models", default="full", help="full | tiny: random diffusion models of that size")
-    p.add_argument("--dtype", default="bf16", help="diffusion models' dtype: bf16 | fp16 | fp32")
+    p.add_argument("--dtype", default="bf16", choices=sorted(DTYPE_NAMES), help="diffusion models' dtype")
     p.add_argument("--cuda-graph", action="store_true", help="replay each guidance step as a CUDA graph")
     p.add_argument("--fused-norms", default="auto", choices=("auto", "on", "off"),
                    help="tiger's fused GroupNorm+SiLU in channels-last: auto = the loaders' default "

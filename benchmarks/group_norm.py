@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
 
 from tiger.ops.group_norm import group_norm  # noqa: E402
+from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 
-DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}
 VAE_SHAPES = [(4, 128, 512, 512), (4, 256, 256, 256), (4, 512, 128, 128), (4, 512, 64, 64)]
 UNET_SHAPES = [(12, 320, 64, 64), (12, 640, 32, 32), (12, 1280, 16, 16), (12, 1280, 8, 8)]
 GROUPS, EPS = 32, 1e-6
@@ -183,7 +183,7 @@ def unet_rows(device: str, dtype: torch.dtype, size: str, iters: int) -> list[di
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    ap.add_argument("--dtype", default="bf16", choices=sorted(DTYPES), help="activations/model dtype (bf16)")
+    ap.add_argument("--dtype", default="bf16", choices=sorted(DTYPE_NAMES), help="activations/model dtype (bf16)")
     ap.add_argument("--iters", type=int, default=None, help="timed repetitions (CUDA 20, CPU 3)")
     ap.add_argument("--skip-models", action="store_true", help="only the op table")
     ap.add_argument("--json", type=Path, default=None, help="write every row here")
@@ -191,7 +191,7 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device")
     cuda = args.device == "cuda"
-    dtype = DTYPES[args.dtype]
+    dtype = DTYPE_NAMES[args.dtype]
     iters = args.iters or (20 if cuda else 3)
     if cuda:
         torch.backends.cudnn.benchmark = True

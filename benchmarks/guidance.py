@@ -40,9 +40,9 @@ from tiger.edit.guidance.random_models import ip2p_unet_config, mvdream_ldm_conf
 from tiger.edit.guidance.sds import NoiseSchedule, PromptEncoder, encode_latents, freeze, resize  # noqa: E402
 from tiger.models.random_init import write_byte_level_clip_tokenizer  # noqa: E402
 from tiger.scene.cameras import Camera  # noqa: E402
+from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 
 H100_BF16_TFLOPS = 790.0  # measured 8192^3 bf16 matmul on the device (KINDS.md)
-DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}
 
 
 def tokenizer(folder: Path):
@@ -189,8 +189,8 @@ def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> 
     dt, cl, bench = best["dtype"], best["channels_last"], best["cudnn_benchmark"]
     torch.backends.cudnn.benchmark = bench
     for models in (ip2p_models, mv_models):
-        freeze(models.unet, dtype=DTYPES[dt])
-        freeze(models.vae, dtype=DTYPES[dt])
+        freeze(models.unet, dtype=DTYPE_NAMES[dt])
+        freeze(models.vae, dtype=DTYPE_NAMES[dt])
         set_format(models, cl, best.get("fused", "off"))
     for graph, mode in ((False, "eager"), (True, "graph")):
         gc.collect()
@@ -240,7 +240,7 @@ def main() -> None:
         ap.error(f"--fused takes a comma list of {', '.join(FUSED_LEVELS)}, got '{args.fused}'")
     torch.manual_seed(0)
     tok = tokenizer(Path(tempfile.mkdtemp()))
-    ip2p_models, mv_models = build_models(size, args.device, DTYPES[dtypes[0]], tok)
+    ip2p_models, mv_models = build_models(size, args.device, DTYPE_NAMES[dtypes[0]], tok)
     renders = torch.rand(4, 3, res, res, device=args.device)
     views = ViewBatch(cameras=ring(4, res), originals=torch.rand(4, 3, res, res, device=args.device),
                       view_ids=torch.arange(4), object_center=torch.zeros(3))
@@ -292,8 +292,8 @@ def main() -> None:
             measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size)
         torch.backends.cudnn.benchmark = bench
         for models in (ip2p_models, mv_models):
-            freeze(models.unet, dtype=DTYPES[dt])
-            freeze(models.vae, dtype=DTYPES[dt])
+            freeze(models.unet, dtype=DTYPE_NAMES[dt])
+            freeze(models.vae, dtype=DTYPE_NAMES[dt])
             set_format(models, cl, fused)
         if mode.startswith("compile"):
             for models in (ip2p_models, mv_models):

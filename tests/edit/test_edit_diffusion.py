@@ -57,6 +57,9 @@ def test_model_defaults_follow_the_device(tiny_models):
     if torch.cuda.is_available():
         want = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
         assert default_model_dtype("cuda") == want
+        ip = build_guidance("ip2p", "make it red", models=str(tiny_models), device="cuda",
+                            ip2p_kwargs={"short_side": 32}).ip2p
+        assert ip.dtype == want and ip.cuda_graph  # the configuration the GPU benchmarks measure
     with pytest.raises(ValueError, match="cuda_graph=True needs the models on a CUDA device"):
         build_guidance("ip2p", "make it red", models=str(tiny_models), cuda_graph=True,
                        ip2p_kwargs={"short_side": 32})

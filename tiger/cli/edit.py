@@ -7,6 +7,8 @@ import time
 
 import torch
 
+from tiger.utils.dtypes import DTYPE_NAMES
+
 from .common import (CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset,
                      output_dir)
 from .text import text_encoder
@@ -41,7 +43,7 @@ def add_parser(sub) -> None:
                    help="pre-sample this many 4-camera sets and render their originals once (0: fresh "
                         "cameras every step, as the paper; 64 is the fast GPU setting; default: %(default)s)")
     p.add_argument("--size", type=int, default=512, help="edit render size in pixels (square; default: %(default)s)")
-    p.add_argument("--dtype", choices=("auto", "fp32", "fp16", "bf16"), default="auto",
+    p.add_argument("--dtype", choices=("auto", *DTYPE_NAMES), default="auto",
                    help="diffusion models' dtype (auto: bf16 on a GPU that has it, else fp16; fp32 on the CPU)")
     p.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
                    help="replay each guidance step as a CUDA graph (default: on with a CUDA --device)")
@@ -57,9 +59,6 @@ def add_parser(sub) -> None:
     p.add_argument("--video", choices=("auto", "mp4", "gif", "none"), default="auto",
                    help="turntable video format (default: %(default)s)")
     p.set_defaults(func=run)
-
-
-MODEL_DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
 
 
 def _model_settings(guidance) -> dict:
@@ -107,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     except EmptyTargetError as e:
         raise CliError(f"--target {args.target!r} retrieves no Gaussian (tau={args.tau}); try another text "
                        "or a lower --tau") from e
-    dtype = None if args.dtype == "auto" else MODEL_DTYPES[args.dtype]
+    dtype = None if args.dtype == "auto" else DTYPE_NAMES[args.dtype]
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
                               color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)
     cams = _cameras(args.data, args.skip_missing)

@@ -29,6 +29,9 @@ def _band(n: int, size: int, sigma: float, dtype: torch.dtype, device: torch.dev
     return M.to(dtype=dtype, device=device)
 
 
+_METHODS = ("conv", "depthwise", "matmul", "shift")
+
+
 def gaussian_blur(x: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
                   method: str = "auto", padding: str = "zeros") -> torch.Tensor:
     """Separable Gaussian filter of [B, C, H, W] ("same" size), taps exp(-d²/2σ²) normalised.
@@ -66,22 +69,18 @@ def _blur(x: torch.Tensor, window_size: int, sigma: float, method: str, padding:
         return bh @ (x @ bw)   # both bands are symmetric
     g = _gauss_1d(window_size, sigma).to(x)
     pad = window_size // 2
-    if method == "depthwise" and padding == "zeros":
-        y = F.conv2d(x, g.view(1, 1, 1, -1).expand(C, 1, 1, -1), padding=(0, pad), groups=C)
-        return F.conv2d(y, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), padding=(pad, 0), groups=C)
+    if method == "depthwise":  # zero padding inside conv2d (no padded copy); reflect padded first
+        zeros = padding == "zeros"
+        src = x if zeros else F.pad(x, (pad, pad, pad, pad), mode="reflect")
+        y = F.conv2d(src, g.view(1, 1, 1, -1).expand(C, 1, 1, -1), padding=(0, pad) if zeros else 0, groups=C)
+        return F.conv2d(y, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), padding=(pad, 0) if zeros else 0, groups=C)
     xp = F.pad(x, (pad, pad, pad, pad), mode="constant" if padding == "zeros" else "reflect")
-    if method == "depthwise":
-        y = F.conv2d(xp, g.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
-        return F.conv2d(y, g.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
     if method == "conv":
         y = xp.reshape(B * C, 1, H + 2 * pad, W + 2 * pad)
         y = F.conv2d(y, g.view(1, 1, 1, -1))
         return F.conv2d(y, g.view(1, 1, -1, 1)).reshape(B, C, H, W)
     rows = sum(g[i] * xp[..., i:i + W] for i in range(window_size))
     return sum(g[i] * rows[..., i:i + H, :] for i in range(window_size))
-
-
-_METHODS = ("conv", "depthwise", "matmul", "shift")
 
 
 class _SelfAdjointBlur(torch.autograd.Function):

@@ -132,10 +132,14 @@ class InstructPix2PixGuidance:
         if not keep_text_encoder:
             models.prompts.release()
         self._cond_cache: dict[tuple[int, int, int], torch.Tensor] = {}
-        self.cuda_graph = bool(cuda_graph)
         self._graphed = GraphedStep(self.step) if cuda_graph else None
         if cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.ip2p: cuda_graph=True needs the models on a CUDA device")
+
+    @property
+    def cuda_graph(self) -> bool:
+        """Whether each step replays as a CUDA graph."""
+        return self._graphed is not None
 
     @classmethod
     def from_registry(cls, instruction: str, path: PathLike | None = None, *, device: str | torch.device = "cpu",
