@@ -65,7 +65,7 @@ def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cu
                        fused_norms: Optional[bool] = None):
     """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
     SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py);
-    ``fused_norms`` as for the real loaders (None, their default: the VAEs fused on CUDA)."""
+    ``fused_norms`` as for the real loaders (None, their default: VAE and UNet fused on CUDA)."""
     from guidance import build_models, tokenizer
 
     from tiger.edit import CSDGuidance
@@ -91,6 +91,49 @@ def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
     dtype = DTYPE_NAMES[args.dtype]
     fused = {"auto": None, "on": True, "off": False}[args.fused_norms]
     return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph, fused_norms=fused), None
+
+
+def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) -> dict:
+    """``cfg.steps`` edit steps under torch.profiler: host (CPU) and GPU ms per stage, the GPU's busy
+    share of the wall time and the host synchronisations, per step. The table goes to
+    ``--profile-out``."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    n = cfg.steps
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        t0 = time.perf_counter()
+        edit(scene, "profile", tgt, guidance, config=cfg)
+        torch.cuda.synchronize()
+        wall = time.perf_counter() - t0
+    spans = sorted((e.time_range.start, e.time_range.end) for e in prof.events()
+                   if e.device_type == DeviceType.CUDA)
+    busy, end = 0.0, -math.inf
+    for a, b in spans:  # the union of the kernels' intervals, us
+        if b > end:
+            busy += b - max(a, end)
+            end = b
+    out = {"profile_steps": n, "profile_wall_ms/step": 1e3 * wall / n, "profile_gpu_busy_ms/step": 1e-3 * busy / n}
+    lines = []
+    for ev in prof.key_averages():
+        dev_us = getattr(ev, "device_time_total", None)
+        dev_us = ev.cuda_time_total if dev_us is None else dev_us
+        if ev.key.startswith("edit::"):
+            stage = ev.key[len("edit::"):]
+            out[f"host_{stage}_ms/step"] = 1e-3 * ev.cpu_time_total / n
+            out[f"gpu_{stage}_ms/step"] = 1e-3 * dev_us / n
+        if "Synchronize" in ev.key or ev.key in ("cudaMemcpyAsync", "cudaMemcpy", "cudaStreamWaitEvent",
+                                                "cudaGraphLaunch", "cudaLaunchKernel", "aten::item",
+                                                "aten::_local_scalar_dense"):
+            out[f"calls_{ev.key}/step"] = ev.count / n
+    if args.profile_out:
+        lines.append(json.dumps(out))
+        lines.append(prof.key_averages().table(sort_by="cpu_time_total", row_limit=45))
+        lines.append(prof.key_averages().table(sort_by="cuda_time_total", row_limit=45))
+        Path(args.profile_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.profile_out).write_text("\n".join(lines))
+    return out
 
 
 def run(args) -> dict:
@@ -138,6 +181,9 @@ def run(args) -> dict:
     row["other_ms/step"] = 1e3 * (total - sum(res.timings_s.values())) / n
     if cuda:
         row["peak_GiB"] = torch.cuda.max_memory_allocated() / 2**30
+    if cuda and args.profile_steps:
+        row.update(profile_steps(scene, tgt, guidance, dataclasses.replace(cfg, steps=args.profile_steps,
+                                                                           progress=False), args))
     row["after"] = len(res.scene)
     white = torch.ones(3, device=scene.device)
     cams = ObjectViews(tgt.center, tgt.bbox_min, tgt.bbox_max, force_360=True, width=128, height=128).fixed(6, 15.0)
@@ -172,6 +218,9 @@ def main() -> None:
     p.add_argument("--lr-color", type=float, default=0.05)
     p.add_argument("--densify-every", type=int, default=25)
     p.add_argument("--progress", action="store_true")
+    p.add_argument("--profile-steps", type=int, default=0,
+                   help="CUDA: after the timed edit, this many steps under torch.profiler (host vs GPU per stage)")
+    p.add_argument("--profile-out", default=None, help="the profiler's tables go here")
     p.add_argument("--json", default=None, help="also write the rows here")
     args = p.parse_args()
     rows = []

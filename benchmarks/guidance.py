@@ -56,7 +56,7 @@ def tokenizer(folder: Path):
 def build_models(size: str, device: str, dtype: torch.dtype, tok,
                  fused_norms: Optional[bool] = False) -> tuple[IP2PModels, MVDreamModels]:
     """Both guidances' models, random weights, built directly on ``device``; ``fused_norms`` as
-    for ``load_ip2p`` / ``load_mvdream`` (None: their default, the VAEs fused on CUDA)."""
+    for ``load_ip2p`` / ``load_mvdream`` (None: their default, VAE and UNet fused on CUDA)."""
     import diffusers
     import transformers
 

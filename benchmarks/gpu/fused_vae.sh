@@ -2,7 +2,7 @@
 # One device call: does tiger's fused GroupNorm+SiLU in channels-last speed up the graphed guidance step and
 # the edit loop? benchmarks/guidance.py --quick with torch's GroupNorm, the VAEs fused (the loaders'
 # default on CUDA) and the UNets fused too (bf16; eager and graph), then a CSD edit with the loaders'
-# default (edit.sh's settings, BUDGET_S).
+# default (edit.sh's settings, BUDGET_S), then PROFILE_STEPS steps under torch.profiler (host vs GPU per stage).
 # From the repo root with .whl and .carry/deb carried; results under $OUT.
 cd "$(dirname "$0")/../.."
 export OUT="${OUT:-outputs}" PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
@@ -17,7 +17,8 @@ tail -9 "$OUT/guidance_fused.txt"
 echo "edit $(date -u +%T)"
 timeout 240 python3 benchmarks/edit.py --device cuda --density 16 --guidance ip2p+mvdream --random-models full \
   --dtype bf16 --steps 1200 --size 512 --warmup 5 --cuda-graph --view-pool 64 --fused-norms auto \
-  --time-budget-s "${BUDGET_S:-120}" --json "$OUT/edit_fused.json" 2>&1 | grep -v -i -e warn -e "Model config" \
+  --time-budget-s "${BUDGET_S:-120}" --profile-steps "${PROFILE_STEPS:-0}" --profile-out "$OUT/edit_profile.txt" \
+  --json "$OUT/edit_fused.json" 2>&1 | grep -v -i -e warn -e "Model config" \
   > "$OUT/edit_fused.txt"
 tail -4 "$OUT/edit_fused.txt"
 echo "end $(date -u +%T)"

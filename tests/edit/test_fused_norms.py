@@ -128,9 +128,24 @@ def test_loader_option_gives_the_same_gradient(tiny_models):
     torch.testing.assert_close(grads[1], grads[0], atol=1e-6, rtol=1e-4)
 
 
-def test_default_is_off_on_the_cpu_and_for_unets(tiny_models):
+def test_default_is_off_on_the_cpu(tiny_models):
     from tiger.edit.guidance.ip2p import load_ip2p
 
     m = load_ip2p(tiny_models / "instruct-pix2pix")  # fused_norms=None on the CPU: nothing changes
     assert not fused_norms_default(m.vae) and not fused_norms_default(m.unet)
     assert apply_fused_norms(m.vae) == 0 and not any(isinstance(x, GroupNormSiLU) for x in m.vae.modules())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA")
+def test_default_on_cuda_fuses_vae_and_unet_not_the_text_encoder(tiny_models):
+    from tiger.edit.guidance.ip2p import load_ip2p
+    from tiger.ops import cuda_enabled
+
+    if not cuda_enabled():
+        pytest.skip("tiger built without its CUDA kernels")
+    m = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
+    for model in (m.vae, m.unet):
+        assert fused_norms_default(model)
+        assert any(isinstance(x, GroupNormSiLU) for x in model.modules())
+        assert not any(type(x) is torch.nn.GroupNorm for x in model.modules())
+    assert not fused_norms_default(torch.nn.Linear(2, 2).cuda())

@@ -77,3 +77,22 @@ def test_reset_opacity_clamps_and_clears_moments():
     st = opt.state[s.opacity_logits]
     assert (st["exp_avg"] == 0).all() and (st["exp_avg_sq"] == 0).all()
     assert math.isclose(float(s.opacities[3].detach()), float(before[3]), rel_tol=1e-4) and before[3] < 0.01
+
+
+def test_stats_add_views_known_answer():
+    """[V, N] views at once equal the hand-computed sums; unseen (radius 0) views change nothing."""
+    stats = DensifyStats.zeros(3, torch.device("cpu"))
+    stats.max_radii[2] = 7.0  # an earlier window's value survives a view that does not see it
+    g = torch.tensor([[[3e-3, 0.0], [0.0, 1e-3], [5.0, 5.0]],     # 10x20 image: NDC = (gx*5, gy*10)
+                      [[0.0, 4e-3], [6e-3, 8e-3], [1.0, 1.0]]])
+    radii = torch.tensor([[2, 4, 0], [5, 1, 0]], dtype=torch.int32)
+    stats.add(g, radii, 10, 20)
+    torch.testing.assert_close(stats.grad_accum, torch.tensor([0.015 + 0.04, 0.01 + (0.03**2 + 0.08**2) ** 0.5, 0.0]))
+    torch.testing.assert_close(stats.count, torch.tensor([2.0, 2.0, 0.0]))
+    torch.testing.assert_close(stats.max_radii, torch.tensor([5.0, 4.0, 7.0]))
+    one = DensifyStats.zeros(3, torch.device("cpu"))
+    one.max_radii[2] = 7.0
+    for v in range(2):  # one view at a time: the same statistics
+        one.add(g[v], radii[v], 10, 20)
+    for a, b in zip(one.state_dict().values(), stats.state_dict().values()):
+        torch.testing.assert_close(a, b)

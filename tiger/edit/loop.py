@@ -105,7 +105,8 @@ class _Timer:
         if self.device.type == "cuda":
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()
-            yield
+            with torch.profiler.record_function(f"edit::{stage}"):  # named ranges for a profiler, if one runs
+                yield
             end.record()
             self._pending.append((stage, start, end))
             if len(self._pending) >= 512:  # bounded: resolve (one sync) now and then
@@ -237,7 +238,8 @@ class EditSession:
 
     # -- one step -------------------------------------------------------------------------------
     def step_once(self) -> dict:
-        """One CSD step (views, renders, guidance, backward, scaled Adam, densification)."""
+        """One CSD step (views, renders, guidance, backward, scaled Adam, densification); the
+        record's ``loss`` may be a 0-d tensor (not read back, so the host need not wait)."""
         cfg, T = self.cfg, self.timer
         self._rng_at_start = (self.gen.get_state(), [g.get_state() for g in _generators(self.guidance)])
         with T("render"):
@@ -256,13 +258,14 @@ class EditSession:
         with T("backward"):
             x.backward(torch.nan_to_num(g.to(x), nan=0.0, posinf=0.0, neginf=0.0))
             if cfg.densify_every and out["means2d"].grad is not None:
-                for v, c in enumerate(cams):
-                    self.stats.add(out["means2d"].grad[v], out["radii"][v], c.width, c.height)
+                self.stats.add(out["means2d"].grad, out["radii"], cams[0].width, cams[0].height)  # one size
         with T("optimizer"):
             self.opt.update()
         self.step += 1
         self._rng_at_start = None  # from here on an interrupt keeps this step
-        rec = {"step": self.step, "loss": float(info.loss), "gaussians": len(self.scene)}
+        # the loss stays a (0-d) tensor: reading it here would wait for the GPU every step
+        loss = info.loss.detach().float() if isinstance(info.loss, torch.Tensor) else float(info.loss)
+        rec = {"step": self.step, "loss": loss, "gaussians": len(self.scene)}
         rec.update({k: float(v) for k, v in info.extra.items() if k.startswith("lambda")})
         until = cfg.densify_until if cfg.densify_until is not None else int(0.9 * cfg.steps)
         if (cfg.densify_every and self.step >= cfg.densify_from and self.step <= until
@@ -341,8 +344,9 @@ class EditSession:
                 self.elapsed = start + time.perf_counter() - t0
                 ema = rec["loss"] if ema is None else 0.9 * ema + 0.1 * rec["loss"]
                 if self.step % 10 == 0 or self.step == cfg.steps or "densify" in rec:
+                    rec["loss"] = float(rec["loss"])  # one read-back per logged step
                     self.history.append(rec)
-                    bar.set_postfix(loss=f"{ema:.4g}", N=rec["gaussians"], refresh=False)
+                    bar.set_postfix(loss=f"{float(ema):.4g}", N=rec["gaussians"], refresh=False)
                 bar.update(1)
                 if checkpoint and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
                     self.save(checkpoint)

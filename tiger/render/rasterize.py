@@ -13,7 +13,7 @@ from tiger.ops.raster import rasterize
 from tiger.ops.sh import sh_to_color
 
 __all__ = ["rasterize_gaussians", "RasterDefaults", "RasterSettings", "Projection", "project_for_raster",
-           "composite", "camera_center", "sh_colors"]
+           "composite", "bin_projection", "camera_center", "sh_colors"]
 
 
 class RasterDefaults:
@@ -273,15 +273,24 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
     return Projection(means2d, conics, depths, opac, radii, feats, background)
 
 
+def bin_projection(p: Projection, width: int, height: int,
+                   settings: RasterSettings = RasterSettings()) -> tuple[Tensor, Tensor]:
+    """Tile binning of a :class:`Projection`: (tile_offsets, gaussian_ids) of :func:`bin_gaussians`.
+    On CUDA it reads the intersection count back (one host synchronisation)."""
+    with torch.no_grad():
+        return bin_gaussians(p.means2d, p.conics, p.opacities, p.depths, p.radii, int(width), int(height),
+                             settings.tile_size, settings.alpha_threshold)
+
+
 def composite(p: Projection, width: int, height: int,
-              settings: RasterSettings = RasterSettings()) -> dict[str, Tensor]:
-    """The second half of :func:`rasterize_gaussians`: tile binning and compositing of a
-    :class:`Projection`; returns the rasterizer's dict."""
+              settings: RasterSettings = RasterSettings(),
+              binned: Optional[tuple[Tensor, Tensor]] = None) -> dict[str, Tensor]:
+    """The second half of :func:`rasterize_gaussians`: tile binning (unless ``binned`` gives
+    :func:`bin_projection`'s result) and compositing of a :class:`Projection`; returns the
+    rasterizer's dict."""
     width, height = int(width), int(height)
     means2d, conics, depths, opac, radii, feats, background = p
-    with torch.no_grad():
-        tile_offsets, gaussian_ids = bin_gaussians(means2d, conics, opac, depths, radii, width,
-                                                   height, settings.tile_size, settings.alpha_threshold)
+    tile_offsets, gaussian_ids = binned if binned is not None else bin_projection(p, width, height, settings)
 
     color, alpha, depth_accum, _, _ = rasterize(
         means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,

@@ -9,7 +9,7 @@ from typing import Any, Iterable, Literal, Optional, Sequence, Union
 import torch
 
 from tiger.render.camera import Camera
-from tiger.render.rasterize import Projection, RasterSettings, composite, project_for_raster, sh_colors
+from tiger.render.rasterize import Projection, RasterSettings, bin_projection, composite, project_for_raster, sh_colors
 
 from .ply import read_ply_state, write_ply_state
 from .sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh, sh_degree_from_rest, sh_to_rgb
@@ -455,8 +455,11 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     # Composite from slices of one stacked means2d, so that its retain_grad() sees every view.
     means2d = torch.stack([p.means2d for p in projections])
     settings = _settings(options)
-    outs = [composite(p._replace(means2d=m), size[0], size[1], settings)
-            for p, m in zip(projections, means2d.unbind(0))]
+    # Every view's binning (one read-back each) before any compositing: the GPU then runs the
+    # composites while the host goes on, instead of waiting at each view's read-back.
+    binned = [bin_projection(p, size[0], size[1], settings) for p in projections]
+    outs = [composite(p._replace(means2d=m), size[0], size[1], settings, binned=b)
+            for p, m, b in zip(projections, means2d.unbind(0), binned)]
     stacked = {k: torch.stack([o[k] for o in outs]) for k in outs[0] if k not in ("n_isects", "means2d")}
     stacked["means2d"] = means2d
     stacked["n_isects"] = torch.tensor([o["n_isects"] for o in outs], dtype=torch.int64)

@@ -6,6 +6,8 @@ scene, so any model (InstructPix2Pix, MVDream, the analytic ideal denoiser, ``re
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Optional, Protocol, Sequence, runtime_checkable
 
@@ -82,8 +84,9 @@ def check_renders(renders: torch.Tensor, who: str, views: Optional[int] = None) 
         raise ValueError(f"tiger.edit.{who}: needs exactly {views} views, got renders with V={renders.shape[0]}")
     if not renders.is_floating_point():
         raise ValueError(f"tiger.edit.{who}: renders must be a float tensor, got {renders.dtype}")
-    if not bool(torch.isfinite(renders).all()):
+    lo_t, hi_t = torch.aminmax(renders)
+    lo, hi = torch.stack([lo_t, hi_t]).float().tolist()  # one read-back (NaN propagates to both)
+    if not (math.isfinite(lo) and math.isfinite(hi)):
         raise ValueError(f"tiger.edit.{who}: renders contain NaN or Inf")
-    lo, hi = float(renders.min()), float(renders.max())
     if lo < -1e-3 or hi > 1 + 1e-3:
         raise ValueError(f"tiger.edit.{who}: renders must lie in [0, 1], got values in [{lo:.4g}, {hi:.4g}]")

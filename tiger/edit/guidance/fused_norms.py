@@ -6,8 +6,8 @@ conversions, but torch's CUDA GroupNorm has no channels-last kernel (it copies t
 returns NCHW), so :func:`fuse_group_norms` swaps the models' GroupNorms for
 :class:`tiger.ops.group_norm.GroupNormSiLU` (channels-last in, channels-last out, the SiLU that
 follows fused in) and :func:`apply_fused_norms` then converts the module to channels-last. By
-default only the VAEs are converted (:func:`fused_norms_default`: measured faster for the VAE
-encoder, slower for the UNet).
+default (on CUDA) the VAEs and the UNets are converted (:func:`fused_norms_default` has the
+figures).
 
 What is replaced (diffusers 0.42, read from its ``forward`` methods):
 
@@ -129,19 +129,22 @@ def fuse_group_norms(module: torch.nn.Module) -> int:
 
 
 def fused_norms_default(module: torch.nn.Module) -> bool:
-    """The default of ``fused_norms=None``: on for a VAE (``AutoencoderKL``) on CUDA with tiger's
-    CUDA kernels built, off otherwise. Measured on the H100 in bf16, eager
-    (``benchmarks/gpu/results/h100_groupnorm_bench.txt``): the SD VAE encoder's forward + backward
-    at 4 x 512² goes from 67.9 to 49.8 ms (peak 6.4 -> 4.6 GiB) and at 4 x 256² from 16.7 to
-    17.6 ms, but the InstructPix2Pix UNet's forward from 45.2 to 54.5 ms: its channels-last
-    convolutions cost more than the norms save (channels-last without fused norms: 56.8 ms). On
-    the CPU the op is the slow reference implementation."""
+    """The default of ``fused_norms=None``: on for the diffusion models (``AutoencoderKL`` and
+    ``UNet2DConditionModel``) on CUDA with tiger's CUDA kernels built, off otherwise (text encoders,
+    the CPU, where the op is the slow reference implementation).
+
+    Measured in bf16 with full-size random weights (``benchmarks/guidance.py``; raw files
+    ``benchmarks/gpu/results/h200_session6_guidance_fused.txt``, H200, and the H100 runs beside it):
+    one graphed 4-view InstructPix2Pix step 84.4 ms (torch's GroupNorm) -> 68.1 ms (VAE fused) ->
+    60.6 ms (VAE and UNet fused; the UNet's eager passes 38.6 -> 31.2 ms), MVDream 25.1 -> 21.0 ->
+    18.6 ms. (Before the transformer blocks kept channels-last, the fused UNet was the slower one.)"""
     from tiger.ops import cuda_enabled
 
     p = next(module.parameters(), None)
     if p is None or p.device.type != "cuda" or not cuda_enabled():
         return False
-    return isinstance(module, require_diffusers("fusing GroupNorm + SiLU").AutoencoderKL)
+    d = require_diffusers("fusing GroupNorm + SiLU")
+    return isinstance(module, (d.AutoencoderKL, d.UNet2DConditionModel))
 
 
 def apply_fused_norms(module: torch.nn.Module, enabled: Optional[bool] = None) -> int:

@@ -61,7 +61,7 @@ def load_ip2p(
     UNet and VAE are cast to ``dtype``; the text encoder runs in float32 on ``device`` and is
     freed once the guidance has encoded its prompts. The VAE decoder is dropped (SDS only encodes).
     ``fused_norms``: True gives UNet and VAE tiger's fused GroupNorm(+SiLU) and channels-last memory
-    (:func:`.fused_norms.apply_fused_norms`); None (default): the VAE only, on CUDA
+    (:func:`.fused_norms.apply_fused_norms`); None (default): both, on CUDA
     (:func:`.fused_norms.fused_norms_default` says why); False: neither.
     """
     folder = resolve_model_path("ip2p", path, config=config, allow_download=allow_download)

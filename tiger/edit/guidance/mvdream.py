@@ -110,7 +110,7 @@ def load_mvdream(
     For the ``.pt``, the LDM config is ``ldm_config`` (mapping, .json or .yaml), else a
     ``sd-v2-base.json``/``.yaml`` beside the checkpoint, else MVDream's sd-v2-base; the tokenizer is
     ``tokenizer``, else ``tokenizer/`` beside the checkpoint, else the ``clip`` model's (same BPE).
-    ``fused_norms``: as for :func:`.ip2p.load_ip2p` (True: both models; None: the VAE on CUDA; False: neither).
+    ``fused_norms``: as for :func:`.ip2p.load_ip2p` (True: both models; None: both on CUDA; False: neither).
     """
     found = resolve_model_path("mvdream", path, config=config, allow_download=allow_download)
     diffusers = require_diffusers("loading MVDream")

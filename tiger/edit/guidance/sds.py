@@ -182,7 +182,7 @@ def freeze(module: torch.nn.Module, device: torch.device | str | None = None,
     """Moved/cast, eval() and no parameter gradients: SDS back-propagates to the input only.
 
     ``fused_norms``: True gives a diffusion model tiger's fused GroupNorm(+SiLU) and channels-last
-    memory, None decides by :func:`.fused_norms.fused_norms_default` (a VAE on CUDA), False (the
+    memory, None decides by :func:`.fused_norms.fused_norms_default` (a VAE or UNet on CUDA), False (the
     default, e.g. for text encoders) leaves it as is (:func:`.fused_norms.apply_fused_norms`).
     The cast uses ``torch.nn.Module.to`` (diffusers' override only adds a warning about
     float32-kept modules, which these models do not have)."""

@@ -37,13 +37,18 @@ class DensifyStats:
         return cls(z.clone(), z.clone(), z.clone())
 
     def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
-        """Record one view: ``means2d_grad`` [N, 2] (pixel units), ``radii`` [N] (0 = not seen)."""
+        """Record views: ``means2d_grad`` [N, 2] or [V, N, 2] (pixel units), ``radii`` [N] or
+        [V, N] (0 = not seen). Masked arithmetic, not boolean indexing: no host synchronisation."""
         vis = radii > 0
-        g = means2d_grad.detach()[vis].float()
-        ndc = torch.stack([g[:, 0] * (0.5 * width), g[:, 1] * (0.5 * height)], -1)
-        self.grad_accum[vis] += ndc.norm(dim=-1)
-        self.count[vis] += 1
-        self.max_radii[vis] = torch.maximum(self.max_radii[vis], radii[vis].float())
+        g = means2d_grad.detach().float()
+        ndc = torch.hypot(g[..., 0] * (0.5 * width), g[..., 1] * (0.5 * height))
+        ndc = torch.where(vis, ndc, 0.0)
+        r = torch.where(vis, radii.float(), 0.0)  # the statistics are >= 0: an unseen view leaves them
+        if vis.dim() == 2:
+            ndc, vis, r = ndc.sum(0), vis.sum(0), r.amax(0)
+        self.grad_accum += ndc
+        self.count += vis
+        torch.maximum(self.max_radii, r, out=self.max_radii)
 
     def mean_grad(self) -> torch.Tensor:
         """[N] mean NDC gradient norm over the views that saw each Gaussian (0 if none)."""
