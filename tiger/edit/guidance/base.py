@@ -70,13 +70,20 @@ class Guidance(Protocol):
 
 
 def check_renders(renders: torch.Tensor, who: str, views: Optional[int] = None) -> None:
-    """Raise a clear ``ValueError`` unless ``renders`` is a finite [V, 3, H, W] batch in [0, 1].
+    """Raise a clear ``ValueError`` unless ``renders`` is a finite [V, 3, H, W] batch in [0, 1]
+    (:func:`check_render_shape`, then :func:`check_render_values`).
 
     Args:
         renders: the tensor to check.
         who: the guidance's name, used in the message.
         views: the exact number of views required (e.g. 4 for MVDream), or None for any.
     """
+    check_render_shape(renders, who, views)
+    check_render_values(renders, who)
+
+
+def check_render_shape(renders: torch.Tensor, who: str, views: Optional[int] = None) -> None:
+    """The checks of :func:`check_renders` that need no values (no host synchronisation)."""
     if not isinstance(renders, torch.Tensor) or renders.ndim != 4 or renders.shape[1] != 3:
         shape = list(renders.shape) if isinstance(renders, torch.Tensor) else type(renders).__name__
         raise ValueError(f"tiger.edit.{who}: renders must be [V, 3, H, W], got {shape}")
@@ -84,8 +91,13 @@ def check_renders(renders: torch.Tensor, who: str, views: Optional[int] = None) 
         raise ValueError(f"tiger.edit.{who}: needs exactly {views} views, got renders with V={renders.shape[0]}")
     if not renders.is_floating_point():
         raise ValueError(f"tiger.edit.{who}: renders must be a float tensor, got {renders.dtype}")
+
+
+def check_render_values(renders: torch.Tensor, who: str) -> None:
+    """Finite and in [0, 1], with one read-back (a guidance calls it after queueing its other
+    inputs, just before its step, so the GPU waits only for the step's launch)."""
     lo_t, hi_t = torch.aminmax(renders)
-    lo, hi = torch.stack([lo_t, hi_t]).float().tolist()  # one read-back (NaN propagates to both)
+    lo, hi = torch.stack([lo_t, hi_t]).float().tolist()  # NaN propagates to both
     if not (math.isfinite(lo) and math.isfinite(hi)):
         raise ValueError(f"tiger.edit.{who}: renders contain NaN or Inf")
     if lo < -1e-3 or hi > 1 + 1e-3:

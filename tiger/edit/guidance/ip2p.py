@@ -24,7 +24,7 @@ import torch
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
 from tiger.utils.lazy import require
 
-from .base import GuidanceInfo, ViewBatch, check_renders
+from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values
 from .cuda_graph import GraphedStep
 from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, encode_latents, finite_clamped, freeze,
                   latent_shape, matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
@@ -209,7 +209,7 @@ class InstructPix2PixGuidance:
              ) -> tuple[torch.Tensor, GuidanceInfo]:
         """dL/drenders [V, 3, H, W] (renders' dtype and device). ``t``, ``noise``, ``vae_noise`` fix
         the random draws (tests); by default they come from ``generator``."""
-        check_renders(renders, self.name)
+        check_render_shape(renders, self.name)
         if views.originals is None or tuple(views.originals.shape) != tuple(renders.shape):
             got = None if views.originals is None else list(views.originals.shape)
             raise ValueError(f"tiger.edit.ip2p: views.originals must match renders {list(renders.shape)}, got {got}")
@@ -224,6 +224,7 @@ class InstructPix2PixGuidance:
         vae_noise = draw_noise(vae_noise, shape, "ip2p.vae_noise", self.generator, self.device)
         t = t.to(self.device, torch.long).reshape(v)
         x = renders.to(self.device, torch.float32)
+        check_render_values(renders, self.name)  # the read-back last: the step is launched right after
         run = self._graphed if self._graphed is not None else self.step
         g = run(x, cond, t, noise, vae_noise).to(renders.device, renders.dtype)
         info = GuidanceInfo(t=t, timings_ms={"total": 1e3 * (time.perf_counter() - start)})

@@ -29,7 +29,7 @@ import torch
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
 from tiger.utils.lazy import require
 
-from .base import GuidanceInfo, ViewBatch, check_renders
+from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values
 from .cuda_graph import GraphedStep
 from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
@@ -279,7 +279,7 @@ class MVDreamGuidance:
              noise: Optional[torch.Tensor] = None, vae_noise: Optional[torch.Tensor] = None
              ) -> tuple[torch.Tensor, GuidanceInfo]:
         """dL/drenders [4, 3, H, W]; ``t`` ([1]), ``noise``, ``vae_noise`` fix the random draws (tests)."""
-        check_renders(renders, self.name, views=NUM_VIEWS)
+        check_render_shape(renders, self.name, views=NUM_VIEWS)
         start = time.perf_counter()
         self.load()
         cams = self.camera_conditions(views)
@@ -289,8 +289,10 @@ class MVDreamGuidance:
         t = t.to(self.device, torch.long).reshape(1)
         noise = draw_noise(noise, shape, "mvdream.noise", self.generator, self.device)
         vae_noise = draw_noise(vae_noise, shape, "mvdream.vae_noise", self.generator, self.device)
+        x = renders.to(self.device, torch.float32)
+        check_render_values(renders, self.name)  # the read-back last: the step is launched right after
         run = self._graphed if self._graphed is not None else self.step
-        g = run(renders.to(self.device, torch.float32), cams, t, noise, vae_noise).to(renders.device, renders.dtype)
+        g = run(x, cams, t, noise, vae_noise).to(renders.device, renders.dtype)
         info = GuidanceInfo(t=t, timings_ms={"total": 1e3 * (time.perf_counter() - start)})
         if self.collect_stats:
             info.extra["grad_norm"] = float(g.float().norm())
