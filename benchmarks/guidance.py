@@ -176,10 +176,12 @@ def profile_table(fn, path: Path, rows: int = 30) -> None:
 
     fn()
     torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
+    with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU], record_shapes=True) as prof:
         fn()
         torch.cuda.synchronize()
-    path.write_text(prof.key_averages().table(sort_by="cuda_time_total", row_limit=rows))
+    path.write_text(prof.key_averages().table(sort_by="cuda_time_total", row_limit=rows) + "\n\nby input shape:\n"
+                    + prof.key_averages(group_by_input_shape=True).table(sort_by="self_cuda_time_total",
+                                                                         row_limit=2 * rows))
 
 
 def measure_memory(ip2p_models, mv_models, rows, meta, renders, views, size) -> None:

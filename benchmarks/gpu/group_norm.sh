@@ -19,7 +19,7 @@ timeout "${TESTS_TIMEOUT:-100}" $PY -m pytest -q -p no:cacheprovider -rs tests/o
 say "tests rc=$?: $(tail -1 "$OUT/tests.log")"
 grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -20 | tee -a "$OUT/check.log"
 say "benchmark"
-timeout "${BENCH_TIMEOUT:-140}" $PY benchmarks/group_norm.py --device cuda --json "$OUT/group_norm_h100.json" \
+timeout "${BENCH_TIMEOUT:-140}" $PY benchmarks/group_norm.py --device cuda ${BENCH_ARGS:-} --json "$OUT/group_norm_h100.json" \
   > "$OUT/group_norm_h100.txt" 2>&1
 say "benchmark rc=$?"
 SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"

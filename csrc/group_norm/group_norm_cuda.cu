@@ -369,6 +369,9 @@ __global__ void __launch_bounds__(kThreads) backward_reduce_kernel(const T* __re
 }
 
 // Per (n, g): per-channel totals (for dw, db) and c1, c2 = Σ w·dz / M, Σ w·dz·x̂ / M.
+// One warp per channel (channels of the group strided over the block's warps), its lanes over
+// the channel's partial entries, a fixed shuffle tree: a group has few channels (4-16 in the
+// SD VAE) but each has a partial per chunk (~100), so lanes, not channels, carry the width.
 template <typename T>
 __global__ void __launch_bounds__(kFinalThreads) finalize_backward_kernel(Partials pt, Params p,
                                                                           const float* __restrict__ pdz,
@@ -377,13 +380,15 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_backward_kernel(Partia
                                                                           float* __restrict__ sum_dzx,
                                                                           float* __restrict__ c1,
                                                                           float* __restrict__ c2) {
-  __shared__ float s_a[kFinalThreads], s_b[kFinalThreads];
+  constexpr int kWarps = kFinalThreads / 32;
+  __shared__ float s_a[kWarps], s_b[kWarps];
   const int64_t ng = blockIdx.x, n = ng / pt.G, g = ng % pt.G, D = pt.C / pt.G;
-  const int64_t per_channel = pt.K * (pt.nhwc ? 1 : pt.V);  // entries of one channel, consecutive in e
-  float wa = 0.f, wb = 0.f;
-  for (int64_t j = threadIdx.x; j < D; j += blockDim.x) {
+  const int64_t per_channel = pt.K * (pt.nhwc ? 1 : pt.V);  // entries of one channel
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  float wa = 0.f, wb = 0.f;  // lane 0: this warp's share of Σ w·a, Σ w·b
+  for (int64_t j = warp; j < D; j += kWarps) {
     float a = 0.f, b = 0.f;
-    for (int64_t q = 0; q < per_channel; ++q) {
+    for (int64_t q = lane; q < per_channel; q += 32) {
       // Entry order of Partials::at: NHWC e = k·D + j, NCHW e = (j·K + k)·V + lane.
       const int64_t e = pt.nhwc ? q * D + j : j * per_channel + q;
       int64_t idx;
@@ -392,27 +397,34 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_backward_kernel(Partia
       a += pdz[idx];
       b += pdzx[idx];
     }
-    const int64_t c = g * D + j;
-    sum_dz[n * pt.C + c] = a;
-    sum_dzx[n * pt.C + c] = b;
-    const float wc = param_at<T>(p, p.weight, c, 1.f);
-    wa += wc * a;
-    wb += wc * b;
-  }
-  s_a[threadIdx.x] = wa;
-  s_b[threadIdx.x] = wb;
-  __syncthreads();
-  for (int s = blockDim.x / 2; s >= 1; s >>= 1) {
-    if (threadIdx.x < s) {
-      s_a[threadIdx.x] = wa = wa + s_a[threadIdx.x + s];
-      s_b[threadIdx.x] = wb = wb + s_b[threadIdx.x + s];
+#pragma unroll
+    for (int o = 16; o >= 1; o >>= 1) {
+      a += __shfl_down_sync(0xffffffffu, a, o);
+      b += __shfl_down_sync(0xffffffffu, b, o);
     }
-    __syncthreads();
+    if (lane == 0) {
+      const int64_t c = g * D + j;
+      sum_dz[n * pt.C + c] = a;
+      sum_dzx[n * pt.C + c] = b;
+      const float wc = param_at<T>(p, p.weight, c, 1.f);
+      wa += wc * a;
+      wb += wc * b;
+    }
   }
+  if (lane == 0) {
+    s_a[warp] = wa;
+    s_b[warp] = wb;
+  }
+  __syncthreads();
   if (threadIdx.x == 0) {
+    float ta = 0.f, tb = 0.f;
+    for (int w = 0; w < kWarps; ++w) {
+      ta += s_a[w];
+      tb += s_b[w];
+    }
     const float m = static_cast<float>(D) * static_cast<float>(pt.rows) * (pt.nhwc ? 1.f : pt.V);
-    c1[ng] = wa / m;
-    c2[ng] = wb / m;
+    c1[ng] = ta / m;
+    c2[ng] = tb / m;
   }
 }
 

@@ -110,14 +110,15 @@ def _fuse_norm_out(module) -> int:
 def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, height, width, inner_dim):
     """``Transformer2DModel._get_output_for_continuous_inputs`` of diffusers 0.42 without its
     ``.contiguous()``: the [B, H·W, C] tokens viewed as a [B, C, H, W] map are channels-last, so
-    the output (and the residual sum) stay channels-last. Same values."""
+    the output (and the residual sum) stay channels-last, and the residual is added in place into
+    the projection's fresh output (a linear layer's backward keeps no output). Same values."""
     if not self.use_linear_projection:
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
         hidden_states = self.proj_out(hidden_states)
     else:
         hidden_states = self.proj_out(hidden_states)
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
-    return hidden_states + residual
+    return hidden_states.add_(residual)
 
 
 def fuse_group_norms(module: torch.nn.Module) -> int:
