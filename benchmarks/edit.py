@@ -154,13 +154,14 @@ def run(args) -> dict:
         if cuda:
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        warm = edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
         if cuda:
             torch.cuda.synchronize()
-        per_step = (time.perf_counter() - t0) / args.warmup
-        projected = per_step * args.steps
+        pool_s = warm.timings_s.get("view_pool", 0.0)  # once per edit, not per step
+        per_step = (time.perf_counter() - t0 - pool_s) / args.warmup
+        projected = per_step * args.steps + pool_s
         if args.time_budget_s and projected > args.time_budget_s:  # keep within the device call
-            cfg = dataclasses.replace(cfg, steps=max(args.warmup, int(args.time_budget_s / per_step)))
+            cfg = dataclasses.replace(cfg, steps=max(args.warmup, int((args.time_budget_s - pool_s) / per_step)))
             print(f"projected {projected:.0f} s for {args.steps} steps > budget: timing {cfg.steps} steps", flush=True)
     if cuda:
         torch.cuda.synchronize()

@@ -15,7 +15,7 @@ export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"  # check.sh installed t
 say() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$OUT/check.log"; }
 say "tests"
 timeout "${TESTS_TIMEOUT:-100}" $PY -m pytest -q -p no:cacheprovider -rs tests/ops/test_group_norm.py \
-  tests/edit/test_fused_norms.py tests/edit/test_cuda_graph.py > "$OUT/tests.log" 2>&1
+  tests/ops/test_channel_bias.py tests/edit/test_fused_norms.py tests/edit/test_cuda_graph.py > "$OUT/tests.log" 2>&1
 say "tests rc=$?: $(tail -1 "$OUT/tests.log")"
 grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -20 | tee -a "$OUT/check.log"
 say "benchmark"

@@ -1,4 +1,5 @@
-"""A small CUDA workload of tiger::group_norm for compute-sanitizer (memcheck / racecheck):
+"""A small CUDA workload of tiger::group_norm and tiger::channel_bias_add (the other kernel of the
+fused diffusion models) for compute-sanitizer (memcheck / racecheck):
 forward and backward (with and without parameter gradients) for every dtype, both layouts,
 with and without SiLU, on shapes that take the 16-byte vector path, the scalar path (C or H·W
 no multiple of the vector, an unaligned view), several row chunks and a several-pass column walk.
@@ -8,6 +9,7 @@ from __future__ import annotations
 import torch
 
 import tiger
+from tiger.ops.channel_bias import channel_bias_add
 from tiger.ops.group_norm import group_norm
 
 SHAPES = [(2, 128, 9, 7, 32), (2, 30, 5, 7, 3), (1, 1280, 4, 4, 32), (1, 64, 40, 24, 8)]
@@ -41,6 +43,17 @@ def main() -> None:
     group_norm(xv, 4, None, None, 1e-6, True).sum().backward()
     torch.cuda.synchronize()
     print("ok unaligned view", flush=True)
+    for n, c, h, w, _ in SHAPES:  # channel_bias_add: vector and scalar paths, both layouts, unaligned
+        for dtype in (torch.float32, torch.bfloat16, torch.float16):
+            x = torch.randn(n, c, h, w, device="cuda", dtype=dtype)
+            b = torch.randn(c, device="cuda", dtype=dtype)
+            for t in (x, x.contiguous(memory_format=torch.channels_last)):
+                assert torch.equal(channel_bias_add(t, b), t + b[None, :, None, None])
+    base = torch.randn(1 + 2 * 30 * 5 * 7, device="cuda", dtype=torch.bfloat16)
+    xu = base[1:].view(2, 30, 5, 7)
+    assert torch.equal(channel_bias_add(xu, base[:30]), xu + base[:30, None, None])
+    torch.cuda.synchronize()
+    print("ok channel_bias_add", flush=True)
 
 
 if __name__ == "__main__":

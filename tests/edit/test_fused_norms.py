@@ -7,7 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from tiger.edit.guidance.fused_norms import SiLUThenLinear, apply_fused_norms, fuse_group_norms, fused_norms_default
+from tiger.edit.guidance.fused_norms import (SiLUThenLinear, apply_fused_norms, bias_after_conv, fuse_group_norms,
+                                             fused_norms_default)
 from tiger.edit.guidance.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config
 from tiger.ops.group_norm import GroupNormSiLU
 
@@ -25,6 +26,9 @@ def _fused_copy(model):
     assert apply_fused_norms(fused, True) == n_plain > 0
     assert not any(type(m) is torch.nn.GroupNorm for m in fused.modules())
     assert fuse_group_norms(fused) == 0  # idempotent
+    convs = [m for m in fused.modules() if type(m) is torch.nn.Conv2d and m.bias is not None]
+    assert convs and all("forward" in m.__dict__ for m in convs)  # bias added by tiger's op
+    assert bias_after_conv(fused) == 0
     assert set(fused.state_dict()) == set(model.state_dict())
     layouts = []
     for m in fused.modules():

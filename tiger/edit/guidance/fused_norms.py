@@ -33,13 +33,14 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
+from tiger.ops.channel_bias import channel_bias_add
 from tiger.ops.group_norm import GroupNormSiLU
 
 from .sds import require_diffusers
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SiLUThenLinear", "fuse_group_norms", "apply_fused_norms", "fused_norms_default"]
+__all__ = ["SiLUThenLinear", "fuse_group_norms", "bias_after_conv", "apply_fused_norms", "fused_norms_default"]
 
 
 class SiLUThenLinear(torch.nn.Linear):
@@ -121,6 +122,23 @@ def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, he
     return hidden_states.add_(residual)
 
 
+def _conv_then_channel_bias(self, x: torch.Tensor) -> torch.Tensor:
+    return channel_bias_add(self._conv_forward(x, self.weight, None), self.bias)
+
+
+def bias_after_conv(module: torch.nn.Module) -> int:
+    """Make every ``torch.nn.Conv2d`` with a bias inside ``module`` add it with
+    :func:`tiger.ops.channel_bias.channel_bias_add` after a bias-free convolution (PyTorch adds
+    it through its generic broadcast kernel, slow on channels-last maps). Same values;
+    idempotent; returns how many convolutions changed."""
+    count = 0
+    for m in module.modules():
+        if type(m) is torch.nn.Conv2d and m.bias is not None and "forward" not in m.__dict__:
+            m.forward = types.MethodType(_conv_then_channel_bias, m)
+            count += 1
+    return count
+
+
 def fuse_group_norms(module: torch.nn.Module) -> int:
     """Replace the GroupNorms of diffusers blocks inside ``module`` by fused
     :class:`GroupNormSiLU` modules (module docstring: which ones, and how the SiLUs move).
@@ -167,7 +185,7 @@ def fused_norms_default(module: torch.nn.Module) -> bool:
 
 
 def apply_fused_norms(module: torch.nn.Module, enabled: Optional[bool] = None) -> int:
-    """:func:`fuse_group_norms`, then ``module`` to channels-last memory; ``enabled=None``:
+    """:func:`fuse_group_norms` and :func:`bias_after_conv`, then ``module`` to channels-last memory; ``enabled=None``:
     :func:`fused_norms_default`. Returns the number of fused norms (0 when not enabled)."""
     if enabled is None:
         enabled = fused_norms_default(module)
@@ -181,6 +199,7 @@ def apply_fused_norms(module: torch.nn.Module, enabled: Optional[bool] = None) -
             raise ValueError("tiger.edit: fused_norms=True on CUDA needs tiger built with its CUDA kernels "
                              "(tiger.ops.cuda_enabled() is False); rebuild with nvcc or pass fused_norms=False")
     count = fuse_group_norms(module)
+    bias_after_conv(module)
     torch.nn.Module.to(module, memory_format=torch.channels_last)
     logger.info("fused %d GroupNorms of %s; channels-last", count, type(module).__name__)
     return count

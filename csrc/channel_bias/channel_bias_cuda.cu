@@ -1,0 +1,89 @@
+// y = x + bias[c] for NCHW and NHWC tensors. ATen's broadcast add takes its generic, unvectorised
+// path for a [1, C, 1, 1] operand (an index computation per element); here every thread moves
+// 16-byte vectors whose V elements share one channel (NCHW, H·W % V == 0) or hold V consecutive
+// channels (NHWC, C % V == 0), with a scalar kernel for the other shapes.
+#include <cuda_bf16.h>
+#include <cuda_fp16.h>
+#include <cuda_runtime.h>
+
+#include <algorithm>
+
+#include "channel_bias/channel_bias_cuda.h"
+#include "common/cuda_helpers.cuh"
+
+namespace tiger {
+namespace channel_bias {
+namespace {
+
+using tiger::cuda::load_as;
+
+template <typename T>
+__device__ __forceinline__ T to_storage(float v);
+template <>
+__device__ __forceinline__ float to_storage<float>(float v) { return v; }
+template <>
+__device__ __forceinline__ __half to_storage<__half>(float v) { return __float2half(v); }
+template <>
+__device__ __forceinline__ __nv_bfloat16 to_storage<__nv_bfloat16>(float v) { return __float2bfloat16(v); }
+
+template <typename T, int V>
+struct alignas(sizeof(T) * V) Vec {
+  T v[V];
+};
+
+constexpr int kThreads = 256;
+
+template <typename T, int V>
+__global__ void __launch_bounds__(kThreads) bias_kernel(const T* __restrict__ x, const T* __restrict__ bias,
+                                                        T* __restrict__ y, int64_t n_vec, int64_t C, int64_t inner,
+                                                        bool nhwc) {
+  const int64_t stride = static_cast<int64_t>(gridDim.x) * blockDim.x;
+  for (int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x; i < n_vec; i += stride) {
+    const int64_t e = i * V;  // first element of the vector
+    const Vec<T, V> xv = reinterpret_cast<const Vec<T, V>*>(x)[i];
+    Vec<T, V> out;
+    if (nhwc) {
+      const int64_t c0 = e % C;  // V consecutive channels (V divides C, or V == 1)
+#pragma unroll
+      for (int j = 0; j < V; ++j)
+        out.v[j] = to_storage<T>(load_as<float>(xv.v[j]) + load_as<float>(bias[c0 + j]));
+    } else {
+      const float b = load_as<float>(bias[(e / inner) % C]);  // one channel (V divides H·W, or V == 1)
+#pragma unroll
+      for (int j = 0; j < V; ++j) out.v[j] = to_storage<T>(load_as<float>(xv.v[j]) + b);
+    }
+    reinterpret_cast<Vec<T, V>*>(y)[i] = out;
+  }
+}
+
+template <typename T, int V>
+void launch(const T* x, const T* bias, T* y, int64_t n, int64_t C, int64_t inner, bool nhwc, cudaStream_t st) {
+  const int64_t n_vec = n / V;
+  const int64_t blocks = std::min<int64_t>((n_vec + kThreads - 1) / kThreads, 65535LL * 8);
+  if (blocks > 0) bias_kernel<T, V><<<static_cast<unsigned>(blocks), kThreads, 0, st>>>(x, bias, y, n_vec, C, inner, nhwc);
+}
+
+bool aligned(const void* p, int bytes) { return reinterpret_cast<uintptr_t>(p) % bytes == 0; }
+
+}  // namespace
+
+template <typename T>
+void launch_channel_bias(const T* x, const T* bias, T* y, int64_t n, int64_t C, int64_t inner, bool nhwc,
+                         void* stream) {
+  constexpr int V = 16 / sizeof(T);
+  const auto st = static_cast<cudaStream_t>(stream);
+  const bool vec = (nhwc ? C % V == 0 : inner % V == 0) && aligned(x, 16) && aligned(y, 16);
+  if (vec)
+    launch<T, V>(x, bias, y, n, C, inner, nhwc, st);
+  else
+    launch<T, 1>(x, bias, y, n, C, inner, nhwc, st);
+}
+
+template void launch_channel_bias<float>(const float*, const float*, float*, int64_t, int64_t, int64_t, bool, void*);
+template void launch_channel_bias<__half>(const __half*, const __half*, __half*, int64_t, int64_t, int64_t, bool,
+                                          void*);
+template void launch_channel_bias<__nv_bfloat16>(const __nv_bfloat16*, const __nv_bfloat16*, __nv_bfloat16*, int64_t,
+                                                 int64_t, int64_t, bool, void*);
+
+}  // namespace channel_bias
+}  // namespace tiger
