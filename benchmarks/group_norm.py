@@ -3,7 +3,8 @@ channels-last, forward and forward+backward (to the input only: the guidance mod
 with the error of each against a float64 evaluation of the formula; then whole models on CUDA:
 the SD VAE encoder forward+backward to its input (4 x 3 x 512², and 256² as MVDream uses it) and
 the InstructPix2Pix UNet forward (3 branches x 4 views, 64² latents), plain vs plain channels-last
-vs fused norms + channels-last (``tiger.edit.guidance.fused_norms``).
+vs fused norms + channels-last (``tiger.edit.guidance.fused_norms``). Also the fused models' other
+op, a convolution's bias add: torch's broadcast add vs ``tiger.ops.channel_bias.channel_bias_add``.
 
 Shapes: the SD VAE encoder's norms (4 x 128 x 512², 4 x 256 x 256², 4 x 512 x 128², 4 x 512 x 64²)
 and the SD-1.5 UNet's at 12 x C x 64² ... 8² (on the CPU: N = 1 and 1/8 of the side, tiny models).
@@ -26,6 +27,7 @@ import torch.nn.functional as F
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
 
+from tiger.ops.channel_bias import channel_bias_add  # noqa: E402
 from tiger.ops.group_norm import group_norm  # noqa: E402
 from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 
@@ -84,6 +86,29 @@ def op_rows(shapes, device: str, dtype: torch.dtype, iters: int) -> list[dict]:
         del x0, gy, leaf, ref, ref_dx
         if device == "cuda":
             torch.cuda.empty_cache()
+    return rows
+
+
+def bias_rows(shapes, device: str, dtype: torch.dtype, iters: int) -> list[dict]:
+    """A convolution's bias add: torch's broadcast ``x + b[:, None, None]`` vs tiger's
+    ``channel_bias_add`` (both layouts), time and error against the float64 sum."""
+    timer = cuda_time_ms if device == "cuda" else cpu_time_ms
+    kw = dict(iters=iters, warmup=3) if device == "cuda" else dict(iters=iters, warmup=1)
+    rows = []
+    for shape in shapes:
+        g = torch.Generator(device=device).manual_seed(1)
+        x0 = torch.randn(shape, device=device, generator=g).to(dtype)
+        b = torch.randn(shape[1], device=device, generator=g).to(dtype)
+        ref = x0.double() + b.double()[None, :, None, None]
+        for layout in ("nchw", "channels_last"):
+            x = x0.contiguous(memory_format=torch.channels_last) if layout != "nchw" else x0
+            row = {"shape": "x".join(map(str, shape)), "layout": layout}
+            for name, fn in (("torch", lambda: x + b[None, :, None, None]), ("tiger", lambda: channel_bias_add(x, b))):
+                row[f"{name}_ms"] = timer(fn, **kw)
+                row[f"{name}_err"] = rel(fn(), ref)
+            row["speedup"] = row["torch_ms"] / row["tiger_ms"]
+            rows.append(row)
+        del x0, ref
     return rows
 
 
@@ -203,6 +228,9 @@ def main() -> None:
     t0 = time.perf_counter()
     out = {"op": op_rows(shapes, args.device, dtype, iters)}
     print_table(out["op"], f"== GroupNorm(32) + SiLU, {dtype}: torch vs tiger (ms; err = max|Δ| / max|ref| vs float64)")
+    out["bias"] = bias_rows(shapes, args.device, dtype, iters)
+    print_table(out["bias"], f"\n== conv bias add, {dtype}: torch's broadcast add vs tiger.channel_bias_add "
+                             "(ms; err vs float64; both round once)")
     if not args.skip_models:
         size = "full" if cuda else "tiny"
         out["vae"] = vae_rows(args.device, dtype, size, [512, 256] if cuda else [32], iters)
