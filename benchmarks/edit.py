@@ -208,7 +208,7 @@ def main() -> None:
     p.add_argument("--cuda-graph", action="store_true", help="replay each guidance step as a CUDA graph")
     p.add_argument("--fused-norms", default="auto", choices=("auto", "on", "off"),
                    help="tiger's fused GroupNorm+SiLU in channels-last: auto = the loaders' default "
-                        "(the VAEs on CUDA), on = VAEs and UNets, off = torch's GroupNorm")
+                        "(VAEs and UNets on CUDA, off on the CPU), on = both everywhere, off = torch's GroupNorm")
     p.add_argument("--warmup", type=int, default=0, help="untimed warm-up steps before the timed edit")
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")
