@@ -10,7 +10,7 @@ namespace {
 
 at::Tensor channel_bias_add_cpu(const at::Tensor& x, const at::Tensor& bias) {
   check_inputs(x, bias);
-  const auto fmt = is_nhwc(x) ? at::MemoryFormat::ChannelsLast : at::MemoryFormat::Contiguous;
+  const auto fmt = memory_format(is_nhwc(x));
   auto y = at::empty_like(x, fmt);
   at::add_out(y, x, bias.reshape({1, -1, 1, 1}));
   return y;

@@ -18,7 +18,7 @@ at::Tensor channel_bias_add_cuda(const at::Tensor& x_in, const at::Tensor& bias_
   TORCH_CHECK(x_in.is_cuda(), kOp, ": x must be on a CUDA device");
   const c10::cuda::CUDAGuard guard(x_in.device());
   const bool nhwc = is_nhwc(x_in);
-  const auto fmt = nhwc ? at::MemoryFormat::ChannelsLast : at::MemoryFormat::Contiguous;
+  const auto fmt = memory_format(nhwc);
   const auto x = x_in.contiguous(fmt);
   const auto bias = bias_in.contiguous();
   auto y = at::empty_like(x, fmt);

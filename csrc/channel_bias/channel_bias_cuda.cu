@@ -16,20 +16,8 @@ namespace channel_bias {
 namespace {
 
 using tiger::cuda::load_as;
-
-template <typename T>
-__device__ __forceinline__ T to_storage(float v);
-template <>
-__device__ __forceinline__ float to_storage<float>(float v) { return v; }
-template <>
-__device__ __forceinline__ __half to_storage<__half>(float v) { return __float2half(v); }
-template <>
-__device__ __forceinline__ __nv_bfloat16 to_storage<__nv_bfloat16>(float v) { return __float2bfloat16(v); }
-
-template <typename T, int V>
-struct alignas(sizeof(T) * V) Vec {
-  T v[V];
-};
+using tiger::cuda::store_as;
+using tiger::cuda::Vec;
 
 constexpr int kThreads = 256;
 
@@ -46,11 +34,11 @@ __global__ void __launch_bounds__(kThreads) bias_kernel(const T* __restrict__ x,
       const int64_t c0 = e % C;  // V consecutive channels (V divides C, or V == 1)
 #pragma unroll
       for (int j = 0; j < V; ++j)
-        out.v[j] = to_storage<T>(load_as<float>(xv.v[j]) + load_as<float>(bias[c0 + j]));
+        out.v[j] = store_as<T>(load_as<float>(xv.v[j]) + load_as<float>(bias[c0 + j]));
     } else {
       const float b = load_as<float>(bias[(e / inner) % C]);  // one channel (V divides H·W, or V == 1)
 #pragma unroll
-      for (int j = 0; j < V; ++j) out.v[j] = to_storage<T>(load_as<float>(xv.v[j]) + b);
+      for (int j = 0; j < V; ++j) out.v[j] = store_as<T>(load_as<float>(xv.v[j]) + b);
     }
     reinterpret_cast<Vec<T, V>*>(y)[i] = out;
   }

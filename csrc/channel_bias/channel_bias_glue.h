@@ -1,18 +1,14 @@
 #pragma once
-// Checks and the layout rule shared by the CPU and CUDA implementations of channel_bias_add.
+// Checks shared by the CPU and CUDA implementations of channel_bias_add (layout: common/memory_format.h).
 #include <ATen/ATen.h>
 
+#include "common/memory_format.h"
 #include "common/torch_checks.h"
 
 namespace tiger {
 namespace channel_bias {
 
 constexpr const char* kOp = "tiger.channel_bias_add";
-
-// Channels-last stays channels-last (when not also plain contiguous); everything else is NCHW.
-inline bool is_nhwc(const at::Tensor& x) {
-  return x.dim() == 4 && !x.is_contiguous() && x.is_contiguous(at::MemoryFormat::ChannelsLast);
-}
 
 inline void check_inputs(const at::Tensor& x, const at::Tensor& bias) {
   TORCH_CHECK(x.dim() == 4, kOp, ": x must be [N, C, H, W], got ", shape_str(x.sizes()));

@@ -23,6 +23,22 @@ __device__ __forceinline__ T load_as(__half v) { return T(__half2float(v)); }
 template <typename T>
 __device__ __forceinline__ T load_as(__nv_bfloat16 v) { return T(__bfloat162float(v)); }
 
+// float -> storage type, rounded once (the inverse of load_as for the reduced types).
+template <typename T>
+__device__ __forceinline__ T store_as(float v);
+template <>
+__device__ __forceinline__ float store_as<float>(float v) { return v; }
+template <>
+__device__ __forceinline__ __half store_as<__half>(float v) { return __float2half(v); }
+template <>
+__device__ __forceinline__ __nv_bfloat16 store_as<__nv_bfloat16>(float v) { return __float2bfloat16(v); }
+
+// V elements moved as one aligned vector (16 bytes for V = 16 / sizeof(T)).
+template <typename T, int V>
+struct alignas(sizeof(T) * V) Vec {
+  T v[V];
+};
+
 // One halving exchange of the reduce-scatter below: lanes whose bit H is set keep the
 // upper half v[H..2H) and send the lower half, the others the opposite. Recursion (not a
 // run-time loop) keeps every index a compile-time constant, so v stays in registers.

@@ -21,22 +21,10 @@ namespace group_norm {
 namespace {
 
 using tiger::cuda::load_as;
+using tiger::cuda::store_as;
+using tiger::cuda::Vec;
 
 constexpr int kFinalThreads = 128;
-
-template <typename T, int V>
-struct alignas(sizeof(T) * V) Vec {
-  T v[V];
-};
-
-template <typename T>
-__device__ __forceinline__ T store_as(float v);
-template <>
-__device__ __forceinline__ float store_as<float>(float v) { return v; }
-template <>
-__device__ __forceinline__ __half store_as<__half>(float v) { return __float2half(v); }
-template <>
-__device__ __forceinline__ __nv_bfloat16 store_as<__nv_bfloat16>(float v) { return __float2bfloat16(v); }
 
 template <typename T>
 __device__ __forceinline__ float param_at(const Params& p, const void* ptr, int64_t c, float fill) {

@@ -4,21 +4,12 @@
 
 #include <cmath>
 
+#include "common/memory_format.h"
 #include "common/torch_checks.h"
 #include "group_norm/group_norm.h"
 
 namespace tiger {
 namespace group_norm {
-
-// Channels-last when x is in that format and not also plain contiguous (then NCHW wins);
-// every other stride pattern is copied to NCHW. The output takes the same format.
-inline bool is_nhwc(const at::Tensor& x) {
-  return !x.is_contiguous() && x.is_contiguous(at::MemoryFormat::ChannelsLast);
-}
-
-inline at::MemoryFormat memory_format(bool nhwc) {
-  return nhwc ? at::MemoryFormat::ChannelsLast : at::MemoryFormat::Contiguous;
-}
 
 // Statistics (mean, rstd) and parameter gradients: float64 for float64 x (CPU), else float32.
 inline at::ScalarType stat_dtype(const at::Tensor& x) {

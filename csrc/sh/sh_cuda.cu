@@ -1,6 +1,7 @@
 // CUDA kernels of the spherical-harmonics ops: one thread per Gaussian, the same
 // sh_eval / sh_eval_vjp as the CPU kernels (optionally with rows staged in shared memory).
 #include <cstdlib>
+#include <type_traits>
 
 #include "common/cuda_helpers.cuh"
 #include "common/sh_math.h"
@@ -83,12 +84,7 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
   stage_out(s_grad, v_coeffs, rows, width, row);
 }
 
-template <typename T>
-bool use_staged() {
-  return false;
-}
-template <>
-bool use_staged<float>() {
+bool staged_enabled() {
   static const bool on = [] {
     const char* v = std::getenv("TIGER_SH_STAGED");
     return v != nullptr && v[0] == '1';
@@ -107,11 +103,12 @@ cudaError_t sh_to_color_cuda_launch(const T* dirs, const T* coeffs, int64_t n, i
                                     int degree, const bool* visible, T* colors,
                                     cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  if (use_staged<T>() && staged_bytes(k, 1) <= 48 * 1024) {
-    sh_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k, 1), stream>>>(
-        reinterpret_cast<const float*>(dirs), reinterpret_cast<const float*>(coeffs), n, k, degree, visible,
-        reinterpret_cast<float*>(colors));
-    return cudaGetLastError();
+  if constexpr (std::is_same<T, float>::value) {
+    if (staged_enabled() && staged_bytes(k, 1) <= 48 * 1024) {
+      sh_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k, 1), stream>>>(
+          dirs, coeffs, n, k, degree, visible, colors);
+      return cudaGetLastError();
+    }
   }
   sh_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(dirs, coeffs, n, k, degree,
                                                                       visible, colors);
@@ -123,11 +120,12 @@ cudaError_t sh_to_color_backward_cuda_launch(const T* dirs, const T* coeffs, int
                                              int degree, const bool* visible, const T* v_colors,
                                              T* v_dirs, T* v_coeffs, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  if (use_staged<T>() && staged_bytes(k, 2) <= 48 * 1024) {
-    sh_backward_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k, 2), stream>>>(
-        reinterpret_cast<const float*>(dirs), reinterpret_cast<const float*>(coeffs), n, k, degree, visible,
-        reinterpret_cast<const float*>(v_colors), reinterpret_cast<float*>(v_dirs), reinterpret_cast<float*>(v_coeffs));
-    return cudaGetLastError();
+  if constexpr (std::is_same<T, float>::value) {
+    if (staged_enabled() && staged_bytes(k, 2) <= 48 * 1024) {
+      sh_backward_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k, 2), stream>>>(
+          dirs, coeffs, n, k, degree, visible, v_colors, v_dirs, v_coeffs);
+      return cudaGetLastError();
+    }
   }
   sh_backward_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
       dirs, coeffs, n, k, degree, visible, v_colors, v_dirs, v_coeffs);

@@ -11,19 +11,14 @@ from __future__ import annotations
 
 import torch
 
+from ._layout import output_format
+
 __all__ = ["channel_bias_add"]
-
-
-def _output_format(x: torch.Tensor) -> torch.memory_format:
-    """Channels-last stays channels-last (when not also contiguous); anything else is NCHW."""
-    if not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
-        return torch.channels_last
-    return torch.contiguous_format
 
 
 @torch.library.register_fake("tiger::channel_bias_add")
 def _fake(x, bias):
-    return torch.empty_like(x, memory_format=_output_format(x))
+    return torch.empty_like(x, memory_format=output_format(x))
 
 
 def _setup_context(ctx, inputs, output):

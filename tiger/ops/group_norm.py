@@ -14,15 +14,9 @@ from typing import Optional
 
 import torch
 
+from ._layout import output_format
+
 __all__ = ["group_norm", "GroupNormSiLU"]
-
-
-def _output_format(x: torch.Tensor) -> torch.memory_format:
-    """The layout rule of the kernels (group_norm_glue.h): channels-last stays channels-last,
-    everything else becomes contiguous NCHW."""
-    if not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
-        return torch.channels_last
-    return torch.contiguous_format
 
 
 def _stat_dtype(x: torch.Tensor) -> torch.dtype:
@@ -32,13 +26,13 @@ def _stat_dtype(x: torch.Tensor) -> torch.dtype:
 @torch.library.register_fake("tiger::group_norm")
 def _fake(x, weight, bias, num_groups, eps, silu):
     stats = x.new_empty((x.shape[0], num_groups), dtype=_stat_dtype(x))
-    return torch.empty_like(x, memory_format=_output_format(x)), stats, stats.new_empty(stats.shape)
+    return torch.empty_like(x, memory_format=output_format(x)), stats, stats.new_empty(stats.shape)
 
 
 @torch.library.register_fake("tiger::group_norm_backward")
 def _fake_backward(grad_y, x, weight, bias, mean, rstd, num_groups, silu, param_grads):
     c = x.shape[1] if param_grads else 0
-    return (torch.empty_like(x, memory_format=_output_format(x)), x.new_empty((c,), dtype=_stat_dtype(x)),
+    return (torch.empty_like(x, memory_format=output_format(x)), x.new_empty((c,), dtype=_stat_dtype(x)),
             x.new_empty((c,), dtype=_stat_dtype(x)))
 
 
