@@ -6,7 +6,8 @@ from typing import Optional
 
 import torch
 
-from tiger.utils.filters import gaussian_blur
+from tiger.ops.ssim import fused_ssim
+from tiger.utils.filters import gaussian_blur, gaussian_taps
 
 __all__ = ["gaussian_blur", "ssim_map", "ssim", "l1", "photometric_loss", "psnr", "SSIM_C1", "SSIM_C2"]
 
@@ -23,11 +24,14 @@ def _to_bchw(img: torch.Tensor, name: str) -> torch.Tensor:
 
 
 def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11,
-             sigma: float = 1.5) -> torch.Tensor:
+             sigma: float = 1.5, fused: Optional[bool] = None) -> torch.Tensor:
     """Per-pixel SSIM of two images with a Gaussian window (size 11, sigma 1.5).
 
     Args:
         img1, img2: [H, W, C] or [B, C, H, W], values in [0, 1] (C1, C2 assume range 1).
+        fused: use the fused kernels (:func:`tiger.ops.ssim.fused_ssim`); None: whenever they
+            apply (float32/float64, an odd window of at most 11 taps, ``img2`` not requiring
+            grad). False: tensor ops (the reference, and the path for the other cases).
     Returns:
         [B, C, H, W] SSIM map; borders use zero padding (as INRIA's training loss), so
         ``ssim_map(...).mean()`` is INRIA's ``ssim``.
@@ -35,6 +39,15 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11,
     a, b = _to_bchw(img1, "img1"), _to_bchw(img2, "img2")
     if a.shape != b.shape:
         raise ValueError(f"tiger.recon: ssim inputs differ in shape: {list(a.shape)} vs {list(b.shape)}")
+    fusable = (a.dtype in (torch.float32, torch.float64) and b.dtype == a.dtype and window_size % 2 == 1
+               and window_size <= 11 and not b.requires_grad)
+    if fused and not fusable:
+        raise ValueError("tiger.recon: ssim_map(fused=True) needs float32/float64 images of one dtype, an odd "
+                         f"window of at most 11 taps and img2 without grad (got {a.dtype}/{b.dtype}, "
+                         f"window {window_size}, img2.requires_grad={b.requires_grad})")
+    if fusable and fused is not False:
+        taps = gaussian_taps(window_size, float(sigma)).tolist()
+        return fused_ssim(a, b.to(a.device), taps, SSIM_C1, SSIM_C2)
     C = a.shape[1]
     # the five local moments in one filtering pass
     m = gaussian_blur(torch.cat([a, b, a * a, b * b, a * b], 1), window_size, sigma)

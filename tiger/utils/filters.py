@@ -7,11 +7,12 @@ from functools import lru_cache
 import torch
 import torch.nn.functional as F
 
-__all__ = ["gaussian_blur", "dilate"]
+__all__ = ["gaussian_blur", "gaussian_taps", "dilate"]
 
 
 @lru_cache(maxsize=8)
-def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
+def gaussian_taps(size: int, sigma: float) -> torch.Tensor:
+    """[size] float64 normalised taps exp(-d²/2σ²) of the 1-D window (d in pixels from the centre)."""
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-(x * x) / (2 * sigma * sigma))
     return g / g.sum()
@@ -20,7 +21,7 @@ def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
 @lru_cache(maxsize=16)
 def _band(n: int, size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """[n, n] matrix M with (M @ x) = the 1-D Gaussian filter of x with zero padding."""
-    g = _gauss_1d(size, sigma)
+    g = gaussian_taps(size, sigma)
     M = torch.zeros(n, n, dtype=torch.float64)
     for i in range(size):
         off = i - size // 2
@@ -67,7 +68,7 @@ def _blur(x: torch.Tensor, window_size: int, sigma: float, method: str, padding:
         bh = _band(H, window_size, sigma, x.dtype, x.device)
         bw = _band(W, window_size, sigma, x.dtype, x.device)
         return bh @ (x @ bw)   # both bands are symmetric
-    g = _gauss_1d(window_size, sigma).to(x)
+    g = gaussian_taps(window_size, sigma).to(x)
     pad = window_size // 2
     if method == "depthwise":  # zero padding inside conv2d (no padded copy); reflect padded first
         zeros = padding == "zeros"
