@@ -1,5 +1,6 @@
 """SSIM (the 3DGS D-SSIM loss): run time of forward+backward against the error vs a
-float64 SciPy reference, for each Gaussian-filter method and image size.
+float64 SciPy reference, for each Gaussian-filter method of the tensor-op SSIM and for the fused
+kernels (tiger::fused_ssim, "fused"), at each image size.
 
     python benchmarks/recon_ssim.py [--device cpu|cuda] [--threads N]
 """
@@ -12,7 +13,7 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
-from tiger.recon.losses import gaussian_blur
+from tiger.recon.losses import gaussian_blur, ssim_map
 from tiger.utils.filters import _blur
 
 
@@ -43,7 +44,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--sizes", default="64x64,240x135,480x270,960x540")
-    ap.add_argument("--methods", default="conv-autograd,conv,depthwise,matmul,shift")
+    ap.add_argument("--methods", default="fused,conv-autograd,conv,depthwise,matmul,shift")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -71,6 +72,10 @@ def main() -> None:
 
             def step() -> torch.Tensor:
                 x.grad = None
+                if m == "fused":
+                    s = ssim_map(x, tb, fused=True).mean()
+                    s.backward()
+                    return s
                 C = x.shape[1]
                 stack = torch.cat([x, tb, x * x, tb * tb, x * tb], 1)
                 # "conv-autograd": the former path, autograd through conv2d (cuDNN's data gradient)
