@@ -1,7 +1,6 @@
 """Photometric losses and image metrics: L1, SSIM (INRIA/Wang et al.), PSNR."""
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import torch
@@ -9,7 +8,7 @@ import torch
 from tiger.ops.ssim import fused_ssim
 from tiger.utils.filters import gaussian_blur, gaussian_taps
 
-__all__ = ["gaussian_blur", "ssim_map", "ssim", "l1", "photometric_loss", "psnr", "SSIM_C1", "SSIM_C2"]
+__all__ = ["gaussian_blur", "ssim_map", "ssim", "l1", "photometric_loss", "psnr", "psnr_tensor", "SSIM_C1", "SSIM_C2"]
 
 SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2
@@ -79,7 +78,13 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
 
 def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
     """PSNR in dB of [H, W, C] images in [0, 1] (both clamped to [0, 1] first), over the
-    pixels where ``mask`` [H, W] is True (default all)."""
+    pixels where ``mask`` [H, W] is True (default all); ``inf`` for identical images."""
+    return float(psnr_tensor(img1, img2, mask))
+
+
+def psnr_tensor(img1: torch.Tensor, img2: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """:func:`psnr` as a 0-d float64 tensor on the images' device, computed without a read-back
+    to the host (a training loop can log it later without stalling the GPU)."""
     err = (img1.detach().clamp(0, 1) - img2.detach().clamp(0, 1)) ** 2
-    mse = float(err.mean() if mask is None else err[mask.to(err.device)].mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    mse = (err.mean() if mask is None else err[mask.to(err.device)].mean()).double()
+    return -10.0 * torch.log10(mse)   # log10(0) = -inf: identical images give +inf

@@ -118,8 +118,11 @@ class SceneOptimizer:
             if n in lrs:
                 self._leaves[n] = leaf
                 groups.append({"params": [leaf], "lr": float(lrs[n]), "name": n})
+        # On CUDA, the fused Adam (one multi-tensor kernel per step instead of foreach's chain of
+        # them): about a third of the optimizer's GPU time on a 1M-Gaussian training step.
+        fused = bool(groups) and all(g["params"][0].is_cuda for g in groups)
         self.optimizer: Optional[torch.optim.Adam] = (
-            torch.optim.Adam(groups, lr=0.0, betas=self.betas, eps=self.eps) if groups else None)
+            torch.optim.Adam(groups, lr=0.0, betas=self.betas, eps=self.eps, fused=fused) if groups else None)
 
     # -- inspection ---------------------------------------------------------------------------
     @property

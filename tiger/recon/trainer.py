@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
 from pathlib import Path
@@ -18,7 +17,7 @@ from tiger.scene.gaussian_scene import GaussianScene
 from .appearance import AffineAppearance
 from .config import ReconConfig, expon_lr
 from .init import colors_from_views
-from .losses import photometric_loss, psnr, ssim
+from .losses import photometric_loss, psnr, psnr_tensor, ssim
 from .step import SceneOptimizer
 from .strategy import DensifyStats, inria_densify, reset_opacity
 
@@ -167,8 +166,10 @@ class Trainer:
         return torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
 
     # -- training -----------------------------------------------------------------------
-    def train_step(self) -> dict:
-        """One optimizer step on one view; returns {'loss', 'psnr', 'gaussians'}."""
+    def train_step(self, read_back: bool = True) -> dict:
+        """One optimizer step on one view; returns {'loss', 'psnr', 'gaussians'}: floats, or with
+        ``read_back=False`` 0-d tensors on the device (no host synchronisation for them, so the
+        GPU is not drained at the end of every step; :meth:`fit` reads them every 10 steps)."""
         c = self.cfg
         self.step += 1
         self.opt.set_lr("means", self._means_lr())
@@ -198,7 +199,9 @@ class Trainer:
         densifying = c.densify and self.step <= c.densify_until
         if densifying and out["means2d"].grad is not None:
             self.stats.add(out["means2d"].grad, out["radii"], cam.width, cam.height)
-        info = {"loss": float(res.loss), "psnr": psnr(out["color"], target, mask), "gaussians": len(self.scene)}
+        info = {"loss": res.loss, "psnr": psnr_tensor(out["color"], target, mask), "gaussians": len(self.scene)}
+        if read_back:
+            info["loss"], info["psnr"] = float(info["loss"]), float(info["psnr"])
         if densifying and self.step > c.densify_from and self.step % c.densify_interval == 0:
             reset_done = c.opacity_reset_interval and self.step > c.opacity_reset_interval
             info["densify"] = inria_densify(
@@ -222,13 +225,15 @@ class Trainer:
         t0 = time.perf_counter()
         start = self.elapsed
         while self.step < c.iterations:
-            info = self.train_step()
+            info = self.train_step(read_back=False)
             self.elapsed = start + time.perf_counter() - t0
+            # running means on the device; read back only when shown
             ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
-            p = info["psnr"] if math.isfinite(info["psnr"]) else 99.0
+            p = info["psnr"].nan_to_num(posinf=99.0)
             ema_psnr = p if ema_psnr is None else 0.9 * ema_psnr + 0.1 * p
             if self.step % 10 == 0 or self.step == c.iterations:
-                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", N=len(self.scene), refresh=False)
+                bar.set_postfix(loss=f"{float(ema_loss):.4f}", psnr=f"{float(ema_psnr):.2f}", N=len(self.scene),
+                                refresh=False)
             bar.update(1)
             if c.eval_every and self.test_cameras and self.step % c.eval_every == 0:
                 self._record_eval()
