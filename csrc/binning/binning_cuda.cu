@@ -1,12 +1,15 @@
 // CUDA tile binning: count (one thread per small Gaussian; the larger ones appended to a
 // compact list) -> count of the large ones (one warp, or one block for the giant ones, per
-// Gaussian) -> int64 scan -> emit (both kinds) of (tile, depth) keys -> CUB radix sort -> tile
-// ranges. The tile test is tile_touches from common/raster_math.h, so a tile is listed only
-// where the ellipse reaches alpha >= threshold at one of its pixel centres. A Gaussian covering
-// thousands of tiles is walked by a whole block (256 candidates per step), so it no longer
-// stalls one thread's warp (one thread per Gaussian did: 3 ms of a 3.9 ms forward on a real
-// scene); no scan of candidate counts or binary search is needed (v2 had both: a regression on
-// the uniform standard scene).
+// Gaussian) -> depth order of the Gaussians (radix sort of N depth keys) -> counts in that order,
+// int64 scan -> emit (both kinds) of 32-bit tile keys, each Gaussian into its depth-ordered
+// segment -> stable CUB radix sort on the tile bits only -> tile ranges. Emitting in depth order
+// and sorting stably by tile gives the (tile, depth, id) order of a sort on 64-bit (tile, depth)
+// keys, for a sort over ~13 key bits instead of ~45 (2 radix passes instead of 6, 8-byte pairs
+// instead of 12) plus one sort of N keys. The tile test is tile_touches from
+// common/raster_math.h, so a tile is listed only where the ellipse reaches alpha >= threshold at
+// one of its pixel centres. A Gaussian covering thousands of tiles is walked by a whole block
+// (256 candidates per step), so it no longer stalls one thread's warp (one thread per Gaussian
+// did: 3 ms of a 3.9 ms forward on a real scene).
 #include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
 
@@ -27,12 +30,12 @@ constexpr int kWarps = kThreads / 32;
 // Gaussians with at most kSmallTiles candidate (bounding-box) tiles are binned by one thread
 // each, walking their box in row-major order: balanced for them (no thread of a warp does
 // more than kSmallTiles tests) and no coordination. The larger ones go to a compact list
-// (count kernel, block-aggregated appends): up to kGiantTiles candidates one warp per
-// Gaussian (32 tests per step), beyond one block per Gaussian (256 per step). Both walk the
-// candidates in the same row-major order as one thread would and emit the hits in that order
-// (ballot + prefix count), so a Gaussian's segment is written exactly as by the serial kernel.
+// (count kernel, block-aggregated appends): up to giant_tiles candidates (kGiantTiles unless
+// the glue says otherwise) one warp per Gaussian (32 tests per step), beyond one block per
+// Gaussian (256 per step). Both walk the candidates in the same row-major order as one thread
+// would and emit the hits in that order (ballot + prefix count), so a Gaussian's segment is
+// written exactly as by the serial kernel.
 constexpr int kSmallTiles = 32;
-constexpr int64_t kGiantTiles = 2048;
 
 template <typename T>
 __device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const int32_t* radii,
@@ -161,31 +164,26 @@ __global__ void __launch_bounds__(kThreads)
             });
 }
 
-template <typename T>
-__device__ __forceinline__ uint32_t depth_bits(T d) {
-  return cuda::depth_key_bits(float(d));
+// First entry of Gaussian i's segment: the segments follow the depth order (rank[i]).
+__device__ __forceinline__ int64_t segment_start(int64_t i, const int32_t* rank, const int64_t* offsets) {
+  const int32_t r = rank[i];
+  return r == 0 ? 0 : offsets[r - 1];
 }
 
-template <typename T>
-__device__ __forceinline__ uint64_t depth_key(int64_t i, const T* depths, const int32_t* depth_rank) {
-  return depth_rank ? uint64_t(uint32_t(depth_rank[i])) : uint64_t(depth_bits(depths[i]));
-}
-
-// Writes the (tile, depth) keys of large Gaussian i's touched tiles, in row-major order, into
-// its segment [offsets[i-1], offsets[i]): the same layout as the serial emit.
+// Writes the tile keys of large Gaussian i's touched tiles, in row-major order, into its
+// segment: the same layout as the serial emit.
 template <typename T>
 __global__ void __launch_bounds__(kThreads)
-    emit_large_kernel(const T* means2d, const T* conics, const T* opacities, const T* depths,
-                      const int32_t* radii, const int32_t* depth_rank, const int32_t* large_ids,
-                      const unsigned int* counters, int64_t n, BinGeometry g, T alpha_threshold,
-                      const int64_t* offsets, uint64_t* keys, int32_t* ids) {
+    emit_large_kernel(const T* means2d, const T* conics, const T* opacities, const int32_t* radii,
+                      const int32_t* rank, const int32_t* large_ids, const unsigned int* counters,
+                      int64_t n, BinGeometry g, T alpha_threshold, const int64_t* offsets,
+                      uint32_t* keys, int32_t* ids) {
   for_large(means2d, conics, opacities, radii, large_ids, counters, n, g, alpha_threshold,
             [&](int64_t i, auto&& walk, bool) {
-              const int64_t first = i == 0 ? 0 : offsets[i - 1];
-              const uint64_t dkey = depth_key(i, depths, depth_rank);
-              walk([&](int64_t rank, int tile) {
-                keys[first + rank] = (uint64_t(tile) << 32) | dkey;
-                ids[first + rank] = int32_t(i);
+              const int64_t first = segment_start(i, rank, offsets);
+              walk([&](int64_t k, int tile) {
+                keys[first + k] = uint32_t(tile);
+                ids[first + k] = int32_t(i);
               });
             });
 }
@@ -241,7 +239,8 @@ template <typename T>
 __global__ void __launch_bounds__(kThreads)
     count_small_kernel(const T* means2d, const T* conics, const T* opacities,
                        const int32_t* radii, int64_t n, BinGeometry g, T alpha_threshold,
-                       int64_t* counts, int32_t* large_ids, unsigned int* counters) {
+                       int64_t giant_tiles, int64_t* counts, int32_t* large_ids,
+                       unsigned int* counters) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   const int64_t small_max = large_ids ? kSmallTiles : INT64_MAX;
   int64_t cand = 0;
@@ -254,51 +253,61 @@ __global__ void __launch_bounds__(kThreads)
     counts[i] = c;
   }
   if (large_ids)  // uniform: every thread of the block takes part
-    append_large(cand > small_max && cand <= kGiantTiles, cand > kGiantTiles, i, n, large_ids,
+    append_large(cand > small_max && cand <= giant_tiles, cand > giant_tiles, i, n, large_ids,
                  counters);
 }
 
 template <typename T>
 __global__ void emit_small_kernel(const T* means2d, const T* conics, const T* opacities,
-                                  const T* depths, const int32_t* radii, const int32_t* depth_rank,
-                                  int64_t n, BinGeometry g, T alpha_threshold, int64_t small_max,
-                                  const int64_t* offsets, uint64_t* keys, int32_t* ids) {
+                                  const int32_t* radii, const int32_t* rank, int64_t n,
+                                  BinGeometry g, T alpha_threshold, int64_t small_max,
+                                  const int64_t* offsets, uint32_t* keys, int32_t* ids) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const TileRect r = rect_of(i, means2d, radii, g);
   const int64_t cand = r.count();
   if (cand == 0 || cand > small_max) return;
-  int64_t k = i == 0 ? 0 : offsets[i - 1];
-  const uint64_t dkey = depth_key(i, depths, depth_rank);
+  int64_t k = segment_start(i, rank, offsets);
   visit_tiles(i, r, means2d, conics, opacities, radii, g, alpha_threshold, [&](int tile) {
-    keys[k] = (uint64_t(tile) << 32) | dkey;
+    keys[k] = uint32_t(tile);
     ids[k] = int32_t(i);
     ++k;
   });
 }
 
 // tile_offsets[t] = first sorted index whose tile is >= t; tile_offsets[n_tiles] = m.
-__global__ void ranges_kernel(const uint64_t* keys, int64_t m, int64_t n_tiles,
+__global__ void ranges_kernel(const uint32_t* keys, int64_t m, int64_t n_tiles,
                               int64_t* tile_offsets) {
   const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= m) return;
-  const int64_t tile = int64_t(keys[k] >> 32);
-  const int64_t prev = k == 0 ? -1 : int64_t(keys[k - 1] >> 32);
+  const int64_t tile = int64_t(keys[k]);
+  const int64_t prev = k == 0 ? -1 : int64_t(keys[k - 1]);
   for (int64_t t = prev + 1; t <= tile; ++t) tile_offsets[t] = k;
   if (k == m - 1)
     for (int64_t t = tile + 1; t <= n_tiles; ++t) tile_offsets[t] = m;
 }
 
-__global__ void depth_keys_kernel(const double* depths, int64_t n, uint64_t* keys, int32_t* ids) {
+// Order-preserving unsigned keys of the depths (float: 32 bits, double: 64) and ids 0..n-1.
+template <typename T>
+__global__ void depth_keys_kernel(const T* depths, int64_t n, DepthKey<T>* keys, int32_t* ids) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  keys[i] = cuda::depth_key_bits64(depths[i]);
+  if constexpr (sizeof(T) == 4)
+    keys[i] = cuda::depth_key_bits(float(depths[i]));
+  else
+    keys[i] = cuda::depth_key_bits64(double(depths[i]));
   ids[i] = int32_t(i);
 }
 
-__global__ void scatter_rank_kernel(const int32_t* sorted_ids, int64_t n, int32_t* rank) {
-  const int64_t r = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (r < n) rank[sorted_ids[r]] = int32_t(r);
+// counts_in_order[k] = counts[order[k]] (for the scan that places the segments in depth order)
+// and rank[order[k]] = k.
+__global__ void order_counts_kernel(const int32_t* order, const int64_t* counts, int64_t n,
+                                    int64_t* counts_in_order, int32_t* rank) {
+  const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= n) return;
+  const int32_t i = order[k];
+  counts_in_order[k] = counts[i];
+  rank[i] = int32_t(k);
 }
 
 }  // namespace bin_cuda
@@ -316,15 +325,15 @@ static cudaError_t full_grid(int& blocks) {
 template <typename T>
 cudaError_t bin_count_cuda(const T* means2d, const T* conics, const T* opacities,
                            const int32_t* radii, int64_t n, BinGeometry g, T alpha_threshold,
-                           int64_t* counts, int32_t* large_ids, unsigned int* large_counters,
-                           cudaStream_t stream) {
+                           int64_t giant_tiles, int64_t* counts, int32_t* large_ids,
+                           unsigned int* large_counters, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
   if (large_ids) {
     const cudaError_t err = cudaMemsetAsync(large_counters, 0, 2 * sizeof(unsigned int), stream);
     if (err != cudaSuccess) return err;
   }
   count_small_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
-      means2d, conics, opacities, radii, n, g, alpha_threshold, counts, large_ids,
+      means2d, conics, opacities, radii, n, g, alpha_threshold, giant_tiles, counts, large_ids,
       large_counters);
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess || large_ids == nullptr) return err;
@@ -337,37 +346,64 @@ cudaError_t bin_count_cuda(const T* means2d, const T* conics, const T* opacities
   return cudaGetLastError();
 }
 
+template <typename T>
+cudaError_t bin_depth_order_cuda(void* temp, size_t& temp_bytes, const T* depths, int64_t n,
+                                 DepthKey<T>* keys, DepthKey<T>* keys_alt, int32_t* ids,
+                                 int32_t* ids_alt, int32_t** order, cudaStream_t stream) {
+  cub::DoubleBuffer<DepthKey<T>> k(keys, keys_alt);
+  cub::DoubleBuffer<int32_t> v(ids, ids_alt);
+  if (temp == nullptr)
+    return cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, k, v, n, 0,
+                                           int(8 * sizeof(DepthKey<T>)), stream);
+  if (n == 0) return cudaSuccess;
+  depth_keys_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(depths, n, keys, ids);
+  cudaError_t err = cudaGetLastError();
+  if (err != cudaSuccess) return err;
+  err = cub::DeviceRadixSort::SortPairs(temp, temp_bytes, k, v, n, 0, int(8 * sizeof(DepthKey<T>)),
+                                        stream);
+  *order = v.Current();
+  return err;
+}
+
+cudaError_t bin_order_counts_cuda(const int32_t* order, const int64_t* counts, int64_t n,
+                                  int64_t* counts_in_order, int32_t* rank, cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  order_counts_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(order, counts, n,
+                                                                           counts_in_order, rank);
+  return cudaGetLastError();
+}
+
 cudaError_t bin_scan_cuda(void* temp, size_t& temp_bytes, const int64_t* counts, int64_t* offsets,
                           int64_t n, cudaStream_t stream) {
   return cub::DeviceScan::InclusiveSum(temp, temp_bytes, counts, offsets, n, stream);
 }
 
 template <typename T>
-cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities, const T* depths,
-                          const int32_t* radii, const int32_t* depth_rank,
-                          const int32_t* large_ids, const unsigned int* large_counters, int64_t n,
-                          BinGeometry g, T alpha_threshold, const int64_t* offsets,
-                          uint64_t* keys, int32_t* ids, cudaStream_t stream) {
+cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities,
+                          const int32_t* radii, const int32_t* rank, const int32_t* large_ids,
+                          const unsigned int* large_counters, int64_t n, BinGeometry g,
+                          T alpha_threshold, const int64_t* offsets, uint32_t* keys, int32_t* ids,
+                          cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
   const int64_t small_max = large_ids ? kSmallTiles : INT64_MAX;
   emit_small_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
-      means2d, conics, opacities, depths, radii, depth_rank, n, g, alpha_threshold, small_max,
-      offsets, keys, ids);
+      means2d, conics, opacities, radii, rank, n, g, alpha_threshold, small_max, offsets, keys,
+      ids);
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess || large_ids == nullptr) return err;
   int blocks = 0;
   err = full_grid(blocks);
   if (err != cudaSuccess) return err;
-  emit_large_kernel<T><<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, depths, radii,
-                                                        depth_rank, large_ids, large_counters, n,
-                                                        g, alpha_threshold, offsets, keys, ids);
+  emit_large_kernel<T><<<blocks, kThreads, 0, stream>>>(means2d, conics, opacities, radii, rank,
+                                                        large_ids, large_counters, n, g,
+                                                        alpha_threshold, offsets, keys, ids);
   return cudaGetLastError();
 }
 
-cudaError_t bin_sort_cuda(void* temp, size_t& temp_bytes, uint64_t* keys, uint64_t* keys_alt,
+cudaError_t bin_sort_cuda(void* temp, size_t& temp_bytes, uint32_t* keys, uint32_t* keys_alt,
                           int32_t* ids, int32_t* ids_alt, int64_t m, int end_bit,
-                          uint64_t** keys_out, int32_t** ids_out, cudaStream_t stream) {
-  cub::DoubleBuffer<uint64_t> k(keys, keys_alt);
+                          uint32_t** keys_out, int32_t** ids_out, cudaStream_t stream) {
+  cub::DoubleBuffer<uint32_t> k(keys, keys_alt);
   cub::DoubleBuffer<int32_t> v(ids, ids_alt);
   const cudaError_t err =
       cub::DeviceRadixSort::SortPairs(temp, temp_bytes, k, v, m, 0, end_bit, stream);
@@ -376,7 +412,7 @@ cudaError_t bin_sort_cuda(void* temp, size_t& temp_bytes, uint64_t* keys, uint64
   return err;
 }
 
-cudaError_t bin_ranges_cuda(const uint64_t* sorted_keys, int64_t m, int64_t n_tiles,
+cudaError_t bin_ranges_cuda(const uint32_t* sorted_keys, int64_t m, int64_t n_tiles,
                             int64_t* tile_offsets, cudaStream_t stream) {
   if (m == 0) return cudaMemsetAsync(tile_offsets, 0, sizeof(int64_t) * (n_tiles + 1), stream);
   ranges_kernel<<<cuda::ceil_div(m, kThreads), kThreads, 0, stream>>>(sorted_keys, m, n_tiles,
@@ -384,32 +420,16 @@ cudaError_t bin_ranges_cuda(const uint64_t* sorted_keys, int64_t m, int64_t n_ti
   return cudaGetLastError();
 }
 
-cudaError_t bin_depth_rank_cuda(void* temp, size_t& temp_bytes, const double* depths, int64_t n,
-                                uint64_t* keys, uint64_t* keys_alt, int32_t* ids, int32_t* ids_alt,
-                                int32_t* rank, cudaStream_t stream) {
-  if (temp == nullptr) {
-    return bin_sort_cuda(nullptr, temp_bytes, keys, keys_alt, ids, ids_alt, n, 64, nullptr,
-                         nullptr, stream);
-  }
-  if (n == 0) return cudaSuccess;
-  depth_keys_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(depths, n, keys, ids);
-  cudaError_t err = cudaGetLastError();
-  if (err != cudaSuccess) return err;
-  int32_t* sorted = nullptr;
-  err = bin_sort_cuda(temp, temp_bytes, keys, keys_alt, ids, ids_alt, n, 64, nullptr, &sorted,
-                      stream);
-  if (err != cudaSuccess) return err;
-  scatter_rank_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(sorted, n, rank);
-  return cudaGetLastError();
-}
-
 #define TIGER_INSTANTIATE(T)                                                                     \
   template cudaError_t bin_count_cuda<T>(const T*, const T*, const T*, const int32_t*, int64_t,  \
-                                         BinGeometry, T, int64_t*, int32_t*, unsigned int*,      \
-                                         cudaStream_t);                                          \
-  template cudaError_t bin_emit_cuda<T>(const T*, const T*, const T*, const T*, const int32_t*,  \
+                                         BinGeometry, T, int64_t, int64_t*, int32_t*,            \
+                                         unsigned int*, cudaStream_t);                           \
+  template cudaError_t bin_depth_order_cuda<T>(void*, size_t&, const T*, int64_t, DepthKey<T>*,  \
+                                               DepthKey<T>*, int32_t*, int32_t*, int32_t**,      \
+                                               cudaStream_t);                                    \
+  template cudaError_t bin_emit_cuda<T>(const T*, const T*, const T*, const int32_t*,            \
                                         const int32_t*, const int32_t*, const unsigned int*,     \
-                                        int64_t, BinGeometry, T, const int64_t*, uint64_t*,      \
+                                        int64_t, BinGeometry, T, const int64_t*, uint32_t*,      \
                                         int32_t*, cudaStream_t);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)

@@ -19,6 +19,15 @@ ProjectLaunch<T> make_launch(const at::Tensor& m, const at::Tensor& q, const at:
           K.data_ptr<T>(), m.size(0), int(width), int(height), T(eps2d), T(near_plane),
           T(far_plane), T(alpha_threshold), antialiased};
 }
+
+// An incoming gradient [N] or [N, k] in dtype dt whose last dimension is contiguous (rows may
+// be strided: the rasterizer's backward returns views of its [N, 8] buffer, read in place).
+at::Tensor gradient_rows(const at::Tensor& g, at::ScalarType dt) {
+  at::Tensor t = g.to(dt);
+  if (t.dim() == 2 && t.stride(1) != 1) t = t.contiguous();
+  if (t.size(0) <= 1) t = t.contiguous();  // stride(0) of a 1-row view may be arbitrary
+  return t;
+}
 }  // namespace
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_gaussians_cuda(
@@ -78,17 +87,18 @@ project_gaussians_backward_cuda(const at::Tensor& means, const at::Tensor& quats
   auto v_cam = camera_grad ? at::empty({n, 16}, means.options()) : at::Tensor();
   const auto m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous(),
              o = opacities.contiguous(), V = viewmat.contiguous(), Kc = K.contiguous(),
-             r = radii.contiguous(), vm = v_means2d.to(means.scalar_type()).contiguous(),
-             vc = v_conics.to(means.scalar_type()).contiguous(),
-             vd = v_depths.to(means.scalar_type()).contiguous(),
-             vo = v_opacities.to(means.scalar_type()).contiguous();
+             r = radii.contiguous(), vm = gradient_rows(v_means2d, means.scalar_type()),
+             vc = gradient_rows(v_conics, means.scalar_type()),
+             vd = gradient_rows(v_depths, means.scalar_type()),
+             vo = gradient_rows(v_opacities, means.scalar_type());
+  const VRowStrides strides{vm.stride(0), vc.stride(0), vd.stride(0), vo.stride(0)};
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_gaussians_backward_cuda", [&] {
     using T = scalar_t;
     const auto a = make_launch<T>(m, q, s, o, V, Kc, width, height, eps2d, 0.0, 0.0, 0.0,
                                   antialiased);
     const cudaError_t err = project_gaussians_backward_cuda_launch<T>(
         a, r.data_ptr<int32_t>(), vm.data_ptr<T>(), vc.data_ptr<T>(), vd.data_ptr<T>(),
-        vo.data_ptr<T>(), v_means.data_ptr<T>(), v_quats.data_ptr<T>(), v_scales.data_ptr<T>(),
+        vo.data_ptr<T>(), strides, v_means.data_ptr<T>(), v_quats.data_ptr<T>(), v_scales.data_ptr<T>(),
         v_opac.data_ptr<T>(), camera_grad ? v_cam.data_ptr<T>() : nullptr,
         c10::cuda::getCurrentCUDAStream().stream());
     TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));

@@ -48,8 +48,8 @@ __global__ void project_kernel(ProjectLaunch<T> a, T* means2d, T* conics, T* dep
 template <typename T>
 __global__ void project_backward_kernel(ProjectLaunch<T> a, const int32_t* radii,
                                         const T* v_means2d, const T* v_conics, const T* v_depths,
-                                        const T* v_opac, T* g_means, T* g_quats, T* g_scales,
-                                        T* g_opac, T* v_cam) {
+                                        const T* v_opac, VRowStrides st, T* g_means, T* g_quats,
+                                        T* g_scales, T* g_opac, T* v_cam) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= a.n) return;
   if (radii[2 * i] == 0) {  // culled: zero gradients (the outputs are not zero-filled)
@@ -68,8 +68,10 @@ __global__ void project_backward_kernel(ProjectLaunch<T> a, const int32_t* radii
   ProjectionGrads<T> g{};
   g.R = mat3_zero<T>();
   project_gaussian_vjp<T>(a.means + 3 * i, a.quats + 4 * i, a.scales + 3 * i, a.opacities[i], cam,
-                          opt, v_means2d[2 * i], v_means2d[2 * i + 1], v_conics[3 * i],
-                          v_conics[3 * i + 1], v_conics[3 * i + 2], v_depths[i], v_opac[i], g);
+                          opt, v_means2d[st.means2d * i], v_means2d[st.means2d * i + 1],
+                          v_conics[st.conics * i], v_conics[st.conics * i + 1],
+                          v_conics[st.conics * i + 2], v_depths[st.depths * i],
+                          v_opac[st.opacities * i], g);
 #pragma unroll
   for (int k = 0; k < 3; ++k) {
     g_means[3 * i + k] = g.mean[k];
@@ -109,11 +111,13 @@ template <typename T>
 cudaError_t project_gaussians_backward_cuda_launch(const ProjectLaunch<T>& a, const int32_t* radii,
                                                    const T* v_means2d, const T* v_conics,
                                                    const T* v_depths, const T* v_opac,
-                                                   T* g_means, T* g_quats, T* g_scales,
-                                                   T* g_opac, T* v_cam, cudaStream_t stream) {
+                                                   VRowStrides strides, T* g_means, T* g_quats,
+                                                   T* g_scales, T* g_opac, T* v_cam,
+                                                   cudaStream_t stream) {
   if (a.n == 0) return cudaSuccess;
   project_backward_kernel<T><<<cuda::ceil_div(a.n, kThreads), kThreads, 0, stream>>>(
-      a, radii, v_means2d, v_conics, v_depths, v_opac, g_means, g_quats, g_scales, g_opac, v_cam);
+      a, radii, v_means2d, v_conics, v_depths, v_opac, strides, g_means, g_quats, g_scales, g_opac,
+      v_cam);
   return cudaGetLastError();
 }
 
@@ -121,8 +125,8 @@ cudaError_t project_gaussians_backward_cuda_launch(const ProjectLaunch<T>& a, co
   template cudaError_t project_gaussians_cuda_launch<T>(const ProjectLaunch<T>&, T*, T*, T*, T*, \
                                                         int32_t*, cudaStream_t);               \
   template cudaError_t project_gaussians_backward_cuda_launch<T>(                              \
-      const ProjectLaunch<T>&, const int32_t*, const T*, const T*, const T*, const T*, T*, T*,  \
-      T*, T*, T*, cudaStream_t);
+      const ProjectLaunch<T>&, const int32_t*, const T*, const T*, const T*, const T*,            \
+      VRowStrides, T*, T*, T*, T*, T*, cudaStream_t);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
 #undef TIGER_INSTANTIATE

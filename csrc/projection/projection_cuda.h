@@ -22,13 +22,20 @@ cudaError_t project_gaussians_cuda_launch(const ProjectLaunch<T>& a, T* means2d,
                                           T* depths, T* opac_out, int32_t* radii,
                                           cudaStream_t stream);
 
+// Row strides (in elements) of the incoming gradients, whose last dimension is contiguous: the
+// rasterizer's backward hands them over as views of one [N, 8] buffer (stride 8), uncopied.
+struct VRowStrides {
+  int64_t means2d, conics, depths, opacities;
+};
+
 // v_cam [N,16] (optional, may be null): per-Gaussian rows (R 3x3 | t) x 3 rows as a 3x4
 // block, then fx, fy, cx, cy; summed by the caller. Per-Gaussian outputs are written (=).
 template <typename T>
 cudaError_t project_gaussians_backward_cuda_launch(const ProjectLaunch<T>& a, const int32_t* radii,
                                                    const T* v_means2d, const T* v_conics,
                                                    const T* v_depths, const T* v_opac,
-                                                   T* g_means, T* g_quats, T* g_scales,
-                                                   T* g_opac, T* v_cam, cudaStream_t stream);
+                                                   VRowStrides strides, T* g_means, T* g_quats,
+                                                   T* g_scales, T* g_opac, T* v_cam,
+                                                   cudaStream_t stream);
 
 }  // namespace tiger

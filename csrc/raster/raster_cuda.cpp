@@ -142,7 +142,7 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto opts = means2d.options();
   // The kernel adds into these atomically. The geometry rows and the per-tile background
-  // terms share one zero fill (both are copied or reduced below, never returned as views);
+  // terms share one zero fill (the geometry gradients are returned as views of it);
   // v_colors is returned as is, so it keeps its own buffer.
   const int64_t tiles = num_tiles(a);
   auto acc = at::zeros({n * 8 + tiles * C}, opts);
@@ -168,9 +168,9 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                  v_bg_tiles.data_ptr<T>(), c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
-  return {v_geom.narrow(1, 0, 2).contiguous(), v_geom.narrow(1, 2, 3).contiguous(),
-          v_geom.select(1, 5).contiguous(), v_colors, v_geom.select(1, 6).contiguous(),
-          v_bg_tiles.sum(0)};
+  // Views of the [N, 8] rows, not copies: the projection's backward reads them strided.
+  return {v_geom.narrow(1, 0, 2), v_geom.narrow(1, 2, 3), v_geom.select(1, 5), v_colors,
+          v_geom.select(1, 6), v_bg_tiles.sum(0)};
 }
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(

@@ -226,3 +226,26 @@ def test_cuda_balanced_binning_identical_to_former_on_borderline_and_heavy():
     proj = _project(heavy_tailed_scene(1_000_000, 3), w, h, "cuda", torch.float32)
     balanced, former = _bin(proj, w, h), _bin(proj, w, h, serial=True)
     assert torch.equal(balanced[0], former[0]) and torch.equal(balanced[1], former[1])
+
+
+@pytest.mark.cuda
+@CUDA_SKIP
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_cuda_depth_ties_and_giant_thresholds(dtype):
+    """The CUDA binning emits in depth order and sorts stably by tile: equal depths must come
+    out by id as on the CPU, whichever kernels (thread, warp, block: TIGER_BIN_GIANT_TILES
+    moves the warp/block split) walk the Gaussians."""
+    w, h = 640, 480
+    scene = _with_culled(heavy_tailed_scene(6000, 3, dtype=F64, seed=6))
+    m2, cn, d, op, r = _project(scene, w, h, "cuda", dtype)
+    d = (d * 4).round() / 4  # a handful of distinct depths: many ties
+    proj = (m2, cn, d, op, r)
+    cpu = _bin([t.cpu() for t in proj], w, h)
+    assert int((cpu[0][1:] - cpu[0][:-1]).max()) > 50
+    for giant in ("33", "200", "100000"):
+        os.environ["TIGER_BIN_GIANT_TILES"] = giant
+        try:
+            got = _bin(proj, w, h)
+        finally:
+            os.environ.pop("TIGER_BIN_GIANT_TILES")
+        assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1]), giant

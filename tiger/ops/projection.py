@@ -74,8 +74,7 @@ def _backward(ctx: Any, v_means2d, v_conics, v_depths, v_opac, _v_radii):
     camera_grad = bool(need[4] or need[5])
     g = torch.ops.tiger.project_gaussians_backward(
         means, quats, scales, opacities, viewmat, K, radii, width, height, eps2d, antialiased,
-        v_means2d.contiguous(), v_conics.contiguous(), v_depths.contiguous(), v_opac.contiguous(),
-        camera_grad)
+        v_means2d, v_conics, v_depths, v_opac, camera_grad)  # both glues take strided rows
     grads = [gi if need[i] else None for i, gi in enumerate(g)]
     return (*grads, None, None, None, None, None, None, None)
 
