@@ -164,7 +164,7 @@ def stage_kind(name: str) -> str:
     if any(k in n for k in ("candidates_kernel", "count_balanced", "emit_balanced", "count_serial",
                             "emit_serial", "count_small", "emit_small", "count_large", "emit_large",
                             "ranges_kernel", "scan", "isect", "intersect", "depth_keys",
-                            "scatter_rank")):
+                            "scatter_rank", "order_counts")):
         return "bin"
     if "raster" in n or "forward_kernel" in n:
         return "raster"
@@ -224,13 +224,16 @@ def same_lists(scene, V, K, w, h) -> bool:
     return bool(torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]))
 
 
-def bin_op_times(scene, V, K, w, h, iters) -> dict:
+def bin_op_times(scene, V, K, w, h, iters, giant_sweep=()) -> dict:
     """ms of the binning op alone (bin + sort + its host synchronisation): the default (large
-    Gaussians by one warp or block each) and the former one-thread-per-Gaussian binning
-    (TIGER_BIN_SERIAL=1)."""
+    Gaussians by one warp or block each), the former one-thread-per-Gaussian binning
+    (TIGER_BIN_SERIAL=1) and the default with each warp/block threshold of ``giant_sweep``
+    (TIGER_BIN_GIANT_TILES, candidate tiles)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
     out = {}
-    for name, env in (("bin_op", {}), ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})):
+    variants = [("bin_op", {}), ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})]
+    variants += [(f"bin_op_giant{t}", {"TIGER_BIN_GIANT_TILES": str(t)}) for t in giant_sweep]
+    for name, env in variants:
         os.environ.update(env)
         try:
             out[name] = cuda_time_ms(lambda: torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16,
@@ -293,7 +296,7 @@ def host_profile(render, scene, V, K, w, h, path: Path, reps: int = 5) -> None:
 
 def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
     res = {"case": name, "width": w, "height": h, "radii": radii_stats(scene, V, K, w, h)}
-    res["bin_op"] = bin_op_times(scene, V, K, w, h, args.iters)
+    res["bin_op"] = bin_op_times(scene, V, K, w, h, args.iters, args.giant_sweep)
     log(f"== {name} {w}x{h}: radii {fmt(res['radii'])}; {fmt(res['bin_op'])}")
     res["rows"], res["stages"], res["kernels"] = [], [], {}
     for C in args.channels:
@@ -349,6 +352,8 @@ def main() -> None:
     p.add_argument("--fox-budget", type=float, default=40.0, help="seconds of training")
     p.add_argument("--n", type=int, default=1_000_000, help="Gaussians of the synthetic cases")
     p.add_argument("--no-gsplat", action="store_true")
+    p.add_argument("--giant-sweep", type=lambda s: [int(x) for x in s.split(",") if x], default=[],
+                   help="also time the binning op with these warp/block thresholds (candidate tiles)")
     p.add_argument("--host-profile", default="snowmiku-1080p",
                    help="case whose C=3 forward+backward is profiled on the CPU side (file in --out)")
     p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "outputs/real_scenes")))

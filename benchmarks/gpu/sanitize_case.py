@@ -3,7 +3,8 @@
 Exercises every CUDA op of the rendering core once per configuration: projection (and its
 backward with camera gradients), SH, binning, rasterize forward, full backward and the
 features-only backward, for float32, float64 and float16/bfloat16 channel storage, with
-channel counts that hit single, main+tail and masked channel blocks, and a partial edge tile.
+channel counts that hit single, main+tail and masked channel blocks, and a partial edge tile;
+then the training loss's fused SSIM (forward and backward, ragged tiles, two window radii).
 """
 from __future__ import annotations
 
@@ -67,8 +68,25 @@ def run_heavy_binning(n: int, w: int, h: int, dtype: torch.dtype) -> None:
           f"culled={int((r[:, 0] == 0).sum())}", flush=True)
 
 
+def run_ssim(shape: tuple, taps: int, dtype: torch.dtype) -> None:
+    from tiger.ops.ssim import fused_ssim
+    from tiger.utils.filters import gaussian_taps
+
+    g = torch.Generator(device="cuda").manual_seed(3)
+    x = torch.rand(shape, device="cuda", dtype=dtype, generator=g).requires_grad_()
+    y = torch.rand(shape, device="cuda", dtype=dtype, generator=g)
+    m = fused_ssim(x, y, gaussian_taps(taps, 1.5).tolist(), 1e-4, 9e-4)
+    m.backward(torch.rand_like(m))
+    torch.cuda.synchronize()
+    assert torch.isfinite(x.grad).all()
+    print(f"ok fused ssim {shape} taps={taps} {dtype}", flush=True)
+
+
 def main() -> None:
     assert tiger.ops.cuda_enabled() and torch.cuda.is_available()
+    for shape, taps, dtype in (((1, 3, 37, 70), 11, torch.float32), ((2, 2, 19, 33), 5, torch.float32),
+                               ((1, 3, 21, 45), 11, torch.float64), ((1, 1, 3, 2), 11, torch.float32)):
+        run_ssim(shape, taps, dtype)
     for C in (3, 67, 40):
         run(400, C, torch.float32, None, None, False)
         run(400, C, torch.float32, None, None, True)
@@ -80,8 +98,8 @@ def main() -> None:
     run(0, 3, torch.float32, None, None, False)
     run_heavy_binning(600, 200, 150, torch.float32)
     run_heavy_binning(300, 97, 61, torch.float64)
-    # 1280x720: 159 Gaussians for one warp each and 3 beyond 2048 candidate tiles (one block
-    # each, the shared-memory walk racecheck must see)
+    # 1280x720: Gaussians for one warp each and some beyond the block threshold (512 candidate
+    # tiles: one block each, the shared-memory walk racecheck must see)
     run_heavy_binning(1500, 1280, 720, torch.float32)
 
 

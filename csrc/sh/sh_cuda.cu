@@ -30,7 +30,7 @@ __global__ void sh_backward_kernel(const T* dirs, const T* coeffs, int64_t n, in
 
 constexpr int kThreads = 256;
 
-// Staged variants (float only, TIGER_SH_STAGED=1 until measured on the device): a block copies its
+// Staged variants (float; the default, TIGER_SH_STAGED=0 selects the plain kernels): a block copies its
 // Gaussians' coefficient rows [rows, k, 3] between global and shared memory with consecutive
 // threads on consecutive words, so the 4·3·k-byte rows of neighbouring threads are read and
 // written in coalesced transactions instead of one strided row per thread. The shared row is
@@ -39,25 +39,33 @@ constexpr int kThreads = 256;
 // unused bases), like the zero-initialised output of the plain kernel.
 constexpr int kStagedThreads = 64;
 
-__device__ __forceinline__ int64_t staged_rows(int64_t n) {
-  return min(static_cast<int64_t>(blockDim.x), n - static_cast<int64_t>(blockIdx.x) * blockDim.x);
+// Block-local indices are 32-bit (kStagedThreads rows of 3k words, within 48 KiB): a 64-bit
+// division per copied word cost more than the copy (the first device run of these kernels).
+__device__ __forceinline__ int staged_rows(int64_t n) {
+  return static_cast<int>(min(static_cast<int64_t>(blockDim.x), n - static_cast<int64_t>(blockIdx.x) * blockDim.x));
 }
 
-__device__ __forceinline__ void stage_in(const float* g, float* s, int64_t rows, int64_t width, int64_t row) {
-  const int64_t base = static_cast<int64_t>(blockIdx.x) * blockDim.x * width;
-  for (int64_t e = threadIdx.x; e < rows * width; e += blockDim.x) s[(e / width) * row + e % width] = g[base + e];
+__device__ __forceinline__ void stage_in(const float* g, float* s, int rows, int width, int row) {
+  const float* src = g + static_cast<int64_t>(blockIdx.x) * blockDim.x * width;
+  for (int e = threadIdx.x; e < rows * width; e += blockDim.x) {
+    const int r = e / width;
+    s[r * row + (e - r * width)] = src[e];
+  }
 }
 
-__device__ __forceinline__ void stage_out(const float* s, float* g, int64_t rows, int64_t width, int64_t row) {
-  const int64_t base = static_cast<int64_t>(blockIdx.x) * blockDim.x * width;
-  for (int64_t e = threadIdx.x; e < rows * width; e += blockDim.x) g[base + e] = s[(e / width) * row + e % width];
+__device__ __forceinline__ void stage_out(const float* s, float* g, int rows, int width, int row) {
+  float* dst = g + static_cast<int64_t>(blockIdx.x) * blockDim.x * width;
+  for (int e = threadIdx.x; e < rows * width; e += blockDim.x) {
+    const int r = e / width;
+    dst[e] = s[r * row + (e - r * width)];
+  }
 }
 
 __global__ void __launch_bounds__(kStagedThreads) sh_staged_kernel(const float* dirs, const float* coeffs, int64_t n,
                                                                    int64_t k, int degree, const bool* visible,
                                                                    float* colors) {
   extern __shared__ float s_coeffs[];  // [blockDim][3k + 1]
-  const int64_t width = 3 * k, row = width + 1, rows = staged_rows(n);
+  const int width = static_cast<int>(3 * k), row = width + 1, rows = staged_rows(n);
   stage_in(coeffs, s_coeffs, rows, width, row);
   __syncthreads();
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -70,11 +78,11 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
                                                                             const bool* visible, const float* v_colors,
                                                                             float* v_dirs, float* v_coeffs) {
   extern __shared__ float s_mem[];  // coefficients, then their gradients: [blockDim][3k + 1] each
-  const int64_t width = 3 * k, row = width + 1, rows = staged_rows(n);
+  const int width = static_cast<int>(3 * k), row = width + 1, rows = staged_rows(n);
   float* s_coeffs = s_mem;
   float* s_grad = s_mem + blockDim.x * row;
   stage_in(coeffs, s_coeffs, rows, width, row);
-  for (int64_t e = threadIdx.x; e < blockDim.x * row; e += blockDim.x) s_grad[e] = 0.f;
+  for (int e = threadIdx.x; e < static_cast<int>(blockDim.x) * row; e += blockDim.x) s_grad[e] = 0.f;
   __syncthreads();
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (threadIdx.x < rows && !(visible && !visible[i]))
@@ -86,8 +94,9 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
 
 bool staged_enabled() {
   static const bool on = [] {
+    // measured on the H100 at 1M Gaussians, degree 3: forward+backward 2.05 ms plain, 0.97 staged
     const char* v = std::getenv("TIGER_SH_STAGED");
-    return v != nullptr && v[0] == '1';
+    return v == nullptr || v[0] != '0';
   }();
   return on;
 }

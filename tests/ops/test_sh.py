@@ -7,7 +7,7 @@ import torch
 from tiger.ops.sh import sh_to_color
 from tiger.render.reference import sh_to_color_ref
 
-from ..render.devices import DEVICES
+from ..render.devices import CUDA_SKIP, DEVICES
 from .opargs import F64, ops
 
 
@@ -65,7 +65,7 @@ torch.save(out, sys.argv[1])
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif("cuda" not in DEVICES, reason="needs a CUDA device and tiger built with CUDA")
+@CUDA_SKIP
 def test_cuda_staged_rows_match_plain_kernel_and_reference(tmp_path):
     """TIGER_SH_STAGED=1 (coefficient rows through shared memory) against the plain kernels (bit for
     bit: the same arithmetic on the same values) and the float64 reference; block-boundary sizes,
