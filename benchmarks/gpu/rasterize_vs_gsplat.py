@@ -239,7 +239,8 @@ def stage_table(args):
         g = rb()
         pb = lambda: ops.project_gaussians_backward(s["means"], s["quats"], s["scales"],  # noqa: E731
                                                     s["opacities"], V, K, r, w, h, 0.3, False,
-                                                    g[0], g[1], g[4], g[2], False)
+                                                    g[0][:, :2], g[0][:, 2:5], g[0][:, 6], g[0][:, 5],
+                                                    False)
         row = {"N": n, "C": C, "project": cuda_time_ms(pr, it), "bin+sort": cuda_time_ms(bn, it),
                "raster_fwd": cuda_time_ms(rs, it), "raster_bwd": cuda_time_ms(rb, it),
                "feat_bwd": cuda_time_ms(rc, it), "project_bwd": cuda_time_ms(pb, it)}

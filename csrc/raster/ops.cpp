@@ -53,8 +53,7 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "Tensor depths, Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, "
       "int height, int tile_size, float alpha_max, float alpha_threshold, float t_min, "
       "Tensor transmittance, Tensor n_contrib, Tensor v_color, Tensor? v_alpha, Tensor? v_depth) "
-      "-> (Tensor v_means2d, Tensor v_conics, Tensor v_opacities, Tensor v_colors, "
-      "Tensor v_depths, Tensor v_background)");
+      "-> (Tensor v_geometry, Tensor v_colors, Tensor v_background)");
   m.def(
       "rasterize_backward_colors(Tensor means2d, Tensor conics, Tensor opacities, "
       "Tensor tile_offsets, Tensor gaussian_ids, int width, int height, int tile_size, "

@@ -9,9 +9,11 @@
 //      n_contrib [H,W] int32: entries of the pixel's tile list up to its last contributor,
 //      transmittance [H,W] = T_final, kept apart from alpha because 1 - (1 - T) loses
 //      T's relative precision in float32 where pixels saturate.
-// rasterize_backward: gradients w.r.t. means2d, conics, opacities, colors, depths, background
-//   from v_color [H,W,C], v_alpha [H,W] or None, v_depth [H,W] or None (None: zero, nothing is
-//   read); walks each list back to front.
+// rasterize_backward: gradients from v_color [H,W,C], v_alpha [H,W] or None, v_depth [H,W] or
+//   None (None: zero, nothing is read); walks each list back to front. Returns v_geometry [N,8]
+//   (per row: means2d u, v, conics a, b, c, opacity, depth, 0: one buffer that the CUDA kernel
+//   accumulates into, handed on as column views without copies), v_colors [N,C] and
+//   v_background [C].
 // rasterize_backward_colors: the features-only backward: gradients w.r.t. colors and
 //   background only (geometry and opacity frozen); walks front to back, no division.
 #include <ATen/ATen.h>
@@ -38,7 +40,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min);
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& opacities, const at::Tensor& colors,
                        const at::Tensor& depths, const std::optional<at::Tensor>& background,

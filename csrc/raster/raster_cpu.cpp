@@ -380,7 +380,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   return {out_color, out_alpha, out_depth, out_count, out_trans};
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& opacities, const at::Tensor& colors,
                        const at::Tensor& depths, const std::optional<at::Tensor>& background,
@@ -427,13 +427,9 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
     });
     reduce_rows<T>(rows.data_ptr<T>(), m, S, i_c.data_ptr<int32_t>(), grads.data_ptr<T>());
   });
-  auto v_colors = grads.narrow(1, 0, C).contiguous();
-  auto v_means2d = grads.narrow(1, C, 2).contiguous();
-  auto v_conics = grads.narrow(1, C + 2, 3).contiguous();
-  auto v_opac = grads.select(1, C + 5).contiguous();
-  auto v_depths = grads.select(1, C + 6).contiguous();
-  auto v_bg = v_bg_tiles.sum(0);
-  return {v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg};
+  auto v_geom = at::zeros({n, 8}, means2d.options());  // the CUDA layout (raster.h)
+  v_geom.narrow(1, 0, kGeomGrads).copy_(grads.narrow(1, C, kGeomGrads));
+  return {v_geom, grads.narrow(1, 0, C).contiguous(), v_bg_tiles.sum(0)};
 }
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(

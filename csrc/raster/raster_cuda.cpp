@@ -106,7 +106,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   return {out_color, out_alpha, out_depth, out_count, out_trans};
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         const at::Tensor& opacities, const at::Tensor& colors,
                         const at::Tensor& depths, const std::optional<at::Tensor>& background,
@@ -168,9 +168,9 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                  v_bg_tiles.data_ptr<T>(), c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
-  // Views of the [N, 8] rows, not copies: the projection's backward reads them strided.
-  return {v_geom.narrow(1, 0, 2), v_geom.narrow(1, 2, 3), v_geom.select(1, 5), v_colors,
-          v_geom.select(1, 6), v_bg_tiles.sum(0)};
+  // The [N, 8] rows themselves: the caller hands column views on (the projection's backward
+  // reads them strided), no copies.
+  return {v_geom, v_colors, v_bg_tiles.sum(0)};
 }
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(

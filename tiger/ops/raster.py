@@ -58,8 +58,7 @@ def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_of
 def _raster_backward_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
                           gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
                           transmittance, n_contrib, v_color, v_alpha, v_depth):
-    return (torch.empty_like(means2d), torch.empty_like(conics), torch.empty_like(opacities),
-            means2d.new_empty(colors.shape), torch.empty_like(depths),
+    return (means2d.new_empty(means2d.shape[0], 8), means2d.new_empty(colors.shape),
             means2d.new_empty(colors.shape[1]))
 
 
@@ -104,7 +103,8 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         *ctx.args, trans, n_contrib, v_color.contiguous(),
         None if v_alpha is None else v_alpha.contiguous(),
         None if v_depth is None else v_depth.contiguous())
-    v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg = g
+    v_geom, v_colors, v_bg = g   # v_geom [N, 8]: u, v, conic a, b, c, opacity, depth, 0
+    v_means2d, v_conics, v_opac, v_depths = v_geom[:, 0:2], v_geom[:, 2:5], v_geom[:, 5], v_geom[:, 6]
     v_colors = v_colors.to(colors.dtype)
     return (v_means2d if need[0] else None, v_conics if need[1] else None,
             v_opac if need[2] else None, v_colors if need[3] else None,
