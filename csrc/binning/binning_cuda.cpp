@@ -88,6 +88,9 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
                       : nullptr;
   auto rank = at::empty({n}, int_opts);
   auto offsets = at::empty({n}, long_opts);
+  // the depth sort's id buffers (the order ends in one of them) live until the emit
+  auto i0 = at::empty({n}, int_opts), i1 = at::empty({n}, int_opts);
+  int32_t* order = nullptr;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_count", [&] {
     using T = scalar_t;
     using K = DepthKey<T>;
@@ -96,8 +99,6 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
                                     counts.data_ptr<int64_t>(), large, large_n, stream));
     // the depth order of the Gaussians, their counts in it, and each one's rank
     auto k0 = empty_of<T>(n, means2d), k1 = empty_of<T>(n, means2d);
-    auto i0 = at::empty({n}, int_opts), i1 = at::empty({n}, int_opts);
-    int32_t* order = nullptr;
     size_t bytes = 0;
     TIGER_CUDA_OK(bin_depth_order_cuda<T>(nullptr, bytes, dp.data_ptr<T>(), n, ptr_of<K>(k0),
                                           ptr_of<K>(k1), i0.data_ptr<int32_t>(),
@@ -124,12 +125,14 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda_emit", [&] {
     using T = scalar_t;
     TIGER_CUDA_OK(bin_emit_cuda<T>(m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(),
-                                   r.data_ptr<int32_t>(), rank.data_ptr<int32_t>(), large, large_n,
+                                   r.data_ptr<int32_t>(), order, rank.data_ptr<int32_t>(), large, large_n,
                                    n, g, T(alpha_threshold), offsets.data_ptr<int64_t>(),
                                    ptr_of<uint32_t>(keys), ids.data_ptr<int32_t>(), stream));
   });
   offsets = at::Tensor();
   rank = at::Tensor();
+  i0 = at::Tensor();
+  i1 = at::Tensor();
   large_ids = at::Tensor();
   large_counters = at::Tensor();
   int tile_bits = 1;  // at least one bit: a sort over [0, 0) is not defined

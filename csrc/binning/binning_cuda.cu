@@ -257,17 +257,21 @@ __global__ void __launch_bounds__(kThreads)
                  counters);
 }
 
+// Thread j takes the j-th Gaussian of the depth order: neighbouring threads fill neighbouring
+// segments, so the key/id stores of a warp land together (by Gaussian index they scattered over
+// the whole list: twice the emit time on the 1M standard scene); the geometry reads gather.
 template <typename T>
 __global__ void emit_small_kernel(const T* means2d, const T* conics, const T* opacities,
-                                  const int32_t* radii, const int32_t* rank, int64_t n,
+                                  const int32_t* radii, const int32_t* order, int64_t n,
                                   BinGeometry g, T alpha_threshold, int64_t small_max,
                                   const int64_t* offsets, uint32_t* keys, int32_t* ids) {
-  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= n) return;
+  const int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (j >= n) return;
+  const int64_t i = order[j];
   const TileRect r = rect_of(i, means2d, radii, g);
   const int64_t cand = r.count();
   if (cand == 0 || cand > small_max) return;
-  int64_t k = segment_start(i, rank, offsets);
+  int64_t k = j == 0 ? 0 : offsets[j - 1];
   visit_tiles(i, r, means2d, conics, opacities, radii, g, alpha_threshold, [&](int tile) {
     keys[k] = uint32_t(tile);
     ids[k] = int32_t(i);
@@ -380,14 +384,15 @@ cudaError_t bin_scan_cuda(void* temp, size_t& temp_bytes, const int64_t* counts,
 
 template <typename T>
 cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities,
-                          const int32_t* radii, const int32_t* rank, const int32_t* large_ids,
+                          const int32_t* radii, const int32_t* order, const int32_t* rank,
+                          const int32_t* large_ids,
                           const unsigned int* large_counters, int64_t n, BinGeometry g,
                           T alpha_threshold, const int64_t* offsets, uint32_t* keys, int32_t* ids,
                           cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
   const int64_t small_max = large_ids ? kSmallTiles : INT64_MAX;
   emit_small_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
-      means2d, conics, opacities, radii, rank, n, g, alpha_threshold, small_max, offsets, keys,
+      means2d, conics, opacities, radii, order, n, g, alpha_threshold, small_max, offsets, keys,
       ids);
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess || large_ids == nullptr) return err;
@@ -428,7 +433,8 @@ cudaError_t bin_ranges_cuda(const uint32_t* sorted_keys, int64_t m, int64_t n_ti
                                                DepthKey<T>*, int32_t*, int32_t*, int32_t**,      \
                                                cudaStream_t);                                    \
   template cudaError_t bin_emit_cuda<T>(const T*, const T*, const T*, const int32_t*,            \
-                                        const int32_t*, const int32_t*, const unsigned int*,     \
+                                        const int32_t*, const int32_t*, const int32_t*,          \
+                                        const unsigned int*,                                     \
                                         int64_t, BinGeometry, T, const int64_t*, uint32_t*,      \
                                         int32_t*, cudaStream_t);
 TIGER_INSTANTIATE(float)

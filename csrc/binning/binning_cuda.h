@@ -52,11 +52,12 @@ cudaError_t bin_order_counts_cuda(const int32_t* order, const int64_t* counts, i
 cudaError_t bin_scan_cuda(void* temp, size_t& temp_bytes, const int64_t* counts, int64_t* offsets,
                           int64_t n, cudaStream_t stream);
 
-// rank / offsets from bin_order_counts and bin_scan; large_ids / large_counters as filled by
-// bin_count_cuda (nullptr: the former binning).
+// order (bin_depth_order), rank and offsets (bin_order_counts, bin_scan); large_ids /
+// large_counters as filled by bin_count_cuda (nullptr: the former binning).
 template <typename T>
 cudaError_t bin_emit_cuda(const T* means2d, const T* conics, const T* opacities,
-                          const int32_t* radii, const int32_t* rank, const int32_t* large_ids,
+                          const int32_t* radii, const int32_t* order, const int32_t* rank,
+                          const int32_t* large_ids,
                           const unsigned int* large_counters, int64_t n, BinGeometry g,
                           T alpha_threshold, const int64_t* offsets, uint32_t* keys, int32_t* ids,
                           cudaStream_t stream);

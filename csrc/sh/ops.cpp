@@ -7,16 +7,22 @@
 namespace tiger {
 
 void check_sh_inputs(const char* op, const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree,
-                     const std::optional<at::Tensor>& visible) {
+                     const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest) {
   TORCH_CHECK(degree >= 0 && degree <= 3, op, ": sh degree must be in [0, 3], got ", degree);
   TORCH_CHECK(dirs.scalar_type() == at::kFloat || dirs.scalar_type() == at::kDouble, op,
               ": dirs must be float32 or float64, got ", dirs.scalar_type());
   check_shape(dirs, op, "dirs", {-1, 3});
   const int64_t nb = (degree + 1) * (degree + 1);
   check_shape(coeffs, op, "coeffs", {dirs.size(0), -1, 3});
-  TORCH_CHECK(coeffs.size(1) >= nb, op, ": coeffs has ", coeffs.size(1),
-              " SH coefficients per Gaussian but degree ", degree, " needs ", nb);
   check_same(coeffs, dirs, op, "coeffs");
+  int64_t k = coeffs.size(1);
+  if (rest.has_value()) {
+    check_shape(*rest, op, "rest", {dirs.size(0), -1, 3});
+    check_same(*rest, dirs, op, "rest");
+    k += rest->size(1);
+  }
+  TORCH_CHECK(k >= nb, op, ": coeffs", rest.has_value() ? " + rest" : "", " hold ", k,
+              " SH coefficients per Gaussian but degree ", degree, " needs ", nb);
   if (visible.has_value()) {
     check_shape(*visible, op, "visible", {dirs.size(0)});
     check_dtype(*visible, at::kBool, op, "visible");
@@ -24,11 +30,22 @@ void check_sh_inputs(const char* op, const at::Tensor& dirs, const at::Tensor& c
   }
 }
 
+at::Tensor joined_coeffs(const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
+  return rest.has_value() ? at::cat({coeffs, *rest}, 1) : coeffs;
+}
+
+std::tuple<at::Tensor, at::Tensor> split_coeff_grads(const at::Tensor& v_all, const at::Tensor& coeffs,
+                                                     const std::optional<at::Tensor>& rest) {
+  if (!rest.has_value()) return {v_all, v_all.new_empty({0})};
+  const int64_t k0 = coeffs.size(1);
+  return {v_all.narrow(1, 0, k0).contiguous(), v_all.narrow(1, k0, rest->size(1)).contiguous()};
+}
+
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
-  m.def("sh_to_color(Tensor dirs, Tensor coeffs, int degree, Tensor? visible) -> Tensor");
+  m.def("sh_to_color(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, Tensor? rest=None) -> Tensor");
   m.def(
       "sh_to_color_backward(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, "
-      "Tensor v_colors) -> (Tensor v_dirs, Tensor v_coeffs)");
+      "Tensor v_colors, Tensor? rest=None) -> (Tensor v_dirs, Tensor v_coeffs, Tensor v_rest)");
 }
 
 }  // namespace tiger

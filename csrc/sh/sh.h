@@ -2,9 +2,12 @@
 // Spherical harmonics (degree 0-3, INRIA order) -> RGB for a view direction.
 //
 // sh_to_color: dirs [N,3] (any length; normalised inside), coeffs [N,K,3] with
-//   K >= (degree+1)^2, degree in [0,3], optional visible [N] bool (others give 0)
+//   K >= (degree+1)^2, degree in [0,3], optional visible [N] bool (others give 0), optional
+//   rest [N,K1,3]: the coefficients are then cat(coeffs, rest) along K (a scene's DC band and
+//   its higher bands, read where they are: float32 CUDA reads both in place)
 //   -> colors [N,3] = sum_k coeffs[:,k] * Y_k(dir)   (no +0.5 offset, no clamp).
-// sh_to_color_backward: v_colors [N,3] -> (v_dirs [N,3], v_coeffs [N,K,3]).
+// sh_to_color_backward: v_colors [N,3] -> (v_dirs [N,3], v_coeffs [N,K,3], v_rest [N,K1,3]
+//   or [0] without rest).
 #include <ATen/ATen.h>
 
 #include <optional>
@@ -13,14 +16,20 @@
 namespace tiger {
 
 void check_sh_inputs(const char* op, const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree,
-                     const std::optional<at::Tensor>& visible);
+                     const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest);
+
+// The coefficients as one [N,K,3] tensor (cat with rest), and the backward's split of its
+// gradient into (v_coeffs, v_rest) (v_rest: [0] without rest): the paths that do not read the
+// two tensors in place.
+at::Tensor joined_coeffs(const at::Tensor& coeffs, const std::optional<at::Tensor>& rest);
+std::tuple<at::Tensor, at::Tensor> split_coeff_grads(const at::Tensor& v_all, const at::Tensor& coeffs,
+                                                     const std::optional<at::Tensor>& rest);
 
 at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree,
-                           const std::optional<at::Tensor>& visible);
+                           const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest);
 
-std::tuple<at::Tensor, at::Tensor> sh_to_color_backward_cpu(const at::Tensor& dirs,
-                                                            const at::Tensor& coeffs, int64_t degree,
-                                                            const std::optional<at::Tensor>& visible,
-                                                            const at::Tensor& v_colors);
+std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cpu(
+    const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree, const std::optional<at::Tensor>& visible,
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest);
 
 }  // namespace tiger

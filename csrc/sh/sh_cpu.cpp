@@ -8,9 +8,10 @@
 
 namespace tiger {
 
-at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree,
-                           const std::optional<at::Tensor>& visible) {
-  check_sh_inputs("tiger.sh_to_color", dirs, coeffs, degree, visible);
+at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree,
+                           const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest) {
+  check_sh_inputs("tiger.sh_to_color", dirs, coeffs_in, degree, visible, rest);
+  const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   const int64_t n = dirs.size(0), k = coeffs.size(1);
   auto out = at::zeros({n, 3}, dirs.options());
   const auto d_c = dirs.contiguous(), c_c = coeffs.contiguous();
@@ -30,12 +31,12 @@ at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs, int
   return out;
 }
 
-std::tuple<at::Tensor, at::Tensor> sh_to_color_backward_cpu(const at::Tensor& dirs,
-                                                            const at::Tensor& coeffs, int64_t degree,
-                                                            const std::optional<at::Tensor>& visible,
-                                                            const at::Tensor& v_colors) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cpu(
+    const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree, const std::optional<at::Tensor>& visible,
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest) {
   const char* op = "tiger.sh_to_color_backward";
-  check_sh_inputs(op, dirs, coeffs, degree, visible);
+  check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
+  const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});
   const int64_t n = dirs.size(0), k = coeffs.size(1);
   auto v_dirs = at::zeros({n, 3}, dirs.options());
@@ -55,7 +56,8 @@ std::tuple<at::Tensor, at::Tensor> sh_to_color_backward_cpu(const at::Tensor& di
       }
     });
   });
-  return {v_dirs, v_coeffs};
+  auto [v_c0, v_rest] = split_coeff_grads(v_coeffs, coeffs_in, rest);
+  return {v_dirs, v_c0, v_rest};
 }
 
 TORCH_LIBRARY_IMPL(tiger, CPU, m) {

@@ -45,43 +45,56 @@ __device__ __forceinline__ int staged_rows(int64_t n) {
   return static_cast<int>(min(static_cast<int64_t>(blockDim.x), n - static_cast<int64_t>(blockIdx.x) * blockDim.x));
 }
 
-__device__ __forceinline__ void stage_in(const float* g, float* s, int rows, int width, int row) {
-  const float* src = g + static_cast<int64_t>(blockIdx.x) * blockDim.x * width;
-  for (int e = threadIdx.x; e < rows * width; e += blockDim.x) {
-    const int r = e / width;
-    s[r * row + (e - r * width)] = src[e];
+// A coefficient source: rows of `width` words (3 per basis) `pitch` words apart; the staged row
+// holds the sources one after the other (the DC block, then the rest: cat without the copy).
+struct Rows {
+  const float* in;
+  float* out;
+  int64_t pitch;
+  int width;
+};
+
+// Shared row words [col0, col0 + width) of the block's rows <- / -> source rows.
+__device__ __forceinline__ void stage_in(const Rows& g, float* s, int rows, int row, int col0) {
+  const float* src = g.in + static_cast<int64_t>(blockIdx.x) * blockDim.x * g.pitch;
+  for (int e = threadIdx.x; e < rows * g.width; e += blockDim.x) {
+    const int r = e / g.width, c = e - r * g.width;
+    s[r * row + col0 + c] = src[r * g.pitch + c];
   }
 }
 
-__device__ __forceinline__ void stage_out(const float* s, float* g, int rows, int width, int row) {
-  float* dst = g + static_cast<int64_t>(blockIdx.x) * blockDim.x * width;
-  for (int e = threadIdx.x; e < rows * width; e += blockDim.x) {
-    const int r = e / width;
-    dst[e] = s[r * row + (e - r * width)];
+__device__ __forceinline__ void stage_out(const float* s, const Rows& g, int rows, int row, int col0) {
+  float* dst = g.out + static_cast<int64_t>(blockIdx.x) * blockDim.x * g.pitch;
+  for (int e = threadIdx.x; e < rows * g.width; e += blockDim.x) {
+    const int r = e / g.width, c = e - r * g.width;
+    dst[r * g.pitch + c] = s[r * row + col0 + c];
   }
 }
 
-__global__ void __launch_bounds__(kStagedThreads) sh_staged_kernel(const float* dirs, const float* coeffs, int64_t n,
-                                                                   int64_t k, int degree, const bool* visible,
+__global__ void __launch_bounds__(kStagedThreads) sh_staged_kernel(const float* dirs, Rows a, Rows b, int64_t n,
+                                                                   int degree, const bool* visible,
                                                                    float* colors) {
   extern __shared__ float s_coeffs[];  // [blockDim][3k + 1]
-  const int width = static_cast<int>(3 * k), row = width + 1, rows = staged_rows(n);
-  stage_in(coeffs, s_coeffs, rows, width, row);
+  const int row = a.width + b.width + 1, rows = staged_rows(n);
+  stage_in(a, s_coeffs, rows, row, 0);
+  if (b.width) stage_in(b, s_coeffs, rows, row, a.width);
   __syncthreads();
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (threadIdx.x < rows && !(visible && !visible[i]))
     sh_eval<float>(degree, dirs + 3 * i, s_coeffs + threadIdx.x * row, colors + 3 * i);
 }
 
-__global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(const float* dirs, const float* coeffs,
-                                                                            int64_t n, int64_t k, int degree,
+// a.out / b.out: contiguous gradient rows (pitch = width), every row written.
+__global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(const float* dirs, Rows a, Rows b,
+                                                                            int64_t n, int degree,
                                                                             const bool* visible, const float* v_colors,
-                                                                            float* v_dirs, float* v_coeffs) {
+                                                                            float* v_dirs) {
   extern __shared__ float s_mem[];  // coefficients, then their gradients: [blockDim][3k + 1] each
-  const int width = static_cast<int>(3 * k), row = width + 1, rows = staged_rows(n);
+  const int row = a.width + b.width + 1, rows = staged_rows(n);
   float* s_coeffs = s_mem;
   float* s_grad = s_mem + blockDim.x * row;
-  stage_in(coeffs, s_coeffs, rows, width, row);
+  stage_in(a, s_coeffs, rows, row, 0);
+  if (b.width) stage_in(b, s_coeffs, rows, row, a.width);
   for (int e = threadIdx.x; e < static_cast<int>(blockDim.x) * row; e += blockDim.x) s_grad[e] = 0.f;
   __syncthreads();
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -89,7 +102,9 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
     sh_eval_vjp<float>(degree, dirs + 3 * i, s_coeffs + threadIdx.x * row, v_colors + 3 * i,
                        s_grad + threadIdx.x * row, v_dirs + 3 * i);
   __syncthreads();
-  stage_out(s_grad, v_coeffs, rows, width, row);
+  const Rows ga{nullptr, a.out, a.width, a.width}, gb{nullptr, b.out, b.width, b.width};
+  stage_out(s_grad, ga, rows, row, 0);
+  if (b.width) stage_out(s_grad, gb, rows, row, a.width);
 }
 
 bool staged_enabled() {
@@ -107,17 +122,17 @@ size_t staged_bytes(int64_t k, int buffers) {
 
 }  // namespace
 
+bool sh_staged_applies(int64_t k) { return staged_enabled() && staged_bytes(k, 2) <= 48 * 1024; }
+
 template <typename T>
 cudaError_t sh_to_color_cuda_launch(const T* dirs, const T* coeffs, int64_t n, int64_t k,
                                     int degree, const bool* visible, T* colors,
                                     cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
   if constexpr (std::is_same<T, float>::value) {
-    if (staged_enabled() && staged_bytes(k, 1) <= 48 * 1024) {
-      sh_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k, 1), stream>>>(
-          dirs, coeffs, n, k, degree, visible, colors);
-      return cudaGetLastError();
-    }
+    if (sh_staged_applies(k))
+      return sh_to_color_split_cuda_launch(dirs, coeffs, 3 * k, k, nullptr, 0, 0, n, degree, visible, colors,
+                                           stream);
   }
   sh_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(dirs, coeffs, n, k, degree,
                                                                       visible, colors);
@@ -130,14 +145,33 @@ cudaError_t sh_to_color_backward_cuda_launch(const T* dirs, const T* coeffs, int
                                              T* v_dirs, T* v_coeffs, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
   if constexpr (std::is_same<T, float>::value) {
-    if (staged_enabled() && staged_bytes(k, 2) <= 48 * 1024) {
-      sh_backward_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k, 2), stream>>>(
-          dirs, coeffs, n, k, degree, visible, v_colors, v_dirs, v_coeffs);
-      return cudaGetLastError();
-    }
+    if (sh_staged_applies(k))
+      return sh_to_color_backward_split_cuda_launch(dirs, coeffs, 3 * k, k, nullptr, 0, 0, n, degree, visible,
+                                                    v_colors, v_dirs, v_coeffs, nullptr, stream);
   }
   sh_backward_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
       dirs, coeffs, n, k, degree, visible, v_colors, v_dirs, v_coeffs);
+  return cudaGetLastError();
+}
+
+cudaError_t sh_to_color_split_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
+                                          const float* c1, int64_t pitch1, int64_t k1, int64_t n, int degree,
+                                          const bool* visible, float* colors, cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  const Rows a{c0, nullptr, pitch0, static_cast<int>(3 * k0)}, b{c1, nullptr, pitch1, static_cast<int>(3 * k1)};
+  sh_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k0 + k1, 1), stream>>>(
+      dirs, a, b, n, degree, visible, colors);
+  return cudaGetLastError();
+}
+
+cudaError_t sh_to_color_backward_split_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
+                                                   const float* c1, int64_t pitch1, int64_t k1, int64_t n,
+                                                   int degree, const bool* visible, const float* v_colors,
+                                                   float* v_dirs, float* v0, float* v1, cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  const Rows a{c0, v0, pitch0, static_cast<int>(3 * k0)}, b{c1, v1, pitch1, static_cast<int>(3 * k1)};
+  sh_backward_staged_kernel<<<cuda::ceil_div(n, kStagedThreads), kStagedThreads, staged_bytes(k0 + k1, 2),
+                              stream>>>(dirs, a, b, n, degree, visible, v_colors, v_dirs);
   return cudaGetLastError();
 }
 

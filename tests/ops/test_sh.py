@@ -92,3 +92,41 @@ def test_cuda_staged_rows_match_plain_kernel_and_reference(tmp_path):
         ref.backward(torch.randn(n, 3, generator=g).to(F64))
         for a, r in zip(got, (ref.detach(), dirs.grad, coeffs.grad)):
             torch.testing.assert_close(a.double(), r, atol=2e-5, rtol=2e-5)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_split_rows_equal_joined_rows(device, dtype):
+    """coeffs + rest (a scene's DC band and a strided slice of its higher bands, read in place on
+    CUDA in float32) give the values and gradients of the joined [N, K, 3] tensor, bit for bit."""
+    g = torch.Generator().manual_seed(11)
+    n = 300  # several 64-row blocks and a ragged last one
+    dirs = torch.randn(n, 3, generator=g, dtype=F64).to(device, dtype)
+    dc = torch.randn(n, 3, generator=g, dtype=F64).to(device, dtype)
+    rest_all = torch.randn(n, 15, 3, generator=g, dtype=F64).to(device, dtype)
+    vis = (torch.rand(n, generator=g) > 0.2).to(device)
+    vc = torch.randn(n, 3, generator=g, dtype=F64).to(device, dtype)
+    for degree in (0, 1, 2, 3):
+        k1 = (degree + 1) ** 2 - 1
+        d0, r0 = dc.clone().requires_grad_(), rest_all.clone().requires_grad_()
+        rest = r0[:, :k1] if degree else None           # strided rows for degree < 3
+        got = sh_to_color(dirs, d0[:, None], degree, vis, rest)
+        got.backward(vc)
+        d1, r1 = dc.clone().requires_grad_(), rest_all.clone().requires_grad_()
+        joined = torch.cat([d1[:, None], r1[:, :k1]], 1)
+        want = sh_to_color(dirs, joined, degree, vis)
+        want.backward(vc)
+        assert torch.equal(got, want), degree
+        assert torch.equal(d0.grad, d1.grad), degree
+        if degree:
+            assert torch.equal(r0.grad, r1.grad), degree
+
+
+def test_split_rows_errors_and_opcheck():
+    dirs, dc, rest = torch.randn(4, 3, dtype=F64), torch.randn(4, 1, 3, dtype=F64), torch.randn(4, 2, 3, dtype=F64)
+    with pytest.raises(RuntimeError, match=r"coeffs \+ rest hold 3 SH coefficients per Gaussian but degree 1 needs 4"):
+        sh_to_color(dirs, dc, 1, None, rest)
+    with pytest.raises(RuntimeError, match="rest must have shape"):
+        sh_to_color(dirs, dc, 1, None, torch.randn(3, 3, 3, dtype=F64))
+    rest = torch.randn(4, 3, 3, dtype=F64, requires_grad=True)
+    torch.library.opcheck(ops.sh_to_color.default, (dirs, dc.requires_grad_(), 1, None, rest))

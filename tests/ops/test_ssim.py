@@ -138,12 +138,14 @@ def test_cuda_matches_reference(size, dtype):
     gm = torch.randn(shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
     (g,) = torch.autograd.grad(m, xr, gm.to("cuda", dtype))
     (gref,) = torch.autograd.grad(ref, xref, gm)
-    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    # float32: a 1-tap window is SSIM of single pixels, whose variances e11 - mu1² cancel exactly
+    # in exact arithmetic but not in float32 (6.5e-5 seen on the H100)
+    tol = 1e-12 if dtype == torch.float64 else (2e-5 if size > 1 else 2e-4)
     assert (m.double().cpu() - ref).abs().max() < tol
     assert (g.double().cpu() - gref).abs().max() / gref.abs().max() < (1e-11 if dtype == torch.float64 else 1e-4)
     if dtype == torch.float64:  # and the CPU kernel gives the same numbers
         mc = fused_ssim(x, y, taps, C1, C2)
-        torch.testing.assert_close(m.cpu(), mc, atol=1e-14, rtol=0)
+        torch.testing.assert_close(m.cpu(), mc, atol=1e-12, rtol=0)  # fused multiply-adds differ
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")

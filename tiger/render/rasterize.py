@@ -126,7 +126,7 @@ def camera_center(viewmat: Tensor) -> Tensor:
 
 
 def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
-              visible: Optional[Tensor] = None) -> Tensor:
+              visible: Optional[Tensor] = None, sh_rest: Optional[Tensor] = None) -> Tensor:
     """[N, 3] RGB of each Gaussian seen from the camera of ``viewmat``: max(SH(dir) + 0.5, 0).
 
     The one SH→RGB step of the renderer (INRIA's convention), differentiable.
@@ -137,9 +137,11 @@ def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
         viewmat: [4, 4] world→camera (its centre gives each Gaussian's view direction).
         sh_degree: bands evaluated, 0..3.
         visible: [N] bool; rows that are False get colour max(0.5, 0) and no gradient.
+        sh_rest: [N, K1, 3] or None: the coefficients are ``cat([sh, sh_rest], 1)``, read in
+            place (a scene's DC band and higher bands; no [N, K, 3] copy on CUDA).
     """
     dirs = means - camera_center(viewmat.to(means))
-    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible) + 0.5, 0.0)
+    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible, sh_rest) + 0.5, 0.0)
 
 
 def rasterize_gaussians(
@@ -155,6 +157,7 @@ def rasterize_gaussians(
     *,
     background: Optional[Tensor] = None,
     sh_degree: Optional[int] = None,
+    sh_rest: Optional[Tensor] = None,
     near: float = RasterDefaults.near,
     far: float = RasterDefaults.far,
     eps2d: float = RasterDefaults.eps2d,
@@ -176,6 +179,9 @@ def rasterize_gaussians(
             geometry they may be stored as float16/bfloat16, accumulated in float32), or with
             ``sh_degree=d`` spherical-harmonics coefficients [N, K, 3] with K >= (d+1)^2
             (INRIA order), evaluated per Gaussian for its view direction as max(SH + 0.5, 0).
+        sh_rest: with ``sh_degree``, optional [N, K1, 3] higher-band coefficients: the SH input
+            is then ``cat([colors, sh_rest], 1)`` (e.g. a scene's DC [N, 1, 3] and its rest),
+            read in place on CUDA (float32) instead of copied.
         viewmat: [4, 4] world→camera transform, OpenCV axes (+x right, +y down, +z forward).
         K: [3, 3] pinhole intrinsics (fx, fy, cx, cy used; pixels).
         width, height: image size in pixels (whole numbers; 640.0 is accepted, 640.5 is not).
@@ -205,13 +211,14 @@ def rasterize_gaussians(
                               alpha_max=alpha_max, alpha_threshold=alpha_threshold, t_min=t_min,
                               tile_size=tile_size, check_finite=check_finite)
     p = project_for_raster(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                           background=background, sh_degree=sh_degree, settings=settings)
+                           background=background, sh_degree=sh_degree, sh_rest=sh_rest, settings=settings)
     return composite(p, width, height, settings)
 
 
 def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                        colors: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, *,
                        background: Optional[Tensor] = None, sh_degree: Optional[int] = None,
+                       sh_rest: Optional[Tensor] = None,
                        settings: RasterSettings = RasterSettings()) -> Projection:
     """The first half of :func:`rasterize_gaussians` (same arguments, checked the same way):
     projection and the SH colour step. Batched renders project every view first, so that
@@ -224,6 +231,8 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
     _check_tensor(scales, "scales", (n, 3), means)
     _check_tensor(opacities, "opacities", (n,), means)
     if sh_degree is None:
+        if sh_rest is not None:
+            raise ValueError(f"{_NAME}: sh_rest needs sh_degree (it is part of the SH coefficients)")
         _check_tensor(colors, "colors", (n, None), means)
         if colors.shape[1] < 1:
             raise ValueError(f"{_NAME}: colors must have at least one channel, got shape "
@@ -232,9 +241,15 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
         if not 0 <= int(sh_degree) <= 3:
             raise ValueError(f"{_NAME}: sh_degree must be in [0, 3], got {sh_degree}")
         _check_tensor(colors, "colors (SH coefficients)", (n, None, 3), means)
-        if colors.shape[1] < (sh_degree + 1) ** 2:
-            raise ValueError(f"{_NAME}: colors holds {colors.shape[1]} SH coefficients per "
-                             f"Gaussian but sh_degree={sh_degree} needs {(sh_degree + 1) ** 2}")
+        k = colors.shape[1]
+        if sh_rest is not None:
+            _check_tensor(sh_rest, "sh_rest", (n, None, 3), means)
+            if sh_rest.dtype != colors.dtype:
+                raise TypeError(f"{_NAME}: sh_rest has dtype {sh_rest.dtype} but colors has {colors.dtype}")
+            k += sh_rest.shape[1]
+        if k < (sh_degree + 1) ** 2:
+            raise ValueError(f"{_NAME}: colors{' + sh_rest' if sh_rest is not None else ''} hold {k} SH "
+                             f"coefficients per Gaussian but sh_degree={sh_degree} needs {(sh_degree + 1) ** 2}")
     _check_tensor(viewmat, "viewmat", (4, 4), means)
     _check_tensor(K, "K", (3, 3), means)
     for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities)):
@@ -254,8 +269,8 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
         background = background.to(means.dtype)
     if settings.check_finite:
         _check_inputs({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-                       "colors": colors, "viewmat": viewmat, "K": K, "background": background},
-                      quats, scales, opacities)
+                       "colors": colors, "sh_rest": sh_rest, "viewmat": viewmat, "K": K,
+                       "background": background}, quats, scales, opacities)
     viewmat = viewmat.to(means.dtype)
     K = K.to(means.dtype)
 
@@ -264,7 +279,7 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
         settings.far, settings.alpha_threshold, settings.antialiased)
 
     if sh_degree is not None:
-        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0)
+        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0, sh_rest)
     elif half_colors and not colors.is_cuda:
         feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:

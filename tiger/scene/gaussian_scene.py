@@ -484,8 +484,11 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
     n = len(scene)
     raster_deg: Optional[int] = None
     per_view_rgb = False
+    # DC and higher bands as they are stored (the SH op reads both; no [N, K, 3] cat per render)
+    sh_dc = scene.sh_dc[:, None]
+    sh_rest = scene.sh_rest[:, : num_sh_bases(deg) - 1] if deg > 0 else None
     if colors is None or (isinstance(colors, str) and colors == "rgb"):
-        feats, raster_deg = scene.sh[:, : num_sh_bases(deg)], deg
+        feats, raster_deg = sh_dc, deg
     elif isinstance(colors, str) and colors in ("lang", "rgb+lang"):
         if scene.lang is None:
             raise ValueError(f"tiger: render(colors='{colors}'): the scene has no language features")
@@ -499,16 +502,15 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
         raise ValueError("tiger: render colors must be None, 'rgb', 'lang', 'rgb+lang' or a tensor "
                          f"[N, C], got {colors!r}")
     means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
-    sh = scene.sh[:, : num_sh_bases(deg)] if per_view_rgb else None
     out = []
     for camera in cameras:
         cam = camera.to(device=scene.device, dtype=scene.dtype)
         view_feats = feats
         if per_view_rgb:
-            view_feats = torch.cat([sh_colors(means, sh, cam.viewmat, deg), feats], 1)
+            view_feats = torch.cat([sh_colors(means, sh_dc, cam.viewmat, deg, sh_rest=sh_rest), feats], 1)
         out.append(project_for_raster(means, quats, scales, opacities, view_feats, cam.viewmat, cam.K,
-                                      cam.width, cam.height, background=background,
-                                      sh_degree=raster_deg, settings=settings))
+                                      cam.width, cam.height, background=background, sh_degree=raster_deg,
+                                      sh_rest=sh_rest if raster_deg is not None else None, settings=settings))
     return out
 
 
