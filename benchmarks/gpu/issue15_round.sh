@@ -4,7 +4,8 @@
 #           sanitize_case.py: the rendering core and the fused SSIM) and racecheck (rasterizer,
 #           binning, SSIM, SH), the SH benchmark (staged default vs TIGER_SH_STAGED=0, beside
 #           gsplat) and the SSIM benchmark at 1080p.
-#   PART=b: build, the same CUDA tests (TESTS=0 skips them), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; binning threshold
+#   PART=b: build, the same CUDA tests (TESTS=0 skips them), the sanitizer runs of part a with
+#           SANITIZE=1 (RACECHECK: the kernel-name filters), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; binning threshold
 #           sweep) and benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution.
 # gsplat JIT-compiles on first use (~90 s): its build folder is packed into $OUT/gsplat_ext.tgz and,
 # carried back as .carry/gsplat_ext.tgz, reused (same wheel, same paths).
@@ -27,15 +28,17 @@ if [ "${TESTS:-1}" = 1 ]; then
     > "$R/tests.log" 2>&1
   say "tests rc=$?: $(tail -1 "$R/tests.log")"; grep -E "^(FAILED|ERROR)" "$R/tests.log" | head | tee -a "$R/log.txt"
 fi
-if [ "$PART" = a ]; then
+if [ "$PART" = a ] || [ "${SANITIZE:-0}" = 1 ]; then
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 200 "$SAN" --tool memcheck --error-exitcode 99 \
     python3 benchmarks/gpu/sanitize_case.py > "$R/memcheck.log" 2>&1
   say "memcheck rc=$?: $(grep -E 'ERROR SUMMARY' "$R/memcheck.log" | tail -1)"
-  for kns in raster_cuda bin_cuda ssim; do
+  for kns in ${RACECHECK:-raster_cuda bin_cuda ssim sh_}; do
     timeout 150 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=$kns \
       python3 benchmarks/gpu/sanitize_case.py > "$R/racecheck_$kns.log" 2>&1
     say "racecheck $kns rc=$?: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$R/racecheck_$kns.log" | tail -1)"
   done
+fi
+if [ "$PART" = a ]; then
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 120 "$SAN" --tool memcheck --target-processes all --error-exitcode 99 \
     --kernel-name kns=sh_ python3 -m pytest -q -p no:cacheprovider tests/ops/test_sh.py -k staged > "$R/memcheck_sh.log" 2>&1
   say "memcheck sh rc=$?: $(grep -E 'ERROR SUMMARY' "$R/memcheck_sh.log" | tail -1); $(tail -1 "$R/memcheck_sh.log")"
@@ -52,7 +55,7 @@ if [ "$PART" = a ]; then
   say "recon_ssim rc=$?"; tail -3 "$R/ssim.txt" | tee -a "$R/log.txt"
 else
   timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
-    --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP:-256,1024,2048}" \
+    --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP-256,1024,2048}" \
     > "$R/real_scenes.txt" 2>&1
   say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
   timeout "${TRAIN_TIMEOUT:-240}" python3 benchmarks/gpu/train_vs_gsplat.py --data .carry/realscene/fox \

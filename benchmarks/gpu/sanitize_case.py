@@ -82,8 +82,25 @@ def run_ssim(shape: tuple, taps: int, dtype: torch.dtype) -> None:
     print(f"ok fused ssim {shape} taps={taps} {dtype}", flush=True)
 
 
+def run_sh_split(n: int, degree: int) -> None:
+    """The SH op reading a DC block and a (strided) slice of the higher bands in place."""
+    from tiger.ops.sh import sh_to_color
+
+    g = torch.Generator(device="cuda").manual_seed(degree)
+    dirs = torch.randn(n, 3, device="cuda", generator=g)
+    dc = torch.randn(n, 3, device="cuda", generator=g).requires_grad_()
+    rest = torch.randn(n, 15, 3, device="cuda", generator=g).requires_grad_()
+    vis = torch.rand(n, device="cuda", generator=g) > 0.3
+    y = sh_to_color(dirs, dc[:, None], degree, vis, rest[:, : (degree + 1) ** 2 - 1])
+    y.backward(torch.ones_like(y))
+    torch.cuda.synchronize()
+    print(f"ok sh split n={n} degree={degree}", flush=True)
+
+
 def main() -> None:
     assert tiger.ops.cuda_enabled() and torch.cuda.is_available()
+    for n, degree in ((200, 3), (130, 2), (5, 1)):
+        run_sh_split(n, degree)
     for shape, taps, dtype in (((1, 3, 37, 70), 11, torch.float32), ((2, 2, 19, 33), 5, torch.float32),
                                ((1, 3, 21, 45), 11, torch.float64), ((1, 1, 3, 2), 11, torch.float32)):
         run_ssim(shape, taps, dtype)

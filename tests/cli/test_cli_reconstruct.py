@@ -55,10 +55,10 @@ def test_ctrl_c_names_the_checkpoint_step_and_resume_continues(data, tmp_path, c
 
     real = Trainer.train_step
 
-    def interrupted_at_25(self):
+    def interrupted_at_25(self, **kw):
         if self.step == 25:
             raise KeyboardInterrupt
-        return real(self)
+        return real(self, **kw)
 
     out = tmp_path / "out"
     monkeypatch.setattr(Trainer, "train_step", interrupted_at_25)
@@ -73,7 +73,7 @@ def test_ctrl_c_names_the_checkpoint_step_and_resume_continues(data, tmp_path, c
 def test_ctrl_c_before_the_first_checkpoint(data, tmp_path, capsys, monkeypatch):
     from tiger.recon.trainer import Trainer
 
-    def interrupted(self):
+    def interrupted(self, **kw):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(Trainer, "train_step", interrupted)
