@@ -40,6 +40,21 @@ __device__ void load_halo(T (*s)[TH + 2 * kHalo][kInW], int H, int W, int x0, in
   }
 }
 
+// The column pass of K row-filtered maps at output row j of the tile:
+// sums[k] = sum_t taps[t] s_row[k][j + t][column of this thread].
+template <typename T, int K, int TH, int R>
+__device__ __forceinline__ void column_pass(const T (*s_row)[TH + 2 * kHalo][kTileW], const Taps<T>& taps, int j,
+                                            T (&sums)[K]) {
+#pragma unroll
+  for (int k = 0; k < K; ++k) sums[k] = T(0);
+#pragma unroll
+  for (int t = 0; t <= 2 * R; ++t) {
+    const T g = taps.w[t];
+#pragma unroll
+    for (int k = 0; k < K; ++k) sums[k] += g * s_row[k][j + t][threadIdx.x];
+  }
+}
+
 // R: the window radius, a template constant so that the tap loops unroll and the taps stay in
 // the kernel's parameter space (a runtime index would copy them to local memory).
 template <typename T, int TH, int R>
@@ -76,13 +91,8 @@ __global__ void __launch_bounds__(kTileW * kRowsPerPass)
   for (int j = threadIdx.y; j < TH; j += kRowsPerPass) {
     const int gy = y0 + j;
     if (gy >= H) break;
-    T m[5] = {};
-#pragma unroll
-    for (int t = 0; t <= 2 * r; ++t) {
-      const T g = taps.w[t];
-#pragma unroll
-      for (int k = 0; k < 5; ++k) m[k] += g * s_row[k][j + t][threadIdx.x];
-    }
+    T m[5];
+    column_pass<T, 5, TH, R>(s_row, taps, j, m);
     const SsimPixel<T> p = ssim_pixel<T>(m[0], m[1], m[2], m[3], m[4], c1, c2);
     const int64_t i = base + int64_t(gy) * W + gx;
     out[i] = p.value;
@@ -124,13 +134,8 @@ __global__ void __launch_bounds__(kTileW * kRowsPerPass)
   for (int j = threadIdx.y; j < TH; j += kRowsPerPass) {
     const int gy = y0 + j;
     if (gy >= H) break;
-    T b[3] = {};
-#pragma unroll
-    for (int t = 0; t <= 2 * r; ++t) {
-      const T g = taps.w[t];
-#pragma unroll
-      for (int k = 0; k < 3; ++k) b[k] += g * s_row[k][j + t][threadIdx.x];
-    }
+    T b[3];
+    column_pass<T, 3, TH, R>(s_row, taps, j, b);
     const int64_t i = base + int64_t(gy) * W + gx;
     dx[i] = b[0] + T(2) * x[i] * b[1] + y[i] * b[2];
   }
