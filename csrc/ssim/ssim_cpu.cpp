@@ -1,9 +1,10 @@
-// CPU fused SSIM: per image plane, the window along rows (five moment sums) then along columns,
-// in the input's precision, planes and row blocks in parallel.
+// CPU fused SSIM, in the input's precision, as two row-parallel passes over all image planes:
+// the window along each row (K sums per pixel into a [K, planes·H, W] buffer), then along each
+// column, finishing every pixel (forward: the SSIM formula; backward: the image gradient). Rows,
+// not planes, are the unit of work: an RGB image has 3 planes for any number of threads.
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
-#include <algorithm>
 #include <vector>
 
 #include "ssim/ssim.h"
@@ -12,83 +13,54 @@ namespace tiger {
 namespace ssim {
 namespace {
 
-// out_k[r][c] = sum_t taps[t] in_k[r][c + t - radius] (zero outside the row) for K maps.
-template <typename T, int K>
-void filter_rows(const T* const in[K], T* const out[K], int64_t rows, int64_t W, const Window& w) {
-  for (int64_t r = 0; r < rows; ++r)
-    for (int64_t c = 0; c < W; ++c) {
-      T acc[K] = {};
-      for (int t = -w.radius; t <= w.radius; ++t) {
-        const int64_t cc = c + t;
-        if (cc < 0 || cc >= W) continue;
-        const T g = T(w.taps[t + w.radius]);
-        for (int k = 0; k < K; ++k) acc[k] += g * in[k][r * W + cc];
+constexpr int64_t kRowGrain = 8;  // rows per parallel task
+
+// out_k[pr][c] = sum_t taps[t] v_k(pr, c + t - radius) over the row pr of the planes·H rows
+// (zero outside the row), for K maps; value(pr, c, v) writes the K values at row pr, column c,
+// computed once per pixel into a row buffer.
+template <typename T, int K, typename Value>
+void row_pass(int64_t rows, int64_t W, const Window& w, T* out, Value&& value) {
+  const int64_t stride = rows * W;
+  at::parallel_for(0, rows, kRowGrain, [&](int64_t r0, int64_t r1) {
+    std::vector<T> buf(K * W);  // [W][K]
+    for (int64_t pr = r0; pr < r1; ++pr) {
+      for (int64_t c = 0; c < W; ++c) value(pr, c, buf.data() + c * K);
+      for (int64_t c = 0; c < W; ++c) {
+        T acc[K] = {};
+        for (int t = -w.radius; t <= w.radius; ++t) {
+          const int64_t cc = c + t;
+          if (cc < 0 || cc >= W) continue;
+          const T g = T(w.taps[t + w.radius]);
+          const T* v = buf.data() + cc * K;
+          for (int k = 0; k < K; ++k) acc[k] += g * v[k];
+        }
+        for (int k = 0; k < K; ++k) out[k * stride + pr * W + c] = acc[k];
       }
-      for (int k = 0; k < K; ++k) out[k][r * W + c] = acc[k];
     }
+  });
 }
 
-// The column pass at (r, c) of K row-filtered maps.
-template <typename T, int K>
-void filter_column(const T* const in[K], int64_t H, int64_t W, int64_t r, int64_t c, const Window& w,
-                   T acc[K]) {
-  for (int k = 0; k < K; ++k) acc[k] = T(0);
-  for (int t = -w.radius; t <= w.radius; ++t) {
-    const int64_t rr = r + t;
-    if (rr < 0 || rr >= H) continue;
-    const T g = T(w.taps[t + w.radius]);
-    for (int k = 0; k < K; ++k) acc[k] += g * in[k][rr * W + c];
-  }
-}
-
-template <typename T>
-void forward_plane(const T* x, const T* y, int64_t H, int64_t W, const Window& w, T c1, T c2, T* out,
-                   T* dmu1, T* de11, T* de12) {
-  const int64_t n = H * W;
-  std::vector<T> prod(3 * n), rows(5 * n);
-  for (int64_t i = 0; i < n; ++i) {
-    prod[i] = x[i] * x[i];
-    prod[n + i] = y[i] * y[i];
-    prod[2 * n + i] = x[i] * y[i];
-  }
-  const T* in[5] = {x, y, prod.data(), prod.data() + n, prod.data() + 2 * n};
-  T* rf[5] = {rows.data(), rows.data() + n, rows.data() + 2 * n, rows.data() + 3 * n, rows.data() + 4 * n};
-  filter_rows<T, 5>(in, rf, H, W, w);
-  const T* rc[5] = {rf[0], rf[1], rf[2], rf[3], rf[4]};
-  for (int64_t r = 0; r < H; ++r)
-    for (int64_t c = 0; c < W; ++c) {
-      T m[5];
-      filter_column<T, 5>(rc, H, W, r, c, w, m);
-      const SsimPixel<T> p = ssim_pixel<T>(m[0], m[1], m[2], m[3], m[4], c1, c2);
-      const int64_t i = r * W + c;
-      out[i] = p.value;
-      dmu1[i] = p.dmu1;
-      de11[i] = p.de11;
-      de12[i] = p.de12;
+// finish(i, sums) at every pixel i = plane·H·W + r·W + c, with sums[k] the column pass of map k
+// of the row pass at (plane, r, c) (zero outside the plane).
+template <typename T, int K, typename Finish>
+void column_pass(int64_t planes, int64_t H, int64_t W, const Window& w, const T* rows, Finish&& finish) {
+  const int64_t stride = planes * H * W;
+  at::parallel_for(0, planes * H, kRowGrain, [&](int64_t r0, int64_t r1) {
+    for (int64_t pr = r0; pr < r1; ++pr) {
+      const int64_t p = pr / H, r = pr - p * H;
+      for (int64_t c = 0; c < W; ++c) {
+        T acc[K] = {};
+        for (int t = -w.radius; t <= w.radius; ++t) {
+          const int64_t rr = r + t;
+          if (rr < 0 || rr >= H) continue;
+          const T g = T(w.taps[t + w.radius]);
+          const int64_t j = (p * H + rr) * W + c;
+          for (int k = 0; k < K; ++k) acc[k] += g * rows[k * stride + j];
+        }
+        finish(pr * W + c, acc);
+      }
     }
-}
-
-template <typename T>
-void backward_plane(const T* grad, const T* x, const T* y, const T* dmu1, const T* de11, const T* de12,
-                    int64_t H, int64_t W, const Window& w, T* dx) {
-  const int64_t n = H * W;
-  std::vector<T> g(3 * n), rows(3 * n);
-  for (int64_t i = 0; i < n; ++i) {
-    g[i] = grad[i] * dmu1[i];
-    g[n + i] = grad[i] * de11[i];
-    g[2 * n + i] = grad[i] * de12[i];
-  }
-  const T* in[3] = {g.data(), g.data() + n, g.data() + 2 * n};
-  T* rf[3] = {rows.data(), rows.data() + n, rows.data() + 2 * n};
-  filter_rows<T, 3>(in, rf, H, W, w);
-  const T* rc[3] = {rf[0], rf[1], rf[2]};
-  for (int64_t r = 0; r < H; ++r)
-    for (int64_t c = 0; c < W; ++c) {
-      T b[3];
-      filter_column<T, 3>(rc, H, W, r, c, w, b);
-      const int64_t i = r * W + c;
-      dx[i] = b[0] + T(2) * x[i] * b[1] + y[i] * b[2];
-    }
+  });
 }
 
 std::tuple<at::Tensor, at::Tensor> fused_ssim_cpu(const at::Tensor& img1_in, const at::Tensor& img2_in,
@@ -99,17 +71,29 @@ std::tuple<at::Tensor, at::Tensor> fused_ssim_cpu(const at::Tensor& img1_in, con
   const auto img1 = img1_in.contiguous(), img2 = img2_in.contiguous();
   auto out = at::empty_like(img1);
   auto dm = at::empty({3, img1.size(0), img1.size(1), img1.size(2), img1.size(3)}, img1.options());
-  const int64_t planes = img1.size(0) * img1.size(1), H = img1.size(2), W = img1.size(3), n = H * W;
+  const int64_t planes = img1.size(0) * img1.size(1), H = img1.size(2), W = img1.size(3);
   if (out.numel() == 0) return {out, dm};
   AT_DISPATCH_FLOATING_TYPES(img1.scalar_type(), "fused_ssim_cpu", [&] {
     using T = scalar_t;
     const T *x = img1.data_ptr<T>(), *y = img2.data_ptr<T>();
     T *o = out.data_ptr<T>(), *d = dm.data_ptr<T>();
-    const int64_t total = planes * n;
-    at::parallel_for(0, planes, 1, [&](int64_t p0, int64_t p1) {
-      for (int64_t p = p0; p < p1; ++p)
-        forward_plane<T>(x + p * n, y + p * n, H, W, w, T(c1), T(c2), o + p * n, d + p * n,
-                         d + total + p * n, d + 2 * total + p * n);
+    const int64_t total = out.numel();
+    std::vector<T> rows(5 * total);
+    // the five moments' row sums: x, y, x x, y y, x y
+    row_pass<T, 5>(planes * H, W, w, rows.data(), [&](int64_t pr, int64_t c, T* v) {
+      const T a = x[pr * W + c], b = y[pr * W + c];
+      v[0] = a;
+      v[1] = b;
+      v[2] = a * a;
+      v[3] = b * b;
+      v[4] = a * b;
+    });
+    column_pass<T, 5>(planes, H, W, w, rows.data(), [&](int64_t i, const T* m) {
+      const SsimPixel<T> p = ssim_pixel<T>(m[0], m[1], m[2], m[3], m[4], T(c1), T(c2));
+      o[i] = p.value;
+      d[i] = p.dmu1;
+      d[total + i] = p.de11;
+      d[2 * total + i] = p.de12;
     });
   });
   return {out, dm};
@@ -122,17 +106,23 @@ at::Tensor fused_ssim_backward_cpu(const at::Tensor& grad_in, const at::Tensor& 
   const auto grad = grad_in.contiguous(), img1 = img1_in.contiguous(), img2 = img2_in.contiguous(),
              dm = dm_in.contiguous();
   auto dx = at::empty_like(img1);
-  const int64_t planes = img1.size(0) * img1.size(1), H = img1.size(2), W = img1.size(3), n = H * W;
+  const int64_t planes = img1.size(0) * img1.size(1), H = img1.size(2), W = img1.size(3);
   if (dx.numel() == 0) return dx;
   AT_DISPATCH_FLOATING_TYPES(img1.scalar_type(), "fused_ssim_backward_cpu", [&] {
     using T = scalar_t;
     const T *g = grad.data_ptr<T>(), *x = img1.data_ptr<T>(), *y = img2.data_ptr<T>(), *d = dm.data_ptr<T>();
     T* o = dx.data_ptr<T>();
-    const int64_t total = planes * n;
-    at::parallel_for(0, planes, 1, [&](int64_t p0, int64_t p1) {
-      for (int64_t p = p0; p < p1; ++p)
-        backward_plane<T>(g + p * n, x + p * n, y + p * n, d + p * n, d + total + p * n, d + 2 * total + p * n,
-                          H, W, w, o + p * n);
+    const int64_t total = dx.numel();
+    std::vector<T> rows(3 * total);
+    // the incoming gradient times each derivative map (d/d mu1, d/d e11, d/d e12)
+    row_pass<T, 3>(planes * H, W, w, rows.data(), [&](int64_t pr, int64_t c, T* v) {
+      const int64_t i = pr * W + c;
+      v[0] = g[i] * d[i];
+      v[1] = g[i] * d[total + i];
+      v[2] = g[i] * d[2 * total + i];
+    });
+    column_pass<T, 3>(planes, H, W, w, rows.data(), [&](int64_t i, const T* b) {
+      o[i] = b[0] + T(2) * x[i] * b[1] + y[i] * b[2];
     });
   });
   return dx;

@@ -207,3 +207,17 @@ def test_finetune_a_region_leaves_the_rest_bit_identical_and_resumes(tmp_path):
     assert c.scene.detach().equal(a.scene.detach())
     with pytest.raises(ValueError, match="needs a starting scene"):
         Trainer(cams, imgs, cfg, trainable=region)
+
+
+def test_step_metrics_without_read_back_equal_the_read_back_ones():
+    """train_step(read_back=False) returns the same loss and PSNR as 0-d tensors (no host sync);
+    the two trainers take identical steps either way."""
+    _, cams, imgs = small_setup()
+    a, b = Trainer(cams, imgs, small_config()), Trainer(cams, imgs, small_config())
+    for _ in range(12):   # across a densification step
+        ia, ib = a.train_step(), b.train_step(read_back=False)
+        assert isinstance(ib["loss"], torch.Tensor) and ib["loss"].dim() == 0
+        assert isinstance(ib["psnr"], torch.Tensor) and ib["psnr"].dim() == 0
+        assert ia["loss"] == float(ib["loss"]) and ia["psnr"] == float(ib["psnr"])
+        assert ia["gaussians"] == ib["gaussians"]
+    assert torch.equal(a.scene.means, b.scene.means)
