@@ -55,6 +55,19 @@ __device__ __forceinline__ void column_pass(const T (*s_row)[TH + 2 * kHalo][kTi
   }
 }
 
+// f(j, offset) for the output rows j of this thread's column of the tile (offset: the pixel's
+// index in its plane), skipping pixels outside the plane.
+template <int TH, typename F>
+__device__ __forceinline__ void for_outputs(int H, int W, int x0, int y0, F&& f) {
+  const int gx = x0 + threadIdx.x;
+  if (gx >= W) return;
+  for (int j = threadIdx.y; j < TH; j += kRowsPerPass) {
+    const int gy = y0 + j;
+    if (gy >= H) break;
+    f(j, int64_t(gy) * W + gx);
+  }
+}
+
 // R: the window radius, a template constant so that the tap loops unroll and the taps stay in
 // the kernel's parameter space (a runtime index would copy them to local memory).
 template <typename T, int TH, int R>
@@ -86,20 +99,16 @@ __global__ void __launch_bounds__(kTileW * kRowsPerPass)
     for (int k = 0; k < 5; ++k) s_row[k][row][threadIdx.x] = m[k];
   }
   __syncthreads();
-  const int gx = x0 + threadIdx.x;
-  if (gx >= W) return;
-  for (int j = threadIdx.y; j < TH; j += kRowsPerPass) {
-    const int gy = y0 + j;
-    if (gy >= H) break;
+  for_outputs<TH>(H, W, x0, y0, [&](int j, int64_t offset) {
     T m[5];
     column_pass<T, 5, TH, R>(s_row, taps, j, m);
     const SsimPixel<T> p = ssim_pixel<T>(m[0], m[1], m[2], m[3], m[4], c1, c2);
-    const int64_t i = base + int64_t(gy) * W + gx;
+    const int64_t i = base + offset;
     out[i] = p.value;
     dm[i] = p.dmu1;
     dm[total + i] = p.de11;
     dm[2 * total + i] = p.de12;
-  }
+  });
 }
 
 template <typename T, int TH, int R>
@@ -129,16 +138,12 @@ __global__ void __launch_bounds__(kTileW * kRowsPerPass)
     for (int k = 0; k < 3; ++k) s_row[k][row][threadIdx.x] = m[k];
   }
   __syncthreads();
-  const int gx = x0 + threadIdx.x;
-  if (gx >= W) return;
-  for (int j = threadIdx.y; j < TH; j += kRowsPerPass) {
-    const int gy = y0 + j;
-    if (gy >= H) break;
+  for_outputs<TH>(H, W, x0, y0, [&](int j, int64_t offset) {
     T b[3];
     column_pass<T, 3, TH, R>(s_row, taps, j, b);
-    const int64_t i = base + int64_t(gy) * W + gx;
+    const int64_t i = base + offset;
     dx[i] = b[0] + T(2) * x[i] * b[1] + y[i] * b[2];
-  }
+  });
 }
 
 template <typename T>
