@@ -17,10 +17,23 @@ at::Tensor row_blocks(const at::Tensor& c) {
   return ok ? c : c.contiguous();
 }
 
-// Both coefficient tensors in place (float32, staged kernels); else the joined copy.
-bool in_place(const at::Tensor& dirs, const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
+// The staged kernels' two row sources: coeffs and (when given) rest, both read in place.
+struct StagedSources {
+  at::Tensor c0, c1;  // c1 undefined without rest
+  int64_t pitch(const at::Tensor& c) const { return c.defined() && c.size(0) > 0 ? c.stride(0) : 0; }
+  const float* ptr1() const { return c1.defined() ? c1.data_ptr<float>() : nullptr; }
+  int64_t k1() const { return c1.defined() ? c1.size(1) : 0; }
+};
+
+// float32 rows that fit the staged kernels (the default) go there, coefficients in place; the
+// rest (float64, TIGER_SH_STAGED=0, very long rows) through the plain kernels on a joined copy.
+bool staged(const at::Tensor& dirs, const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
   const int64_t k = coeffs.size(1) + (rest.has_value() ? rest->size(1) : 0);
-  return rest.has_value() && dirs.scalar_type() == at::kFloat && sh_staged_applies(k);
+  return dirs.scalar_type() == at::kFloat && sh_staged_applies(k);
+}
+
+StagedSources staged_sources(const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
+  return {row_blocks(coeffs), rest.has_value() ? row_blocks(*rest) : at::Tensor()};
 }
 }  // namespace
 
@@ -36,11 +49,11 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   cudaError_t err = cudaSuccess;
-  if (in_place(dirs, coeffs_in, rest)) {
-    const auto c0 = row_blocks(coeffs_in), c1 = row_blocks(*rest);
-    err = sh_to_color_split_cuda_launch(d.data_ptr<float>(), c0.data_ptr<float>(), n > 0 ? c0.stride(0) : 0,
-                                        c0.size(1), c1.data_ptr<float>(), n > 0 ? c1.stride(0) : 0, c1.size(1), n,
-                                        int(degree), vis, out.data_ptr<float>(), stream);
+  if (staged(dirs, coeffs_in, rest)) {
+    const StagedSources s = staged_sources(coeffs_in, rest);
+    err = sh_to_color_staged_cuda_launch(d.data_ptr<float>(), s.c0.data_ptr<float>(), s.pitch(s.c0), s.c0.size(1),
+                                        s.ptr1(), s.pitch(s.c1), s.k1(), n, int(degree), vis, out.data_ptr<float>(),
+                                        stream);
   } else {
     const auto c = joined_coeffs(coeffs_in, rest).contiguous();
     AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "sh_to_color_cuda", [&] {
@@ -68,21 +81,21 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   cudaError_t err = cudaSuccess;
-  if (in_place(dirs, coeffs_in, rest)) {
-    const auto c0 = row_blocks(coeffs_in), c1 = row_blocks(*rest);
+  if (staged(dirs, coeffs_in, rest)) {
+    const StagedSources s = staged_sources(coeffs_in, rest);
     // the staged kernel writes every row of both gradients: no zero fill
-    auto v0 = at::empty({n, c0.size(1), 3}, dirs.options()), v1 = at::empty({n, c1.size(1), 3}, dirs.options());
-    err = sh_to_color_backward_split_cuda_launch(
-        d.data_ptr<float>(), c0.data_ptr<float>(), n > 0 ? c0.stride(0) : 0, c0.size(1), c1.data_ptr<float>(),
-        n > 0 ? c1.stride(0) : 0, c1.size(1), n, int(degree), vis, g.data_ptr<float>(), v_dirs.data_ptr<float>(),
-        v0.data_ptr<float>(), v1.data_ptr<float>(), stream);
+    auto v0 = at::empty({n, s.c0.size(1), 3}, dirs.options());
+    auto v1 = rest.has_value() ? at::empty({n, s.k1(), 3}, dirs.options()) : dirs.new_empty({0});
+    err = sh_to_color_backward_staged_cuda_launch(
+        d.data_ptr<float>(), s.c0.data_ptr<float>(), s.pitch(s.c0), s.c0.size(1), s.ptr1(), s.pitch(s.c1), s.k1(), n,
+        int(degree), vis, g.data_ptr<float>(), v_dirs.data_ptr<float>(), v0.data_ptr<float>(),
+        rest.has_value() ? v1.data_ptr<float>() : nullptr, stream);
     TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
     return {v_dirs, v0, v1};
   }
   const auto c = joined_coeffs(coeffs_in, rest).contiguous();
   const int64_t k = c.size(1);
-  const bool all_rows = dirs.scalar_type() == at::kFloat && sh_staged_applies(k);
-  auto v_coeffs = all_rows ? at::empty({n, k, 3}, dirs.options()) : at::zeros({n, k, 3}, dirs.options());
+  auto v_coeffs = at::zeros({n, k, 3}, dirs.options());  // the plain kernel skips invisible rows
   AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "sh_to_color_backward_cuda", [&] {
     using T = scalar_t;
     err = sh_to_color_backward_cuda_launch<T>(d.data_ptr<T>(), c.data_ptr<T>(), n, k, int(degree), vis,

@@ -1,7 +1,7 @@
-// CUDA kernels of the spherical-harmonics ops: one thread per Gaussian, the same
-// sh_eval / sh_eval_vjp as the CPU kernels (optionally with rows staged in shared memory).
+// CUDA kernels of the spherical-harmonics ops: the same sh_eval / sh_eval_vjp as the CPU kernels,
+// one thread per Gaussian, in float32 with the rows staged through shared memory (the glue's
+// choice, sh_staged_applies), else reading each row directly.
 #include <cstdlib>
-#include <type_traits>
 
 #include "common/cuda_helpers.cuh"
 #include "common/sh_math.h"
@@ -109,7 +109,8 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
 
 bool staged_enabled() {
   static const bool on = [] {
-    // measured on the H100 at 1M Gaussians, degree 3: forward+backward 2.05 ms plain, 0.97 staged
+    // H100, 1M Gaussians, degree 3: forward+backward 2.15 ms plain, 0.815 staged
+    // (benchmarks/gpu/results/session7_call2/issue15_a/sh_staged{0,1}.txt)
     const char* v = std::getenv("TIGER_SH_STAGED");
     return v == nullptr || v[0] != '0';
   }();
@@ -129,11 +130,6 @@ cudaError_t sh_to_color_cuda_launch(const T* dirs, const T* coeffs, int64_t n, i
                                     int degree, const bool* visible, T* colors,
                                     cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  if constexpr (std::is_same<T, float>::value) {
-    if (sh_staged_applies(k))
-      return sh_to_color_split_cuda_launch(dirs, coeffs, 3 * k, k, nullptr, 0, 0, n, degree, visible, colors,
-                                           stream);
-  }
   sh_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(dirs, coeffs, n, k, degree,
                                                                       visible, colors);
   return cudaGetLastError();
@@ -144,17 +140,12 @@ cudaError_t sh_to_color_backward_cuda_launch(const T* dirs, const T* coeffs, int
                                              int degree, const bool* visible, const T* v_colors,
                                              T* v_dirs, T* v_coeffs, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  if constexpr (std::is_same<T, float>::value) {
-    if (sh_staged_applies(k))
-      return sh_to_color_backward_split_cuda_launch(dirs, coeffs, 3 * k, k, nullptr, 0, 0, n, degree, visible,
-                                                    v_colors, v_dirs, v_coeffs, nullptr, stream);
-  }
   sh_backward_kernel<T><<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(
       dirs, coeffs, n, k, degree, visible, v_colors, v_dirs, v_coeffs);
   return cudaGetLastError();
 }
 
-cudaError_t sh_to_color_split_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
+cudaError_t sh_to_color_staged_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
                                           const float* c1, int64_t pitch1, int64_t k1, int64_t n, int degree,
                                           const bool* visible, float* colors, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
@@ -164,7 +155,7 @@ cudaError_t sh_to_color_split_cuda_launch(const float* dirs, const float* c0, in
   return cudaGetLastError();
 }
 
-cudaError_t sh_to_color_backward_split_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
+cudaError_t sh_to_color_backward_staged_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
                                                    const float* c1, int64_t pitch1, int64_t k1, int64_t n,
                                                    int degree, const bool* visible, const float* v_colors,
                                                    float* v_dirs, float* v0, float* v1, cudaStream_t stream) {

@@ -5,14 +5,14 @@
 
 namespace tiger {
 
-// colors [N,3] must be zero-filled by the caller (invisible Gaussians keep 0).
+// The plain kernels: colors [N,3] must be zero-filled by the caller (invisible Gaussians keep 0).
 template <typename T>
 cudaError_t sh_to_color_cuda_launch(const T* dirs, const T* coeffs, int64_t n, int64_t k,
                                     int degree, const bool* visible, T* colors,
                                     cudaStream_t stream);
 
-// v_dirs [N,3] zero-filled by the caller; v_coeffs [N,K,3] too unless sh_staged_applies(K)
-// (float: the staged kernel writes every row).
+// The plain kernels. v_dirs [N,3] and v_coeffs [N,K,3] zero-filled by the caller (invisible rows
+// are skipped).
 template <typename T>
 cudaError_t sh_to_color_backward_cuda_launch(const T* dirs, const T* coeffs, int64_t n, int64_t k,
                                              int degree, const bool* visible, const T* v_colors,
@@ -22,15 +22,16 @@ cudaError_t sh_to_color_backward_cuda_launch(const T* dirs, const T* coeffs, int
 // must hold them: TIGER_SH_STAGED=0 turns them off).
 bool sh_staged_applies(int64_t k);
 
-// Split rows (float, staged kernels; only when sh_staged_applies(k0 + k1)): the coefficient row
-// of Gaussian i is cat(c0[i], c1[i]) with c0 [N,k0,3] and c1 [N,k1,3] (c1 may be null with
-// k1 = 0), each a contiguous [k,3] block per row, rows pitch0 / pitch1 words apart: the scene's
-// DC and higher bands without building the [N,K,3] tensor. The backward writes contiguous v0
-// [N,k0,3] and v1 [N,k1,3], every row (v_dirs zero-filled by the caller).
-cudaError_t sh_to_color_split_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
+// The staged kernels (float; only when sh_staged_applies(k0 + k1)): the coefficient row of
+// Gaussian i is cat(c0[i], c1[i]) with c0 [N,k0,3] and c1 [N,k1,3] (c1 may be null with k1 = 0),
+// each a contiguous [k,3] block per row, rows pitch0 / pitch1 words apart: e.g. a scene's DC and
+// higher bands without building the [N,K,3] tensor. colors [N,3] zero-filled by the caller. The
+// backward writes contiguous v0 [N,k0,3] and v1 [N,k1,3], every row (v_dirs [N,3] zero-filled by
+// the caller).
+cudaError_t sh_to_color_staged_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
                                           const float* c1, int64_t pitch1, int64_t k1, int64_t n, int degree,
                                           const bool* visible, float* colors, cudaStream_t stream);
-cudaError_t sh_to_color_backward_split_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
+cudaError_t sh_to_color_backward_staged_cuda_launch(const float* dirs, const float* c0, int64_t pitch0, int64_t k0,
                                                    const float* c1, int64_t pitch1, int64_t k1, int64_t n,
                                                    int degree, const bool* visible, const float* v_colors,
                                                    float* v_dirs, float* v0, float* v1, cudaStream_t stream);

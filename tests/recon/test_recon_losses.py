@@ -70,7 +70,7 @@ def test_position_lr_schedule_is_log_linear():
 def test_ssim_on_cuda_matches_cpu():
     a, b = torch.rand(2, 3, 70, 90, dtype=torch.float64).unbind(0)
     cpu = ssim_map(a, b)
-    gpu = ssim_map(a.cuda(), b.cuda())   # conv2d path
+    gpu = ssim_map(a.cuda(), b.cuda())   # fused kernels on both devices
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-12)
 
 
@@ -82,3 +82,15 @@ def test_scaled_schedule_is_inria_at_30k_and_sane_when_short():
     assert short.densify_from >= 100 and short.densify_interval >= 50
     assert short.densify_from + short.densify_interval <= short.densify_until <= 600
     assert ReconConfig.from_dict(short.to_dict()) == short
+
+
+def test_ssim_map_defaults_to_the_fused_kernels_where_they_apply():
+    """Default path: the fused op (float images, 11-tap window, a target without grad); the
+    tensor-op reference otherwise (a target that needs a gradient), with the same values."""
+    a = torch.rand(1, 3, 20, 24, dtype=torch.float64, requires_grad=True)
+    b = torch.rand(1, 3, 20, 24, dtype=torch.float64)
+    fused = ssim_map(a, b)
+    assert "fused_ssim" in type(fused.grad_fn).__name__
+    ref = ssim_map(a, b.requires_grad_())
+    assert "fused_ssim" not in type(ref.grad_fn).__name__
+    torch.testing.assert_close(fused, ref, rtol=0, atol=1e-12)

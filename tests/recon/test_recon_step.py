@@ -195,3 +195,10 @@ def test_masked_step_on_cuda_matches_cpu():
     frozen = ~mask
     assert torch.equal(gpu.scene.means[frozen.cuda()].cpu(), scene.means[frozen])
     torch.testing.assert_close(gpu.scene.means.cpu(), cpu.scene.means, rtol=1e-4, atol=1e-5)
+
+
+def test_adam_is_fused_on_cuda_only():
+    start, _, _ = setup()
+    assert SceneOptimizer(start, LRS).optimizer.defaults["fused"] is False   # CPU: torch's default Adam
+    if torch.cuda.is_available() and torch._C._dispatch_has_kernel_for_dispatch_key("tiger::rasterize", "CUDA"):
+        assert SceneOptimizer(start.to("cuda"), LRS).optimizer.defaults["fused"] is True
