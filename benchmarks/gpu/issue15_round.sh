@@ -6,7 +6,9 @@
 #           gsplat) and the SSIM benchmark at 1080p.
 #   PART=b: build, the same CUDA tests (TESTS=0 skips them), the sanitizer runs of part a with
 #           SANITIZE=1 (RACECHECK: the kernel-name filters), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; binning threshold
-#           sweep) and benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution.
+#           sweep; REAL_BEFORE: the environment of its 'before' columns) and
+#           benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution (TRAIN_ABLATION: one
+#           more run of ours under that environment).
 # gsplat JIT-compiles on first use (~90 s): its build folder is packed into $OUT/gsplat_ext.tgz and,
 # carried back as .carry/gsplat_ext.tgz, reused (same wheel, same paths).
 # From the repo root with .whl, .carry/deb and .carry/realscene carried. Results: $OUT/issue15_<part>.tgz.
@@ -56,10 +58,11 @@ if [ "$PART" = a ]; then
 else
   timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
     --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP-256,1024,2048}" \
+    --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" \
     > "$R/real_scenes.txt" 2>&1
   say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
   timeout "${TRAIN_TIMEOUT:-240}" python3 benchmarks/gpu/train_vs_gsplat.py --data .carry/realscene/fox \
-    --json "$R/train_vs_gsplat.json" > "$R/train_vs_gsplat.txt" 2>&1
+    ${TRAIN_ABLATION:+--ablation "$TRAIN_ABLATION"} --json "$R/train_vs_gsplat.json" > "$R/train_vs_gsplat.txt" 2>&1
   say "train_vs_gsplat rc=$?"; tail -9 "$R/train_vs_gsplat.txt" | tee -a "$R/log.txt"
 fi
 (cd "$TORCH_EXTENSIONS_DIR" && [ -n "$(ls)" ] && tar czf "$OUT/gsplat_ext.tgz" .)

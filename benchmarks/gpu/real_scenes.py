@@ -14,7 +14,8 @@ Cases (``--cases``; each at the resolution named):
 
 For each case: the distribution of screen radii (max of the two pixel radii of the visible
 Gaussians) and of bounding-box tiles; then for C = 3 and 64: ours (load-balanced binning),
-ours with the former binning (``TIGER_BIN_SERIAL=1``, whose tile lists must be identical),
+ours under the ``--before`` environment (default ``TIGER_BIN_SERIAL=1``: the former binning,
+whose tile lists must be identical),
 and gsplat (packed, classic, same eps2d/near/far): median forward and forward+backward ms
 (CUDA events), and per-stage GPU time from the profiler (project = projection + SH, bin,
 sort, raster, backward, other) and the number of GPU operations (kernels, memsets, copies)
@@ -307,16 +308,17 @@ def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
             row.update({f"ours_{k}": v for k, v in host_split(ours, sc, V, K, w, h, args.iters).items()})
             if args.host_profile == name:
                 host_profile(ours, sc, V, K, w, h, args.out / f"host_profile_{name}.txt")
-        os.environ["TIGER_BIN_SERIAL"] = "1"
+        os.environ.update(args.before)
         try:
             row["before_fwd"], row["before_fwdbwd"] = time_pair(ours, sc, V, K, w, h, args.iters)
             st_before, _ = stage_times(ours, sc, V, K, w, h)
         finally:
-            os.environ.pop("TIGER_BIN_SERIAL")
+            for k in args.before:
+                os.environ.pop(k)
         row["identical_lists"] = same_lists(sc, V, K, w, h)
         st, kern = stage_times(ours, sc, V, K, w, h)
         res["stages"].append({"case": name, "C": C, "who": "ours", **st})
-        res["stages"].append({"case": name, "C": C, "who": "ours (former binning)", **st_before})
+        res["stages"].append({"case": name, "C": C, "who": f"ours ({args.before_label})", **st_before})
         res["kernels"][f"ours C={C}"] = kern
         row["bin_share_of_fwd"] = (st["bin"] + st["sort"]) / row["ours_fwd"]
         if have_gsplat:
@@ -356,8 +358,12 @@ def main() -> None:
                    help="also time the binning op with these warp/block thresholds (candidate tiles)")
     p.add_argument("--host-profile", default="snowmiku-1080p",
                    help="case whose C=3 forward+backward is profiled on the CPU side (file in --out)")
+    p.add_argument("--before", default="TIGER_BIN_SERIAL=1", metavar="VAR=VALUE[,VAR=VALUE]",
+                   help="environment of the 'before' columns (default: the former binning)")
     p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "outputs/real_scenes")))
     args = p.parse_args()
+    args.before_label = args.before
+    args.before = dict(kv.split("=", 1) for kv in args.before.split(",") if kv)
     args.out.mkdir(parents=True, exist_ok=True)
     torch.backends.cuda.matmul.allow_tf32 = False
     have_gsplat = False
@@ -402,7 +408,7 @@ def main() -> None:
     radii = [{"case": r["case"], "size": f"{r['width']}x{r['height']}", **r["radii"], **r["bin_op"]}
              for r in done]
     log(table([fmt(x) for x in radii], list(radii[0].keys())) if radii else "(none)")
-    log("\n== Speed (median ms of CUDA events); before = former binning (TIGER_BIN_SERIAL=1)")
+    log(f"\n== Speed (median ms of CUDA events); before = ours with {args.before_label}")
     rows = [x for r in done for x in r["rows"]]
     if rows:
         log(table([fmt(x) for x in rows], list(dict.fromkeys(k for x in rows for k in x))))

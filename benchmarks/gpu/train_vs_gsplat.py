@@ -11,12 +11,15 @@ Each step is tiger.recon.Trainer.train_step (render, L1 + D-SSIM loss, backward,
 and steps run back to back without reading the metrics back, as ``Trainer.fit`` runs them. Variants run in the order ours, gsplat (packed=False, its
 trainer's default), gsplat (packed=True), ours again; median wall ms per step after warm-up,
 and the GPU time of a step (sum of kernel times, profiler) with its costliest kernels, which
-tells the rasteriser's share of the step from the rest (loss, Adam, Python).
+tells the rasteriser's share of the step from the rest (loss, Adam, Python). ``--ablation``
+adds runs of ours under environment settings (e.g. TIGER_BWD_PPT=1: one pixel per backward
+thread), left out of the speed-ups.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -93,6 +96,9 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=60)
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--ablation", action="append", default=[], metavar="VAR=VALUE[,VAR=VALUE]",
+                   help="also time ours with these environment settings (a variant named "
+                        "'ablation: ...', left out of the speed-ups); repeatable")
     args = p.parse_args()
     from tiger.recon import ReconConfig, Trainer, load_views
     from tiger.scene.dataset import load_dataset
@@ -113,8 +119,14 @@ def main() -> None:
     rows = []
     variants = [("ours", None), ("gsplat packed=False", False), ("gsplat packed=True", True),
                 ("ours (again)", None)]
+    ablations = {f"ablation: {a}": dict(kv.split("=", 1) for kv in a.split(",")) for a in args.ablation}
+    variants += [(name, None) for name in ablations]
 
-    def use(packed):
+    def use(packed, name=""):
+        for env in ablations.values():
+            for k in env:
+                os.environ.pop(k, None)
+        os.environ.update(ablations.get(name, {}))
         tr.active_sh = 3
         if packed is None:
             tr.scene.__dict__.pop("render", None)   # the scene's own method
@@ -134,7 +146,7 @@ def main() -> None:
     tr.save(start)
     for name, packed in variants:
         tr.load(start)
-        use(packed)
+        use(packed, name)
         torch.cuda.reset_peak_memory_stats()
         ms, piped, ps = time_steps(tr, args.steps, args.warmup)
         gpu_ms, top = step_profile(tr)
@@ -144,8 +156,10 @@ def main() -> None:
         print({k: v for k, v in rows[-1].items() if k != "top_kernels"}, flush=True)
         for t in top[:16]:
             print("   ", t, flush=True)
+    use(None)
     best_gs = min(r["ms_per_step"] for r in rows if r["variant"].startswith("gsplat"))
     ours_ms = statistics.median([r["ms_per_step"] for r in rows if r["variant"].startswith("ours")])
+    # (ablations are named "ablation: ..." and count in neither)
     best_gs_p = min(r["pipelined_ms_per_step"] for r in rows if r["variant"].startswith("gsplat"))
     ours_p = statistics.median([r["pipelined_ms_per_step"] for r in rows if r["variant"].startswith("ours")])
     print(f"\n== Training iteration at {cams[0].width}x{cams[0].height}, {n} Gaussians "

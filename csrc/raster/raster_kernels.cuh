@@ -83,6 +83,60 @@ __device__ __forceinline__ void load_colors(const TC* colors, const int32_t* ids
   }
 }
 
+
+// Per-pixel channel rows of an [H, W, C] image: a thread's CB channels lie at pix * C + c0.
+// Moved as 16-byte vectors when every row start is 16-byte aligned (float32, C and c0
+// multiples of 4): a warp's access then touches 32 sectors per 4 channels instead of per
+// channel, which at C = 64 was the cost of the forward's stores and the backward's loads.
+template <typename T>
+__device__ __forceinline__ bool rows_vectorizable(const T* base, int C) {
+  return std::is_same<T, float>::value && (C & 3) == 0 &&
+         (reinterpret_cast<uintptr_t>(base) & 15) == 0;
+}
+
+// vals[c] = src[pix * C + c0 + c] for c0 + c < C, 0 past C.
+template <int CB, typename T>
+__device__ __forceinline__ void load_channel_row(const T* src, int64_t pix, int C, int c0,
+                                                 T (&vals)[CB]) {
+  const T* row = src + pix * C + c0;
+  if constexpr (std::is_same<T, float>::value && CB % 4 == 0) {
+    if (rows_vectorizable(src, C)) {
+#pragma unroll
+      for (int v = 0; v < CB / 4; ++v) {
+        float4 x = make_float4(0.f, 0.f, 0.f, 0.f);
+        if (c0 + 4 * v < C) x = *reinterpret_cast<const float4*>(row + 4 * v);
+        vals[4 * v] = x.x;
+        vals[4 * v + 1] = x.y;
+        vals[4 * v + 2] = x.z;
+        vals[4 * v + 3] = x.w;
+      }
+      return;
+    }
+  }
+#pragma unroll
+  for (int c = 0; c < CB; ++c) vals[c] = c0 + c < C ? row[c] : T(0);
+}
+
+// dst[pix * C + c0 + c] = vals[c] for c0 + c < C.
+template <int CB, typename T>
+__device__ __forceinline__ void store_channel_row(T* dst, int64_t pix, int C, int c0,
+                                                  const T (&vals)[CB]) {
+  T* row = dst + pix * C + c0;
+  if constexpr (std::is_same<T, float>::value && CB % 4 == 0) {
+    if (rows_vectorizable(dst, C)) {
+#pragma unroll
+      for (int v = 0; v < CB / 4; ++v)
+        if (c0 + 4 * v < C)
+          *reinterpret_cast<float4*>(row + 4 * v) =
+              make_float4(vals[4 * v], vals[4 * v + 1], vals[4 * v + 2], vals[4 * v + 3]);
+      return;
+    }
+  }
+#pragma unroll
+  for (int c = 0; c < CB; ++c)
+    if (c0 + c < C) row[c] = vals[c];
+}
+
 // ----------------------------------------------------------------------------------------
 // Forward
 // ----------------------------------------------------------------------------------------
@@ -140,10 +194,12 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
   }
   if (!p.inside) return;
   const int64_t pix = int64_t(p.py) * a.width + p.px;
-  T* oc = out.color + pix * C + c0;
+  if (out.bg) {
 #pragma unroll
-  for (int c = 0; c < CB; ++c)
-    if (c0 + c < C) oc[c] = acc[c] + (out.bg ? Tr * out.bg[c0 + c] : T(0));
+    for (int c = 0; c < CB; ++c)
+      if (c0 + c < C) acc[c] += Tr * out.bg[c0 + c];
+  }
+  store_channel_row<CB>(out.color, pix, C, c0, acc);
   if (first) {
     out.alpha[pix] = T(1) - Tr;
     out.depth[pix] = accd;
@@ -175,18 +231,59 @@ __global__ void __launch_bounds__(256) forward_kernel(RasterLaunch<T> a, const T
 // ----------------------------------------------------------------------------------------
 // Shared by the two backward kernels
 // ----------------------------------------------------------------------------------------
-template <typename T>
-__device__ __forceinline__ int block_max_count(const int32_t* n_contrib, const TilePixel& p,
+// The pixels of one backward thread. PPT = 1: pixel t of the tile, as in the forward.
+// PPT = 2 (16-px tiles, 128 threads): warp w covers rows 4w..4w+3, lane l column l % 16 of
+// rows 4w + l / 16 and 4w + 2 + l / 16, so one warp reduction sums a Gaussian's gradient over
+// 64 pixels instead of 32: half the shuffles and atomics per pixel, the geometry read from
+// shared memory once for two pixels.
+template <int PPT>
+struct TilePixels {
+  int tile;
+  int px[PPT], py[PPT];
+  bool inside[PPT];
+};
+
+template <int PPT>
+__device__ __forceinline__ TilePixels<PPT> tile_pixels(int tile_size, int tiles_x, int width,
+                                                       int height) {
+  TilePixels<PPT> p;
+  if constexpr (PPT == 1) {
+    const TilePixel q = tile_pixel(tile_size, tiles_x, width, height);
+    p.tile = q.tile;
+    p.px[0] = q.px;
+    p.py[0] = q.py;
+    p.inside[0] = q.inside;
+  } else {
+    static_assert(PPT == 2, "1 or 2 pixels per thread");
+    p.tile = blockIdx.x;
+    const int tx = p.tile % tiles_x, ty = p.tile / tiles_x;
+    const int t = threadIdx.x, lane = t & 31;
+    const int row0 = 4 * (t >> 5) + (lane >> 4);
+#pragma unroll
+    for (int k = 0; k < 2; ++k) {
+      p.px[k] = tx * tile_size + (lane & 15);
+      p.py[k] = ty * tile_size + row0 + 2 * k;
+      p.inside[k] = p.px[k] < width && p.py[k] < height;
+    }
+  }
+  return p;
+}
+
+template <int PPT>
+__device__ __forceinline__ int block_max_count(const int32_t* n_contrib, const TilePixels<PPT>& p,
                                                int width, int* s_max) {
   if (threadIdx.x == 0) *s_max = 0;
   __syncthreads();
-  const int32_t cnt = p.inside ? n_contrib[int64_t(p.py) * width + p.px] : 0;
+  int32_t cnt = 0;
+#pragma unroll
+  for (int k = 0; k < PPT; ++k)
+    if (p.inside[k]) cnt = max(cnt, n_contrib[int64_t(p.py[k]) * width + p.px[k]]);
   if (cnt > 0) atomicMax(s_max, cnt);
   __syncthreads();
   return *s_max;
 }
 
-// Adds the block's sum of vals[c] (one per pixel thread) to v_bg_tiles[tile, c0 + c].
+// Adds the block's sum of vals[c] (one per thread) to v_bg_tiles[tile, c0 + c].
 template <int CB, typename T>
 __device__ __forceinline__ void block_background_grad(T (&vals)[CB], int C, int c0, int tile,
                                                       T* s_bg, T* v_bg_tiles) {
@@ -202,16 +299,54 @@ __device__ __forceinline__ void block_background_grad(T (&vals)[CB], int C, int 
 }
 
 // v_bg_tiles[tile, c0 + c] += sum over the block's pixels of t * vc[c], in pieces of 32.
-template <int CB, typename T>
-__device__ __forceinline__ void background_grads(const T (&vc)[CB], T t, int C, int c0, int tile,
-                                                 T* s_bg, T* v_bg_tiles) {
+template <int CB, int PPT, typename T>
+__device__ __forceinline__ void background_grads(const T (&vc)[PPT][CB], const T (&t)[PPT],
+                                                 int C, int c0, int tile, T* s_bg,
+                                                 T* v_bg_tiles) {
   constexpr int PIECE = CB < 32 ? CB : 32;
 #pragma unroll
   for (int h = 0; h < CB / PIECE; ++h) {
     T vals[PIECE];
 #pragma unroll
-    for (int c = 0; c < PIECE; ++c) vals[c] = t * vc[h * PIECE + c];
+    for (int c = 0; c < PIECE; ++c) {
+      vals[c] = t[0] * vc[0][h * PIECE + c];
+#pragma unroll
+      for (int k = 1; k < PPT; ++k) vals[c] += t[k] * vc[k][h * PIECE + c];
+    }
     block_background_grad<PIECE>(vals, C, c0 + h * PIECE, tile, s_bg, v_bg_tiles);
+  }
+}
+
+// Adds sum_k w[k] * vc[k][c] of every lane to v_colors[gid, c0 + c], reduced over the warp
+// first: pieces of at most 32 channels, so the temporaries stay at 32 registers for any CB.
+template <int CB, int PPT, typename T>
+__device__ __forceinline__ void warp_add_color_grads(const T (&vc)[PPT][CB], const T (&w)[PPT],
+                                                     int64_t gid, int C, int c0, int lane,
+                                                     T* v_colors) {
+  constexpr int PIECE = CB < 32 ? CB : 32;
+#pragma unroll
+  for (int h = 0; h < CB / PIECE; ++h) {
+    T gc[PIECE];
+#pragma unroll
+    for (int c = 0; c < PIECE; ++c) {
+      gc[c] = w[0] * vc[0][h * PIECE + c];
+#pragma unroll
+      for (int k = 1; k < PPT; ++k) gc[c] += w[k] * vc[k][h * PIECE + c];
+    }
+    const T sc = cuda::warp_reduce_scatter<PIECE>(gc, lane);
+    const int ch = c0 + h * PIECE + lane;
+    if (lane < PIECE && ch < C) atomicAdd(&v_colors[gid * C + ch], sc);
+  }
+}
+
+// Stages the batch entries [b0, b0 + nb) of the tile list: geometry and id per entry.
+template <typename T>
+__device__ __forceinline__ void load_batch_geometry(const RasterLaunch<T>& a, int64_t b0, int nb,
+                                                    SplatGeom<T>* s_geom, int32_t* s_id) {
+  for (int e = threadIdx.x; e < nb; e += blockDim.x) {
+    const int32_t g = a.ids[b0 + e];
+    s_id[e] = g;
+    load_geom(a, g, s_geom[e]);
   }
 }
 
@@ -228,116 +363,128 @@ struct BackwardIO {
   T *v_colors, *v_bg_tiles;
 };
 
-// Adds w * vc[c] of every lane to v_colors[gid, c0 + c], reduced over the warp first:
-// pieces of at most 32 channels, so the temporaries stay at 32 registers for any CB.
+// The per-pixel state of the back-to-front walk.
 template <int CB, typename T>
-__device__ __forceinline__ void warp_add_color_grads(const T (&vc)[CB], T w, int64_t gid, int C,
-                                                     int c0, int lane, T* v_colors) {
-  constexpr int PIECE = CB < 32 ? CB : 32;
-#pragma unroll
-  for (int h = 0; h < CB / PIECE; ++h) {
-    T gc[PIECE];
-#pragma unroll
-    for (int c = 0; c < PIECE; ++c) gc[c] = w * vc[h * PIECE + c];
-    const T sc = cuda::warp_reduce_scatter<PIECE>(gc, lane);
-    const int ch = c0 + h * PIECE + lane;
-    if (lane < PIECE && ch < C) atomicAdd(&v_colors[gid * C + ch], sc);
-  }
-}
+struct BackPixel {
+  T Tfin, vA, vD, P, Tr, Rd, fx, fy;
+  int32_t cnt;
+};
 
-// Back-to-front walk for channels [c0, c0 + CB). The colour behind each Gaussian enters
-// the gradient only through its dot product with v_color, so one scalar per pixel,
-// P = <v_color, colour behind>, replaces the per-channel state:
+// Back-to-front walk for channels [c0, c0 + CB), PPT pixels per thread. The colour behind
+// each Gaussian enters the gradient only through its dot product with v_color, so one
+// scalar per pixel, P = <v_color, colour behind>, replaces the per-channel state:
 //   dot_i = <v_color, c_i> - P,   P <- alpha_i <v_color, c_i> + (1 - alpha_i) P.
-// The geometry gradients are linear in dot, so channel blocks add their shares.
-template <int CB, typename T, typename TC>
+// The geometry gradients are linear in dot, so channel blocks add their shares. Batches
+// hold blockDim * PPT list entries.
+template <int CB, int PPT, typename T, typename TC>
 __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC* colors,
-                                              const BackwardIO<T>& io, const TilePixel& p,
+                                              const BackwardIO<T>& io, const TilePixels<PPT>& p,
                                               int max_cnt, int c0, bool first,
                                               SplatGeom<T>* s_geom, int32_t* s_id, T* s_col,
                                               T* s_bg) {
   const int C = a.channels;
-  const int BS = blockDim.x;
+  const int BS = blockDim.x * PPT;
   const int lane = threadIdx.x & 31;
   const int64_t start = a.tile_offsets[p.tile];
-  const int64_t pix = int64_t(p.py) * a.width + p.px;
-  T Tfin = T(1), vA = T(0), vD = T(0), P = T(0);
-  int32_t cnt = 0;
-  T vc[CB];
+  BackPixel<CB, T> s[PPT];
+  T vc[PPT][CB];
 #pragma unroll
-  for (int c = 0; c < CB; ++c) vc[c] = T(0);
-  if (p.inside) {
-    Tfin = io.trans[pix];
-    cnt = io.count[pix];
-    vA = io.v_alpha ? io.v_alpha[pix] : T(0);  // null: no alpha / depth gradient
-    vD = io.v_depth ? io.v_depth[pix] : T(0);
+  for (int k = 0; k < PPT; ++k) {
+    BackPixel<CB, T>& q = s[k];
+    q.Tfin = T(1);
+    q.vA = q.vD = q.P = q.Rd = T(0);
+    q.cnt = 0;
 #pragma unroll
-    for (int c = 0; c < CB; ++c)
-      if (c0 + c < C) {
-        vc[c] = io.v_color[pix * C + c0 + c];
-        if (io.bg) P += vc[c] * io.bg[c0 + c];
+    for (int c = 0; c < CB; ++c) vc[k][c] = T(0);
+    if (p.inside[k]) {
+      const int64_t pix = int64_t(p.py[k]) * a.width + p.px[k];
+      q.Tfin = io.trans[pix];
+      q.cnt = io.count[pix];
+      q.vA = io.v_alpha ? io.v_alpha[pix] : T(0);  // null: no alpha / depth gradient
+      q.vD = io.v_depth ? io.v_depth[pix] : T(0);
+      load_channel_row<CB>(io.v_color, pix, C, c0, vc[k]);
+      if (io.bg) {
+#pragma unroll
+        for (int c = 0; c < CB; ++c)
+          if (c0 + c < C) q.P += vc[k][c] * io.bg[c0 + c];
       }
+    }
+    q.Tr = q.Tfin;
+    q.fx = T(p.px[k]) + T(0.5);
+    q.fy = T(p.py[k]) + T(0.5);
   }
-  background_grads<CB>(vc, Tfin, C, c0, p.tile, s_bg, io.v_bg_tiles);
-  const T fx = T(p.px) + T(0.5), fy = T(p.py) + T(0.5);
-  T Tr = Tfin, Rd = T(0);
+  {
+    T tfin[PPT];
+#pragma unroll
+    for (int k = 0; k < PPT; ++k) tfin[k] = s[k].Tfin;
+    background_grads<CB, PPT>(vc, tfin, C, c0, p.tile, s_bg, io.v_bg_tiles);
+  }
   for (int64_t b1 = start + max_cnt; b1 > start; b1 -= BS) {
     const int64_t b0 = b1 - BS > start ? b1 - BS : start;
     const int nb = int(b1 - b0);
     __syncthreads();
-    if (int(threadIdx.x) < nb) {
-      const int32_t g = a.ids[b0 + threadIdx.x];
-      s_id[threadIdx.x] = g;
-      load_geom(a, g, s_geom[threadIdx.x]);
-    }
+    load_batch_geometry(a, b0, nb, s_geom, s_id);
     load_colors<CB>(colors, a.ids, b0, nb, C, c0, s_col);
     __syncthreads();
     for (int j = nb - 1; j >= 0; --j) {
       const int32_t rank = int32_t(b0 + j - start);
       const SplatGeom<T> g = s_geom[j];
-      const T dx = fx - g.u, dy = fy - g.v;
-      bool contrib = false, clamped = false;
-      T alpha = T(0), gauss = T(0);
-      if (rank < cnt) {
-        const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
-        if (q <= g.qcut) {
-          alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
-          contrib = alpha >= a.alpha_threshold;
+      T alpha[PPT], gauss[PPT], dx[PPT], dy[PPT];
+      bool contrib[PPT], clamped[PPT];
+      bool any = false;
+#pragma unroll
+      for (int k = 0; k < PPT; ++k) {
+        dx[k] = s[k].fx - g.u;
+        dy[k] = s[k].fy - g.v;
+        contrib[k] = clamped[k] = false;
+        alpha[k] = gauss[k] = T(0);
+        if (rank < s[k].cnt) {
+          const T q = conic_quadratic(g.ca, g.cb, g.cc, dx[k], dy[k]);
+          if (q <= g.qcut) {
+            alpha[k] = splat_alpha(g.o, q, a.alpha_max, gauss[k], clamped[k]);
+            contrib[k] = alpha[k] >= a.alpha_threshold;
+          }
         }
+        any = any || contrib[k];
       }
-      if (!__any_sync(kFullMask, contrib)) continue;
+      if (!__any_sync(kFullMask, any)) continue;
       T geo[8];
 #pragma unroll
-      for (int k = 0; k < 8; ++k) geo[k] = T(0);
-      T w = T(0);
-      if (contrib) {
-        const T ra = T(1) / (T(1) - alpha);
-        const T Ti = Tr * ra;  // transmittance in front of this Gaussian
-        w = alpha * Ti;
-        const T* col = s_col + j * CB;
+      for (int i = 0; i < 8; ++i) geo[i] = T(0);
+      T w[PPT];
+      const T* col = s_col + j * CB;
+#pragma unroll
+      for (int k = 0; k < PPT; ++k) {
+        w[k] = T(0);
+        if (!contrib[k]) continue;
+        BackPixel<CB, T>& q = s[k];
+        const T ra = T(1) / (T(1) - alpha[k]);
+        const T Ti = q.Tr * ra;  // transmittance in front of this Gaussian
+        w[k] = alpha[k] * Ti;
         T sdot = T(0);
 #pragma unroll
-        for (int c = 0; c < CB; ++c) sdot += vc[c] * col[c];
-        T v_a = Ti * (sdot - P);
-        P = alpha * sdot + (T(1) - alpha) * P;
+        for (int c = 0; c < CB; ++c) sdot += vc[k][c] * col[c];
+        T v_a = Ti * (sdot - q.P);
+        q.P = alpha[k] * sdot + (T(1) - alpha[k]) * q.P;
         if (first) {
-          v_a += vD * Ti * (g.z - Rd) + vA * Tfin * ra;
-          Rd = alpha * g.z + (T(1) - alpha) * Rd;
-          geo[6] = w * vD;
+          v_a += q.vD * Ti * (g.z - q.Rd) + q.vA * q.Tfin * ra;
+          q.Rd = alpha[k] * g.z + (T(1) - alpha[k]) * q.Rd;
+          geo[6] += w[k] * q.vD;
         }
-        Tr = Ti;
-        if (!clamped) {
-          geo[5] = v_a * gauss;
-          const T vq = T(-0.5) * v_a * g.o * gauss;  // d alpha / d q = -o G / 2
-          geo[2] = vq * dx * dx;
-          geo[3] = vq * T(2) * dx * dy;
-          geo[4] = vq * dy * dy;
-          geo[0] = -vq * T(2) * (g.ca * dx + g.cb * dy);
-          geo[1] = -vq * T(2) * (g.cb * dx + g.cc * dy);
+        q.Tr = Ti;
+        if (!clamped[k]) {
+          const T ddx = dx[k], ddy = dy[k];
+          geo[5] += v_a * gauss[k];
+          const T vq = T(-0.5) * v_a * g.o * gauss[k];  // d alpha / d q = -o G / 2
+          geo[2] += vq * ddx * ddx;
+          geo[3] += vq * T(2) * ddx * ddy;
+          geo[4] += vq * ddy * ddy;
+          geo[0] += -vq * T(2) * (g.ca * ddx + g.cb * ddy);
+          geo[1] += -vq * T(2) * (g.cb * ddx + g.cc * ddy);
         }
       }
       const int64_t gid = s_id[j];
-      warp_add_color_grads<CB>(vc, w, gid, C, c0, lane, io.v_colors);
+      warp_add_color_grads<CB, PPT>(vc, w, gid, C, c0, lane, io.v_colors);
       // Lanes 0-6 add to one 32-byte row: a single sector per warp and Gaussian.
       const T sg = cuda::warp_reduce_scatter<8>(geo, lane);
       if (lane < (first ? 7 : 6)) atomicAdd(&io.v_geom[8 * gid + lane], sg);
@@ -345,26 +492,27 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
   }
 }
 
-template <typename T, typename TC, int CBM, int CBT>
+template <typename T, typename TC, int CBM, int CBT, int PPT>
 __global__ void __launch_bounds__(256) backward_kernel(RasterLaunch<T> a, const TC* colors,
                                                        BackwardIO<T> io, int n_main) {
   extern __shared__ __align__(16) unsigned char smem[];
   constexpr int CBX = CBM > CBT ? CBM : CBT;
+  const int BS = blockDim.x * PPT;
   SplatGeom<T>* s_geom = reinterpret_cast<SplatGeom<T>*>(smem);
-  T* s_col = reinterpret_cast<T*>(s_geom + blockDim.x);
-  T* s_bg = s_col + blockDim.x * CBX;
+  T* s_col = reinterpret_cast<T*>(s_geom + BS);
+  T* s_bg = s_col + BS * CBX;
   int32_t* s_id = reinterpret_cast<int32_t*>(s_bg + CBX);
-  int* s_max = s_id + blockDim.x;
-  const TilePixel p = tile_pixel(a.tile_size, a.tiles_x, a.width, a.height);
-  const int max_cnt = block_max_count<T>(io.count, p, a.width, s_max);
+  int* s_max = s_id + BS;
+  const TilePixels<PPT> p = tile_pixels<PPT>(a.tile_size, a.tiles_x, a.width, a.height);
+  const int max_cnt = block_max_count<PPT>(io.count, p, a.width, s_max);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)
-      backward_walk<CBM>(a, colors, io, p, max_cnt, c0, k == 0, s_geom, s_id, s_col,
-                         s_bg);
+      backward_walk<CBM, PPT>(a, colors, io, p, max_cnt, c0, k == 0, s_geom, s_id, s_col,
+                              s_bg);
   }
   if constexpr (CBT > 0)
-    backward_walk<CBT>(a, colors, io, p, max_cnt, c0, c0 == 0, s_geom, s_id, s_col, s_bg);
+    backward_walk<CBT, PPT>(a, colors, io, p, max_cnt, c0, c0 == 0, s_geom, s_id, s_col, s_bg);
 }
 
 // ----------------------------------------------------------------------------------------
@@ -373,38 +521,32 @@ __global__ void __launch_bounds__(256) backward_kernel(RasterLaunch<T> a, const 
 template <int CB, typename T>
 __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int32_t* count,
                                             const T* v_color, T* v_colors, T* v_bg_tiles,
-                                            const TilePixel& p, int max_cnt, int c0,
+                                            const TilePixels<1>& p, int max_cnt, int c0,
                                             SplatGeom<T>* s_geom, int32_t* s_id, T* s_bg) {
   const int C = a.channels;
   const int BS = blockDim.x;
   const int lane = threadIdx.x & 31;
   const int64_t start = a.tile_offsets[p.tile];
-  const int64_t pix = int64_t(p.py) * a.width + p.px;
   int32_t cnt = 0;
-  T vc[CB];
+  T vc[1][CB];
 #pragma unroll
-  for (int c = 0; c < CB; ++c) vc[c] = T(0);
-  if (p.inside) {
+  for (int c = 0; c < CB; ++c) vc[0][c] = T(0);
+  if (p.inside[0]) {
+    const int64_t pix = int64_t(p.py[0]) * a.width + p.px[0];
     cnt = count[pix];
-#pragma unroll
-    for (int c = 0; c < CB; ++c)
-      if (c0 + c < C) vc[c] = v_color[pix * C + c0 + c];
+    load_channel_row<CB>(v_color, pix, C, c0, vc[0]);
   }
-  const T fx = T(p.px) + T(0.5), fy = T(p.py) + T(0.5);
-  T Tr = T(1);
+  const T fx = T(p.px[0]) + T(0.5), fy = T(p.py[0]) + T(0.5);
+  T Tr[1] = {T(1)};
   for (int64_t b0 = start; b0 < start + max_cnt; b0 += BS) {
     const int nb = int(min(int64_t(BS), start + max_cnt - b0));
     __syncthreads();
-    if (int(threadIdx.x) < nb) {
-      const int32_t g = a.ids[b0 + threadIdx.x];
-      s_id[threadIdx.x] = g;
-      load_geom(a, g, s_geom[threadIdx.x]);
-    }
+    load_batch_geometry(a, b0, nb, s_geom, s_id);
     __syncthreads();
     for (int j = 0; j < nb; ++j) {
       const int32_t rank = int32_t(b0 + j - start);
       bool contrib = false;
-      T w = T(0);
+      T w[1] = {T(0)};
       if (rank < cnt) {
         const SplatGeom<T> g = s_geom[j];
         const T dx = fx - g.u, dy = fy - g.v;
@@ -415,16 +557,16 @@ __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int3
           const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
           if (alpha >= a.alpha_threshold) {
             contrib = true;
-            w = alpha * Tr;
-            Tr *= T(1) - alpha;
+            w[0] = alpha * Tr[0];
+            Tr[0] *= T(1) - alpha;
           }
         }
       }
       if (!__any_sync(kFullMask, contrib)) continue;
-      warp_add_color_grads<CB>(vc, w, s_id[j], C, c0, lane, v_colors);
+      warp_add_color_grads<CB, 1>(vc, w, s_id[j], C, c0, lane, v_colors);
     }
   }
-  background_grads<CB>(vc, Tr, C, c0, p.tile, s_bg, v_bg_tiles);
+  background_grads<CB, 1>(vc, Tr, C, c0, p.tile, s_bg, v_bg_tiles);
 }
 
 template <typename T, int CBM, int CBT>
@@ -438,8 +580,8 @@ __global__ void __launch_bounds__(256) backward_colors_kernel(RasterLaunch<T> a,
   T* s_bg = reinterpret_cast<T*>(s_geom + blockDim.x);
   int32_t* s_id = reinterpret_cast<int32_t*>(s_bg + CBX);
   int* s_max = s_id + blockDim.x;
-  const TilePixel p = tile_pixel(a.tile_size, a.tiles_x, a.width, a.height);
-  const int max_cnt = block_max_count<T>(count, p, a.width, s_max);
+  const TilePixels<1> p = tile_pixels<1>(a.tile_size, a.tiles_x, a.width, a.height);
+  const int max_cnt = block_max_count<1>(count, p, a.width, s_max);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)

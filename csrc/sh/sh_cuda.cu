@@ -55,20 +55,35 @@ struct Rows {
 };
 
 // Shared row words [col0, col0 + width) of the block's rows <- / -> source rows.
+// The copy walks word e = threadIdx.x, threadIdx.x + blockDim.x, ... of the rows * width
+// block; (row, column) of e advance by a constant step, so one division per thread replaces
+// one per copied word.
+struct RowWalk {
+  int r, c, dr, dc, width;
+  __device__ RowWalk(int width_) : width(width_) {
+    r = int(threadIdx.x) / width;
+    c = int(threadIdx.x) - r * width;
+    dr = int(blockDim.x) / width;
+    dc = int(blockDim.x) - dr * width;
+  }
+  __device__ void next() {
+    r += dr;
+    c += dc;
+    if (c >= width) {
+      c -= width;
+      ++r;
+    }
+  }
+};
+
 __device__ __forceinline__ void stage_in(const Rows& g, float* s, int rows, int row, int col0) {
   const float* src = g.in + static_cast<int64_t>(blockIdx.x) * blockDim.x * g.pitch;
-  for (int e = threadIdx.x; e < rows * g.width; e += blockDim.x) {
-    const int r = e / g.width, c = e - r * g.width;
-    s[r * row + col0 + c] = src[r * g.pitch + c];
-  }
+  for (RowWalk w(g.width); w.r < rows; w.next()) s[w.r * row + col0 + w.c] = src[w.r * g.pitch + w.c];
 }
 
 __device__ __forceinline__ void stage_out(const float* s, const Rows& g, int rows, int row, int col0) {
   float* dst = g.out + static_cast<int64_t>(blockIdx.x) * blockDim.x * g.pitch;
-  for (int e = threadIdx.x; e < rows * g.width; e += blockDim.x) {
-    const int r = e / g.width, c = e - r * g.width;
-    dst[r * g.pitch + c] = s[r * row + col0 + c];
-  }
+  for (RowWalk w(g.width); w.r < rows; w.next()) dst[w.r * g.pitch + w.c] = s[w.r * row + col0 + w.c];
 }
 
 __global__ void __launch_bounds__(kStagedThreads) sh_staged_kernel(const float* dirs, Rows a, Rows b, int64_t n,
