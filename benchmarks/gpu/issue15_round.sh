@@ -6,9 +6,10 @@
 #           gsplat) and the SSIM benchmark at 1080p.
 #   PART=b: build, the same CUDA tests (TESTS=0 skips them), the sanitizer runs of part a with
 #           SANITIZE=1 (RACECHECK: the kernel-name filters), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; binning threshold
-#           sweep; REAL_BEFORE: the environment of its 'before' columns) and
-#           benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution (TRAIN_ABLATION: one
-#           more run of ours under that environment).
+#           sweep; REAL_BEFORE: the environment of its 'before' columns; REAL_CASES= (empty)
+#           skips it) and benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution
+#           (TRAIN=0 skips it; TRAIN_ABLATION: ';'-separated environments, one more run of ours
+#           under each).
 # gsplat JIT-compiles on first use (~90 s): its build folder is packed into $OUT/gsplat_ext.tgz and,
 # carried back as .carry/gsplat_ext.tgz, reused (same wheel, same paths).
 # From the repo root with .whl, .carry/deb and .carry/realscene carried. Results: $OUT/issue15_<part>.tgz.
@@ -56,14 +57,20 @@ if [ "$PART" = a ]; then
     --methods fused,depthwise,conv > "$R/ssim.txt" 2>&1
   say "recon_ssim rc=$?"; tail -3 "$R/ssim.txt" | tee -a "$R/log.txt"
 else
-  timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
-    --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP-256,1024,2048}" \
-    --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" \
-    > "$R/real_scenes.txt" 2>&1
-  say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
-  timeout "${TRAIN_TIMEOUT:-240}" python3 benchmarks/gpu/train_vs_gsplat.py --data .carry/realscene/fox \
-    ${TRAIN_ABLATION:+--ablation "$TRAIN_ABLATION"} --json "$R/train_vs_gsplat.json" > "$R/train_vs_gsplat.txt" 2>&1
-  say "train_vs_gsplat rc=$?"; tail -9 "$R/train_vs_gsplat.txt" | tee -a "$R/log.txt"
+  if [ -n "${REAL_CASES-x}" ]; then
+    timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
+      --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP-256,1024,2048}" \
+      --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" > "$R/real_scenes.txt" 2>&1
+    say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
+  fi
+  if [ "${TRAIN:-1}" = 1 ]; then
+    ablations=()
+    IFS=';' read -ra abl <<< "${TRAIN_ABLATION:-}"
+    for x in "${abl[@]}"; do [ -n "$x" ] && ablations+=(--ablation "$x"); done
+    timeout "${TRAIN_TIMEOUT:-240}" python3 benchmarks/gpu/train_vs_gsplat.py --data .carry/realscene/fox \
+      "${ablations[@]}" --json "$R/train_vs_gsplat.json" > "$R/train_vs_gsplat.txt" 2>&1
+    say "train_vs_gsplat rc=$?"; sed -n '/^== Training/,$p' "$R/train_vs_gsplat.txt" | tee -a "$R/log.txt"
+  fi
 fi
 (cd "$TORCH_EXTENSIONS_DIR" && [ -n "$(ls)" ] && tar czf "$OUT/gsplat_ext.tgz" .)
 (cd "$OUT" && tar czf "issue15_$PART.tgz" "issue15_$PART" && rm -rf "issue15_$PART")

@@ -7,17 +7,8 @@ using namespace raster_cuda;
 
 // Per channel a thread holds only v_color (the colour behind is one scalar): blocks of 64
 // channels in float32, so C <= 64 walks the list once (TIGER_BWD_CB=32 selects 32 for
-// tuning); 8 in float64 (tests only). Two pixels per thread (half the warp reductions and
-// atomics per pixel) where the channel block is small enough for twice the per-pixel
-// registers: float32, 16-px tiles, blocks of at most 16 channels (TIGER_BWD_PPT=1 selects
-// one pixel per thread, for comparisons).
-template <typename T>
-bool two_pixels_per_thread(const RasterLaunch<T>& a, int cbx) {
-  if (!std::is_same<T, float>::value || a.tile_size != 16 || cbx > 16) return false;
-  const char* v = getenv("TIGER_BWD_PPT");
-  return v == nullptr || v[0] != '1';
-}
-
+// tuning); 8 in float64 (tests only). Two pixels per thread where they apply
+// (pixels_per_thread; TIGER_BWD_PPT=1 selects one).
 template <int CB_MAX, typename T, typename TC>
 cudaError_t launch_backward_cb(const RasterLaunch<T>& a, const TC* colors,
                                const BackwardIO<T>& io, cudaStream_t stream) {
@@ -29,7 +20,7 @@ cudaError_t launch_backward_cb(const RasterLaunch<T>& a, const TC* colors,
     auto launch = [&](auto ppt) -> cudaError_t {
       constexpr int PPT = decltype(ppt)::value;
       auto kernel = backward_kernel<T, TC, CBM, CBT, PPT>;
-      const int threads = PPT == 1 ? block_threads(a.tile_size) : 128;
+      const int threads = PPT == 1 ? block_threads(a.tile_size) : kTwoPixelThreads;
       const size_t batch = size_t(threads) * PPT;
       const size_t smem = batch * (sizeof(SplatGeom<T>) + CBX * sizeof(T) + sizeof(int32_t)) +
                           CBX * sizeof(T) + 16;
@@ -38,8 +29,8 @@ cudaError_t launch_backward_cb(const RasterLaunch<T>& a, const TC* colors,
       kernel<<<blocks, threads, smem, stream>>>(a, colors, io, plan.n_main);
       return cudaGetLastError();
     };
-    if constexpr (std::is_same<T, float>::value && CBX <= 16) {
-      if (two_pixels_per_thread(a, CBX)) return launch(IC<2>());
+    if constexpr (std::is_same<T, float>::value && CBX <= kTwoPixelMaxChannels) {
+      if (pixels_per_thread(a, CBX, "TIGER_BWD_PPT") == 2) return launch(IC<2>());
     }
     return launch(IC<1>());
   });
