@@ -6,30 +6,22 @@ namespace {
 using namespace raster_cuda;
 
 // Largest channel block held in registers: 64 accumulators per thread in float32
-// (TIGER_FWD_CB=32 selects 32, for tuning), 8 in float64 (tests only). Two pixels per thread
-// where they apply (pixels_per_thread; TIGER_FWD_PPT=1 selects one).
+// (TIGER_FWD_CB=32 selects 32, for tuning), 8 in float64 (tests only).
 template <int CB_MAX, typename T, typename TC>
 cudaError_t launch_forward_cb(const RasterLaunch<T>& a, const TC* colors, const ForwardOut<T>& out,
                               cudaStream_t stream) {
   const ChannelPlan plan = plan_channels(a.channels, CB_MAX);
+  const int threads = block_threads(a.tile_size);
   const int blocks = a.tiles_x * a.tiles_y;
   return dispatch_plan<CB_MAX>(plan, [&](auto m, auto t) -> cudaError_t {
     constexpr int CBM = decltype(m)::value, CBT = decltype(t)::value;
     constexpr int CBX = CBM > CBT ? CBM : CBT;
-    auto launch = [&](auto ppt) -> cudaError_t {
-      constexpr int PPT = decltype(ppt)::value;
-      auto kernel = forward_kernel<T, TC, CBM, CBT, PPT>;
-      const int threads = PPT == 1 ? block_threads(a.tile_size) : kTwoPixelThreads;
-      const size_t smem = size_t(threads) * PPT * (sizeof(SplatGeom<T>) + CBX * sizeof(T));
-      cudaError_t err = set_smem_limit(kernel, smem);
-      if (err != cudaSuccess) return err;
-      kernel<<<blocks, threads, smem, stream>>>(a, colors, out, plan.n_main);
-      return cudaGetLastError();
-    };
-    if constexpr (std::is_same<T, float>::value && CBX <= kTwoPixelMaxChannels) {
-      if (pixels_per_thread(a, CBX, "TIGER_FWD_PPT") == 2) return launch(IC<2>());
-    }
-    return launch(IC<1>());
+    auto kernel = forward_kernel<T, TC, CBM, CBT>;
+    const size_t smem = size_t(threads) * (sizeof(SplatGeom<T>) + CBX * sizeof(T));
+    cudaError_t err = set_smem_limit(kernel, smem);
+    if (err != cudaSuccess) return err;
+    kernel<<<blocks, threads, smem, stream>>>(a, colors, out, plan.n_main);
+    return cudaGetLastError();
   });
 }
 

@@ -44,11 +44,11 @@ __device__ __forceinline__ TilePixel tile_pixel(int tile_size, int tiles_x, int 
   return p;
 }
 
-// The pixels of one thread. PPT = 1: pixel t of the tile. PPT = 2 (16-px tiles, 128 threads):
-// warp w covers rows 4w..4w+3, lane l column l % 16 of rows 4w + l / 16 and 4w + 2 + l / 16.
-// A Gaussian staged in shared memory is then read once for two pixels, and in the backward one
-// warp reduction sums its gradient over 64 pixels instead of 32 (half the shuffles and atomics
-// per pixel).
+// The pixels of one backward thread. PPT = 1: pixel t of the tile, as in the forward. PPT = 2
+// (16-px tiles, 128 threads): warp w covers rows 4w..4w+3, lane l column l % 16 of rows
+// 4w + l / 16 and 4w + 2 + l / 16, so one warp reduction sums a Gaussian's gradient over 64
+// pixels instead of 32 (half the shuffles and atomics per pixel), and a Gaussian staged in
+// shared memory is read once for two pixels.
 template <int PPT>
 struct TilePixels {
   int tile;
@@ -185,104 +185,84 @@ struct ForwardOut {
   int32_t* count;
 };
 
-template <int CB, int PPT, typename T, typename TC>
+template <int CB, typename T, typename TC>
 __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC* colors,
-                                             const ForwardOut<T>& out, const TilePixels<PPT>& p,
-                                             int c0, bool first, SplatGeom<T>* s_geom, T* s_col) {
+                                             const ForwardOut<T>& out, const TilePixel& p, int c0,
+                                             bool first, SplatGeom<T>* s_geom, T* s_col) {
   const int C = a.channels;
-  const int BS = blockDim.x * PPT;
+  const int BS = blockDim.x;
   const int64_t start = a.tile_offsets[p.tile], end = a.tile_offsets[p.tile + 1];
-  T fx[PPT], fy[PPT], acc[PPT][CB], Tr[PPT], accd[PPT];
-  int32_t cnt[PPT];
-  bool done[PPT];
-  bool all_done = true;
+  const T fx = T(p.px) + T(0.5), fy = T(p.py) + T(0.5);
+  T acc[CB];
 #pragma unroll
-  for (int k = 0; k < PPT; ++k) {
-    fx[k] = T(p.px[k]) + T(0.5);
-    fy[k] = T(p.py[k]) + T(0.5);
-#pragma unroll
-    for (int c = 0; c < CB; ++c) acc[k][c] = T(0);
-    Tr[k] = T(1);
-    accd[k] = T(0);
-    cnt[k] = 0;
-    done[k] = !p.inside[k];
-    all_done = all_done && done[k];
-  }
+  for (int c = 0; c < CB; ++c) acc[c] = T(0);
+  T Tr = T(1), accd = T(0);
+  int32_t cnt = 0;
+  bool done = !p.inside;
   for (int64_t b0 = start; b0 < end; b0 += BS) {
     // Also the barrier that protects the previous batch's shared memory.
-    if (__syncthreads_count(all_done) == int(blockDim.x)) break;
+    if (__syncthreads_count(done) == BS) break;
     const int nb = int(min(int64_t(BS), end - b0));
-    for (int e = threadIdx.x; e < nb; e += blockDim.x) load_geom(a, a.ids[b0 + e], s_geom[e]);
+    if (int(threadIdx.x) < nb) load_geom(a, a.ids[b0 + threadIdx.x], s_geom[threadIdx.x]);
     load_colors<CB>(colors, a.ids, b0, nb, C, c0, s_col);
     __syncthreads();
-    if (all_done) continue;
+    if (done) continue;
     for (int j = 0; j < nb; ++j) {
       const SplatGeom<T> g = s_geom[j];
+      const T dx = fx - g.u, dy = fy - g.v;
+      const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
+      if (q > g.qcut) continue;
+      T gauss;
+      bool clamped;
+      const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
+      if (alpha < a.alpha_threshold) continue;
+      const T next_T = Tr * (T(1) - alpha);
+      if (next_T < a.t_min) {
+        done = true;
+        break;
+      }
+      const T w = alpha * Tr;
       const T* col = s_col + j * CB;
 #pragma unroll
-      for (int k = 0; k < PPT; ++k) {
-        if (done[k]) continue;
-        const T dx = fx[k] - g.u, dy = fy[k] - g.v;
-        const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
-        if (q > g.qcut) continue;
-        T gauss;
-        bool clamped;
-        const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
-        if (alpha < a.alpha_threshold) continue;
-        const T next_T = Tr[k] * (T(1) - alpha);
-        if (next_T < a.t_min) {
-          done[k] = true;
-          continue;
-        }
-        const T w = alpha * Tr[k];
-#pragma unroll
-        for (int c = 0; c < CB; ++c) acc[k][c] += w * col[c];
-        accd[k] += w * g.z;
-        Tr[k] = next_T;
-        cnt[k] = int32_t(b0 + j - start + 1);
-      }
-      all_done = true;
-#pragma unroll
-      for (int k = 0; k < PPT; ++k) all_done = all_done && done[k];
-      if (all_done) break;
+      for (int c = 0; c < CB; ++c) acc[c] += w * col[c];
+      accd += w * g.z;
+      Tr = next_T;
+      cnt = int32_t(b0 + j - start + 1);
     }
   }
+  if (!p.inside) return;
+  const int64_t pix = int64_t(p.py) * a.width + p.px;
+  if (out.bg) {
 #pragma unroll
-  for (int k = 0; k < PPT; ++k) {
-    if (!p.inside[k]) continue;
-    const int64_t pix = int64_t(p.py[k]) * a.width + p.px[k];
-    if (out.bg) {
-#pragma unroll
-      for (int c = 0; c < CB; ++c)
-        if (c0 + c < C) acc[k][c] += Tr[k] * out.bg[c0 + c];
-    }
-    store_channel_row<CB>(out.color, pix, C, c0, acc[k]);
-    if (first) {
-      out.alpha[pix] = T(1) - Tr[k];
-      out.depth[pix] = accd[k];
-      out.count[pix] = cnt[k];
-      out.trans[pix] = Tr[k];
-    }
+    for (int c = 0; c < CB; ++c)
+      if (c0 + c < C) acc[c] += Tr * out.bg[c0 + c];
+  }
+  store_channel_row<CB>(out.color, pix, C, c0, acc);
+  if (first) {
+    out.alpha[pix] = T(1) - Tr;
+    out.depth[pix] = accd;
+    out.count[pix] = cnt;
+    out.trans[pix] = Tr;
   }
 }
 
-template <typename T, typename TC, int CBM, int CBT, int PPT>
+template <typename T, typename TC, int CBM, int CBT>
 __global__ void __launch_bounds__(256) forward_kernel(RasterLaunch<T> a, const TC* colors,
                                                       ForwardOut<T> out, int n_main) {
   extern __shared__ __align__(16) unsigned char smem[];
   SplatGeom<T>* s_geom = reinterpret_cast<SplatGeom<T>*>(smem);
-  T* s_col = reinterpret_cast<T*>(s_geom + blockDim.x * PPT);
-  const TilePixels<PPT> p = tile_pixels<PPT>(a.tile_size, a.tiles_x, a.width, a.height);
+  T* s_col = reinterpret_cast<T*>(s_geom + blockDim.x);
+  const TilePixel p = tile_pixel(a.tile_size, a.tiles_x, a.width, a.height);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM) {
       __syncthreads();
-      forward_walk<CBM, PPT>(a, colors, out, p, c0, k == 0, s_geom, s_col);
+      forward_walk<CBM>(a, colors, out, p, c0, k == 0, s_geom, s_col);
     }
   }
   if constexpr (CBT > 0) {
     __syncthreads();
-    forward_walk<CBT, PPT>(a, colors, out, p, c0, c0 == 0, s_geom, s_col);
+    forward_walk<CBT>(a, colors, out, p, c0, c0 == 0, s_geom, s_col);
   }
 }
 
@@ -647,10 +627,11 @@ inline int channel_block_max(const char* env, int fallback, int alt) {
 
 inline int block_threads(int tile_size) { return (tile_size * tile_size + 31) / 32 * 32; }
 
-// Two pixels per thread (TilePixels<2>): float32, 16-px tiles, channel blocks small enough for
-// twice the per-pixel registers. H100, 1M Gaussians at 1080x1920, C = 3: backward 3.09 ->
-// 2.28 ms per training step (benchmarks/gpu/results/session8_call1). `env` = "1" selects one
-// pixel per thread (comparisons).
+// Two pixels per backward thread (TilePixels<2>): float32, 16-px tiles, channel blocks small
+// enough for twice the per-pixel registers. H100, 1M Gaussians at 1080x1920, C = 3: backward
+// 3.09 -> 2.28 ms per training step (benchmarks/gpu/results/session8_call1). The forward stays
+// at one pixel per thread: two were no faster (standard scene 0.312 ms against 0.272; session8_call2).
+// `env` = "1" selects one pixel per thread (comparisons).
 constexpr int kTwoPixelMaxChannels = 16;
 constexpr int kTwoPixelThreads = 128;
 

@@ -96,7 +96,7 @@ def test_raster_ops_match_cpu_any_channel_count(channels, dtype):
 
 
 @pytest.mark.parametrize("knob", ["TIGER_FWD_CB=32", "TIGER_BWD_CB=32", "TIGER_COLORS_CB=32",
-                                  "TIGER_FWD_PPT=1", "TIGER_BWD_PPT=1"])
+                                  "TIGER_BWD_PPT=1"])
 @pytest.mark.parametrize("channels", [3, 16, 67, 96])
 def test_channel_block_knobs_same_result(knob, channels, monkeypatch):
     w, h = 40, 33
