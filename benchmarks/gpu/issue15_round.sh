@@ -60,7 +60,7 @@ else
   if [ -n "${REAL_CASES-x}" ]; then
     timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
       --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP-256,1024,2048}" \
-      --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" > "$R/real_scenes.txt" 2>&1
+      --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" --fox-data .carry/realscene/fox > "$R/real_scenes.txt" 2>&1
     say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
   fi
   if [ "${TRAIN:-1}" = 1 ]; then
