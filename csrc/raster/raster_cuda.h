@@ -1,8 +1,9 @@
 #pragma once
 // Raw-pointer launchers of the CUDA rasterization kernels (no torch headers).
-// Shapes and semantics as in raster.h. One thread block per tile, one thread per pixel;
-// channels are processed in register blocks whose size is a template parameter
-// (forward: up to 64 channels per block, backward: up to 32), so any C runs in one launch.
+// Shapes and semantics as in raster.h. One thread block per tile, one thread per pixel (two
+// in the float32 backward of up to 16 channels); channels are processed in register blocks
+// whose size is a template parameter (up to 64 channels per block in float32), so any C runs
+// in one launch.
 #include <cuda_runtime_api.h>
 #include <stdint.h>
 

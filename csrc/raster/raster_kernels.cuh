@@ -1,7 +1,8 @@
 #pragma once
 // CUDA rasterization kernels (included by the raster_*_cuda.cu files, each of which
-// instantiates one op). One block per tile, one thread per pixel; the tile's Gaussian
-// list is walked in batches of blockDim Gaussians staged in shared memory. Channels
+// instantiates one op). One block per tile, one thread per pixel (two in the backward where
+// pixels_per_thread says so); the tile's Gaussian list is walked in batches of blockDim x
+// pixels-per-thread Gaussians staged in shared memory. Channels
 // are processed in register blocks of CB (a template parameter): a kernel walks the
 // list once per channel block, main blocks of CBM channels then one tail block of CBT,
 // so every C runs in one launch and C = 67 costs a 64-block plus a 4-block walk.
