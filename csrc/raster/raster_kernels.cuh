@@ -299,6 +299,19 @@ __device__ __forceinline__ void block_background_grad(T (&vals)[CB], int C, int 
     v_bg_tiles[int64_t(tile) * C + c0 + threadIdx.x] = s_bg[threadIdx.x];
 }
 
+// out[c] = sum over the thread's pixels k of w[k] * vc[k][h * PIECE + c]: piece h of a
+// per-thread weighted channel sum.
+template <int PIECE, int CB, int PPT, typename T>
+__device__ __forceinline__ void weighted_piece(const T (&vc)[PPT][CB], const T (&w)[PPT], int h,
+                                               T (&out)[PIECE]) {
+#pragma unroll
+  for (int c = 0; c < PIECE; ++c) {
+    out[c] = w[0] * vc[0][h * PIECE + c];
+#pragma unroll
+    for (int k = 1; k < PPT; ++k) out[c] += w[k] * vc[k][h * PIECE + c];
+  }
+}
+
 // v_bg_tiles[tile, c0 + c] += sum over the block's pixels of t * vc[c], in pieces of 32.
 template <int CB, int PPT, typename T>
 __device__ __forceinline__ void background_grads(const T (&vc)[PPT][CB], const T (&t)[PPT],
@@ -308,12 +321,7 @@ __device__ __forceinline__ void background_grads(const T (&vc)[PPT][CB], const T
 #pragma unroll
   for (int h = 0; h < CB / PIECE; ++h) {
     T vals[PIECE];
-#pragma unroll
-    for (int c = 0; c < PIECE; ++c) {
-      vals[c] = t[0] * vc[0][h * PIECE + c];
-#pragma unroll
-      for (int k = 1; k < PPT; ++k) vals[c] += t[k] * vc[k][h * PIECE + c];
-    }
+    weighted_piece<PIECE>(vc, t, h, vals);
     block_background_grad<PIECE>(vals, C, c0 + h * PIECE, tile, s_bg, v_bg_tiles);
   }
 }
@@ -328,12 +336,7 @@ __device__ __forceinline__ void warp_add_color_grads(const T (&vc)[PPT][CB], con
 #pragma unroll
   for (int h = 0; h < CB / PIECE; ++h) {
     T gc[PIECE];
-#pragma unroll
-    for (int c = 0; c < PIECE; ++c) {
-      gc[c] = w[0] * vc[0][h * PIECE + c];
-#pragma unroll
-      for (int k = 1; k < PPT; ++k) gc[c] += w[k] * vc[k][h * PIECE + c];
-    }
+    weighted_piece<PIECE>(vc, w, h, gc);
     const T sc = cuda::warp_reduce_scatter<PIECE>(gc, lane);
     const int ch = c0 + h * PIECE + lane;
     if (lane < PIECE && ch < C) atomicAdd(&v_colors[gid * C + ch], sc);
