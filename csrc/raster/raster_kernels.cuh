@@ -95,6 +95,13 @@ __device__ __forceinline__ void load_geom(const RasterLaunch<T>& a, int32_t g, S
   s.qcut = cutoff_quadratic(s.o, a.alpha_threshold);
 }
 
+// Float32 rows of C values starting at `base` are all 16-byte aligned (C % 4 == 0 and an
+// aligned base): with c0 a multiple of 4, a float4 at row + c0 + 4v lies wholly inside the row
+// or wholly past it.
+__device__ __forceinline__ bool rows_vectorizable(const float* base, int C) {
+  return (C & 3) == 0 && (reinterpret_cast<uintptr_t>(base) & 15) == 0;
+}
+
 // Stages colors[ids[b0 + j], c0 : c0 + CB] (zero past C) for j < nb into s_col[j * CB + c].
 template <int CB, typename T, typename TC>
 __device__ __forceinline__ void load_colors(const TC* colors, const int32_t* ids, int64_t b0,
@@ -124,14 +131,9 @@ __device__ __forceinline__ void load_colors(const TC* colors, const int32_t* ids
 
 
 // Per-pixel channel rows of an [H, W, C] image: a thread's CB channels lie at pix * C + c0.
-// Moved as 16-byte vectors when every row start is 16-byte aligned (float32, C and c0
-// multiples of 4): a warp's access then touches 32 sectors per 4 channels instead of per
-// channel, which at C = 64 was the cost of the forward's stores and the backward's loads.
-template <typename T>
-__device__ __forceinline__ bool rows_vectorizable(const T* base, int C) {
-  return std::is_same<T, float>::value && (C & 3) == 0 &&
-         (reinterpret_cast<uintptr_t>(base) & 15) == 0;
-}
+// Moved as 16-byte vectors when every row start is 16-byte aligned (rows_vectorizable): a
+// warp's access then touches 32 sectors per 4 channels instead of per channel, which at C = 64
+// was the cost of the forward's stores and the backward's loads.
 
 // vals[c] = src[pix * C + c0 + c] for c0 + c < C, 0 past C.
 template <int CB, typename T>
@@ -368,7 +370,7 @@ struct BackwardIO {
 };
 
 // The per-pixel state of the back-to-front walk.
-template <int CB, typename T>
+template <typename T>
 struct BackPixel {
   T Tfin, vA, vD, P, Tr, Rd, fx, fy;
   int32_t cnt;
@@ -390,11 +392,11 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
   const int BS = blockDim.x * PPT;
   const int lane = threadIdx.x & 31;
   const int64_t start = a.tile_offsets[p.tile];
-  BackPixel<CB, T> s[PPT];
+  BackPixel<T> s[PPT];
   T vc[PPT][CB];
 #pragma unroll
   for (int k = 0; k < PPT; ++k) {
-    BackPixel<CB, T>& q = s[k];
+    BackPixel<T>& q = s[k];
     q.Tfin = T(1);
     q.vA = q.vD = q.P = q.Rd = T(0);
     q.cnt = 0;
@@ -461,7 +463,7 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
       for (int k = 0; k < PPT; ++k) {
         w[k] = T(0);
         if (!contrib[k]) continue;
-        BackPixel<CB, T>& q = s[k];
+        BackPixel<T>& q = s[k];
         const T ra = T(1) / (T(1) - alpha[k]);
         const T Ti = q.Tr * ra;  // transmittance in front of this Gaussian
         w[k] = alpha[k] * Ti;
