@@ -272,3 +272,29 @@ def test_host_synchronisations_of_a_render(capfd):
 
     assert syncs(False) == 1
     assert syncs(True) == 2
+
+
+@pytest.mark.parametrize("channels, ppt_default", [(3, 2), (16, 2), (17, 1), (64, 1)])
+def test_backward_pixels_per_thread_default(channels, ppt_default, monkeypatch):
+    """Two pixels per backward thread for float32 channel blocks <= 16, one beyond, and
+    TIGER_BWD_PPT=1 forces one: the default measured in
+    benchmarks/gpu/results/session8_call1/issue15_b/train_vs_gsplat.txt (backward 3.09 -> 2.28
+    ms per training step). Read off the launched kernel's template arguments."""
+    from torch.profiler import ProfilerActivity, profile
+
+    monkeypatch.delenv("TIGER_BWD_PPT", raising=False)
+    w, h = 40, 33
+    m, q, s, o, col, V, K, bg = _pipeline_inputs(200, channels, w, h, F32, seed=11)
+    m2, cn, d, op, r, to, ids = _project_and_bin(*[t.cuda() for t in (m, q, s, o, V, K)], w, h)
+
+    def launched_ppt() -> set:
+        with profile(activities=[ProfilerActivity.CUDA]) as prof:
+            _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h)
+            torch.cuda.synchronize()
+        names = [e.name for e in prof.events() if "raster_cuda::backward_kernel<" in e.name]
+        assert names, "no backward kernel seen"
+        return {int(n.split(">")[0].split(",")[-1]) for n in names}
+
+    assert launched_ppt() == {ppt_default}
+    monkeypatch.setenv("TIGER_BWD_PPT", "1")
+    assert launched_ppt() == {1}
