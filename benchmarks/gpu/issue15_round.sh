@@ -5,8 +5,8 @@
 #           binning, SSIM, SH), the SH benchmark (staged default vs TIGER_SH_STAGED=0, beside
 #           gsplat) and the SSIM benchmark at 1080p.
 #   PART=b: build, the same CUDA tests (TESTS=0 skips them), the sanitizer runs of part a with
-#           SANITIZE=1 (RACECHECK: the kernel-name filters), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; binning threshold
-#           sweep; REAL_BEFORE: the environment of its 'before' columns; REAL_CASES= (empty)
+#           SANITIZE=1 (RACECHECK: the kernel-name filters), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; tile-sort size
+#           sweep SORT_KEYS_SWEEP; REAL_BEFORE: the environment of its 'before' columns; REAL_CASES= (empty)
 #           skips it) and benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution
 #           (TRAIN=0 skips it; TRAIN_ABLATION: ';'-separated environments, one more run of ours
 #           under each).
@@ -59,7 +59,7 @@ if [ "$PART" = a ]; then
 else
   if [ -n "${REAL_CASES-x}" ]; then
     timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
-      --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --giant-sweep "${GIANT_SWEEP-256,1024,2048}" \
+      --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --sort-keys-sweep "${SORT_KEYS_SWEEP-1024,2048}" \
       --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" --fox-data .carry/realscene/fox > "$R/real_scenes.txt" 2>&1
     say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
   fi

@@ -158,11 +158,11 @@ def stage_kind(name: str) -> str:
     n = name.lower()
     if "bwd" in n or "backward" in n:
         return "backward"
-    if "radix" in n or "onesweep" in n:
+    if "radix" in n or "onesweep" in n or "sort_tiles" in n:
         return "sort"
     if "project" in n or "sh_kernel" in n or "harmonics" in n:
         return "project"
-    if any(k in n for k in ("candidates_kernel", "count_balanced", "emit_balanced", "count_serial",
+    if "bin_cuda" in n or any(k in n for k in ("candidates_kernel", "count_balanced", "emit_balanced", "count_serial",
                             "emit_serial", "count_small", "emit_small", "count_large", "emit_large",
                             "ranges_kernel", "scan", "isect", "intersect", "depth_keys",
                             "scatter_rank", "order_counts")):
@@ -225,15 +225,15 @@ def same_lists(scene, V, K, w, h) -> bool:
     return bool(torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]))
 
 
-def bin_op_times(scene, V, K, w, h, iters, giant_sweep=()) -> dict:
-    """ms of the binning op alone (bin + sort + its host synchronisation): the default (large
-    Gaussians by one warp or block each), the former one-thread-per-Gaussian binning
-    (TIGER_BIN_SERIAL=1) and the default with each warp/block threshold of ``giant_sweep``
-    (TIGER_BIN_GIANT_TILES, candidate tiles)."""
+def bin_op_times(scene, V, K, w, h, iters, sort_keys_sweep=()) -> dict:
+    """ms of the binning op alone (walks, tile sort and its host synchronisation): the default
+    (large Gaussians walked in chunks by warps), the former one-thread-per-Gaussian walk
+    (TIGER_BIN_SERIAL=1) and the default with each shared-memory sort size of
+    ``sort_keys_sweep`` (TIGER_BIN_SORT_KEYS: longer tile lists are merged from sorted runs)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
     out = {}
     variants = [("bin_op", {}), ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})]
-    variants += [(f"bin_op_giant{t}", {"TIGER_BIN_GIANT_TILES": str(t)}) for t in giant_sweep]
+    variants += [(f"bin_op_sortkeys{k}", {"TIGER_BIN_SORT_KEYS": str(k)}) for k in sort_keys_sweep]
     for name, env in variants:
         os.environ.update(env)
         try:
@@ -297,7 +297,7 @@ def host_profile(render, scene, V, K, w, h, path: Path, reps: int = 5) -> None:
 
 def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
     res = {"case": name, "width": w, "height": h, "radii": radii_stats(scene, V, K, w, h)}
-    res["bin_op"] = bin_op_times(scene, V, K, w, h, args.iters, args.giant_sweep)
+    res["bin_op"] = bin_op_times(scene, V, K, w, h, args.iters, args.sort_keys_sweep)
     log(f"== {name} {w}x{h}: radii {fmt(res['radii'])}; {fmt(res['bin_op'])}")
     res["rows"], res["stages"], res["kernels"] = [], [], {}
     for C in args.channels:
@@ -354,8 +354,9 @@ def main() -> None:
     p.add_argument("--fox-budget", type=float, default=40.0, help="seconds of training")
     p.add_argument("--n", type=int, default=1_000_000, help="Gaussians of the synthetic cases")
     p.add_argument("--no-gsplat", action="store_true")
-    p.add_argument("--giant-sweep", type=lambda s: [int(x) for x in s.split(",") if x], default=[],
-                   help="also time the binning op with these warp/block thresholds (candidate tiles)")
+    p.add_argument("--sort-keys-sweep", type=lambda s: [int(x) for x in s.split(",") if x], default=[],
+                   help="also time the binning op with these shared-memory tile-sort sizes "
+                        "(TIGER_BIN_SORT_KEYS, powers of two <= 4096)")
     p.add_argument("--host-profile", default="snowmiku-1080p",
                    help="case whose C=3 forward+backward is profiled on the CPU side (file in --out)")
     p.add_argument("--before", default="TIGER_BIN_SERIAL=1", metavar="VAR=VALUE[,VAR=VALUE]",

@@ -1,7 +1,8 @@
 """Tile binning on heavy-tailed scenes (a few Gaussians covering most of the image, many culled):
 the lists against an independent float64 enumeration, CPU against CUDA, the load-balanced CUDA
-kernels against the former one-thread-per-Gaussian ones, and the CPU result independent of the
-thread count (the CPU splits work by candidate tiles)."""
+walk against the former one-thread-per-Gaussian one, the CUDA per-tile sort's merge path
+(lists longer than a block sorts in shared memory) against the CPU, and the CPU result
+independent of the thread count (the CPU splits work by candidate tiles)."""
 from __future__ import annotations
 
 import math
@@ -157,7 +158,8 @@ def test_cuda_balanced_binning_identical_to_former_and_cpu(dtype):
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_cuda_binning_giant_and_culled(dtype):
     """One Gaussian covering the whole image among thousands of culled ones and a few small
-    ones: the giant (one block) and the compact list of large Gaussians among empty ones."""
+    ones: the giant (walked in chunks by many warps) and the compact list of large Gaussians
+    among empty ones."""
     w, h = 1000, 700
     n = 5000
     g = torch.Generator().manual_seed(9)
@@ -228,24 +230,62 @@ def test_cuda_balanced_binning_identical_to_former_on_borderline_and_heavy():
     assert torch.equal(balanced[0], former[0]) and torch.equal(balanced[1], former[1])
 
 
+def _bin_sorting_in_shared(proj, w, h, keys: str):
+    os.environ["TIGER_BIN_SORT_KEYS"] = keys
+    try:
+        return _bin(proj, w, h)
+    finally:
+        os.environ.pop("TIGER_BIN_SORT_KEYS")
+
+
 @pytest.mark.cuda
 @CUDA_SKIP
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
-def test_cuda_depth_ties_and_giant_thresholds(dtype):
-    """The CUDA binning emits in depth order and sorts stably by tile: equal depths must come
-    out by id as on the CPU, whichever kernels (thread, warp, block: TIGER_BIN_GIANT_TILES
-    moves the warp/block split) walk the Gaussians."""
+def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
+    """The CUDA binning drops each hit's (depth, id) key into its tile in any order and sorts
+    every tile on its own: equal depths must come out by id as on the CPU, whether a tile's list
+    is sorted in shared memory (by one warp up to 64 keys, else by the block) or as sorted runs
+    of TIGER_BIN_SORT_KEYS keys merged in global memory (2: every merge pass, ragged runs)."""
     w, h = 640, 480
     scene = _with_culled(heavy_tailed_scene(6000, 3, dtype=F64, seed=6))
     m2, cn, d, op, r = _project(scene, w, h, "cuda", dtype)
     d = (d * 4).round() / 4  # a handful of distinct depths: many ties
     proj = (m2, cn, d, op, r)
     cpu = _bin([t.cpu() for t in proj], w, h)
-    assert int((cpu[0][1:] - cpu[0][:-1]).max()) > 50
-    for giant in ("33", "200", "100000"):
-        os.environ["TIGER_BIN_GIANT_TILES"] = giant
-        try:
-            got = _bin(proj, w, h)
-        finally:
-            os.environ.pop("TIGER_BIN_GIANT_TILES")
-        assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1]), giant
+    lengths = cpu[0][1:] - cpu[0][:-1]
+    assert int((lengths > 64).sum()) > 50 and int(((lengths > 1) & (lengths <= 64)).sum()) > 50
+    for keys in ("2", "16", "64", "4096"):
+        got = _bin_sorting_in_shared(proj, w, h, keys)
+        assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1]), keys
+    got = _bin(proj, w, h, serial=True)
+    assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1])
+
+
+@pytest.mark.cuda
+@CUDA_SKIP
+def test_cuda_tile_lists_longer_than_shared_memory():
+    """Tiles with ~10,000 Gaussians each (more than the 4,096 keys a block sorts in shared
+    memory), half of them at one depth: the default merge path against the CPU."""
+    w, h, n = 64, 48, 12_000
+    g = torch.Generator().manual_seed(11)
+    m2 = torch.rand(n, 2, generator=g, dtype=F64) * torch.tensor([w, h], dtype=F64)
+    cn = torch.tensor([0.002, 0.0, 0.002], dtype=F64).repeat(n, 1)  # reaches every tile
+    op = torch.full((n,), 0.9, dtype=F64)
+    d = torch.rand(n, generator=g, dtype=F64) + 1
+    d[::2] = 1.5
+    r = torch.full((n, 2), 100, dtype=torch.int32)
+    proj = [m2.float(), cn.float(), d.float(), op.float(), r]
+    cpu = _bin(proj, w, h)
+    assert int((cpu[0][1:] - cpu[0][:-1]).min()) > 8192  # at least two merge passes per tile
+    got = _bin([t.cuda() for t in proj], w, h)
+    assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1])
+
+
+@pytest.mark.cuda
+@CUDA_SKIP
+@pytest.mark.parametrize("keys", ["0", "3", "8192", "many"])
+def test_cuda_sort_keys_knob_rejects_bad_values(keys):
+    proj = [torch.zeros(1, 2), torch.ones(1, 3), torch.ones(1), torch.ones(1),
+            torch.ones(1, 2, dtype=torch.int32)]
+    with pytest.raises(RuntimeError, match="TIGER_BIN_SORT_KEYS must be a power of two"):
+        _bin_sorting_in_shared([t.cuda() for t in proj], 32, 32, keys)
