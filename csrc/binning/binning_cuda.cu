@@ -10,9 +10,11 @@
 // cut into chunks of kChunkTiles that any warp can walk: the few Gaussians covering thousands of
 // tiles cost no more than the same number of small ones (a block per giant Gaussian was the
 // critical path of the former count and emit kernels).
+#include <cub/block/block_merge_sort.cuh>
 #include <cub/block/block_scan.cuh>
 #include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
+#include <cub/warp/warp_merge_sort.cuh>
 
 #include <stdint.h>
 
@@ -120,12 +122,22 @@ __device__ void list_large(bool large, int64_t i, int64_t chunks_of_i, const Bin
   }
 }
 
-// One thread per Gaussian: walks the small ones' boxes (all, without a list: the former walk),
-// lists the large ones when counting.
+// Threads per small Gaussian: the count's atomics are fire-and-forget, so one thread walks a
+// Gaussian; each emitted hit waits for its slot (an atomic with return), so kEmitLanes threads
+// share the candidates (a real scene at 1080p has ~26k Gaussians: one thread each left most of
+// the GPU idle while the slots came back).
+constexpr int kEmitLanes = 4;
+
+// Threads of one small Gaussian walk its box in row-major order, thread `lane` of `lanes` the
+// candidates k = lane, lane + lanes, ...; the count lists the large ones (all are small without
+// a list: the former walk).
 template <typename T, bool kEmit>
 __global__ void __launch_bounds__(kThreads)
     small_kernel(BinInputs<T> in, BinGeometry g, HitSink sink, BinChunks list, bool listing) {
-  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  constexpr int lanes = kEmit ? kEmitLanes : 1;
+  const int64_t thread = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int64_t i = thread / lanes;
+  const int lane = int(thread % lanes);
   const int64_t small_max = listing ? kSmallTiles : INT64_MAX;
   int64_t cand = 0;
   if (i < in.n) {
@@ -135,14 +147,18 @@ __global__ void __launch_bounds__(kThreads)
       TileTester<T> t;
       t.load(i, in, g);
       const uint64_t key = kEmit ? sort_key(i, in) : 0;
-      for (int ty = r.y0; ty < r.y1; ++ty)
-        for (int tx = r.x0; tx < r.x1; ++tx)
-          if (t.touches(tx, ty, g)) {
-            if constexpr (kEmit)
-              sink.emit(ty * g.tiles_x + tx, key);
-            else
-              sink.count(ty * g.tiles_x + tx);
-          }
+      const int w = r.width();
+      int row = lane / w, col = lane - (lane / w) * w;
+      for (int64_t k = lane; k < cand; k += lanes) {
+        const int tx = r.x0 + col, ty = r.y0 + row;
+        if (t.touches(tx, ty, g)) {
+          if constexpr (kEmit)
+            sink.emit(ty * g.tiles_x + tx, key);
+          else
+            sink.count(ty * g.tiles_x + tx);
+        }
+        for (col += lanes; col >= w; col -= w) ++row;
+      }
     }
   }
   if (!kEmit && listing)  // uniform: every thread of the block takes part
@@ -193,38 +209,76 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
-// Bitonic sort of s[0, p) (p a power of two) by threads tid = 0.. nthreads-1; sync() between
-// the steps (the block's or, for one warp, the warp's barrier).
-template <typename Sync>
-__device__ __forceinline__ void bitonic_sort(uint64_t* s, int p, int tid, int nthreads,
-                                             Sync&& sync) {
-  for (int k = 2; k <= p; k <<= 1)
-    for (int j = k >> 1; j > 0; j >>= 1) {
-      for (int x = tid; x < p / 2; x += nthreads) {
-        const int lo = 2 * x - (x & (j - 1)), hi = lo + j;
-        const uint64_t a = s[lo], b = s[hi];
-        if ((a > b) == ((lo & k) == 0)) {  // ascending pairs where lo & k == 0
-          s[lo] = b;
-          s[hi] = a;
-        }
-      }
-      sync();
-    }
+// The per-tile sorts: CUB merge sorts in registers and shared memory, by one warp up to 256
+// keys and by the block up to kBinSortKeysMax, in size classes (a merge sort works on its whole
+// capacity, so a list is sorted by the smallest class that holds it). The keys are distinct
+// (the id is in them); padding keys (all ones) sort last and are not written.
+constexpr uint64_t kPadKey = ~0ull;
+struct KeyLess {
+  __device__ __forceinline__ bool operator()(uint64_t a, uint64_t b) const { return a < b; }
+};
+template <int kItems>
+using WarpSort = cub::WarpMergeSort<uint64_t, kItems, 32>;
+template <int kItems>
+using BlockSort = cub::BlockMergeSort<uint64_t, kThreads, kItems>;
+constexpr int kWarpSortKeys = 8 * 32;
+static_assert(kBinSortKeysMax == 16 * kThreads, "the largest block class holds kBinSortKeysMax");
+
+union SortTemp {
+  typename WarpSort<1>::TempStorage w1;
+  typename WarpSort<2>::TempStorage w2;
+  typename WarpSort<4>::TempStorage w4;
+  typename WarpSort<8>::TempStorage w8;
+  typename BlockSort<2>::TempStorage b2;
+  typename BlockSort<4>::TempStorage b4;
+  typename BlockSort<8>::TempStorage b8;
+  typename BlockSort<16>::TempStorage b16;
+};
+
+// src[0, len) (len <= kItems * threads) sorted by `threads` threads (lane / thread tid), each key
+// handed to out(position, key). Loads are striped (coalesced); the sorted keys come blocked.
+template <int kItems, typename Sorter, typename Temp, typename Out>
+__device__ __forceinline__ void sort_class(const uint64_t* src, int64_t len, int tid, int threads,
+                                           Temp& temp, Out&& out) {
+  uint64_t k[kItems];
+#pragma unroll
+  for (int it = 0; it < kItems; ++it) {
+    const int64_t x = int64_t(it) * threads + tid;
+    k[it] = x < len ? src[x] : kPadKey;
+  }
+  Sorter(temp).Sort(k, KeyLess{});
+#pragma unroll
+  for (int it = 0; it < kItems; ++it) {
+    const int64_t x = int64_t(tid) * kItems + it;
+    if (x < len) out(x, k[it]);
+  }
 }
 
-__device__ __forceinline__ int pow2_at_least(int64_t len) {
-  int p = 2;
-  while (p < len) p <<= 1;
-  return p;
-}
-
-// Sorts src[0, len) (len <= the shared list's size) in s by the whole block; the result is
-// s[0, len). Every thread must call it.
-__device__ void block_sort(const uint64_t* src, int64_t len, uint64_t* s) {
-  const int p = pow2_at_least(len);
-  for (int x = threadIdx.x; x < p; x += kThreads) s[x] = x < len ? src[x] : ~0ull;
-  __syncthreads();
-  bitonic_sort(s, p, threadIdx.x, kThreads, [] { __syncthreads(); });
+// Sorts src[0, len <= kBinSortKeysMax) by the smallest class that holds it: warp 0 alone up to
+// kWarpSortKeys, else the block. Every thread of the block must call it (uniform len); temp is
+// reused only after a barrier.
+template <typename Out>
+__device__ void sort_list(const uint64_t* src, int64_t len, SortTemp& temp, Out&& out) {
+  if (len <= kWarpSortKeys) {
+    if (threadIdx.x >= 32) return;
+    const int lane = threadIdx.x;
+    if (len <= 32)
+      sort_class<1, WarpSort<1>>(src, len, lane, 32, temp.w1, out);
+    else if (len <= 64)
+      sort_class<2, WarpSort<2>>(src, len, lane, 32, temp.w2, out);
+    else if (len <= 128)
+      sort_class<4, WarpSort<4>>(src, len, lane, 32, temp.w4, out);
+    else
+      sort_class<8, WarpSort<8>>(src, len, lane, 32, temp.w8, out);
+  } else if (len <= 2 * kThreads) {
+    sort_class<2, BlockSort<2>>(src, len, threadIdx.x, kThreads, temp.b2, out);
+  } else if (len <= 4 * kThreads) {
+    sort_class<4, BlockSort<4>>(src, len, threadIdx.x, kThreads, temp.b4, out);
+  } else if (len <= 8 * kThreads) {
+    sort_class<8, BlockSort<8>>(src, len, threadIdx.x, kThreads, temp.b8, out);
+  } else {
+    sort_class<16, BlockSort<16>>(src, len, threadIdx.x, kThreads, temp.b16, out);
+  }
 }
 
 // Index of the first key of a[0, len) that is >= key.
@@ -242,42 +296,33 @@ __device__ __forceinline__ int64_t lower_bound(const uint64_t* a, int64_t len, u
   return lo;
 }
 
-// One block per tile: its keys sorted, their ids written. Up to sort_keys keys are sorted in
-// shared memory (one warp alone up to 64); a longer list is sorted in runs of sort_keys, which
-// are then merged pairwise between keys and keys_alt (each key placed at its rank: its index in
-// its run plus the number of smaller keys in the other; the keys are distinct).
+// One block per tile: its keys sorted, their ids written. A list of up to sort_keys keys is
+// sorted at once (sort_list); a longer one in runs of sort_keys, which are then merged pairwise
+// between keys and keys_alt (each key placed at its rank: its index in its run plus the number
+// of smaller keys in the other run).
 __global__ void __launch_bounds__(kThreads)
     sort_tiles_kernel(const int64_t* tile_offsets, uint64_t* keys, uint64_t* keys_alt,
                       int sort_keys, int32_t* ids) {
-  __shared__ uint64_t s[kBinSortKeysMax];
+  __shared__ SortTemp temp;
   const int64_t begin = tile_offsets[blockIdx.x];
   const int64_t len = tile_offsets[blockIdx.x + 1] - begin;
   if (len == 0) return;
   uint64_t* src = keys + begin;
   int32_t* out = ids + begin;
+  const auto write_id = [out](int64_t x, uint64_t key) { out[x] = int32_t(uint32_t(key)); };
   if (len == 1) {
-    if (threadIdx.x == 0) out[0] = int32_t(uint32_t(src[0]));
-    return;
-  }
-  if (len <= 64 && len <= sort_keys) {  // one warp
-    if (threadIdx.x >= 32) return;
-    const int p = pow2_at_least(len);
-    for (int x = threadIdx.x; x < p; x += 32) s[x] = x < len ? src[x] : ~0ull;
-    __syncwarp();
-    bitonic_sort(s, p, threadIdx.x, 32, [] { __syncwarp(); });
-    for (int x = threadIdx.x; x < len; x += 32) out[x] = int32_t(uint32_t(s[x]));
+    if (threadIdx.x == 0) write_id(0, src[0]);
     return;
   }
   if (len <= sort_keys) {
-    block_sort(src, len, s);
-    for (int x = threadIdx.x; x < len; x += kThreads) out[x] = int32_t(uint32_t(s[x]));
+    sort_list(src, len, temp, write_id);
     return;
   }
   for (int64_t r0 = 0; r0 < len; r0 += sort_keys) {
-    const int64_t run = min(int64_t(sort_keys), len - r0);
-    block_sort(src + r0, run, s);
-    for (int x = threadIdx.x; x < run; x += kThreads) src[r0 + x] = s[x];
-    __syncthreads();  // s is reloaded by the next run
+    uint64_t* run = src + r0;
+    sort_list(run, min(int64_t(sort_keys), len - r0), temp,
+              [run](int64_t x, uint64_t key) { run[x] = key; });
+    __syncthreads();  // temp is reused by the next run; the runs are read by the merges
   }
   uint64_t* dst = keys_alt + begin;
   for (int64_t w = sort_keys; w < len; w *= 2) {
@@ -295,7 +340,7 @@ __global__ void __launch_bounds__(kThreads)
     src = dst;
     dst = t;
   }
-  for (int64_t x = threadIdx.x; x < len; x += kThreads) out[x] = int32_t(uint32_t(src[x]));
+  for (int64_t x = threadIdx.x; x < len; x += kThreads) write_id(x, src[x]);
 }
 
 // Order-preserving 64-bit keys of float64 depths and ids 0..n-1 (for the depth rank).
@@ -330,11 +375,12 @@ cudaError_t bin_tiles_cuda(const BinInputs<T>& in, BinGeometry g, bool emit,
   if (in.n == 0) return cudaSuccess;
   const HitSink sink{tile_counts, tile_offsets, keys};
   const BinChunks list = chunks ? *chunks : BinChunks{nullptr, nullptr, nullptr};
-  const int grid = cuda::ceil_div(in.n, kThreads);
   if (emit)
-    small_kernel<T, true><<<grid, kThreads, 0, stream>>>(in, g, sink, list, chunks != nullptr);
+    small_kernel<T, true><<<cuda::ceil_div(in.n * kEmitLanes, kThreads), kThreads, 0, stream>>>(
+        in, g, sink, list, chunks != nullptr);
   else
-    small_kernel<T, false><<<grid, kThreads, 0, stream>>>(in, g, sink, list, chunks != nullptr);
+    small_kernel<T, false><<<cuda::ceil_div(in.n, kThreads), kThreads, 0, stream>>>(
+        in, g, sink, list, chunks != nullptr);
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess || chunks == nullptr) return err;
   int blocks = 0;

@@ -244,8 +244,8 @@ def _bin_sorting_in_shared(proj, w, h, keys: str):
 def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     """The CUDA binning drops each hit's (depth, id) key into its tile in any order and sorts
     every tile on its own: equal depths must come out by id as on the CPU, whether a tile's list
-    is sorted in shared memory (by one warp up to 64 keys, else by the block) or as sorted runs
-    of TIGER_BIN_SORT_KEYS keys merged in global memory (2: every merge pass, ragged runs)."""
+    is sorted at once or as sorted runs of TIGER_BIN_SORT_KEYS keys merged in global memory
+    (2: every merge pass, ragged runs)."""
     w, h = 640, 480
     scene = _with_culled(heavy_tailed_scene(6000, 3, dtype=F64, seed=6))
     m2, cn, d, op, r = _project(scene, w, h, "cuda", dtype)
@@ -263,11 +263,13 @@ def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
 
 @pytest.mark.cuda
 @CUDA_SKIP
-def test_cuda_tile_lists_longer_than_shared_memory():
-    """Tiles with ~10,000 Gaussians each (more than the 4,096 keys a block sorts in shared
-    memory), half of them at one depth: the default merge path against the CPU."""
-    w, h, n = 64, 48, 12_000
-    g = torch.Generator().manual_seed(11)
+@pytest.mark.parametrize("n", [2, 20, 50, 100, 200, 300, 700, 1500, 3000, 12_000])
+def test_cuda_tile_sort_every_size_class(n):
+    """n Gaussians in every one of 12 tiles, half of them at one depth: each size class of the
+    per-tile sort (one warp up to 32, 64, 128, 256 keys; the block up to 512 ... 4,096; longer
+    lists merged from sorted runs of 4,096, twice for 12,000) against the CPU."""
+    w, h = 64, 48
+    g = torch.Generator().manual_seed(n)
     m2 = torch.rand(n, 2, generator=g, dtype=F64) * torch.tensor([w, h], dtype=F64)
     cn = torch.tensor([0.002, 0.0, 0.002], dtype=F64).repeat(n, 1)  # reaches every tile
     op = torch.full((n,), 0.9, dtype=F64)
@@ -276,7 +278,7 @@ def test_cuda_tile_lists_longer_than_shared_memory():
     r = torch.full((n, 2), 100, dtype=torch.int32)
     proj = [m2.float(), cn.float(), d.float(), op.float(), r]
     cpu = _bin(proj, w, h)
-    assert int((cpu[0][1:] - cpu[0][:-1]).min()) > 8192  # at least two merge passes per tile
+    assert torch.equal(cpu[0], torch.arange(13) * n)  # every tile lists all n
     got = _bin([t.cuda() for t in proj], w, h)
     assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1])
 
