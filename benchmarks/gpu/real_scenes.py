@@ -226,13 +226,15 @@ def same_lists(scene, V, K, w, h) -> bool:
 
 
 def bin_op_times(scene, V, K, w, h, iters, sort_keys_sweep=()) -> dict:
-    """ms of the binning op alone (walks, tile sort and its host synchronisation): the default
-    (large Gaussians walked in chunks by warps), the former one-thread-per-Gaussian walk
-    (TIGER_BIN_SERIAL=1) and the default with each shared-memory sort size of
-    ``sort_keys_sweep`` (TIGER_BIN_SORT_KEYS: longer tile lists are merged from sorted runs)."""
+    """ms of the binning op alone (walks, sorts and its host synchronisation): the default, each
+    of the two paths forced (TIGER_BIN_PATH=tiles|global: per-tile sort, global sort), the
+    one-thread-per-Gaussian walk (TIGER_BIN_SERIAL=1) and the default with each per-tile sort
+    size of ``sort_keys_sweep`` (TIGER_BIN_SORT_KEYS: longer tile lists are merged from runs)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
     out = {}
-    variants = [("bin_op", {}), ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})]
+    variants = [("bin_op", {}), ("bin_op_tiles", {"TIGER_BIN_PATH": "tiles"}),
+                ("bin_op_global", {"TIGER_BIN_PATH": "global"}),
+                ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})]
     variants += [(f"bin_op_sortkeys{k}", {"TIGER_BIN_SORT_KEYS": str(k)}) for k in sort_keys_sweep]
     for name, env in variants:
         os.environ.update(env)

@@ -51,14 +51,23 @@ def _candidates(proj, w, h) -> int:
     return int((bx * by).sum())
 
 
-def _bin(proj, w, h, serial=False):
+# The CUDA binning's two paths (per-tile sort for smaller scenes, global sort for larger ones;
+# csrc/binning/binning_cuda.h): every CUDA test of the lists runs both.
+PATHS = ["tiles", "global"]
+
+
+def _bin(proj, w, h, serial=False, path=None, **env):
+    """tiger.bin_gaussians with TIGER_BIN_SERIAL=1 (serial), TIGER_BIN_PATH=path and any other
+    TIGER_BIN_* knobs set for the call."""
     m2, cn, d, op, r = proj
-    if serial:
-        os.environ["TIGER_BIN_SERIAL"] = "1"
+    env = dict(env, **({"TIGER_BIN_SERIAL": "1"} if serial else {}),
+               **({"TIGER_BIN_PATH": path} if path else {}))
+    os.environ.update(env)
     try:
         return ops.bin_gaussians(m2, cn, op, d, r, w, h, TS, THR)
     finally:
-        os.environ.pop("TIGER_BIN_SERIAL", None)
+        for k in env:
+            os.environ.pop(k, None)
 
 
 def _min_quadratic_on_rect(a, b, c, x0, x1, y0, y1):
@@ -138,13 +147,14 @@ def test_cpu_lists_independent_of_threads():
 
 @pytest.mark.cuda
 @CUDA_SKIP
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
-def test_cuda_balanced_binning_identical_to_former_and_cpu(dtype):
+def test_cuda_balanced_binning_identical_to_former_and_cpu(dtype, path):
     w, h = 1280, 720
     scene = _with_culled(heavy_tailed_scene(20_000, 3, dtype=F64, seed=4))
     proj = _project(scene, w, h, "cuda", dtype)
-    balanced = _bin(proj, w, h)
-    former = _bin(proj, w, h, serial=True)
+    balanced = _bin(proj, w, h, path=path)
+    former = _bin(proj, w, h, serial=True, path=path)
     assert torch.equal(balanced[0], former[0]) and torch.equal(balanced[1], former[1])
     cpu = _bin([t.cpu() for t in proj], w, h)
     assert torch.equal(balanced[0].cpu(), cpu[0]) and torch.equal(balanced[1].cpu(), cpu[1])
@@ -155,11 +165,12 @@ def test_cuda_balanced_binning_identical_to_former_and_cpu(dtype):
 
 @pytest.mark.cuda
 @CUDA_SKIP
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
-def test_cuda_binning_giant_and_culled(dtype):
+def test_cuda_binning_giant_and_culled(dtype, path):
     """One Gaussian covering the whole image among thousands of culled ones and a few small
-    ones: the giant (walked in chunks by many warps) and the compact list of large Gaussians
-    among empty ones."""
+    ones: the giant (walked in chunks by many warps, or by one block on the global path) and the
+    compact list of large Gaussians among empty ones."""
     w, h = 1000, 700
     n = 5000
     g = torch.Generator().manual_seed(9)
@@ -174,16 +185,10 @@ def test_cuda_binning_giant_and_culled(dtype):
     cn[n // 2] = torch.tensor([1e-6, 0.0, 1e-6], dtype=F64)
     op[n // 2] = 0.9
     proj = [t.to(dtype) if t.is_floating_point() else t for t in (m2, cn, d, op, r)]
-    args = lambda dev: [t.to(dev) for t in proj]  # noqa: E731
-    m2c, cnc, dc, opc, rc = args("cuda")
-    a = ops.bin_gaussians(m2c, cnc, opc, dc, rc, w, h, TS, THR)
-    os.environ["TIGER_BIN_SERIAL"] = "1"
-    try:
-        b = ops.bin_gaussians(m2c, cnc, opc, dc, rc, w, h, TS, THR)
-    finally:
-        os.environ.pop("TIGER_BIN_SERIAL")
-    m2p, cnp, dp, opp, rp = args("cpu")
-    c = ops.bin_gaussians(m2p, cnp, opp, dp, rp, w, h, TS, THR)
+    on_gpu = [t.cuda() for t in proj]
+    a = _bin(on_gpu, w, h, path=path)
+    b = _bin(on_gpu, w, h, serial=True, path=path)
+    c = _bin(proj, w, h)
     n_tiles = math.ceil(w / TS) * math.ceil(h / TS)
     assert int((a[1] == n // 2).sum()) == n_tiles  # the giant is in every tile
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
@@ -216,36 +221,31 @@ def test_cpu_float32_tile_test_rounds_as_specified():
 @pytest.mark.cuda
 @CUDA_SKIP
 def test_cuda_balanced_binning_identical_to_former_on_borderline_and_heavy():
-    """Same pairs and order from both CUDA paths where rounding decides (crafted Gaussians,
-    64 candidate tiles each: the chunked path) and on the benchmark's heavy scene (1e6)."""
+    """Same pairs and order from the load-balanced and the one-thread walks, on both paths,
+    where rounding decides (crafted Gaussians, 64 candidate tiles each: the listed large ones)
+    and on the benchmark's heavy scene (1e6)."""
     tiles = 8
     size = tiles * TS
     m2, cn, op, d, r = borderline_gaussians(20_000, TS, tiles, THR, seed=1)
-    proj = [torch.from_numpy(x).cuda() for x in (m2, cn, d, op, r)]
-    balanced, former = _bin(proj, size, size), _bin(proj, size, size, serial=True)
-    assert torch.equal(balanced[0], former[0]) and torch.equal(balanced[1], former[1])
-    w, h = 1920, 1080
-    proj = _project(heavy_tailed_scene(1_000_000, 3), w, h, "cuda", torch.float32)
-    balanced, former = _bin(proj, w, h), _bin(proj, w, h, serial=True)
-    assert torch.equal(balanced[0], former[0]) and torch.equal(balanced[1], former[1])
-
-
-def _bin_sorting_in_shared(proj, w, h, keys: str):
-    os.environ["TIGER_BIN_SORT_KEYS"] = keys
-    try:
-        return _bin(proj, w, h)
-    finally:
-        os.environ.pop("TIGER_BIN_SORT_KEYS")
+    borderline = [torch.from_numpy(x).cuda() for x in (m2, cn, d, op, r)]
+    heavy = _project(heavy_tailed_scene(1_000_000, 3), 1920, 1080, "cuda", torch.float32)
+    for proj, w, h in ((borderline, size, size), (heavy, 1920, 1080)):
+        lists = [_bin(proj, w, h, serial=serial, path=path) for path in PATHS
+                 for serial in (False, True)]
+        for other in lists[1:]:
+            assert torch.equal(lists[0][0], other[0]) and torch.equal(lists[0][1], other[1])
 
 
 @pytest.mark.cuda
 @CUDA_SKIP
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
-    """The CUDA binning drops each hit's (depth, id) key into its tile in any order and sorts
-    every tile on its own: equal depths must come out by id as on the CPU, whether a tile's list
-    is sorted at once or as sorted runs of TIGER_BIN_SORT_KEYS keys merged in global memory
-    (2: every merge pass, ragged runs)."""
+    """Equal depths must come out by id as on the CPU. The per-tile path drops each hit's
+    (depth, id) key into its tile in any order and sorts every tile on its own, a list at once
+    or as sorted runs of TIGER_BIN_SORT_KEYS keys merged in global memory (2: every merge pass,
+    ragged runs); the global path emits in depth order and sorts stably by tile, whichever
+    kernels (thread, warp, block: TIGER_BIN_GIANT_TILES moves the warp/block split) walk the
+    Gaussians."""
     w, h = 640, 480
     scene = _with_culled(heavy_tailed_scene(6000, 3, dtype=F64, seed=6))
     m2, cn, d, op, r = _project(scene, w, h, "cuda", dtype)
@@ -254,11 +254,12 @@ def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     cpu = _bin([t.cpu() for t in proj], w, h)
     lengths = cpu[0][1:] - cpu[0][:-1]
     assert int((lengths > 64).sum()) > 50 and int(((lengths > 1) & (lengths <= 64)).sum()) > 50
-    for keys in ("2", "16", "64", "4096"):
-        got = _bin_sorting_in_shared(proj, w, h, keys)
-        assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1]), keys
-    got = _bin(proj, w, h, serial=True)
-    assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1])
+    variants = [{"path": "tiles", "TIGER_BIN_SORT_KEYS": k} for k in ("2", "16", "64", "4096")]
+    variants += [{"path": "global", "TIGER_BIN_GIANT_TILES": t} for t in ("33", "200", "100000")]
+    variants += [{"path": p, "serial": True} for p in PATHS]
+    for v in variants:
+        got = _bin(proj, w, h, **v)
+        assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1]), v
 
 
 @pytest.mark.cuda
@@ -279,15 +280,22 @@ def test_cuda_tile_sort_every_size_class(n):
     proj = [m2.float(), cn.float(), d.float(), op.float(), r]
     cpu = _bin(proj, w, h)
     assert torch.equal(cpu[0], torch.arange(13) * n)  # every tile lists all n
-    got = _bin([t.cuda() for t in proj], w, h)
-    assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1])
+    for path in PATHS:
+        got = _bin([t.cuda() for t in proj], w, h, path=path)
+        assert torch.equal(got[0].cpu(), cpu[0]) and torch.equal(got[1].cpu(), cpu[1]), path
 
 
 @pytest.mark.cuda
 @CUDA_SKIP
-@pytest.mark.parametrize("keys", ["0", "3", "8192", "many"])
-def test_cuda_sort_keys_knob_rejects_bad_values(keys):
+@pytest.mark.parametrize("knob, value, message", [
+    ("TIGER_BIN_SORT_KEYS", "0", "TIGER_BIN_SORT_KEYS must be a power of two"),
+    ("TIGER_BIN_SORT_KEYS", "3", "TIGER_BIN_SORT_KEYS must be a power of two"),
+    ("TIGER_BIN_SORT_KEYS", "8192", "TIGER_BIN_SORT_KEYS must be a power of two"),
+    ("TIGER_BIN_SORT_KEYS", "many", "TIGER_BIN_SORT_KEYS must be a power of two"),
+    ("TIGER_BIN_PATH", "fast", "TIGER_BIN_PATH must be 'tiles' or 'global'"),
+])
+def test_cuda_binning_knobs_reject_bad_values(knob, value, message):
     proj = [torch.zeros(1, 2), torch.ones(1, 3), torch.ones(1), torch.ones(1),
             torch.ones(1, 2, dtype=torch.int32)]
-    with pytest.raises(RuntimeError, match="TIGER_BIN_SORT_KEYS must be a power of two"):
-        _bin_sorting_in_shared([t.cuda() for t in proj], 32, 32, keys)
+    with pytest.raises(RuntimeError, match=message):
+        _bin([t.cuda() for t in proj], 32, 32, **{knob: value})

@@ -1,79 +1,31 @@
-// CUDA tile binning as a counting sort by tile (steps in binning_cuda.h). Every hit of the exact
-// ellipse-tile test (tile_touches, common/raster_math.h: a tile is listed only where the ellipse
-// reaches alpha >= threshold at one of its pixel centres) is counted into its tile, the counts
+// CUDA tile binning, per-tile path (smaller scenes; steps in binning_cuda.h): a counting sort
+// by tile. Every hit of the exact ellipse-tile test is counted into its tile, the counts
 // scanned, and the same walk again drops each hit's 64-bit (depth, id) key into its tile's
-// range; a block per tile then sorts that range. Against a device-wide radix sort of the hits
-// (or, as before, a depth sort of the Gaussians plus a stable sort of the hits by tile) this
-// needs no pass over all keys per 8 key bits: on a real scene at 1080p (25,784 Gaussians,
-// 332,605 hits) the two CUB sorts alone took 77 us of the 139 us binning.
-// The hits need no order before the per-tile sort, so a large Gaussian's candidate tiles are
-// cut into chunks of kChunkTiles that any warp can walk: the few Gaussians covering thousands of
-// tiles cost no more than the same number of small ones (a block per giant Gaussian was the
-// critical path of the former count and emit kernels).
+// range; a block per tile then sorts that range. Against the global-sort path (a depth sort of
+// the Gaussians plus a stable radix sort of the hits by tile) this launches no radix pass over
+// all keys: on a real scene at 1080p (25,784 Gaussians, 332,605 hits) the two CUB sorts alone
+// took 77 us of a 139 us binning, mostly launch latency. The hits need no order before the
+// per-tile sort, so a large Gaussian's candidate tiles are cut into chunks of kChunkTiles that
+// any warp can walk: the few Gaussians covering thousands of tiles cost no more than the same
+// number of small ones.
 #include <cub/block/block_merge_sort.cuh>
 #include <cub/block/block_scan.cuh>
-#include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
 #include <cub/warp/warp_merge_sort.cuh>
 
 #include <stdint.h>
 
-#include "binning_cuda.h"
-#include "common/cuda_helpers.cuh"
-#include "common/raster_math.h"
+#include "bin_walk.cuh"
 
 namespace tiger {
-// Named (not anonymous) so that every binning kernel's name holds "bin_cuda": the sanitizer's
-// racecheck selects them by that (benchmarks/gpu/binning.sh).
 namespace bin_cuda {
 
-constexpr int kThreads = 256;
-constexpr int kWarps = kThreads / 32;
-// A Gaussian with at most kSmallTiles candidate (bounding-box) tiles is walked by one thread:
-// no thread of a warp does more than kSmallTiles tests, and there is nothing to coordinate.
-constexpr int kSmallTiles = 32;
-// The larger ones are walked by warps, kChunkTiles candidates (4 steps of 32) per chunk.
+// Gaussians with more than kSmallTiles candidates are walked by warps, kChunkTiles candidates
+// (4 steps of 32) per chunk.
 constexpr int kChunkTiles = 128;
 // The chunk counter's fields: chunks in the low kChunkBits bits, list slots above.
 constexpr int kChunkBits = 33;
 constexpr unsigned long long kChunkMask = (1ull << kChunkBits) - 1ull;
-
-template <typename T>
-__device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const int32_t* radii,
-                                            const BinGeometry& g) {
-  const int32_t rx = radii[2 * i], ry = radii[2 * i + 1];
-  if (rx <= 0 || ry <= 0) return {0, 0, 0, 0};
-  return tile_rect(means2d[2 * i], means2d[2 * i + 1], rx, ry, g.tile_size, g.tiles_x, g.tiles_y);
-}
-
-// The exact test of one Gaussian, loaded once.
-template <typename T>
-struct TileTester {
-  T u, v, ca, cb, cc, qcut;
-  TileRect r;
-
-  __device__ void load(int64_t i, const BinInputs<T>& in, const BinGeometry& g) {
-    u = in.means2d[2 * i];
-    v = in.means2d[2 * i + 1];
-    ca = in.conics[3 * i];
-    cb = in.conics[3 * i + 1];
-    cc = in.conics[3 * i + 2];
-    qcut = cutoff_quadratic<T>(in.opacities[i], in.alpha_threshold);
-    r = rect_of(i, in.means2d, in.radii, g);
-  }
-  __device__ bool touches(int tx, int ty, const BinGeometry& g) const {
-    const int px0 = tx * g.tile_size, py0 = ty * g.tile_size;
-    return tile_touches<T>(u, v, ca, cb, cc, qcut, px0, min(px0 + g.tile_size, g.width), py0,
-                           min(py0 + g.tile_size, g.height));
-  }
-  // Candidate k (row-major in the box; k < count() < 2^31): its tile if touched, else -1.
-  __device__ int test(int k, const BinGeometry& g) const {
-    const int w = r.width();
-    const int row = k / w, col = k - row * w;
-    const int tx = r.x0 + col, ty = r.y0 + row;
-    return touches(tx, ty, g) ? ty * g.tiles_x + tx : -1;
-  }
-};
 
 // The key a hit of Gaussian i sorts by within its tile: depth order in the high word (the
 // order-preserving float32 bits, or the float64 depth rank), the id in the low word.
@@ -343,14 +295,6 @@ __global__ void __launch_bounds__(kThreads)
   for (int64_t x = threadIdx.x; x < len; x += kThreads) write_id(x, src[x]);
 }
 
-// Order-preserving 64-bit keys of float64 depths and ids 0..n-1 (for the depth rank).
-__global__ void depth_keys_kernel(const double* depths, int64_t n, uint64_t* keys, int32_t* ids) {
-  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= n) return;
-  keys[i] = cuda::depth_key_bits64(depths[i]);
-  ids[i] = int32_t(i);
-}
-
 __global__ void rank_kernel(const int32_t* order, int64_t n, int32_t* rank) {
   const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k < n) rank[order[k]] = int32_t(k);
@@ -358,15 +302,6 @@ __global__ void rank_kernel(const int32_t* order, int64_t n, int32_t* rank) {
 
 }  // namespace bin_cuda
 using namespace bin_cuda;
-
-// A grid that fills the GPU once; the chunk kernels loop over the chunks.
-static cudaError_t full_grid(int& blocks) {
-  int dev = 0, sms = 0;
-  cudaError_t err = cudaGetDevice(&dev);
-  if (err == cudaSuccess) err = cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
-  blocks = (sms > 0 ? sms : 1) * (2048 / kThreads);
-  return err;
-}
 
 template <typename T>
 cudaError_t bin_tiles_cuda(const BinInputs<T>& in, BinGeometry g, bool emit,
@@ -384,7 +319,7 @@ cudaError_t bin_tiles_cuda(const BinInputs<T>& in, BinGeometry g, bool emit,
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess || chunks == nullptr) return err;
   int blocks = 0;
-  err = full_grid(blocks);
+  err = bin_full_grid(blocks);
   if (err != cudaSuccess) return err;
   if (emit)
     chunk_kernel<T, true><<<blocks, kThreads, 0, stream>>>(in, g, sink, list);
@@ -400,18 +335,10 @@ cudaError_t bin_offsets_cuda(void* temp, size_t& temp_bytes, const unsigned long
                                        n_tiles + 1, stream);
 }
 
-cudaError_t bin_depth_rank_cuda(void* temp, size_t& temp_bytes, const double* depths, int64_t n,
-                                uint64_t* keys, uint64_t* keys_alt, int32_t* ids,
-                                int32_t* ids_alt, int32_t* rank, cudaStream_t stream) {
-  cub::DoubleBuffer<uint64_t> k(keys, keys_alt);
-  cub::DoubleBuffer<int32_t> v(ids, ids_alt);
-  if (temp == nullptr) return cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, k, v, n, 0, 64, stream);
+cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
+                                cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  depth_keys_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(depths, n, keys, ids);
-  cudaError_t err = cudaGetLastError();
-  if (err == cudaSuccess) err = cub::DeviceRadixSort::SortPairs(temp, temp_bytes, k, v, n, 0, 64, stream);
-  if (err != cudaSuccess) return err;
-  rank_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(v.Current(), n, rank);
+  rank_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(order, n, rank);
   return cudaGetLastError();
 }
 
