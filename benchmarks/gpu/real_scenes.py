@@ -151,7 +151,7 @@ def radii_stats(scene, V, K, w, h) -> dict:
             "r_max": float(rmax.max()) if rmax.numel() else 0.0,
             "bbox_tiles": int(tiles.sum()), "bbox_tiles_max": int(tiles.max()) if tiles.numel() else 0,
             "gauss_over_1000_tiles": int(big.sum()), "share_of_bbox_tiles_in_them": float(tiles[big].sum() / tiles.sum().clamp_min(1)),
-            "isects": int(ids.numel())}
+            "isects": int(ids.numel()), "tile_list_max": int((to[1:] - to[:-1]).max())}
 
 
 def stage_kind(name: str) -> str:

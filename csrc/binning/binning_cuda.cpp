@@ -94,11 +94,12 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
   const int64_t n = in.n;
   const int keys_in_one_go = sort_keys();
   const auto int_opts = like.options().dtype(at::kInt), long_opts = like.options().dtype(at::kLong);
-  // One zeroed buffer: the chunk counter, the tile counts, and a last zero (the scan runs over
-  // tiles + 1 entries, so tile_offsets[tiles] is the total).
-  auto state = at::zeros({n_tiles + 2}, long_opts);
+  // One zeroed buffer: the chunk counter, the long-list counter of the sort, the tile counts,
+  // and a last zero (the scan runs over tiles + 1 entries, so tile_offsets[tiles] is the total).
+  auto state = at::zeros({n_tiles + 3}, long_opts);
   auto* counter = reinterpret_cast<unsigned long long*>(state.data_ptr<int64_t>());
-  unsigned long long* tile_counts = counter + 1;
+  unsigned long long* n_long_lists = counter + 1;
+  unsigned long long* tile_counts = counter + 2;
   // Large Gaussians are listed and walked in chunks by warps (load balance); TIGER_BIN_SERIAL=1
   // walks every Gaussian by one thread (comparisons).
   at::Tensor listed_ids, chunk_base;
@@ -132,9 +133,11 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
   auto gaussian_ids = at::empty({m}, int_opts);
   if (m > 0) {
     auto keys_alt = at::empty({m}, long_opts);  // scratch of the lists merged from runs
+    auto long_lists = at::empty({n_tiles}, int_opts);
     TIGER_CUDA_OK(bin_sort_tiles_cuda(offsets, n_tiles, ptr_of<uint64_t>(keys),
                                       ptr_of<uint64_t>(keys_alt), keys_in_one_go,
-                                      gaussian_ids.data_ptr<int32_t>(), stream));
+                                      gaussian_ids.data_ptr<int32_t>(),
+                                      long_lists.data_ptr<int32_t>(), n_long_lists, stream));
   }
   return gaussian_ids;
 }

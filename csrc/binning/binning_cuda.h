@@ -14,8 +14,9 @@
 //      count counted back down to zero) and writes its 64-bit sort key there: depth key in the
 //      high word (float32 depth bits; float64: the Gaussian's rank in the depth order, from
 //      bin_depth_rank_cuda), Gaussian id in the low word
-//   4. bin_sort_tiles_cuda: one block per tile sorts its keys (CUB merge sorts up to sort_keys
-//      of them; longer lists as sorted runs merged in global memory) and writes the ids
+//   4. bin_sort_tiles_cuda: each tile's keys sorted (CUB merge sorts: one warp per tile up to
+//      256 keys, one block per longer list up to sort_keys, longer ones as sorted runs merged
+//      in global memory) and the ids written
 //
 // Global-sort path (binning_global_cuda.cu; larger scenes, whose long tile lists a device-wide
 // radix sort orders at memory speed):
@@ -94,9 +95,12 @@ cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
                                 cudaStream_t stream);
 
 // Sorts every tile's keys; ids [m] = their low words. keys_alt [m]: scratch of lists longer
-// than sort_keys (a power of two in [2, kBinSortKeysMax]).
+// than sort_keys (a power of two in [2, kBinSortKeysMax]). Short lists are sorted by one warp
+// each; the long ones are listed in large_tiles [tiles] (count in *n_large, zero before) and
+// sorted by one block each.
 cudaError_t bin_sort_tiles_cuda(const int64_t* tile_offsets, int64_t n_tiles, uint64_t* keys,
                                 uint64_t* keys_alt, int sort_keys, int32_t* ids,
+                                int32_t* large_tiles, unsigned long long* n_large,
                                 cudaStream_t stream);
 
 // ---- global-sort path ----

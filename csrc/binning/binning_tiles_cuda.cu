@@ -176,11 +176,14 @@ using BlockSort = cub::BlockMergeSort<uint64_t, kThreads, kItems>;
 constexpr int kWarpSortKeys = 8 * 32;
 static_assert(kBinSortKeysMax == 16 * kThreads, "the largest block class holds kBinSortKeysMax");
 
-union SortTemp {
+union WarpSortTemp {
   typename WarpSort<1>::TempStorage w1;
   typename WarpSort<2>::TempStorage w2;
   typename WarpSort<4>::TempStorage w4;
   typename WarpSort<8>::TempStorage w8;
+};
+union SortTemp {
+  WarpSortTemp warp;
   typename BlockSort<2>::TempStorage b2;
   typename BlockSort<4>::TempStorage b4;
   typename BlockSort<8>::TempStorage b8;
@@ -206,22 +209,27 @@ __device__ __forceinline__ void sort_class(const uint64_t* src, int64_t len, int
   }
 }
 
+// Sorts src[0, len <= kWarpSortKeys) by one warp (every lane calls it).
+template <typename Out>
+__device__ void warp_sort_list(const uint64_t* src, int64_t len, WarpSortTemp& temp, Out&& out) {
+  const int lane = threadIdx.x & 31;
+  if (len <= 32)
+    sort_class<1, WarpSort<1>>(src, len, lane, 32, temp.w1, out);
+  else if (len <= 64)
+    sort_class<2, WarpSort<2>>(src, len, lane, 32, temp.w2, out);
+  else if (len <= 128)
+    sort_class<4, WarpSort<4>>(src, len, lane, 32, temp.w4, out);
+  else
+    sort_class<8, WarpSort<8>>(src, len, lane, 32, temp.w8, out);
+}
+
 // Sorts src[0, len <= kBinSortKeysMax) by the smallest class that holds it: warp 0 alone up to
 // kWarpSortKeys, else the block. Every thread of the block must call it (uniform len); temp is
 // reused only after a barrier.
 template <typename Out>
 __device__ void sort_list(const uint64_t* src, int64_t len, SortTemp& temp, Out&& out) {
   if (len <= kWarpSortKeys) {
-    if (threadIdx.x >= 32) return;
-    const int lane = threadIdx.x;
-    if (len <= 32)
-      sort_class<1, WarpSort<1>>(src, len, lane, 32, temp.w1, out);
-    else if (len <= 64)
-      sort_class<2, WarpSort<2>>(src, len, lane, 32, temp.w2, out);
-    else if (len <= 128)
-      sort_class<4, WarpSort<4>>(src, len, lane, 32, temp.w4, out);
-    else
-      sort_class<8, WarpSort<8>>(src, len, lane, 32, temp.w8, out);
+    if (threadIdx.x < 32) warp_sort_list(src, len, temp.warp, out);
   } else if (len <= 2 * kThreads) {
     sort_class<2, BlockSort<2>>(src, len, threadIdx.x, kThreads, temp.b2, out);
   } else if (len <= 4 * kThreads) {
@@ -248,51 +256,76 @@ __device__ __forceinline__ int64_t lower_bound(const uint64_t* a, int64_t len, u
   return lo;
 }
 
-// One block per tile: its keys sorted, their ids written. A list of up to sort_keys keys is
-// sorted at once (sort_list); a longer one in runs of sort_keys, which are then merged pairwise
-// between keys and keys_alt (each key placed at its rank: its index in its run plus the number
-// of smaller keys in the other run).
+// Most tiles' lists are short (a real scene at 1080p: 54 keys on average): one warp per tile,
+// kWarps tiles per block, sorts those of up to kWarpSortKeys (and sort_keys) keys and lists the
+// longer ones in large_tiles for sort_large_tiles_kernel (a block per short tile left 7 of its
+// 8 warps idle, and 9 waves of such blocks took 27 us there).
 __global__ void __launch_bounds__(kThreads)
-    sort_tiles_kernel(const int64_t* tile_offsets, uint64_t* keys, uint64_t* keys_alt,
-                      int sort_keys, int32_t* ids) {
-  __shared__ SortTemp temp;
-  const int64_t begin = tile_offsets[blockIdx.x];
-  const int64_t len = tile_offsets[blockIdx.x + 1] - begin;
-  if (len == 0) return;
-  uint64_t* src = keys + begin;
+    sort_small_tiles_kernel(const int64_t* tile_offsets, int64_t n_tiles, const uint64_t* keys,
+                            int sort_keys, int32_t* ids, int32_t* large_tiles,
+                            unsigned long long* n_large) {
+  __shared__ WarpSortTemp temp[kWarps];
+  const int warp = threadIdx.x >> 5, lane = threadIdx.x & 31;
+  const int64_t t = int64_t(blockIdx.x) * kWarps + warp;
+  if (t >= n_tiles) return;  // uniform in the warp; no block barrier below
+  const int64_t begin = tile_offsets[t], len = tile_offsets[t + 1] - begin;
+  if (len > kWarpSortKeys || len > sort_keys) {
+    if (lane == 0) large_tiles[atomicAdd(n_large, 1ull)] = int32_t(t);
+    return;
+  }
   int32_t* out = ids + begin;
-  const auto write_id = [out](int64_t x, uint64_t key) { out[x] = int32_t(uint32_t(key)); };
-  if (len == 1) {
-    if (threadIdx.x == 0) write_id(0, src[0]);
-    return;
-  }
-  if (len <= sort_keys) {
-    sort_list(src, len, temp, write_id);
-    return;
-  }
-  for (int64_t r0 = 0; r0 < len; r0 += sort_keys) {
-    uint64_t* run = src + r0;
-    sort_list(run, min(int64_t(sort_keys), len - r0), temp,
-              [run](int64_t x, uint64_t key) { run[x] = key; });
-    __syncthreads();  // temp is reused by the next run; the runs are read by the merges
-  }
-  uint64_t* dst = keys_alt + begin;
-  for (int64_t w = sort_keys; w < len; w *= 2) {
-    for (int64_t a0 = 0; a0 < len; a0 += 2 * w) {
-      const int64_t b0 = min(a0 + w, len), b1 = min(a0 + 2 * w, len);
-      for (int64_t x = a0 + threadIdx.x; x < b1; x += kThreads) {
-        const uint64_t key = src[x];
-        const int64_t at = x < b0 ? (x - a0) + lower_bound(src + b0, b1 - b0, key)
-                                  : (x - b0) + lower_bound(src + a0, b0 - a0, key);
-        dst[a0 + at] = key;
-      }
+  if (len == 1 && lane == 0) out[0] = int32_t(uint32_t(keys[begin]));
+  if (len <= 1) return;
+  warp_sort_list(keys + begin, len, temp[warp],
+                 [out](int64_t x, uint64_t key) { out[x] = int32_t(uint32_t(key)); });
+}
+
+// One block per listed long tile (grid-stride over the list): the list sorted at once up to
+// sort_keys keys; a longer one in runs of sort_keys, which are then merged pairwise between keys
+// and keys_alt (each key placed at its rank: its index in its run plus the number of smaller
+// keys in the other run).
+__global__ void __launch_bounds__(kThreads)
+    sort_large_tiles_kernel(const int64_t* tile_offsets, uint64_t* keys, uint64_t* keys_alt,
+                            int sort_keys, int32_t* ids, const int32_t* large_tiles,
+                            const unsigned long long* n_large) {
+  __shared__ SortTemp temp;
+  const int64_t listed = int64_t(*n_large);
+  for (int64_t j = blockIdx.x; j < listed; j += gridDim.x) {
+    const int32_t t = large_tiles[j];
+    const int64_t begin = tile_offsets[t];
+    const int64_t len = tile_offsets[t + 1] - begin;
+    uint64_t* src = keys + begin;
+    int32_t* out = ids + begin;
+    const auto write_id = [out](int64_t x, uint64_t key) { out[x] = int32_t(uint32_t(key)); };
+    __syncthreads();  // temp and the previous tile's buffers are free
+    if (len <= sort_keys) {
+      sort_list(src, len, temp, write_id);
+      continue;
     }
-    __syncthreads();  // the block's global writes are visible to it after the barrier
-    uint64_t* t = src;
-    src = dst;
-    dst = t;
+    for (int64_t r0 = 0; r0 < len; r0 += sort_keys) {
+      uint64_t* run = src + r0;
+      sort_list(run, min(int64_t(sort_keys), len - r0), temp,
+                [run](int64_t x, uint64_t key) { run[x] = key; });
+      __syncthreads();  // temp is reused by the next run; the runs are read by the merges
+    }
+    uint64_t* dst = keys_alt + begin;
+    for (int64_t w = sort_keys; w < len; w *= 2) {
+      for (int64_t a0 = 0; a0 < len; a0 += 2 * w) {
+        const int64_t b0 = min(a0 + w, len), b1 = min(a0 + 2 * w, len);
+        for (int64_t x = a0 + threadIdx.x; x < b1; x += kThreads) {
+          const uint64_t key = src[x];
+          const int64_t at = x < b0 ? (x - a0) + lower_bound(src + b0, b1 - b0, key)
+                                    : (x - b0) + lower_bound(src + a0, b0 - a0, key);
+          dst[a0 + at] = key;
+        }
+      }
+      __syncthreads();  // the block's global writes are visible to it after the barrier
+      uint64_t* tmp = src;
+      src = dst;
+      dst = tmp;
+    }
+    for (int64_t x = threadIdx.x; x < len; x += kThreads) write_id(x, src[x]);
   }
-  for (int64_t x = threadIdx.x; x < len; x += kThreads) write_id(x, src[x]);
 }
 
 __global__ void rank_kernel(const int32_t* order, int64_t n, int32_t* rank) {
@@ -344,12 +377,19 @@ cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
 
 cudaError_t bin_sort_tiles_cuda(const int64_t* tile_offsets, int64_t n_tiles, uint64_t* keys,
                                 uint64_t* keys_alt, int sort_keys, int32_t* ids,
+                                int32_t* large_tiles, unsigned long long* n_large,
                                 cudaStream_t stream) {
   if (n_tiles == 0) return cudaSuccess;
   if (sort_keys < 2 || sort_keys > kBinSortKeysMax || (sort_keys & (sort_keys - 1)) != 0)
     return cudaErrorInvalidValue;
-  sort_tiles_kernel<<<unsigned(n_tiles), kThreads, 0, stream>>>(tile_offsets, keys, keys_alt,
-                                                                sort_keys, ids);
+  sort_small_tiles_kernel<<<cuda::ceil_div(n_tiles, kWarps), kThreads, 0, stream>>>(
+      tile_offsets, n_tiles, keys, sort_keys, ids, large_tiles, n_large);
+  cudaError_t err = cudaGetLastError();
+  int blocks = 0;
+  if (err == cudaSuccess) err = bin_full_grid(blocks);
+  if (err != cudaSuccess) return err;
+  sort_large_tiles_kernel<<<blocks, kThreads, 0, stream>>>(tile_offsets, keys, keys_alt,
+                                                           sort_keys, ids, large_tiles, n_large);
   return cudaGetLastError();
 }
 
