@@ -158,7 +158,7 @@ def stage_kind(name: str) -> str:
     n = name.lower()
     if "bwd" in n or "backward" in n:
         return "backward"
-    if "radix" in n or "onesweep" in n or "sort_tiles" in n:
+    if "radix" in n or "onesweep" in n or ("sort_" in n and "tiles_kernel" in n):
         return "sort"
     if "project" in n or "sh_kernel" in n or "harmonics" in n:
         return "project"

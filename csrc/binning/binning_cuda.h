@@ -8,15 +8,15 @@
 //   1. bin_tiles_cuda(count): every hit (Gaussian, touched tile; exact ellipse-tile test) adds
 //      one to its tile's count. One thread walks a Gaussian with at most kSmallTiles candidate
 //      (bounding-box) tiles; the larger ones are listed (BinChunks) and their candidates walked
-//      in chunks of kChunkTiles, one warp per chunk, whatever the Gaussian's size
+//      in chunks of 32, one warp per chunk, whatever the Gaussian's size
 //   2. bin_offsets_cuda: exclusive int64 scan of the tile counts -> tile_offsets [tiles + 1]
 //   3. bin_tiles_cuda(emit): the same walk; each hit takes a slot of its tile's range (the
 //      count counted back down to zero) and writes its 64-bit sort key there: depth key in the
 //      high word (float32 depth bits; float64: the Gaussian's rank in the depth order, from
 //      bin_depth_rank_cuda), Gaussian id in the low word
-//   4. bin_sort_tiles_cuda: each tile's keys sorted (CUB merge sorts: one warp per tile up to
-//      256 keys, one block per longer list up to sort_keys, longer ones as sorted runs merged
-//      in global memory) and the ids written
+//   4. bin_sort_tiles_cuda: each tile's keys sorted (one warp per tile up to 256 keys, a
+//      bitonic network in registers; one block per longer list up to sort_keys, CUB merge
+//      sorts; longer ones as sorted runs merged in global memory) and the ids written
 //
 // Global-sort path (binning_global_cuda.cu; larger scenes, whose long tile lists a device-wide
 // radix sort orders at memory speed):

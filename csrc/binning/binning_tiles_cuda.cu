@@ -11,7 +11,6 @@
 #include <cub/block/block_merge_sort.cuh>
 #include <cub/block/block_scan.cuh>
 #include <cub/device/device_scan.cuh>
-#include <cub/warp/warp_merge_sort.cuh>
 
 #include <stdint.h>
 
@@ -21,8 +20,8 @@ namespace tiger {
 namespace bin_cuda {
 
 // Gaussians with more than kSmallTiles candidates are walked by warps, kChunkTiles candidates
-// (4 steps of 32) per chunk.
-constexpr int kChunkTiles = 128;
+// (one step of 32 lanes) per chunk: the more chunks, the more warps share a giant Gaussian.
+constexpr int kChunkTiles = 32;
 // The chunk counter's fields: chunks in the low kChunkBits bits, list slots above.
 constexpr int kChunkBits = 33;
 constexpr unsigned long long kChunkMask = (1ull << kChunkBits) - 1ull;
@@ -161,66 +160,113 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
-// The per-tile sorts: CUB merge sorts in registers and shared memory, by one warp up to 256
-// keys and by the block up to kBinSortKeysMax, in size classes (a merge sort works on its whole
-// capacity, so a list is sorted by the smallest class that holds it). The keys are distinct
-// (the id is in them); padding keys (all ones) sort last and are not written.
+// The per-tile sorts, in size classes (a sort works on its whole capacity, so a list is sorted
+// by the smallest class that holds it): one warp up to kWarpSortKeys keys, a bitonic network in
+// registers (shuffles, no shared memory: CUB's warp merge sort took ~10 us per warp there, its
+// shared-memory merges bank-conflicted with 8-byte keys), and the block up to kBinSortKeysMax,
+// CUB merge sorts. The keys are distinct (the id is in them); padding keys (all ones) sort last
+// and are not written.
 constexpr uint64_t kPadKey = ~0ull;
 struct KeyLess {
   __device__ __forceinline__ bool operator()(uint64_t a, uint64_t b) const { return a < b; }
 };
 template <int kItems>
-using WarpSort = cub::WarpMergeSort<uint64_t, kItems, 32>;
-template <int kItems>
 using BlockSort = cub::BlockMergeSort<uint64_t, kThreads, kItems>;
 constexpr int kWarpSortKeys = 8 * 32;
 static_assert(kBinSortKeysMax == 16 * kThreads, "the largest block class holds kBinSortKeysMax");
 
-union WarpSortTemp {
-  typename WarpSort<1>::TempStorage w1;
-  typename WarpSort<2>::TempStorage w2;
-  typename WarpSort<4>::TempStorage w4;
-  typename WarpSort<8>::TempStorage w8;
-};
 union SortTemp {
-  WarpSortTemp warp;
   typename BlockSort<2>::TempStorage b2;
   typename BlockSort<4>::TempStorage b4;
   typename BlockSort<8>::TempStorage b8;
   typename BlockSort<16>::TempStorage b16;
 };
 
-// src[0, len) (len <= kItems * threads) sorted by `threads` threads (lane / thread tid), each key
-// handed to out(position, key). Loads are striped (coalesced); the sorted keys come blocked.
-template <int kItems, typename Sorter, typename Temp, typename Out>
-__device__ __forceinline__ void sort_class(const uint64_t* src, int64_t len, int tid, int threads,
-                                           Temp& temp, Out&& out) {
+// Bitonic sort of the 32 * kItems keys of a warp, position it * 32 + lane in k[it] (striped):
+// partners closer than 32 positions are in other lanes (shuffle), farther ones in the same lane.
+template <int kItems>
+__device__ __forceinline__ void warp_bitonic(uint64_t (&k)[kItems], int lane) {
+  constexpr int kKeys = 32 * kItems;
+#pragma unroll
+  for (int size = 2; size <= kKeys; size <<= 1) {
+#pragma unroll
+    for (int j = size >> 1; j > 0; j >>= 1) {
+#pragma unroll
+      for (int it = 0; it < kItems; ++it) {
+        const bool ascending = ((it * 32 + lane) & size) == 0;
+        if (j >= 32) {
+          const int other = it ^ (j / 32);
+          if (other > it && (k[it] > k[other]) == ascending) {
+            const uint64_t t = k[it];
+            k[it] = k[other];
+            k[other] = t;
+          }
+        } else {
+          const uint64_t theirs = __shfl_xor_sync(cuda::kFullMask, k[it], j);
+          const bool keep_min = ((lane & j) == 0) == ascending;
+          k[it] = keep_min ? (theirs < k[it] ? theirs : k[it]) : (theirs > k[it] ? theirs : k[it]);
+        }
+      }
+    }
+  }
+}
+
+template <int kItems, typename Out>
+__device__ __forceinline__ void warp_sort_class(const uint64_t* src, int64_t len, int lane,
+                                                Out&& out) {
   uint64_t k[kItems];
 #pragma unroll
   for (int it = 0; it < kItems; ++it) {
-    const int64_t x = int64_t(it) * threads + tid;
+    const int x = it * 32 + lane;
     k[it] = x < len ? src[x] : kPadKey;
   }
-  Sorter(temp).Sort(k, KeyLess{});
+  warp_bitonic(k, lane);
 #pragma unroll
   for (int it = 0; it < kItems; ++it) {
-    const int64_t x = int64_t(tid) * kItems + it;
+    const int x = it * 32 + lane;
     if (x < len) out(x, k[it]);
   }
 }
 
 // Sorts src[0, len <= kWarpSortKeys) by one warp (every lane calls it).
 template <typename Out>
-__device__ void warp_sort_list(const uint64_t* src, int64_t len, WarpSortTemp& temp, Out&& out) {
+__device__ void warp_sort_list(const uint64_t* src, int64_t len, Out&& out) {
   const int lane = threadIdx.x & 31;
   if (len <= 32)
-    sort_class<1, WarpSort<1>>(src, len, lane, 32, temp.w1, out);
+    warp_sort_class<1>(src, len, lane, out);
   else if (len <= 64)
-    sort_class<2, WarpSort<2>>(src, len, lane, 32, temp.w2, out);
+    warp_sort_class<2>(src, len, lane, out);
   else if (len <= 128)
-    sort_class<4, WarpSort<4>>(src, len, lane, 32, temp.w4, out);
+    warp_sort_class<4>(src, len, lane, out);
   else
-    sort_class<8, WarpSort<8>>(src, len, lane, 32, temp.w8, out);
+    warp_sort_class<8>(src, len, lane, out);
+}
+
+template <int kItems>
+__device__ __forceinline__ typename BlockSort<kItems>::TempStorage& temp_of(SortTemp& t) {
+  if constexpr (kItems == 2) return t.b2;
+  else if constexpr (kItems == 4) return t.b4;
+  else if constexpr (kItems == 8) return t.b8;
+  else return t.b16;
+}
+
+// src[0, len) (len <= kItems * kThreads) sorted by the block, each key handed to
+// out(position, key). Loads are striped (coalesced); the sorted keys come blocked.
+template <int kItems, typename Out>
+__device__ __forceinline__ void block_sort_class(const uint64_t* src, int64_t len, SortTemp& temp,
+                                                 Out&& out) {
+  uint64_t k[kItems];
+#pragma unroll
+  for (int it = 0; it < kItems; ++it) {
+    const int64_t x = int64_t(it) * kThreads + threadIdx.x;
+    k[it] = x < len ? src[x] : kPadKey;
+  }
+  BlockSort<kItems>(temp_of<kItems>(temp)).Sort(k, KeyLess{});
+#pragma unroll
+  for (int it = 0; it < kItems; ++it) {
+    const int64_t x = int64_t(threadIdx.x) * kItems + it;
+    if (x < len) out(x, k[it]);
+  }
 }
 
 // Sorts src[0, len <= kBinSortKeysMax) by the smallest class that holds it: warp 0 alone up to
@@ -229,15 +275,15 @@ __device__ void warp_sort_list(const uint64_t* src, int64_t len, WarpSortTemp& t
 template <typename Out>
 __device__ void sort_list(const uint64_t* src, int64_t len, SortTemp& temp, Out&& out) {
   if (len <= kWarpSortKeys) {
-    if (threadIdx.x < 32) warp_sort_list(src, len, temp.warp, out);
+    if (threadIdx.x < 32) warp_sort_list(src, len, out);
   } else if (len <= 2 * kThreads) {
-    sort_class<2, BlockSort<2>>(src, len, threadIdx.x, kThreads, temp.b2, out);
+    block_sort_class<2>(src, len, temp, out);
   } else if (len <= 4 * kThreads) {
-    sort_class<4, BlockSort<4>>(src, len, threadIdx.x, kThreads, temp.b4, out);
+    block_sort_class<4>(src, len, temp, out);
   } else if (len <= 8 * kThreads) {
-    sort_class<8, BlockSort<8>>(src, len, threadIdx.x, kThreads, temp.b8, out);
+    block_sort_class<8>(src, len, temp, out);
   } else {
-    sort_class<16, BlockSort<16>>(src, len, threadIdx.x, kThreads, temp.b16, out);
+    block_sort_class<16>(src, len, temp, out);
   }
 }
 
@@ -264,7 +310,6 @@ __global__ void __launch_bounds__(kThreads)
     sort_small_tiles_kernel(const int64_t* tile_offsets, int64_t n_tiles, const uint64_t* keys,
                             int sort_keys, int32_t* ids, int32_t* large_tiles,
                             unsigned long long* n_large) {
-  __shared__ WarpSortTemp temp[kWarps];
   const int warp = threadIdx.x >> 5, lane = threadIdx.x & 31;
   const int64_t t = int64_t(blockIdx.x) * kWarps + warp;
   if (t >= n_tiles) return;  // uniform in the warp; no block barrier below
@@ -276,7 +321,7 @@ __global__ void __launch_bounds__(kThreads)
   int32_t* out = ids + begin;
   if (len == 1 && lane == 0) out[0] = int32_t(uint32_t(keys[begin]));
   if (len <= 1) return;
-  warp_sort_list(keys + begin, len, temp[warp],
+  warp_sort_list(keys + begin, len,
                  [out](int64_t x, uint64_t key) { out[x] = int32_t(uint32_t(key)); });
 }
 
