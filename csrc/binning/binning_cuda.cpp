@@ -63,6 +63,17 @@ bool per_tile_path(int64_t n) {
   return path == "tiles";
 }
 
+// The longest tile list sorted by one warp (the longer ones by a block);
+// TIGER_BIN_WARP_KEYS (in [1, kWarpSortKeys]) lowers it (benchmark sweeps).
+int warp_keys() {
+  const char* v = std::getenv("TIGER_BIN_WARP_KEYS");
+  if (v == nullptr || v[0] == 0) return kWarpSortKeys;
+  const long long k = std::atoll(v);
+  TORCH_CHECK(k >= 1 && k <= kWarpSortKeys, "tiger.bin_gaussians: TIGER_BIN_WARP_KEYS must be in [1, ",
+              kWarpSortKeys, "], got '", v, "'");
+  return int(k);
+}
+
 template <typename T>
 T* ptr_of(at::Tensor& t) {
   return reinterpret_cast<T*>(t.data_ptr());
@@ -92,7 +103,7 @@ template <typename T>
 at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
                         at::Tensor& tile_offsets, const at::Tensor& like, cudaStream_t stream) {
   const int64_t n = in.n;
-  const int keys_in_one_go = sort_keys();
+  const int keys_in_one_go = sort_keys(), keys_per_warp = warp_keys();
   const auto int_opts = like.options().dtype(at::kInt), long_opts = like.options().dtype(at::kLong);
   // One zeroed buffer: the chunk counter, the long-list counter of the sort, the tile counts,
   // and a last zero (the scan runs over tiles + 1 entries, so tile_offsets[tiles] is the total).
@@ -135,7 +146,7 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
     auto keys_alt = at::empty({m}, long_opts);  // scratch of the lists merged from runs
     auto long_lists = at::empty({n_tiles}, int_opts);
     TIGER_CUDA_OK(bin_sort_tiles_cuda(offsets, n_tiles, ptr_of<uint64_t>(keys),
-                                      ptr_of<uint64_t>(keys_alt), keys_in_one_go,
+                                      ptr_of<uint64_t>(keys_alt), keys_in_one_go, keys_per_warp,
                                       gaussian_ids.data_ptr<int32_t>(),
                                       long_lists.data_ptr<int32_t>(), n_long_lists, stream));
   }

@@ -94,12 +94,15 @@ cudaError_t bin_offsets_cuda(void* temp, size_t& temp_bytes, const unsigned long
 cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
                                 cudaStream_t stream);
 
+// The longest tile list one warp sorts (the default and maximum warp_keys).
+constexpr int kWarpSortKeys = 256;
+
 // Sorts every tile's keys; ids [m] = their low words. keys_alt [m]: scratch of lists longer
-// than sort_keys (a power of two in [2, kBinSortKeysMax]). Short lists are sorted by one warp
-// each; the long ones are listed in large_tiles [tiles] (count in *n_large, zero before) and
-// sorted by one block each.
+// than sort_keys (a power of two in [2, kBinSortKeysMax]). Lists of up to warp_keys keys are
+// sorted by one warp each; the longer ones are listed in large_tiles [tiles] (count in
+// *n_large, zero before) and sorted by one block each.
 cudaError_t bin_sort_tiles_cuda(const int64_t* tile_offsets, int64_t n_tiles, uint64_t* keys,
-                                uint64_t* keys_alt, int sort_keys, int32_t* ids,
+                                uint64_t* keys_alt, int sort_keys, int warp_keys, int32_t* ids,
                                 int32_t* large_tiles, unsigned long long* n_large,
                                 cudaStream_t stream);
 

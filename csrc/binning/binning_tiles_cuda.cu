@@ -20,8 +20,9 @@ namespace tiger {
 namespace bin_cuda {
 
 // Gaussians with more than kSmallTiles candidates are walked by warps, kChunkTiles candidates
-// (one step of 32 lanes) per chunk: the more chunks, the more warps share a giant Gaussian.
-constexpr int kChunkTiles = 32;
+// (4 steps of 32) per chunk (chunks of 32 were slower: 24 -> 48 us for the count of the 4K real
+// scene, more owner searches per tested tile).
+constexpr int kChunkTiles = 128;
 // The chunk counter's fields: chunks in the low kChunkBits bits, list slots above.
 constexpr int kChunkBits = 33;
 constexpr unsigned long long kChunkMask = (1ull << kChunkBits) - 1ull;
@@ -73,11 +74,12 @@ __device__ void list_large(bool large, int64_t i, int64_t chunks_of_i, const Bin
   }
 }
 
-// Threads per small Gaussian: the count's atomics are fire-and-forget, so one thread walks a
-// Gaussian; each emitted hit waits for its slot (an atomic with return), so kEmitLanes threads
-// share the candidates (a real scene at 1080p has ~26k Gaussians: one thread each left most of
-// the GPU idle while the slots came back).
-constexpr int kEmitLanes = 4;
+// Threads per small Gaussian in the count and the emit: a real scene at 1080p has ~26k
+// Gaussians, under one block per SM with one thread each, so their candidates (up to
+// kSmallTiles) are shared by several threads; the emit's hits each wait for their slot (an
+// atomic with return), so it takes more (one thread: 24 us, four: 10 us).
+constexpr int kCountLanes = 4;
+constexpr int kEmitLanes = 8;
 
 // Threads of one small Gaussian walk its box in row-major order, thread `lane` of `lanes` the
 // candidates k = lane, lane + lanes, ...; the count lists the large ones (all are small without
@@ -85,7 +87,7 @@ constexpr int kEmitLanes = 4;
 template <typename T, bool kEmit>
 __global__ void __launch_bounds__(kThreads)
     small_kernel(BinInputs<T> in, BinGeometry g, HitSink sink, BinChunks list, bool listing) {
-  constexpr int lanes = kEmit ? kEmitLanes : 1;
+  constexpr int lanes = kEmit ? kEmitLanes : kCountLanes;
   const int64_t thread = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   const int64_t i = thread / lanes;
   const int lane = int(thread % lanes);
@@ -112,8 +114,8 @@ __global__ void __launch_bounds__(kThreads)
       }
     }
   }
-  if (!kEmit && listing)  // uniform: every thread of the block takes part
-    list_large(cand > small_max, i, (cand + kChunkTiles - 1) / kChunkTiles, list);
+  if (!kEmit && listing)  // uniform: every thread of the block takes part; lane 0 lists
+    list_large(lane == 0 && cand > small_max, i, (cand + kChunkTiles - 1) / kChunkTiles, list);
 }
 
 // The slot of the listed Gaussian that owns chunk q: the last s with chunk_base[s] <= q
@@ -172,7 +174,6 @@ struct KeyLess {
 };
 template <int kItems>
 using BlockSort = cub::BlockMergeSort<uint64_t, kThreads, kItems>;
-constexpr int kWarpSortKeys = 8 * 32;
 static_assert(kBinSortKeysMax == 16 * kThreads, "the largest block class holds kBinSortKeysMax");
 
 union SortTemp {
@@ -308,13 +309,13 @@ __device__ __forceinline__ int64_t lower_bound(const uint64_t* a, int64_t len, u
 // 8 warps idle, and 9 waves of such blocks took 27 us there).
 __global__ void __launch_bounds__(kThreads)
     sort_small_tiles_kernel(const int64_t* tile_offsets, int64_t n_tiles, const uint64_t* keys,
-                            int sort_keys, int32_t* ids, int32_t* large_tiles,
+                            int warp_keys, int32_t* ids, int32_t* large_tiles,
                             unsigned long long* n_large) {
   const int warp = threadIdx.x >> 5, lane = threadIdx.x & 31;
   const int64_t t = int64_t(blockIdx.x) * kWarps + warp;
   if (t >= n_tiles) return;  // uniform in the warp; no block barrier below
   const int64_t begin = tile_offsets[t], len = tile_offsets[t + 1] - begin;
-  if (len > kWarpSortKeys || len > sort_keys) {
+  if (len > warp_keys) {
     if (lane == 0) large_tiles[atomicAdd(n_large, 1ull)] = int32_t(t);
     return;
   }
@@ -392,7 +393,7 @@ cudaError_t bin_tiles_cuda(const BinInputs<T>& in, BinGeometry g, bool emit,
     small_kernel<T, true><<<cuda::ceil_div(in.n * kEmitLanes, kThreads), kThreads, 0, stream>>>(
         in, g, sink, list, chunks != nullptr);
   else
-    small_kernel<T, false><<<cuda::ceil_div(in.n, kThreads), kThreads, 0, stream>>>(
+    small_kernel<T, false><<<cuda::ceil_div(in.n * kCountLanes, kThreads), kThreads, 0, stream>>>(
         in, g, sink, list, chunks != nullptr);
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess || chunks == nullptr) return err;
@@ -421,14 +422,15 @@ cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
 }
 
 cudaError_t bin_sort_tiles_cuda(const int64_t* tile_offsets, int64_t n_tiles, uint64_t* keys,
-                                uint64_t* keys_alt, int sort_keys, int32_t* ids,
+                                uint64_t* keys_alt, int sort_keys, int warp_keys, int32_t* ids,
                                 int32_t* large_tiles, unsigned long long* n_large,
                                 cudaStream_t stream) {
   if (n_tiles == 0) return cudaSuccess;
-  if (sort_keys < 2 || sort_keys > kBinSortKeysMax || (sort_keys & (sort_keys - 1)) != 0)
+  if (sort_keys < 2 || sort_keys > kBinSortKeysMax || (sort_keys & (sort_keys - 1)) != 0 ||
+      warp_keys < 1 || warp_keys > kWarpSortKeys)
     return cudaErrorInvalidValue;
   sort_small_tiles_kernel<<<cuda::ceil_div(n_tiles, kWarps), kThreads, 0, stream>>>(
-      tile_offsets, n_tiles, keys, sort_keys, ids, large_tiles, n_large);
+      tile_offsets, n_tiles, keys, min(warp_keys, sort_keys), ids, large_tiles, n_large);
   cudaError_t err = cudaGetLastError();
   int blocks = 0;
   if (err == cudaSuccess) err = bin_full_grid(blocks);

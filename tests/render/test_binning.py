@@ -241,11 +241,11 @@ def test_cuda_balanced_binning_identical_to_former_on_borderline_and_heavy():
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     """Equal depths must come out by id as on the CPU. The per-tile path drops each hit's
-    (depth, id) key into its tile in any order and sorts every tile on its own, a list at once
-    or as sorted runs of TIGER_BIN_SORT_KEYS keys merged in global memory (2: every merge pass,
-    ragged runs); the global path emits in depth order and sorts stably by tile, whichever
-    kernels (thread, warp, block: TIGER_BIN_GIANT_TILES moves the warp/block split) walk the
-    Gaussians."""
+    (depth, id) key into its tile in any order and sorts every tile on its own: by a warp or
+    (TIGER_BIN_WARP_KEYS lowered) a block, a list at once or as sorted runs of
+    TIGER_BIN_SORT_KEYS keys merged in global memory (2: every merge pass, ragged runs). The
+    global path emits in depth order and sorts stably by tile, whichever kernels (thread, warp,
+    block: TIGER_BIN_GIANT_TILES moves the warp/block split) walk the Gaussians."""
     w, h = 640, 480
     scene = _with_culled(heavy_tailed_scene(6000, 3, dtype=F64, seed=6))
     m2, cn, d, op, r = _project(scene, w, h, "cuda", dtype)
@@ -255,6 +255,7 @@ def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     lengths = cpu[0][1:] - cpu[0][:-1]
     assert int((lengths > 64).sum()) > 50 and int(((lengths > 1) & (lengths <= 64)).sum()) > 50
     variants = [{"path": "tiles", "TIGER_BIN_SORT_KEYS": k} for k in ("2", "16", "64", "4096")]
+    variants += [{"path": "tiles", "TIGER_BIN_WARP_KEYS": k} for k in ("1", "40")]
     variants += [{"path": "global", "TIGER_BIN_GIANT_TILES": t} for t in ("33", "200", "100000")]
     variants += [{"path": p, "serial": True} for p in PATHS]
     for v in variants:
@@ -293,6 +294,8 @@ def test_cuda_tile_sort_every_size_class(n):
     ("TIGER_BIN_SORT_KEYS", "8192", "TIGER_BIN_SORT_KEYS must be a power of two"),
     ("TIGER_BIN_SORT_KEYS", "many", "TIGER_BIN_SORT_KEYS must be a power of two"),
     ("TIGER_BIN_PATH", "fast", "TIGER_BIN_PATH must be 'tiles' or 'global'"),
+    ("TIGER_BIN_WARP_KEYS", "0", "TIGER_BIN_WARP_KEYS must be in"),
+    ("TIGER_BIN_WARP_KEYS", "300", "TIGER_BIN_WARP_KEYS must be in"),
 ])
 def test_cuda_binning_knobs_reject_bad_values(knob, value, message):
     proj = [torch.zeros(1, 2), torch.ones(1, 3), torch.ones(1), torch.ones(1),
