@@ -1,9 +1,9 @@
 // CUDA tile binning, per-tile path (smaller scenes; steps in binning_cuda.h): a counting sort
 // by tile. Every hit of the exact ellipse-tile test is counted into its tile, the counts
 // scanned, and the same walk again drops each hit's 64-bit (depth, id) key into its tile's
-// range; a block per tile then sorts that range. Against the global-sort path (a depth sort of
-// the Gaussians plus a stable radix sort of the hits by tile) this launches no radix pass over
-// all keys: on a real scene at 1080p (25,784 Gaussians, 332,605 hits) the two CUB sorts alone
+// range; each range is then sorted on its own (a warp per short list, a block per long one).
+// Against the global-sort path (a depth sort of the Gaussians plus a stable radix sort of the
+// hits by tile) this launches no radix pass over all keys: on a real scene at 1080p (25,784 Gaussians, 332,605 hits) the two CUB sorts alone
 // took 77 us of a 139 us binning, mostly launch latency. The hits need no order before the
 // per-tile sort, so a large Gaussian's candidate tiles are cut into chunks of kChunkTiles that
 // any warp can walk: the few Gaussians covering thousands of tiles cost no more than the same
