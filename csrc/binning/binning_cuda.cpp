@@ -128,7 +128,8 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
     int32_t* order = nullptr;
     depth_order(in, i0, i1, &order, like, stream);
     depth_rank = at::empty({n}, int_opts);
-    TIGER_CUDA_OK(bin_depth_rank_cuda(order, n, depth_rank.data_ptr<int32_t>(), stream));
+    TIGER_CUDA_OK(bin_order_counts_cuda(order, nullptr, n, nullptr,
+                                        depth_rank.data_ptr<int32_t>(), stream));
     in.depth_rank = depth_rank.data_ptr<int32_t>();
   }
   int64_t* offsets = tile_offsets.data_ptr<int64_t>();

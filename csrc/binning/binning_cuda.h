@@ -13,7 +13,7 @@
 //   3. bin_tiles_cuda(emit): the same walk; each hit takes a slot of its tile's range (the
 //      count counted back down to zero) and writes its 64-bit sort key there: depth key in the
 //      high word (float32 depth bits; float64: the Gaussian's rank in the depth order, from
-//      bin_depth_rank_cuda), Gaussian id in the low word
+//      bin_depth_order_cuda and bin_order_counts_cuda), Gaussian id in the low word
 //   4. bin_sort_tiles_cuda: each tile's keys sorted (one warp per tile up to 256 keys, a
 //      bitonic network in registers; one block per longer list up to sort_keys, CUB merge
 //      sorts; longer ones as sorted runs merged in global memory) and the ids written
@@ -90,10 +90,6 @@ cudaError_t bin_tiles_cuda(const BinInputs<T>& in, BinGeometry g, bool emit,
 cudaError_t bin_offsets_cuda(void* temp, size_t& temp_bytes, const unsigned long long* counts,
                              int64_t* tile_offsets, int64_t n_tiles, cudaStream_t stream);
 
-// rank[order[k]] = k for k < n (order: bin_depth_order_cuda's).
-cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
-                                cudaStream_t stream);
-
 // The longest tile list one warp sorts (the default and maximum warp_keys).
 constexpr int kWarpSortKeys = 256;
 
@@ -124,6 +120,7 @@ cudaError_t bin_depth_order_cuda(void* temp, size_t& temp_bytes, const T* depths
                                  DepthKey<T>* keys, DepthKey<T>* keys_alt, int32_t* ids,
                                  int32_t* ids_alt, int32_t** order, cudaStream_t stream);
 
+// counts == nullptr: the ranks alone (the per-tile path's float64 depth rank).
 cudaError_t bin_order_counts_cuda(const int32_t* order, const int64_t* counts, int64_t n,
                                   int64_t* counts_in_order, int32_t* rank, cudaStream_t stream);
 

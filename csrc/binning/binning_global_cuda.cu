@@ -248,14 +248,14 @@ __global__ void depth_keys_kernel(const T* depths, int64_t n, DepthKey<T>* keys,
   ids[i] = int32_t(i);
 }
 
-// counts_in_order[k] = counts[order[k]] (for the scan that places the segments in depth order)
-// and rank[order[k]] = k.
+// counts_in_order[k] = counts[order[k]] (for the scan that places the segments in depth order;
+// skipped without counts) and rank[order[k]] = k.
 __global__ void order_counts_kernel(const int32_t* order, const int64_t* counts, int64_t n,
                                     int64_t* counts_in_order, int32_t* rank) {
   const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= n) return;
   const int32_t i = order[k];
-  counts_in_order[k] = counts[i];
+  if (counts) counts_in_order[k] = counts[i];
   rank[i] = int32_t(k);
 }
 

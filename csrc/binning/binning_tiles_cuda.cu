@@ -374,11 +374,6 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
-__global__ void rank_kernel(const int32_t* order, int64_t n, int32_t* rank) {
-  const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (k < n) rank[order[k]] = int32_t(k);
-}
-
 }  // namespace bin_cuda
 using namespace bin_cuda;
 
@@ -412,13 +407,6 @@ cudaError_t bin_offsets_cuda(void* temp, size_t& temp_bytes, const unsigned long
   return cub::DeviceScan::ExclusiveSum(temp, temp_bytes, counts,
                                        reinterpret_cast<unsigned long long*>(tile_offsets),
                                        n_tiles + 1, stream);
-}
-
-cudaError_t bin_depth_rank_cuda(const int32_t* order, int64_t n, int32_t* rank,
-                                cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
-  rank_kernel<<<cuda::ceil_div(n, kThreads), kThreads, 0, stream>>>(order, n, rank);
-  return cudaGetLastError();
 }
 
 cudaError_t bin_sort_tiles_cuda(const int64_t* tile_offsets, int64_t n_tiles, uint64_t* keys,

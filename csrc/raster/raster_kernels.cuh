@@ -301,48 +301,53 @@ __device__ __forceinline__ void block_background_grad(T (&vals)[CB], int C, int 
     v_bg_tiles[int64_t(tile) * C + c0 + threadIdx.x] = s_bg[threadIdx.x];
 }
 
-// out[c] = sum over the thread's pixels k of w[k] * vc[k][h * PIECE + c]: piece h of a
-// per-thread weighted channel sum.
-template <int PIECE, int CB, int PPT, typename T>
-__device__ __forceinline__ void weighted_piece(const T (&vc)[PPT][CB], const T (&w)[PPT], int h,
-                                               T (&out)[PIECE]) {
+// The per-thread weighted channel sums go in pieces of at most 32 channels, so the temporaries
+// stay at 32 registers for any CB.
+template <int CB>
+constexpr int kWeightedPiece = CB < 32 ? CB : 32;
+
+// f(h, out) for each piece h, out[c] = sum over the thread's pixels k of
+// w[k] * vc[k][h * kWeightedPiece<CB> + c].
+template <int CB, int PPT, typename T, typename F>
+__device__ __forceinline__ void for_each_weighted_piece(const T (&vc)[PPT][CB], const T (&w)[PPT],
+                                                        F&& f) {
+  constexpr int PIECE = kWeightedPiece<CB>;
 #pragma unroll
-  for (int c = 0; c < PIECE; ++c) {
-    out[c] = w[0] * vc[0][h * PIECE + c];
+  for (int h = 0; h < CB / PIECE; ++h) {
+    T out[PIECE];
 #pragma unroll
-    for (int k = 1; k < PPT; ++k) out[c] += w[k] * vc[k][h * PIECE + c];
+    for (int c = 0; c < PIECE; ++c) {
+      out[c] = w[0] * vc[0][h * PIECE + c];
+#pragma unroll
+      for (int k = 1; k < PPT; ++k) out[c] += w[k] * vc[k][h * PIECE + c];
+    }
+    f(h, out);
   }
 }
 
-// v_bg_tiles[tile, c0 + c] += sum over the block's pixels of t * vc[c], in pieces of 32.
+// v_bg_tiles[tile, c0 + c] += sum over the block's pixels of t * vc[c], piece by piece.
 template <int CB, int PPT, typename T>
 __device__ __forceinline__ void background_grads(const T (&vc)[PPT][CB], const T (&t)[PPT],
                                                  int C, int c0, int tile, T* s_bg,
                                                  T* v_bg_tiles) {
-  constexpr int PIECE = CB < 32 ? CB : 32;
-#pragma unroll
-  for (int h = 0; h < CB / PIECE; ++h) {
-    T vals[PIECE];
-    weighted_piece<PIECE>(vc, t, h, vals);
+  constexpr int PIECE = kWeightedPiece<CB>;
+  for_each_weighted_piece(vc, t, [&](int h, T (&vals)[PIECE]) {
     block_background_grad<PIECE>(vals, C, c0 + h * PIECE, tile, s_bg, v_bg_tiles);
-  }
+  });
 }
 
 // Adds sum_k w[k] * vc[k][c] of every lane to v_colors[gid, c0 + c], reduced over the warp
-// first: pieces of at most 32 channels, so the temporaries stay at 32 registers for any CB.
+// first, piece by piece.
 template <int CB, int PPT, typename T>
 __device__ __forceinline__ void warp_add_color_grads(const T (&vc)[PPT][CB], const T (&w)[PPT],
                                                      int64_t gid, int C, int c0, int lane,
                                                      T* v_colors) {
-  constexpr int PIECE = CB < 32 ? CB : 32;
-#pragma unroll
-  for (int h = 0; h < CB / PIECE; ++h) {
-    T gc[PIECE];
-    weighted_piece<PIECE>(vc, w, h, gc);
+  constexpr int PIECE = kWeightedPiece<CB>;
+  for_each_weighted_piece(vc, w, [&](int h, T (&gc)[PIECE]) {
     const T sc = cuda::warp_reduce_scatter<PIECE>(gc, lane);
     const int ch = c0 + h * PIECE + lane;
     if (lane < PIECE && ch < C) atomicAdd(&v_colors[gid * C + ch], sc);
-  }
+  });
 }
 
 // Stages the batch entries [b0, b0 + nb) of the tile list: geometry and id per entry.

@@ -255,7 +255,7 @@ def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     lengths = cpu[0][1:] - cpu[0][:-1]
     assert int((lengths > 64).sum()) > 50 and int(((lengths > 1) & (lengths <= 64)).sum()) > 50
     variants = [{"path": "tiles", "TIGER_BIN_SORT_KEYS": k} for k in ("2", "16", "64", "4096")]
-    variants += [{"path": "tiles", "TIGER_BIN_WARP_KEYS": k} for k in ("1", "40")]
+    variants += [{"path": "tiles", "TIGER_BIN_WARP_KEYS": k} for k in ("1", "40", "256")]
     variants += [{"path": "global", "TIGER_BIN_GIANT_TILES": t} for t in ("33", "200", "100000")]
     variants += [{"path": p, "serial": True} for p in PATHS]
     for v in variants:
@@ -295,10 +295,38 @@ def test_cuda_tile_sort_every_size_class(n):
     ("TIGER_BIN_SORT_KEYS", "many", "TIGER_BIN_SORT_KEYS must be a power of two"),
     ("TIGER_BIN_PATH", "fast", "TIGER_BIN_PATH must be 'tiles' or 'global'"),
     ("TIGER_BIN_WARP_KEYS", "0", "TIGER_BIN_WARP_KEYS must be in"),
-    ("TIGER_BIN_WARP_KEYS", "300", "TIGER_BIN_WARP_KEYS must be in"),
+    ("TIGER_BIN_WARP_KEYS", "257", r"TIGER_BIN_WARP_KEYS must be in \[1, 256\]"),
 ])
 def test_cuda_binning_knobs_reject_bad_values(knob, value, message):
     proj = [torch.zeros(1, 2), torch.ones(1, 3), torch.ones(1), torch.ones(1),
             torch.ones(1, 2, dtype=torch.int32)]
     with pytest.raises(RuntimeError, match=message):
         _bin([t.cuda() for t in proj], 32, 32, **{knob: value})
+
+
+@pytest.mark.cuda
+@CUDA_SKIP
+def test_cuda_default_path_switches_above_2_18_gaussians(monkeypatch):
+    """The per-tile path up to 2**18 Gaussians, the global sort beyond: the switch sits between
+    the crossovers measured in benchmarks/gpu/results/session9_call7/binning_paths.txt
+    (per-tile / global = 1.00 at 400k Gaussians on the standard scene, 1.06 at 200k on the
+    heavy-tailed one). Read off the launched count kernel."""
+    from torch.profiler import ProfilerActivity, profile
+
+    monkeypatch.delenv("TIGER_BIN_PATH", raising=False)
+
+    def path_of(n: int) -> str:
+        proj = [torch.zeros(n, 2), torch.ones(n, 3), torch.ones(n), torch.ones(n),
+                torch.zeros(n, 2, dtype=torch.int32)]  # all culled: cheap either way
+        proj = [t.cuda() for t in proj]
+        with profile(activities=[ProfilerActivity.CUDA]) as prof:
+            _bin(proj, 64, 64)
+            torch.cuda.synchronize()
+        names = [e.name for e in prof.events() if "bin_cuda::" in e.name]
+        if any("bin_cuda::small_kernel<" in x for x in names):
+            return "tiles"
+        assert any("bin_cuda::count_small_kernel<" in x for x in names), names
+        return "global"
+
+    assert path_of(2**18) == "tiles"
+    assert path_of(2**18 + 1) == "global"
