@@ -39,7 +39,7 @@ demo: build
 	$(PY) -m tiger.cli.main demo --out outputs/demo --force
 
 bench: build
-	$(PY) benchmarks/rasterize.py
+	$(PY) -m benchmarks.rasterize
 
 clean:
 	rm -rf build $(BUILT)

@@ -5,23 +5,19 @@ one-thread-per-Gaussian kernel as fma(fma(a, t, 2b), t, c) where it hoisted term
 tile loop, the chunked kernel as fma(x, k x, t (a t + 2b)) ("chunked_v2"). This counts the
 (tile, Gaussian) decisions of the Gaussians with more than 32 candidate tiles (those the
 balanced CUDA path bins apart) that differ between the two roundings, on the CPU, with the
-float32 emulation of tests/render/tile_test_f32.py. Usage: python benchmarks/binning_roundings.py
+float32 emulation of tests/render/tile_test_f32.py. Usage: python -m benchmarks.binning_roundings
 [--n 1000000] (about a minute for 1e6 Gaussians at 1920x1080).
 """
 from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-from benchmarks.common import heavy_tailed_scene, standard_camera  # noqa: E402
+from tests.render.standard_scenes import heavy_tailed_scene, standard_camera  # noqa: E402
 from tests.render.tile_test_f32 import tile_pairs  # noqa: E402
 
 import tiger  # noqa: E402,F401

@@ -14,22 +14,20 @@ result's quality: locality PSNR outside the object's footprint vs the scene befo
 must not change), hole PSNR vs the inpainted views, and the reprojection consistency of the fill
 between neighbouring views (refit vs the raw 2D inpaints).
 
-    python benchmarks/delete.py                                        # CPU, demo scene
-    python benchmarks/delete.py --device cuda --density 15 --views 40 --size 640x480 --steps 300
+    python -m benchmarks.delete                                        # CPU, demo scene
+    python -m benchmarks.delete --device cuda --density 15 --views 40 --size 640x480 --steps 300
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import print_table  # noqa: E402
+from benchmarks.common import print_table  # noqa: E402
 
 from tiger.demo.run import label_features  # noqa: E402
 from tiger.demo.scene import tabletop_scene  # noqa: E402

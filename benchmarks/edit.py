@@ -17,8 +17,8 @@ Per step: render (4 views + the 4 original renders the guidance is conditioned o
 backward through the rasterizer, optimizer (relevance-scaled Adam), densification (amortised).
 Peak memory is torch.cuda.max_memory_allocated on CUDA.
 
-    python benchmarks/edit.py                                      # CPU, demo scene, recolor + analytic
-    python benchmarks/edit.py --device cuda --density 15 --guidance ip2p+mvdream --random-models full \\
+    python -m benchmarks.edit                                      # CPU, demo scene, recolor + analytic
+    python -m benchmarks.edit --device cuda --density 15 --guidance ip2p+mvdream --random-models full \\
         --steps 1200 --size 512 --warmup 20 --cuda-graph         # or: bash benchmarks/gpu/edit.sh
 """
 from __future__ import annotations
@@ -27,20 +27,19 @@ import argparse
 import dataclasses
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import print_table  # noqa: E402
+from benchmarks.common import print_table  # noqa: E402
 
 from tiger.demo.run import label_features  # noqa: E402
 from tiger.demo.scene import tabletop_scene  # noqa: E402
 from tiger.edit import EditConfig, edit, resolve_target  # noqa: E402
-from tiger.edit.guidance import IdealDenoiserGuidance, RecolorGuidance, render_targets  # noqa: E402
+from tiger.edit.guidance import RecolorGuidance  # noqa: E402
+from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets  # noqa: E402
 from tiger.edit.views import ObjectViews  # noqa: E402
 from tiger.eval.edit import locality, render_rgb_and_footprint  # noqa: E402
 from tiger.scene import GaussianScene  # noqa: E402

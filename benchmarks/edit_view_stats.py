@@ -3,21 +3,17 @@ intersections of each of 4 object-centred views (``ObjectViews.fixed``) of the e
 scene (benchmarks/edit.py's demo tabletop, target "ball"), with the statistics of the real-scene
 benchmark (``benchmarks/gpu/real_scenes.radii_stats``). CPU; about a second per view.
 
-    python benchmarks/edit_view_stats.py [--density 16] [--size 512]
+    python -m benchmarks.edit_view_stats [--density 16] [--size 512]
 """
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent / "gpu"))
-from common import print_table  # noqa: E402
+from benchmarks.common import print_table  # noqa: E402
 from edit import demo_scene  # noqa: E402
-from real_scenes import radii_stats  # noqa: E402
+from benchmarks.gpu.real_scenes import radii_stats  # noqa: E402
 
 from tiger.edit import resolve_target  # noqa: E402
 from tiger.edit.views import ObjectViews  # noqa: E402

@@ -1,8 +1,8 @@
 """Benchmark of the language-feature stages (SPEC §4): per-image time of each stage, and the ops
 against plain PyTorch versions (time and error vs a float64 reference).
 
-CPU (here):  python benchmarks/features.py --device cpu --models tiny
-GPU:         python benchmarks/features.py --device cuda --models full --out-long-side 1920
+CPU (here):  python -m benchmarks.features --device cpu --models tiny
+GPU:         python -m benchmarks.features --device cuda --models full --out-long-side 1920
 ``--models full`` builds CLIP ViT-B/16 and SAM ViT-H with random weights from their configs (the
 real models' cost); ``tiny`` uses the test-size models. Input images are 1920x1080.
 The mask stages (box NMS, clean-up, mask NMS, id map, masked average, PCA statistics) and the
@@ -15,14 +15,12 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import time
 
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import median_time, print_table, rel_err  # noqa: E402
+from benchmarks.common import median_time, print_table, rel_err  # noqa: E402
 
 import tiger  # noqa: E402,F401
 from tiger.language.featup import ImplicitConfig, ImplicitUpsampler, JBUStack, upsample_features  # noqa: E402
@@ -32,7 +30,7 @@ from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator, SamMasks, 
 from tiger.ops.jbu import adaptive_conv  # noqa: E402
 from tiger.ops.masked_average import masked_average  # noqa: E402
 from tiger.ops.nms import box_nms, mask_intersections, mask_nms  # noqa: E402
-from masks import langsplat_loop, matmul_counts, pairwise_loop, realistic_masks  # noqa: E402
+from benchmarks.masks import langsplat_loop, matmul_counts, pairwise_loop, realistic_masks  # noqa: E402
 
 
 def sync(dev: torch.device) -> None:
@@ -151,7 +149,7 @@ def bench_mask_nms(dev: torch.device, h: int, w: int, counts: list[int], langspl
 
 
 def build_models(kind: str, dev: torch.device, dtype: torch.dtype):
-    from tiger.models.random_init import clip_config, random_sam, write_byte_level_clip_tokenizer
+    from tiger.testing.random_models import clip_config, random_sam, write_byte_level_clip_tokenizer
     import tempfile
     import transformers
 

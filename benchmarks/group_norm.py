@@ -9,23 +9,21 @@ op, a convolution's bias add: torch's broadcast add vs ``tiger.ops.channel_bias.
 Shapes: the SD VAE encoder's norms (4 x 128 x 512², 4 x 256 x 256², 4 x 512 x 128², 4 x 512 x 64²)
 and the SD-1.5 UNet's at 12 x C x 64² ... 8² (on the CPU: N = 1 and 1/8 of the side, tiny models).
 
-    python benchmarks/group_norm.py                         # CPU, small shapes
-    python benchmarks/group_norm.py --device cuda --json out.json
+    python -m benchmarks.group_norm                         # CPU, small shapes
+    python -m benchmarks.group_norm --device cuda --json out.json
 """
 from __future__ import annotations
 
 import argparse
 import copy
 import json
-import sys
 import time
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
+from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
 
 from tiger.ops.channel_bias import channel_bias_add  # noqa: E402
 from tiger.ops.group_norm import group_norm  # noqa: E402
@@ -128,7 +126,7 @@ def vae_rows(device: str, dtype: torch.dtype, size: str, sides: list[int], iters
     input gradient against the float32 plain model's."""
     import diffusers
 
-    from tiger.edit.guidance.random_models import sd_vae_config
+    from tiger.testing.random_models import sd_vae_config
     from tiger.edit.guidance.sds import freeze
 
     timer = cuda_time_ms if device == "cuda" else cpu_time_ms
@@ -179,7 +177,7 @@ def unet_rows(device: str, dtype: torch.dtype, size: str, iters: int) -> list[di
     """InstructPix2Pix UNet forward (no grad, as in the SDS step): 12 x 8 x 64² latents."""
     import diffusers
 
-    from tiger.edit.guidance.random_models import ip2p_unet_config
+    from tiger.testing.random_models import ip2p_unet_config
     from tiger.edit.guidance.sds import freeze
 
     timer = cuda_time_ms if device == "cuda" else cpu_time_ms

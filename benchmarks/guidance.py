@@ -10,8 +10,8 @@ and the execution mode: ``eager``, ``graph`` (the whole step replayed as one CUD
 ``compile_vae`` (torch.compile on the VAE encoder, then the CUDA graph), ``compile`` (torch.compile
 on the UNet and the VAE encoder, then the CUDA graph).
 
-    python benchmarks/guidance.py                                   # CPU, tiny models
-    python benchmarks/guidance.py --device cuda --size full --out results.json
+    python -m benchmarks.guidance                                   # CPU, tiny models
+    python -m benchmarks.guidance --device cuda --size full --out results.json
 """
 from __future__ import annotations
 
@@ -19,7 +19,6 @@ import argparse
 import gc
 import json
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,8 +26,7 @@ from typing import Optional
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
+from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
 
 from tiger.edit.guidance.base import ViewBatch  # noqa: E402
 from tiger.edit.guidance.fused_norms import apply_fused_norms  # noqa: E402
@@ -36,9 +34,9 @@ from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, IP2PModels  # noqa
 from tiger.edit.guidance.ldm_checkpoint import unet_config_from_ldm, vae_config_from_ldm  # noqa: E402
 from tiger.edit.guidance.mvdream import MVDreamGuidance, MVDreamModels  # noqa: E402
 from tiger.edit.guidance.mvdream_attention import install_multiview_attention  # noqa: E402
-from tiger.edit.guidance.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config  # noqa: E402
+from tiger.testing.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config  # noqa: E402
 from tiger.edit.guidance.sds import NoiseSchedule, PromptEncoder, encode_latents, freeze, resize  # noqa: E402
-from tiger.models.random_init import write_byte_level_clip_tokenizer  # noqa: E402
+from tiger.testing.random_models import write_byte_level_clip_tokenizer  # noqa: E402
 from tiger.scene.cameras import Camera  # noqa: E402
 from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 

@@ -6,26 +6,25 @@
     (means, quats, scales, opacities) requires grad too, so the full backward runs (and its
     gradients are thrown away). Error column: relative error of the float32 L gradient against
     float64 ("-" where N x W^2 is too large for the float64 run).
-(2) Convergence on the synthetic labelled scene (tiger.retrieval.synthetic): train_field from
+(2) Convergence on the synthetic labelled scene (tiger.testing.labelled_scene): train_field from
     random L; at milestones, time, loss and the worst per-label retrieval precision / recall
     (cosine score, automatic threshold); "converged" = loss within 10 % of the last milestone's.
     The full backward follows the same trajectory (only L is updated), so its time to
     convergence is the features-only time x the per-step ratio of table (1).
 
-    python benchmarks/language_field.py                 # CPU
-    python benchmarks/language_field.py --device cuda   # GPU (needs the CUDA rasterizer)
+    python -m benchmarks.language_field                 # CPU
+    python -m benchmarks.language_field --device cuda   # GPU (needs the CUDA rasterizer)
 """
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import median_time, print_table, rel_err, standard_view  # noqa: E402
+from benchmarks.common import median_time, print_table, rel_err  # noqa: E402
+from tests.render.standard_scenes import standard_view  # noqa: E402
 
 import tiger  # noqa: E402
 
@@ -89,7 +88,7 @@ def convergence(device: str, steps: int, lr: float = 0.05) -> list[dict]:
 
     from tiger.language.field import train_field
     from tiger.retrieval import retrieve
-    from tiger.retrieval.synthetic import make_labelled_scene, oracle_feature_maps
+    from tiger.testing.labelled_scene import make_labelled_scene, oracle_feature_maps
 
     logging.getLogger("tiger.language.field").setLevel(logging.ERROR)
     ls = make_labelled_scene(per_object=80, floor=400, views=12, size=96)

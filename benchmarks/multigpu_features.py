@@ -2,13 +2,13 @@
 
 Three steps (benchmarks/gpu/multigpu_features.sh runs them in one device call):
 
-  python benchmarks/multigpu_features.py prepare WORK [--images N]
+  python -m benchmarks.multigpu_features prepare WORK [--images N]
       full-size random-weight CLIP ViT-B/16 and SAM ViT-H saved in the public folder layouts
-      (tiger.models.random_init), a random 512-channel JBU checkpoint, N synthetic 1920x1080 PNGs
-  python benchmarks/multigpu_features.py run WORK OUT_NAME            (plain, or under torchrun)
+      (tiger.testing.random_models), a random 512-channel JBU checkpoint, N synthetic 1920x1080 PNGs
+  python -m benchmarks.multigpu_features run WORK OUT_NAME            (plain, or under torchrun)
       one warm-up call (two images per rank) through the library's own torchrun set-up, then the
       timed extract_features over all images, models already loaded; WORK/OUT_NAME/timing.json
-  python benchmarks/multigpu_features.py compare WORK A B [C ...]
+  python -m benchmarks.multigpu_features compare WORK A B [C ...]
       every written tensor (features, validity, stage-1 caches, PCA) of runs B, C, ... against A
 
 Models are loaded through the real loaders from the saved folders, each rank onto its own GPU.
@@ -24,7 +24,6 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from features import synthetic_image  # noqa: E402
 
 from tiger.language.extract import FeatureConfig, extract_features  # noqa: E402
@@ -40,7 +39,7 @@ def prepare(work: Path, n_images: int, size: str = "full", image_hw: tuple[int, 
     from PIL import Image
 
     from tiger.language.featup import JBUStack
-    from tiger.models.random_init import save_random_clip, save_random_sam
+    from tiger.testing.random_models import save_random_clip, save_random_sam
 
     t = time.perf_counter()
     m = _models(work)

@@ -1,5 +1,5 @@
 """Rasterizer benchmark: run time against error on the standard scene (or, with
-``--scene heavy``, the heavy-tailed scene of benchmarks/common.py: long-tailed scales and
+``--scene heavy``, the heavy-tailed scene of tests/render/standard_scenes.py: long-tailed scales and
 Gaussians close to the camera, the case that stresses tile binning).
 
 Prints (1) a table over N, resolution and channel count C with forward, forward+backward,
@@ -11,22 +11,21 @@ pixels x N fits, else the float64 kernels, which match the reference to ~1e-14);
 (2) a sweep of the accuracy knobs (t_min, alpha threshold, eps2d, half-precision
 channels where the device supports them) as a time-against-error table and PNG plot.
 
-    python benchmarks/rasterize.py                 # CPU, full table
-    python benchmarks/rasterize.py --device cuda   # same on a GPU
-    python benchmarks/rasterize.py --quick         # small subset (smoke run)
-    python benchmarks/rasterize.py --scene heavy --n 1e4 --res 512 --channels 3 --no-sweep
+    python -m benchmarks.rasterize                 # CPU, full table
+    python -m benchmarks.rasterize --device cuda   # same on a GPU
+    python -m benchmarks.rasterize --quick         # small subset (smoke run)
+    python -m benchmarks.rasterize --scene heavy --n 1e4 --res 512 --channels 3 --no-sweep
 """
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import median_time, print_table, rel_err, standard_view  # noqa: E402
+from benchmarks.common import median_time, print_table, rel_err  # noqa: E402
+from tests.render.standard_scenes import standard_view  # noqa: E402
 
 import tiger  # noqa: E402
 from tiger.render.reference import render_ref  # noqa: E402

@@ -1,10 +1,10 @@
 """Fit the real 'fox' capture (instant-ngp's 50 photographs with lens distortion, no
 point cloud) and print held-out PSNR/SSIM against steps and time.
 
-    python benchmarks/recon_fox.py                       # CPU: downscale 8, 700 steps, <= 10 min
-    python benchmarks/recon_fox.py --device cuda --downscale 2 --iterations 7000 --time-budget 240
-    python benchmarks/recon_fox.py --downscale 4 --mask-border --appearance
-    python benchmarks/recon_fox.py --init-colors random --init-radius 0.35   # the settings before issue 15
+    python -m benchmarks.recon_fox                       # CPU: downscale 8, 700 steps, <= 10 min
+    python -m benchmarks.recon_fox --device cuda --downscale 2 --iterations 7000 --time-budget 240
+    python -m benchmarks.recon_fox --downscale 4 --mask-border --appearance
+    python -m benchmarks.recon_fox --init-colors random --init-radius 0.35   # the settings before issue 15
 
 The data is looked up at ``<repo>/../shared/data/fox`` unless ``--data`` is given. Test
 views are every 8th image in name order (INRIA's rule); images are undistorted once and

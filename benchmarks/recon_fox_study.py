@@ -1,7 +1,7 @@
 """Why does the fox's held-out PSNR plateau? One training run per hypothesis, same views.
 
-    python benchmarks/recon_fox_study.py --downscale 4 --variants base,mask,appearance
-    python benchmarks/recon_fox_study.py --device cuda --downscale 4 --variants all
+    python -m benchmarks.recon_fox_study --downscale 4 --variants base,mask,appearance
+    python -m benchmarks.recon_fox_study --device cuda --downscale 4 --variants all
 
 Every run starts from ``benchmarks/recon_fox.py``'s settings (random init of 3000 points
 within 0.35 x the camera distance, at most 20k Gaussians, SH degree 3, INRIA's schedule

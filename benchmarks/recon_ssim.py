@@ -2,7 +2,7 @@
 float64 SciPy reference, for each Gaussian-filter method of the tensor-op SSIM and for the fused
 kernels (tiger::fused_ssim, "fused"), at each image size.
 
-    python benchmarks/recon_ssim.py [--device cpu|cuda] [--threads N]
+    python -m benchmarks.recon_ssim [--device cpu|cuda] [--threads N]
 """
 from __future__ import annotations
 

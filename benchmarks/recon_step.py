@@ -1,7 +1,7 @@
 """SceneOptimizer: time per step and optimizer-state bytes, every Gaussian trainable vs a region.
 
-    python benchmarks/recon_step.py                      # CPU, N=20000, 128x128, SH degree 3
-    python benchmarks/recon_step.py --device cuda --n 1000000 --size 512
+    python -m benchmarks.recon_step                      # CPU, N=20000, 128x128, SH degree 3
+    python -m benchmarks.recon_step --device cuda --n 1000000 --size 512
 
 A random scene is fitted to one fixed image (photometric loss) for ``--steps`` steps per
 setting; frozen rows are checked bit-identical afterwards. The rasterizer dominates the

@@ -6,19 +6,16 @@ the bandwidth floor (those bytes at the device's measured copy bandwidth) and th
 the time of the same computation in eager PyTorch, and the max error of cosine and relevancy
 against a float64 reference.
 
-    python benchmarks/relevancy.py                  # CPU
-    python benchmarks/relevancy.py --device cuda    # GPU, 1e6 .. 1e7 (acceptance: fp16 1e7 <= 2x floor)
+    python -m benchmarks.relevancy                  # CPU
+    python -m benchmarks.relevancy --device cuda    # GPU, 1e6 .. 1e7 (acceptance: fp16 1e7 <= 2x floor)
 """
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import median_time, print_table  # noqa: E402
+from benchmarks.common import median_time, print_table  # noqa: E402
 
 import tiger  # noqa: E402,F401
 

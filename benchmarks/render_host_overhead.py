@@ -2,26 +2,23 @@
 time is Python, dispatch and autograd): median us of a forward, a forward+backward, and a
 forward+backward with the input checks (check_finite=True), and the ATen ops of one
 forward+backward that would each launch a GPU kernel (fills, copies, elementwise, reductions;
-the custom ops' own kernels not counted). Usage: python benchmarks/render_host_overhead.py
-[--repo PATH] (PATH: another checkout with its own build, to compare)."""
+the custom ops' own kernels not counted). Usage, from the repository root:
+python -m benchmarks.render_host_overhead (to compare another checkout with its own build, run
+the same command from that checkout's root)."""
 from __future__ import annotations
 
 import argparse
 import collections
-import sys
 import time
-from pathlib import Path
 
 import torch
 
 p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[1])
 p.add_argument("--n", type=int, default=64)
 p.add_argument("--size", type=int, default=16)
 args = p.parse_args()
-sys.path.insert(0, str(args.repo))
 import tiger  # noqa: E402
-from benchmarks.common import standard_camera, standard_scene  # noqa: E402
+from tests.render.standard_scenes import standard_camera, standard_scene  # noqa: E402
 
 LAUNCHING = {"aten::zero_", "aten::fill_", "aten::copy_", "aten::gt", "aten::where", "aten::div",
              "aten::amax", "aten::sum", "aten::mul", "aten::add", "aten::clamp_min"}
@@ -60,7 +57,7 @@ def main() -> None:
 
     best = [min(x) for x in zip(*[(median_us(fwd), median_us(fb), median_us(lambda: fb(True)))
                                   for _ in range(3)])]
-    print(f"{args.repo}: n={n} {w}x{w}, CPU, 1 thread: forward {best[0]:.0f} us, forward+backward "
+    print(f"n={n} {w}x{w}, CPU, 1 thread: forward {best[0]:.0f} us, forward+backward "
           f"{best[1]:.0f} us, forward+backward with check_finite {best[2]:.0f} us")
     from torch.profiler import ProfilerActivity, profile
     with profile(activities=[ProfilerActivity.CPU]) as prof:

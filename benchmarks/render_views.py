@@ -11,19 +11,17 @@ standard scene and four orbit cameras:
 and the largest difference of render_views' outputs and gradients from the raw calls
 (0 = bit-identical; gradients are summed over views in another order, so a few ulp).
 
-    python benchmarks/render_views.py               # CPU
-    python benchmarks/render_views.py --device cuda
+    python -m benchmarks.render_views               # CPU
+    python -m benchmarks.render_views --device cuda
 """
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import median_time, print_table, standard_scene  # noqa: E402
+from benchmarks.common import median_time, print_table  # noqa: E402
+from tests.render.standard_scenes import standard_scene  # noqa: E402
 
 import tiger  # noqa: E402
 from tiger.render.views import orbit_cameras  # noqa: E402

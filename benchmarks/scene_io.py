@@ -1,12 +1,11 @@
 """Scene I/O stages: PLY write/read, COLMAP parsing, image undistortion -- run time
 against error (round-trip exactness; float32 vs float64 undistortion).
 
-    python benchmarks/scene_io.py [--quick]
+    python -m benchmarks.scene_io [--quick]
 """
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -15,8 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "scene"))
-from colmapref import write_model  # noqa: E402  (the tests' independent writer)
+from tests.scene.colmapref import write_model  # noqa: E402  (the tests' independent writer)
 
 from tiger.scene import Distortion, GaussianScene  # noqa: E402
 from tiger.scene.cameras import intrinsics  # noqa: E402

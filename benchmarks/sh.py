@@ -7,19 +7,16 @@ coefficients, every Gaussian visible. Bytes that must move: forward reads the di
 coefficients and writes the colours (N x (3 + 48 + 3) x 4 B); the backward also reads the colour
 gradient and writes the direction and coefficient gradients (another N x (3 + 48 + 3) x 4 B).
 
-    python benchmarks/sh.py                          # CPU
-    python benchmarks/sh.py --device cuda --n 1e5 1e6 4e6
+    python -m benchmarks.sh                          # CPU
+    python -m benchmarks.sh --device cuda --n 1e5 1e6 4e6
 """
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_time_ms, cuda_time_ms, print_table, rel_err  # noqa: E402
+from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err  # noqa: E402
 
 from tiger.ops.sh import sh_to_color  # noqa: E402
 from tiger.render.reference import sh_to_color_ref  # noqa: E402

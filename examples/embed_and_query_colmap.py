@@ -70,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
 def model_config(args: argparse.Namespace, out: Path) -> Optional[Any]:
     """What to pass as ``models`` to :mod:`tiger.models` (None: ``$TIGER_MODELS``)."""
     if args.random_models:
-        from tiger.models.random_init import save_random_clip, save_random_sam
+        from tiger.testing.random_models import save_random_clip, save_random_sam
 
         root = out / "random_models"
         clip_dir, sam_dir = root / "clip-vit-base-patch16", root / "sam-vit-huge"

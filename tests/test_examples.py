@@ -222,7 +222,7 @@ def write_lerf_fixture(root: Path, name: str, seed: int, size: int = 128, views:
     """A LERF-OVS-layout scene: ``root/label/<name>/frame_XXXXX.{json,jpg}`` (boxes and polygons of
     the rendered objects), ``root/<name>/transforms.json`` (its cameras) and a PLY with ``lang_*``."""
     from tiger.retrieval.maps import render_rgb
-    from tiger.retrieval.synthetic import label_masks, make_labelled_scene
+    from tiger.testing.labelled_scene import label_masks, make_labelled_scene
 
     ls = make_labelled_scene(views=views, seed=seed)
     g = torch.Generator().manual_seed(seed)

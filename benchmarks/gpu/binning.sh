@@ -23,11 +23,11 @@ export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 if has sanitize; then  # the binning kernels changed: memcheck on every kernel, racecheck on them
   SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 200 "$SAN" --tool memcheck --error-exitcode 99 \
-    python3 benchmarks/gpu/sanitize_case.py > "$OUT/memcheck.log" 2>&1
+    python3 -m benchmarks.gpu.sanitize_case > "$OUT/memcheck.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   echo "[$(date -u +%T)] memcheck (every kernel) rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/memcheck.log" | tail -1)" | tee -a "$OUT/check.log"
   timeout 200 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=bin_cuda \
-    python3 benchmarks/gpu/sanitize_case.py > "$OUT/racecheck_binning.log" 2>&1
+    python3 -m benchmarks.gpu.sanitize_case > "$OUT/racecheck_binning.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   echo "[$(date -u +%T)] racecheck (binning kernels) rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/racecheck_binning.log" | tail -1)" | tee -a "$OUT/check.log"
 fi
@@ -40,14 +40,14 @@ if has cudatests; then
 fi
 if has train; then
   echo "== train_vs_gsplat.py $(date -u +%T)"
-  timeout "${TRAIN_TIMEOUT:-300}" python3 benchmarks/gpu/train_vs_gsplat.py --data "$DATA/fox" \
+  timeout "${TRAIN_TIMEOUT:-300}" python3 -m benchmarks.gpu.train_vs_gsplat --data "$DATA/fox" \
     --json "$OUT/train_vs_gsplat.json" ${TRAIN_ARGS:-} > "$OUT/train_vs_gsplat.txt" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   echo "train rc=$rc"; tail -12 "$OUT/train_vs_gsplat.txt"
 fi
 if has real; then
   echo "== real_scenes.py $(date -u +%T)"
-  timeout "${REAL_TIMEOUT:-420}" python3 benchmarks/gpu/real_scenes.py --snowmiku "$DATA/snowmiku" \
+  timeout "${REAL_TIMEOUT:-420}" python3 -m benchmarks.gpu.real_scenes --snowmiku "$DATA/snowmiku" \
     --fox-data "$DATA/fox" --out "$OUT" ${REAL_ARGS:-} > "$OUT/real_scenes.txt" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   echo "real_scenes rc=$rc"; sed -n '/^== Screen radii/,$p' "$OUT/real_scenes.txt"

@@ -6,20 +6,18 @@ script profiles single ``tiger.bin_gaussians`` calls (after warm-up) and lists e
 operation: the onesweep passes of each sort, the count/emit kernels and the memsets, in µs,
 median over ``--reps`` calls. Cases as in ``real_scenes.py`` (snowmiku-1080p by default).
 
-    python benchmarks/gpu/binning_kernels.py --cases snowmiku-1080p,standard
+    python -m benchmarks.gpu.binning_kernels --cases snowmiku-1080p,standard
 """
 from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 from pathlib import Path
 
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
-from benchmarks.common import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
+from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
 from benchmarks.gpu.real_scenes import project, snowmiku  # noqa: E402
 
 import tiger  # noqa: E402,F401  (registers the ops)

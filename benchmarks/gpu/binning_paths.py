@@ -6,20 +6,17 @@ by tile (global path) beyond (csrc/binning/binning_cuda.h). This script times th
 path forced (TIGER_BIN_PATH), median of CUDA events, on the standard and the heavy-tailed
 synthetic scenes at 1920x1080 for several N, and checks that both give identical lists.
 
-    python benchmarks/gpu/binning_paths.py --n 50000,100000,200000,400000,1000000
+    python -m benchmarks.gpu.binning_paths --n 50000,100000,200000,400000,1000000
 """
 from __future__ import annotations
 
 import argparse
 import os
-import sys
-from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
-from benchmarks.common import cuda_time_ms, heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
+from benchmarks.common import cuda_time_ms  # noqa: E402
+from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
 from benchmarks.gpu.real_scenes import project  # noqa: E402
 
 import tiger  # noqa: E402,F401  (registers the ops)

@@ -93,12 +93,12 @@ if has sanitizer; then
   SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
   say "compute-sanitizer memcheck (every kernel, caching allocator off)"
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout "${SANITIZER_TIMEOUT:-300}" "$SAN" --tool memcheck --error-exitcode 99 \
-    $PY benchmarks/gpu/sanitize_case.py > "$OUT/sanitizer.log" 2>&1
+    $PY -m benchmarks.gpu.sanitize_case > "$OUT/sanitizer.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "memcheck rc=$rc: $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
   say "compute-sanitizer racecheck (rasterizer kernels)"
   timeout "${SANITIZER_TIMEOUT:-300}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=raster_cuda \
-    $PY benchmarks/gpu/sanitize_case.py >> "$OUT/sanitizer.log" 2>&1
+    $PY -m benchmarks.gpu.sanitize_case >> "$OUT/sanitizer.log" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "racecheck rc=$rc: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
 fi
@@ -106,7 +106,7 @@ fi
 if has bench; then
   say "benchmark (gsplat JIT-compiles on first use)"
   export MAX_JOBS="${MAX_JOBS:-$(nproc)}" TORCH_CUDA_ARCH_LIST="${TORCH_CUDA_ARCH_LIST:-9.0}"
-  timeout "${BENCH_TIMEOUT:-900}" $PY benchmarks/gpu/rasterize_vs_gsplat.py --json "$OUT/bench.json" --profile "$OUT/profile.txt" ${BENCH_ARGS:-} \
+  timeout "${BENCH_TIMEOUT:-900}" $PY -m benchmarks.gpu.rasterize_vs_gsplat --json "$OUT/bench.json" --profile "$OUT/profile.txt" ${BENCH_ARGS:-} \
     > "$OUT/bench.txt" 2>&1
   rc=$?; [ $rc -ne 0 ] && status=1
   say "benchmark rc=$rc"

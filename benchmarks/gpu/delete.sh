@@ -15,7 +15,7 @@ PY="${PYTHON:-python3}"
 {
   for carve in "" "--carve"; do
     echo "== delete ${carve:-(table intact)}: $(date -u +%T)"
-    "$PY" benchmarks/delete.py --device cuda --density 16 --views 40 --size 640x480 --steps 300 \
+    "$PY" -m benchmarks.delete --device cuda --density 16 --views 40 --size 640x480 --steps 300 \
       --repeats 2 $carve --json "$OUT/delete${carve:+_carved}.json" 2>&1 | grep -v Warning
   done
 } | tee "$OUT/delete.txt"

@@ -16,10 +16,10 @@ CHECK_STEPS=build bash benchmarks/gpu/check.sh "${WHEELS:-}" "${EIGEN_DEB:-}" ||
 export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 echo "setup done in $(( $(date +%s) - t0 )) s; cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-$PY benchmarks/edit.py --device cuda --density 16 --guidance recolor analytic --steps 200 --size 512 \
+$PY -m benchmarks.edit --device cuda --density 16 --guidance recolor analytic --steps 200 --size 512 \
     --json "$OUT/edit_h100_nodiffusion.json" 2>&1 | tee "$OUT/edit_h100_nodiffusion.txt"
 for graph in --cuda-graph ""; do
-  if $PY benchmarks/edit.py --device cuda --density 16 --guidance ip2p+mvdream --random-models full --dtype bf16 \
+  if $PY -m benchmarks.edit --device cuda --density 16 --guidance ip2p+mvdream --random-models full --dtype bf16 \
       --steps 1200 --size 512 --warmup 5 $graph --view-pool "${VIEW_POOL:-64}" --time-budget-s "${BUDGET_S:-150}" \
       --json "$OUT/edit_h100.json" \
       2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/edit_h100${graph:+_graph}.txt"; then

@@ -16,8 +16,8 @@ export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
   echo "== CUDA tests (ops: CPU vs CUDA values, gradients, opcheck; pipeline on the GPU)"
   timeout 240 "$PY" -m pytest -q -m cuda tests/language tests/models tests/ops/test_jbu.py tests/ops/test_nms.py tests/ops/test_masked_average.py -p no:cacheprovider 2>&1 | tail -25
   echo "== benchmark: feature maps at 1920x1080 (full resolution)"
-  timeout 420 "$PY" benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 1920 2>&1
+  timeout 420 "$PY" -m benchmarks.features --device cuda --models full --image 1080x1920 --out-long-side 1920 2>&1
   echo "== benchmark: feature maps at 960x540 (pipeline with JBU only)"
-  timeout 240 "$PY" benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 960 --skip-ops --steps 0 2>&1
+  timeout 240 "$PY" -m benchmarks.features --device cuda --models full --image 1080x1920 --out-long-side 960 --skip-ops --steps 0 2>&1
   echo "== done: $(date -u)"
 } 2>&1 | tee "$LOG"

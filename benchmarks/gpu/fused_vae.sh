@@ -10,12 +10,12 @@ CHECK_STEPS=build bash benchmarks/gpu/check.sh .whl .carry/deb/libeigen3-dev_3.4
 tail -1 "$OUT/check.log"
 export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 echo "guidance $(date -u +%T)"
-timeout 200 python3 benchmarks/guidance.py --device cuda --dtypes bf16 --modes graph,eager --quick \
+timeout 200 python3 -m benchmarks.guidance --device cuda --dtypes bf16 --modes graph,eager --quick \
   --fused "${FUSED:-off,vae,all}" --budget-s 200 --out "$OUT/guidance_fused.json" --profile-dir "$OUT" 2>&1 \
   | grep -v -i -e warn -e "Model config" > "$OUT/guidance_fused.txt"
 tail -9 "$OUT/guidance_fused.txt"
 echo "edit $(date -u +%T)"
-timeout ${EDIT_TIMEOUT:-240} python3 benchmarks/edit.py --device cuda --density 16 --guidance ip2p+mvdream --random-models full \
+timeout ${EDIT_TIMEOUT:-240} python3 -m benchmarks.edit --device cuda --density 16 --guidance ip2p+mvdream --random-models full \
   --dtype bf16 --steps 1200 --size 512 --warmup 5 --cuda-graph --view-pool 64 --fused-norms auto \
   --time-budget-s "${BUDGET_S:-120}" --profile-steps "${PROFILE_STEPS:-0}" --profile-out "$OUT/edit_profile.txt" \
   --json "$OUT/edit_fused.json" 2>&1 | grep -v -i -e warn -e "Model config" \

@@ -19,14 +19,14 @@ timeout "${TESTS_TIMEOUT:-100}" $PY -m pytest -q -p no:cacheprovider -rs tests/o
 say "tests rc=$?: $(tail -1 "$OUT/tests.log")"
 grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -20 | tee -a "$OUT/check.log"
 say "benchmark"
-timeout "${BENCH_TIMEOUT:-140}" $PY benchmarks/group_norm.py --device cuda ${BENCH_ARGS:-} --json "$OUT/group_norm_h100.json" \
+timeout "${BENCH_TIMEOUT:-140}" $PY -m benchmarks.group_norm --device cuda ${BENCH_ARGS:-} --json "$OUT/group_norm_h100.json" \
   > "$OUT/group_norm_h100.txt" 2>&1
 say "benchmark rc=$?"
 SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
 PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout "${SANITIZER_TIMEOUT:-45}" "$SAN" --tool memcheck --error-exitcode 99 \
-  $PY benchmarks/gpu/sanitize_group_norm.py > "$OUT/sanitizer.log" 2>&1
+  $PY -m benchmarks.gpu.sanitize_group_norm > "$OUT/sanitizer.log" 2>&1
 say "memcheck rc=$?: $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
 timeout "${SANITIZER_TIMEOUT:-45}" "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=group_norm \
-  $PY benchmarks/gpu/sanitize_group_norm.py >> "$OUT/sanitizer.log" 2>&1
+  $PY -m benchmarks.gpu.sanitize_group_norm >> "$OUT/sanitizer.log" 2>&1
 say "racecheck rc=$?: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
 say "done"

@@ -21,5 +21,5 @@ nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 echo "== CUDA-graph replay vs eager (tiny models)"
 timeout 150 $PY -m pytest -q tests/edit/test_cuda_graph.py -p no:cacheprovider 2>&1 | tail -5
 echo "== benchmark"
-$PY benchmarks/guidance.py --device cuda --out "$OUT/guidance_h100.json" --profile-dir "$OUT" \
+$PY -m benchmarks.guidance --device cuda --out "$OUT/guidance_h100.json" --profile-dir "$OUT" \
     --budget-s "${BUDGET_S:-220}" ${GUIDANCE_ARGS:-} 2>&1 | grep -v -i -e "warn" -e "Model config" | tee "$OUT/guidance_h100.txt"

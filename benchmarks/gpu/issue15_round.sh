@@ -33,11 +33,11 @@ if [ "${TESTS:-1}" = 1 ]; then
 fi
 if [ "$PART" = a ] || [ "${SANITIZE:-0}" = 1 ]; then
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 200 "$SAN" --tool memcheck --error-exitcode 99 \
-    python3 benchmarks/gpu/sanitize_case.py > "$R/memcheck.log" 2>&1
+    python3 -m benchmarks.gpu.sanitize_case > "$R/memcheck.log" 2>&1
   say "memcheck rc=$?: $(grep -E 'ERROR SUMMARY' "$R/memcheck.log" | tail -1)"
   for kns in ${RACECHECK:-raster_cuda bin_cuda ssim sh_}; do
     timeout 150 "$SAN" --tool racecheck --error-exitcode 99 --kernel-name kns=$kns \
-      python3 benchmarks/gpu/sanitize_case.py > "$R/racecheck_$kns.log" 2>&1
+      python3 -m benchmarks.gpu.sanitize_case > "$R/racecheck_$kns.log" 2>&1
     say "racecheck $kns rc=$?: $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$R/racecheck_$kns.log" | tail -1)"
   done
 fi
@@ -49,16 +49,16 @@ if [ "$PART" = a ]; then
     python3 -m pytest -q -p no:cacheprovider tests/ops/test_sh.py -k staged > "$R/racecheck_sh.log" 2>&1
   say "racecheck sh rc=$?: $(grep -E 'RACECHECK SUMMARY' "$R/racecheck_sh.log" | tail -1)"
   for staged in 1 0; do
-    TIGER_SH_STAGED=$staged timeout 200 python3 benchmarks/sh.py --device cuda --n 1e5 1e6 4e6 \
+    TIGER_SH_STAGED=$staged timeout 200 python3 -m benchmarks.sh --device cuda --n 1e5 1e6 4e6 \
       > "$R/sh_staged$staged.txt" 2>&1
     say "sh.py TIGER_SH_STAGED=$staged rc=$?"; tail -6 "$R/sh_staged$staged.txt" | tee -a "$R/log.txt"
   done
-  timeout 100 python3 benchmarks/recon_ssim.py --device cuda --sizes 540x960,1080x1920 \
+  timeout 100 python3 -m benchmarks.recon_ssim --device cuda --sizes 540x960,1080x1920 \
     --methods fused,depthwise,conv > "$R/ssim.txt" 2>&1
   say "recon_ssim rc=$?"; tail -3 "$R/ssim.txt" | tee -a "$R/log.txt"
 else
   if [ -n "${REAL_CASES-x}" ]; then
-    timeout "${REAL_TIMEOUT:-280}" python3 benchmarks/gpu/real_scenes.py --out "$R" \
+    timeout "${REAL_TIMEOUT:-280}" python3 -m benchmarks.gpu.real_scenes --out "$R" \
       --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --sort-keys-sweep "${SORT_KEYS_SWEEP-1024,2048}" \
       --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" --fox-data .carry/realscene/fox > "$R/real_scenes.txt" 2>&1
     say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
@@ -67,7 +67,7 @@ else
     ablations=()
     IFS=';' read -ra abl <<< "${TRAIN_ABLATION:-}"
     for x in "${abl[@]}"; do [ -n "$x" ] && ablations+=(--ablation "$x"); done
-    timeout "${TRAIN_TIMEOUT:-240}" python3 benchmarks/gpu/train_vs_gsplat.py --data .carry/realscene/fox \
+    timeout "${TRAIN_TIMEOUT:-240}" python3 -m benchmarks.gpu.train_vs_gsplat --data .carry/realscene/fox \
       "${ablations[@]}" --json "$R/train_vs_gsplat.json" > "$R/train_vs_gsplat.txt" 2>&1
     say "train_vs_gsplat rc=$?"; sed -n '/^== Training/,$p' "$R/train_vs_gsplat.txt" | tee -a "$R/log.txt"
   fi

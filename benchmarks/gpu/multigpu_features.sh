@@ -31,31 +31,31 @@ OUT="$OUT/build" CHECK_STEPS=build bash benchmarks/gpu/check.sh "" "$EIGEN_DEB" 
 say "build ok: cuda_enabled=$($PY -c 'import tiger.ops as o; print(o.cuda_enabled())')"
 
 t0=$(date +%s.%N)
-$PY benchmarks/multigpu_features.py prepare "$WORK" --images "$N" >> "$LOG" 2>&1 || { say "prepare failed"; tail -30 "$LOG"; exit 1; }
+$PY -m benchmarks.multigpu_features prepare "$WORK" --images "$N" >> "$LOG" 2>&1 || { say "prepare failed"; tail -30 "$LOG"; exit 1; }
 say "prepared in $(el "$t0") s"
 
 t0=$(date +%s.%N)
-CUDA_VISIBLE_DEVICES=0 timeout 90 $PY benchmarks/multigpu_features.py run "$WORK" single >> "$LOG" 2>&1
+CUDA_VISIBLE_DEVICES=0 timeout 90 $PY -m benchmarks.multigpu_features run "$WORK" single >> "$LOG" 2>&1
 say "single (1 process, GPU 0) rc=$? wall $(el "$t0") s"
 cp "$WORK/single/timing.json" "$OUT/single.json" 2>/dev/null
 
 t0=$(date +%s.%N)
 timeout 90 $PY -m torch.distributed.run --standalone --nproc_per_node 2 \
-  benchmarks/multigpu_features.py run "$WORK" two_gpu >> "$LOG" 2>&1
+  -m benchmarks.multigpu_features run "$WORK" two_gpu >> "$LOG" 2>&1
 say "two_gpu (torchrun, 2 ranks) rc=$? wall $(el "$t0") s"
 cp "$WORK/two_gpu/timing.json" "$OUT/two_gpu.json" 2>/dev/null
 
 
 # The comparison that matters first (one comparison reads ~50 files: ~30 s at 24 images).
-$PY benchmarks/multigpu_features.py compare "$WORK" single two_gpu > "$OUT/compare.txt" 2>&1
+$PY -m benchmarks.multigpu_features compare "$WORK" single two_gpu > "$OUT/compare.txt" 2>&1
 say "compare two_gpu rc=$?"
 
 if [ -z "${SKIP_AGAIN:-}" ]; then  # the run-to-run baseline (SKIP_AGAIN=1 leaves it out)
 t0=$(date +%s.%N)
-CUDA_VISIBLE_DEVICES=0 timeout 90 $PY benchmarks/multigpu_features.py run "$WORK" single_again >> "$LOG" 2>&1
+CUDA_VISIBLE_DEVICES=0 timeout 90 $PY -m benchmarks.multigpu_features run "$WORK" single_again >> "$LOG" 2>&1
 say "single_again (1 process, GPU 0) rc=$? wall $(el "$t0") s"
 cp "$WORK/single_again/timing.json" "$OUT/single_again.json" 2>/dev/null
-$PY benchmarks/multigpu_features.py compare "$WORK" single single_again >> "$OUT/compare.txt" 2>&1
+$PY -m benchmarks.multigpu_features compare "$WORK" single single_again >> "$OUT/compare.txt" 2>&1
 say "compare single_again rc=$?"
 fi
 cat "$OUT/compare.txt" | tee -a "$LOG"

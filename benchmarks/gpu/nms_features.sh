@@ -14,8 +14,8 @@ left=$(( ${2:-460} - ($(date +%s) - t0) ))
 export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 {
   echo "== $(date -u); $(nvidia-smi --query-gpu=name,memory.total --format=csv,noheader)"
-  echo "== command: python3 benchmarks/features.py --device cuda --models full --image 1080x1920 --out-long-side 1920 --steps 0 --langsplat-max ${LANGSPLAT_MAX:-1000} (time limit ${left} s)"
-  timeout "$left" python3 benchmarks/features.py --device cuda --models full --image 1080x1920 \
+  echo "== command: python3 -m benchmarks.features --device cuda --models full --image 1080x1920 --out-long-side 1920 --steps 0 --langsplat-max ${LANGSPLAT_MAX:-1000} (time limit ${left} s)"
+  timeout "$left" python3 -m benchmarks.features --device cuda --models full --image 1080x1920 \
     --out-long-side 1920 --steps 0 --langsplat-max "${LANGSPLAT_MAX:-1000}" 2>&1
   echo "== exit $? at $(date -u)"
 } > "$OUT/features_nms.txt"

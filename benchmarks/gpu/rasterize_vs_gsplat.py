@@ -1,4 +1,4 @@
-"""TIGER's CUDA rendering core against gsplat 1.5.3, same run, same scene (benchmarks/common.py).
+"""TIGER's CUDA rendering core against gsplat 1.5.3, same run, same scene (tests/render/standard_scenes.py).
 
 Tables printed (and written as JSON with --json):
   1. speed: forward, forward+backward, features-only backward (ours) vs gsplat's backward
@@ -17,14 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from benchmarks.common import (cuda_time_ms, rel_err, standard_camera,  # noqa: E402
-                               standard_scene, table)
+from benchmarks.common import cuda_time_ms, rel_err, table
+from tests.render.standard_scenes import standard_camera, standard_scene
 
 import tiger  # noqa: E402
 from tiger.render.reference import render_ref  # noqa: E402

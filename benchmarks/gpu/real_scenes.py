@@ -30,16 +30,14 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
-from benchmarks.common import (cuda_time_ms, heavy_tailed_scene, rel_err,  # noqa: E402
-                               standard_camera, standard_scene, table)
+from benchmarks.common import cuda_time_ms, rel_err, table
+from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, standard_scene
 from benchmarks.gpu.rasterize_vs_gsplat import gsplat_render, leaves, ours  # noqa: E402
 
 import tiger  # noqa: E402

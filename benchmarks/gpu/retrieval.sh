@@ -19,10 +19,10 @@ LOG="$OUT/retrieval.txt"
   echo "pytest exit: ${PIPESTATUS[0]}"
 
   echo; echo "== relevancy op throughput vs the bandwidth floor (acceptance: fp16 1e7 x 64 within 2x)"
-  timeout 120 $PY benchmarks/relevancy.py --device cuda 2>&1
+  timeout 120 $PY -m benchmarks.relevancy --device cuda 2>&1
   echo "exit: $?"
 
   echo; echo "== language field: per-step time (features-only vs full backward) and convergence"
-  timeout 120 $PY benchmarks/language_field.py --device cuda --steps 100 2>&1
+  timeout 120 $PY -m benchmarks.language_field --device cuda --steps 100 2>&1
   echo "exit: $?"
 } 2>&1 | tee "$LOG"

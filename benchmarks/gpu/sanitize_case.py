@@ -8,13 +8,10 @@ then the training loss's fused SSIM (forward and backward, ragged tiles, two win
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from benchmarks.common import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
+from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
 
 import tiger  # noqa: E402
 

@@ -37,7 +37,7 @@ torch._C._dispatch_has_kernel_for_dispatch_key('tiger::rasterize', 'CUDA') else 
       echo "NOTE: no CUDA kernel for tiger::rasterize in this build: fitting on the CPU ($(nproc) cores)"
       DEV=cpu; ITERS=1500
     fi
-    timeout 420 "$PY" benchmarks/recon_fox.py --data "$FOX" --device "$DEV" --downscale 2 \
+    timeout 420 "$PY" -m benchmarks.recon_fox --data "$FOX" --device "$DEV" --downscale 2 \
       --iterations "$ITERS" --time-budget 200 --eval-every 500 --init-points 50000 --max-gaussians 2000000 \
       --cache /tmp/tiger_fox_cache --out /tmp/tiger_fox_gpu --json "$OUT/scene_fox.json" 2>&1 \
       | grep -v "it/s\]" | tail -40

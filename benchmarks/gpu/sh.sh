@@ -22,12 +22,12 @@ for tool in memcheck racecheck; do
   echo "$tool rc=$?: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$OUT/sh/$tool.log" | tail -1)"
 done
 for staged in 0 1; do
-  TIGER_SH_STAGED=$staged timeout 120 python3 benchmarks/sh.py --device cuda --n 1e5 1e6 4e6 \
+  TIGER_SH_STAGED=$staged timeout 120 python3 -m benchmarks.sh --device cuda --n 1e5 1e6 4e6 \
     > "$OUT/sh/bench_staged$staged.txt" 2>&1
   echo "== sh.py TIGER_SH_STAGED=$staged"; tail -6 "$OUT/sh/bench_staged$staged.txt"
 done
 if [ "${TRAIN:-1}" = 1 ]; then  # TRAIN=0 skips it (gsplat's JIT build alone takes 1-2 min)
-  TIGER_SH_STAGED=1 timeout 240 python3 benchmarks/gpu/train_vs_gsplat.py --data .carry/realscene/fox \
+  TIGER_SH_STAGED=1 timeout 240 python3 -m benchmarks.gpu.train_vs_gsplat --data .carry/realscene/fox \
     > "$OUT/sh/train_vs_gsplat_staged.txt" 2>&1
   tail -8 "$OUT/sh/train_vs_gsplat_staged.txt"
 fi

@@ -30,7 +30,6 @@ from pathlib import Path
 from tiger.demo import tabletop_scene
 from tiger.scene import GaussianScene
 from tiger.scene.sh import rgb_to_sh
-sys.path.insert(0, ".")
 from tests.test_examples import write_colmap_text, write_lerf_fixture
 tmp = Path(sys.argv[1])
 lab = tabletop_scene(1.0)

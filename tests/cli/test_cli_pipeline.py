@@ -8,12 +8,7 @@ import math
 import subprocess
 import sys
 
-import torch
-
-import tiger
-from tiger.demo import tabletop_scene
-from tiger.render.views import orbit_viewmats, pinhole_K
-from tiger.utils.images import save_png
+from .datasets import tabletop_dataset
 
 
 def _run(*args, timeout=900):
@@ -21,29 +16,8 @@ def _run(*args, timeout=900):
                           text=True, timeout=timeout)
 
 
-def _dataset(root, n_views=6, w=64, h=48):
-    """Renders of the demo scene + transforms.json (OpenGL camera-to-world, as NeRF stores it)."""
-    scene = tabletop_scene(density=0.15).scene
-    (root / "images").mkdir(parents=True)
-    K = pinhole_K(w, h)
-    frames = []
-    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))  # OpenCV -> OpenGL camera axes
-    for i, V in enumerate(orbit_viewmats(n_views, center=(0.0, -0.1, 0.0), radius=3.0,
-                                         elevation_deg=25.0)):
-        with torch.no_grad():
-            img = tiger.rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
-                                            scene.rgb, V, K, w, h, background=torch.ones(3))["color"]
-        save_png(root / "images" / f"{i:03d}.png", img)
-        c2w = torch.linalg.inv(V.double()) @ flip.double()
-        frames.append({"file_path": f"images/{i:03d}.png", "transform_matrix": c2w.tolist()})
-    meta = {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": w / 2, "cy": h / 2, "w": w, "h": h,
-            "frames": frames}
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
-
-
 def _tiny_models(root):
-    from tiger.models.random_init import save_random_clip, save_random_sam
+    from tiger.testing.random_models import save_random_clip, save_random_sam
 
     clip = save_random_clip(root / "clip")
     sam = save_random_sam(root / "sam")
@@ -53,7 +27,7 @@ def _tiny_models(root):
 
 
 def test_reconstruct_features_embed_query(tmp_path):
-    data = _dataset(tmp_path / "data")
+    data = tabletop_dataset(tmp_path / "data")
     out = tmp_path / "recon"
     r = _run("reconstruct", str(data), "--out", str(out), "--steps", "60", "--init-points", "800",
              "--test-every", "3", "--device", "cpu")

@@ -7,12 +7,12 @@ import torch
 
 from tiger.cli.main import main
 
-from .test_cli_pipeline import _dataset
+from .datasets import tabletop_dataset
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    return _dataset(tmp_path_factory.mktemp("recon_data"), n_views=3, w=32, h=24)
+    return tabletop_dataset(tmp_path_factory.mktemp("recon_data"), n_views=3, w=32, h=24)
 
 
 def _reconstruct(data, out, *extra):

@@ -11,7 +11,7 @@ from tiger.cli.main import main
 from tiger.scene.cameras_json import read_cameras_json, write_cameras_json
 from tiger.scene.dataset import load_dataset
 
-from .test_cli_pipeline import _dataset
+from .datasets import tabletop_dataset
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +20,7 @@ def captured(tmp_path_factory):
     from tiger.demo import tabletop_scene
 
     root = tmp_path_factory.mktemp("render")
-    data = _dataset(root / "data")
+    data = tabletop_dataset(root / "data")
     scene = tabletop_scene(density=0.15).scene
     scene.save_ply(root / "scene" / "scene.ply")
     write_cameras_json(root / "scene" / "cameras.json", load_dataset(data).cameras)

@@ -5,9 +5,11 @@ import json
 
 import torch
 
-from tests.edit.test_delete import _tabletop
 from tiger.cli.main import main
 from tiger.scene import GaussianScene
+
+from ..edit.test_delete import _tabletop
+from .datasets import tabletop_dataset
 
 
 def _scene_file(tmp_path):
@@ -61,10 +63,8 @@ def test_cli_delete_errors(tmp_path, capsys):
 def test_cli_delete_on_a_capture(tmp_path):
     """--data: the capture's views (every other of 6, named after its images) and its images as
     the inpainter's context."""
-    from tests.cli.test_cli_pipeline import _dataset
-
     path, _, _ = _scene_file(tmp_path)
-    data = _dataset(tmp_path / "data", n_views=6)
+    data = tabletop_dataset(tmp_path / "data", n_views=6)
     out = tmp_path / "out"
     assert main(["delete", str(path), "cup", "--text-embeddings", str(tmp_path / "text.pt"), "--out", str(out),
                  "--data", str(data), "--views", "3", "--steps", "2", "--tau", "0.5", "--device", "cpu"]) == 0

@@ -11,7 +11,7 @@ from tiger.scene.cameras import Camera
 @pytest.fixture(scope="session")
 def tiny_models(tmp_path_factory):
     pytest.importorskip("diffusers")
-    from tiger.edit.guidance.random_models import save_random_ip2p, save_random_mvdream
+    from tiger.testing.random_models import save_random_ip2p, save_random_mvdream
 
     root = tmp_path_factory.mktemp("guidance_models")
     save_random_ip2p(root / "instruct-pix2pix")

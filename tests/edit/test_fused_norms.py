@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from tiger.edit.guidance.fused_norms import (SiLUThenLinear, apply_fused_norms, bias_after_conv, fuse_group_norms,
                                              fused_norms_default)
-from tiger.edit.guidance.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config
+from tiger.testing.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config
 from tiger.ops.group_norm import GroupNormSiLU
 
 diffusers = pytest.importorskip("diffusers")

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from tiger.edit.guidance.ldm_checkpoint import convert_ldm_checkpoint, unet_config_from_ldm, vae_config_from_ldm, openclip_text_config
-from tiger.edit.guidance.random_models import mvdream_ldm_config, random_mvdream_state
+from tiger.testing.random_models import mvdream_ldm_config, random_mvdream_state
 
 
 def test_round_trip_is_bit_exact_camera_embedding_included():

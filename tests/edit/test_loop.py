@@ -6,9 +6,10 @@ import pytest
 import torch
 
 from tiger.edit import EditConfig, EditSession, edit, resolve_target
-from tiger.edit.guidance import GuidanceInfo, IdealDenoiserGuidance, RecolorGuidance, render_targets
+from tiger.edit.guidance import GuidanceInfo, RecolorGuidance
 from tiger.eval.edit import render_rgb_and_footprint
 from tiger.scene.sh import rgb_to_sh
+from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets
 
 from .scenes import query_a, two_objects
 

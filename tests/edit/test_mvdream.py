@@ -12,7 +12,7 @@ from tiger.edit.guidance import ViewBatch
 from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
 from tiger.edit.guidance.ldm_checkpoint import convert_ldm_checkpoint
 from tiger.edit.guidance.mvdream_cameras import mvdream_cameras
-from tiger.edit.guidance.random_models import mvdream_ldm_config
+from tiger.testing.random_models import mvdream_ldm_config
 from tiger.models import ENV_VAR, ModelNotFoundError
 
 diffusers = pytest.importorskip("diffusers")

@@ -57,7 +57,7 @@ def test_four_views_attend_jointly():
 
 def test_installed_on_self_attention_only():
     from tiger.edit.guidance.ldm_checkpoint import unet_config_from_ldm
-    from tiger.edit.guidance.random_models import mvdream_ldm_config
+    from tiger.testing.random_models import mvdream_ldm_config
 
     unet = diffusers.UNet2DConditionModel(**unet_config_from_ldm(mvdream_ldm_config("tiny")))
     n = install_multiview_attention(unet, 4)

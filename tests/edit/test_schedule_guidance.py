@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from tiger.edit import CSDGuidance, CSDSchedule
-from tiger.edit.guidance import GuidanceInfo, IdealDenoiserGuidance, RecolorGuidance, ViewBatch, parse_color
+from tiger.edit.guidance import GuidanceInfo, RecolorGuidance, ViewBatch, parse_color
+from tiger.testing.ideal_denoiser import IdealDenoiserGuidance
 
 
 @pytest.mark.parametrize("step,lam1,lam2", [

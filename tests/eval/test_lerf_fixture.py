@@ -9,7 +9,7 @@ import torch
 from PIL import Image
 
 from tiger.eval import lerf
-from tiger.retrieval.synthetic import label_masks, make_labelled_scene
+from tiger.testing.labelled_scene import label_masks, make_labelled_scene
 
 SIZE = 256
 

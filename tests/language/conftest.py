@@ -1,7 +1,7 @@
 """Tiny random CLIP and SAM (hidden 32, 2 layers, 64-pixel inputs) saved with ``save_pretrained``."""
 import pytest
 
-from tiger.models.random_init import save_random_clip, save_random_sam
+from tiger.testing.random_models import save_random_clip, save_random_sam
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,7 @@ import torch
 from tiger.eval.lerf import localize, points_in_boxes
 from tiger.language.field import FieldConfig, train_field
 from tiger.retrieval import CANONICAL_NEGATIVES, embed_negatives, embed_queries, relevancy_maps, retrieve
-from tiger.retrieval.synthetic import label_masks, make_labelled_scene, oracle_feature_maps
+from tiger.testing.labelled_scene import label_masks, make_labelled_scene, oracle_feature_maps
 
 FAST = dict(lr=0.05, batch_views=2, progress=False)
 

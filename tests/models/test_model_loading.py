@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tiger.models import ENV_VAR, ModelNotFoundError, load_clip, load_sam, resolve_model_path
-from tiger.models.random_init import random_sam, save_random_clip, save_random_sam
+from tiger.testing.random_models import random_sam, save_random_clip, save_random_sam
 
 # transformers.SamModel key -> original segment-anything key, written independently of the loader.
 _TO_ORIGINAL = [

@@ -7,7 +7,7 @@ import io
 import pytest
 import torch
 
-from synthscene import ground_truth, render_views, sphere_cameras
+from .synthscene import ground_truth, render_views, sphere_cameras
 from tiger.recon import SceneOptimizer, photometric_loss
 from tiger.recon.strategy import DensifyStats, region_topk_densify
 from tiger.scene.gaussian_scene import PARAM_NAMES

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from synthscene import ground_truth, render_views, sphere_cameras
+from .synthscene import ground_truth, render_views, sphere_cameras
 from tiger.recon import ReconConfig, Trainer, psnr
 from tiger.scene import GaussianScene
 from tiger.scene.checkpoint import load_checkpoint

@@ -11,7 +11,7 @@ from tiger.retrieval import (CANONICAL_NEGATIVES, choose_tau, embed_queries, min
                              valley_threshold,
                              pca_of, project,
                              relevancy, retrieve, robust_bounds, save_heatmap)
-from tiger.retrieval.synthetic import make_labelled_scene
+from tiger.testing.labelled_scene import make_labelled_scene
 
 
 def test_project_matches_definition():
@@ -192,7 +192,7 @@ def test_relevancy_maps_render_and_pictures(tmp_path):
     m = relevancy_maps(ls.scene, cam, q)
     assert m["cosine"].shape == (1, cam.height, cam.width) and m["relevancy"] is None
     # Where the mug dominates the render, the rendered feature is (nearly) its embedding.
-    from tiger.retrieval.synthetic import label_masks
+    from tiger.testing.labelled_scene import label_masks
 
     mug = label_masks(ls, cam)[0]
     assert mug.sum() > 10 and m["cosine"][0][mug].median() > 0.9
@@ -210,7 +210,7 @@ def test_relevancy_picture_reads_high_at_the_target(tmp_path):
 
     from tiger.retrieval import relevancy_maps, write_relevancy_pictures
     from tiger.retrieval.maps import GAP, TITLE_H
-    from tiger.retrieval.synthetic import label_masks
+    from tiger.testing.labelled_scene import label_masks
 
     ls = _scene_with_oracle_lang(noise=0.0)
     cam = ls.cameras[0]

@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from colmapref import write_model
-from plyref import random_columns, write_ply
+from .colmapref import write_model
+from .plyref import random_columns, write_ply
 from tiger.scene import SceneFormatError
 from tiger.scene.colmap import (read_cameras_binary, read_cameras_text, read_images_binary, read_images_text,
                                 read_points3d_binary, read_points3d_text)

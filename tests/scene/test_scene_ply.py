@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from plyref import inria_names, random_columns, write_ply
+from .plyref import inria_names, random_columns, write_ply
 from tiger.scene import GaussianScene, SceneFormatError
 from tiger.scene import read_ply
 from tiger.scene.ply import lang_pca_path

@@ -7,14 +7,15 @@ imported only when a model is loaded or built.
 - :class:`InstructPix2PixGuidance` (``ip2p``): 2D instruction-edit SDS on any number of views.
 - :class:`MVDreamGuidance` (``mvdream``): multi-view SDS on exactly 4 views (loads lazily).
 - :class:`RecolorGuidance` (``recolor``): no weights; the object's pixels pulled toward a colour.
-- :class:`IdealDenoiserGuidance` (``analytic``, tests): SDS with the ideal denoiser of known targets.
+
+The known-answer guidance of the tests (the ideal denoiser) is
+:class:`tiger.testing.ideal_denoiser.IdealDenoiserGuidance`.
 """
-from .analytic import IdealDenoiserGuidance, render_targets
 from .base import Guidance, GuidanceInfo, ViewBatch
 from .ip2p import InstructPix2PixGuidance, IP2PModels, load_ip2p
 from .mvdream import MVDreamGuidance, MVDreamModels, load_mvdream
 from .recolor import RecolorGuidance, parse_color
 
 __all__ = ["Guidance", "GuidanceInfo", "ViewBatch", "InstructPix2PixGuidance", "IP2PModels", "load_ip2p",
-           "MVDreamGuidance", "MVDreamModels", "load_mvdream", "IdealDenoiserGuidance", "RecolorGuidance",
-           "parse_color", "render_targets"]
+           "MVDreamGuidance", "MVDreamModels", "load_mvdream", "RecolorGuidance",
+           "parse_color"]

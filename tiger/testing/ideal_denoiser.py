@@ -19,8 +19,8 @@ from typing import Callable, Optional
 
 import torch
 
-from .base import GuidanceInfo, ViewBatch, check_renders
-from .sds import NoiseSchedule, check_t_range
+from tiger.edit.guidance.base import GuidanceInfo, ViewBatch, check_renders
+from tiger.edit.guidance.sds import NoiseSchedule, check_t_range
 
 
 class IdealDenoiserGuidance:

@@ -17,7 +17,7 @@ from tiger.render.views import look_at
 from tiger.scene import Camera, GaussianScene
 from tiger.scene.labelled import LabelledScene
 
-from .text import CANONICAL_NEGATIVES, EmbeddingTable
+from tiger.retrieval.text import CANONICAL_NEGATIVES, EmbeddingTable
 
 DEFAULT_LABELS = ("red mug", "teddy bear", "green apple", "blue book")
 
