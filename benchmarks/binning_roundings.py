@@ -1,4 +1,4 @@
-"""How much the float32 rounding of the binning's tile test decides (issue 15, heavy scene).
+"""How much the float32 rounding of the binning's tile test decides (the heavy-tailed scene).
 
 Before the tile test spelled out its multiply-adds as fma, nvcc rounded it in two ways: the
 one-thread-per-Gaussian kernel as fma(fma(a, t, 2b), t, c) where it hoisted terms out of the

@@ -342,7 +342,7 @@ def main() -> None:
             "total_ms", "tflop", "tflop_per_s", "fraction_of_790", "setup_s"]
     print_table([{c: r.get(c, "-") for c in cols} for r in rows], title=f"one 4-view SDS gradient, {meta}")
     if cuda and rows:
-        targets = {"ip2p": 70.0, "mvdream": 18.0}  # issue 12's acceptance on the H100
+        targets = {"ip2p": 70.0, "mvdream": 18.0}  # the acceptance targets on the H100
         for name, target in targets.items():
             mine = [r for r in rows if r["guidance"] == name]
             if mine:

@@ -4,7 +4,7 @@ point cloud) and print held-out PSNR/SSIM against steps and time.
     python -m benchmarks.recon_fox                       # CPU: downscale 8, 700 steps, <= 10 min
     python -m benchmarks.recon_fox --device cuda --downscale 2 --iterations 7000 --time-budget 240
     python -m benchmarks.recon_fox --downscale 4 --mask-border --appearance
-    python -m benchmarks.recon_fox --init-colors random --init-radius 0.35   # the settings before issue 15
+    python -m benchmarks.recon_fox --init-colors random --init-radius 0.35   # the earlier defaults
 
 The data is looked up at ``<repo>/../shared/data/fox`` unless ``--data`` is given. Test
 views are every 8th image in name order (INRIA's rule); images are undistorted once and
@@ -34,7 +34,7 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("--eval-every", type=int, default=500)
     ap.add_argument("--init-points", type=int, default=3000)
     ap.add_argument("--init-radius", type=float, default=1.0,
-                    help="random init within this x camera distance (0.35 before issue 15: left views uncovered)")
+                    help="random init within this x camera distance (0.35 left parts of the views uncovered)")
     ap.add_argument("--max-gaussians", type=int, default=20_000)
     ap.add_argument("--sh-degree", type=int, default=3)
     ap.add_argument("--init-colors", choices=("random", "views"), default="views",

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One device call for the load-balanced binning and the real-scene benchmarks (issue 15):
+# One device call for the load-balanced binning and the real-scene benchmarks:
 #   build (check.sh), the test suite, compute-sanitizer (memcheck on every kernel, racecheck on
 #   the binning kernels), benchmarks/gpu/real_scenes.py (ours, ours
 #   with the former binning, gsplat: per stage, C = 3 and 64) and train_vs_gsplat.py.

@@ -1,4 +1,4 @@
-"""Every GPU operation of one tile-binning call, in launch order, with its duration (issue 15).
+"""Every GPU operation of one tile-binning call, in launch order, with its duration.
 
 The per-stage tables of ``real_scenes.py`` sum kernels by name, so the passes of the two CUB
 radix sorts (the depth sort over N keys, the tile sort over M pairs) show as one line. This

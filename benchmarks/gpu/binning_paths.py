@@ -1,4 +1,4 @@
-"""The CUDA binning's two paths against each other over scene size (issue 15).
+"""The CUDA binning's two paths against each other over scene size.
 
 ``tiger.bin_gaussians`` sorts each tile's list on its own (per-tile path) for scenes of up to
 ``kBinTilePathMaxGaussians`` Gaussians, and by a depth sort plus a device-wide stable radix sort

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# GPU run of the edit loop (issue 13): build tiger with CUDA, then benchmarks/edit.py on a 317,600-Gaussian
+# GPU run of the edit loop: build tiger with CUDA, then benchmarks/edit.py on a 317,600-Gaussian
 # scene: recolor / analytic (the loop without diffusion) and a 1200-step CSD edit with full-size random
 # InstructPix2Pix + MVDream (bf16, CUDA graphs, a pool of VIEW_POOL=64 camera sets). From the repo root on the device:
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb OUT=$OUT bash benchmarks/gpu/edit.sh

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# GPU run of the language-feature work (issue 5): CUDA tests of the ops and the pipeline, then the
+# GPU run of the language features: CUDA tests of the ops and the pipeline, then the
 # per-image stage benchmark with full-size random-weight CLIP ViT-B/16 and SAM ViT-H at 1080p, and
 # the mask-NMS op against LangSplat's Python loop. Run from the repo root after
 # `pip install --no-build-isolation -e .` built the CUDA kernels. Results: $OUT/features.txt.

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One device call: does tiger's fused GroupNorm+SiLU in channels-last speed up the graphed guidance step and
-# the edit loop? benchmarks/guidance.py --quick with torch's GroupNorm, the VAEs fused (the loaders' session-5
+# the edit loop? benchmarks/guidance.py --quick with torch's GroupNorm, the VAEs fused (the loaders' earlier
 # default on CUDA) and the UNets fused too (bf16; eager and graph), then a CSD edit with the loaders'
 # default (edit.sh's settings, BUDGET_S), then PROFILE_STEPS steps under torch.profiler (host vs GPU per stage).
 # From the repo root with .whl and .carry/deb carried; results under $OUT. FUSED: the guidance levels.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# GPU run of the diffusion guidances (issue 12): full-size random-weight InstructPix2Pix and MVDream,
+# GPU run of the diffusion guidances: full-size random-weight InstructPix2Pix and MVDream,
 # every variant of benchmarks/guidance.py in one call. Run from the repo root on the device with
 # the diffusers wheel and Eigen's .deb carried (first the CUDA-graph test, then the benchmark):
 #   WHEELS=../../.whl EIGEN_DEB=../deb/libeigen3-dev_3.4.0-4_all.deb bash benchmarks/gpu/guidance.sh

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU run of the mask-NMS table and the per-image feature pipeline on SAM-like mask sets
-# (issue 17): builds tiger with CUDA through check.sh, then one benchmarks/features.py run
+# builds tiger with CUDA through check.sh, then one benchmarks/features.py run
 # (pipeline with JBU, ops, mask NMS at 100/300/1000 masks with full pairwise baselines; LangSplat's
 # loop as written last, so a time-out loses only its largest rows). Results: $OUT/features_nms.txt.
 # Usage, from the repo root: OUT=/tmp/out bash benchmarks/gpu/nms_features.sh [EIGEN_DEB] [SECONDS]

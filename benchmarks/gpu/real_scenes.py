@@ -1,4 +1,4 @@
-"""The rasterizer on real scenes (issue 15): ours against gsplat 1.5.3, per stage, C = 3 and 64.
+"""The rasterizer on real scenes: ours against gsplat 1.5.3, per stage, C = 3 and 64.
 
 Cases (``--cases``; each at the resolution named):
   snowmiku-1080p, snowmiku-4k  real SfM points of a public COLMAP reconstruction (the Snow Miku

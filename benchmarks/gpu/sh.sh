@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# One device call for the staged SH kernels (the default since session 7; TIGER_SH_STAGED=0 selects
-# the plain ones, which took 1.17 ms for the SH backward of issue 15's training step): build, the CUDA tests
+# One device call for the staged SH kernels (the default; TIGER_SH_STAGED=0 selects
+# the plain ones, which took 1.17 ms for the SH backward of the fox training step): build, the CUDA tests
 # of tests/ops/test_sh.py (staged == plain bit for bit, and the float64 reference), compute-sanitizer
 # memcheck/racecheck on the staged kernels, then benchmarks/sh.py plain vs staged beside gsplat and
 # the training step with the staged kernels. Everything lands in $OUT/sh.tgz (the device returns few files).

@@ -1,5 +1,5 @@
 """Time per training iteration of our trainer with our rasteriser and with gsplat 1.5.3's
-swapped in, same process, same loop (issue 15, deliverable 3).
+swapped in, same process, same loop.
 
 The fox capture at full resolution (1080x1920, 43 training views), 1,000,000 Gaussians
 initialised at random in the views (tiger.recon's default initialisation), SH degree 3 active

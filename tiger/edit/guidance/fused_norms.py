@@ -173,9 +173,9 @@ def fused_norms_default(module: torch.nn.Module) -> bool:
     Measured in bf16 with full-size random weights (``benchmarks/guidance.py``), one graphed
     4-view InstructPix2Pix step 84.4 ms (torch's GroupNorm) -> 68.1 ms (VAE fused) -> 60.6 ms
     (VAE and UNet fused; the UNet's eager passes 38.6 -> 31.2 ms), MVDream 25.1 -> 21.0 -> 18.6 ms
-    on an H200 (``benchmarks/gpu/results/h200_session6_guidance_fused.txt``); on the H100 with
-    everything of this module 59.6 and 17.3 ms (``h100_session6_final_guidance.txt``). (Before
-    the transformer blocks kept channels-last, the fused UNet was the slower one.)"""
+    on an H200; on the H100 with everything of this module 59.6 and 17.3 ms (figures and commands in
+    docs/BENCHMARKS.md). (Before the transformer blocks kept channels-last, the fused UNet was the
+    slower one.)"""
     from tiger.ops import cuda_enabled
 
     p = next(module.parameters(), None)

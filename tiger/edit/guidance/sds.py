@@ -203,7 +203,8 @@ def matmul_vae_attention(vae: torch.nn.Module) -> int:
     The Stable Diffusion VAE's mid-block attention has ONE head of width 512 over (H/f)·(W/f)
     tokens. Flash kernels stop at head width 256, so SDPA falls back to the memory-efficient
     kernel, whose backward alone took 16.9 ms of a 108 ms InstructPix2Pix step on the H100 (4
-    renders at 512², 4096 tokens each: ``benchmarks/gpu/results/h100_session3_profile_ip2p_bf16.txt``).
+    renders at 512², 4096 tokens each; a torch.profiler trace of the guidance benchmark, see
+    docs/BENCHMARKS.md).
     The score matrix is small here (4 × 4096² floats), so the plain form costs a few GEMMs.
     The SDS gradient back-propagates through the encoder every step, so this is the VAE's
     processor in both guidances; the UNets keep SDPA (their heads are 40–160 wide)."""

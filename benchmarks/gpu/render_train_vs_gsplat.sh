@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# One device call of issue 15's work, in two parts (each fits one call):
+# The rendering core and the training step against gsplat on one GPU, in two parts (each fits one
+# device call of 10 minutes):
 #   PART=a: build, the CUDA tests of ops/render/recon, compute-sanitizer memcheck (every kernel of
 #           sanitize_case.py: the rendering core and the fused SSIM) and racecheck (rasterizer,
 #           binning, SSIM, SH), the SH benchmark (staged default vs TIGER_SH_STAGED=0, beside
@@ -12,11 +13,11 @@
 #           under each).
 # gsplat JIT-compiles on first use (~90 s): its build folder is packed into $OUT/gsplat_ext.tgz and,
 # carried back as .carry/gsplat_ext.tgz, reused (same wheel, same paths).
-# From the repo root with .whl, .carry/deb and .carry/realscene carried. Results: $OUT/issue15_<part>.tgz.
+# From the repo root with .whl, .carry/deb and .carry/realscene carried. Results: $OUT/vs_gsplat_<part>.tgz.
 cd "$(dirname "$0")/../.."
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS="$(nproc)"
 PART="${PART:-a}"
-R="$OUT/issue15_$PART"
+R="$OUT/vs_gsplat_$PART"
 mkdir -p "$R"
 say() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$R/log.txt"; }
 CHECK_STEPS=build OUT="$R" bash benchmarks/gpu/check.sh .whl .carry/deb/libeigen3-dev_3.4.0-4_all.deb >/dev/null 2>&1
@@ -73,5 +74,5 @@ else
   fi
 fi
 (cd "$TORCH_EXTENSIONS_DIR" && [ -n "$(ls)" ] && tar czf "$OUT/gsplat_ext.tgz" .)
-(cd "$OUT" && tar czf "issue15_$PART.tgz" "issue15_$PART" && rm -rf "issue15_$PART")
+(cd "$OUT" && tar czf "vs_gsplat_$PART.tgz" "vs_gsplat_$PART" && rm -rf "vs_gsplat_$PART")
 ls -la "$OUT"

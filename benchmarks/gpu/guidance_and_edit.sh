@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One device call for the guidance and edit issues: tiger::group_norm (CUDA tests, op benchmark,
+# One device call for the diffusion guidance and the edit loop on one GPU: tiger::group_norm (CUDA tests, op benchmark,
 # compute-sanitizer; benchmarks/gpu/group_norm.sh), then the guidance step with fused norms and a
 # 1200-step CSD edit (benchmarks/gpu/fused_vae.sh), then the CUDA tests of tests/edit. The device
 # returns few files: everything is packed into $OUT/results.tgz, the summary goes to stdout.
