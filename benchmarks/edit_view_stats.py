@@ -12,7 +12,7 @@ import argparse
 import torch
 
 from benchmarks.common import print_table  # noqa: E402
-from edit import demo_scene  # noqa: E402
+from benchmarks.edit import demo_scene  # noqa: E402
 from benchmarks.gpu.real_scenes import radii_stats  # noqa: E402
 
 from tiger.edit import resolve_target  # noqa: E402

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from features import synthetic_image  # noqa: E402
+from benchmarks.features import synthetic_image  # noqa: E402
 
 from tiger.language.extract import FeatureConfig, extract_features  # noqa: E402
 

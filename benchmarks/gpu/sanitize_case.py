@@ -8,7 +8,6 @@ then the training loss's fused SSIM (forward and backward, ragged tiles, two win
 """
 from __future__ import annotations
 
-
 import torch
 
 from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, standard_scene  # noqa: E402
