@@ -129,7 +129,7 @@ def vae_rows(device: str, dtype: torch.dtype, size: str, sides: list[int], iters
     import diffusers
 
     from tiger.edit.guidance.random_models import sd_vae_config
-    from tiger.edit.guidance.sds import freeze
+    from tiger.edit.guidance.diffusers_models import freeze
 
     timer = cuda_time_ms if device == "cuda" else cpu_time_ms
     torch.manual_seed(0)
@@ -180,7 +180,7 @@ def unet_rows(device: str, dtype: torch.dtype, size: str, iters: int) -> list[di
     import diffusers
 
     from tiger.edit.guidance.random_models import ip2p_unet_config
-    from tiger.edit.guidance.sds import freeze
+    from tiger.edit.guidance.diffusers_models import freeze
 
     timer = cuda_time_ms if device == "cuda" else cpu_time_ms
     cfg = ip2p_unet_config(size)

@@ -8,7 +8,7 @@ so the SDS gradient ``w(t) (ε̂ − ε)`` equals ``w(t) √(ᾱ_t / (1 − ᾱ_
 render toward its target, and its optimum is exactly x*. This module runs the real SDS path
 (noise drawn, x_t formed, ε̂ computed from x_t), so it exercises the same arithmetic a diffusion
 guidance does, in image space ([0, 1] mapped to [-1, 1]) with Stable Diffusion's noise schedule
-(:class:`~tiger.edit.guidance.sds.NoiseSchedule`, t drawn as the diffusion guidances draw it).
+(:class:`~tiger.edit.guidance.noise_schedule.NoiseSchedule`, t drawn as the diffusion guidances draw it).
 ``w(t) = 1 − ᾱ_t`` (DreamFusion). The targets are rendered by a callable from the step's views,
 typically the renders of a ground-truth edited scene from the same cameras.
 """
@@ -20,7 +20,7 @@ from typing import Callable, Optional
 import torch
 
 from .base import GuidanceInfo, ViewBatch, check_renders
-from .sds import NoiseSchedule, check_t_range
+from .noise_schedule import NoiseSchedule, check_t_range
 
 
 class IdealDenoiserGuidance:

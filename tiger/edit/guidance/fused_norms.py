@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from tiger.ops.channel_bias import channel_bias_add
 from tiger.ops.group_norm import GroupNormSiLU
 
-from .sds import require_diffusers
+from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
@@ -173,8 +173,7 @@ def fused_norms_default(module: torch.nn.Module) -> bool:
     Measured in bf16 with full-size random weights (``benchmarks/guidance.py``), one graphed
     4-view InstructPix2Pix step 84.4 ms (torch's GroupNorm) -> 68.1 ms (VAE fused) -> 60.6 ms
     (VAE and UNet fused; the UNet's eager passes 38.6 -> 31.2 ms), MVDream 25.1 -> 21.0 -> 18.6 ms
-    on an H200 (``benchmarks/gpu/results/h200_session6_guidance_fused.txt``); on the H100 with
-    everything of this module 59.6 and 17.3 ms (``h100_session6_final_guidance.txt``). (Before
+    on an H200; on an H100 with everything of this module 59.6 and 17.3 ms. (Before
     the transformer blocks kept channels-last, the fused UNet was the slower one.)"""
     from tiger.ops import cuda_enabled
 

@@ -22,13 +22,13 @@ from typing import Optional
 import torch
 
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
-from tiger.utils.lazy import require
+from tiger.utils.lazy import require, require_diffusers
 
 from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values
 from .cuda_graph import GraphedStep
-from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, encode_latents, finite_clamped, freeze,
-                  latent_shape, matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
-                  vae_downsampling_factor)
+from .diffusers_models import (PromptEncoder, encode_latents, freeze, latent_shape, matmul_vae_attention,
+                               model_device_dtype, render_gradient, resize, resolution_for, vae_downsampling_factor)
+from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
 
 logger = logging.getLogger(__name__)
 

@@ -27,15 +27,16 @@ from typing import Callable, Optional, Union
 import torch
 
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
-from tiger.utils.lazy import require
+from tiger.utils.lazy import require, require_diffusers
 
 from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values
 from .cuda_graph import GraphedStep
+from .diffusers_models import (PromptEncoder, freeze, latent_shape, matmul_vae_attention, model_device_dtype,
+                               render_gradient)
 from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
 from .mvdream_cameras import mvdream_cameras
-from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, finite_clamped, freeze, latent_shape,
-                  matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers)
+from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
 
 logger = logging.getLogger(__name__)
 

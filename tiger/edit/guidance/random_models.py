@@ -18,7 +18,7 @@ from tiger.utils.lazy import require
 
 from .ldm_checkpoint import (MVDREAM_SD21_LDM_CONFIG, TEXT_PREFIX, UNET_PREFIX, unet_config_from_ldm,
                              vae_config_from_ldm)
-from .sds import require_diffusers
+from tiger.utils.lazy import require_diffusers
 
 CHECKPOINT_NAME = "sd-v2.1-base-4view.pt"
 TINY_LDM_CONFIG_NAME = "sd-v2-base.json"
