@@ -104,7 +104,7 @@ def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) ->
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         t0 = time.perf_counter()
-        edit(scene, "profile", tgt, guidance, config=cfg)
+        edit(scene, tgt, guidance, config=cfg)
         torch.cuda.synchronize()
         wall = time.perf_counter() - t0
     spans = sorted((e.time_range.start, e.time_range.end) for e in prof.events()
@@ -156,11 +156,11 @@ def run(args) -> dict:
                      view_pool=args.view_pool)
     projected = None
     if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
-        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
         if cuda:
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        warm = edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        warm = edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
         if cuda:
             torch.cuda.synchronize()
         pool_s = warm.timings_s.get("view_pool", 0.0)  # once per edit, not per step
@@ -173,7 +173,7 @@ def run(args) -> dict:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
-    res = edit(scene, "make the ball red", tgt, guidance, config=cfg)
+    res = edit(scene, tgt, guidance, config=cfg)
     if cuda:
         torch.cuda.synchronize()
     total = time.perf_counter() - t0

@@ -61,18 +61,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _model_settings(guidance) -> dict:
-    """The diffusion guidances' dtype and CUDA-graph setting, for edit.json (empty for recolor)."""
-    out = {}
-    for name in ("ip2p", "mvdream"):
-        g = getattr(guidance, name, None)
-        if g is not None:
-            dtype = getattr(g, "dtype", None)  # a lazy MVDream never loaded has none
-            out[name] = {"dtype": None if dtype is None else str(dtype).removeprefix("torch."),
-                         "cuda_graph": bool(g.cuda_graph)}
-    return out
-
-
 def _cameras(data, skip_missing: bool = False):
     if not data:
         return None
@@ -112,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     cams = _cameras(args.data, args.skip_missing)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
     t0 = time.perf_counter()
-    res = edit(scene, args.instruction, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
+    res = edit(scene, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
     res.scene.save_ply(out / "edited.ply")
     from tiger.edit.views import ObjectViews
 
@@ -132,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         metrics["clip"] = clip_metrics(encoder, before, after, args.target, args.instruction)
     report = {"instruction": args.instruction, "target": args.target, "guidance": args.guidance,
               "selected": target.count, "tau": target.tau, "settings": cfg.to_dict(),
-              "models": _model_settings(guidance),
+              "guidance_settings": guidance.settings(),
               "time_s": round(time.perf_counter() - t0, 3), "stage_times_s": res.timings_s,
               "gaussians_before": len(scene), "gaussians_after": len(res.scene), "metrics": metrics,
               "rounds": res.rounds}

@@ -34,7 +34,7 @@ def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "mak
         tgt = resolve_target(scene, target, encoder=encoder, tau=0.5)
         cfg = EditConfig(steps=steps, width=size, height=size, lrs={"sh_dc": 0.1}, densify_every=10,
                          densify_from=10, background=(1.0, 1.0, 1.0), checkpoint_every=0)
-        res = edit(scene, instruction, tgt, RecolorGuidance(instruction), config=cfg)
+        res = edit(scene, tgt, RecolorGuidance(instruction), config=cfg)
         res.scene.save_ply(out / "scene_ball_red.ply")
     pw, ph = picture_size
     pics = [Camera(viewmat=V, K=pinhole_K(pw, ph), width=pw, height=ph) for V in orbit_viewmats(4)]

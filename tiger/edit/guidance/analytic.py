@@ -15,7 +15,7 @@ typically the renders of a ground-truth edited scene from the same cameras.
 from __future__ import annotations
 
 import time
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import torch
 
@@ -30,16 +30,30 @@ class IdealDenoiserGuidance:
         targets: ``views -> [V, 3, H, W]`` target images in [0, 1] for the step's cameras.
         t_range: (lo, hi) noise levels as fractions of the 1000 training steps (default [0.02, 0.2]).
         seed: seed of the guidance's own generator (noise and t); its state is checkpointed by the
-            edit loop through :attr:`generator`.
+            edit loop through :meth:`generators`.
+        instruction: the text recorded as the edit's instruction (the targets are the edit).
     """
 
     name = "analytic"
 
     def __init__(self, targets: Callable[[ViewBatch], torch.Tensor],
-                 t_range: tuple[float, float] = (0.02, 0.2), seed: int = 0) -> None:
+                 t_range: tuple[float, float] = (0.02, 0.2), seed: int = 0, *,
+                 instruction: str = "match the target renders") -> None:
         self.targets, self.t_range = targets, check_t_range(t_range)
+        self.instruction = instruction
         self.schedule = NoiseSchedule.from_betas(0.00085, 0.012)  # Stable Diffusion's
         self.generator = torch.Generator().manual_seed(seed)
+
+    def settings(self) -> dict[str, Any]:
+        """The noise range (fractions of the 1000 training steps)."""
+        return {"t_range": list(self.t_range)}
+
+    def generators(self) -> list[torch.Generator]:
+        """The one generator of t and the noise."""
+        return [self.generator]
+
+    def reset_caches(self) -> None:
+        """Nothing is cached across steps."""
 
     def grad(self, renders: torch.Tensor, views: ViewBatch) -> tuple[torch.Tensor, GuidanceInfo]:
         t0 = time.perf_counter()
