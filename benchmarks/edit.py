@@ -42,7 +42,8 @@ from tiger.demo.scene import tabletop_scene  # noqa: E402
 from tiger.edit import EditConfig, edit, resolve_target  # noqa: E402
 from tiger.edit.guidance import IdealDenoiserGuidance, RecolorGuidance, render_targets  # noqa: E402
 from tiger.edit.views import ObjectViews  # noqa: E402
-from tiger.eval.edit import locality, render_rgb_and_footprint  # noqa: E402
+from tiger.eval.edit import locality  # noqa: E402
+from tiger.scene import render_rgb  # noqa: E402
 from tiger.scene import GaussianScene  # noqa: E402
 from tiger.scene.sh import rgb_to_sh  # noqa: E402
 from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
@@ -197,8 +198,8 @@ def run(args) -> dict:
     row["locality_dB"] = locality(scene, res.scene, cams, tgt.mask, res.editable, background=white)["psnr"]
     if truth is not None or args.guidance == "recolor":
         ref = truth if truth is not None else build("analytic", scene, tgt.mask, args)[1]
-        got, _ = render_rgb_and_footprint(res.scene, cams, res.editable, white)
-        want, foot = render_rgb_and_footprint(ref, cams, tgt.mask, white)
+        got, _ = render_rgb(res.scene, cams, white, footprint=res.editable)
+        want, foot = render_rgb(ref, cams, white, footprint=tgt.mask)
         mse = float((got.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[foot > 0.5].mean())
         row["object_PSNR_dB"] = -10 * math.log10(max(mse, 1e-12))
     return row

@@ -7,7 +7,7 @@ import torch
 
 from tiger.edit import EditConfig, EditSession, edit, resolve_target
 from tiger.edit.guidance import GuidanceInfo, IdealDenoiserGuidance, RecolorGuidance, render_targets
-from tiger.eval.edit import render_rgb_and_footprint
+from tiger.scene import render_rgb
 from tiger.scene.sh import rgb_to_sh
 
 from .scenes import query_a, two_objects
@@ -34,13 +34,13 @@ def test_known_answer_ideal_denoiser_reaches_30db_on_object():
 
     t = resolve_target(scene, query_a(), tau=0.5)
     cams = ObjectViews(t.center, t.bbox_min, t.bbox_max, force_360=True, width=64, height=64).fixed(6, 15.0)
-    got, _ = render_rgb_and_footprint(res.scene, cams, res.editable)
-    want, foot = render_rgb_and_footprint(truth, cams, mask)
+    got, _ = render_rgb(res.scene, cams, footprint=res.editable)
+    want, foot = render_rgb(truth, cams, footprint=mask)
     obj = foot > 0.5
     mse = float((got.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[obj].mean())
     assert -10 * math.log10(mse) >= 30.0
     # before the edit the object's pixels were far from the target
-    before, _ = render_rgb_and_footprint(scene, cams, mask)
+    before, _ = render_rgb(scene, cams, footprint=mask)
     assert float((before.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[obj].mean()) > 100 * mse
 
 

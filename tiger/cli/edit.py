@@ -70,7 +70,8 @@ def _cameras(data, skip_missing: bool = False):
 def run(args: argparse.Namespace) -> int:
     from tiger.edit import EditConfig, edit, resolve_target
     from tiger.edit.build import build_guidance
-    from tiger.edit.pictures import before_after_grid, render_color
+    from tiger.edit.pictures import before_after_grid
+    from tiger.scene import render_rgb
     from tiger.edit.target import EmptyTargetError
     from tiger.eval.edit import locality
     from tiger.utils.images import save_png
@@ -108,15 +109,15 @@ def run(args: argparse.Namespace) -> int:
                         force_360=True if not cams else None, width=args.size, height=args.size)
     bg = torch.tensor(cfg.background)
     save_png(out / "before_after.png", before_after_grid(scene, res.scene, views.fixed(4), bg))
-    frames = render_color(res.scene, views.fixed(36), bg)
+    frames = list(render_rgb(res.scene, views.fixed(36), bg).cpu())
     video = write_video(frames, out / "turntable", kind=args.video)
     metrics = {"locality": locality(scene, res.scene, views.fixed(8), target.mask, res.editable)}
     if encoder is not None and hasattr(encoder, "clip"):
         from tiger.eval.edit import clip_metrics
 
         path = views.fixed(8)
-        before = torch.stack(render_color(scene, path, bg)).permute(0, 3, 1, 2)
-        after = torch.stack(render_color(res.scene, path, bg)).permute(0, 3, 1, 2)
+        before = render_rgb(scene, path, bg).permute(0, 3, 1, 2)
+        after = render_rgb(res.scene, path, bg).permute(0, 3, 1, 2)
         metrics["clip"] = clip_metrics(encoder, before, after, args.target, args.instruction)
     report = {"instruction": args.instruction, "target": args.target, "guidance": args.guidance,
               "selected": target.count, "tau": target.tau, "settings": cfg.to_dict(),

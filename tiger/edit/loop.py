@@ -37,7 +37,7 @@ from tiger.retrieval.text import TextEncoder
 from tiger.recon.step import SceneOptimizer
 from tiger.recon.strategy.rules import DensifyStats, prune_transparent, region_topk_densify
 from tiger.scene.cameras import Camera
-from tiger.scene.gaussian_scene import GaussianScene, render_views
+from tiger.scene.gaussian_scene import GaussianScene, render_rgb, render_views
 from tiger.utils.io import atomic_torch_save
 
 from .config import EditConfig
@@ -151,7 +151,7 @@ class EditSession:
         w = target.weights.to(self.device, scene.dtype)
         editable = w > 0
         self.original = scene.detach()
-        self.orig_indicator = editable.to(scene.dtype)[:, None]
+        self.orig_indicator = editable.to(scene.dtype)
         work = scene.clone()
         if config.view_independent:  # editable Gaussians keep only their base colour
             work.sh_rest[editable] = 0
@@ -196,15 +196,10 @@ class EditSession:
                    if torch.is_tensor(v) and v.dim() > 0)
 
     # -- rendering ------------------------------------------------------------------------------
-    @torch.no_grad()
     def _render_originals(self, cams: Sequence[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Original renders [V, 3, H, W] (full SH) and the object's footprint [V, 1, H, W]."""
-        s = self.original
-        bg = torch.cat([self.background, self.background.new_zeros(1)])
-        # one pass per view: the view's SH colour and the object indicator as a 4th channel
-        out = torch.stack([s.render(c, torch.cat([s.view_colors(c.to(s.device, s.dtype)), self.orig_indicator], 1),
-                                    background=bg, check_finite=False)["color"] for c in cams])
-        return out[..., :3].clamp(0, 1).permute(0, 3, 1, 2), out[..., 3:].clamp(0, 1).permute(0, 3, 1, 2)
+        """Original renders [V, 3, H, W] (full SH) and the object's footprint [V, 1, H, W], in one pass."""
+        rgb, foot = render_rgb(self.original, cams, self.background, footprint=self.orig_indicator)
+        return rgb.permute(0, 3, 1, 2), foot[:, None]
 
     def _build_pool(self, sets: int) -> "ViewPool":
         """``sets`` camera sets drawn with the per-step rules from their own seeded generator

@@ -19,6 +19,8 @@ from typing import Any, Callable, Optional
 
 import torch
 
+from tiger.scene import GaussianScene, render_rgb
+
 from .base import GuidanceInfo, ViewBatch, check_renders
 from .noise_schedule import NoiseSchedule, check_t_range
 
@@ -77,20 +79,12 @@ class IdealDenoiserGuidance:
                                timings_ms={"analytic": 1e3 * (time.perf_counter() - t0)})
 
 
-def render_targets(target_scene, background: Optional[torch.Tensor] = None
+def render_targets(target_scene: GaussianScene, background: Optional[torch.Tensor] = None
                    ) -> Callable[[ViewBatch], torch.Tensor]:
-    """Targets = renders of ``target_scene`` (a GaussianScene, full SH colour) from the step's cameras."""
-
+    """Targets = renders [V, 3, H, W] of ``target_scene`` (full SH colour, :func:`tiger.scene.render_rgb`)
+    from the step's cameras."""
     def fn(views: ViewBatch) -> torch.Tensor:
-        out = []
-        s = target_scene
-        bg = None if background is None else background.to(s.means)
-        for cam in views.cameras:
-            c = cam.to(s.device, s.dtype)
-            with torch.no_grad():
-                r = s.render(c, "rgb", background=bg, check_finite=False)
-            out.append(r["color"].clamp(0, 1).permute(2, 0, 1))
-        return torch.stack(out)
+        return render_rgb(target_scene, views.cameras, background).permute(0, 3, 1, 2)
 
     return fn
 
