@@ -40,7 +40,7 @@ from tiger.edit.guidance.random_models import ip2p_unet_config, mvdream_ldm_conf
 from tiger.edit.guidance.diffusers_models import PromptEncoder, encode_latents, freeze, resize  # noqa: E402
 from tiger.edit.guidance.noise_schedule import NoiseSchedule  # noqa: E402
 from tiger.models.random_init import write_byte_level_clip_tokenizer  # noqa: E402
-from tiger.scene.cameras import Camera  # noqa: E402
+from tiger.render import Camera  # noqa: E402
 from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 
 H100_BF16_TFLOPS = 790.0  # measured 8192^3 bf16 matmul on the device (KINDS.md)

@@ -137,7 +137,7 @@ def write_colmap_text(root: Path, lab, scene, n: int = 3, w: int = 64, h: int = 
     """``root/sparse/0/{cameras,images,points3D}.txt`` and ``root/images/*.png`` rendered from
     ``n`` orbit views; returns the world->camera matrices."""
     from tiger.render.views import orbit_viewmats, pinhole_K
-    from tiger.scene import Camera
+    from tiger.render import Camera
     from tiger.utils.images import save_png
 
     model = root / "sparse" / "0"

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from tiger.render.camera import Camera
+from tiger.render import Camera
 from tiger.render.views import (fibonacci_directions, look_at, observed_direction, observed_orbit_cameras,
                                 orbit_cameras_around, path_view_indices)
 from tiger.scene import GaussianScene

@@ -5,7 +5,8 @@ import argparse
 
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, output_dir
 

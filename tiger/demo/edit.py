@@ -26,7 +26,7 @@ def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "mak
     The edit runs the same loop as ``tiger edit`` (object-centred views, relevance-scaled updates,
     densification) with a small render size so the demo stays fast on a CPU.
     """
-    from tiger.scene.cameras import Camera
+    from tiger.render import Camera
 
     scene = GaussianScene.load_ply(out / "scene.ply")
     encoder, _ = load_text_encoder(scene.metadata.get("labels", []), models)

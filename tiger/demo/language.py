@@ -20,7 +20,7 @@ from tiger.language.field import train_field
 from tiger.language.pca import StreamingPCA
 from tiger.retrieval import retrieve, write_relevancy_pictures
 from tiger.retrieval.text import EmbeddingTable, TextEncoder
-from tiger.scene import Camera
+from tiger.render import Camera
 from tiger.scene.labelled import LabelledScene
 from tiger.utils.images import save_png
 from tiger.utils.io import file_slug

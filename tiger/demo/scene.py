@@ -13,7 +13,8 @@ from torch import Tensor
 
 from tiger.render.views import orbit_viewmats as _orbit
 from tiger.render.views import pinhole_K
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.scene.labelled import LabelledScene
 from tiger.scene.sh import rgb_to_sh
 

@@ -36,7 +36,7 @@ import torch
 from tiger.retrieval.text import TextEncoder
 from tiger.recon.step import SceneOptimizer
 from tiger.recon.strategy.rules import DensifyStats, prune_transparent, region_topk_densify
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 from tiger.scene.gaussian_scene import GaussianScene, render_rgb, render_views
 from tiger.utils.io import atomic_torch_save
 

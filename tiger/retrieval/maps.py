@@ -9,7 +9,8 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
-from tiger.scene import Camera, GaussianScene, render_rgb
+from tiger.render import Camera
+from tiger.scene import GaussianScene, render_rgb
 from tiger.scene.gaussian_scene import RasterOption
 from tiger.utils.io import atomic_write, file_slug
 

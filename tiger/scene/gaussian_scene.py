@@ -8,7 +8,7 @@ from typing import Any, Iterable, Literal, Optional, Sequence, Union
 
 import torch
 
-from tiger.render.camera import Camera
+from tiger.render import Camera
 from tiger.render.rasterize import Projection, RasterSettings, bin_projection, composite, project_for_raster, sh_colors
 
 from .ply import read_ply_state, write_ply_state

@@ -13,7 +13,7 @@ from typing import Any, Optional, Protocol, Sequence, runtime_checkable
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 
 @dataclass
