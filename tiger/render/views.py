@@ -83,11 +83,12 @@ def orbit_viewmats(n: int, center: Sequence[float] = (0.0, 0.0, 0.0), radius: fl
     return out
 
 
-def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0,
+def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0, *, names: str = "orbit{:03d}",
                   **orbit: float | Sequence[float]) -> list[Camera]:
-    """:class:`Camera` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
+    """:class:`Camera` views on an orbit (see :func:`orbit_viewmats` for ``orbit``), the i-th
+    named ``names.format(i)``."""
     K = pinhole_K(width, height, fov_y_deg)
-    return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=f"orbit{i:03d}")
+    return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=names.format(i))
             for i, V in enumerate(orbit_viewmats(n, **orbit))]
 
 
