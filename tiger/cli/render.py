@@ -83,15 +83,10 @@ def _stems(cams: list[Camera]) -> list[str]:
     """File stems: the source image's name without folder or extension (0001), made unique."""
     from pathlib import Path
 
-    out: list[str] = []
-    for i, cam in enumerate(cams):
-        name = Path(cam.image_name or f"view{i:03d}").stem
-        stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or f"view{i:03d}"
-        base, k = stem, 2
-        while stem in out:
-            stem, k = f"{base}_{k}", k + 1
-        out.append(stem)
-    return out
+    from tiger.utils.io import unique_file_slugs
+
+    names = [Path(cam.image_name or f"view{i:03d}").stem for i, cam in enumerate(cams)]
+    return unique_file_slugs(names, [f"view{i:03d}" for i in range(len(cams))], keep="-_", max_len=None)
 
 
 def run(args: argparse.Namespace) -> int:
