@@ -51,7 +51,8 @@ def add_parser(sub) -> None:
 def _cameras(args: argparse.Namespace, scene: GaussianScene,
              dev: torch.device) -> tuple[list[Camera], str]:
     """The views to render and where they come from (see the command's description)."""
-    from tiger.render.views import observed_orbit_cameras, path_view_indices
+    from tiger.render.views import path_view_indices
+    from tiger.scene.observed import observed_orbit_cameras
     from tiger.scene.cameras_json import cameras_json_path, read_cameras_json
 
     if not args.downscale > 0:
