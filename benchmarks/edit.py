@@ -41,7 +41,8 @@ from tiger.edit import EditConfig, edit, resolve_target  # noqa: E402
 from tiger.edit.guidance import RecolorGuidance  # noqa: E402
 from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets  # noqa: E402
 from tiger.edit.views import ObjectViews  # noqa: E402
-from tiger.eval.edit import locality, render_rgb_and_footprint  # noqa: E402
+from tiger.eval.edit import locality  # noqa: E402
+from tiger.scene import render_rgb  # noqa: E402
 from tiger.scene import GaussianScene  # noqa: E402
 from tiger.scene.sh import rgb_to_sh  # noqa: E402
 from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
@@ -103,7 +104,7 @@ def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) ->
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         t0 = time.perf_counter()
-        edit(scene, "profile", tgt, guidance, config=cfg)
+        edit(scene, tgt, guidance, config=cfg)
         torch.cuda.synchronize()
         wall = time.perf_counter() - t0
     spans = sorted((e.time_range.start, e.time_range.end) for e in prof.events()
@@ -155,11 +156,11 @@ def run(args) -> dict:
                      view_pool=args.view_pool)
     projected = None
     if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
-        edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
         if cuda:
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        warm = edit(scene, "warm-up", tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
+        warm = edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
         if cuda:
             torch.cuda.synchronize()
         pool_s = warm.timings_s.get("view_pool", 0.0)  # once per edit, not per step
@@ -172,7 +173,7 @@ def run(args) -> dict:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
-    res = edit(scene, "make the ball red", tgt, guidance, config=cfg)
+    res = edit(scene, tgt, guidance, config=cfg)
     if cuda:
         torch.cuda.synchronize()
     total = time.perf_counter() - t0
@@ -196,8 +197,8 @@ def run(args) -> dict:
     row["locality_dB"] = locality(scene, res.scene, cams, tgt.mask, res.editable, background=white)["psnr"]
     if truth is not None or args.guidance == "recolor":
         ref = truth if truth is not None else build("analytic", scene, tgt.mask, args)[1]
-        got, _ = render_rgb_and_footprint(res.scene, cams, res.editable, white)
-        want, foot = render_rgb_and_footprint(ref, cams, tgt.mask, white)
+        got, _ = render_rgb(res.scene, cams, white, footprint=res.editable)
+        want, foot = render_rgb(ref, cams, white, footprint=tgt.mask)
         mse = float((got.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[foot > 0.5].mean())
         row["object_PSNR_dB"] = -10 * math.log10(max(mse, 1e-12))
     return row

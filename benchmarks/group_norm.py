@@ -127,7 +127,7 @@ def vae_rows(device: str, dtype: torch.dtype, size: str, sides: list[int], iters
     import diffusers
 
     from tiger.testing.random_models import sd_vae_config
-    from tiger.edit.guidance.sds import freeze
+    from tiger.edit.guidance.diffusers_models import freeze
 
     timer = cuda_time_ms if device == "cuda" else cpu_time_ms
     torch.manual_seed(0)
@@ -178,7 +178,7 @@ def unet_rows(device: str, dtype: torch.dtype, size: str, iters: int) -> list[di
     import diffusers
 
     from tiger.testing.random_models import ip2p_unet_config
-    from tiger.edit.guidance.sds import freeze
+    from tiger.edit.guidance.diffusers_models import freeze
 
     timer = cuda_time_ms if device == "cuda" else cpu_time_ms
     cfg = ip2p_unet_config(size)

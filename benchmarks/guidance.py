@@ -35,9 +35,10 @@ from tiger.edit.guidance.ldm_checkpoint import unet_config_from_ldm, vae_config_
 from tiger.edit.guidance.mvdream import MVDreamGuidance, MVDreamModels  # noqa: E402
 from tiger.edit.guidance.mvdream_attention import install_multiview_attention  # noqa: E402
 from tiger.testing.random_models import ip2p_unet_config, mvdream_ldm_config, sd_vae_config  # noqa: E402
-from tiger.edit.guidance.sds import NoiseSchedule, PromptEncoder, encode_latents, freeze, resize  # noqa: E402
+from tiger.edit.guidance.diffusers_models import PromptEncoder, encode_latents, freeze, resize  # noqa: E402
+from tiger.edit.guidance.noise_schedule import NoiseSchedule  # noqa: E402
 from tiger.testing.random_models import write_byte_level_clip_tokenizer  # noqa: E402
-from tiger.scene.cameras import Camera  # noqa: E402
+from tiger.render import Camera  # noqa: E402
 from tiger.utils.dtypes import DTYPE_NAMES  # noqa: E402
 
 H100_BF16_TFLOPS = 790.0  # measured 8192^3 bf16 matmul on the device (KINDS.md)

@@ -13,8 +13,8 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
-from tiger.recon.losses import gaussian_blur, ssim_map
-from tiger.utils.filters import _blur
+from tiger.recon.losses import ssim_map
+from tiger.utils.filters import _blur, gaussian_blur
 
 
 def ssim_ref(a: np.ndarray, b: np.ndarray) -> float:

@@ -27,7 +27,8 @@ def main(argv: list | None = None) -> int:
 
     from tiger.recon import SceneOptimizer, photometric_loss
     from tiger.render.views import look_at
-    from tiger.scene import Camera, GaussianScene
+    from tiger.render import Camera
+    from tiger.scene import GaussianScene
     from tiger.scene.cameras import intrinsics
 
     dev = torch.device(args.device)

@@ -16,7 +16,8 @@ import torch.nn.functional as F
 
 from tests.scene.colmapref import write_model  # noqa: E402  (the tests' independent writer)
 
-from tiger.scene import Distortion, GaussianScene  # noqa: E402
+from tiger.render import Distortion  # noqa: E402
+from tiger.scene import GaussianScene  # noqa: E402
 from tiger.scene.cameras import intrinsics  # noqa: E402
 from tiger.scene.colmap import read_model  # noqa: E402
 from tiger.scene.images import distort_points, undistort_image, undistort_points  # noqa: E402

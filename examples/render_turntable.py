@@ -63,7 +63,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from tqdm.auto import tqdm
 
     from tiger.render.views import orbit_viewmats, pinhole_K
-    from tiger.scene import Camera, GaussianScene
+    from tiger.render import Camera
+    from tiger.scene import GaussianScene
     from tiger.utils.images import save_png
     from tiger.utils.video import write_video
 

@@ -137,7 +137,7 @@ def write_colmap_text(root: Path, lab, scene, n: int = 3, w: int = 64, h: int = 
     """``root/sparse/0/{cameras,images,points3D}.txt`` and ``root/images/*.png`` rendered from
     ``n`` orbit views; returns the world->camera matrices."""
     from tiger.render.views import orbit_viewmats, pinhole_K
-    from tiger.scene import Camera
+    from tiger.render import Camera
     from tiger.utils.images import save_png
 
     model = root / "sparse" / "0"
@@ -221,7 +221,7 @@ def test_embed_and_query_colmap_errors(tmp_path, monkeypatch):
 def write_lerf_fixture(root: Path, name: str, seed: int, size: int = 128, views: int = 3):
     """A LERF-OVS-layout scene: ``root/label/<name>/frame_XXXXX.{json,jpg}`` (boxes and polygons of
     the rendered objects), ``root/<name>/transforms.json`` (its cameras) and a PLY with ``lang_*``."""
-    from tiger.retrieval.maps import render_rgb
+    from tiger.scene import render_rgb
     from tiger.testing.labelled_scene import label_masks, make_labelled_scene
 
     ls = make_labelled_scene(views=views, seed=seed)
@@ -247,7 +247,7 @@ def write_lerf_fixture(root: Path, name: str, seed: int, size: int = 128, views:
         stem = f"frame_{v + 1:05d}"
         (labels / f"{stem}.json").write_text(json.dumps(
             {"info": {"name": f"{stem}.jpg", "width": size, "height": size}, "objects": objects}))
-        Image.fromarray((render_rgb(s, c).numpy() * 255).astype(np.uint8)).save(labels / f"{stem}.jpg")
+        Image.fromarray((render_rgb(s, [c])[0].numpy() * 255).astype(np.uint8)).save(labels / f"{stem}.jpg")
         frames.append({"file_path": f"../label/{name}/{stem}.jpg",
                        "transform_matrix": (torch.linalg.inv(c.viewmat.double()) @ gl).tolist()})
     K = ls.cameras[0].K * size / ls.cameras[0].width

@@ -73,7 +73,7 @@ def test_demo_refuses_to_overwrite_then_runs(tmp_path):
     assert r.returncode == 0, r.stderr
     rep = json.loads((ed / "edit.json").read_text())
     assert rep["selected"] > 0 and rep["metrics"]["locality"]["psnr"] > 30 and rep["settings"]["steps"] == 12
-    assert rep["models"] == {}  # recolor loads no diffusion model
+    assert rep["guidance_settings"] == {"color": [0.86, 0.08, 0.08], "strength": 1.0}  # "red", as it ran
     assert (ed / "before_after.png").stat().st_size > 100 and (ed / "turntable.gif").is_file()
     edited = tiger.scene.GaussianScene.load_ply(ed / "edited.ply")
     assert edited.lang is not None and edited.metadata["tiger_edits"][-1]["instruction"] == "make it red"

@@ -4,7 +4,8 @@ from __future__ import annotations
 import torch
 
 import tiger
-from tiger.demo import orbit_viewmats, pinhole_K, tabletop_scene
+from tiger.demo import DEMO_ORBIT, tabletop_scene
+from tiger.render.views import orbit_viewmats, pinhole_K
 
 
 def test_scene_labels_and_render():
@@ -15,7 +16,7 @@ def test_scene_labels_and_render():
     for i, name in enumerate(lab.names[1:], start=1):
         assert float(scene.means[lab.labels == i][:, 1].max()) < 0.05, name
     K = pinhole_K(96, 72)
-    V = orbit_viewmats(1)[0]
+    V = orbit_viewmats(1, start_deg=20.0, **DEMO_ORBIT)[0]
     out = tiger.rasterize_gaussians(scene.means, scene.quats, scene.scales, scene.opacities,
                                     scene.rgb, V, K, 96, 72)
     cov = float((out["alpha"] > 0.5).float().mean())

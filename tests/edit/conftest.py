@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 
 

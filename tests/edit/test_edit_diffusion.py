@@ -13,8 +13,8 @@ class _Recording:
     """Passes the CSD guidance through and keeps what it returned."""
 
     def __init__(self, inner):
-        self.inner, self.name, self.seen = inner, inner.name, []
-        self.ip2p, self.mvdream = inner.ip2p, inner.mvdream
+        self.inner, self.name, self.instruction, self.seen = inner, inner.name, inner.instruction, []
+        self.settings, self.generators, self.reset_caches = inner.settings, inner.generators, inner.reset_caches
 
     def grad(self, renders, views):
         g, info = self.inner.grad(renders, views)
@@ -30,10 +30,15 @@ def test_three_csd_steps_tiny_models(tiny_models, tmp_path):
     assert isinstance(csd, CSDGuidance)
     # on the CPU the defaults are float32 models, no CUDA graphs (bf16 + graphs on a GPU)
     assert csd.ip2p.dtype == torch.float32 and not csd.ip2p.cuda_graph and not csd.mvdream.cuda_graph
+    settings = csd.settings()  # what edit.json and the checkpoint signature record
+    assert settings["ip2p"]["dtype"] == settings["mvdream"]["dtype"] == "float32"
+    assert settings["ip2p"]["cuda_graph"] is False and settings["mvdream"]["cuda_graph"] is False
+    assert settings["schedule"] == {"ratio": [2.0, 1.0], "mv_end": 0.75}
+    assert csd.instruction == "make it look like a watermelon" and len(csd.generators()) == 2
     assert csd.ip2p.t_range == (0.02, 0.2) and csd.mvdream.t_range == (0.02, 0.2)  # paper: t in [0.02, 0.2]
     rec = _Recording(csd)
     t = resolve_target(scene, query_a(), tau=0.5)
-    s = EditSession(scene, t, rec, "make it look like a watermelon", None,
+    s = EditSession(scene, t, rec, None,
                     EditConfig(steps=3, width=32, height=32, densify_every=0, progress=False))
     before = s.scene.detach().clone()
     for _ in range(3):

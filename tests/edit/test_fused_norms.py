@@ -112,7 +112,7 @@ def test_silu_then_linear_shares_parameters():
 
 def test_loader_option_gives_the_same_gradient(tiny_models):
     from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
-    from tiger.edit.guidance.sds import is_channels_last
+    from tiger.edit.guidance.diffusers_models import is_channels_last
 
     plain = load_ip2p(tiny_models / "instruct-pix2pix")
     fused = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=True)

@@ -109,7 +109,7 @@ def test_matmul_vae_attention_keeps_encoder_output_and_gradient(tiny_models):
     ``matmul_vae_attention``) computes the same latents and the same input gradient."""
     from diffusers.models.attention_processor import Attention, AttnProcessor
 
-    from tiger.edit.guidance.sds import encode_latents, latent_shape, matmul_vae_attention
+    from tiger.edit.guidance.diffusers_models import encode_latents, latent_shape, matmul_vae_attention
 
     vae = load_ip2p(tiny_models / "instruct-pix2pix").vae
     attn = [m for m in vae.modules() if isinstance(m, Attention)]

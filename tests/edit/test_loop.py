@@ -7,9 +7,9 @@ import torch
 
 from tiger.edit import EditConfig, EditSession, edit, resolve_target
 from tiger.edit.guidance import GuidanceInfo, RecolorGuidance
-from tiger.eval.edit import render_rgb_and_footprint
-from tiger.scene.sh import rgb_to_sh
+from tiger.scene import render_rgb
 from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets
+from tiger.scene.sh import rgb_to_sh
 
 from .scenes import query_a, two_objects
 
@@ -28,26 +28,26 @@ def test_known_answer_ideal_denoiser_reaches_30db_on_object():
     mask = resolve_target(scene, query_a(), tau=0.5).mask
     truth = _target_scene(scene, mask)
     guide = IdealDenoiserGuidance(render_targets(truth), seed=0)
-    res = edit(scene, "make the ball red", query_a(), guide, tau=0.5, steps=100,
+    res = edit(scene, query_a(), guide, tau=0.5, steps=100,
                lrs={"sh_dc": 0.05}, **SMALL)
     # independent check from fixed cameras the loop never drew
     from tiger.edit.views import ObjectViews
 
     t = resolve_target(scene, query_a(), tau=0.5)
     cams = ObjectViews(t.center, t.bbox_min, t.bbox_max, force_360=True, width=64, height=64).fixed(6, 15.0)
-    got, _ = render_rgb_and_footprint(res.scene, cams, res.editable)
-    want, foot = render_rgb_and_footprint(truth, cams, mask)
+    got, _ = render_rgb(res.scene, cams, footprint=res.editable)
+    want, foot = render_rgb(truth, cams, footprint=mask)
     obj = foot > 0.5
     mse = float((got.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[obj].mean())
     assert -10 * math.log10(mse) >= 30.0
     # before the edit the object's pixels were far from the target
-    before, _ = render_rgb_and_footprint(scene, cams, mask)
+    before, _ = render_rgb(scene, cams, footprint=mask)
     assert float((before.clamp(0, 1) - want.clamp(0, 1)).square().mean(-1)[obj].mean()) > 100 * mse
 
 
 def test_zero_relevance_gaussians_bit_identical_and_sh_zeroed():
     scene = two_objects()
-    res = edit(scene, "make it red", query_a(), RecolorGuidance("red"), tau=0.5, steps=5, **SMALL)
+    res = edit(scene, query_a(), RecolorGuidance("make it red"), tau=0.5, steps=5, **SMALL)
     frozen_before = ~resolve_target(scene, query_a(), tau=0.5).mask
     frozen_after = res.weights == 0
     a, b = scene.subset(frozen_before), res.scene.subset(frozen_after)
@@ -64,7 +64,7 @@ def test_optimizer_state_proportional_to_editable_count():
     for name, target in (("a", query_a()), ("ab", torch.ones(len(scene), dtype=torch.bool)),
                          ("few", torch.arange(len(scene)) < 7)):
         t = resolve_target(scene, target, tau=0.5)
-        s = EditSession(scene, t, RecolorGuidance("red"), "red", None, EditConfig(steps=2, **SMALL))
+        s = EditSession(scene, t, RecolorGuidance("red"), None, EditConfig(steps=2, **SMALL))
         s.step_once()
         sizes[name] = (t.count, s.optimizer_state_numel)
     per = 2 * (3 + 3 + 4 + 1 + 3)  # Adam's two moments of means, log-scales, quats, opacity, base colour
@@ -78,7 +78,7 @@ def test_relevance_scales_updates():
     w = torch.zeros(len(scene))
     w[:300] = 1.0
     w[:150] = 0.25
-    res = edit(scene, "red", w, RecolorGuidance("red"), steps=1, **SMALL)
+    res = edit(scene, w, RecolorGuidance("red"), steps=1, **SMALL)
     d = (res.scene.sh_dc - scene.sh_dc)[:300]
     # one Adam step moves each coordinate by lr * sign(g) (first step); scaled by the weight
     moved = d.abs()[d.abs() > 0]
@@ -93,7 +93,7 @@ def test_densification_limits_and_inheritance():
     scene.opacity_logits[:5] = -8.0  # five transparent editable Gaussians: pruned at densification
     cfg = dict(SMALL, densify_every=2, densify_from=2, densify_until=6)
     t = resolve_target(scene, query_a(), tau=0.5)
-    s = EditSession(scene, t, RecolorGuidance("red"), "red", None, EditConfig(steps=6, **cfg))
+    s = EditSession(scene, t, RecolorGuidance("red"), None, EditConfig(steps=6, **cfg))
     parent_lang = {tuple(r.tolist()) for r in scene.lang[t.mask]}
     records = [s.step_once() for _ in range(6)]
     dens = [r["densify"] for r in records if "densify" in r]
@@ -114,10 +114,9 @@ def test_densification_limits_and_inheritance():
 class _InterruptAt:
     """Wraps a guidance and raises KeyboardInterrupt at one step, like Ctrl-C."""
 
-    name = "analytic"
-
     def __init__(self, inner, at):
-        self.inner, self.at, self.generator = inner, at, inner.generator
+        self.inner, self.at, self.name, self.instruction = inner, at, inner.name, inner.instruction
+        self.settings, self.generators, self.reset_caches = inner.settings, inner.generators, inner.reset_caches
 
     def grad(self, renders, views):
         if views.step == self.at:
@@ -130,24 +129,24 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path):
     mask = resolve_target(scene, query_a(), tau=0.5).mask
     truth = _target_scene(scene, mask)
     cfg = dict(SMALL, densify_every=2, densify_from=2, steps=6)
-    full = edit(scene, "red", query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5, **cfg)
+    full = edit(scene, query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5, **cfg)
     ck = tmp_path / "edit.ckpt"
     with pytest.raises(KeyboardInterrupt):
-        edit(scene, "red", query_a(), _InterruptAt(IdealDenoiserGuidance(render_targets(truth), seed=3), 3),
+        edit(scene, query_a(), _InterruptAt(IdealDenoiserGuidance(render_targets(truth), seed=3), 3),
              tau=0.5, checkpoint=ck, **cfg)
     assert ck.exists()
-    res = edit(scene, "red", query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5,
+    res = edit(scene, query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5,
                checkpoint=ck, resume=True, **cfg)
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "lang"):
         assert torch.equal(getattr(full.scene, name), getattr(res.scene, name)), name
     with pytest.raises(ValueError, match="another edit"):
-        edit(scene, "blue", query_a(), RecolorGuidance("blue"), tau=0.5, checkpoint=ck, resume=True, **cfg)
+        edit(scene, query_a(), RecolorGuidance("blue"), tau=0.5, checkpoint=ck, resume=True, **cfg)
 
 
 def test_multi_round_keeps_records_and_language():
     scene = two_objects()
-    r1 = edit(scene, "make A red", query_a(), RecolorGuidance("red"), tau=0.5, steps=2, **SMALL)
-    r2 = edit(r1.scene, "make B gold", torch.eye(8)[1], RecolorGuidance("gold"), tau=0.5, steps=2, **SMALL)
+    r1 = edit(scene, query_a(), RecolorGuidance("make A red"), tau=0.5, steps=2, **SMALL)
+    r2 = edit(r1.scene, torch.eye(8)[1], RecolorGuidance("make B gold"), tau=0.5, steps=2, **SMALL)
     assert [r["instruction"] for r in r2.rounds] == ["make A red", "make B gold"]
     assert r2.scene.lang is not None and r2.scene.lang.shape == (len(r2.scene), 8)
 
@@ -155,11 +154,11 @@ def test_multi_round_keeps_records_and_language():
 def test_errors():
     scene = two_objects()
     with pytest.raises(ValueError, match="selects no Gaussian"):
-        edit(scene, "x", torch.zeros(len(scene), dtype=torch.bool), RecolorGuidance("red"), **SMALL)
+        edit(scene, torch.zeros(len(scene), dtype=torch.bool), RecolorGuidance("red"), **SMALL)
     no_lang = two_objects()
     no_lang.lang = None
     with pytest.raises(ValueError, match="no language features"):
-        edit(no_lang, "x", "the ball", RecolorGuidance("red"), **SMALL)
+        edit(no_lang, "the ball", RecolorGuidance("red"), **SMALL)
 
 
 def test_view_pool_renders_originals_once_and_resumes_exactly(tmp_path, monkeypatch):
@@ -184,10 +183,10 @@ def test_view_pool_renders_originals_once_and_resumes_exactly(tmp_path, monkeypa
             return super().grad(renders, views)
 
     cfg = dict(SMALL, steps=8, view_pool=3)
-    full = edit(scene, "red", query_a(), _Record(render_targets(truth), seed=3), tau=0.5, **cfg)
+    full = edit(scene, query_a(), _Record(render_targets(truth), seed=3), tau=0.5, **cfg)
     assert calls == [4, 4, 4]  # the pool, once; no render of originals per step
     sessions = EditSession(scene, resolve_target(scene, query_a(), tau=0.5), IdealDenoiserGuidance(
-        render_targets(truth), seed=3), "red", None, EditConfig(**cfg))
+        render_targets(truth), seed=3), None, EditConfig(**cfg))
     pool = sessions.pool
     assert pool.originals.shape == (3, 4, 3, 48, 48) and pool.masks.shape == (3, 4, 1, 48, 48)
     for cams, ids in seen:
@@ -197,9 +196,9 @@ def test_view_pool_renders_originals_once_and_resumes_exactly(tmp_path, monkeypa
     assert len({ids[0] for _, ids in seen}) > 1  # the steps draw different sets
     ck = tmp_path / "edit.ckpt"
     with pytest.raises(KeyboardInterrupt):
-        edit(scene, "red", query_a(), _InterruptAt(IdealDenoiserGuidance(render_targets(truth), seed=3), 5),
+        edit(scene, query_a(), _InterruptAt(IdealDenoiserGuidance(render_targets(truth), seed=3), 5),
              tau=0.5, checkpoint=ck, **cfg)
-    res = edit(scene, "red", query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5,
+    res = edit(scene, query_a(), IdealDenoiserGuidance(render_targets(truth), seed=3), tau=0.5,
                checkpoint=ck, resume=True, **cfg)
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc"):
         assert torch.equal(getattr(full.scene, name), getattr(res.scene, name)), name
@@ -211,5 +210,5 @@ def test_default_views_are_fresh_every_step():
     """The paper (§3.2) re-draws the 4 cameras every step; the pool is an opt-in speed setting."""
     assert EditConfig().view_pool == 0
     s = EditSession(two_objects(), resolve_target(two_objects(), query_a(), tau=0.5), RecolorGuidance("red"),
-                    "red", None, EditConfig(**SMALL))
+                    None, EditConfig(**SMALL))
     assert s.pool is None

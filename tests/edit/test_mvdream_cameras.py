@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from tiger.edit.guidance.mvdream_cameras import estimate_world_up, mvdream_cameras
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 K = torch.tensor([[16.0, 0, 8], [0, 16, 8], [0, 0, 1]])
 

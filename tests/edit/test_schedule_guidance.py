@@ -27,7 +27,16 @@ def test_schedule_lambda1_grows_monotonically():
 
 class _Const:
     def __init__(self, value, name):
-        self.value, self.name, self.calls = value, name, 0
+        self.value, self.name, self.calls, self.instruction = value, name, 0, "make it " + name
+
+    def settings(self):
+        return {"value": self.value}
+
+    def generators(self):
+        return []
+
+    def reset_caches(self):
+        pass
 
     def grad(self, renders, views):
         self.calls += 1

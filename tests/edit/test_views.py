@@ -6,7 +6,7 @@ import torch
 
 from tiger.edit.views import ObjectViews, capture_layout, fill_distance
 from tiger.render.views import orbit_cameras, look_at, pinhole_K
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 
 def _forward_capture(center=(0.0, 0.0, 0.0), n=9, arc_deg=60.0, radius=4.0):

@@ -29,7 +29,7 @@ def _hull(mask: torch.Tensor) -> list:
 
 def write_fixture(root, name: str, seed: int, views: int = 3):
     """``root/label/<name>/frame_XXXXX.{json,jpg}`` for ``views`` cameras; returns the scene."""
-    from tiger.retrieval.maps import render_rgb
+    from tiger.scene import render_rgb
 
     ls = make_labelled_scene(views=views, seed=seed)
     g = torch.Generator().manual_seed(seed)
@@ -51,7 +51,7 @@ def write_fixture(root, name: str, seed: int, views: int = 3):
         stem = f"frame_{v + 1:05d}"
         (folder / f"{stem}.json").write_text(json.dumps(
             {"info": {"name": f"{stem}.jpg", "width": SIZE, "height": SIZE}, "objects": objects}))
-        rgb = (render_rgb(ls.scene, c).numpy() * 255).astype(np.uint8)
+        rgb = (render_rgb(ls.scene, [c])[0].numpy() * 255).astype(np.uint8)
         Image.fromarray(rgb).save(folder / f"{stem}.jpg")
     return ls, cams
 

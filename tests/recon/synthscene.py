@@ -6,7 +6,8 @@ import math
 import torch
 
 from tiger.render.views import look_at
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.scene.cameras import intrinsics
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 
 from tiger.recon.init import colors_from_views
-from tiger.scene import Camera
+from tiger.render import Camera
 from tiger.scene.cameras import intrinsics
 
 

@@ -9,7 +9,8 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from tiger.recon import expon_lr, psnr, ssim, ssim_map
-from tiger.recon.losses import gaussian_blur, photometric_loss
+from tiger.recon.losses import photometric_loss
+from tiger.utils.filters import gaussian_blur
 
 
 def ssim_scipy(a: np.ndarray, b: np.ndarray) -> np.ndarray:

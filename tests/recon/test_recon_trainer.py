@@ -113,7 +113,7 @@ def test_trainer_input_errors():
         Trainer(cams, imgs[:3] + [imgs[3][:23]] + imgs[4:], ReconConfig(progress=False))
     with pytest.raises(ValueError, match="10 cameras but 9 images"):
         Trainer(cams, imgs[:9])
-    from tiger.scene import Distortion
+    from tiger.render import Distortion
 
     cams[0].distortion = Distortion(k1=0.1)
     with pytest.raises(ValueError, match="lens distortion"):

@@ -8,10 +8,10 @@ import math
 import pytest
 import torch
 
-from tiger.render.camera import Camera
-from tiger.render.views import (fibonacci_directions, look_at, observed_direction, observed_orbit_cameras,
-                                orbit_cameras_around, path_view_indices)
+from tiger.render import Camera
+from tiger.render.views import fibonacci_directions, look_at, orbit_cameras_around, path_view_indices
 from tiger.scene import GaussianScene
+from tiger.scene.observed import observed_direction, observed_orbit_cameras
 from tiger.scene.sh import rgb_to_sh
 
 SH_C1 = 0.4886025119029199  # real SH band-1 constant, sqrt(3 / (4 pi))

@@ -231,9 +231,9 @@ def test_relevancy_picture_reads_high_at_the_target(tmp_path):
     empty = m["alpha"].numpy() < 0.5
     assert empty.sum() > 10 and (heat[empty] == 0).all()
     # the left panel is the render itself
-    from tiger.retrieval.maps import render_rgb
+    from tiger.scene import render_rgb
 
-    rgb = render_rgb(ls.scene, cam).numpy() * 255
+    rgb = render_rgb(ls.scene, [cam])[0].numpy() * 255
     assert np.abs(pic[TITLE_H:TITLE_H + h, :w] - rgb).max() <= 1.0
 
 
@@ -258,7 +258,7 @@ def test_retrieve_on_cuda_matches_cpu():
 
 def test_pictures_and_retrieval_with_a_gaussian_scene(tmp_path):
     from tiger.retrieval import write_relevancy_pictures
-    from tiger.retrieval.maps import render_rgb
+    from tiger.scene import render_rgb
     from tiger.scene import GaussianScene
 
     ls = _scene_with_oracle_lang()
@@ -267,7 +267,7 @@ def test_pictures_and_retrieval_with_a_gaussian_scene(tmp_path):
     assert torch.equal(r.mask, ls.labelled.labels == 3)
     sub = r.subscene(gs)
     assert isinstance(sub, GaussianScene) and len(sub) == int(r.mask.sum())
-    rgb = render_rgb(gs, ls.cameras[0])  # SH colour through the rasterizer
+    rgb = render_rgb(gs, [ls.cameras[0]])[0]  # SH colour through the rasterizer
     # degree-0 SH colour is the palette colour: the same picture as rendering the colours as channels
     flat = gs.render(ls.cameras[0], (gs.sh_dc * (0.5 / math.sqrt(math.pi)) + 0.5).clamp_min(0))["color"]
     torch.testing.assert_close(rgb, flat.clamp(0, 1), atol=1e-6, rtol=0)

@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from tiger.scene import Camera, SceneFormatError
+from tiger.render import Camera
+from tiger.scene import SceneFormatError
 from tiger.scene.cameras import intrinsics
 from tiger.scene.cameras_json import cameras_json_path, read_cameras_json, write_cameras_json
 

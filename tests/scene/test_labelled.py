@@ -4,7 +4,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.scene.cameras import intrinsics
 from tiger.scene import LabelledScene
 

@@ -6,7 +6,8 @@ import torch
 
 import tiger
 from tiger.render.reference import sh_to_color_ref
-from tiger.scene import Camera, GaussianScene, render_views
+from tiger.render import Camera
+from tiger.scene import GaussianScene, render_views
 from tiger.scene.cameras import intrinsics
 
 
@@ -124,3 +125,30 @@ def test_render_views_checks_its_inputs():
         s.render(_camera(0.0), "depth")
     with pytest.raises(ValueError, match="no language features"):
         _scene(lang=0).render(_camera(0.0), "lang")
+
+
+def test_render_rgb_is_the_clamped_sh_render_with_its_footprint_in_one_pass():
+    """render_rgb (the one RGB-pictures helper) equals per-view GaussianScene.render of the SH colour,
+    clamped, over more views than one pass holds; its footprint equals rendering the weights alone."""
+    from tiger.scene import render_rgb
+    from tiger.scene.gaussian_scene import RGB_VIEWS_PER_PASS
+
+    s = _scene(dtype=torch.float32)
+    cams = [_camera(0.2 * k) for k in range(RGB_VIEWS_PER_PASS + 3)]
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    weights = (torch.arange(len(s)) % 3 == 0).float() * 0.75
+    rgb, foot = render_rgb(s, cams, bg, footprint=weights)
+    assert rgb.shape == (len(cams), 18, 24, 3) and foot.shape == (len(cams), 18, 24)
+    for v, cam in enumerate(cams):
+        want = s.render(cam, "rgb", background=bg)["color"].clamp(0, 1)
+        assert torch.allclose(rgb[v], want, atol=1e-6), v
+        alone = s.render(cam, weights[:, None])["color"][..., 0]
+        assert torch.allclose(foot[v], alone.clamp(0, 1), atol=1e-6), v
+    assert torch.equal(render_rgb(s, cams, bg), rgb)  # the footprint channel changes nothing
+    assert 0.0 <= float(rgb.min()) and float(rgb.max()) <= 1.0 and float(foot.max()) > 0
+    with pytest.raises(ValueError, match=r"footprint must be \[N=40\]"):
+        render_rgb(s, cams, footprint=weights[:5])
+    with pytest.raises(ValueError, match="background must be 3 numbers"):
+        render_rgb(s, cams, (0.0, 1.0))
+    with pytest.raises(ValueError, match="at least one camera"):
+        render_rgb(s, [])

@@ -9,7 +9,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from .colmapref import write_model
-from tiger.scene import Distortion, SceneFormatError
+from tiger.render import Distortion
+from tiger.scene import SceneFormatError
 from tiger.scene.colmap import colmap_cameras, read_cameras_binary, read_images_binary, read_model
 from tiger.scene.dataset import load_colmap, load_dataset
 

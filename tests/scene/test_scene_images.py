@@ -6,7 +6,8 @@ import pytest
 import torch
 from PIL import Image
 
-from tiger.scene import Camera, Distortion, SceneFormatError
+from tiger.render import Camera, Distortion
+from tiger.scene import SceneFormatError
 from tiger.scene.cameras import intrinsics
 from tiger.scene.images import distort_points, load_image, undistort_image, undistort_points
 

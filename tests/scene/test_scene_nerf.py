@@ -10,7 +10,8 @@ import pytest
 import torch
 from PIL import Image
 
-from tiger.scene import Distortion, SceneFormatError
+from tiger.render import Distortion
+from tiger.scene import SceneFormatError
 from tiger.scene.dataset import load_dataset
 from tiger.scene.nerf import load_transforms
 

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import tiger
-from tiger.scene import Camera, GaussianScene, SceneFormatError
+from tiger.render import Camera
+from tiger.scene import GaussianScene, SceneFormatError
 from tiger.scene.cameras import intrinsics
 from tiger.scene.checkpoint import load_checkpoint, save_checkpoint
 from tiger.scene.gaussian_scene import knn_mean_distance

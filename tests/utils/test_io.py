@@ -56,3 +56,13 @@ def test_failed_write_leaves_the_old_file(tmp_path):
             raise RuntimeError("boom")
     assert target.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
+
+
+def test_file_slug_is_the_one_rule_and_unique_slugs_number_repeats():
+    from tiger.utils.io import file_slug, unique_file_slugs
+
+    assert file_slug("the red mug!") == "the_red_mug" and file_slug("???") == "query"
+    assert file_slug("a" * 100) == "a" * 80 and file_slug("a" * 100, max_len=None) == "a" * 100
+    assert file_slug("img-01.v2", keep="-") == "img-01_v2" and file_slug("img-01") == "img_01"
+    assert unique_file_slugs(["cup", "cup", "c u p", "c?u?p", "!!"], ["v0", "v1", "v2", "v3", "v4"]) == [
+        "cup", "cup_2", "c_u_p", "c_u_p_2", "v4"]

@@ -61,18 +61,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _model_settings(guidance) -> dict:
-    """The diffusion guidances' dtype and CUDA-graph setting, for edit.json (empty for recolor)."""
-    out = {}
-    for name in ("ip2p", "mvdream"):
-        g = getattr(guidance, name, None)
-        if g is not None:
-            dtype = getattr(g, "dtype", None)  # a lazy MVDream never loaded has none
-            out[name] = {"dtype": None if dtype is None else str(dtype).removeprefix("torch."),
-                         "cuda_graph": bool(g.cuda_graph)}
-    return out
-
-
 def _cameras(data, skip_missing: bool = False):
     if not data:
         return None
@@ -82,7 +70,8 @@ def _cameras(data, skip_missing: bool = False):
 def run(args: argparse.Namespace) -> int:
     from tiger.edit import EditConfig, edit, resolve_target
     from tiger.edit.build import build_guidance
-    from tiger.edit.pictures import before_after_grid, render_color
+    from tiger.edit.pictures import before_after_grid
+    from tiger.scene import render_rgb
     from tiger.edit.target import EmptyTargetError
     from tiger.eval.edit import locality
     from tiger.utils.images import save_png
@@ -112,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     cams = _cameras(args.data, args.skip_missing)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
     t0 = time.perf_counter()
-    res = edit(scene, args.instruction, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
+    res = edit(scene, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
     res.scene.save_ply(out / "edited.ply")
     from tiger.edit.views import ObjectViews
 
@@ -120,19 +109,19 @@ def run(args: argparse.Namespace) -> int:
                         force_360=True if not cams else None, width=args.size, height=args.size)
     bg = torch.tensor(cfg.background)
     save_png(out / "before_after.png", before_after_grid(scene, res.scene, views.fixed(4), bg))
-    frames = render_color(res.scene, views.fixed(36), bg)
+    frames = list(render_rgb(res.scene, views.fixed(36), bg).cpu())
     video = write_video(frames, out / "turntable", kind=args.video)
     metrics = {"locality": locality(scene, res.scene, views.fixed(8), target.mask, res.editable)}
     if encoder is not None and hasattr(encoder, "clip"):
         from tiger.eval.edit import clip_metrics
 
         path = views.fixed(8)
-        before = torch.stack(render_color(scene, path, bg)).permute(0, 3, 1, 2)
-        after = torch.stack(render_color(res.scene, path, bg)).permute(0, 3, 1, 2)
+        before = render_rgb(scene, path, bg).permute(0, 3, 1, 2)
+        after = render_rgb(res.scene, path, bg).permute(0, 3, 1, 2)
         metrics["clip"] = clip_metrics(encoder, before, after, args.target, args.instruction)
     report = {"instruction": args.instruction, "target": args.target, "guidance": args.guidance,
               "selected": target.count, "tau": target.tau, "settings": cfg.to_dict(),
-              "models": _model_settings(guidance),
+              "guidance_settings": guidance.settings(),
               "time_s": round(time.perf_counter() - t0, 3), "stage_times_s": res.timings_s,
               "gaussians_before": len(scene), "gaussians_after": len(res.scene), "metrics": metrics,
               "rounds": res.rounds}

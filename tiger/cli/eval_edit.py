@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import json
 
-import torch
 
 from .common import (CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset,
                      output_dir)
@@ -40,10 +39,10 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiger.edit.pictures import render_color
     from tiger.edit.target import EmptyTargetError, resolve_target
     from tiger.edit.views import ObjectViews
     from tiger.eval.edit import clip_metrics, locality
+    from tiger.scene import render_rgb
 
     if args.views < 2:
         raise CliError("--views must be at least 2")
@@ -70,8 +69,8 @@ def run(args: argparse.Namespace) -> int:
     if args.caption_before and args.caption_after:
         if not hasattr(enc, "clip"):
             raise CliError("the CLIP metrics need CLIP weights (--models or $TIGER_MODELS), not a text table")
-        rb = torch.stack(render_color(before, path)).permute(0, 3, 1, 2)
-        ra = torch.stack(render_color(after, path)).permute(0, 3, 1, 2)
+        rb = render_rgb(before, path).permute(0, 3, 1, 2)
+        ra = render_rgb(after, path).permute(0, 3, 1, 2)
         report["clip"] = clip_metrics(enc, rb, ra, args.caption_before, args.caption_after)
     from tiger.utils.io import atomic_write
 

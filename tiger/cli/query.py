@@ -7,7 +7,8 @@ from typing import Optional
 
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.utils.io import atomic_write, file_slug
 
 from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset, output_dir

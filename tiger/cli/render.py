@@ -5,7 +5,8 @@ import argparse
 
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, output_dir
 
@@ -50,7 +51,8 @@ def add_parser(sub) -> None:
 def _cameras(args: argparse.Namespace, scene: GaussianScene,
              dev: torch.device) -> tuple[list[Camera], str]:
     """The views to render and where they come from (see the command's description)."""
-    from tiger.render.views import observed_orbit_cameras, path_view_indices
+    from tiger.render.views import path_view_indices
+    from tiger.scene.observed import observed_orbit_cameras
     from tiger.scene.cameras_json import cameras_json_path, read_cameras_json
 
     if not args.downscale > 0:
@@ -82,15 +84,10 @@ def _stems(cams: list[Camera]) -> list[str]:
     """File stems: the source image's name without folder or extension (0001), made unique."""
     from pathlib import Path
 
-    out: list[str] = []
-    for i, cam in enumerate(cams):
-        name = Path(cam.image_name or f"view{i:03d}").stem
-        stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or f"view{i:03d}"
-        base, k = stem, 2
-        while stem in out:
-            stem, k = f"{base}_{k}", k + 1
-        out.append(stem)
-    return out
+    from tiger.utils.io import unique_file_slugs
+
+    names = [Path(cam.image_name or f"view{i:03d}").stem for i, cam in enumerate(cams)]
+    return unique_file_slugs(names, [f"view{i:03d}" for i in range(len(cams))], keep="-_", max_len=None)
 
 
 def run(args: argparse.Namespace) -> int:

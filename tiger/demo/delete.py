@@ -18,10 +18,11 @@ def delete_stage(out: Path, timer, text: str = "mug", models: Optional[str] = No
     from tiger.edit.delete import DeleteConfig, delete, views_around
     from tiger.retrieval import retrieve
     from tiger.scene import GaussianScene
+    from tiger.utils.io import file_slug
 
     from .language import load_text_encoder
 
-    slug = "".join(c if c.isalnum() else "_" for c in text).strip("_") or "object"
+    slug = file_slug(text, default="object", max_len=None)
     folder = out / f"delete_{slug}"
     with timer.stage(f"delete '{text}': retrieve"):
         scene = GaussianScene.load_ply(out / "scene.ply")

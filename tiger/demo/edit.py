@@ -11,11 +11,12 @@ from tiger.edit.guidance import RecolorGuidance
 from tiger.edit.pictures import before_after_grid
 from tiger.edit.views import ObjectViews
 from tiger.eval.edit import locality
+from tiger.render.views import orbit_cameras
 from tiger.scene import GaussianScene
 from tiger.utils.images import save_png
 
 from .language import load_text_encoder
-from .scene import orbit_viewmats, pinhole_K
+from .scene import DEMO_ORBIT
 
 
 def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "make the ball red",
@@ -26,18 +27,16 @@ def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "mak
     The edit runs the same loop as ``tiger edit`` (object-centred views, relevance-scaled updates,
     densification) with a small render size so the demo stays fast on a CPU.
     """
-    from tiger.scene.cameras import Camera
-
     scene = GaussianScene.load_ply(out / "scene.ply")
     encoder, _ = load_text_encoder(scene.metadata.get("labels", []), models)
     with timer.stage(f"edit '{instruction}' (recolor, {steps} steps at {size}x{size})"):
         tgt = resolve_target(scene, target, encoder=encoder, tau=0.5)
         cfg = EditConfig(steps=steps, width=size, height=size, lrs={"sh_dc": 0.1}, densify_every=10,
                          densify_from=10, background=(1.0, 1.0, 1.0), checkpoint_every=0)
-        res = edit(scene, instruction, tgt, RecolorGuidance(instruction), config=cfg)
+        res = edit(scene, tgt, RecolorGuidance(instruction), config=cfg)
         res.scene.save_ply(out / "scene_ball_red.ply")
     pw, ph = picture_size
-    pics = [Camera(viewmat=V, K=pinhole_K(pw, ph), width=pw, height=ph) for V in orbit_viewmats(4)]
+    pics = orbit_cameras(4, pw, ph, start_deg=20.0, **DEMO_ORBIT)
     white = torch.ones(3)
     with timer.stage("before/after pictures and locality"):
         grid = before_after_grid(scene, res.scene, pics, white)

@@ -18,14 +18,15 @@ import torch
 
 from tiger.language.field import train_field
 from tiger.language.pca import StreamingPCA
+from tiger.render import Camera
+from tiger.render.views import orbit_cameras
 from tiger.retrieval import retrieve, write_relevancy_pictures
 from tiger.retrieval.text import EmbeddingTable, TextEncoder
-from tiger.scene import Camera
 from tiger.scene.labelled import LabelledScene
 from tiger.utils.images import save_png
 from tiger.utils.io import file_slug
 
-from .scene import orbit_cameras
+from .scene import DEMO_ORBIT
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +101,7 @@ def embed_and_query(scene: LabelledScene, out: Path, queries: Sequence[str], tim
     with timer.stage("label embeddings of the objects"):
         texts = [SYNONYMS.get(n, [n])[0] for n in scene.names]
         label_vecs = encoder.encode_text(texts).float()
-    cams = orbit_cameras(n_train_views, *train_size, start_deg=5.0, prefix="train")
+    cams = orbit_cameras(n_train_views, *train_size, start_deg=5.0, names="train{}", **DEMO_ORBIT)
     with timer.stage(f"language feature maps ({n_train_views} views, PCA 512->64)"):
         maps, (basis, mean) = label_feature_maps(scene, label_vecs, cams)
     field_scene = scene.scene
@@ -115,7 +116,7 @@ def embed_and_query(scene: LabelledScene, out: Path, queries: Sequence[str], tim
         if builtin:
             encoder.save(out / "text_embeddings.pt")
 
-    pic_cams = orbit_cameras(4, *picture_size, start_deg=20.0, prefix="view")
+    pic_cams = orbit_cameras(4, *picture_size, start_deg=20.0, names="view{}", **DEMO_ORBIT)
     results = []
     for q in queries:
         with timer.stage(f"query '{q}'"):

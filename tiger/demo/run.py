@@ -9,10 +9,11 @@ from typing import Iterator
 
 import torch
 
+from tiger.render.views import orbit_cameras
 from tiger.scene.labelled import LabelledScene
 from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
 
-from .scene import orbit_cameras, tabletop_scene
+from .scene import DEMO_ORBIT, tabletop_scene
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +54,7 @@ def render_pictures(scene: LabelledScene, features: torch.Tensor, out: Path, wid
     colors = torch.cat([scene.scene.rgb, features], dim=1).contiguous()  # 67 channels, one pass
     bg = torch.cat([torch.ones(3), torch.zeros(features.shape[1])])
     results, basis = [], None
-    for i, cam in enumerate(orbit_cameras(n_views, width, height)):
+    for i, cam in enumerate(orbit_cameras(n_views, width, height, start_deg=20.0, names="view{}", **DEMO_ORBIT)):
         with timer.stage(f"render view {i} ({width}x{height}, C=67, one pass)"):
             with torch.no_grad():
                 r = scene.scene.render(cam, colors, background=bg)

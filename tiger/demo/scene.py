@@ -11,13 +11,15 @@ import math
 import torch
 from torch import Tensor
 
-from tiger.render.views import orbit_viewmats as _orbit
-from tiger.render.views import pinhole_K
-from tiger.scene import Camera, GaussianScene
+from tiger.scene import GaussianScene
 from tiger.scene.labelled import LabelledScene
 from tiger.scene.sh import rgb_to_sh
 
-__all__ = ["tabletop_scene", "orbit_viewmats", "orbit_cameras", "pinhole_K"]
+__all__ = ["DEMO_ORBIT", "tabletop_scene"]
+
+#: The demo's views: cameras circling the table, looking slightly down at it (the orbit keywords
+#: of :func:`tiger.render.views.orbit_cameras` / ``orbit_viewmats``; add ``start_deg``).
+DEMO_ORBIT = {"center": (0.0, -0.1, 0.0), "radius": 3.0, "elevation_deg": 25.7, "up": (0.0, -1.0, 0.0)}
 
 #: The demo's objects; a Gaussian's label indexes this list.
 _NAMES = ["table", "mug", "ball", "box", "plant"]
@@ -137,17 +139,3 @@ def tabletop_scene(density: float = 1.0, seed: int = 0) -> LabelledScene:
         parts.append(_surfels(p, nn, torch.tensor([0.15, 0.55 + 0.05 * (j % 3), 0.18]), 0.016, 4, g))
     return LabelledScene.concat(parts, _NAMES)
 
-
-def orbit_viewmats(n: int, start_deg: float = 20.0) -> list[Tensor]:
-    """The demo's views: ``n`` cameras circling the table, looking slightly down at it."""
-    return _orbit(n, center=(0.0, -0.1, 0.0), radius=3.0, elevation_deg=25.7,
-                  start_deg=start_deg, up=(0.0, -1.0, 0.0))
-
-
-def orbit_cameras(n: int, width: int, height: int, start_deg: float = 20.0,
-                  prefix: str = "view") -> list[Camera]:
-    """:func:`orbit_viewmats` as cameras of ``width x height`` px (45 degree vertical field of view)
-    named ``<prefix><i>``."""
-    K = pinhole_K(width, height)
-    return [Camera(V, K.clone(), width, height, image_name=f"{prefix}{i}")
-            for i, V in enumerate(orbit_viewmats(n, start_deg=start_deg))]

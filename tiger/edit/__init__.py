@@ -1,7 +1,7 @@
 """Editing and deletion of retrieved objects (paper §3.2 and appendix; SPEC §6).
 
-``tiger.edit.edit(scene, instruction, target, guidance)`` runs Coherent Score Distillation on the
-retrieved Gaussians only; guidances live in :mod:`tiger.edit.guidance` (``RecolorGuidance`` needs no
+``tiger.edit.edit(scene, target, guidance)`` runs Coherent Score Distillation on the retrieved
+Gaussians only (the guidance carries the instruction); guidances live in :mod:`tiger.edit.guidance` (``RecolorGuidance`` needs no
 weights), object-centred cameras in :mod:`tiger.edit.views`. ``tiger.edit.delete(scene, target,
 cameras)`` removes an object, inpaints the views (:mod:`tiger.edit.inpaint`) and refits the hole.
 """

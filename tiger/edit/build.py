@@ -20,6 +20,9 @@ def build_guidance(kind: str, instruction: str, *, models: Optional[str] = None,
                    mvdream_kwargs: Optional[dict] = None) -> Guidance:
     """The guidance ``kind`` for ``instruction``.
 
+    ``instruction`` is given here only: the guidance carries it (``guidance.instruction``) and
+    :func:`tiger.edit.edit` records it from there. ``schedule`` is the CSD λ schedule of
+    ``ip2p+mvdream`` (recorded by ``guidance.settings()``).
     ``recolor`` takes its colour from ``color`` or from a colour word in the instruction. The
     diffusion guidances load their weights from ``models`` / ``$TIGER_MODELS`` (an error names the
     files and the public id when they are missing); ``ip2p+mvdream`` is their CSD combination.
@@ -32,7 +35,7 @@ def build_guidance(kind: str, instruction: str, *, models: Optional[str] = None,
     if kind not in KINDS:
         raise ValueError(f"tiger.edit: guidance must be one of {KINDS}, got {kind!r}")
     if kind == "recolor":
-        return RecolorGuidance(color if color is not None else instruction)
+        return RecolorGuidance(instruction, color=color)
     dev = torch.device(device)
     dtype = default_model_dtype(dev) if dtype is None else dtype
     graphs = dev.type == "cuda" if cuda_graph is None else bool(cuda_graph)

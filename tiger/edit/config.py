@@ -5,8 +5,6 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from .csd import CSDSchedule
-
 #: Learning rates of the editable parameters (Adam). ``means`` is multiplied by the object's
 #: radius (half-diagonal of its robust box), as INRIA scales it by the scene's extent.
 DEFAULT_EDIT_LRS = {
@@ -20,7 +18,8 @@ DEFAULT_EDIT_LRS = {
 
 @dataclass
 class EditConfig:
-    """Hyper-parameters of :func:`tiger.edit.edit`.
+    """Hyper-parameters of :func:`tiger.edit.edit` (the guidance's own settings, e.g. the CSD λ
+    schedule, belong to the guidance: :meth:`tiger.edit.guidance.base.Guidance.settings`).
 
     Attributes:
         steps: optimisation steps (the paper: 1200-3000).
@@ -44,7 +43,6 @@ class EditConfig:
         view_independent: edited Gaussians drop their higher SH bands (zeroed at the start of the
             round, not optimised), so every view sees the same colour (paper appendix).
         background: RGB behind the Gaussians in the edit renders.
-        schedule: the CSD λ schedule (used when the guidance is a CSDGuidance built by the loop).
         seed: seed of the view sampler.
         checkpoint_every: write the checkpoint every this many steps (0: only on interrupt/end).
         progress: show a progress bar.
@@ -67,7 +65,6 @@ class EditConfig:
     min_opacity: float = 0.005
     view_independent: bool = True
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    schedule: CSDSchedule = CSDSchedule()
     seed: int = 0
     checkpoint_every: int = 100
     progress: bool = True
@@ -89,7 +86,6 @@ class EditConfig:
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        d["schedule"] = {"ratio": list(self.schedule.ratio), "mv_end": self.schedule.mv_end}
         d["elevation_deg"] = list(self.elevation_deg)
         d["background"] = list(self.background)
         d.pop("progress")

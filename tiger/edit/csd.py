@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 
-from .guidance.base import Guidance, GuidanceInfo, ViewBatch
+from .guidance.base import Guidance, GuidanceInfo, ViewBatch, check_guidance, unique_generators
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,7 @@ class CSDSchedule:
     mv_end: float = 0.75
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "ratio", tuple(float(r) for r in self.ratio))
         a, b = self.ratio
         if a < 0 or b < 0 or a + b <= 0:
             raise ValueError(f"tiger.edit.csd: ratio must be two non-negative weights, got {self.ratio}")
@@ -53,6 +54,10 @@ class CSDSchedule:
         lam2 = lam2_0 * max(0.0, 1.0 - p / self.mv_end)
         return 1.0 - lam2, lam2
 
+    def to_dict(self) -> dict[str, Any]:
+        """``{"ratio": [ip2p, mvdream], "mv_end": p_end}`` (records)."""
+        return {"ratio": list(self.ratio), "mv_end": self.mv_end}
+
 
 class CSDGuidance:
     """``λ1 g_ip2p + λ2 g_mvdream`` with λ from a :class:`CSDSchedule`; a Guidance itself.
@@ -60,7 +65,10 @@ class CSDGuidance:
     Args:
         ip2p: the image-editing guidance (or None: MVDream alone, λ2 = 1).
         mvdream: the multi-view guidance (or None: InstructPix2Pix alone, λ1 = 1).
-        schedule: the λ schedule.
+        schedule: the λ schedule (its one home: the record of an edit is this guidance's
+            :meth:`settings`).
+
+    The instruction is InstructPix2Pix's (MVDream's prompt when there is no InstructPix2Pix).
     """
 
     name = "csd"
@@ -69,7 +77,25 @@ class CSDGuidance:
                  schedule: CSDSchedule = CSDSchedule()) -> None:
         if ip2p is None and mvdream is None:
             raise ValueError("tiger.edit.csd: needs at least one guidance")
-        self.ip2p, self.mvdream, self.schedule = ip2p, mvdream, schedule
+        self.ip2p = None if ip2p is None else check_guidance(ip2p)
+        self.mvdream = None if mvdream is None else check_guidance(mvdream)
+        self.schedule = schedule
+        self.instruction = (self.ip2p or self.mvdream).instruction
+
+    def settings(self) -> dict[str, Any]:
+        """The schedule and each part's name, instruction and settings (None for a missing part)."""
+        parts = {key: None if g is None else {"name": g.name, "instruction": g.instruction, **g.settings()}
+                 for key, g in (("ip2p", self.ip2p), ("mvdream", self.mvdream))}
+        return {"schedule": self.schedule.to_dict(), **parts}
+
+    def generators(self) -> list[torch.Generator]:
+        """InstructPix2Pix's generators, then MVDream's (a shared one once)."""
+        return unique_generators(*(g.generators() for g in (self.ip2p, self.mvdream) if g is not None))
+
+    def reset_caches(self) -> None:
+        for g in (self.ip2p, self.mvdream):
+            if g is not None:
+                g.reset_caches()
 
     def weights(self, step: int, total_steps: int) -> tuple[float, float]:
         if self.mvdream is None:

@@ -28,7 +28,7 @@ import torch
 
 from tiger.retrieval import CANONICAL_NEGATIVES, Retrieval, TextEncoder, retrieve
 from tiger.retrieval.select import Tau
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 from tiger.scene.gaussian_scene import GaussianScene, inverse_sigmoid, render_views
 from tiger.scene.sh import rgb_to_sh
 

@@ -36,12 +36,12 @@ import torch
 from tiger.retrieval.text import TextEncoder
 from tiger.recon.step import SceneOptimizer
 from tiger.recon.strategy.rules import DensifyStats, prune_transparent, region_topk_densify
-from tiger.scene.cameras import Camera
-from tiger.scene.gaussian_scene import GaussianScene, render_views
+from tiger.render import Camera
+from tiger.scene.gaussian_scene import GaussianScene, render_rgb, render_views
 from tiger.utils.io import atomic_torch_save
 
 from .config import EditConfig
-from .guidance.base import Guidance, ViewBatch
+from .guidance.base import Guidance, ViewBatch, check_guidance
 from .target import EditTarget, TargetLike, resolve_target
 from .views import ObjectViews
 
@@ -134,16 +134,6 @@ class _Timer:
         self._done.update(totals)
 
 
-def _generators(guidance: Guidance) -> list[torch.Generator]:
-    """Every torch.Generator a guidance (or a CSDGuidance's parts) draws from, in a fixed order."""
-    out = []
-    for g in (guidance, getattr(guidance, "ip2p", None), getattr(guidance, "mvdream", None)):
-        gen = getattr(g, "generator", None) if g is not None else None
-        if isinstance(gen, torch.Generator) and all(gen is not o for o in out):
-            out.append(gen)
-    return out
-
-
 class EditSession:
     """The state of one edit round (built by :func:`edit`; usable directly for step-wise control).
 
@@ -152,15 +142,16 @@ class EditSession:
     of :mod:`tiger.recon.strategy`.
     """
 
-    def __init__(self, scene: GaussianScene, target: EditTarget, guidance: Guidance, instruction: str,
+    def __init__(self, scene: GaussianScene, target: EditTarget, guidance: Guidance,
                  cameras: Optional[Sequence[Camera]], config: EditConfig) -> None:
-        self.cfg, self.guidance, self.instruction, self.target = config, guidance, instruction, target
+        self.cfg, self.guidance, self.target = config, check_guidance(guidance), target
+        self.instruction = guidance.instruction
         self.device = scene.device
         self.input_len = len(scene)
         w = target.weights.to(self.device, scene.dtype)
         editable = w > 0
         self.original = scene.detach()
-        self.orig_indicator = editable.to(scene.dtype)[:, None]
+        self.orig_indicator = editable.to(scene.dtype)
         work = scene.clone()
         if config.view_independent:  # editable Gaussians keep only their base colour
             work.sh_rest[editable] = 0
@@ -179,9 +170,7 @@ class EditSession:
         self._rng_at_start: Optional[tuple] = None
         self.stats = DensifyStats.zeros(len(work), self.device)
         self.pool: Optional[ViewPool] = None
-        for g in (guidance, getattr(guidance, "ip2p", None)):  # ids of an earlier round's cameras
-            if hasattr(g, "clear_condition_cache"):
-                g.clear_condition_cache()
+        guidance.reset_caches()  # view ids of an earlier round named other cameras
         if config.view_pool:
             with self.timer("view_pool"):
                 self.pool = self._build_pool(config.view_pool)
@@ -207,15 +196,10 @@ class EditSession:
                    if torch.is_tensor(v) and v.dim() > 0)
 
     # -- rendering ------------------------------------------------------------------------------
-    @torch.no_grad()
     def _render_originals(self, cams: Sequence[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Original renders [V, 3, H, W] (full SH) and the object's footprint [V, 1, H, W]."""
-        s = self.original
-        bg = torch.cat([self.background, self.background.new_zeros(1)])
-        # one pass per view: the view's SH colour and the object indicator as a 4th channel
-        out = torch.stack([s.render(c, torch.cat([s.view_colors(c.to(s.device, s.dtype)), self.orig_indicator], 1),
-                                    background=bg, check_finite=False)["color"] for c in cams])
-        return out[..., :3].clamp(0, 1).permute(0, 3, 1, 2), out[..., 3:].clamp(0, 1).permute(0, 3, 1, 2)
+        """Original renders [V, 3, H, W] (full SH) and the object's footprint [V, 1, H, W], in one pass."""
+        rgb, foot = render_rgb(self.original, cams, self.background, footprint=self.orig_indicator)
+        return rgb.permute(0, 3, 1, 2), foot[:, None]
 
     def _build_pool(self, sets: int) -> "ViewPool":
         """``sets`` camera sets drawn with the per-step rules from their own seeded generator
@@ -241,7 +225,7 @@ class EditSession:
         """One CSD step (views, renders, guidance, backward, scaled Adam, densification); the
         record's ``loss`` may be a 0-d tensor (not read back, so the host need not wait)."""
         cfg, T = self.cfg, self.timer
-        self._rng_at_start = (self.gen.get_state(), [g.get_state() for g in _generators(self.guidance)])
+        self._rng_at_start = (self.gen.get_state(), [g.get_state() for g in self.guidance.generators()])
         with T("render"):
             cams, originals, masks, view_ids = self._views()
             out = render_views(self.opt.render_scene(), cams, "rgb", background=self.background, check_finite=False)
@@ -253,7 +237,7 @@ class EditSession:
         with T("guidance"):
             g, info = self.guidance.grad(x.detach(), batch)
         if g.shape != x.shape:
-            raise ValueError(f"tiger.edit: guidance '{getattr(self.guidance, 'name', '?')}' returned a gradient "
+            raise ValueError(f"tiger.edit: guidance '{self.guidance.name}' returned a gradient "
                              f"of shape {list(g.shape)} for renders {list(x.shape)}")
         with T("backward"):
             x.backward(torch.nan_to_num(g.to(x), nan=0.0, posinf=0.0, neginf=0.0))
@@ -294,15 +278,17 @@ class EditSession:
 
     # -- checkpoints ------------------------------------------------------------------------------
     def signature(self) -> dict:
+        """What a checkpoint must match to resume: instruction, target, input size, the guidance's
+        name and settings (what runs), the edit settings."""
         return {"instruction": self.instruction, "target": self.target.description, "gaussians": self.input_len,
-                "guidance": getattr(self.guidance, "name", type(self.guidance).__name__),
+                "guidance": self.guidance.name, "guidance_settings": self.guidance.settings(),
                 "config": self.cfg.to_dict()}
 
     def save(self, path: Union[str, Path]) -> None:
         payload = {
             "format": CHECKPOINT_FORMAT, "signature": self.signature(), "step": self.step,
             "optimizer": self.opt.state_dict(), "stats": self.stats.state_dict(), "view_rng": self.gen.get_state(),
-            "guidance_rng": [g.get_state() for g in _generators(self.guidance)],
+            "guidance_rng": [g.get_state() for g in self.guidance.generators()],
             "history": self.history, "elapsed": self.elapsed, "timings": dict(self.timer.total),
         }
         atomic_torch_save(payload, path)
@@ -316,13 +302,15 @@ class EditSession:
         if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"tiger.edit: {path} is not an edit checkpoint (format {CHECKPOINT_FORMAT})")
         if ck["signature"] != self.signature():
+            mine = self.signature()
+            differ = sorted(k for k in set(mine) | set(ck["signature"]) if mine.get(k) != ck["signature"].get(k))
             raise ValueError(f"tiger.edit: checkpoint {path} belongs to another edit "
-                             f"({ck['signature'].get('instruction')!r} on {ck['signature'].get('target')!r}); "
-                             "use another output folder or start without --resume")
+                             f"({ck['signature'].get('instruction')!r} on {ck['signature'].get('target')!r}; "
+                             f"differs in {', '.join(differ)}); use another output folder or start without --resume")
         self.opt.load_state_dict(ck["optimizer"])
         self.stats = DensifyStats.from_state_dict({k: v.to(self.device) for k, v in ck["stats"].items()})
         self.gen.set_state(ck["view_rng"].cpu())
-        for g, st in zip(_generators(self.guidance), ck.get("guidance_rng", [])):
+        for g, st in zip(self.guidance.generators(), ck.get("guidance_rng", [])):
             g.set_state(st.cpu())
         self.step, self.history, self.elapsed = int(ck["step"]), list(ck["history"]), float(ck["elapsed"])
         self.timer.load(ck.get("timings", {}))
@@ -353,7 +341,7 @@ class EditSession:
         except KeyboardInterrupt:
             if self._rng_at_start is not None:  # the step did not finish: it is redone on resume
                 self.gen.set_state(self._rng_at_start[0])
-                for g, st in zip(_generators(self.guidance), self._rng_at_start[1]):
+                for g, st in zip(self.guidance.generators(), self._rng_at_start[1]):
                     g.set_state(st)
             if checkpoint:
                 self.save(checkpoint)
@@ -365,7 +353,7 @@ class EditSession:
             self.save(checkpoint)
 
 
-def edit(scene: GaussianScene, instruction: str, target: TargetLike, guidance: Guidance, *,
+def edit(scene: GaussianScene, target: TargetLike, guidance: Guidance, *,
          cameras: Optional[Sequence[Camera]] = None, config: Optional[EditConfig] = None,
          encoder: Optional[TextEncoder] = None, tau: Union[float, str] = "auto", checkpoint: Optional[Union[str, Path]] = None,
          resume: bool = False, **overrides: Any) -> EditResult:
@@ -373,10 +361,11 @@ def edit(scene: GaussianScene, instruction: str, target: TargetLike, guidance: G
 
     Args:
         scene: the scene (with ``lang`` for a text target); not modified.
-        instruction: the edit instruction (recorded; the guidance already carries it).
         target: text (retrieved with ``encoder``/``tau``), Retrieval, [N] bool mask or [N] weights.
         guidance: any :class:`~tiger.edit.guidance.base.Guidance` (``RecolorGuidance``,
-            ``CSDGuidance(ip2p, mvdream)``, the analytic ``IdealDenoiserGuidance``, ...).
+            ``CSDGuidance(ip2p, mvdream)``, the analytic ``IdealDenoiserGuidance``, ...); it carries
+            the instruction (recorded as ``guidance.instruction``) and its settings (the CSD
+            schedule, dtypes, ...), recorded with the round and checked on resume.
         cameras: the scene's capture cameras (decide 360° vs forward-facing placement); None: 360°.
         config: :class:`EditConfig`; ``**overrides`` replace its fields (e.g. ``steps=300``).
         checkpoint: file for checkpoints (written every ``checkpoint_every`` steps, at the end, and on
@@ -389,15 +378,17 @@ def edit(scene: GaussianScene, instruction: str, target: TargetLike, guidance: G
     cfg = dataclasses.replace(config or EditConfig(), **overrides)
     if not isinstance(scene, GaussianScene):
         raise TypeError(f"tiger.edit: scene must be a GaussianScene, got {type(scene).__name__}")
+    check_guidance(guidance)
     tgt = resolve_target(scene, target, encoder=encoder, tau=tau)
-    session = EditSession(scene, tgt, guidance, instruction, cameras, cfg)
+    session = EditSession(scene, tgt, guidance, cameras, cfg)
     if resume and checkpoint and Path(checkpoint).exists():
         session.load(checkpoint)
-    log.info("edit '%s': %d of %d Gaussians editable (%s), %s views, %d steps", instruction, tgt.count, len(scene),
+    log.info("edit '%s': %d of %d Gaussians editable (%s), %s views, %d steps", session.instruction, tgt.count, len(scene),
              tgt.description, "360°" if session.views.is_360 else "forward-facing", cfg.steps)
     session.run(checkpoint)
     out, w = session.result_scene()
-    record = {"instruction": instruction, "target": tgt.description, "guidance": session.signature()["guidance"],
+    record = {"instruction": session.instruction, "target": tgt.description, "guidance": guidance.name,
+              "guidance_settings": guidance.settings(),
               "steps": session.step, "editable": tgt.count, "gaussians_before": len(scene),
               "gaussians_after": len(out), "time_s": round(session.elapsed, 3),
               "views": "360" if session.views.is_360 else "forward-facing",

@@ -23,7 +23,8 @@ import torch
 from tiger.recon.losses import photometric_loss
 from tiger.recon.step import SceneOptimizer
 from tiger.recon.strategy import DensifyStats, region_topk_densify
-from tiger.scene.cameras import Camera, scene_extent
+from tiger.render import Camera
+from tiger.scene.cameras import scene_extent
 from tiger.scene.gaussian_scene import GaussianScene
 from tiger.utils.io import atomic_torch_save
 

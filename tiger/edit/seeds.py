@@ -22,7 +22,7 @@ import logging
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,8 @@ from typing import Optional, Sequence
 import torch
 
 from tiger.render.views import look_at, pinhole_K
-from tiger.scene.cameras import Camera, camera_centers
+from tiger.render import Camera
+from tiger.scene.cameras import camera_centers
 
 
 def capture_up(cameras: Sequence[Camera]) -> torch.Tensor:

@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Optional, Sequence, Union
 import torch
 import torch.nn.functional as F
 
-from tiger.render.camera import Camera
-from tiger.scene import ColorSpec, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene, render_rgb
 from tiger.utils.filters import dilate
 
 if TYPE_CHECKING:
@@ -104,39 +104,19 @@ def psnr_outside(before: torch.Tensor, after: torch.Tensor, masks: torch.Tensor,
     return {"psnr": p, "mse": mse, "pixels": n, "fraction": n / outside.numel()}
 
 
-def _render(scene: GaussianScene, cam: Camera, colors: ColorSpec,
-            background: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
-    return scene.render(cam.to(device=scene.device, dtype=scene.dtype), colors, background=background,
-                        check_finite=False)
-
-
-@torch.no_grad()
-def render_rgb_and_footprint(scene: GaussianScene, cameras: Sequence[Camera], selected: torch.Tensor,
-                             background: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(rgb [V, H, W, 3], footprint [V, H, W] in [0, 1]) of ``scene`` (full SH colour) and of the
-    Gaussians in ``selected`` [N] bool (their share of each pixel's colour)."""
-    if selected.shape != (len(scene),) or selected.dtype != torch.bool:
-        raise ValueError(f"tiger.eval.edit: selected must be [N={len(scene)}] bool, got "
-                         f"{list(selected.shape)} {selected.dtype}")
-    bg = None if background is None else background.to(scene.means)
-    rgbs, feet = [], []
-    ind = selected.to(scene.means)[:, None]
-    for cam in cameras:
-        rgbs.append(_render(scene, cam, "rgb", bg)["color"])
-        feet.append(_render(scene, cam, ind)["color"][..., 0])
-    return torch.stack(rgbs), torch.stack(feet)
-
-
 def locality(before: GaussianScene, after: GaussianScene, cameras: Sequence[Camera], edited_before: torch.Tensor,
              edited_after: torch.Tensor, dilate_px: int = 4, coverage: float = 0.02,
              background: Optional[torch.Tensor] = None) -> dict:
     """Locality PSNR of an edit over ``cameras``: renders of ``before`` and ``after`` (scenes)
     compared outside the union of the edited Gaussians' footprints (``edited_before`` [N_before]
     and ``edited_after`` [N_after] bool), dilated by ``dilate_px``. See :func:`psnr_outside`."""
-    rb, fb = render_rgb_and_footprint(before, cameras, edited_before, background)
-    ra, fa = render_rgb_and_footprint(after, cameras, edited_after, background)
+    for name, scene, sel in (("edited_before", before, edited_before), ("edited_after", after, edited_after)):
+        if sel.shape != (len(scene),) or sel.dtype != torch.bool:
+            raise ValueError(f"tiger.eval.edit: {name} must be [N={len(scene)}] bool, got {list(sel.shape)} {sel.dtype}")
+    rb, fb = render_rgb(before, cameras, background, footprint=edited_before)
+    ra, fa = render_rgb(after, cameras, background, footprint=edited_after)
     masks = (fb > coverage) | (fa > coverage)
-    out = psnr_outside(rb.clamp(0, 1), ra.clamp(0, 1), masks, dilate_px)
+    out = psnr_outside(rb, ra, masks, dilate_px)
     out["dilate_px"] = int(dilate_px)
     return out
 
@@ -178,4 +158,4 @@ def clip_metrics(clip: Union["MaskCLIP", "CLIPModel"], before: torch.Tensor, aft
 
 
 __all__ = ["PSNR_CAP", "clip_direction_consistency", "clip_direction_similarity", "clip_image_embeddings",
-           "clip_metrics", "dilate_mask", "locality", "psnr_outside", "render_rgb_and_footprint"]
+           "clip_metrics", "dilate_mask", "locality", "psnr_outside"]

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from tiger.retrieval.text import EmbeddingTable, PCASource, TextEncoder
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.utils.io import atomic_write, file_slug
 
 from .filters import argmax_points, majority_smooth, mean_filter

@@ -15,7 +15,7 @@ from typing import Sequence
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 from .edit import PSNR_CAP, psnr_outside
 

@@ -20,7 +20,8 @@ from typing import Callable, Mapping, Optional, Protocol, Sequence, Union
 import torch
 
 from tiger.retrieval.text import PCASource
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.utils.io import atomic_torch_save
 
 log = logging.getLogger(__name__)

@@ -31,4 +31,4 @@ for _mod in sorted(m.name for m in pkgutil.iter_modules(__path__)):
     if not _mod.startswith("_"):
         importlib.import_module(f"{__name__}.{_mod}")
 
-__all__ = ["cuda_enabled", "torch"]
+__all__ = ["cuda_enabled"]

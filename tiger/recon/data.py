@@ -6,7 +6,7 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 from tiger.scene.images import load_image
 
 PathLike = Union[str, os.PathLike]

@@ -5,7 +5,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 
 @torch.no_grad()

@@ -8,7 +8,7 @@ import torch
 from tiger.ops.ssim import fused_ssim
 from tiger.utils.filters import gaussian_blur, gaussian_taps
 
-__all__ = ["gaussian_blur", "ssim_map", "ssim", "l1", "photometric_loss", "psnr", "psnr_tensor", "SSIM_C1", "SSIM_C2"]
+__all__ = ["ssim_map", "ssim", "l1", "photometric_loss", "psnr", "psnr_tensor", "SSIM_C1", "SSIM_C2"]
 
 SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2

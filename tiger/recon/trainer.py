@@ -9,7 +9,8 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from tiger.scene.cameras import Camera, scene_extent
+from tiger.render import Camera
+from tiger.scene.cameras import scene_extent
 from tiger.scene.checkpoint import load_checkpoint, save_checkpoint
 from tiger.scene.dataset import points_in_views
 from tiger.scene.gaussian_scene import GaussianScene

@@ -12,34 +12,23 @@ from tiger.ops.projection import project_gaussians
 from tiger.ops.raster import rasterize
 from tiger.ops.sh import sh_to_color
 
-__all__ = ["rasterize_gaussians", "RasterDefaults", "RasterSettings", "Projection", "project_for_raster",
+__all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
            "composite", "bin_projection", "camera_center", "sh_colors"]
-
-
-class RasterDefaults:
-    """Default accuracy knobs (SPEC §3); every one is a keyword of :func:`rasterize_gaussians`."""
-
-    near: float = 0.01
-    far: float = 1e10
-    eps2d: float = 0.3
-    alpha_max: float = 0.99
-    alpha_threshold: float = 1.0 / 255.0
-    t_min: float = 1e-4
-    tile_size: int = 16
 
 
 @dataclass(frozen=True)
 class RasterSettings:
-    """The rasterizer's accuracy and speed keywords (see :func:`rasterize_gaussians`)."""
+    """The rasterizer's accuracy and speed keywords, with their defaults (SPEC §3); each is a
+    keyword of :func:`rasterize_gaussians` (whose defaults are read from here)."""
 
-    near: float = RasterDefaults.near
-    far: float = RasterDefaults.far
-    eps2d: float = RasterDefaults.eps2d
+    near: float = 0.01
+    far: float = 1e10
+    eps2d: float = 0.3
     antialiased: bool = False
-    alpha_max: float = RasterDefaults.alpha_max
-    alpha_threshold: float = RasterDefaults.alpha_threshold
-    t_min: float = RasterDefaults.t_min
-    tile_size: int = RasterDefaults.tile_size
+    alpha_max: float = 0.99
+    alpha_threshold: float = 1.0 / 255.0
+    t_min: float = 1e-4
+    tile_size: int = 16
     check_finite: bool = True
 
 
@@ -158,15 +147,15 @@ def rasterize_gaussians(
     background: Optional[Tensor] = None,
     sh_degree: Optional[int] = None,
     sh_rest: Optional[Tensor] = None,
-    near: float = RasterDefaults.near,
-    far: float = RasterDefaults.far,
-    eps2d: float = RasterDefaults.eps2d,
-    antialiased: bool = False,
-    alpha_max: float = RasterDefaults.alpha_max,
-    alpha_threshold: float = RasterDefaults.alpha_threshold,
-    t_min: float = RasterDefaults.t_min,
-    tile_size: int = RasterDefaults.tile_size,
-    check_finite: bool = True,
+    near: float = RasterSettings.near,
+    far: float = RasterSettings.far,
+    eps2d: float = RasterSettings.eps2d,
+    antialiased: bool = RasterSettings.antialiased,
+    alpha_max: float = RasterSettings.alpha_max,
+    alpha_threshold: float = RasterSettings.alpha_threshold,
+    t_min: float = RasterSettings.t_min,
+    tile_size: int = RasterSettings.tile_size,
+    check_finite: bool = RasterSettings.check_finite,
 ) -> dict[str, Tensor]:
     """Render 3D Gaussians into one pinhole camera, differentiably.
 

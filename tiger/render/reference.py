@@ -15,7 +15,7 @@ from torch import Tensor
 from .rasterize import camera_center
 
 # The reference's constants are written from their sources, not imported from the kernels'
-# RasterDefaults, so that a wrong kernel default shows up as a difference:
+# RasterSettings, so that a wrong kernel default shows up as a difference:
 #   INRIA diff-gaussian-rasterization, cuda_rasterizer/forward.cu: ``cov[0][0] += 0.3f`` (eps2d),
 #   ``alpha = min(0.99f, ...)``, ``if (alpha < 1.0f / 255.0f) continue``,
 #   ``if (test_T < 0.0001f) done = true``; SPEC §3 (the same values).

@@ -1,21 +1,15 @@
-"""Virtual cameras: look-at matrices, orbits around a point, and the views to render of a
-captured scene: along the capture's camera path when the cameras are known
-(:func:`path_view_indices`), else an arc over the side the scene was observed from
-(:func:`observed_orbit_cameras`)."""
+"""Virtual cameras: look-at matrices, orbits around a point or a point cloud, and the views to
+render along a capture's camera path (:func:`path_view_indices`). Views chosen from a scene's
+content (the side it was observed from) are :mod:`tiger.scene.observed`."""
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Optional, Sequence, Union
+from typing import Optional, Sequence, Union
 
 import torch
 from torch import Tensor
 
-from tiger.ops.sh import sh_to_color
-
 from .camera import Camera
-
-if TYPE_CHECKING:
-    from tiger.scene import GaussianScene
 
 
 def look_at(eye: Sequence[float], target: Sequence[float],
@@ -83,11 +77,12 @@ def orbit_viewmats(n: int, center: Sequence[float] = (0.0, 0.0, 0.0), radius: fl
     return out
 
 
-def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0,
+def orbit_cameras(n: int, width: int, height: int, fov_y_deg: float = 45.0, *, names: str = "orbit{:03d}",
                   **orbit: float | Sequence[float]) -> list[Camera]:
-    """:class:`Camera` views on an orbit (see :func:`orbit_viewmats` for ``orbit``)."""
+    """:class:`Camera` views on an orbit (see :func:`orbit_viewmats` for ``orbit``), the i-th
+    named ``names.format(i)``."""
     K = pinhole_K(width, height, fov_y_deg)
-    return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=f"orbit{i:03d}")
+    return [Camera(viewmat=V, K=K.clone(), width=width, height=height, image_name=names.format(i))
             for i, V in enumerate(orbit_viewmats(n, **orbit))]
 
 
@@ -143,51 +138,3 @@ def fibonacci_directions(n: int) -> Tensor:
     phi = math.pi * (1 + 5 ** 0.5) * i
     r = (1 - z * z).sqrt()
     return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=1)
-
-
-def observed_direction(scene: "GaussianScene", candidates: int = 64) -> Optional[Tensor]:
-    """The direction [3] (from the scene's centre towards where the cameras were) that the
-    scene's view-dependent colour says was observed, or None for SH degree 0.
-
-    Rule: training fits the SH colours only for the directions the cameras saw; elsewhere the
-    higher bands extrapolate and the colours leave [0, 1]. For ``candidates`` directions d
-    spread over the sphere, each Gaussian's colour is evaluated for a distant camera at d
-    (view direction -d), and d scores the opacity-weighted mean amount by which the colours
-    fall outside [0, 1]. The answer is the mean of the directions scoring within 10 % (of the
-    score range) of the best: the centre of the observed cap.
-    """
-    if scene.sh_degree == 0 or len(scene) == 0:
-        return None
-    with torch.no_grad():
-        sh = scene.sh.detach().float()
-        w = scene.opacities.detach().float()
-        dirs = fibonacci_directions(candidates).float().to(sh.device)
-        scores = []
-        for d in dirs:
-            view = (-d).expand(sh.shape[0], 3)
-            rgb = sh_to_color(view, sh, scene.sh_degree) + 0.5
-            outside = (rgb - 1).clamp_min(0) + (-rgb).clamp_min(0)
-            scores.append(float((outside.sum(1) * w).sum() / w.sum().clamp_min(1e-12)))
-    sc = torch.tensor(scores, dtype=torch.float64)
-    lo, hi = float(sc.min()), float(sc.max())
-    if hi - lo <= 1e-9 * max(hi, 1.0):  # no direction stands out: nothing was learnt about views
-        return None
-    good = dirs.double().cpu()[sc <= lo + 0.1 * (hi - lo)]  # the best directions: a cap
-    mean = good.mean(0)
-    return mean / mean.norm() if float(mean.norm()) > 1e-6 else good[0]
-
-
-def observed_orbit_cameras(scene: "GaussianScene", n: int, width: int, height: int, *,
-                           arc_deg: float = 120.0, elevation_deg: float = 15.0,
-                           up: Sequence[float] = (0.0, -1.0, 0.0), fov_y_deg: float = 45.0) -> list[Camera]:
-    """``n`` views on an arc of ``arc_deg`` around the observed side of a scene with no cameras.
-
-    The centre and radius are :func:`orbit_cameras_around`'s (the 2-98 % quantile box of the
-    means); the arc is centred on :func:`observed_direction` (the full circle when the
-    scene's colours do not say: SH degree 0), ``elevation_deg`` above the plane normal to
-    ``up`` (the COLMAP/OpenCV habit: -y).
-    """
-    front = observed_direction(scene)
-    arc = {} if front is None else {"front": front.tolist(), "arc_deg": arc_deg}
-    return orbit_cameras_around(scene.means, n, width, height, fov_y_deg, elevation_deg=elevation_deg,
-                                up=up, **arc)

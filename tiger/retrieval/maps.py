@@ -9,7 +9,8 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene, render_rgb
 from tiger.scene.gaussian_scene import RasterOption
 from tiger.utils.io import atomic_write, file_slug
 
@@ -28,12 +29,6 @@ def render_language(scene: GaussianScene, camera: Camera,
     with torch.no_grad():
         out = scene.render(camera, "lang", **options)
     return out["color"], out["alpha"]
-
-
-def render_rgb(scene: GaussianScene, camera: Camera) -> torch.Tensor:
-    """[H, W, 3] SH colour render in [0, 1], the picture behind a heat-map (no grad)."""
-    with torch.no_grad():
-        return scene.render(camera)["color"].clamp(0, 1)
 
 
 def relevancy_maps(scene: GaussianScene, camera: Camera, queries: torch.Tensor, negatives: Optional[torch.Tensor] = None,
@@ -187,7 +182,7 @@ def write_relevancy_pictures(scene: GaussianScene, cameras: Sequence[Camera], qu
         vals = maps["relevancy"][0] if score == "relevancy" else maps["cosine"][0]
         vmin, vmax = (0.5, 1.0) if score == "relevancy" else (-1.0, 1.0)
         p = out_dir / f"{file_slug(text)}_{file_slug(Path(view).stem)}.png"
-        save_relevancy_picture(p, vals, maps["alpha"], render_rgb(scene, cam), vmin=vmin, vmax=vmax,
+        save_relevancy_picture(p, vals, maps["alpha"], render_rgb(scene, [cam])[0], vmin=vmin, vmax=vmax,
                                title=f"'{text}' ({score})")
         paths.append(p)
     log.info("wrote %d relevancy pictures to %s", len(paths), out_dir)

@@ -1,7 +1,7 @@
 """Camera helpers over sets of views: intrinsics, rotations, centres and INRIA's scene extent.
 
-:class:`Camera` and :class:`Distortion` live a floor down, in :mod:`tiger.render.camera`
-(the renderer and the virtual views need them); they are re-exported here.
+:class:`Camera` and :class:`Distortion` have one home a floor down, :mod:`tiger.render.camera`
+(public as ``tiger.render.Camera``; the renderer and the virtual views need them).
 """
 from __future__ import annotations
 
@@ -9,10 +9,9 @@ from typing import Sequence
 
 import torch
 
-from tiger.render.camera import Camera, Distortion, rigid_inverse
+from tiger.render import Camera
 
-__all__ = ["Camera", "Distortion", "rigid_inverse", "intrinsics", "quat_to_rotmat", "camera_centers",
-           "scene_extent"]
+__all__ = ["intrinsics", "quat_to_rotmat", "camera_centers", "scene_extent"]
 
 
 def intrinsics(fx: float, fy: float, cx: float, cy: float,

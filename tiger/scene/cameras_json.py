@@ -20,7 +20,9 @@ import torch
 
 from tiger.utils.io import atomic_write
 
-from .cameras import Camera, intrinsics, rigid_inverse
+from tiger.render import Camera
+from tiger.render.camera import rigid_inverse
+from .cameras import intrinsics
 from .errors import SceneFormatError
 
 PathLike = Union[str, os.PathLike]

@@ -17,7 +17,8 @@ from typing import Optional, Union
 import numpy as np
 import torch
 
-from .cameras import Camera, Distortion, intrinsics, quat_to_rotmat
+from tiger.render import Camera, Distortion
+from .cameras import intrinsics, quat_to_rotmat
 from .errors import SceneFormatError
 
 PathLike = Union[str, os.PathLike]

@@ -17,7 +17,7 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from .cameras import Camera
+from tiger.render import Camera
 from .colmap import colmap_cameras, find_model_dir, read_model
 from .errors import MissingImagesError, SceneFormatError
 from .nerf import load_transforms

@@ -8,16 +8,16 @@ from typing import Any, Iterable, Literal, Optional, Sequence, Union
 
 import torch
 
-from tiger.render.camera import Camera
+from tiger.render import Camera
 from tiger.render.rasterize import Projection, RasterSettings, bin_projection, composite, project_for_raster, sh_colors
 
 from .ply import read_ply_state, write_ply_state
 from .sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh, sh_degree_from_rest, sh_to_rgb
 
 PathLike = Union[str, os.PathLike]
-#: What :meth:`GaussianScene.render` draws: SH colour (None/"rgb"), language features, both, or
-#: any per-Gaussian channels [N, C].
-ColorSpec = Union[None, Literal["rgb", "lang", "rgb+lang"], torch.Tensor]
+#: What :meth:`GaussianScene.render` draws: SH colour (None/"rgb"), language features, both,
+#: any per-Gaussian channels [N, C], or the SH colour followed by such channels (("rgb", [N, C])).
+ColorSpec = Union[None, Literal["rgb", "lang", "rgb+lang"], torch.Tensor, tuple[Literal["rgb"], torch.Tensor]]
 #: A rasterizer keyword's value (near, far, eps2d, antialiased, tile_size, check_finite, ...).
 RasterOption = Union[float, int, bool]
 
@@ -359,7 +359,8 @@ class GaussianScene:
                 ``None`` or ``"rgb"``: its SH colour for this view ([H, W, 3]);
                 ``"lang"``: its language embedding ([H, W, D]);
                 ``"rgb+lang"``: both in one pass ([H, W, 3 + D]);
-                a tensor [N, C]: any per-Gaussian channels (gradients flow into it).
+                a tensor [N, C]: any per-Gaussian channels (gradients flow into it);
+                ``("rgb", tensor [N, C])``: the SH colour and those channels in one pass ([H, W, 3 + C]).
             background: [C] colour behind the Gaussians (default zeros).
             sh_degree: SH bands used for the colour (default: all of the scene's).
             **options: rasterizer keywords (near, far, eps2d, antialiased, check_finite, ...).
@@ -466,6 +467,45 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     return stacked
 
 
+#: Views rendered together by :func:`render_rgb` (bounds the stacked per-view projections).
+RGB_VIEWS_PER_PASS = 8
+
+
+@torch.no_grad()
+def render_rgb(scene: GaussianScene, cameras: Sequence[Camera], background: Union[None, torch.Tensor,
+               Sequence[float]] = None, *, footprint: Optional[torch.Tensor] = None
+               ) -> Union[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """RGB pictures of ``scene`` (its full SH colour, clamped to [0, 1], no gradients) from V
+    cameras of one size: the one helper for turntables, before/after grids, metrics, guidance
+    targets and an edit's original renders (:func:`render_views`, :data:`RGB_VIEWS_PER_PASS`
+    views at a time).
+
+    Args:
+        cameras: V cameras of one image size (cast to the scene's device and dtype).
+        background: [3] colour behind the Gaussians (a tensor or 3 numbers; default black).
+        footprint: optional [N] bool or float weights in [0, 1]: also render each pixel's
+            opacity-weighted share of these Gaussians (in the same pass, background 0).
+    Returns:
+        [V, H, W, 3] on the scene's device, or ``(rgb, footprint [V, H, W] in [0, 1])``.
+    """
+    cameras = list(cameras)
+    bg = torch.zeros(3) if background is None else torch.as_tensor(background)
+    bg = bg.to(scene.device, scene.dtype).reshape(-1)
+    if bg.shape != (3,):
+        raise ValueError(f"tiger: render_rgb background must be 3 numbers, got shape {list(bg.shape)}")
+    colors: ColorSpec = "rgb"
+    if footprint is not None:
+        if footprint.shape != (len(scene),):
+            raise ValueError(f"tiger: render_rgb footprint must be [N={len(scene)}], got {list(footprint.shape)}")
+        colors = ("rgb", footprint.to(scene.device, scene.dtype)[:, None])
+        bg = torch.cat([bg, bg.new_zeros(1)])
+    frozen = scene.detach()
+    parts = [render_views(frozen, cameras[i:i + RGB_VIEWS_PER_PASS], colors, background=bg,
+                          check_finite=False)["color"].clamp(0, 1) for i in range(0, len(cameras), RGB_VIEWS_PER_PASS)]
+    out = torch.cat(parts) if parts else render_views(frozen, cameras, colors)["color"]  # no camera: its error
+    return out if footprint is None else (out[..., :3], out[..., 3])
+
+
 def _settings(options: dict[str, RasterOption]) -> RasterSettings:
     try:
         return RasterSettings(**options)
@@ -493,14 +533,17 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
         if scene.lang is None:
             raise ValueError(f"tiger: render(colors='{colors}'): the scene has no language features")
         feats, per_view_rgb = scene.lang, colors == "rgb+lang"
-    elif isinstance(colors, torch.Tensor):
-        if colors.dim() != 2 or colors.shape[0] != n:
+    elif isinstance(colors, torch.Tensor) or (isinstance(colors, tuple) and len(colors) == 2
+                                              and isinstance(colors[0], str) and colors[0] == "rgb"
+                                              and isinstance(colors[1], torch.Tensor)):
+        feats = colors if isinstance(colors, torch.Tensor) else colors[1]
+        if feats.dim() != 2 or feats.shape[0] != n:
             raise ValueError(f"tiger: render colors must be a per-Gaussian tensor [N={n}, C], got "
-                             f"{list(colors.shape)}")
-        feats = colors
+                             f"{list(feats.shape)}")
+        per_view_rgb = isinstance(colors, tuple)
     else:
-        raise ValueError("tiger: render colors must be None, 'rgb', 'lang', 'rgb+lang' or a tensor "
-                         f"[N, C], got {colors!r}")
+        raise ValueError("tiger: render colors must be None, 'rgb', 'lang', 'rgb+lang', a tensor [N, C] or "
+                         f"('rgb', tensor [N, C]), got {colors!r}")
     means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
     out = []
     for camera in cameras:
@@ -552,5 +595,5 @@ def knn_mean_distance(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> to
     return torch.cat(out).to(points.dtype)
 
 
-__all__ = ["GaussianScene", "read_ply", "write_ply", "ColorSpec", "RasterOption", "render_views", "PARAM_NAMES", "DEFAULT_LRS", "inverse_sigmoid", "knn_mean_distance",
+__all__ = ["GaussianScene", "read_ply", "write_ply", "ColorSpec", "RasterOption", "render_views", "render_rgb", "PARAM_NAMES", "DEFAULT_LRS", "inverse_sigmoid", "knn_mean_distance",
            "MAX_SH_DEGREE"]

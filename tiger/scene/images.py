@@ -20,7 +20,7 @@ import torch.nn.functional as F
 
 from tiger.utils.io import atomic_write
 
-from .cameras import Camera, Distortion
+from tiger.render import Camera, Distortion
 from .errors import SceneFormatError
 
 log = logging.getLogger(__name__)

@@ -7,7 +7,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .cameras import Camera
+from tiger.render import Camera
 from .gaussian_scene import GaussianScene
 
 __all__ = ["LabelledScene"]

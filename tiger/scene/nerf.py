@@ -18,7 +18,9 @@ from typing import Any, Optional, Union
 
 import torch
 
-from .cameras import Camera, Distortion, intrinsics, rigid_inverse
+from tiger.render import Camera, Distortion
+from tiger.render.camera import rigid_inverse
+from .cameras import intrinsics
 from .errors import MissingImagesError, SceneFormatError
 
 log = logging.getLogger(__name__)

@@ -8,19 +8,20 @@ so the SDS gradient ``w(t) (ε̂ − ε)`` equals ``w(t) √(ᾱ_t / (1 − ᾱ_
 render toward its target, and its optimum is exactly x*. This module runs the real SDS path
 (noise drawn, x_t formed, ε̂ computed from x_t), so it exercises the same arithmetic a diffusion
 guidance does, in image space ([0, 1] mapped to [-1, 1]) with Stable Diffusion's noise schedule
-(:class:`~tiger.edit.guidance.sds.NoiseSchedule`, t drawn as the diffusion guidances draw it).
+(:class:`~tiger.edit.guidance.noise_schedule.NoiseSchedule`, t drawn as the diffusion guidances draw it).
 ``w(t) = 1 − ᾱ_t`` (DreamFusion). The targets are rendered by a callable from the step's views,
 typically the renders of a ground-truth edited scene from the same cameras.
 """
 from __future__ import annotations
 
 import time
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import torch
 
 from tiger.edit.guidance.base import GuidanceInfo, ViewBatch, check_renders
-from tiger.edit.guidance.sds import NoiseSchedule, check_t_range
+from tiger.edit.guidance.noise_schedule import NoiseSchedule, check_t_range
+from tiger.scene import GaussianScene, render_rgb
 
 
 class IdealDenoiserGuidance:
@@ -30,16 +31,30 @@ class IdealDenoiserGuidance:
         targets: ``views -> [V, 3, H, W]`` target images in [0, 1] for the step's cameras.
         t_range: (lo, hi) noise levels as fractions of the 1000 training steps (default [0.02, 0.2]).
         seed: seed of the guidance's own generator (noise and t); its state is checkpointed by the
-            edit loop through :attr:`generator`.
+            edit loop through :meth:`generators`.
+        instruction: the text recorded as the edit's instruction (the targets are the edit).
     """
 
     name = "analytic"
 
     def __init__(self, targets: Callable[[ViewBatch], torch.Tensor],
-                 t_range: tuple[float, float] = (0.02, 0.2), seed: int = 0) -> None:
+                 t_range: tuple[float, float] = (0.02, 0.2), seed: int = 0, *,
+                 instruction: str = "match the target renders") -> None:
         self.targets, self.t_range = targets, check_t_range(t_range)
+        self.instruction = instruction
         self.schedule = NoiseSchedule.from_betas(0.00085, 0.012)  # Stable Diffusion's
         self.generator = torch.Generator().manual_seed(seed)
+
+    def settings(self) -> dict[str, Any]:
+        """The noise range (fractions of the 1000 training steps)."""
+        return {"t_range": list(self.t_range)}
+
+    def generators(self) -> list[torch.Generator]:
+        """The one generator of t and the noise."""
+        return [self.generator]
+
+    def reset_caches(self) -> None:
+        """Nothing is cached across steps."""
 
     def grad(self, renders: torch.Tensor, views: ViewBatch) -> tuple[torch.Tensor, GuidanceInfo]:
         t0 = time.perf_counter()
@@ -63,20 +78,12 @@ class IdealDenoiserGuidance:
                                timings_ms={"analytic": 1e3 * (time.perf_counter() - t0)})
 
 
-def render_targets(target_scene, background: Optional[torch.Tensor] = None
+def render_targets(target_scene: GaussianScene, background: Optional[torch.Tensor] = None
                    ) -> Callable[[ViewBatch], torch.Tensor]:
-    """Targets = renders of ``target_scene`` (a GaussianScene, full SH colour) from the step's cameras."""
-
+    """Targets = renders [V, 3, H, W] of ``target_scene`` (full SH colour, :func:`tiger.scene.render_rgb`)
+    from the step's cameras."""
     def fn(views: ViewBatch) -> torch.Tensor:
-        out = []
-        s = target_scene
-        bg = None if background is None else background.to(s.means)
-        for cam in views.cameras:
-            c = cam.to(s.device, s.dtype)
-            with torch.no_grad():
-                r = s.render(c, "rgb", background=bg, check_finite=False)
-            out.append(r["color"].clamp(0, 1).permute(2, 0, 1))
-        return torch.stack(out)
+        return render_rgb(target_scene, views.cameras, background).permute(0, 3, 1, 2)
 
     return fn
 

@@ -14,7 +14,8 @@ from typing import Sequence
 import torch
 
 from tiger.render.views import look_at
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 from tiger.scene.labelled import LabelledScene
 
 from tiger.retrieval.text import CANONICAL_NEGATIVES, EmbeddingTable

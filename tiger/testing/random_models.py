@@ -18,9 +18,8 @@ import torch
 
 from tiger.edit.guidance.ldm_checkpoint import (MVDREAM_SD21_LDM_CONFIG, TEXT_PREFIX, UNET_PREFIX,
                                                 unet_config_from_ldm, vae_config_from_ldm)
-from tiger.edit.guidance.sds import require_diffusers
+from tiger.utils.lazy import require, require_diffusers
 from tiger.models.paths import PathLike
-from tiger.utils.lazy import require
 
 CHECKPOINT_NAME = "sd-v2.1-base-4view.pt"
 TINY_LDM_CONFIG_NAME = "sd-v2-base.json"

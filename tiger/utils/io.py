@@ -10,7 +10,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import IO, Iterator, Union
+from typing import IO, Any, Iterator, Optional, Sequence, Union
 
 import torch
 
@@ -56,7 +56,21 @@ def atomic_torch_save(obj: object, path: PathLike) -> None:
         torch.save(obj, fh)
 
 
-def file_slug(text: str, default: str = "query", max_len: int = 80) -> str:
-    """``text`` as a file-name part: every character that is not a letter or digit becomes '_',
-    leading/trailing '_' dropped, at most ``max_len`` characters; ``default`` when nothing is left."""
-    return "".join(c if c.isalnum() else "_" for c in text).strip("_")[:max_len] or default
+def file_slug(text: str, default: str = "query", max_len: Optional[int] = 80, keep: str = "") -> str:
+    """``text`` as a file-name part: every character that is not a letter, a digit or in ``keep``
+    becomes '_', leading/trailing '_' dropped, at most ``max_len`` characters (None: no limit);
+    ``default`` when nothing is left. The one slug rule of every file tiger names after a text."""
+    return "".join(c if c.isalnum() or c in keep else "_" for c in text).strip("_")[:max_len] or default
+
+
+def unique_file_slugs(texts: Sequence[str], defaults: Optional[Sequence[str]] = None, **slug: Any) -> list[str]:
+    """:func:`file_slug` of each text (``defaults[i]`` when the i-th leaves nothing), a repeat
+    made unique by ``_2``, ``_3``, ... in order; ``slug``: file_slug's ``max_len`` / ``keep``."""
+    out: list[str] = []
+    for i, text in enumerate(texts):
+        stem = file_slug(text, **({} if defaults is None else {"default": defaults[i]}), **slug)
+        base, k = stem, 2
+        while stem in out:
+            stem, k = f"{base}_{k}", k + 1
+        out.append(stem)
+    return out

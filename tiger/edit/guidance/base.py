@@ -9,11 +9,11 @@ from __future__ import annotations
 import math
 
 from dataclasses import dataclass, field
-from typing import Optional, Protocol, Sequence, runtime_checkable
+from typing import Any, Optional, Protocol, Sequence, runtime_checkable
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 
 @dataclass
@@ -55,18 +55,79 @@ class GuidanceInfo:
 
 @runtime_checkable
 class Guidance(Protocol):
-    """A source of gradients on rendered views.
+    """A source of gradients on rendered views: everything the edit loop and ``tiger edit`` use.
 
-    ``grad(renders, views)`` takes renders [V, 3, H, W] in [0, 1] (any float dtype, any device,
-    not requiring grad) and returns ``(g, info)`` with ``g`` of the same shape: the gradient of
-    the guidance's loss with respect to the renders. Implementations must return finite values
-    (non-finite entries zeroed) and raise ``ValueError`` naming the tensor on bad input.
+    - ``name``: the guidance's kind (``"recolor"``, ``"ip2p"``, ``"csd"``, ...), recorded.
+    - ``instruction``: the edit text the guidance follows (the one place it is given; the edit
+      records it from here).
+    - ``grad(renders, views)`` takes renders [V, 3, H, W] in [0, 1] (any float dtype, any device,
+      not requiring grad) and returns ``(g, info)`` with ``g`` of the same shape: the gradient of
+      the guidance's loss with respect to the renders. Implementations must return finite values
+      (non-finite entries zeroed) and raise ``ValueError`` naming the tensor on bad input.
+    - ``settings()``: a JSON-serialisable dict of everything that decides the gradients besides
+      the instruction (schedule, model dtype, CUDA-graph use, noise range, ...), as it runs. The
+      edit writes it to its record (``edit.json``) and its checkpoint signature, so a record is
+      the settings that ran and a resume with other settings is refused. It must not change
+      while the guidance is used (a lazily loaded model reports the dtype it will load with).
+    - ``generators()``: every ``torch.Generator`` the guidance draws from, in a fixed order,
+      without repeats (empty for a deterministic one); the edit loop checkpoints and restores
+      their states, so a resumed edit draws the same noise.
+    - ``reset_caches()``: forget work cached across steps (e.g. InstructPix2Pix's image-condition
+      latents keyed by camera id); the edit loop calls it when a round starts, since pool ids of
+      an earlier round name other cameras.
+
+    :func:`check_guidance` checks an object against this list with a message naming what is missing.
     """
 
     name: str
+    instruction: str
 
     def grad(self, renders: torch.Tensor, views: ViewBatch) -> tuple[torch.Tensor, GuidanceInfo]:
         ...
+
+    def settings(self) -> dict[str, Any]:
+        ...
+
+    def generators(self) -> list[torch.Generator]:
+        ...
+
+    def reset_caches(self) -> None:
+        ...
+
+
+#: The protocol's members: (attribute, whether it is a method).
+PROTOCOL_MEMBERS = (("name", False), ("instruction", False), ("grad", True), ("settings", True),
+                    ("generators", True), ("reset_caches", True))
+
+
+def check_guidance(guidance: object) -> Guidance:
+    """``guidance`` itself when it has every member of :class:`Guidance`, else a ``TypeError``
+    naming the missing ones (a string ``name``/``instruction`` and callable methods)."""
+    missing = []
+    for member, is_method in PROTOCOL_MEMBERS:
+        value = getattr(guidance, member, None)
+        if is_method and not callable(value):
+            missing.append(f"{member}()")
+        elif not is_method and not isinstance(value, str):
+            missing.append(f"{member} (a string)")
+    if missing:
+        raise TypeError(f"tiger.edit: guidance {type(guidance).__name__} lacks {', '.join(missing)} of the "
+                        "Guidance protocol (tiger.edit.guidance.base.Guidance: name, instruction, grad, settings, "
+                        "generators, reset_caches)")
+    return guidance  # type: ignore[return-value]
+
+
+def unique_generators(*groups: Sequence[torch.Generator]) -> list[torch.Generator]:
+    """The generators of several guidances in order, each once (two parts may share one)."""
+    out: list[torch.Generator] = []
+    for group in groups:
+        out.extend(g for g in group if all(g is not o for o in out))
+    return out
+
+
+def dtype_name(dtype: Optional[torch.dtype]) -> Optional[str]:
+    """``torch.bfloat16`` -> ``"bfloat16"`` (settings records), None stays None."""
+    return None if dtype is None else str(dtype).removeprefix("torch.")
 
 
 def check_renders(renders: torch.Tensor, who: str, views: Optional[int] = None) -> None:

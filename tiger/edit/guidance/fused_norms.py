@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from tiger.ops.channel_bias import channel_bias_add
 from tiger.ops.group_norm import GroupNormSiLU
 
-from .sds import require_diffusers
+from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 

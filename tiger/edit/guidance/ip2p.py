@@ -17,18 +17,18 @@ import json
 import logging
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
-from tiger.utils.lazy import require
+from tiger.utils.lazy import require, require_diffusers
 
-from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values
+from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values, dtype_name
 from .cuda_graph import GraphedStep
-from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, encode_latents, finite_clamped, freeze,
-                  latent_shape, matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers, resize, resolution_for,
-                  vae_downsampling_factor)
+from .diffusers_models import (PromptEncoder, encode_latents, freeze, latent_shape, matmul_vae_attention,
+                               model_device_dtype, render_gradient, resize, resolution_for, vae_downsampling_factor)
+from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
 
 logger = logging.getLogger(__name__)
 
@@ -172,9 +172,20 @@ class InstructPix2PixGuidance:
                 self._cond_cache[(ids[k], *size)] = z
         return torch.stack([self._cond_cache[(i, *size)] for i in ids])
 
-    def clear_condition_cache(self) -> None:
+    def reset_caches(self) -> None:
         """Forget the cached image-condition latents (when the original renders change)."""
         self._cond_cache.clear()
+
+    def settings(self) -> dict[str, Any]:
+        """What decides the gradients besides the instruction: scales, noise range, resolution,
+        clamp, the models' dtype and whether the step replays as a CUDA graph."""
+        return {"text_scale": self.text_scale, "image_scale": self.image_scale, "t_range": list(self.t_range),
+                "short_side": self.short_side, "grad_clip": self.grad_clip, "dtype": dtype_name(self.dtype),
+                "cuda_graph": self.cuda_graph}
+
+    def generators(self) -> list[torch.Generator]:
+        """The generator of t and the noises (none when drawing from the global one)."""
+        return [] if self.generator is None else [self.generator]
 
     def step(self, renders: torch.Tensor, cond: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
              vae_noise: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,9 @@ from typing import Mapping, Union
 
 import torch
 
-from .sds import NoiseSchedule, require_diffusers
+from tiger.utils.lazy import require_diffusers
+
+from .noise_schedule import NoiseSchedule
 
 UNET_PREFIX = "model.diffusion_model."
 TEXT_PREFIX = "cond_stage_model.model."

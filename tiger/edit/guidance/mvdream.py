@@ -22,20 +22,21 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import torch
 
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
-from tiger.utils.lazy import require
+from tiger.utils.lazy import require, require_diffusers
 
-from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values
+from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values, dtype_name
 from .cuda_graph import GraphedStep
+from .diffusers_models import (PromptEncoder, freeze, latent_shape, matmul_vae_attention, model_device_dtype,
+                               render_gradient)
 from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
 from .mvdream_cameras import mvdream_cameras
-from .sds import (NoiseSchedule, PromptEncoder, check_t_range, draw_noise, finite_clamped, freeze, latent_shape,
-                  matmul_vae_attention, model_device_dtype, render_gradient, require_diffusers)
+from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
 
 logger = logging.getLogger(__name__)
 
@@ -153,13 +154,16 @@ class MVDreamGuidance:
 
     Args:
         models: :class:`MVDreamModels`, or a zero-argument loader called on the first ``grad``.
-        prompt: the text describing the edited object (encoded once with ``negative_prompt``).
+        prompt: the text describing the edited object (encoded once with ``negative_prompt``); the
+            guidance's ``instruction``.
         guidance_scale: classifier-free guidance scale (50).
         t_range: fractions of the schedule for t, one t for the 4 views (paper: max 0.2).
         image_size: the square size renders are resized to (256).
         recon: reconstruction-form gradient (official 3D setting); False: plain SDS ``w(t)(ε̂ − ε)``.
         recon_std_rescale: the x0 std rescale factor (0.5).
         grad_clip, cuda_graph, generator, collect_stats, keep_text_encoder: as for InstructPix2Pix.
+        models_dtype: the dtype a loader (``models`` a callable) loads with, recorded by
+            :meth:`settings` before the first load (:meth:`from_registry` passes its ``dtype``).
     """
 
     name = "mvdream"
@@ -169,12 +173,13 @@ class MVDreamGuidance:
                  t_range: tuple[float, float] = (0.02, 0.2), image_size: int = IMAGE_SIZE, recon: bool = True,
                  recon_std_rescale: float = RECON_STD_RESCALE, grad_clip: Optional[float] = None,
                  cuda_graph: bool = False, generator: Optional[torch.Generator] = None,
-                 collect_stats: bool = False, keep_text_encoder: bool = False) -> None:
+                 collect_stats: bool = False, keep_text_encoder: bool = False,
+                 models_dtype: Optional[torch.dtype] = None) -> None:
         if not isinstance(prompt, str) or not prompt.strip():
             raise ValueError("tiger.edit.mvdream: the prompt must be a non-empty string")
         if image_size <= 0:
             raise ValueError(f"tiger.edit.mvdream: image_size must be positive, got {image_size}")
-        self.prompt, self.negative_prompt = prompt, negative_prompt
+        self.instruction, self.negative_prompt = prompt, negative_prompt
         self.guidance_scale = float(guidance_scale)
         self.t_range = check_t_range(t_range)
         self.image_size = int(image_size)
@@ -185,6 +190,8 @@ class MVDreamGuidance:
         self._loader = None if isinstance(models, MVDreamModels) else models
         self.models: Optional[MVDreamModels] = None
         self._graphed: Optional[GraphedStep] = None
+        # the dtype recorded in settings(): fixed now, so loading later does not change the record
+        self._settings_dtype = model_device_dtype(models.unet)[1] if isinstance(models, MVDreamModels) else models_dtype
         if isinstance(models, MVDreamModels):
             self._setup(models)
 
@@ -199,7 +206,7 @@ class MVDreamGuidance:
             return load_mvdream(path, device=device, dtype=dtype, config=config, allow_download=allow_download,
                                 fused_norms=fused_norms)
 
-        return cls(loader if lazy else loader(), prompt, **kwargs)
+        return cls(loader if lazy else loader(), prompt, models_dtype=dtype, **kwargs)
 
     @property
     def loaded(self) -> bool:
@@ -211,7 +218,7 @@ class MVDreamGuidance:
         if self.cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.mvdream: cuda_graph=True needs the models on a CUDA device")
         matmul_vae_attention(models.vae)
-        self.text_embeddings = models.prompts([self.prompt, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
+        self.text_embeddings = models.prompts([self.instruction, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
         if not self.keep_text_encoder:
             models.prompts.release()
         self._graphed = GraphedStep(self.step) if self.cuda_graph else None
@@ -230,6 +237,21 @@ class MVDreamGuidance:
         self._graphed = None
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
+
+    def settings(self) -> dict[str, Any]:
+        """What decides the gradients besides the prompt: negative prompt, CFG scale, noise range,
+        resolution, gradient form, clamp, the models' dtype and CUDA-graph use."""
+        return {"negative_prompt": self.negative_prompt, "guidance_scale": self.guidance_scale,
+                "t_range": list(self.t_range), "image_size": self.image_size, "recon": self.recon,
+                "recon_std_rescale": self.recon_std_rescale, "grad_clip": self.grad_clip,
+                "dtype": dtype_name(self._settings_dtype), "cuda_graph": bool(self.cuda_graph)}
+
+    def generators(self) -> list[torch.Generator]:
+        """The generator of t and the noises (none when drawing from the global one)."""
+        return [] if self.generator is None else [self.generator]
+
+    def reset_caches(self) -> None:
+        """Nothing is cached by camera (the text embeddings do not depend on the views)."""
 
     # -- pieces -------------------------------------------------------------------------------
     def step(self, renders: torch.Tensor, cameras: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,

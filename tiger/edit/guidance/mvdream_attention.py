@@ -11,7 +11,7 @@ from typing import Optional
 
 import torch
 
-from .sds import require_diffusers
+from tiger.utils.lazy import require_diffusers
 
 
 class MultiViewAttnProcessor:

@@ -5,7 +5,7 @@ MVDream conditions on camera-to-world 4x4 matrices with OpenGL camera axes (+x r
 translation scaled to unit length (``normalize_camera``), flattened row-major to 16 values. Its
 own cameras are built in a y-up OpenGL world and turned z-up by ``flip_yz`` (x, y, z) → (x, −z, y).
 
-From a :class:`~tiger.scene.cameras.Camera` (OpenCV world-to-camera ``viewmat``):
+From a :class:`~tiger.render.Camera` (OpenCV world-to-camera ``viewmat``):
     c2w_cv = viewmat⁻¹;  R_gl = R_c2w · diag(1, −1, −1)  (flip the camera's y and z axes);
     world → MVDream world: subtract the object centre, rotate by the smallest rotation taking the
     scene's up direction to +z (for a y-up world that rotation is exactly ``flip_yz``);
@@ -17,7 +17,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from tiger.scene.cameras import Camera
+from tiger.render import Camera
 
 _FLIP_YZ_CAMERA = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import re
 import time
-from typing import Sequence, Union
+from typing import Any, Optional, Sequence, Union
 
 import torch
 
@@ -66,17 +66,33 @@ class RecolorGuidance:
     """Pulls the object's pixels toward a colour, keeping their shading (see the module docstring).
 
     Args:
-        color: a colour name, an instruction containing one, ``#rrggbb``, ``r,g,b`` or 3 numbers.
+        instruction: the edit text; the colour is the last colour word in it ("make the ball red"),
+            or ``#rrggbb`` / ``r,g,b`` (:func:`parse_color`) unless ``color`` is given.
+        color: the colour, overriding the instruction's: a name, ``#rrggbb``, ``r,g,b`` or 3 numbers.
         strength: 1 replaces the object's colour; smaller values blend toward the original.
     """
 
     name = "recolor"
 
-    def __init__(self, color: ColorLike, strength: float = 1.0) -> None:
-        self.color = parse_color(color)
+    def __init__(self, instruction: str, *, color: Optional[ColorLike] = None, strength: float = 1.0) -> None:
+        if not isinstance(instruction, str) or not instruction.strip():
+            raise ValueError("tiger.edit.recolor: the instruction must be a non-empty string")
+        self.instruction = instruction
+        self.color = parse_color(instruction if color is None else color)
         if not 0.0 < float(strength) <= 1.0:
             raise ValueError(f"tiger.edit.recolor: strength must be in (0, 1], got {strength}")
         self.strength = float(strength)
+
+    def settings(self) -> dict[str, Any]:
+        """The colour (sRGB in [0, 1]) and the strength."""
+        return {"color": [round(float(c), 6) for c in self.color], "strength": self.strength}
+
+    def generators(self) -> list[torch.Generator]:
+        """None: recolor is deterministic."""
+        return []
+
+    def reset_caches(self) -> None:
+        """Nothing is cached across steps."""
 
     def targets(self, views: ViewBatch) -> torch.Tensor:
         """[V, 3, H, W] target images for the views (original outside the object)."""
