@@ -25,9 +25,9 @@ SURFACE = {
                    "EditResult", "EditSession", "EditTarget", "EmptyTargetError", "Inpainter", "LamaInpainter",
                    "ObjectViews", "OpenCVInpainter", "capture_layout", "delete", "edit", "make_inpainter",
                    "resolve_target", "views_around"],
-    "tiger.edit.guidance": ["Guidance", "GuidanceInfo", "IP2PModels", "IdealDenoiserGuidance",
+    "tiger.edit.guidance": ["Guidance", "GuidanceInfo", "IP2PModels", 
                             "InstructPix2PixGuidance", "MVDreamGuidance", "MVDreamModels", "RecolorGuidance",
-                            "ViewBatch", "load_ip2p", "load_mvdream", "parse_color", "render_targets"],
+                            "ViewBatch", "load_ip2p", "load_mvdream", "parse_color"],
     "tiger.eval": [],
     "tiger.language": ["FeatureConfig", "FeatureSet", "FieldConfig", "FieldResult", "ImplicitConfig",
                        "ImplicitUpsampler", "JBUStack", "MaskCLIP", "PCABasis", "SamMaskConfig", "SamMaskGenerator",
@@ -50,6 +50,7 @@ SURFACE = {
     "tiger.scene": ["ColorSpec", "DEFAULT_LRS", "GaussianScene", "LabelledScene", "MissingImagesError",
                     "PARAM_NAMES", "SceneFormatError", "read_ply", "render_rgb", "render_views", "scene_extent",
                     "write_ply"],
+    "tiger.testing": [],
     "tiger.utils": [],
 }
 #: What the top-level package re-exports from its subpackages (the one-line entry point).

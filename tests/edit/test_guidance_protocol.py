@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from tiger.edit import CSDGuidance, CSDSchedule, EditConfig, EditSession, edit, resolve_target
-from tiger.edit.guidance import GuidanceInfo, IdealDenoiserGuidance, RecolorGuidance, render_targets
+from tiger.edit.guidance import GuidanceInfo, RecolorGuidance
+from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets
 from tiger.edit.guidance.base import PROTOCOL_MEMBERS, Guidance, check_guidance
 
 from .scenes import query_a, two_objects

@@ -9,3 +9,6 @@ Nothing in the rest of ``tiger`` imports this package; it sits above every other
 - :mod:`~tiger.testing.ideal_denoiser`: score distillation with the ideal denoiser of known targets,
   the edit loop's known-answer guidance.
 """
+
+#: Nothing is re-exported here: import the modules (e.g. ``tiger.testing.random_models``) directly.
+__all__: list[str] = []
