@@ -83,9 +83,12 @@ def open_dataset(path: str, skip_missing: bool = False):
 
 
 def load_scene(path: str, device: Optional[torch.device] = None):
+    """A scene PLY, or the scene of a `tiger prepare` folder."""
     from tiger.scene import GaussianScene
 
-    scene = GaussianScene.load_ply(existing(path, "scene file"))
+    from .prepare import prepared_scene
+
+    scene = GaussianScene.load_ply(prepared_scene(existing(path, "scene file")))
     return scene.to(device) if device is not None else scene
 
 

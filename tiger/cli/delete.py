@@ -25,7 +25,7 @@ def add_parser(sub) -> None:
         epilog='example: tiger delete outputs/demo/scene.ply "mug" --text-embeddings '
                "outputs/demo/text_embeddings.pt --out outputs/demo/delete_mug",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", help="PLY with lang_* features and their PCA basis")
+    p.add_argument("scene", help="PLY with lang_* features and their PCA basis, or a `tiger prepare` folder")
     p.add_argument("text", help="what to delete")
     add_common(p, models=True)
     p.add_argument("--data", default=None, help="the capture (COLMAP or transforms.json) whose views to "

@@ -30,7 +30,7 @@ def add_parser(sub) -> None:
         epilog='example: tiger edit outputs/demo/scene.ply --target ball "make it red" --guidance recolor '
                "--text-embeddings outputs/demo/text_embeddings.pt --out outputs/demo/edit_red",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", help="PLY with lang_* features and their PCA basis")
+    p.add_argument("scene", help="PLY with lang_* features and their PCA basis, or a `tiger prepare` folder")
     p.add_argument("instruction", help='the edit instruction, e.g. "make it look like a watermelon"')
     p.add_argument("--target", required=True, help="text naming the object to edit")
     add_common(p, models=True)

@@ -22,7 +22,11 @@ def add_parser(sub) -> None:
     p.add_argument("--features", required=True, help="folder written by `tiger features`")
     add_common(p)
     add_skip_missing(p)
-    p.add_argument("--steps", type=int, default=10_000)
+    p.add_argument("--steps", type=int, default=10_000,
+                   help="training steps (default 10000); 0 with --init lift: the lifted embeddings as they are")
+    p.add_argument("--init", choices=("lift", "random"), default="lift",
+                   help="starting embeddings: 'lift' (default: each Gaussian's blending-weighted mean of the "
+                        "maps, one pass over the views) or 'random'")
     p.add_argument("--lr", type=float, default=2.5e-3)
     p.add_argument("--batch-views", type=int, default=1)
     p.add_argument("--loss", choices=("l1", "l2", "cosine"), default="l1")
@@ -52,7 +56,15 @@ def run(args: argparse.Namespace) -> int:
     cams = [cams[i].to(dev) if hasattr(cams[i], "to") else cams[i] for i in keep]
     summary = Summary("tiger embed")
     ckpt = args.checkpoint or str(out) + ".ckpt.pt"
-    res = train_field(scene, cams, lambda i: fs.load(names[keep[i]]), pca=pca, checkpoint=ckpt,
+    maps = lambda i: fs.load(names[keep[i]])  # noqa: E731
+    init = "random"
+    if args.init == "lift" and not Path(ckpt).is_file():  # a checkpoint is resumed instead
+        from tiger.language.lift import lift
+
+        lifted = lift(scene, cams, maps, progress=True)
+        scene.lang, init = lifted.lang, "keep"
+        summary.add(f"lifted in {lifted.seconds:.1f} s; {lifted.coverage()}")
+    res = train_field(scene, cams, maps, pca=pca, checkpoint=ckpt, init=init,
                       steps=args.steps, lr=args.lr, batch_views=args.batch_views, loss=args.loss)
     scene.save_ply(out)
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json

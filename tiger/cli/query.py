@@ -26,7 +26,7 @@ def add_parser(sub) -> None:
         epilog='example: tiger query outputs/fox/scene_lang.ply "fox ears" --data ../shared/data/fox '
                "--out outputs/fox/query_ears",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", help="PLY with lang_* features and their PCA basis")
+    p.add_argument("scene", help="PLY with lang_* features and their PCA basis, or a `tiger prepare` folder")
     p.add_argument("text", nargs="+", help="one or more queries")
     add_common(p, models=True)
     p.add_argument("--text-embeddings", default=None,

@@ -161,12 +161,13 @@ def _min_max(x: torch.Tensor) -> torch.Tensor:
 class ImplicitNet(nn.Module):
     """FeatUp's implicit network: min-max scaled image -> Fourier features -> 3 1x1 convs."""
 
-    def __init__(self, out_dim: int, n_freqs: int = 30, generator: torch.Generator | None = None) -> None:
+    def __init__(self, out_dim: int, n_freqs: int = 30, generator: torch.Generator | None = None,
+                 dropout: float = 0.2) -> None:
         super().__init__()
         self.fourier = FourierFeaturizer(n_freqs, generator)
         d = self.fourier.out_dim
         self.net = nn.Sequential(
-            _ChannelNorm(d), nn.Dropout2d(0.2), nn.Conv2d(d, out_dim, 1), nn.ReLU(), nn.Dropout2d(0.2),
+            _ChannelNorm(d), nn.Dropout2d(dropout), nn.Conv2d(d, out_dim, 1), nn.ReLU(), nn.Dropout2d(dropout),
             _ChannelNorm(out_dim), nn.Conv2d(out_dim, out_dim, 1), nn.ReLU(), nn.Conv2d(out_dim, out_dim, 1),
         )
 
@@ -178,10 +179,11 @@ class AttentionDownsampler(nn.Module):
     """FeatUp's learned attention downsampler: each low-res cell is a softmax-weighted average of a
     ``kernel`` x ``kernel`` window of the (blurred) high-res features."""
 
-    def __init__(self, dim: int, kernel: int, generator: torch.Generator | None = None) -> None:
+    def __init__(self, dim: int, kernel: int, generator: torch.Generator | None = None,
+                 dropout: float = 0.2) -> None:
         super().__init__()
-        self.kernel = kernel
-        self.attention = nn.Sequential(nn.Dropout(0.2), nn.Linear(dim, 1))
+        self.kernel, self.dropout = kernel, dropout
+        self.attention = nn.Sequential(nn.Dropout(dropout), nn.Linear(dim, 1))
         self.w = nn.Parameter(torch.ones(kernel, kernel) + 0.01 * torch.randn(kernel, kernel, generator=generator))
         self.b = nn.Parameter(torch.zeros(kernel, kernel) + 0.01 * torch.randn(kernel, kernel, generator=generator))
 
@@ -196,8 +198,8 @@ class AttentionDownsampler(nn.Module):
         nh, nw = (h - k) // sh + 1, (w - k) // sw + 1
         patches = patches.reshape(b, c, k * k, nh, nw)[..., :fh, :fw].permute(0, 3, 4, 2, 1)  # [B,fh,fw,kk,C]
         logits = self.attention(patches).squeeze(-1)
-        if self.training:
-            logits = logits * (torch.rand(logits.shape[:3] + (1,), device=hr.device) > 0.2)
+        if self.training and self.dropout > 0:
+            logits = logits * (torch.rand(logits.shape[:3] + (1,), device=hr.device) > self.dropout)
         wk = self.w[:k, :k].reshape(1, 1, 1, -1)
         bk = self.b[:k, :k].reshape(1, 1, 1, -1)
         attn = F.softmax(logits * wk + bk, dim=-1)
@@ -243,6 +245,11 @@ class ImplicitConfig:
     ``max_pad`` is in pixels at a 224-pixel input and scales with the fitting resolution.
     ``channel_norm`` (FeatUp's ``use_norm``) LayerNorms the backbone features before fitting;
     it is off by default because it changes the CLIP features' cosine with text embeddings.
+    ``dropout`` is FeatUp's rate for the network's channel dropout, the attention's input dropout
+    and its logit mask. Those masks come from the device's own generator (drawing them on the
+    CPU would cost more than the fit); every other random number (jitters, view picks,
+    initial weights) comes from a CPU generator, so with ``dropout=0`` a fit on CUDA follows the
+    CPU fit up to floating-point rounding.
     """
 
     steps: int = 1200
@@ -260,6 +267,7 @@ class ImplicitConfig:
     blur_pin: float = 0.1
     lr: float = 2e-3
     channel_norm: bool = False
+    dropout: float = 0.2
     featurize_batch: int = 64
     seed: int = 0
 
@@ -314,12 +322,12 @@ class ImplicitUpsampler:
                 batch = torch.cat([j.apply(img) for j in jitters[i : i + cfg.featurize_batch]])
                 feats.append(norm(featurizer(batch).float()))
             views = torch.cat(feats)  # [N, D, fh, fw]
-            mean, basis = _pca_basis(views[: cfg.pca_batch], cfg.proj_dim)
+            mean, basis = _pca_basis(views[: cfg.pca_batch], cfg.proj_dim)  # on the views' device
             targets = _project(views, mean, basis)  # [N, k, fh, fw]
             del views, feats
         k = basis.shape[1]
-        net = ImplicitNet(k, cfg.n_freqs, gen).to(dev)
-        down = AttentionDownsampler(k + 1, cfg.kernel_size, gen).to(dev)
+        net = ImplicitNet(k, cfg.n_freqs, gen, cfg.dropout).to(dev)
+        down = AttentionDownsampler(k + 1, cfg.kernel_size, gen, cfg.dropout).to(dev)
         outlier = nn.Conv2d(k, 1, 1).to(dev)
         with torch.no_grad():
             outlier.weight.mul_(0.1)
@@ -370,12 +378,14 @@ class ImplicitUpsampler:
 
 
 def _pca_basis(views: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean [D] and the top-k principal directions [D, k] of the feature vectors in views [N, D, h, w]."""
+    """Mean [D] and the top-k principal directions [D, k] of the feature vectors in views [N, D, h, w],
+    float32 on the views' device (the PCA itself runs in float64 on the CPU)."""
     mean, comps, _ = fit_pca(views.permute(0, 2, 3, 1).reshape(-1, views.shape[1]), min(k, views.shape[1]))
-    return mean.float(), comps.float()
+    return mean.to(views.device, torch.float32), comps.to(views.device, torch.float32)
 
 
 def _project(views: torch.Tensor, mean: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+    """PCA coefficients [N, k, h, w] of views [N, D, h, w] (mean [D], basis [D, k] on the views' device)."""
     return torch.einsum("ndhw,dk->nkhw", views - mean.view(1, -1, 1, 1), basis)
 
 

@@ -26,3 +26,23 @@ def load_views(cameras: Sequence[Camera], downscale: float = 1.0, cache_dir: Opt
         cams.append(c)
         imgs.append(img)
     return cams, imgs
+
+
+def valid_pixel_masks(cameras: Sequence[Camera], downscale: float = 1.0) -> Optional[list]:
+    """Per camera, [h, w] bool: the pixels of its image as :func:`load_views` makes it that hold
+    captured colour, i.e. not the black border that undistortion leaves (see
+    :func:`tiger.scene.images.undistortion_valid_mask`). ``None`` when no camera has lens
+    distortion: every pixel counts, and the loss and the metric need no mask."""
+    from tiger.scene.images import undistortion_valid_mask
+
+    if all(c.distortion is None for c in cameras):
+        return None
+    return [undistortion_valid_mask(c, downscale) for c in cameras]
+
+
+def masked_fraction(masks: Optional[Sequence[torch.Tensor]]) -> float:
+    """Share of the pixels left out by ``masks`` (0 for None)."""
+    if not masks:
+        return 0.0
+    total = sum(m.numel() for m in masks)
+    return float(sum(int((~m).sum()) for m in masks)) / max(total, 1)

@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# Every command's default path on the GPU, as a user runs it, on the fox capture with full-size
+# random models in their real formats. One line per command: exit code and wall time; any
+# non-zero exit (a crash, or a command that ran past CMD_TIMEOUT) fails the script.
+#
+#   bash benchmarks/gpu/default_commands.sh            # defaults throughout (hours: implicit FeatUp on 50 images)
+#   QUICK=1 bash benchmarks/gpu/default_commands.sh    # fewer steps and a 2-image capture for implicit FeatUp
+#
+# Run from the repo root after `make build`. The fox must be inside the repo on the GPU machine:
+# FOX (default .carry/fox, else ../shared/data/fox). Results: $OUT/default_commands.txt.
+set -uo pipefail
+OUT="${OUT:-outputs/default_commands}"
+PY="${PYTHON:-python3}"
+FOX="${FOX:-.carry/fox}"
+[ -f "$FOX/transforms.json" ] || FOX=../shared/data/fox
+CMD_TIMEOUT="${CMD_TIMEOUT:-3600}"
+DEVICE="${DEVICE:-cuda}"
+export TIGER_MODELS="${TIGER_MODELS:-$OUT/models}" PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
+mkdir -p "$OUT"
+LOG="$OUT/default_commands.txt"
+W="$OUT/work"
+rm -rf "$W" && mkdir -p "$W"
+FAILED=0
+
+run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one summary line
+  local name=$1; shift
+  local t0=$(date +%s%N)
+  timeout "$CMD_TIMEOUT" "$PY" -m tiger.cli.main "$@" > "$W/$name.log" 2>&1
+  local rc=$?
+  local ms=$(( ($(date +%s%N) - t0) / 1000000 ))
+  printf '%-22s exit %3d  %5d.%01d s   tiger %s\n' "$name" "$rc" $((ms / 1000)) $((ms % 1000 / 100)) "$*"
+  if [ "$rc" -ne 0 ]; then FAILED=1; tail -5 "$W/$name.log" | sed 's/^/    | /'; fi
+}
+
+{
+  echo "== default commands on the GPU: $(date -u); fox at $FOX; QUICK=${QUICK:-0}"
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
+  if [ ! -f "$TIGER_MODELS/featup/maskclip_jbu_stack_cocostuff.ckpt" ]; then
+    t0=$(date +%s); "$PY" benchmarks/gpu/write_random_models.py "$TIGER_MODELS" --size full || FAILED=1
+    echo "random full-size models written to $TIGER_MODELS in $(( $(date +%s) - t0 )) s"
+  fi
+  R=(); F=(); E=(); P=(); ED=()
+  IMPLICIT_DATA="$FOX"
+  if [ "${QUICK:-0}" = 1 ]; then
+    R=(--steps 3000 --downscale 2); E=(--steps 200); ED=(--steps 100)
+    P=(--recon-steps 3000 --downscale 2 --upsampler jbu --embed-steps 200)
+    # implicit FeatUp (about 80 s an image before its speed-up) on the first two images only
+    IMPLICIT_DATA="$W/fox2"; mkdir -p "$IMPLICIT_DATA"
+    ln -s "$(cd "$FOX" && pwd)/images" "$IMPLICIT_DATA/images"
+    "$PY" -c "import json,sys; m=json.load(open('$FOX/transforms.json')); m['frames']=m['frames'][:2]; json.dump(m, open('$IMPLICIT_DATA/transforms.json','w'))"
+  fi
+  run prepare        prepare "$FOX" --out "$W/prepared" --device "$DEVICE" "${P[@]}"
+  sed -n '/^tiger prepare:/,$p' "$W/prepare.log"
+  run reconstruct    reconstruct "$FOX" --out "$W/recon" --device "$DEVICE" "${R[@]}"
+  grep -h "test views" "$W/reconstruct.log"
+  run features_implicit features "$IMPLICIT_DATA" --out "$W/feat_implicit" --device "$DEVICE"
+  run features_jbu   features "$FOX" --out "$W/feat_jbu" --upsampler jbu --device "$DEVICE"
+  run features_bilinear features "$FOX" --out "$W/feat_bilinear" --upsampler bilinear --device "$DEVICE"
+  run embed          embed "$W/recon/scene.ply" "$FOX" --features "$W/feat_jbu" --out "$W/scene_lang.ply" --device "$DEVICE" "${E[@]}"
+  run query          query "$W/scene_lang.ply" "fox" --data "$FOX" --out "$W/query" --device "$DEVICE"
+  run query_prepared query "$W/prepared" "fox" --data "$FOX" --out "$W/query_prepared" --device "$DEVICE"
+  run edit           edit "$W/scene_lang.ply" "make it look like a tiger" --target "fox" --out "$W/edit" --device "$DEVICE" "${ED[@]}"
+  run delete         delete "$W/scene_lang.ply" "fox" --data "$FOX" --out "$W/delete" --device "$DEVICE"
+  run render         render "$W/scene_lang.ply" --data "$FOX" --out "$W/render" --device "$DEVICE"
+  echo "== done: $(date -u); $([ $FAILED = 0 ] && echo 'all commands exited 0' || echo 'FAILED')"
+} 2>&1 | tee "$LOG"
+grep -q "all commands exited 0" "$LOG"

@@ -1,0 +1,64 @@
+"""`tiger prepare` on a tiny rendered capture with tiny random models: all three stages, the
+record in prepare.json, skipping finished stages, continuing an unfinished one, refusing
+changed inputs, and `tiger query` on the prepared folder."""
+from __future__ import annotations
+
+import json
+
+from tests.cli.test_cli_pipeline import _dataset, _run, _tiny_models
+
+TINY = ["--recon-steps", "40", "--init-points", "500", "--test-every", "3", "--upsampler", "bilinear",
+        "--long-side", "32", "--clip-long-side", "64", "--pca-dim", "16", "--embed-steps", "10", "--device", "cpu"]
+
+
+def test_prepare_resume_and_query(tmp_path):
+    data = _dataset(tmp_path / "data")
+    cfg = _tiny_models(tmp_path / "models")
+    out = tmp_path / "prep"
+    r = _run("prepare", str(data), "--out", str(out), "--models", str(cfg), *TINY)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rec = json.loads((out / "prepare.json").read_text())
+    stages = rec["stages"]
+    assert [s for s in stages] == ["reconstruct", "features", "embed"]
+    assert all(s["done"] and s["seconds"] > 0 for s in stages.values())
+    assert stages["reconstruct"]["quality"]["gaussians"] > 0
+    assert "held_out_psnr_db" in stages["reconstruct"]["quality"]
+    assert stages["features"]["quality"]["maps"] == 6
+    assert stages["embed"]["quality"]["field_loss"] > 0
+    assert (out / "scene_lang.ply").is_file() and (out / "recon" / "scene.ply").is_file()
+    for word in ("reconstruct", "features", "embed", "total"):
+        assert word in r.stdout
+
+    # an unfinished stage continues; finished ones are skipped without being run again
+    stages["embed"]["done"] = False
+    (out / "prepare.json").write_text(json.dumps(rec))
+    mtime = (out / "recon" / "scene.ply").stat().st_mtime_ns
+    r = _run("prepare", str(data), "--out", str(out), "--models", str(cfg), *TINY)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "[1/3] reconstruct: done before" in r.stdout and "[2/3] features: done before" in r.stdout
+    assert "[3/3] embed: continuing" in r.stdout
+    assert (out / "recon" / "scene.ply").stat().st_mtime_ns == mtime
+    assert json.loads((out / "prepare.json").read_text())["stages"]["embed"]["done"]
+
+    # other inputs for a finished stage: one line naming the stage and the setting
+    changed = [a if a != "10" else "11" for a in TINY]
+    r = _run("prepare", str(data), "--out", str(out), "--models", str(cfg), *changed)
+    assert r.returncode == 2 and "stage 'embed'" in r.stderr and "steps: 10 -> 11" in r.stderr
+    assert "steps" in r.stderr and "--force" in r.stderr
+
+    # the prepared folder stands for its scene
+    r = _run("query", str(out), "mug", "--models", str(cfg), "--views", "1", "--out", str(tmp_path / "q"),
+             "--device", "cpu")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (tmp_path / "q" / "selection.json").is_file()
+
+
+def test_prepare_refuses_a_foreign_folder(tmp_path):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    data = tmp_path / "data"
+    data.mkdir()
+    r = _run("prepare", str(data), "--out", str(out))
+    assert r.returncode == 2 and "holds no prepare.json" in r.stderr
+    assert (out / "notes.txt").read_text() == "mine"

@@ -1,0 +1,261 @@
+"""``tiger prepare``: photos -> a language-embedded scene in one command (reconstruct, features, embed).
+
+Each stage is the command of the same name run into a folder of DIR; ``DIR/prepare.json`` records
+every stage's inputs, time and quality, written atomically after each stage. A re-run skips the
+finished stages whose recorded inputs match, continues an interrupted one (the stages resume on
+their own: the reconstruction from its checkpoint, the features image by image, the field from its
+checkpoint) and refuses, naming the stage and the setting, when the inputs changed (--force
+starts over). `tiger query/edit/delete/render` take DIR for its scene.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from .common import CliError, add_common, add_skip_missing, existing
+
+STATE = "prepare.json"
+SCENE = "scene_lang.ply"
+RECON, FEATURES = "recon", "features"
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "prepare", help="photos -> language-embedded scene: reconstruct, features, embed in one go",
+        description="Run `tiger reconstruct` (or start from --scene), `tiger features` and `tiger embed` "
+                    "into one folder: DIR/recon (scene.ply, metrics.json), DIR/features, DIR/scene_lang.ply "
+                    "and DIR/prepare.json (each stage's inputs, seconds and quality: held-out PSNR, "
+                    "Gaussians, field loss). Re-running continues an interrupted stage and skips finished "
+                    "ones whose inputs match. Options left out take the stage command's default. "
+                    "`tiger query DIR ...` (and edit, delete, render) use DIR's scene.",
+        epilog="example: tiger prepare ../shared/data/fox --out outputs/fox --downscale 2 "
+               "--recon-steps 7000 --upsampler jbu",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data", help="dataset folder (COLMAP or transforms.json)")
+    add_common(p, models=True)
+    add_skip_missing(p)
+    p.add_argument("--scene", default=None, metavar="PLY", help="start from this scene (no reconstruction)")
+    p.add_argument("--recon-steps", type=int, default=None, help="`tiger reconstruct --steps`")
+    p.add_argument("--downscale", type=float, default=None, help="`tiger reconstruct --downscale`")
+    p.add_argument("--init-points", type=int, default=None, help="`tiger reconstruct --init-points`")
+    p.add_argument("--test-every", type=int, default=None, help="`tiger reconstruct --test-every`")
+    p.add_argument("--upsampler", choices=("implicit", "jbu", "bilinear"), default=None,
+                   help="`tiger features --upsampler`")
+    p.add_argument("--long-side", type=int, default=None, help="`tiger features --long-side`")
+    p.add_argument("--clip-long-side", type=int, default=None, help="`tiger features --clip-long-side`")
+    p.add_argument("--pca-dim", type=int, default=None, help="`tiger features --pca-dim`")
+    p.add_argument("--no-sam", action="store_true", help="`tiger features --no-sam`")
+    p.add_argument("--embed-steps", type=int, default=None, help="`tiger embed --steps`")
+    p.add_argument("--init", choices=("lift", "random"), default=None, help="`tiger embed --init`")
+    p.set_defaults(func=run)
+
+
+def prepared_scene(path: str | Path) -> Path:
+    """The scene file a command should read for ``path``: DIR/scene_lang.ply for a prepared folder
+    (one holding prepare.json), else ``path`` itself."""
+    p = Path(path)
+    if p.is_dir() and (p / STATE).is_file():
+        scene = p / SCENE
+        if not scene.is_file():
+            raise CliError(f"{p} is a `tiger prepare` folder whose embed stage has not finished "
+                           f"(no {SCENE}); run `tiger prepare` again to continue it")
+        return scene
+    return p
+
+
+def _flag_args(pairs: dict[str, Any]) -> list[str]:
+    """['--name', 'value', ...] for the options given (None left out: the command's default)."""
+    out: list[str] = []
+    for flag, value in pairs.items():
+        if value is None or value is False:
+            continue
+        out += [flag] if value is True else [flag, str(value)]
+    return out
+
+
+def _file_id(path: Path) -> str:
+    """Content hash of a file (what a later stage read)."""
+    h = hashlib.sha1()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+class _State:
+    """DIR/prepare.json: per stage {inputs, done, seconds, quality}, saved atomically on each change."""
+
+    def __init__(self, out: Path, force: bool) -> None:
+        self.path = out / STATE
+        self.data: dict[str, Any] = {"stages": {}}
+        if self.path.is_file() and not force:
+            try:
+                self.data = json.loads(self.path.read_text())
+            except json.JSONDecodeError as e:
+                raise CliError(f"{self.path} is not valid JSON ({e}); pass --force to start over") from None
+
+    def stage(self, name: str) -> dict[str, Any]:
+        return self.data["stages"].setdefault(name, {})
+
+    def save(self) -> None:
+        from tiger.utils.io import atomic_write
+
+        with atomic_write(self.path, "w") as fh:
+            json.dump(self.data, fh, indent=2)
+
+
+def _check_inputs(name: str, record: dict[str, Any], inputs: dict[str, Any]) -> None:
+    old = record.get("inputs")
+    if old is None or old == inputs:
+        return
+    changed = sorted(k for k in set(old) | set(inputs) if old.get(k) != inputs.get(k))
+    detail = ", ".join(f"{k}: {old.get(k)!r} -> {inputs.get(k)!r}" for k in changed)
+    raise CliError(f"stage '{name}' was run with other inputs ({detail}); pass --force to start over")
+
+
+def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], work: Callable[[], dict],
+               total: int = 3) -> None:
+    record = state.stage(name)
+    _check_inputs(name, record, inputs)
+    if record.get("done"):
+        print(f"[{index}/{total}] {name}: done before ({record.get('seconds', 0):.1f} s), inputs unchanged")
+        return
+    verb = "continuing" if record.get("inputs") else "running"
+    print(f"[{index}/{total}] {name}: {verb}", flush=True)
+    record["inputs"] = inputs
+    state.save()
+    t0 = time.perf_counter()
+    quality = work()
+    record.update(done=True, seconds=record.get("seconds", 0.0) + time.perf_counter() - t0, quality=quality)
+    state.save()
+
+
+def _invoke(argv: list[str]) -> None:
+    """Run a tiger subcommand in this process; a failure stops prepare with the stage's message."""
+    from .main import build_parser
+
+    args = build_parser().parse_args(argv)
+    code = int(args.func(args) or 0)
+    if code:
+        raise CliError(f"`tiger {' '.join(argv[:1])}` stopped with exit code {code}")
+
+
+def _table(state: _State) -> list[str]:
+    rows = [("stage", "seconds", "quality")]
+    total = 0.0
+    for name in ("reconstruct", "features", "embed"):
+        rec = state.data["stages"].get(name)
+        if not rec:
+            continue
+        total += float(rec.get("seconds", 0.0))
+        q = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                      for k, v in (rec.get("quality") or {}).items())
+        rows.append((name, f"{rec.get('seconds', 0.0):.1f}", q))
+    rows.append(("total", f"{total:.1f}", ""))
+    w0, w1 = max(len(r[0]) for r in rows), max(len(r[1]) for r in rows)
+    return [f"  {a:<{w0}}  {b:>{w1}}  {c}".rstrip() for a, b, c in rows]
+
+
+def run(args: argparse.Namespace) -> int:
+    data = existing(args.data, "dataset").resolve()
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"{out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / STATE).is_file() and not args.force:
+        raise CliError(f"{out} is not empty and holds no {STATE}; pass --force to prepare into it anyway")
+    if args.force:
+        for sub in (RECON, FEATURES):
+            shutil.rmtree(out / sub, ignore_errors=True)
+        for f in (SCENE, SCENE + ".ckpt.pt", STATE):
+            (out / f).unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    state = _State(out, args.force)
+    common = _flag_args({"--device": args.device, "--skip-missing": args.skip_missing})
+    t_start = time.perf_counter()
+
+    # 1. the scene
+    recon = out / RECON
+    if args.scene:
+        given = existing(args.scene, "scene file").resolve()
+        scene_file = given
+        _run_stage(state, "reconstruct", 1, {"scene": str(given), "scene_id": _file_id(given)},
+                   lambda: {"gaussians": _count_gaussians(given), "source": "--scene"})
+    else:
+        scene_file = recon / "scene.ply"
+        inputs = {"data": str(data), "steps": args.recon_steps, "downscale": args.downscale,
+                  "init_points": args.init_points, "test_every": args.test_every,
+                  "skip_missing": args.skip_missing}
+
+        def reconstruct() -> dict:
+            resume = (recon / "checkpoint.pt").is_file()
+            # A stage stopped before its first checkpoint leaves only caches: start it afresh.
+            fresh = recon.is_dir() and not resume
+            _invoke(["reconstruct", str(data), "--out", str(recon), *common,
+                     *_flag_args({"--steps": args.recon_steps, "--downscale": args.downscale,
+                                  "--init-points": args.init_points, "--test-every": args.test_every,
+                                  "--resume": resume, "--force": fresh})])
+            metrics = json.loads((recon / "metrics.json").read_text())
+            q = {"gaussians": int(metrics["gaussians"])}
+            if "psnr" in metrics:
+                q["held_out_psnr_db"] = float(metrics["psnr"])
+            if "psnr_pixels" in metrics:
+                q["psnr_pixels"] = metrics["psnr_pixels"]
+            return q
+
+        _run_stage(state, "reconstruct", 1, inputs, reconstruct)
+
+    # 2. the feature maps
+    feats = out / FEATURES
+    f_inputs = {"data": str(data), "models": args.models, "upsampler": args.upsampler,
+                "long_side": args.long_side, "clip_long_side": args.clip_long_side, "pca_dim": args.pca_dim,
+                "no_sam": args.no_sam, "skip_missing": args.skip_missing}
+
+    def features() -> dict:
+        _invoke(["features", str(data), "--out", str(feats), *common,
+                 *_flag_args({"--models": args.models, "--upsampler": args.upsampler, "--long-side": args.long_side,
+                              "--clip-long-side": args.clip_long_side, "--pca-dim": args.pca_dim,
+                              "--no-sam": args.no_sam})])
+        return {"maps": len(list((feats / "features").glob("*.pt")))}
+
+    _run_stage(state, "features", 2, f_inputs, features)
+
+    # 3. the language field
+    lang = out / SCENE
+    e_inputs = {"scene_id": _file_id(scene_file), "pca_id": _file_id(feats / "pca.pt"),
+                "steps": args.embed_steps, "init": args.init}
+
+    def embed() -> dict:
+        ckpt = Path(str(lang) + ".ckpt.pt")
+        # --force: our own output of an interrupted run (the field resumes from its checkpoint)
+        _invoke(["embed", str(scene_file), str(data), "--features", str(feats), "--out", str(lang), "--force",
+                 *common, *_flag_args({"--steps": args.embed_steps, "--init": args.init})])
+        q: dict[str, Any] = {}
+        if ckpt.is_file():
+            import torch
+
+            losses = torch.load(str(ckpt), map_location="cpu", weights_only=False).get("losses") or []
+            if losses:
+                q["field_loss"] = float(losses[-1])
+        return q
+
+    _run_stage(state, "embed", 3, e_inputs, embed)
+
+    state.data["result"] = {"scene": str(lang), "features": str(feats),
+                            "seconds_this_run": time.perf_counter() - t_start}
+    state.save()
+    print(f"\ntiger prepare: {lang} (query it with `tiger query {out} TEXT`)")
+    for line in _table(state):
+        print(line)
+    print(f"  -> {state.path}")
+    return 0
+
+
+def _count_gaussians(path: Path) -> Optional[int]:
+    from tiger.scene import GaussianScene
+
+    return len(GaussianScene.load_ply(path))
