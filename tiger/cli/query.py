@@ -68,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     # Everything that can refuse runs before the output folder is made: a refused query
     # leaves nothing behind, and no text's outputs are written unless every text is known.
+    if args.views < 0:
+        raise CliError(f"--views must be >= 0 (pictures per query), got {args.views}")
     dev = device_of(args.device)
     output_dir(args.out, args.force, create=False)
     scene = load_scene(args.scene, dev)
