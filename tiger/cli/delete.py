@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--steps and --dilate must be >= 0 and --views > 0")
     tau = args.tau if args.tau in ("auto", "valley", "kittler", "otsu") else float(args.tau)
     cfg = DeleteConfig(score=args.score, tau=tau, steps=args.steps, dilate=args.dilate, background=bg)
-    encoder = text_encoder(args.models, args.text_embeddings, dev)
+    encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     from tiger.retrieval import CANONICAL_NEGATIVES, retrieve
 
     retrieval = retrieve(scene, args.text, encoder=encoder, score=args.score, tau=tau,

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
     tau = args.tau if args.tau == "auto" else float(args.tau)
-    encoder = text_encoder(args.models, args.text_embeddings, dev)
+    encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     texts = list(dict.fromkeys(args.text))
     try:
         results = {text: retrieve(scene, text, encoder=encoder, score=args.score, tau=tau) for text in texts}

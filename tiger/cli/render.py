@@ -103,6 +103,7 @@ def _stems(cams: list[Camera]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from tiger.utils.images import depth_picture, feature_pca_image, pca_basis, save_png
 
+    positive_size(*args.size)
     dev = device_of(args.device)
     output_dir(args.out, args.force, create=False)  # refusals below leave no folder behind
     scene = load_scene(args.scene, dev)
@@ -110,6 +111,12 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.scene} has no language features: drop 'features'/'relevancy' from --what")
     if "relevancy" in args.what and not args.query:
         raise CliError("--what relevancy needs --query TEXT")
+    enc = None
+    if "relevancy" in args.what:
+        from .text import text_encoder
+
+        enc = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
+        enc.encode_text([args.query])  # an unknown text is refused before anything is written
     cams, source = _cameras(args, scene, dev)
     if not cams:
         raise CliError("no views to render")
@@ -144,9 +151,6 @@ def run(args: argparse.Namespace) -> int:
     if "relevancy" in args.what:
         from tiger.retrieval import write_relevancy_pictures
 
-        from .text import text_encoder
-
-        enc = text_encoder(args.models, args.text_embeddings, dev)
         write_relevancy_pictures(scene, cams, args.query, out, encoder=enc, score=args.score)
     summary.add(f"{len(cams)} views ({source}) x {', '.join(args.what)} -> {out}")
     if args.video and frames:
