@@ -56,3 +56,33 @@ def test_failed_write_leaves_the_old_file(tmp_path):
             raise RuntimeError("boom")
     assert target.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
+
+
+class _InterruptWhilePickled:
+    """Sends Ctrl-C (SIGINT) to this process while torch.save is pickling it."""
+
+    def __reduce__(self):
+        import signal
+
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):  # let Python deliver the signal inside the serializer
+            pass
+        return (dict, ())
+
+
+def test_ctrl_c_during_a_checkpoint_write_finishes_the_file_then_interrupts(tmp_path):
+    path = tmp_path / "checkpoint.pt"
+    atomic_torch_save({"step": 1}, path)
+    big = {"step": 2, "weights": torch.arange(1_000_000, dtype=torch.float32), "x": _InterruptWhilePickled()}
+    with pytest.raises(KeyboardInterrupt):
+        atomic_torch_save(big, path)
+    # a plain KeyboardInterrupt after the write: the new file is complete and readable
+    loaded = torch.load(path, weights_only=False)
+    assert loaded["step"] == 2 and torch.equal(loaded["weights"], big["weights"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]  # no temporary left
+
+
+def test_ctrl_c_outside_writes_is_immediate():
+    import signal
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored after writes

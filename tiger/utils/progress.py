@@ -55,13 +55,12 @@ def progress(iterable: Union[Iterable, int, None] = None, desc: str = "", *, tot
     lines, at most one every :data:`LOG_INTERVAL_S` seconds and the final one. Other keyword
     arguments go to tqdm (``disable``, ``unit``, ``initial``, ``leave``, ...).
     """
-    from tqdm import std
     from tqdm.auto import tqdm
 
     if isinstance(iterable, int) and not isinstance(iterable, bool):
         iterable, total = None, iterable
     stream = sys.stderr if file is None else file
-    notebook = tqdm is not std.tqdm
+    notebook = any(cls.__module__ == "tqdm.notebook" for cls in tqdm.__mro__)  # Jupyter widgets
     if not notebook and not is_terminal(stream):
         kwargs.setdefault("mininterval", LOG_INTERVAL_S)
         kwargs.setdefault("maxinterval", max(LOG_INTERVAL_S, kwargs["mininterval"]))
