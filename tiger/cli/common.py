@@ -94,13 +94,14 @@ def device_of(name: str) -> torch.device:
     return dev
 
 
-def output_dir(path: str, force: bool, create: bool = True) -> Path:
+def output_dir(path: str, force: bool, create: bool = True, ignore: tuple[str, ...] = ()) -> Path:
     """A folder to write into: refuses a non-empty one unless --force. ``create=False`` only
-    checks (for commands that validate everything else before making the folder)."""
+    checks (for commands that validate everything else before making the folder); entries
+    named in ``ignore`` (caches a rerun reuses) do not count as content."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise CliError(f"{out} exists and is not a folder")
-    if out.exists() and any(out.iterdir()) and not force:
+    if out.exists() and any(p.name not in ignore for p in out.iterdir()) and not force:
         raise CliError(f"{out} already exists and is not empty; pass --force to overwrite it")
     if create:
         out.mkdir(parents=True, exist_ok=True)
