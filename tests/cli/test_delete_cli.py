@@ -50,12 +50,12 @@ def test_cli_delete_writes_scene_pictures_and_report(tmp_path, capsys):
 def test_cli_delete_errors(tmp_path, capsys):
     path, _, _ = _scene_file(tmp_path)
     base = [str(path), "--text-embeddings", str(tmp_path / "text.pt"), "--device", "cpu"]
-    assert main(["delete", *base[:1], "ball", *base[1:], "--out", str(tmp_path / "a")]) == 1
+    assert main(["delete", *base[:1], "ball", *base[1:], "--out", str(tmp_path / "a")]) == 2  # bad input
     assert "no embedding for ['ball']" in capsys.readouterr().err
     cfg = tmp_path / "models.json"
     cfg.write_text(json.dumps({"lama": str(tmp_path / "lama" / "big-lama.pt")}))
     assert main(["delete", *base[:1], "mug", *base[1:], "--out", str(tmp_path / "b"),
-                 "--inpainter", "lama", "--models", str(cfg)]) == 1
+                 "--inpainter", "lama", "--models", str(cfg)]) == 2  # missing weights: bad setup
     err = capsys.readouterr().err
     assert "model 'lama' not found" in err and "big-lama.pt" in err
 

@@ -66,3 +66,33 @@ def test_file_slug_is_the_one_rule_and_unique_slugs_number_repeats():
     assert file_slug("img-01.v2", keep="-") == "img-01_v2" and file_slug("img-01") == "img_01"
     assert unique_file_slugs(["cup", "cup", "c u p", "c?u?p", "!!"], ["v0", "v1", "v2", "v3", "v4"]) == [
         "cup", "cup_2", "c_u_p", "c_u_p_2", "v4"]
+
+
+class _InterruptWhilePickled:
+    """Sends Ctrl-C (SIGINT) to this process while torch.save is pickling it."""
+
+    def __reduce__(self):
+        import signal
+
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):  # let Python deliver the signal inside the serializer
+            pass
+        return (dict, ())
+
+
+def test_ctrl_c_during_a_checkpoint_write_finishes_the_file_then_interrupts(tmp_path):
+    path = tmp_path / "checkpoint.pt"
+    atomic_torch_save({"step": 1}, path)
+    big = {"step": 2, "weights": torch.arange(1_000_000, dtype=torch.float32), "x": _InterruptWhilePickled()}
+    with pytest.raises(KeyboardInterrupt):
+        atomic_torch_save(big, path)
+    # a plain KeyboardInterrupt after the write: the new file is complete and readable
+    loaded = torch.load(path, weights_only=False)
+    assert loaded["step"] == 2 and torch.equal(loaded["weights"], big["weights"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]  # no temporary left
+
+
+def test_ctrl_c_outside_writes_is_immediate():
+    import signal
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored after writes

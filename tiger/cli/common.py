@@ -13,6 +13,62 @@ class CliError(Exception):
     """An error the user can act on: printed as one line, exit code 2."""
 
 
+_command_start: Optional[float] = None
+
+
+def mark_command_start() -> None:
+    """Note when the command began (``tiger.cli.main`` calls it first): summaries time from here."""
+    global _command_start
+    _command_start = time.perf_counter()
+
+
+def command_elapsed_s() -> float:
+    """Seconds since :func:`mark_command_start` (0 when no command was marked)."""
+    return 0.0 if _command_start is None else time.perf_counter() - _command_start
+
+
+def positive_size(width: int, height: int, option: str = "--size") -> tuple[int, int]:
+    """(width, height) when both are positive pixel counts, else a CliError naming ``option``."""
+    if width <= 0 or height <= 0:
+        raise CliError(f"{option} must be two positive pixel counts W H, got {width} {height}")
+    return width, height
+
+
+#: Bytes a rendered pixel costs on its way to a picture, per colour channel and fixed: the
+#: rasterizer's float32 colour, alpha and depth, its per-pixel bookkeeping, the clamped copy
+#: and the 8-bit picture (measured order of magnitude, rounded up).
+_BYTES_PER_PIXEL_CHANNEL, _BYTES_PER_PIXEL_FIXED = 12, 40
+
+
+def render_bytes(width: int, height: int, channels: int = 3) -> int:
+    """Estimated peak memory of rendering one ``width`` x ``height`` picture with ``channels``."""
+    return width * height * (channels * _BYTES_PER_PIXEL_CHANNEL + _BYTES_PER_PIXEL_FIXED)
+
+
+def available_bytes(device: torch.device) -> int:
+    """Free memory on ``device``: the GPU's free memory, or the host's MemAvailable."""
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    import os
+
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+
+
+def check_render_size(width: int, height: int, device: torch.device, channels: int = 3,
+                      option: str = "--size") -> None:
+    """Refuse, before any work, a picture whose render would not fit in ``device``'s memory."""
+    need, have = render_bytes(width, height, channels), available_bytes(device)
+    if need > have:
+        raise CliError(f"{option} {width}x{height}: one view needs about {need / 2**30:.1f} GiB to render, "
+                       f"{device.type} memory has {have / 2**30:.1f} GiB free; choose a smaller size")
+
+
 def add_common(p: argparse.ArgumentParser, out_default: Optional[str] = None,
                models: bool = False) -> None:
     """--device, --out, --force (and --models) with the same meaning in every subcommand."""
@@ -38,13 +94,14 @@ def device_of(name: str) -> torch.device:
     return dev
 
 
-def output_dir(path: str, force: bool, create: bool = True) -> Path:
+def output_dir(path: str, force: bool, create: bool = True, ignore: tuple[str, ...] = ()) -> Path:
     """A folder to write into: refuses a non-empty one unless --force. ``create=False`` only
-    checks (for commands that validate everything else before making the folder)."""
+    checks (for commands that validate everything else before making the folder); entries
+    named in ``ignore`` (caches a rerun reuses) do not count as content."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise CliError(f"{out} exists and is not a folder")
-    if out.exists() and any(out.iterdir()) and not force:
+    if out.exists() and any(p.name not in ignore for p in out.iterdir()) and not force:
         raise CliError(f"{out} already exists and is not empty; pass --force to overwrite it")
     if create:
         out.mkdir(parents=True, exist_ok=True)
@@ -96,7 +153,10 @@ class Summary:
     """Collects lines for the summary printed at the end of a command."""
 
     def __init__(self, title: str) -> None:
-        self.title, self.lines, self.t0 = title, [], time.perf_counter()
+        self.title, self.lines = title, []
+        # The command's own start (tiger.cli.main marks it), not this object's: summaries are
+        # often made after the work.
+        self.t0 = _command_start if _command_start is not None else time.perf_counter()
 
     def add(self, text: str) -> None:
         self.lines.append(text)

@@ -81,13 +81,13 @@ def run(args: argparse.Namespace) -> int:
         bg = tuple(float(v) for v in args.background.split(","))
     except ValueError:
         bg = ()
-    if len(bg) != 3:
-        raise CliError(f"--background must be R,G,B, got {args.background!r}")
+    if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):
+        raise CliError(f"--background must be R,G,B with each in [0, 1], got {args.background!r}")
     if args.steps < 0 or args.views <= 0 or args.dilate < 0:
         raise CliError("--steps and --dilate must be >= 0 and --views > 0")
     tau = args.tau if args.tau in ("auto", "valley", "kittler", "otsu") else float(args.tau)
     cfg = DeleteConfig(score=args.score, tau=tau, steps=args.steps, dilate=args.dilate, background=bg)
-    encoder = text_encoder(args.models, args.text_embeddings, dev)
+    encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     from tiger.retrieval import CANONICAL_NEGATIVES, retrieve
 
     retrieval = retrieve(scene, args.text, encoder=encoder, score=args.score, tau=tau,

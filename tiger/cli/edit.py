@@ -3,17 +3,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
+import logging
 
 import torch
 
 from tiger.utils.dtypes import DTYPE_NAMES
+from tiger.utils.video import KINDS as VIDEO_KINDS
 
-from .common import (CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset,
-                     output_dir)
+from .common import (CliError, Summary, add_common, add_skip_missing, command_elapsed_s, device_of, load_scene,
+                     open_dataset, output_dir)
 from .text import text_encoder
 
 GUIDANCES = ("ip2p+mvdream", "ip2p", "mvdream", "recolor")
+log = logging.getLogger(__name__)
+#: CPU time of a recolour edit: about CPU_WARN_MINUTES per CPU_WARN_PIXEL_STEPS (steps x size^2),
+#: measured on 2 cores (the defaults, 1200 steps at 512 px, took ~13 min).
+CPU_WARN_PIXEL_STEPS, CPU_WARN_MINUTES = 1200 * 512 ** 2 // 13, 1.0
 
 
 def add_parser(sub) -> None:
@@ -56,8 +61,9 @@ def add_parser(sub) -> None:
     p.add_argument("--tau", default="auto", help="retrieval threshold, or 'auto'")
     p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--video", choices=("auto", "mp4", "gif", "none"), default="auto",
-                   help="turntable video format (default: %(default)s)")
+    p.add_argument("--video", choices=VIDEO_KINDS, default="auto",
+                   help="turntable video (auto: H.264 MP4, else VP9/VP8 WebM, else GIF: all play in "
+                        "browsers; default: %(default)s)")
     p.set_defaults(func=run)
 
 
@@ -84,11 +90,24 @@ def run(args: argparse.Namespace) -> int:
     dev = device_of(args.device)
     if args.cuda_graph and dev.type != "cuda":
         raise CliError(f"--cuda-graph needs a CUDA --device, got {dev}")
-    out = output_dir(args.out, args.force or args.resume)
+    output_dir(args.out, args.force or args.resume, create=False)  # refusals below leave no folder
+    needed = [m for m in ("ip2p", "mvdream") if m in args.guidance.split("+")]
+    if needed:
+        from tiger.models.paths import require_models
+
+        require_models(needed, config=args.models,
+                       hint="Without these weights, `--guidance recolor` edits the object's colour (no models).")
+    if args.guidance == "recolor" and dev.type == "cpu" and args.steps * args.size ** 2 > CPU_WARN_PIXEL_STEPS:
+        log.warning("edit on the CPU: %d steps of 4 views at %d px take about %.0f min here (try --steps 200 "
+                    "--size 256, or a GPU)", args.steps, args.size,
+                    args.steps * args.size ** 2 / CPU_WARN_PIXEL_STEPS * CPU_WARN_MINUTES)
+    elif needed and dev.type == "cpu":
+        log.warning("edit on the CPU runs the diffusion models (%s) every step: expect hours; use a GPU "
+                    "(--device cuda)", "+".join(needed))
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
-    encoder = text_encoder(args.models, args.text_embeddings, dev)
+    encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     tau = args.tau if args.tau == "auto" else float(args.tau)
     try:
         target = resolve_target(scene, args.target, encoder=encoder, tau=tau, score=args.score)
@@ -98,9 +117,9 @@ def run(args: argparse.Namespace) -> int:
     dtype = None if args.dtype == "auto" else DTYPE_NAMES[args.dtype]
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
                               color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)
+    out = output_dir(args.out, args.force or args.resume)
     cams = _cameras(args.data, args.skip_missing)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
-    t0 = time.perf_counter()
     res = edit(scene, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
     res.scene.save_ply(out / "edited.ply")
     from tiger.edit.views import ObjectViews
@@ -122,15 +141,22 @@ def run(args: argparse.Namespace) -> int:
     report = {"instruction": args.instruction, "target": args.target, "guidance": args.guidance,
               "selected": target.count, "tau": target.tau, "settings": cfg.to_dict(),
               "guidance_settings": guidance.settings(),
-              "time_s": round(time.perf_counter() - t0, 3), "stage_times_s": res.timings_s,
+              # time_s: the optimisation over all runs (a resumed edit counts its earlier runs, as
+              # rounds[-1].time_s does); command_s: this command's wall time.
+              "time_s": res.rounds[-1]["time_s"], "command_s": round(command_elapsed_s(), 3),
+              "stage_times_s": res.timings_s,
               "gaussians_before": len(scene), "gaussians_after": len(res.scene), "metrics": metrics,
               "rounds": res.rounds}
+    if "color" in report["guidance_settings"]:  # recolor: the RGB the instruction / --color resolved to
+        report["recolor_rgb"] = [round(float(v), 4) for v in report["guidance_settings"]["color"]]
     from tiger.utils.io import atomic_write
 
     with atomic_write(out / "edit.json", "w") as fh:
         json.dump(report, fh, indent=2)
     s = Summary("tiger edit")
     s.add(f"{args.target!r}: {target.count} of {len(scene)} Gaussians edited ({args.guidance}, {args.steps} steps)")
+    if "recolor_rgb" in report:
+        s.add("colour: RGB " + ", ".join(f"{v:.3f}" for v in report["recolor_rgb"]) + " (0-1)")
     s.add(f"locality PSNR outside the object: {metrics['locality']['psnr']:.2f} dB")
     s.add(f"edited scene: {out / 'edited.ply'} ({len(res.scene)} Gaussians)")
     s.add(f"pictures: {out / 'before_after.png'}" + (f", video: {video}" if video else ""))

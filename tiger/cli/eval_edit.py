@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     for name, s in ((args.before, before), (args.after, after)):
         if s.lang is None:
             raise CliError(f"{name} has no language features (lang_*); both scenes need them")
-    enc = text_encoder(args.models, args.text_embeddings, dev)
+    enc = text_encoder(args.models, args.text_embeddings, dev, before, args.before)
     tau = args.tau if args.tau == "auto" else float(args.tau)
     try:
         tb = resolve_target(before, args.target, encoder=enc, tau=tau)

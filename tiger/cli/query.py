@@ -69,13 +69,15 @@ def run(args: argparse.Namespace) -> int:
 
     # Everything that can refuse runs before the output folder is made: a refused query
     # leaves nothing behind, and no text's outputs are written unless every text is known.
+    if args.views < 0:
+        raise CliError(f"--views must be >= 0 (pictures per query), got {args.views}")
     dev = device_of(args.device)
     output_dir(args.out, args.force, create=False)
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
     tau = args.tau if args.tau == "auto" else float(args.tau)
-    encoder = text_encoder(args.models, args.text_embeddings, dev)
+    encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     texts = list(dict.fromkeys(args.text))
     try:
         results = {text: retrieve(scene, text, encoder=encoder, score=args.score, tau=tau) for text in texts}

@@ -19,7 +19,10 @@ def add_parser(sub) -> None:
                     "undistortion is left out of the loss and of the metric (metrics.json: psnr_pixels); "
                     "random initial points take their colour from the views. Checkpoints allow --resume. Writes "
                     "OUT/scene.ply (INRIA's PLY), OUT/cameras.json (the capture's cameras, INRIA's "
-                    "format; `tiger render` renders along them), OUT/metrics.json.",
+                    "format; `tiger render` renders along them), OUT/metrics.json, OUT/run.json "
+                    "(the settings; --resume must match them). The undistorted-image cache and the "
+                    "checkpoint are removed when the run finishes (--keep-cache keeps them); a "
+                    "cache left by a stopped run does not block a rerun.",
         epilog="example: tiger reconstruct ../shared/data/fox --out outputs/fox --steps 7000 "
                "--downscale 4",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -38,7 +41,48 @@ def add_parser(sub) -> None:
                         "checkpoint, unless --force)")
     p.add_argument("--finetune", default=None, metavar="PLY",
                    help="start from this scene instead of initialising (e.g. after a deletion)")
+    p.add_argument("--keep-cache", action="store_true",
+                   help=f"keep OUT/{CACHE} (undistorted images) and OUT/checkpoint.pt after a finished "
+                        "run (default: removed once scene.ply is written)")
     p.set_defaults(func=run)
+
+
+CACHE, RUN_FILE = "image_cache", "run.json"
+#: Settings a --resume must share with the run it continues (the schedule is scaled by --steps).
+RESUME_SETTINGS = ("data", "steps", "downscale", "sh_degree", "test_every", "init_points", "finetune")
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    """Refuse impossible numbers before anything is created."""
+    if args.steps < 1:
+        raise CliError(f"--steps must be >= 1, got {args.steps}")
+    if not args.downscale > 0:
+        raise CliError(f"--downscale must be positive, got {args.downscale}")
+    if not 0 <= args.sh_degree <= 3:
+        raise CliError(f"--sh-degree must be 0..3, got {args.sh_degree}")
+    if args.test_every < 0 or args.checkpoint_every < 0 or args.init_points < 1:
+        raise CliError("--test-every and --checkpoint-every must be >= 0 and --init-points >= 1")
+
+
+def _run_settings(args: argparse.Namespace) -> dict:
+    return {"data": str(Path(args.data).resolve()), "steps": args.steps, "downscale": args.downscale,
+            "sh_degree": args.sh_degree, "test_every": args.test_every, "init_points": args.init_points,
+            "finetune": str(Path(args.finetune).resolve()) if args.finetune else None}
+
+
+def _check_resume_settings(out: Path, args: argparse.Namespace) -> None:
+    """A --resume continues only the run it was started as: settings that differ are named."""
+    import json
+
+    stored = out / RUN_FILE
+    if not stored.is_file():
+        return  # a checkpoint from before run.json existed: nothing to compare
+    before = json.loads(stored.read_text())
+    now = _run_settings(args)
+    diff = [f"--{k.replace('_', '-')} {before.get(k)} -> {now[k]}" for k in RESUME_SETTINGS if before.get(k) != now[k]]
+    if diff:
+        raise CliError(f"--resume: {out / 'checkpoint.pt'} was made with other settings ({'; '.join(diff)}); "
+                       "resume with the same ones, or start over with --force")
 
 
 def _resumable(out: Path, resume: bool) -> bool:
@@ -47,11 +91,28 @@ def _resumable(out: Path, resume: bool) -> bool:
         return False
     if (out / "checkpoint.pt").is_file():
         return True
-    if out.is_dir() and any(out.iterdir()):
+    content = sorted(p.name for p in out.iterdir() if p.name not in (CACHE, RUN_FILE)) if out.is_dir() else []
+    if content:
         raise CliError(f"--resume: {out} has no checkpoint.pt to resume from but is not empty "
-                       f"({', '.join(sorted(p.name for p in out.iterdir())[:5])}); pass --force to "
+                       f"({', '.join(content[:5])}); pass --force to "
                        "start from scratch in it (overwriting its scene.ply, metrics.json, ...)")
     return False
+
+
+def _clean_up(out: Path, keep: bool) -> list[str]:
+    """After a finished run: remove the image cache and the checkpoint unless ``keep``."""
+    import shutil
+
+    if keep:
+        return []
+    gone = []
+    if (out / CACHE).is_dir():
+        shutil.rmtree(out / CACHE)
+        gone.append(CACHE)
+    if (out / "checkpoint.pt").is_file():
+        (out / "checkpoint.pt").unlink()
+        gone.append("checkpoint.pt")
+    return gone
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,11 +122,17 @@ def run(args: argparse.Namespace) -> int:
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
     from tiger.utils.io import atomic_write
 
+    _check_arguments(args)
     dev = device_of(args.device)
     data = existing(args.data, "dataset")
-    out = output_dir(args.out, args.force or _resumable(Path(args.out), args.resume))
+    resuming = _resumable(Path(args.out), args.resume)
+    if resuming:
+        _check_resume_settings(Path(args.out), args)
+    ds = open_dataset(args.data, args.skip_missing)  # a bad dataset is refused before OUT exists
+    out = output_dir(args.out, args.force or resuming, ignore=(CACHE, RUN_FILE))  # a stopped run's leftovers
+    with atomic_write(out / RUN_FILE, "w") as fh:
+        json.dump(_run_settings(args), fh, indent=2)
     summary = Summary("tiger reconstruct")
-    ds = open_dataset(args.data, args.skip_missing)
     train, test = ds.split(args.test_every)
     summary.add(f"{len(train)} training views, {len(test)} test views from {data} ({ds.kind})")
     cache = out / "image_cache"
@@ -106,5 +173,8 @@ def run(args: argparse.Namespace) -> int:
                     f"SSIM {ev.get('ssim', float('nan')):.4f} ({metrics['psnr_pixels']})")
     with atomic_write(out / "metrics.json", "w") as fh:
         json.dump(metrics, fh, indent=2)
+    gone = _clean_up(out, args.keep_cache)
+    if gone:
+        summary.add(f"removed {', '.join(gone)} (--keep-cache keeps them)")
     summary.print()
     return 0

@@ -8,7 +8,8 @@ import torch
 from tiger.render import Camera
 from tiger.scene import GaussianScene
 
-from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, output_dir
+from .common import (CliError, Summary, add_common, add_skip_missing, check_render_size, device_of, load_scene,
+                     output_dir, positive_size)
 
 KINDS = ("color", "depth", "alpha", "features", "relevancy")
 
@@ -22,7 +23,11 @@ def add_parser(sub) -> None:
                     "--data's cameras); without cameras, or with --orbit N, N views on an arc over "
                     "the side the scene was observed from (judged from its view-dependent colour). "
                     "Pictures are named after the source image (0001_color.png). --video writes "
-                    "the colour frames as an MP4 (OpenCV or imageio-ffmpeg), else an animated GIF.",
+                    "the colour frames as an H.264 MP4 that browsers play (imageio-ffmpeg or OpenCV), else an "
+                    "animated GIF. Depth pictures carry a colour bar in scene units. --what relevancy "
+                    "shows the score `tiger query` selects with (--score, same default): the cosine "
+                    "over [-1, 1], or the LERF relevancy over [0.5, 1] (0.5: no more relevant than "
+                    "the canonical negatives 'object', 'things', 'stuff', 'texture').",
         epilog="example: tiger render outputs/fox/scene_lang.ply --views 12 --downscale 2 --what color "
                "depth features --video --out outputs/fox/views",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -43,6 +48,8 @@ def add_parser(sub) -> None:
                    help="picture size of --orbit views (default: 640 480)")
     p.add_argument("--what", nargs="+", choices=KINDS, default=["color", "depth"])
     p.add_argument("--query", default=None, help="text for the relevancy maps")
+    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine",
+                   help="what --what relevancy shows (as `tiger query --score`; default: %(default)s)")
     p.add_argument("--text-embeddings", default=None)
     p.add_argument("--video", action="store_true", help="also write the colour frames as a video")
     p.set_defaults(func=run)
@@ -64,7 +71,7 @@ def _cameras(args: argparse.Namespace, scene: GaussianScene,
             raise CliError(f"--orbit must be positive, got {n}")
         if args.views is not None:
             raise CliError("--views picks views of a camera path; with an orbit give the count as --orbit N")
-        w, h = (max(1, round(v / args.downscale)) for v in args.size)
+        w, h = (max(1, round(v / args.downscale)) for v in positive_size(*args.size))
         return observed_orbit_cameras(scene, n, w, h), f"arc over the observed side, {w}x{h}"
     if args.data:
         from .query import pick_cameras
@@ -91,8 +98,9 @@ def _stems(cams: list[Camera]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
+    from tiger.utils.images import depth_picture, feature_pca_image, pca_basis, save_png
 
+    positive_size(*args.size)
     dev = device_of(args.device)
     output_dir(args.out, args.force, create=False)  # refusals below leave no folder behind
     scene = load_scene(args.scene, dev)
@@ -100,13 +108,25 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.scene} has no language features: drop 'features'/'relevancy' from --what")
     if "relevancy" in args.what and not args.query:
         raise CliError("--what relevancy needs --query TEXT")
+    enc = None
+    if "relevancy" in args.what:
+        from .text import text_encoder
+
+        enc = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
+        enc.encode_text([args.query])  # an unknown text is refused before anything is written
     cams, source = _cameras(args, scene, dev)
+    if not cams:
+        raise CliError("no views to render")
+    channels = scene.lang.shape[1] if "features" in args.what or "relevancy" in args.what else 3
+    width, height = max((c.width, c.height) for c in cams)
+    check_render_size(width, height, dev, channels=channels,
+                      option="--size" if source.startswith("arc") else "the cameras' size (--downscale)")
     out = output_dir(args.out, args.force)
     summary = Summary("tiger render")
     frames, basis = [], None
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress
 
-    for cam, stem in zip(tqdm(cams, desc="rendering"), _stems(cams)):
+    for cam, stem in zip(progress(cams, "rendering"), _stems(cams)):
         with torch.no_grad():
             r = scene.render(cam)
         mask = r["alpha"] > 0.5
@@ -114,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
             save_png(out / f"{stem}_color.png", r["color"].clamp(0, 1))
             frames.append(r["color"].clamp(0, 1))
         if "depth" in args.what:
-            save_png(out / f"{stem}_depth.png", colorize(r["depth"], mask))
+            save_png(out / f"{stem}_depth.png", depth_picture(r["depth"], mask))
         if "alpha" in args.what:
             save_png(out / f"{stem}_alpha.png", r["alpha"])
         if "features" in args.what:
@@ -128,10 +148,7 @@ def run(args: argparse.Namespace) -> int:
     if "relevancy" in args.what:
         from tiger.retrieval import write_relevancy_pictures
 
-        from .text import text_encoder
-
-        enc = text_encoder(args.models, args.text_embeddings, dev)
-        write_relevancy_pictures(scene, cams, args.query, out, encoder=enc, score="relevancy")
+        write_relevancy_pictures(scene, cams, args.query, out, encoder=enc, score=args.score)
     summary.add(f"{len(cams)} views ({source}) x {', '.join(args.what)} -> {out}")
     if args.video and frames:
         from tiger.utils.video import write_video

@@ -1,10 +1,12 @@
 """Where model weights live, and the error when they are missing (SPEC §7).
 
 A model is found, in this order, at: an explicit ``path`` argument; the entry for it in a config
-(a mapping or a JSON file of ``{name: path}``); ``$TIGER_MODELS/<folder>`` (the folder named in
-the registry below, or the public id as a nested folder). Nothing is downloaded unless the
-caller passes ``allow_download=True`` (then ``huggingface_hub`` fetches the public id into
-``$TIGER_MODELS`` or its own cache).
+(a mapping or a JSON file of ``{name: path}``, whose keys must be registry names: clip, sam,
+featup_jbu, lama, ip2p, mvdream), or inside a config that is a folder (searched like
+``$TIGER_MODELS``); ``$TIGER_MODELS/<folder>`` (the folder named in the registry below, or the
+public id as a nested folder). Nothing is downloaded unless a Python caller passes
+``allow_download=True`` (then ``huggingface_hub`` fetches the public id into ``$TIGER_MODELS`` or
+its own cache); the command line never downloads.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Union
+from typing import Mapping, Sequence, Union
 
 logger = logging.getLogger(__name__)
 
@@ -124,8 +126,16 @@ def _is_complete(folder: Path, spec: ModelSpec) -> bool:
     return all(any((folder / name).exists() for name in group) for group in spec.required)
 
 
+def _config_root(config: ConfigLike) -> Path | None:
+    """The folder a config names, when it is one (searched like ``$TIGER_MODELS``)."""
+    if config is None or isinstance(config, Mapping):
+        return None
+    path = Path(config).expanduser()
+    return path if path.is_dir() else None
+
+
 def _from_config(name: str, config: ConfigLike) -> Path | None:
-    if config is None:
+    if config is None or _config_root(config) is not None:
         return None
     if not isinstance(config, Mapping):
         cfg_path = Path(config)
@@ -135,6 +145,10 @@ def _from_config(name: str, config: ConfigLike) -> Path | None:
             raise ValueError(f"tiger.models: cannot read the model config {cfg_path}: {exc}") from exc
         if not isinstance(config, Mapping):
             raise ValueError(f"tiger.models: the model config {cfg_path} must be a JSON object of name -> path")
+    unknown = sorted(k for k in config if k not in REGISTRY)
+    if unknown:
+        raise ValueError(f"tiger.models: the model config has unknown key(s) {', '.join(map(repr, unknown))}; "
+                         f"the keys are {', '.join(REGISTRY)}")
     value = config.get(name)
     return Path(value).expanduser() if value else None
 
@@ -180,7 +194,7 @@ def resolve_model_path(
         if found is not None:
             return found
     else:
-        root = os.environ.get(ENV_VAR)
+        root = _config_root(config) or os.environ.get(ENV_VAR)
         if root:
             for cand in _candidates(spec, Path(root).expanduser()):
                 looked.append(cand)
@@ -193,9 +207,23 @@ def resolve_model_path(
     raise ModelNotFoundError(
         f"tiger: model '{name}' not found. Expected {spec.describe()} "
         f"({spec.source}; public id '{spec.public_id}'). Looked at: {where}. "
-        f"Pass its path, add it to a model config, or put it under ${ENV_VAR}/{spec.folder}"
-        + (f" (downloads happen only with allow_download=True)." if spec.required else ".")
+        f"Pass its path, add it to a model config (--models), or put it under ${ENV_VAR}/{spec.folder}."
     )
+
+
+def require_models(names: Sequence[str], *, config: ConfigLike = None, hint: str = "") -> dict[str, Path]:
+    """Resolve every model in ``names``; a :class:`ModelNotFoundError` names ALL the missing ones
+    (each with what was expected and where it was looked for), then ``hint``."""
+    found, missing = {}, []
+    for name in names:
+        try:
+            found[name] = resolve_model_path(name, config=config)
+        except ModelNotFoundError as exc:
+            missing.append(str(exc).removeprefix("tiger: "))
+    if missing:
+        head = f"tiger: {len(missing)} of {len(names)} models not found: " if len(names) > 1 else "tiger: "
+        raise ModelNotFoundError(head + " | ".join(missing) + (f" {hint}" if hint else ""))
+    return found
 
 
 def _download(spec: ModelSpec, root: Path | None) -> Path:

@@ -79,13 +79,29 @@ class EmbeddingTable:
             raise ValueError(f"tiger: {source} mixes embedding sizes {sorted(sizes)}")
 
     def _key(self, text: str) -> str:
-        return text.lower().strip() if self.fold_case else text
+        return _fold(text) if self.fold_case else text
+
+    def _lookup(self, text: str) -> Optional[str]:
+        """The table key for ``text``: itself, else the one key equal to it up to case and spaces."""
+        key = self._key(text)
+        if key in self.table:
+            return key
+        matches = [k for k in self.table if _fold(k) == _fold(text)]
+        return matches[0] if len(matches) == 1 else None
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike], *, fold_case: bool = False,
              hint: str = "") -> "EmbeddingTable":
-        """Read a ``torch.save``-d ``{text: [F] tensor}`` file."""
-        d = torch.load(str(path), map_location="cpu", weights_only=True)
+        """Read a ``torch.save``-d ``{text: [F] tensor}`` file (a ValueError naming the file when it
+        is missing or not such a file)."""
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"tiger: text-embedding table {path} does not exist")
+        try:
+            d = torch.load(str(path), map_location="cpu", weights_only=True)
+        except Exception as exc:  # pickle/zip raise many types on foreign or corrupt files
+            reason = " ".join(str(exc).split())[:120]
+            raise ValueError(f"tiger: {path} is not a torch.save'd {{text: [F] tensor}} table "
+                             f"({type(exc).__name__}: {reason})") from None
         if not isinstance(d, dict):
             raise ValueError(f"tiger: {path} must hold a dict {{text: [F] tensor}}, got {type(d).__name__}")
         return cls(d, source=str(path), fold_case=fold_case, hint=hint)
@@ -96,15 +112,34 @@ class EmbeddingTable:
         return Path(path)
 
     def __contains__(self, text: str) -> bool:
-        return self._key(text) in self.table
+        return self._lookup(text) is not None
 
     def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
-        """[Q, F] float32 embeddings of ``texts``; an unknown text raises :class:`UnknownTextError`."""
-        missing = [t for t in texts if self._key(t) not in self.table]
+        """[Q, F] float32 embeddings of ``texts``, looked up exactly, else ignoring case and
+        surrounding spaces; an unknown text raises :class:`UnknownTextError` listing the table's
+        texts (the first :data:`LISTED_TEXTS`, then how many more)."""
+        keys = [self._lookup(t) for t in texts]
+        missing = [_shorten(t) for t, k in zip(texts, keys) if k is None]
         if missing:
-            raise UnknownTextError(f"no embedding for {missing} in {self.source} (it has "
-                                   f"{sorted(self.table)[:20]}){self.hint}")
-        return torch.stack([self.table[self._key(t)] for t in texts])
+            names = sorted(self.table)
+            listed = ", ".join(repr(_shorten(n)) for n in names[:LISTED_TEXTS])
+            more = f" and {len(names) - LISTED_TEXTS} more" if len(names) > LISTED_TEXTS else ""
+            raise UnknownTextError(f"no embedding for {missing} in {self.source} (its {len(names)} texts: "
+                                   f"{listed}{more}){self.hint}")
+        return torch.stack([self.table[k] for k in keys])
+
+
+#: How many of a table's texts an unknown-text error lists; longer texts are cut at SHOWN_CHARS.
+LISTED_TEXTS, SHOWN_CHARS = 60, 60
+
+
+def _fold(text: str) -> str:
+    return " ".join(text.lower().split())
+
+
+def _shorten(text: str) -> str:
+    """``text`` for a message: at most SHOWN_CHARS characters, saying how long it was."""
+    return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text)} characters)"
 
 
 def pca_of(source: PCASource) -> Optional[tuple[torch.Tensor, torch.Tensor]]:

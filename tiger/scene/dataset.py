@@ -87,6 +87,11 @@ def load_dataset(path: PathLike, images: str = "images", skip_missing: bool = Fa
     if (path / "transforms.json").is_file():
         cams, extra = load_transforms(path / "transforms.json", skip_missing)
         return SceneDataset(cams, source=path, kind="nerf", metadata=extra)
+    if not any((d / f"cameras.{e}").is_file() for d in (path, path / "sparse" / "0", path / "sparse")
+               for e in ("bin", "txt")):
+        raise SceneFormatError(path, "no dataset found: looked for a NeRF / instant-ngp transforms.json "
+                                     "(or transforms_train.json) and a COLMAP model (cameras.bin or "
+                                     "cameras.txt in ., sparse/0 or sparse)")
     return load_colmap(path, images, skip_missing)
 
 

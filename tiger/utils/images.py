@@ -78,3 +78,43 @@ def pca_basis(x: Tensor, k: int) -> Tensor:
     """Top-k principal directions [D,k] of rows x [M,D] (deterministic sign; the first 200k rows
     are enough for a picture)."""
     return fit_pca(x[:200_000], min(k, x.shape[1]))[1].to(device=x.device, dtype=x.dtype)
+
+
+#: Colour-bar layout of :func:`with_colorbar`, in pixels.
+BAR_GAP, BAR_WIDTH, BAR_LABEL_WIDTH = 4, 12, 52
+
+
+def value_range(values: Tensor, mask: Optional[Tensor] = None) -> tuple[float, float]:
+    """The masked 1st/99th percentiles of ``values`` [H, W] (the range :func:`colorize` uses);
+    (0, 1) when the mask is empty."""
+    v = values.detach().float().cpu()
+    sel = v[mask.detach().cpu()] if mask is not None else v.reshape(-1)
+    if sel.numel() == 0:
+        return 0.0, 1.0
+    return float(torch.quantile(sel, 0.01)), float(torch.quantile(sel, 0.99))
+
+
+def with_colorbar(picture: Tensor, vmin: float, vmax: float, cmap: str = "turbo",
+                  unit: str = "") -> Tensor:
+    """``picture`` [H, W, 3] in [0, 1] with a vertical colour bar on its right: ``vmax`` at the top,
+    ``vmin`` at the bottom, both written beside it (with ``unit``). Returns [H, W + 68, 3] on white."""
+    from PIL import Image, ImageDraw
+
+    h, w = int(picture.shape[0]), int(picture.shape[1])
+    ramp = torch.linspace(vmax, vmin, h)[:, None].expand(h, BAR_WIDTH)
+    bar = colorize(ramp, None, cmap, vmin, vmax)
+    canvas = Image.new("RGB", (w + BAR_GAP + BAR_WIDTH + BAR_LABEL_WIDTH, h), (255, 255, 255))
+    canvas.paste(Image.fromarray(to_uint8(picture[..., :3])), (0, 0))
+    canvas.paste(Image.fromarray(to_uint8(bar)), (w + BAR_GAP, 0))
+    draw = ImageDraw.Draw(canvas)
+    x = w + BAR_GAP + BAR_WIDTH + 2
+    draw.text((x, 0), f"{vmax:.3g}{unit}", fill=(0, 0, 0))
+    draw.text((x, max(h - 11, 10)), f"{vmin:.3g}{unit}", fill=(0, 0, 0))
+    return torch.from_numpy(np.asarray(canvas)).float() / 255
+
+
+def depth_picture(depth: Tensor, mask: Optional[Tensor] = None, cmap: str = "turbo") -> Tensor:
+    """A depth map [H, W] coloured over its masked 1st-99th percentile range, with the colour bar
+    naming that range in scene units (near at the bottom). Pixels outside ``mask`` are black."""
+    lo, hi = value_range(depth, mask)
+    return with_colorbar(colorize(depth, mask, cmap, lo, hi), lo, hi, cmap)

@@ -1,14 +1,18 @@
 """Atomic file writes: a temp file in the destination folder, fsync, then rename.
 
-A crash or interruption leaves either the old file or the new one, never a torn one. The new
-file gets the mode ``open()`` would have given it (0666 less the umask, typically 0644), not the
-owner-only 0600 of :func:`tempfile.mkstemp`.
+A crash or interruption leaves either the old file or the new one, never a torn one. Ctrl-C
+during a write (in the main thread) is held until the file is in place, then raised: the
+interrupted program ends with a complete file and a plain KeyboardInterrupt, not a serializer's
+internal error. The new file gets the mode ``open()`` would have given it (0666 less the umask,
+typically 0644), not the owner-only 0600 of :func:`tempfile.mkstemp`.
 """
 from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import IO, Any, Iterator, Optional, Sequence, Union
 
@@ -29,11 +33,41 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) while the block runs and raise KeyboardInterrupt after it.
+
+    Only where Python's default SIGINT handler is installed and in the main thread (elsewhere
+    signals cannot be caught); otherwise the block runs unchanged. An exception raised by the
+    block itself wins over the held interrupt.
+    """
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    held: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if held:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
 def atomic_write(path: PathLike, mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file next to ``path``; on clean exit it replaces ``path``.
 
-    The file's permissions follow the umask, like a plain ``open(path, "w")``.
+    The file's permissions follow the umask, like a plain ``open(path, "w")``. Ctrl-C inside the
+    block is held until the file is in place (:func:`interrupts_deferred`).
     """
+    with interrupts_deferred():
+        with _atomic_write(path, mode) as fh:
+            yield fh
+
+
+@contextlib.contextmanager
+def _atomic_write(path: PathLike, mode: str) -> Iterator[IO]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

@@ -1,11 +1,12 @@
-"""Frames → MP4 (OpenCV, else imageio-ffmpeg) or animated GIF (Pillow), written atomically."""
+"""Frames → a video browsers play: H.264 MP4 (OpenCV or imageio-ffmpeg, whichever has an H.264
+encoder), VP9/VP8 WebM (OpenCV), or an animated GIF (Pillow); written atomically."""
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 from torch import Tensor
@@ -15,7 +16,7 @@ from .io import atomic_write
 
 log = logging.getLogger(__name__)
 
-KINDS = ("auto", "mp4", "gif", "none")
+KINDS = ("auto", "mp4", "webm", "gif", "none")
 Frame = Union[Tensor, np.ndarray]
 
 
@@ -32,54 +33,78 @@ def _frames_uint8(frames: Sequence[Frame]) -> list[np.ndarray]:
     return arrays
 
 
-def _mp4_opencv(arrays: list[np.ndarray], tmp: Path, fps: float) -> None:
-    import cv2
+def _opencv(fourcc: str) -> Callable[[list[np.ndarray], Path, float], None]:
+    """A writer through OpenCV's FFmpeg with codec ``fourcc`` (an error when this build lacks it)."""
+    def write(arrays: list[np.ndarray], tmp: Path, fps: float) -> None:
+        import cv2
 
-    h, w = arrays[0].shape[:2]
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-    if not writer.isOpened():
-        raise RuntimeError("OpenCV has no MP4 encoder in this build")
-    try:
-        for a in arrays:
-            writer.write(np.ascontiguousarray(a[:, :, ::-1]))  # OpenCV wants BGR
-    finally:
-        writer.release()
+        h, w = arrays[0].shape[:2]
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), float(fps), (w, h))
+        if not writer.isOpened():
+            raise RuntimeError(f"this OpenCV build has no {fourcc} encoder")
+        try:
+            for a in arrays:
+                writer.write(np.ascontiguousarray(a[:, :, ::-1]))  # OpenCV wants BGR
+        finally:
+            writer.release()
+
+    write.__name__ = f"opencv_{fourcc}"
+    return write
 
 
-def _mp4_imageio(arrays: list[np.ndarray], tmp: Path, fps: float) -> None:
+def _imageio_h264(arrays: list[np.ndarray], tmp: Path, fps: float) -> None:
     import imageio.v2 as imageio  # needs the imageio-ffmpeg plugin
 
-    with imageio.get_writer(str(tmp), fps=fps, codec="libx264", macro_block_size=1) as w:
+    with imageio.get_writer(str(tmp), fps=fps, codec="libx264", pixelformat="yuv420p",
+                            macro_block_size=2) as w:
         for a in arrays:
             w.append_data(a)
 
 
-def _write_mp4(arrays: list[np.ndarray], path: Path, fps: float) -> None:
+#: Encoders per container, best first. Browsers play H.264 in MP4 and VP9/VP8 in WebM; OpenCV's
+#: pip wheels carry VP8/VP9 but no H.264 encoder, imageio-ffmpeg carries libx264. (MPEG-4 Part 2,
+#: OpenCV's 'mp4v', is deliberately absent: browsers do not play it.)
+_ENCODERS: dict[str, tuple[Callable[[list[np.ndarray], Path, float], None], ...]] = {
+    "mp4": (_opencv("avc1"), _imageio_h264),
+    "webm": (_opencv("VP90"), _opencv("VP80")),
+}
+
+
+def _even(arrays: list[np.ndarray]) -> list[np.ndarray]:
+    """Frames cropped to even sides (4:2:0 chroma needs them)."""
+    h, w = arrays[0].shape[:2]
+    return arrays if h % 2 == 0 and w % 2 == 0 else [a[: h - h % 2, : w - w % 2] for a in arrays]
+
+
+def _write_encoded(arrays: list[np.ndarray], path: Path, fps: float, container: str) -> None:
     errors = []
-    for writer in (_mp4_opencv, _mp4_imageio):
-        tmp = path.with_name(f".{path.stem}.tmp.mp4")  # the suffix tells the encoder the container
+    for writer in _ENCODERS[container]:
+        tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")  # the suffix tells the encoder the container
         try:
-            writer(arrays, tmp, fps)
+            writer(_even(arrays), tmp, fps)
             if not tmp.is_file() or tmp.stat().st_size == 0:
                 raise RuntimeError("the encoder wrote nothing")
             os.replace(tmp, path)
             return
         except Exception as exc:  # noqa: BLE001 - try the next backend, report all at the end
-            errors.append(f"{writer.__name__[5:]}: {exc}")
+            errors.append(f"{writer.__name__.lstrip('_')}: {exc}")
         finally:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
-    raise RuntimeError("cannot write MP4 (" + "; ".join(errors) + "); install opencv-python-headless "
-                       "or imageio + imageio-ffmpeg, or ask for a GIF")
+    hint = ("install imageio + imageio-ffmpeg (H.264)" if container == "mp4"
+            else "install opencv-python-headless (VP9/VP8)")
+    raise RuntimeError(f"cannot write {container.upper()} (" + "; ".join(errors) + f"); {hint}, or ask for a GIF")
 
 
 def write_video(frames: Sequence[Frame], path_stem: Union[str, os.PathLike], fps: float = 12,
                 kind: str = "auto") -> Optional[Path]:
     """Write ``frames`` ([H, W, 3] float in [0, 1] or uint8, all the same size) as a video.
 
-    ``kind``: "mp4" (OpenCV's encoder, else imageio-ffmpeg; an error when neither works), "gif"
-    (Pillow), "auto" (MP4, falling back to GIF) or "none". The file is ``path_stem`` plus the
-    suffix, written through a temporary file and a rename. Returns its path (None for "none").
+    ``kind``: "mp4" (H.264; an error when no encoder has it), "webm" (VP9, else VP8), "gif"
+    (Pillow), "auto" (the first of MP4, WebM, GIF that works here) or "none". Every container
+    and codec written plays in current browsers. Odd frame sides are cropped by one pixel for
+    MP4/WebM (4:2:0 chroma). The file is ``path_stem`` plus the suffix, written through a
+    temporary file and a rename. Returns its path (None for "none").
     """
     if kind not in KINDS:
         raise ValueError(f"write_video: kind must be one of {KINDS}, got {kind!r}")
@@ -90,15 +115,17 @@ def write_video(frames: Sequence[Frame], path_stem: Union[str, os.PathLike], fps
     arrays = _frames_uint8(frames)
     stem = Path(path_stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    if kind in ("auto", "mp4"):
-        path = stem.with_name(stem.name + ".mp4")
+    for container in ("mp4", "webm"):
+        if kind not in ("auto", container):
+            continue
+        path = stem.with_name(f"{stem.name}.{container}")
         try:
-            _write_mp4(arrays, path, fps)
+            _write_encoded(arrays, path, fps, container)
             return path
         except RuntimeError as exc:
-            if kind == "mp4":
+            if kind == container:
                 raise
-            log.info("%s: writing an animated GIF instead", exc)
+            log.info("%s: trying the next format", exc)
     from PIL import Image
 
     path = stem.with_name(stem.name + ".gif")

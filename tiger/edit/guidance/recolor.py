@@ -34,13 +34,21 @@ COLORS: dict[str, tuple[float, float, float]] = {
     "teal": (0.0, 0.5, 0.5), "turquoise": (0.25, 0.85, 0.8), "beige": (0.9, 0.85, 0.7),
 }
 
+#: Words before a colour name that change it: darker (x 0.55), lighter (halfway to white), brighter.
+SHADES: dict[str, str] = {"dark": "dark", "deep": "dark", "light": "light", "pale": "light",
+                          "pastel": "light", "bright": "bright", "vivid": "bright"}
+#: Words that negate a colour ("not red"): refused, since no single colour is meant.
+NEGATIONS = frozenset({"not", "no", "non", "without", "except", "never", "nor"})
+
 ColorLike = Union[str, Sequence[float], torch.Tensor]
 _LUMA = (0.2126, 0.7152, 0.0722)
 
 
 def parse_color(color: ColorLike) -> torch.Tensor:
-    """[3] RGB in [0, 1] from a colour name, an instruction naming one ("make the ball red"),
-    ``#rrggbb``, ``"r,g,b"`` (0-1 or 0-255) or a sequence / tensor of 3 numbers."""
+    """[3] RGB in [0, 1] from a colour name, an instruction naming one ("make the ball red"; with
+    several, the last: "make the green ball red" is red), optionally shaded by the word before it
+    ("dark green", "light blue": :data:`SHADES`), ``#rrggbb``, ``"r,g,b"`` (0-1 or 0-255) or a
+    sequence / tensor of 3 numbers. A negated colour ("not red") is a ValueError."""
     if isinstance(color, str):
         text = color.strip().lower()
         hexm = re.fullmatch(r"#?([0-9a-f]{6})", text)
@@ -51,11 +59,24 @@ def parse_color(color: ColorLike) -> torch.Tensor:
         if nums:
             return parse_color([float(g) for g in nums.groups()])
         words = re.findall(r"[a-z]+", text)
-        found = [w for w in words if w in COLORS]
+        found = [i for i, w in enumerate(words) if w in COLORS]
         if not found:
             raise ValueError(f"tiger.edit.recolor: no colour found in {color!r}; use one of "
                              f"{sorted(COLORS)}, '#rrggbb' or 'r,g,b'")
-        return torch.tensor(COLORS[found[-1]], dtype=torch.float64)
+        negated = [words[i] for i in found if any(w in NEGATIONS for w in words[max(0, i - 3):i])]
+        if negated:
+            raise ValueError(f"tiger.edit.recolor: {color!r} negates {negated[0]!r}; name the colour to use "
+                             "(e.g. --color blue or '#3366cc')")
+        i = found[-1]
+        rgb = torch.tensor(COLORS[words[i]], dtype=torch.float64)
+        shade = SHADES.get(words[i - 1]) if i > 0 else None
+        if shade == "dark":
+            rgb = rgb * 0.55
+        elif shade == "light":
+            rgb = rgb + (1 - rgb) * 0.5
+        elif shade == "bright":
+            rgb = (rgb * 1.25).clamp(max=1.0)
+        return rgb
     t = torch.as_tensor(color, dtype=torch.float64).reshape(-1)
     if t.numel() != 3 or not bool(torch.isfinite(t).all()) or float(t.min()) < 0:
         raise ValueError(f"tiger.edit.recolor: a colour needs 3 non-negative numbers, got {color!r}")
@@ -126,4 +147,4 @@ class RecolorGuidance:
         return g, GuidanceInfo(loss=loss, timings_ms={"recolor": 1e3 * (time.perf_counter() - t0)})
 
 
-__all__ = ["COLORS", "RecolorGuidance", "parse_color"]
+__all__ = ["COLORS", "NEGATIONS", "SHADES", "RecolorGuidance", "parse_color"]
