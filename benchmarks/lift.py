@@ -29,7 +29,7 @@ def precision_recall(ls) -> tuple[float, float]:
 def synthetic(device: str, lr: float, batch_views: int) -> None:
     from tiger.language.field import train_field
     from tiger.language.lift import lift
-    from tiger.retrieval.synthetic import make_labelled_scene, oracle_feature_maps
+    from tiger.testing.labelled_scene import make_labelled_scene, oracle_feature_maps
 
     ls = make_labelled_scene()
     ls.labelled.scene = ls.scene.to(device)

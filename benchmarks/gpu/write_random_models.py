@@ -19,10 +19,10 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--size", choices=("full", "tiny"), default="full")
     args = ap.parse_args(argv)
-    from tiger.edit.guidance.random_models import save_random_ip2p, save_random_mvdream
+    from tiger.testing.random_models import save_random_ip2p, save_random_mvdream
     from tiger.language.featup import JBUStack
     from tiger.models.paths import REGISTRY
-    from tiger.models.random_init import save_random_clip, save_random_sam
+    from tiger.testing.random_models import save_random_clip, save_random_sam
 
     root = args.out
     root.mkdir(parents=True, exist_ok=True)

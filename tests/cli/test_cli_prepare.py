@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import json
 
-from tests.cli.test_cli_pipeline import _dataset, _run, _tiny_models
+from .datasets import tabletop_dataset as _dataset
+from .test_cli_pipeline import _run, _tiny_models
 
 TINY = ["--recon-steps", "40", "--init-points", "500", "--test-every", "3", "--upsampler", "bilinear",
         "--long-side", "32", "--clip-long-side", "64", "--pca-dim", "16", "--embed-steps", "10", "--device", "cpu"]

@@ -12,7 +12,7 @@ from tiger.recon.data import load_views, masked_fraction, valid_pixel_masks
 from tiger.scene import GaussianScene
 from tiger.scene.dataset import load_dataset
 
-from .test_cli_pipeline import _dataset
+from .datasets import tabletop_dataset as _dataset
 
 
 def test_masks_only_for_distorted_cameras(tmp_path):

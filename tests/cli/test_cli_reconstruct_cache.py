@@ -9,7 +9,7 @@ import pytest
 
 from tiger.cli.main import main
 
-from .test_cli_pipeline import _dataset
+from .datasets import tabletop_dataset as _dataset
 
 
 @pytest.fixture(scope="module")

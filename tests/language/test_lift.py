@@ -14,8 +14,9 @@ from tiger.language.lift import lift, lift_features
 from tiger.render.reference import render_ref
 from tiger.render.views import look_at
 from tiger.retrieval import retrieve
-from tiger.retrieval.synthetic import make_labelled_scene, oracle_feature_maps
-from tiger.scene import Camera, GaussianScene
+from tiger.testing.labelled_scene import make_labelled_scene, oracle_feature_maps
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() and tiger.ops.cuda_enabled() else [])
 

@@ -20,7 +20,8 @@ from typing import Sequence
 
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 from .field import FeatureSource, _as_map, _map_loader
 
