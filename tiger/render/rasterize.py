@@ -7,9 +7,9 @@ from typing import NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from tiger.ops.binning import bin_gaussians
+from tiger.ops.binning import BinningSettings, bin_gaussians
 from tiger.ops.projection import project_gaussians
-from tiger.ops.raster import rasterize
+from tiger.ops.raster import RasterKernelSettings, rasterize
 from tiger.ops.sh import sh_to_color
 
 __all__ = ["rasterize_gaussians", "RasterDefaults", "RasterSettings", "Projection", "project_for_raster",
@@ -30,7 +30,8 @@ class RasterDefaults:
 
 @dataclass(frozen=True)
 class RasterSettings:
-    """The rasterizer's accuracy and speed keywords (see :func:`rasterize_gaussians`)."""
+    """The rasterizer's accuracy and speed keywords (see :func:`rasterize_gaussians`); ``binning``
+    and ``kernels`` are the CUDA kernels' choices (same result; defaults: the measured best)."""
 
     near: float = RasterDefaults.near
     far: float = RasterDefaults.far
@@ -41,6 +42,8 @@ class RasterSettings:
     t_min: float = RasterDefaults.t_min
     tile_size: int = RasterDefaults.tile_size
     check_finite: bool = True
+    binning: BinningSettings = BinningSettings()
+    kernels: RasterKernelSettings = RasterKernelSettings()
 
 
 class Projection(NamedTuple):
@@ -167,6 +170,8 @@ def rasterize_gaussians(
     t_min: float = RasterDefaults.t_min,
     tile_size: int = RasterDefaults.tile_size,
     check_finite: bool = True,
+    binning: BinningSettings = BinningSettings(),
+    kernels: RasterKernelSettings = RasterKernelSettings(),
 ) -> dict[str, Tensor]:
     """Render 3D Gaussians into one pinhole camera, differentiably.
 
@@ -196,6 +201,10 @@ def rasterize_gaussians(
         check_finite: input value checks (one reduction per input; off for speed): raise on
             NaN/Inf in any tensor, on a zero quaternion, an opacity outside [0, 1] or a negative
             scale, naming the tensor and its first bad row.
+        binning: the CUDA binning's kernel choices (:class:`tiger.ops.binning.BinningSettings`;
+            the tile lists are the same whichever runs).
+        kernels: the CUDA compositing kernels' choices, forward and backward
+            (:class:`tiger.ops.raster.RasterKernelSettings`; same result up to float32 rounding).
 
     Returns:
         dict with ``color`` [H, W, C], ``alpha`` [H, W], ``depth`` [H, W] (expected depth,
@@ -209,7 +218,8 @@ def rasterize_gaussians(
     """
     settings = RasterSettings(near=near, far=far, eps2d=eps2d, antialiased=antialiased,
                               alpha_max=alpha_max, alpha_threshold=alpha_threshold, t_min=t_min,
-                              tile_size=tile_size, check_finite=check_finite)
+                              tile_size=tile_size, check_finite=check_finite, binning=binning,
+                              kernels=kernels)
     p = project_for_raster(means, quats, scales, opacities, colors, viewmat, K, width, height,
                            background=background, sh_degree=sh_degree, sh_rest=sh_rest, settings=settings)
     return composite(p, width, height, settings)
@@ -294,7 +304,7 @@ def bin_projection(p: Projection, width: int, height: int,
     On CUDA it reads the intersection count back (one host synchronisation)."""
     with torch.no_grad():
         return bin_gaussians(p.means2d, p.conics, p.opacities, p.depths, p.radii, int(width), int(height),
-                             settings.tile_size, settings.alpha_threshold)
+                             settings.tile_size, settings.alpha_threshold, settings.binning)
 
 
 def composite(p: Projection, width: int, height: int,
@@ -309,7 +319,8 @@ def composite(p: Projection, width: int, height: int,
 
     color, alpha, depth_accum, _, _ = rasterize(
         means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,
-        height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min)
+        height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min,
+        settings.kernels)
     # Expected depth, 0 where alpha == 0 (divided by 1 there, so no 0/0 reaches the backward).
     # Scalar branches: four kernels, no ones/zeros tensors filled for them.
     covered = alpha > 0
