@@ -28,9 +28,9 @@ __global__ void sh_backward_kernel(const T* dirs, const T* coeffs, int64_t n, in
 
 constexpr int kThreads = 256;
 
-// Staged variants (float; the default: H100, 1M Gaussians, degree 3, forward + backward 2.15 ms
-// plain, 0.815 staged, docs/BENCHMARKS.md; the ops' _staged=False selects the plain kernels): a block copies its
-// Gaussians' coefficient rows [rows, k, 3] between global and shared memory with consecutive
+// Staged variants (float; the default, the ops' _staged=False selects the plain kernels; H100,
+// 1M Gaussians, degree 3, forward + backward: 2.15 ms plain, 0.815 ms staged, docs/BENCHMARKS.md).
+// A block copies its Gaussians' coefficient rows [rows, k, 3] between global and shared memory with consecutive
 // threads on consecutive words, so the 4·3·k-byte rows of neighbouring threads are read and
 // written in coalesced transactions instead of one strided row per thread. The shared row is
 // padded to an odd length (3k + 1 words): thread t's row starts in bank (t·(3k+1)) mod 32, all
@@ -39,7 +39,7 @@ constexpr int kThreads = 256;
 constexpr int kStagedThreads = 64;
 
 // Block-local indices are 32-bit (kStagedThreads rows of 3k words, within 48 KiB): a 64-bit
-// division per copied word cost more than the copy (the first device run of these kernels).
+// division per copied word cost more than the copy (measured on the H100).
 __device__ __forceinline__ int staged_rows(int64_t n) {
   return static_cast<int>(min(static_cast<int64_t>(blockDim.x), n - static_cast<int64_t>(blockIdx.x) * blockDim.x));
 }

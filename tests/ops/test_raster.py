@@ -236,3 +236,24 @@ def test_opcheck_with_other_kernel_settings(device):
     torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 32, 1))
     torch.library.opcheck(ops.rasterize_backward_colors.default,
                           (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 32))
+
+
+def test_rasterize_gaussians_passes_kernel_settings_down():
+    """rasterize_gaussians' binning= / kernels= (RasterSettings' fields) reach the binning and the
+    compositing ops as their arguments; the image is the same."""
+    from tiger.ops.binning import BinningSettings
+
+    w, h = 24, 20
+    m, q, s, o, col = random_scene(30, 3, seed=5, scale_range=(0.05, 0.3))
+    V, K = camera(w, h)
+    binning = BinningSettings(path="global", block_sort_keys=64, warp_sort_keys=8, giant_tiles=9,
+                              _serial=True)
+    kernels = RasterKernelSettings(32, 32, 64, 1)
+    log = _ArgLog()
+    with log:
+        got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
+    want = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h)
+    calls = dict(log.calls)
+    assert calls["tiger.bin_gaussians.default"][-5:] == binning.op_args()
+    assert calls["tiger.rasterize.default"][-4:] == kernels.op_args()
+    assert torch.equal(got["color"], want["color"])
