@@ -216,7 +216,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C);
     check_ok(rasterize_backward_colors_cuda_launch<T>(
                  l, cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), v_colors.data_ptr<T>(),
-                 v_bg_tiles.data_ptr<T>(), int(channel_block), int(pixels_per_thread),
+                 v_bg_tiles.data_ptr<T>(), int(channel_block),
                  c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
