@@ -2,8 +2,8 @@
 precision / recall of lift only, lift + training and training only, the training given the same
 total time; then (``--views``/``--gaussians``) the lifting time on a random scene of the fox's size.
 
-    python benchmarks/lift.py                                   # CPU, synthetic scene only
-    python benchmarks/lift.py --device cuda --gaussians 250000 --views 43 --size 1080x1920
+    python -m benchmarks.lift                                   # CPU, synthetic scene only
+    python -m benchmarks.lift --device cuda --gaussians 250000 --views 43 --size 1080x1920
 """
 from __future__ import annotations
 

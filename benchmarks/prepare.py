@@ -1,8 +1,8 @@
 """The fox from photos to a language-embedded scene with `tiger prepare`: seconds per stage and in
 total, with the stage quality (held-out PSNR, Gaussians, field loss), for each upsampler asked for.
 
-    python benchmarks/prepare.py --device cuda --models full --upsampler implicit jbu --downscale 2 --recon-steps 7000
-    python benchmarks/prepare.py --device cpu --models tiny --downscale 8 --recon-steps 200 --upsampler bilinear \
+    python -m benchmarks.prepare --device cuda --models full --upsampler implicit jbu --downscale 2 --recon-steps 7000
+    python -m benchmarks.prepare --device cpu --models tiny --downscale 8 --recon-steps 200 --upsampler bilinear \
         --long-side 120 --embed-steps 50                       # a CPU smoke run
 
 ``--models full|tiny`` writes random models of that size in their real formats first

@@ -9,6 +9,7 @@ gradient and writes the direction and coefficient gradients (another N x (3 + 48
 
     python -m benchmarks.sh                          # CPU
     python -m benchmarks.sh --device cuda --n 1e5 1e6 4e6
+    python -m benchmarks.sh --device cuda --plain    # float32 rows through the plain kernels
 """
 from __future__ import annotations
 
@@ -39,11 +40,15 @@ def main() -> None:
     ap.add_argument("--degree", type=int, default=3)
     ap.add_argument("--bandwidth-gbs", type=float, default=None,
                     help="measured copy bandwidth for the floor (default: measured here with a clone)")
+    ap.add_argument("--plain", action="store_true",
+                    help="CUDA float32 rows through the plain kernels instead of the staged ones "
+                         "(sh_to_color's _staged=False; the same values), for comparison")
     args = ap.parse_args()
     cuda = args.device.startswith("cuda")
     sizes = [int(v) for v in (args.n or ([1e5, 1e6, 4e6] if cuda else [1e4, 1e5]))]
     timer = (lambda fn: cuda_time_ms(fn, iters=20, warmup=3)) if cuda else (lambda fn: cpu_time_ms(fn, iters=3))
-    peers = {"tiger": lambda d, c, deg: sh_to_color(d, c, deg)}
+    staged = not args.plain
+    peers = {"tiger": lambda d, c, deg: sh_to_color(d, c, deg, _staged=staged)}
     if gsplat_sh() is not None and cuda:
         peers["gsplat"] = gsplat_sh()
     rows = []

@@ -3,7 +3,7 @@
 ``tiger.bin_gaussians`` sorts each tile's list on its own (per-tile path) for scenes of up to
 ``kBinTilePathMaxGaussians`` Gaussians, and by a depth sort plus a device-wide stable radix sort
 by tile (global path) beyond (csrc/binning/binning_cuda.h). This script times the op with each
-path forced (TIGER_BIN_PATH), median of CUDA events, on the standard and the heavy-tailed
+path forced (the op's ``path`` argument), median of CUDA events, on the standard and the heavy-tailed
 synthetic scenes at 1920x1080 for several N, and checks that both give identical lists.
 
     python -m benchmarks.gpu.binning_paths --n 50000,100000,200000,400000,1000000
@@ -11,7 +11,6 @@ synthetic scenes at 1920x1080 for several N, and checks that both give identical
 from __future__ import annotations
 
 import argparse
-import os
 
 import torch
 
@@ -24,11 +23,7 @@ import tiger  # noqa: E402,F401  (registers the ops)
 
 def bin_with_path(path: str, proj, w: int, h: int):
     m2, cn, d, op, r = proj
-    os.environ["TIGER_BIN_PATH"] = path
-    try:
-        return torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
-    finally:
-        os.environ.pop("TIGER_BIN_PATH")
+    return torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255, path)
 
 
 def main() -> None:

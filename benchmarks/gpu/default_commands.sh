@@ -36,7 +36,7 @@ run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one s
   echo "== default commands on the GPU: $(date -u); fox at $FOX; QUICK=${QUICK:-0}"
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
   if [ ! -f "$TIGER_MODELS/featup/maskclip_jbu_stack_cocostuff.ckpt" ]; then
-    t0=$(date +%s); "$PY" benchmarks/gpu/write_random_models.py "$TIGER_MODELS" --size full || FAILED=1
+    t0=$(date +%s); "$PY" -m benchmarks.gpu.write_random_models "$TIGER_MODELS" --size full || FAILED=1
     echo "random full-size models written to $TIGER_MODELS in $(( $(date +%s) - t0 )) s"
   fi
   R=(); F=(); E=(); P=(); ED=()

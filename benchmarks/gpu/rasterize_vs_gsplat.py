@@ -7,7 +7,7 @@ Tables printed (and written as JSON with --json):
   2. error: ours and gsplat against the float64 dense reference on a smaller case.
   3. sweep: time against error of the rendering core (float64, float32, float16/bfloat16
      channel storage).
-  4. stages: time of each op of our pipeline; channel-block tuning knobs.
+  4. stages: time of each op of our pipeline; each kernel's channel block (64 or 32).
   5. floor: bytes the forward pass must move / measured copy bandwidth.
 
 Run on a CUDA machine after building tiger with CUDA; gsplat is optional (--no-gsplat).
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
 import torch
@@ -38,9 +37,11 @@ def log(*a: object) -> None:
 # ------------------------------------------------------------------------------------------
 # Renderers with one signature: f(scene, viewmat, K, w, h) -> (color [H,W,C], alpha [H,W])
 # ------------------------------------------------------------------------------------------
-def ours(s, V, K, w, h):
+def ours(s, V, K, w, h, **kernel_choices):
+    """``kernel_choices``: rasterize_gaussians' ``binning`` / ``kernels`` settings (default: the
+    defaults)."""
     out = tiger.rasterize_gaussians(s["means"], s["quats"], s["scales"], s["opacities"],
-                                    s["colors"], V, K, w, h, check_finite=False)
+                                    s["colors"], V, K, w, h, check_finite=False, **kernel_choices)
     return out["color"], out["alpha"]
 
 
@@ -225,15 +226,16 @@ def stage_table(args):
         m2, cn, d, op, r = pr()
         bn = lambda: ops.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)  # noqa: E731
         to, ids = bn()
-        rs = lambda: ops.rasterize(m2, cn, op, s["colors"], d, None, to, ids, w, h, 16, 0.99,  # noqa: E731
-                                   1 / 255, 1e-4)
+        # cb: the kernel's largest float32 channel block (the ops' channel_block; 64 is the default)
+        rs = lambda cb=64: ops.rasterize(m2, cn, op, s["colors"], d, None, to, ids, w, h, 16,  # noqa: E731
+                                         0.99, 1 / 255, 1e-4, cb)
         col, al, dep, cnt, tr = rs()
         vc = torch.randn_like(col)
         va, vd = torch.zeros_like(al), torch.zeros_like(dep)
-        rb = lambda: ops.rasterize_backward(m2, cn, op, s["colors"], d, None, to, ids, w, h, 16,  # noqa: E731
-                                            0.99, 1 / 255, 1e-4, tr, cnt, vc, va, vd)
-        rc = lambda: ops.rasterize_backward_colors(m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255,  # noqa: E731
-                                                   1e-4, cnt, vc)
+        rb = lambda cb=64: ops.rasterize_backward(m2, cn, op, s["colors"], d, None, to, ids, w, h,  # noqa: E731
+                                                  16, 0.99, 1 / 255, 1e-4, tr, cnt, vc, va, vd, cb)
+        rc = lambda cb=64: ops.rasterize_backward_colors(m2, cn, op, to, ids, w, h, 16, 0.99,  # noqa: E731
+                                                         1 / 255, 1e-4, cnt, vc, cb)
         g = rb()
         pb = lambda: ops.project_gaussians_backward(s["means"], s["quats"], s["scales"],  # noqa: E731
                                                     s["opacities"], V, K, r, w, h, 0.3, False,
@@ -242,15 +244,10 @@ def stage_table(args):
         row = {"N": n, "C": C, "project": cuda_time_ms(pr, it), "bin+sort": cuda_time_ms(bn, it),
                "raster_fwd": cuda_time_ms(rs, it), "raster_bwd": cuda_time_ms(rb, it),
                "feat_bwd": cuda_time_ms(rc, it), "project_bwd": cuda_time_ms(pb, it)}
-        knobs = {}
-        for env, vals in (("TIGER_FWD_CB", (64, 32)), ("TIGER_BWD_CB", (64, 32)),
-                          ("TIGER_COLORS_CB", (64, 32))):
-            fn = {"TIGER_FWD_CB": rs, "TIGER_BWD_CB": rb, "TIGER_COLORS_CB": rc}[env]
-            for v in vals:
-                os.environ[env] = str(v)
-                knobs[f"{env}={v}"] = cuda_time_ms(fn, it)
-            os.environ.pop(env)
-        row.update(knobs)
+        for name, fn in (("forward_channel_block", rs), ("backward_channel_block", rb),
+                         ("colors_channel_block", rc)):
+            for cb in (64, 32):
+                row[f"{name}={cb}"] = cuda_time_ms(lambda: fn(cb), it)
         rows.append(row)
         log(fmt_rows([row])[0])
         del s

@@ -14,8 +14,9 @@ Cases (``--cases``; each at the resolution named):
 
 For each case: the distribution of screen radii (max of the two pixel radii of the visible
 Gaussians) and of bounding-box tiles; then for C = 3 and 64: ours (load-balanced binning),
-ours under the ``--before`` environment (default ``TIGER_BIN_SERIAL=1``: the former binning,
-whose tile lists must be identical),
+ours with the kernel choices of ``--before`` (default ``binning._serial=true``: the former
+binning, whose tile lists must be identical; any field of rasterize_gaussians' ``binning`` and
+``kernels`` settings, e.g. ``binning.path=global`` or ``kernels.backward_pixels_per_thread=1``),
 and gsplat (packed, classic, same eps2d/near/far): median forward and forward+backward ms
 (CUDA events), and per-stage GPU time from the profiler (project = projection + SH, bin,
 sort, raster, backward, other) and the number of GPU operations (kernels, memsets, copies)
@@ -27,6 +28,7 @@ case named by ``--host-profile`` gets a CPU-side profile (host_profile_<case>.tx
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -41,6 +43,8 @@ from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, st
 from benchmarks.gpu.rasterize_vs_gsplat import gsplat_render, leaves, ours  # noqa: E402
 
 import tiger  # noqa: E402
+from tiger.ops.binning import BinningSettings  # noqa: E402
+from tiger.ops.raster import RasterKernelSettings  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 STAGES = ("project", "bin", "sort", "raster", "backward", "other")
@@ -211,38 +215,48 @@ def stage_times(render, scene, V, K, w, h, reps: int = 5) -> tuple[dict, dict]:
     return stages, per_kernel
 
 
+def kernel_choices(spec: str) -> dict:
+    """``"binning.path=global,kernels.backward_pixels_per_thread=1"`` -> the ``binning`` and
+    ``kernels`` keywords of rasterize_gaussians (fields not named keep their defaults)."""
+    defaults = {"binning": BinningSettings(), "kernels": RasterKernelSettings()}
+    fields: dict = {"binning": {}, "kernels": {}}
+    for item in filter(None, spec.split(",")):
+        key, _, value = item.partition("=")
+        group, _, name = key.strip().partition(".")
+        if group not in defaults or not hasattr(defaults[group], name) or not value:
+            raise SystemExit(f"--before: {item!r} is not FIELD=VALUE with FIELD one of "
+                             f"binning.<{'|'.join(vars(defaults['binning']))}>, "
+                             f"kernels.<{'|'.join(vars(defaults['kernels']))}>")
+        kind = type(getattr(defaults[group], name))
+        fields[group][name] = value.lower() in ("1", "true") if kind is bool else kind(value)
+    return {"binning": BinningSettings(**fields["binning"]),
+            "kernels": RasterKernelSettings(**fields["kernels"])}
+
+
+def bin_op(m2, cn, op, d, r, w, h, settings: BinningSettings = BinningSettings()):
+    return torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255, *settings.op_args())
+
+
 def same_lists(scene, V, K, w, h) -> bool:
     """Balanced and former binning give identical tile lists (same pairs, same order)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
-    a = torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
-    os.environ["TIGER_BIN_SERIAL"] = "1"
-    try:
-        b = torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
-    finally:
-        os.environ.pop("TIGER_BIN_SERIAL")
+    a = bin_op(m2, cn, op, d, r, w, h)
+    b = bin_op(m2, cn, op, d, r, w, h, BinningSettings(_serial=True))
     return bool(torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]))
 
 
 def bin_op_times(scene, V, K, w, h, iters, sort_keys_sweep=()) -> dict:
     """ms of the binning op alone (walks, sorts and its host synchronisation): the default, each
-    of the two paths forced (TIGER_BIN_PATH=tiles|global: per-tile sort, global sort), the
-    one-thread-per-Gaussian walk (TIGER_BIN_SERIAL=1) and the default with each per-tile sort
-    size of ``sort_keys_sweep`` (TIGER_BIN_SORT_KEYS: longer tile lists are merged from runs)."""
+    of the two paths forced (path="tiles" | "global": per-tile sort, global sort), the
+    one-thread-per-Gaussian walk (_serial) and the default with each per-tile sort size of
+    ``sort_keys_sweep`` (block_sort_keys: longer tile lists are merged from runs)."""
     m2, cn, d, op, r = project(scene, V, K, w, h)
-    out = {}
-    variants = [("bin_op", {}), ("bin_op_tiles", {"TIGER_BIN_PATH": "tiles"}),
-                ("bin_op_global", {"TIGER_BIN_PATH": "global"}),
-                ("bin_op_former", {"TIGER_BIN_SERIAL": "1"})]
-    variants += [(f"bin_op_sortkeys{k}", {"TIGER_BIN_SORT_KEYS": str(k)}) for k in sort_keys_sweep]
-    for name, env in variants:
-        os.environ.update(env)
-        try:
-            out[name] = cuda_time_ms(lambda: torch.ops.tiger.bin_gaussians(m2, cn, op, d, r, w, h, 16,
-                                                                           1 / 255), iters=iters)
-        finally:
-            for k in env:
-                os.environ.pop(k)
-    return out
+    variants = [("bin_op", BinningSettings()), ("bin_op_tiles", BinningSettings(path="tiles")),
+                ("bin_op_global", BinningSettings(path="global")),
+                ("bin_op_former", BinningSettings(_serial=True))]
+    variants += [(f"bin_op_sortkeys{k}", BinningSettings(block_sort_keys=k)) for k in sort_keys_sweep]
+    return {name: cuda_time_ms(lambda: bin_op(m2, cn, op, d, r, w, h, settings), iters=iters)
+            for name, settings in variants}
 
 
 def time_pair(render, scene, V, K, w, h, iters):
@@ -308,13 +322,9 @@ def bench_case(name, scene, V, K, w, h, args, have_gsplat) -> dict:
             row.update({f"ours_{k}": v for k, v in host_split(ours, sc, V, K, w, h, args.iters).items()})
             if args.host_profile == name:
                 host_profile(ours, sc, V, K, w, h, args.out / f"host_profile_{name}.txt")
-        os.environ.update(args.before)
-        try:
-            row["before_fwd"], row["before_fwdbwd"] = time_pair(ours, sc, V, K, w, h, args.iters)
-            st_before, _ = stage_times(ours, sc, V, K, w, h)
-        finally:
-            for k in args.before:
-                os.environ.pop(k)
+        before = functools.partial(ours, **args.before)
+        row["before_fwd"], row["before_fwdbwd"] = time_pair(before, sc, V, K, w, h, args.iters)
+        st_before, _ = stage_times(before, sc, V, K, w, h)
         row["identical_lists"] = same_lists(sc, V, K, w, h)
         st, kern = stage_times(ours, sc, V, K, w, h)
         res["stages"].append({"case": name, "C": C, "who": "ours", **st})
@@ -356,15 +366,17 @@ def main() -> None:
     p.add_argument("--no-gsplat", action="store_true")
     p.add_argument("--sort-keys-sweep", type=lambda s: [int(x) for x in s.split(",") if x], default=[],
                    help="also time the binning op with these shared-memory tile-sort sizes "
-                        "(TIGER_BIN_SORT_KEYS, powers of two <= 4096)")
+                        "(block_sort_keys, powers of two <= 4096)")
     p.add_argument("--host-profile", default="snowmiku-1080p",
                    help="case whose C=3 forward+backward is profiled on the CPU side (file in --out)")
-    p.add_argument("--before", default="TIGER_BIN_SERIAL=1", metavar="VAR=VALUE[,VAR=VALUE]",
-                   help="environment of the 'before' columns (default: the former binning)")
+    p.add_argument("--before", default="binning._serial=true", metavar="FIELD=VALUE[,FIELD=VALUE]",
+                   help="kernel choices of the 'before' columns: fields of rasterize_gaussians' "
+                        "binning / kernels settings, e.g. binning.path=global or "
+                        "kernels.backward_pixels_per_thread=1 (default: the former binning)")
     p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "outputs/real_scenes")))
     args = p.parse_args()
     args.before_label = args.before
-    args.before = dict(kv.split("=", 1) for kv in args.before.split(",") if kv)
+    args.before = kernel_choices(args.before)
     args.out.mkdir(parents=True, exist_ok=True)
     torch.backends.cuda.matmul.allow_tf32 = False
     have_gsplat = False

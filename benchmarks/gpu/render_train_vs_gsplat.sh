@@ -3,14 +3,14 @@
 # device call of 10 minutes):
 #   PART=a: build, the CUDA tests of ops/render/recon, compute-sanitizer memcheck (every kernel of
 #           sanitize_case.py: the rendering core and the fused SSIM) and racecheck (rasterizer,
-#           binning, SSIM, SH), the SH benchmark (staged default vs TIGER_SH_STAGED=0, beside
+#           binning, SSIM, SH), the SH benchmark (staged default vs plain kernels, sh.py --plain, beside
 #           gsplat) and the SSIM benchmark at 1080p.
 #   PART=b: build, the same CUDA tests (TESTS=0 skips them), the sanitizer runs of part a with
 #           SANITIZE=1 (RACECHECK: the kernel-name filters), benchmarks/gpu/real_scenes.py (ours vs gsplat per stage; tile-sort size
-#           sweep SORT_KEYS_SWEEP; REAL_BEFORE: the environment of its 'before' columns; REAL_CASES= (empty)
+#           sweep SORT_KEYS_SWEEP; REAL_BEFORE: the kernel choices of its 'before' columns, e.g. binning.path=global; REAL_CASES= (empty)
 #           skips it) and benchmarks/gpu/train_vs_gsplat.py on the fox at full resolution
-#           (TRAIN=0 skips it; TRAIN_ABLATION: ';'-separated environments, one more run of ours
-#           under each).
+#           (TRAIN=0 skips it; TRAIN_ABLATION: ';'-separated kernel choices, e.g.
+#           kernels.backward_pixels_per_thread=1, one more run of ours with each).
 # gsplat JIT-compiles on first use (~90 s): its build folder is packed into $OUT/gsplat_ext.tgz and,
 # carried back as .carry/gsplat_ext.tgz, reused (same wheel, same paths).
 # From the repo root with .whl, .carry/deb and .carry/realscene carried. Results: $OUT/vs_gsplat_<part>.tgz.
@@ -49,10 +49,10 @@ if [ "$PART" = a ]; then
   timeout 120 "$SAN" --tool racecheck --target-processes all --error-exitcode 99 --kernel-name kns=sh_ \
     python3 -m pytest -q -p no:cacheprovider tests/ops/test_sh.py -k staged > "$R/racecheck_sh.log" 2>&1
   say "racecheck sh rc=$?: $(grep -E 'RACECHECK SUMMARY' "$R/racecheck_sh.log" | tail -1)"
-  for staged in 1 0; do
-    TIGER_SH_STAGED=$staged timeout 200 python3 -m benchmarks.sh --device cuda --n 1e5 1e6 4e6 \
-      > "$R/sh_staged$staged.txt" 2>&1
-    say "sh.py TIGER_SH_STAGED=$staged rc=$?"; tail -6 "$R/sh_staged$staged.txt" | tee -a "$R/log.txt"
+  for kernels in staged plain; do
+    timeout 200 python3 -m benchmarks.sh --device cuda --n 1e5 1e6 4e6 $([ $kernels = plain ] && echo --plain) \
+      > "$R/sh_$kernels.txt" 2>&1
+    say "sh.py, $kernels kernels rc=$?"; tail -6 "$R/sh_$kernels.txt" | tee -a "$R/log.txt"
   done
   timeout 100 python3 -m benchmarks.recon_ssim --device cuda --sizes 540x960,1080x1920 \
     --methods fused,depthwise,conv > "$R/ssim.txt" 2>&1
@@ -61,7 +61,7 @@ else
   if [ -n "${REAL_CASES-x}" ]; then
     timeout "${REAL_TIMEOUT:-280}" python3 -m benchmarks.gpu.real_scenes --out "$R" \
       --cases "${REAL_CASES:-snowmiku-1080p,standard,heavy}" --sort-keys-sweep "${SORT_KEYS_SWEEP-1024,2048}" \
-      --before "${REAL_BEFORE:-TIGER_BIN_SERIAL=1}" --fox-data .carry/realscene/fox > "$R/real_scenes.txt" 2>&1
+      --before "${REAL_BEFORE:-binning._serial=true}" --fox-data .carry/realscene/fox > "$R/real_scenes.txt" 2>&1
     say "real_scenes rc=$?"; sed -n '/^== Speed/,$p' "$R/real_scenes.txt" | tee -a "$R/log.txt"
   fi
   if [ "${TRAIN:-1}" = 1 ]; then

@@ -48,16 +48,13 @@ def run(n: int, C: int, dtype: torch.dtype, cdtype: torch.dtype | None, sh: int 
 def run_heavy_binning(n: int, w: int, h: int, dtype: torch.dtype) -> None:
     """Load-balanced binning on a heavy-tailed scene (Gaussians spanning the whole image, many
     culled ones): the lists must equal the former one-thread-per-Gaussian binning's."""
-    import os
     s = heavy_tailed_scene(n, 3, device="cuda", dtype=dtype, seed=5)
     V, K = standard_camera(w, h, device="cuda", dtype=dtype)
     ops = torch.ops.tiger
     m2, cn, d, op, r = ops.project_gaussians(s["means"], s["quats"], s["scales"], s["opacities"],
                                              V, K, w, h, 0.3, 0.01, 1e10, 1 / 255, False)
     a = ops.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
-    os.environ["TIGER_BIN_SERIAL"] = "1"
-    b = ops.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255)
-    os.environ.pop("TIGER_BIN_SERIAL")
+    b = ops.bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255, _serial=True)
     torch.cuda.synchronize()
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]), "balanced != serial binning"
     print(f"ok heavy binning n={n} {w}x{h} {dtype} isects={a[1].numel()} "

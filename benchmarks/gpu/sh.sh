@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# One device call for the staged SH kernels (the default; TIGER_SH_STAGED=0 selects
-# the plain ones, which took 1.17 ms for the SH backward of the fox training step): build, the CUDA tests
+# One device call for the staged SH kernels (the default; sh_to_color's _staged=False selects the
+# plain ones, which took 1.17 ms for the SH backward of the fox training step): build, the CUDA tests
 # of tests/ops/test_sh.py (staged == plain bit for bit, and the float64 reference), compute-sanitizer
 # memcheck/racecheck on the staged kernels, then benchmarks/sh.py plain vs staged beside gsplat and
 # the training step with the staged kernels. Everything lands in $OUT/sh.tgz (the device returns few files).
@@ -15,19 +15,19 @@ timeout 120 python3 -m pytest -q -p no:cacheprovider tests/ops/test_sh.py > "$OU
 echo "tests: $(tail -1 "$OUT/sh/tests.log")"
 SAN="$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)"
 for tool in memcheck racecheck; do
-  # the staged test runs both kernels in child processes, which the sanitizer follows
+  # the staged test runs both kernels (staged and plain) in the same process
   PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 90 "$SAN" --tool $tool --target-processes all --error-exitcode 99 \
     --kernel-name kns=sh_ python3 -m pytest -q -p no:cacheprovider tests/ops/test_sh.py -k staged \
     > "$OUT/sh/$tool.log" 2>&1
   echo "$tool rc=$?: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$OUT/sh/$tool.log" | tail -1)"
 done
-for staged in 0 1; do
-  TIGER_SH_STAGED=$staged timeout 120 python3 -m benchmarks.sh --device cuda --n 1e5 1e6 4e6 \
-    > "$OUT/sh/bench_staged$staged.txt" 2>&1
-  echo "== sh.py TIGER_SH_STAGED=$staged"; tail -6 "$OUT/sh/bench_staged$staged.txt"
+for kernels in plain staged; do
+  timeout 120 python3 -m benchmarks.sh --device cuda --n 1e5 1e6 4e6 $([ $kernels = plain ] && echo --plain) \
+    > "$OUT/sh/bench_$kernels.txt" 2>&1
+  echo "== sh.py, $kernels kernels"; tail -6 "$OUT/sh/bench_$kernels.txt"
 done
 if [ "${TRAIN:-1}" = 1 ]; then  # TRAIN=0 skips it (gsplat's JIT build alone takes 1-2 min)
-  TIGER_SH_STAGED=1 timeout 240 python3 -m benchmarks.gpu.train_vs_gsplat --data .carry/realscene/fox \
+  timeout 240 python3 -m benchmarks.gpu.train_vs_gsplat --data .carry/realscene/fox \
     > "$OUT/sh/train_vs_gsplat_staged.txt" 2>&1
   tail -8 "$OUT/sh/train_vs_gsplat_staged.txt"
 fi

@@ -12,14 +12,14 @@ and steps run back to back without reading the metrics back, as ``Trainer.fit`` 
 trainer's default), gsplat (packed=True), ours again; median wall ms per step after warm-up,
 and the GPU time of a step (sum of kernel times, profiler) with its costliest kernels, which
 tells the rasteriser's share of the step from the rest (loss, Adam, Python). ``--ablation``
-adds runs of ours under environment settings (e.g. TIGER_BWD_PPT=1: one pixel per backward
-thread), left out of the speed-ups.
+adds runs of ours with other kernel choices (e.g. kernels.backward_pixels_per_thread=1: one
+pixel per backward thread), left out of the speed-ups.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import json
-import os
 import statistics
 import time
 from pathlib import Path
@@ -94,9 +94,10 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=60)
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--json", type=Path, default=None)
-    p.add_argument("--ablation", action="append", default=[], metavar="VAR=VALUE[,VAR=VALUE]",
-                   help="also time ours with these environment settings (a variant named "
-                        "'ablation: ...', left out of the speed-ups); repeatable")
+    p.add_argument("--ablation", action="append", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
+                   help="also time ours with these kernel choices: fields of the renderer's "
+                        "binning / kernels settings, e.g. kernels.backward_pixels_per_thread=1 "
+                        "(a variant named 'ablation: ...', left out of the speed-ups); repeatable")
     args = p.parse_args()
     from tiger.recon import ReconConfig, Trainer, load_views
     from tiger.scene.dataset import load_dataset
@@ -117,19 +118,18 @@ def main() -> None:
     rows = []
     variants = [("ours", None), ("gsplat packed=False", False), ("gsplat packed=True", True),
                 ("ours (again)", None)]
-    ablations = {f"ablation: {a}": dict(kv.split("=", 1) for kv in a.split(",")) for a in args.ablation}
+    from benchmarks.gpu.real_scenes import kernel_choices
+
+    ablations = {f"ablation: {a}": kernel_choices(a) for a in args.ablation}
     variants += [(name, None) for name in ablations]
 
     def use(packed, name=""):
-        for env in ablations.values():
-            for k in env:
-                os.environ.pop(k, None)
-        os.environ.update(ablations.get(name, {}))
         tr.active_sh = 3
-        if packed is None:
-            tr.scene.__dict__.pop("render", None)   # the scene's own method
-        else:
+        tr.scene.__dict__.pop("render", None)   # the scene's own method
+        if packed is not None:
             tr.scene.render = gsplat_renderer(tr.scene, packed)
+        elif name in ablations:  # the scene's method with other kernel choices
+            tr.scene.render = functools.partial(type(tr.scene).render, tr.scene, **ablations[name])
 
     # Every variant once (gsplat's JIT build, allocator and clocks warm), then each timed run
     # starts from the same checkpoint: the same scene, Adam state and view order, so every

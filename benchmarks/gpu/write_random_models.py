@@ -3,7 +3,7 @@ CLIP ViT-B/16 and SAM ViT-H (Hugging Face folders), FeatUp's JBU stack (a bare s
 released checkpoint's file name), InstructPix2Pix (diffusers folder) and MVDream (the original LDM
 checkpoint). Every command then finds them as it would find the real weights.
 
-    python benchmarks/gpu/write_random_models.py OUT_FOLDER [--size full|tiny]
+    python -m benchmarks.gpu.write_random_models OUT_FOLDER [--size full|tiny]
 """
 from __future__ import annotations
 

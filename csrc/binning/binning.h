@@ -7,9 +7,17 @@
 //   -> tile_offsets [tiles_y*tiles_x + 1] int64 (row-major tiles; list of tile t is
 //      gaussian_ids[tile_offsets[t] : tile_offsets[t+1]]),
 //      gaussian_ids [M] int32 sorted by (tile, depth, id).
+//   The CUDA kernel's choices (binning_choices.h; the lists are identical whichever runs):
+//   path "auto" | "tiles" | "global", block_sort_keys, warp_sort_keys, giant_tiles, and
+//   _serial (every Gaussian walked by one thread: the former walk, for comparisons). The CPU
+//   kernel has one walk and only checks them.
 #include <ATen/ATen.h>
 
+#include <c10/util/string_view.h>
+
 #include <tuple>
+
+#include "binning_choices.h"
 
 namespace tiger {
 
@@ -17,11 +25,17 @@ void check_binning_inputs(const char* op, const at::Tensor& means2d, const at::T
                           const at::Tensor& opacities, const at::Tensor& depths,
                           const at::Tensor& radii, int64_t width, int64_t height, int64_t tile_size);
 
+// Rejects kernel choices outside their bounds (binning_choices.h), naming the argument.
+void check_binning_choices(const char* op, c10::string_view path, int64_t block_sort_keys,
+                           int64_t warp_sort_keys, int64_t giant_tiles);
+
 std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
                                                      const at::Tensor& conics,
                                                      const at::Tensor& opacities,
                                                      const at::Tensor& depths, const at::Tensor& radii,
                                                      int64_t width, int64_t height, int64_t tile_size,
-                                                     double alpha_threshold);
+                                                     double alpha_threshold, c10::string_view path,
+                                                     int64_t block_sort_keys, int64_t warp_sort_keys,
+                                                     int64_t giant_tiles, bool serial);
 
 }  // namespace tiger

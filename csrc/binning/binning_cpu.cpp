@@ -38,9 +38,13 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
                                                      const at::Tensor& opacities,
                                                      const at::Tensor& depths, const at::Tensor& radii,
                                                      int64_t width, int64_t height, int64_t tile_size,
-                                                     double alpha_threshold) {
+                                                     double alpha_threshold, c10::string_view path,
+                                                     int64_t block_sort_keys, int64_t warp_sort_keys,
+                                                     int64_t giant_tiles, bool /*serial*/) {
   check_binning_inputs("tiger.bin_gaussians", means2d, conics, opacities, depths, radii, width,
                        height, tile_size);
+  // One walk on the CPU: the CUDA kernel choices are only checked (same errors on every device).
+  check_binning_choices("tiger.bin_gaussians", path, block_sort_keys, warp_sort_keys, giant_tiles);
   const int64_t n = means2d.size(0);
   const int ts = static_cast<int>(tile_size);
   const int tiles_x = static_cast<int>((width + ts - 1) / ts);

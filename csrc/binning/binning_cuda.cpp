@@ -6,9 +6,6 @@
 #include <c10/cuda/CUDAStream.h>
 #include <torch/library.h>
 
-#include <cstdlib>
-#include <string>
-
 #include "binning.h"
 #include "binning_cuda.h"
 #include "common/torch_checks.h"
@@ -26,53 +23,12 @@ at::Tensor temp_buffer(size_t bytes, const at::Tensor& like) {
   return at::empty({int64_t(bytes) + 1}, like.options().dtype(at::kByte));
 }
 
-bool serial_binning() {
-  const char* v = std::getenv("TIGER_BIN_SERIAL");
-  return v != nullptr && v[0] == '1';
-}
-
-// Keys a block sorts in shared memory; longer tile lists are merged from sorted runs of this
-// length. TIGER_BIN_SORT_KEYS (a power of two in [2, kBinSortKeysMax]) lowers it: tests run the
-// merge path on small scenes with it.
-int sort_keys() {
-  const char* v = std::getenv("TIGER_BIN_SORT_KEYS");
-  if (v == nullptr || v[0] == 0) return kBinSortKeysMax;
-  const long long k = std::atoll(v);
-  TORCH_CHECK(k >= 2 && k <= kBinSortKeysMax && (k & (k - 1)) == 0,
-              "tiger.bin_gaussians: TIGER_BIN_SORT_KEYS must be a power of two in [2, ",
-              kBinSortKeysMax, "], got '", v, "'");
-  return int(k);
-}
-
-// Candidate tiles beyond which a large Gaussian of the global-sort path gets a whole block
-// instead of a warp; TIGER_BIN_GIANT_TILES overrides it (benchmark sweeps).
-int64_t giant_tiles() {
-  const char* v = std::getenv("TIGER_BIN_GIANT_TILES");
-  const long long t = v != nullptr ? std::atoll(v) : 0;
-  return t > 0 ? int64_t(t) : int64_t(512);
-}
-
-// The per-tile path for scenes of up to kBinTilePathMaxGaussians Gaussians, else the global
-// sort; TIGER_BIN_PATH=tiles|global forces one (tests, benchmarks).
-bool per_tile_path(int64_t n) {
-  const char* v = std::getenv("TIGER_BIN_PATH");
-  if (v == nullptr || v[0] == 0) return n <= kBinTilePathMaxGaussians;
-  const std::string path(v);
-  TORCH_CHECK(path == "tiles" || path == "global",
-              "tiger.bin_gaussians: TIGER_BIN_PATH must be 'tiles' or 'global', got '", path, "'");
-  return path == "tiles";
-}
-
-// The longest tile list sorted by one warp (the longer ones by a block);
-// TIGER_BIN_WARP_KEYS (in [1, kWarpSortKeys]) lowers it (benchmark sweeps).
-int warp_keys() {
-  const char* v = std::getenv("TIGER_BIN_WARP_KEYS");
-  if (v == nullptr || v[0] == 0) return kWarpSortKeys;
-  const long long k = std::atoll(v);
-  TORCH_CHECK(k >= 1 && k <= kWarpSortKeys, "tiger.bin_gaussians: TIGER_BIN_WARP_KEYS must be in [1, ",
-              kWarpSortKeys, "], got '", v, "'");
-  return int(k);
-}
+// The kernel choices of one call (binning.h; checked by check_binning_choices).
+struct BinChoices {
+  int block_sort_keys, warp_sort_keys;
+  int64_t giant_tiles;
+  bool serial;  // every Gaussian walked by one thread (the former walk, for comparisons)
+};
 
 template <typename T>
 T* ptr_of(at::Tensor& t) {
@@ -101,9 +57,9 @@ void depth_order(const BinInputs<T>& in, at::Tensor& i0, at::Tensor& i1, int32_t
 // Per-tile path (binning_cuda.h): fills tile_offsets, returns the Gaussian ids.
 template <typename T>
 at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
-                        at::Tensor& tile_offsets, const at::Tensor& like, cudaStream_t stream) {
+                        at::Tensor& tile_offsets, const BinChoices& choice, const at::Tensor& like,
+                        cudaStream_t stream) {
   const int64_t n = in.n;
-  const int keys_in_one_go = sort_keys(), keys_per_warp = warp_keys();
   const auto int_opts = like.options().dtype(at::kInt), long_opts = like.options().dtype(at::kLong);
   // One zeroed buffer: the chunk counter, the long-list counter of the sort, the tile counts,
   // and a last zero (the scan runs over tiles + 1 entries, so tile_offsets[tiles] is the total).
@@ -111,11 +67,11 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
   auto* counter = reinterpret_cast<unsigned long long*>(state.data_ptr<int64_t>());
   unsigned long long* n_long_lists = counter + 1;
   unsigned long long* tile_counts = counter + 2;
-  // Large Gaussians are listed and walked in chunks by warps (load balance); TIGER_BIN_SERIAL=1
+  // Large Gaussians are listed and walked in chunks by warps (load balance); choice.serial
   // walks every Gaussian by one thread (comparisons).
   at::Tensor listed_ids, chunk_base;
   BinChunks chunks{nullptr, nullptr, counter};
-  if (!serial_binning()) {
+  if (!choice.serial) {
     listed_ids = at::empty({n}, int_opts);
     chunk_base = at::empty({n}, long_opts);
     chunks.ids = listed_ids.data_ptr<int32_t>();
@@ -147,7 +103,8 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
     auto keys_alt = at::empty({m}, long_opts);  // scratch of the lists merged from runs
     auto long_lists = at::empty({n_tiles}, int_opts);
     TIGER_CUDA_OK(bin_sort_tiles_cuda(offsets, n_tiles, ptr_of<uint64_t>(keys),
-                                      ptr_of<uint64_t>(keys_alt), keys_in_one_go, keys_per_warp,
+                                      ptr_of<uint64_t>(keys_alt), choice.block_sort_keys,
+                                      choice.warp_sort_keys,
                                       gaussian_ids.data_ptr<int32_t>(),
                                       long_lists.data_ptr<int32_t>(), n_long_lists, stream));
   }
@@ -157,14 +114,15 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
 // Global-sort path (binning_cuda.h): fills tile_offsets, returns the Gaussian ids.
 template <typename T>
 at::Tensor bin_global(const BinInputs<T>& in, const BinGeometry& g, int64_t n_tiles,
-                      at::Tensor& tile_offsets, const at::Tensor& like, cudaStream_t stream) {
+                      at::Tensor& tile_offsets, const BinChoices& choice, const at::Tensor& like,
+                      cudaStream_t stream) {
   const int64_t n = in.n;
   const auto int_opts = like.options().dtype(at::kInt), long_opts = like.options().dtype(at::kLong);
   auto counts = at::empty({n}, long_opts);
   // Small Gaussians are counted one per thread; the large ones, listed by that kernel, by one
-  // warp or block each (load balance). TIGER_BIN_SERIAL=1: every Gaussian by one thread.
+  // warp or block each (load balance). choice.serial: every Gaussian by one thread.
   at::Tensor large_ids, large_counters;
-  if (!serial_binning()) {
+  if (!choice.serial) {
     large_ids = at::empty({n}, int_opts);
     large_counters = at::empty({2}, int_opts);
   }
@@ -172,7 +130,7 @@ at::Tensor bin_global(const BinInputs<T>& in, const BinGeometry& g, int64_t n_ti
   auto* large_n = large_counters.defined()
                       ? reinterpret_cast<unsigned int*>(large_counters.data_ptr<int32_t>())
                       : nullptr;
-  TIGER_CUDA_OK(bin_count_cuda<T>(in, g, giant_tiles(), counts.data_ptr<int64_t>(), large, large_n,
+  TIGER_CUDA_OK(bin_count_cuda<T>(in, g, choice.giant_tiles, counts.data_ptr<int64_t>(), large, large_n,
                                   stream));
   // the depth order's id buffers (the order ends in one of them) live until the emit
   auto i0 = at::empty({n}, int_opts), i1 = at::empty({n}, int_opts);
@@ -227,9 +185,14 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
                                                       const at::Tensor& depths,
                                                       const at::Tensor& radii, int64_t width,
                                                       int64_t height, int64_t tile_size,
-                                                      double alpha_threshold) {
+                                                      double alpha_threshold,
+                                                      c10::string_view path,
+                                                      int64_t block_sort_keys,
+                                                      int64_t warp_sort_keys, int64_t giant_tiles,
+                                                      bool serial) {
   check_binning_inputs("tiger.bin_gaussians", means2d, conics, opacities, depths, radii, width,
                        height, tile_size);
+  check_binning_choices("tiger.bin_gaussians", path, block_sort_keys, warp_sort_keys, giant_tiles);
   const c10::cuda::CUDAGuard guard(means2d.device());
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   const int64_t n = means2d.size(0);
@@ -238,7 +201,9 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
   const int64_t n_tiles = int64_t(g.tiles_x) * g.tiles_y;
   TORCH_CHECK(n_tiles < (int64_t(1) << 31), "tiger.bin_gaussians: too many tiles (", n_tiles, ")");
   TORCH_CHECK(n < (int64_t(1) << 31), "tiger.bin_gaussians: at most 2^31-1 Gaussians, got ", n);
-  const bool per_tile = per_tile_path(n);
+  // path "auto": the per-tile path up to kBinTilePathMaxGaussians Gaussians, else the global sort
+  const bool per_tile = path == "auto" ? n <= kBinTilePathMaxGaussians : path == "tiles";
+  const BinChoices choice{int(block_sort_keys), int(warp_sort_keys), giant_tiles, serial};
   auto tile_offsets = at::empty({n_tiles + 1}, means2d.options().dtype(at::kLong));
   if (n == 0) {
     tile_offsets.zero_();
@@ -251,8 +216,8 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
     using T = scalar_t;
     const BinInputs<T> in{m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(), dp.data_ptr<T>(),
                           r.data_ptr<int32_t>(), nullptr, n, T(alpha_threshold)};
-    gaussian_ids = per_tile ? bin_per_tile<T>(in, g, n_tiles, tile_offsets, means2d, stream)
-                            : bin_global<T>(in, g, n_tiles, tile_offsets, means2d, stream);
+    gaussian_ids = per_tile ? bin_per_tile<T>(in, g, n_tiles, tile_offsets, choice, means2d, stream)
+                            : bin_global<T>(in, g, n_tiles, tile_offsets, choice, means2d, stream);
   });
   return {tile_offsets, gaussian_ids};
 }

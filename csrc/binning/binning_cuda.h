@@ -3,7 +3,7 @@
 // buffer through torch (caching allocator) and runs one of two paths on one stream; both give
 // every tile's Gaussians sorted by (depth, id), identical lists.
 //
-// Per-tile path (binning_tiles_cuda.cu; scenes of up to kBinTilePathMaxGaussians Gaussians,
+// Per-tile path (binning_tiles_cuda.cu; by default scenes of up to kBinTilePathMaxGaussians Gaussians,
 // where the device-wide radix sorts of the other path are mostly launch latency):
 //   1. bin_tiles_cuda(count): every hit (Gaussian, touched tile; exact ellipse-tile test) adds
 //      one to its tile's count. One thread walks a Gaussian with at most kSmallTiles candidate
@@ -35,12 +35,14 @@
 //   7. bin_ranges_cuda: tile_offsets [tiles+1] int64 from the sorted keys
 //
 // Without a list of large Gaussians (chunks / large_ids == nullptr) every Gaussian is walked
-// by one thread: the former walk, for comparisons (TIGER_BIN_SERIAL=1).
+// by one thread: the former walk, kept for comparisons (the op's _serial=True).
 #include <cuda_runtime_api.h>
 #include <stddef.h>
 #include <stdint.h>
 
 #include <type_traits>
+
+#include "binning_choices.h"
 
 namespace tiger {
 
@@ -60,11 +62,6 @@ struct BinInputs {
   T alpha_threshold;
 };
 
-// Scenes of at most this many Gaussians take the per-tile path (the glue's default; on the
-// H100 the per-tile path halved the binning of a 26k-Gaussian real scene, and the global one
-// was faster from ~1M Gaussians: docs/BENCHMARKS.md).
-constexpr int64_t kBinTilePathMaxGaussians = 1 << 18;
-
 // ---- per-tile path ----
 
 // The listed large Gaussians: ids[s] and the first of their chunks, chunk_base[s] (ascending
@@ -74,9 +71,6 @@ struct BinChunks {
   int64_t* chunk_base;         // [n]
   unsigned long long* counter; // 1, zero before the count
 };
-
-// Maximum sort_keys (the longest list one block sorts at once).
-constexpr int kBinSortKeysMax = 4096;
 
 // emit == false: tile_counts [tiles] (zero before) += hits, and the chunk list is filled.
 // emit == true: tile_counts counted back to zero, keys [m] written at tile_offsets.
@@ -89,9 +83,6 @@ cudaError_t bin_tiles_cuda(const BinInputs<T>& in, BinGeometry g, bool emit,
 // last one zero; tile_offsets [tiles + 1].
 cudaError_t bin_offsets_cuda(void* temp, size_t& temp_bytes, const unsigned long long* counts,
                              int64_t* tile_offsets, int64_t n_tiles, cudaStream_t stream);
-
-// The longest tile list one warp sorts (the default and maximum warp_keys).
-constexpr int kWarpSortKeys = 256;
 
 // Sorts every tile's keys; ids [m] = their low words. keys_alt [m]: scratch of lists longer
 // than sort_keys (a power of two in [2, kBinSortKeysMax]). Lists of up to warp_keys keys are

@@ -137,7 +137,7 @@ __global__ void __launch_bounds__(kThreads)
 }
 
 // One thread per Gaussian walks its bounding box in row-major order, for the Gaussians with
-// at most `small_max` candidate tiles (all of them with TIGER_BIN_SERIAL=1, the former
+// at most `small_max` candidate tiles (all of them with the op's _serial=True, the former
 // binning, kept for same-process comparisons).
 template <typename T, typename F>
 __device__ void visit_tiles(int64_t i, const TileRect& r, const BinInputs<T>& in,

@@ -1,6 +1,8 @@
 // Schema of the tile-binning op (kernels: binning_cpu.cpp, binning_cuda.cpp).
 #include <torch/library.h>
 
+#include <string>
+
 #include "binning.h"
 #include "common/torch_checks.h"
 
@@ -28,11 +30,30 @@ void check_binning_inputs(const char* op, const at::Tensor& means2d, const at::T
               tile_size);
 }
 
+void check_binning_choices(const char* op, c10::string_view path, int64_t block_sort_keys,
+                           int64_t warp_sort_keys, int64_t giant_tiles) {
+  TORCH_CHECK(path == "auto" || path == "tiles" || path == "global", op,
+              ": path must be 'auto', 'tiles' or 'global', got '", std::string(path), "'");
+  TORCH_CHECK(block_sort_keys >= 2 && block_sort_keys <= kBinSortKeysMax &&
+                  (block_sort_keys & (block_sort_keys - 1)) == 0,
+              op, ": block_sort_keys must be a power of two in [2, ", kBinSortKeysMax, "], got ",
+              block_sort_keys);
+  TORCH_CHECK(warp_sort_keys >= 1 && warp_sort_keys <= kWarpSortKeys, op,
+              ": warp_sort_keys must be in [1, ", kWarpSortKeys, "], got ", warp_sort_keys);
+  TORCH_CHECK(giant_tiles >= 1, op, ": giant_tiles must be at least 1, got ", giant_tiles);
+}
+
+// The kernel choices' defaults come from binning_choices.h (tiger.ops.binning.BinningSettings
+// repeats them; tests/ops/test_binning.py compares the two).
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
-  m.def(
+  const std::string schema =
       "bin_gaussians(Tensor means2d, Tensor conics, Tensor opacities, Tensor depths, "
-      "Tensor radii, int width, int height, int tile_size, float alpha_threshold) "
-      "-> (Tensor tile_offsets, Tensor gaussian_ids)");
+      "Tensor radii, int width, int height, int tile_size, float alpha_threshold, "
+      "str path=\"auto\", int block_sort_keys=" + std::to_string(kBinSortKeysMax) +
+      ", int warp_sort_keys=" + std::to_string(kWarpSortKeys) +
+      ", int giant_tiles=" + std::to_string(kBinGiantTiles) +
+      ", bool _serial=False) -> (Tensor tile_offsets, Tensor gaussian_ids)";
+  m.def(schema.c_str());
 }
 
 }  // namespace tiger

@@ -34,7 +34,7 @@ TIGER_HD T splat_alpha(T opacity, T q, T alpha_max, T& gauss, bool& clamped) {
 // multiply-adds out with this: left to the compiler, a * b + c is fused or not depending on
 // the code around it after inlining (a term hoisted out of a loop is rounded on its own), so
 // the same source gave the one-thread-per-Gaussian and the chunked CUDA binning different
-// roundings, and different tile lists for borderline tiles (issue 15, heavy scene).
+// roundings, and different tile lists for borderline tiles of the heavy-tailed scene.
 template <typename T>
 TIGER_HD T fused_multiply_add(T a, T b, T c) {
   return fma(a, b, c);

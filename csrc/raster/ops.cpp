@@ -1,6 +1,8 @@
 // Schemas of the rasterization ops (kernels: raster_cpu.cpp, raster_cuda.cpp).
 #include <torch/library.h>
 
+#include <string>
+
 #include "common/torch_checks.h"
 #include "raster.h"
 
@@ -42,23 +44,44 @@ void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Te
   TORCH_CHECK(a.t_min >= 0 && a.t_min < 1, op, ": t_min must be in [0, 1), got ", a.t_min);
 }
 
+void check_channel_block(const char* op, const char* name, int64_t channel_block) {
+  TORCH_CHECK(channel_block == kRasterChannelBlock || channel_block == 32, op, ": ", name,
+              " must be ", kRasterChannelBlock, " or 32 (the compiled float32 channel blocks), got ",
+              channel_block);
+}
+
+void check_pixels_per_thread(const char* op, const char* name, int64_t pixels_per_thread) {
+  TORCH_CHECK(pixels_per_thread == 1 || pixels_per_thread == 2, op, ": ", name,
+              " must be 1 or 2, got ", pixels_per_thread);
+}
+
+// The kernel choices' defaults come from raster.h (tiger.ops.raster.RasterKernelSettings repeats
+// them; tests/ops/test_raster.py compares the two).
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
-  m.def(
+  const std::string cb = std::to_string(kRasterChannelBlock);
+  const std::string ppt = std::to_string(kRasterPixelsPerThread);
+  m.def((
       "rasterize(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
       "Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, int height, "
-      "int tile_size, float alpha_max, float alpha_threshold, float t_min) "
-      "-> (Tensor color, Tensor alpha, Tensor depth, Tensor n_contrib, Tensor transmittance)");
-  m.def(
+      "int tile_size, float alpha_max, float alpha_threshold, float t_min, int channel_block=" + cb +
+      ", int backward_channel_block=" + cb + ", int colors_channel_block=" + cb +
+      ", int backward_pixels_per_thread=" + ppt +
+      ") -> (Tensor color, Tensor alpha, Tensor depth, Tensor n_contrib, Tensor transmittance)")
+            .c_str());
+  m.def((
       "rasterize_backward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, "
       "Tensor depths, Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, "
       "int height, int tile_size, float alpha_max, float alpha_threshold, float t_min, "
-      "Tensor transmittance, Tensor n_contrib, Tensor v_color, Tensor? v_alpha, Tensor? v_depth) "
-      "-> (Tensor v_geometry, Tensor v_colors, Tensor v_background)");
-  m.def(
+      "Tensor transmittance, Tensor n_contrib, Tensor v_color, Tensor? v_alpha, Tensor? v_depth, "
+      "int channel_block=" + cb + ", int pixels_per_thread=" + ppt +
+      ") -> (Tensor v_geometry, Tensor v_colors, Tensor v_background)")
+            .c_str());
+  m.def((
       "rasterize_backward_colors(Tensor means2d, Tensor conics, Tensor opacities, "
       "Tensor tile_offsets, Tensor gaussian_ids, int width, int height, int tile_size, "
-      "float alpha_max, float alpha_threshold, float t_min, Tensor n_contrib, Tensor v_color) "
-      "-> (Tensor v_colors, Tensor v_background)");
+      "float alpha_max, float alpha_threshold, float t_min, Tensor n_contrib, Tensor v_color, "
+      "int channel_block=" + cb + ") -> (Tensor v_colors, Tensor v_background)")
+            .c_str());
 }
 
 }  // namespace tiger

@@ -16,6 +16,15 @@
 //   v_background [C].
 // rasterize_backward_colors: the features-only backward: gradients w.r.t. colors and
 //   background only (geometry and opacity frozen); walks front to back, no division.
+//
+// Kernel choices of the CUDA kernels (op arguments, float32 only: float64 runs blocks of 8
+// channels, one pixel per thread; the CPU kernels only check them). Every choice gives the same
+// result up to float32 rounding:
+//   channel_block: the largest channel block held in registers, kRasterChannelBlock or 32.
+//     rasterize takes one per kernel (channel_block for itself, backward_channel_block and
+//     colors_channel_block for the backward ops, which its autograd formula calls with them).
+//   pixels_per_thread (backward): kRasterPixelsPerThread where they apply (16-px tiles,
+//     channel blocks of at most 16), or 1.
 #include <ATen/ATen.h>
 
 #include <optional>
@@ -28,6 +37,17 @@ struct RasterArgs {
   double alpha_max, alpha_threshold, t_min;
 };
 
+// Defaults: the measured best on the H100 (docs/BENCHMARKS.md). 64-channel blocks walk a
+// C <= 64 list once; two pixels per backward thread cut the float32 C = 3 backward of 1M
+// Gaussians at 1080x1920 from 3.09 to 2.28 ms per training step.
+constexpr int64_t kRasterChannelBlock = 64;
+constexpr int64_t kRasterPixelsPerThread = 2;
+
+// Rejects a channel block other than 64 or 32, or pixels_per_thread other than 1 or 2, naming
+// the argument.
+void check_channel_block(const char* op, const char* name, int64_t channel_block);
+void check_pixels_per_thread(const char* op, const char* name, int64_t pixels_per_thread);
+
 void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Tensor& conics,
                          const at::Tensor& opacities, const at::Tensor& depths,
                          const std::optional<at::Tensor>& background, int64_t channels,
@@ -38,7 +58,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& colors, const at::Tensor& depths, const std::optional<at::Tensor>& background,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
-    int64_t tile_size, double alpha_max, double alpha_threshold, double t_min);
+    int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
+    int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
+    int64_t backward_pixels_per_thread);
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
@@ -48,12 +70,13 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        int64_t height, int64_t tile_size, double alpha_max, double alpha_threshold,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
-                       const std::optional<at::Tensor>& v_depth);
+                       const std::optional<at::Tensor>& v_depth, int64_t channel_block,
+                       int64_t pixels_per_thread);
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color);
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block);
 
 }  // namespace tiger

@@ -6,7 +6,8 @@ namespace {
 using namespace raster_cuda;
 
 // A thread holds v_color per channel (gradient terms are reduced in pieces of 32): blocks
-// of 64 in float32 (TIGER_COLORS_CB=32 selects 32 for tuning), 8 in float64 (tests only).
+// of 64 in float32 (the op's channel_block = 32 selects 32 for tuning), 8 in float64 (tests
+// only).
 template <int CB_MAX, typename T>
 cudaError_t launch_colors_cb(const RasterLaunch<T>& a, const int32_t* n_contrib,
                              const T* v_color, T* v_colors, T* v_bg_tiles, cudaStream_t stream) {
@@ -31,11 +32,11 @@ cudaError_t launch_colors_cb(const RasterLaunch<T>& a, const int32_t* n_contrib,
 template <typename T>
 cudaError_t rasterize_backward_colors_cuda_launch(const RasterLaunch<T>& a,
                                                   const int32_t* n_contrib, const T* v_color,
-                                                  T* v_colors, T* v_bg_tiles,
+                                                  T* v_colors, T* v_bg_tiles, int channel_block,
                                                   cudaStream_t stream) {
   if (a.tiles_x * a.tiles_y == 0) return cudaSuccess;
   if constexpr (std::is_same<T, float>::value) {
-    if (channel_block_max("TIGER_COLORS_CB", 64, 32) == 32)
+    if (channel_block == 32)
       return launch_colors_cb<32>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
     return launch_colors_cb<64>(a, n_contrib, v_color, v_colors, v_bg_tiles, stream);
   } else {
@@ -45,10 +46,11 @@ cudaError_t rasterize_backward_colors_cuda_launch(const RasterLaunch<T>& a,
 
 template cudaError_t rasterize_backward_colors_cuda_launch<float>(const RasterLaunch<float>&,
                                                                   const int32_t*, const float*,
-                                                                  float*, float*, cudaStream_t);
+                                                                  float*, float*, int,
+                                                                  cudaStream_t);
 template cudaError_t rasterize_backward_colors_cuda_launch<double>(const RasterLaunch<double>&,
                                                                    const int32_t*, const double*,
-                                                                   double*, double*,
+                                                                   double*, double*, int,
                                                                    cudaStream_t);
 
 }  // namespace tiger

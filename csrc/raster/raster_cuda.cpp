@@ -71,9 +71,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& colors, const at::Tensor& depths, const std::optional<at::Tensor>& background,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
-    int64_t tile_size, double alpha_max, double alpha_threshold, double t_min) {
+    int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
+    int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
+    int64_t backward_pixels_per_thread) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  check_channel_block(op, "channel_block", channel_block);
+  // the backward's choices, carried for the autograd formula: checked here as on the CPU
+  check_channel_block(op, "backward_channel_block", backward_channel_block);
+  check_channel_block(op, "colors_channel_block", colors_channel_block);
+  check_pixels_per_thread(op, "backward_pixels_per_thread", backward_pixels_per_thread);
   check_shape(colors, op, "colors", {means2d.size(0), -1});
   check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
                       tile_offsets, gaussian_ids, a);
@@ -99,7 +106,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     check_ok(rasterize_forward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  out_color.data_ptr<T>(), out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
-                 out_count.data_ptr<int32_t>(), out_trans.data_ptr<T>(),
+                 out_count.data_ptr<int32_t>(), out_trans.data_ptr<T>(), int(channel_block),
                  c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
@@ -115,9 +122,12 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         double alpha_threshold, double t_min, const at::Tensor& transmittance,
                         const at::Tensor& n_contrib, const at::Tensor& v_color,
                         const std::optional<at::Tensor>& v_alpha,
-                        const std::optional<at::Tensor>& v_depth) {
+                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
+                        int64_t pixels_per_thread) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  check_channel_block(op, "channel_block", channel_block);
+  check_pixels_per_thread(op, "pixels_per_thread", pixels_per_thread);
   const int64_t n = means2d.size(0);
   check_shape(colors, op, "colors", {n, -1});
   const int64_t C = colors.size(1);
@@ -165,7 +175,8 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                  tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(),
                  va.defined() ? va.data_ptr<T>() : nullptr,
                  vd.defined() ? vd.data_ptr<T>() : nullptr, v_geom.data_ptr<T>(), v_colors.data_ptr<T>(),
-                 v_bg_tiles.data_ptr<T>(), c10::cuda::getCurrentCUDAStream().stream()),
+                 v_bg_tiles.data_ptr<T>(), int(channel_block), int(pixels_per_thread),
+                 c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
   // The [N, 8] rows themselves: the caller hands column views on (the projection's backward
@@ -177,9 +188,10 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color) {
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  check_channel_block(op, "channel_block", channel_block);
   const int64_t n = means2d.size(0);
   check_shape(v_color, op, "v_color", {height, width, -1});
   const int64_t C = v_color.size(2);
@@ -204,7 +216,8 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C);
     check_ok(rasterize_backward_colors_cuda_launch<T>(
                  l, cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), v_colors.data_ptr<T>(),
-                 v_bg_tiles.data_ptr<T>(), c10::cuda::getCurrentCUDAStream().stream()),
+                 v_bg_tiles.data_ptr<T>(), int(channel_block),
+                 c10::cuda::getCurrentCUDAStream().stream()),
              op);
   });
   return {v_colors, v_bg_tiles.sum(0)};

@@ -26,12 +26,16 @@ struct RasterLaunch {
   T alpha_max, alpha_threshold, t_min;
 };
 
+// channel_block (float32: 64 or 32, the largest register block of channels; float64 always
+// runs 8) and pixels_per_thread (float32 backward: 2 where it applies, else 1) are the ops'
+// kernel choices (raster.h), checked by the glue.
+
 // Outputs: color [H,W,C], alpha, depth (accumulated), n_contrib, transmittance [H,W] (=).
 template <typename T>
 cudaError_t rasterize_forward_cuda_launch(const RasterLaunch<T>& a, const void* colors,
                                           ColorStorage storage, const T* background, T* out_color,
                                           T* out_alpha, T* out_depth, int32_t* out_count,
-                                          T* out_trans, cudaStream_t stream);
+                                          T* out_trans, int channel_block, cudaStream_t stream);
 
 // Gradient outputs must be zero-filled (accumulated with atomics). v_geom [N, 8] holds per
 // Gaussian d/d(u, v, conic a, b, c, opacity, depth) and a pad, so one warp's atomics for a
@@ -43,6 +47,7 @@ cudaError_t rasterize_backward_cuda_launch(const RasterLaunch<T>& a, const void*
                                            const T* trans, const int32_t* n_contrib,
                                            const T* v_color, const T* v_alpha, const T* v_depth,
                                            T* v_geom, T* v_colors, T* v_bg_tiles,
+                                           int channel_block, int pixels_per_thread,
                                            cudaStream_t stream);
 
 // Features-only backward (front to back, no division): v_colors [N,C] (zero-filled) and
@@ -50,7 +55,7 @@ cudaError_t rasterize_backward_cuda_launch(const RasterLaunch<T>& a, const void*
 template <typename T>
 cudaError_t rasterize_backward_colors_cuda_launch(const RasterLaunch<T>& a,
                                                   const int32_t* n_contrib, const T* v_color,
-                                                  T* v_colors, T* v_bg_tiles,
+                                                  T* v_colors, T* v_bg_tiles, int channel_block,
                                                   cudaStream_t stream);
 
 }  // namespace tiger

@@ -8,8 +8,6 @@
 // so every C runs in one launch and C = 67 costs a 64-block plus a 4-block walk.
 // Per-pixel alpha, skipping, termination and gradients follow common/raster_math.h and
 // raster_cpu.cpp term by term.
-#include <stdlib.h>
-
 #include <type_traits>
 
 #include "common/cuda_helpers.cuh"
@@ -627,30 +625,20 @@ inline ChannelPlan plan_channels(int C, int cb_max) {
   return {cb_max, t, C / cb_max};
 }
 
-// Largest channel block, overridable for tuning through an environment variable that
-// names one of the compiled sizes (read at every launch, so a benchmark can switch it).
-inline int channel_block_max(const char* env, int fallback, int alt) {
-  const char* v = getenv(env);
-  if (v == nullptr) return fallback;
-  const int x = atoi(v);
-  return x == alt ? alt : fallback;
-}
-
 inline int block_threads(int tile_size) { return (tile_size * tile_size + 31) / 32 * 32; }
 
 // Two pixels per backward thread (TilePixels<2>): float32, 16-px tiles, channel blocks small
 // enough for twice the per-pixel registers. H100, 1M Gaussians at 1080x1920, C = 3: backward
-// 3.09 -> 2.28 ms per training step (benchmarks/gpu/results/session8_call1). The forward stays
-// at one pixel per thread: two were no faster (standard scene 0.312 ms against 0.272; session8_call2).
-// `env` = "1" selects one pixel per thread (comparisons).
+// 3.09 -> 2.28 ms per training step. The forward stays at one pixel per thread: two were no
+// faster (standard scene 0.312 ms against 0.272). Both in docs/BENCHMARKS.md.
+// `wanted` = 1 (the op's pixels_per_thread) selects one pixel per thread (comparisons).
 constexpr int kTwoPixelMaxChannels = 16;
 constexpr int kTwoPixelThreads = 128;
 
 template <typename T>
-int pixels_per_thread(const RasterLaunch<T>& a, int cbx, const char* env) {
+int pixels_per_thread(const RasterLaunch<T>& a, int cbx, int wanted) {
   if (!std::is_same<T, float>::value || a.tile_size != 16 || cbx > kTwoPixelMaxChannels) return 1;
-  const char* v = getenv(env);
-  return v != nullptr && v[0] == '1' ? 1 : 2;
+  return wanted == 1 ? 1 : 2;
 }
 
 template <int V>

@@ -42,10 +42,14 @@ std::tuple<at::Tensor, at::Tensor> split_coeff_grads(const at::Tensor& v_all, co
 }
 
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
-  m.def("sh_to_color(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, Tensor? rest=None) -> Tensor");
+  // _staged=False: float32 rows through the plain kernels too (comparisons; sh.h).
+  m.def(
+      "sh_to_color(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, Tensor? rest=None, "
+      "bool _staged=True) -> Tensor");
   m.def(
       "sh_to_color_backward(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, "
-      "Tensor v_colors, Tensor? rest=None) -> (Tensor v_dirs, Tensor v_coeffs, Tensor v_rest)");
+      "Tensor v_colors, Tensor? rest=None, bool _staged=True) "
+      "-> (Tensor v_dirs, Tensor v_coeffs, Tensor v_rest)");
 }
 
 }  // namespace tiger

@@ -8,6 +8,9 @@
 //   -> colors [N,3] = sum_k coeffs[:,k] * Y_k(dir)   (no +0.5 offset, no clamp).
 // sh_to_color_backward: v_colors [N,3] -> (v_dirs [N,3], v_coeffs [N,K,3], v_rest [N,K1,3]
 //   or [0] without rest).
+// _staged (both ops; a CUDA choice, the CPU ignores it): float32 rows that fit go through the
+//   staged kernels (the default); False sends them through the plain kernels, which float64 and
+//   very long rows always take (same arithmetic, bit for bit: kept for comparisons).
 #include <ATen/ATen.h>
 
 #include <optional>
@@ -26,10 +29,11 @@ std::tuple<at::Tensor, at::Tensor> split_coeff_grads(const at::Tensor& v_all, co
                                                      const std::optional<at::Tensor>& rest);
 
 at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree,
-                           const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest);
+                           const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
+                           bool staged);
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cpu(
     const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree, const std::optional<at::Tensor>& visible,
-    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest);
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool staged);
 
 }  // namespace tiger

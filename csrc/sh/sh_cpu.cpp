@@ -9,7 +9,8 @@
 namespace tiger {
 
 at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree,
-                           const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest) {
+                           const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
+                           bool /*staged: a CUDA choice*/) {
   check_sh_inputs("tiger.sh_to_color", dirs, coeffs_in, degree, visible, rest);
   const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   const int64_t n = dirs.size(0), k = coeffs.size(1);
@@ -33,7 +34,7 @@ at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs_in, 
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cpu(
     const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree, const std::optional<at::Tensor>& visible,
-    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest) {
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool /*staged: a CUDA choice*/) {
   const char* op = "tiger.sh_to_color_backward";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
   const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);

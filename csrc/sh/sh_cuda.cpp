@@ -26,10 +26,12 @@ struct StagedSources {
 };
 
 // float32 rows that fit the staged kernels (the default) go there, coefficients in place; the
-// rest (float64, TIGER_SH_STAGED=0, very long rows) through the plain kernels on a joined copy.
-bool staged(const at::Tensor& dirs, const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
+// rest (float64, the ops' _staged=False, very long rows) through the plain kernels on a joined
+// copy.
+bool staged(const at::Tensor& dirs, const at::Tensor& coeffs, const std::optional<at::Tensor>& rest,
+            bool wanted) {
   const int64_t k = coeffs.size(1) + (rest.has_value() ? rest->size(1) : 0);
-  return dirs.scalar_type() == at::kFloat && sh_staged_applies(k);
+  return wanted && dirs.scalar_type() == at::kFloat && sh_staged_fits(k);
 }
 
 StagedSources staged_sources(const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
@@ -38,7 +40,8 @@ StagedSources staged_sources(const at::Tensor& coeffs, const std::optional<at::T
 }  // namespace
 
 at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree,
-                            const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest) {
+                            const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
+                            bool staged_wanted) {
   const char* op = "tiger.sh_to_color";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
   const c10::cuda::CUDAGuard guard(dirs.device());
@@ -49,7 +52,7 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   cudaError_t err = cudaSuccess;
-  if (staged(dirs, coeffs_in, rest)) {
+  if (staged(dirs, coeffs_in, rest, staged_wanted)) {
     const StagedSources s = staged_sources(coeffs_in, rest);
     err = sh_to_color_staged_cuda_launch(d.data_ptr<float>(), s.c0.data_ptr<float>(), s.pitch(s.c0), s.c0.size(1),
                                         s.ptr1(), s.pitch(s.c1), s.k1(), n, int(degree), vis, out.data_ptr<float>(),
@@ -68,7 +71,7 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
     const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree, const std::optional<at::Tensor>& visible,
-    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest) {
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool staged_wanted) {
   const char* op = "tiger.sh_to_color_backward";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
   check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});
@@ -81,7 +84,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   cudaError_t err = cudaSuccess;
-  if (staged(dirs, coeffs_in, rest)) {
+  if (staged(dirs, coeffs_in, rest, staged_wanted)) {
     const StagedSources s = staged_sources(coeffs_in, rest);
     // the staged kernel writes every row of both gradients: no zero fill
     auto v0 = at::empty({n, s.c0.size(1), 3}, dirs.options());

@@ -1,8 +1,6 @@
 // CUDA kernels of the spherical-harmonics ops: the same sh_eval / sh_eval_vjp as the CPU kernels,
 // one thread per Gaussian, in float32 with the rows staged through shared memory (the glue's
-// choice, sh_staged_applies), else reading each row directly.
-#include <cstdlib>
-
+// choice, sh_staged_fits), else reading each row directly.
 #include "common/cuda_helpers.cuh"
 #include "common/sh_math.h"
 #include "sh_cuda.h"
@@ -30,8 +28,9 @@ __global__ void sh_backward_kernel(const T* dirs, const T* coeffs, int64_t n, in
 
 constexpr int kThreads = 256;
 
-// Staged variants (float; the default, TIGER_SH_STAGED=0 selects the plain kernels): a block copies its
-// Gaussians' coefficient rows [rows, k, 3] between global and shared memory with consecutive
+// Staged variants (float; the default, the ops' _staged=False selects the plain kernels; H100,
+// 1M Gaussians, degree 3, forward + backward: 2.15 ms plain, 0.815 ms staged, docs/BENCHMARKS.md).
+// A block copies its Gaussians' coefficient rows [rows, k, 3] between global and shared memory with consecutive
 // threads on consecutive words, so the 4·3·k-byte rows of neighbouring threads are read and
 // written in coalesced transactions instead of one strided row per thread. The shared row is
 // padded to an odd length (3k + 1 words): thread t's row starts in bank (t·(3k+1)) mod 32, all
@@ -40,7 +39,7 @@ constexpr int kThreads = 256;
 constexpr int kStagedThreads = 64;
 
 // Block-local indices are 32-bit (kStagedThreads rows of 3k words, within 48 KiB): a 64-bit
-// division per copied word cost more than the copy (the first device run of these kernels).
+// division per copied word cost more than the copy (measured on the H100).
 __device__ __forceinline__ int staged_rows(int64_t n) {
   return static_cast<int>(min(static_cast<int64_t>(blockDim.x), n - static_cast<int64_t>(blockIdx.x) * blockDim.x));
 }
@@ -122,23 +121,13 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
   if (b.width) stage_out(s_grad, gb, rows, row, a.width);
 }
 
-bool staged_enabled() {
-  static const bool on = [] {
-    // H100, 1M Gaussians, degree 3: forward+backward 2.15 ms plain, 0.815 staged
-    // (benchmarks/gpu/results/session7_call2/issue15_a/sh_staged{0,1}.txt)
-    const char* v = std::getenv("TIGER_SH_STAGED");
-    return v == nullptr || v[0] != '0';
-  }();
-  return on;
-}
-
 size_t staged_bytes(int64_t k, int buffers) {
   return static_cast<size_t>(buffers) * kStagedThreads * (3 * k + 1) * sizeof(float);
 }
 
 }  // namespace
 
-bool sh_staged_applies(int64_t k) { return staged_enabled() && staged_bytes(k, 2) <= 48 * 1024; }
+bool sh_staged_fits(int64_t k) { return staged_bytes(k, 2) <= 48 * 1024; }
 
 template <typename T>
 cudaError_t sh_to_color_cuda_launch(const T* dirs, const T* coeffs, int64_t n, int64_t k,

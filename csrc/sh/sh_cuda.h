@@ -18,11 +18,10 @@ cudaError_t sh_to_color_backward_cuda_launch(const T* dirs, const T* coeffs, int
                                              int degree, const bool* visible, const T* v_colors,
                                              T* v_dirs, T* v_coeffs, cudaStream_t stream);
 
-// Whether float32 rows of k bases go through the staged kernels (the default; shared memory
-// must hold them: TIGER_SH_STAGED=0 turns them off).
-bool sh_staged_applies(int64_t k);
+// Whether float32 rows of k bases fit the staged kernels (shared memory must hold them).
+bool sh_staged_fits(int64_t k);
 
-// The staged kernels (float; only when sh_staged_applies(k0 + k1)): the coefficient row of
+// The staged kernels (float; only when sh_staged_fits(k0 + k1)): the coefficient row of
 // Gaussian i is cat(c0[i], c1[i]) with c0 [N,k0,3] and c1 [N,k1,3] (c1 may be null with k1 = 0),
 // each a contiguous [k,3] block per row, rows pitch0 / pitch1 words apart: e.g. a scene's DC and
 // higher bands without building the [N,K,3] tensor. colors [N,3] zero-filled by the caller. The

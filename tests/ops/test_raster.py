@@ -6,7 +6,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import tiger
-from tiger.ops.raster import rasterize
+from tiger.ops.raster import RasterKernelSettings, rasterize
 
 from ..render.devices import DEVICES
 from ..render.scenes import camera, random_scene
@@ -146,3 +146,114 @@ def test_eager_entry_matches_the_registered_autograd(device):
     with torch.no_grad():
         out = rasterize(*_raster_args(device=device), 16, 0.99, 1 / 255, 1e-4)
     assert not any(t.requires_grad for t in out)
+
+
+class _ArgLog(TorchDispatchMode):
+    """Every op call under it: (name, every argument in schema order, defaults filled in: the
+    dispatcher leaves out trailing arguments equal to their defaults)."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list[tuple[str, tuple]] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        full = list(args) + [kwargs.get(a.name, a.default_value)
+                             for a in func._schema.arguments[len(args):]]
+        self.calls.append((str(func), tuple(full)))
+        return func(*args, **kwargs)
+
+
+def _schema_defaults(op) -> dict:
+    return {a.name: a.default_value for a in op.default._schema.arguments if a.has_default_value()}
+
+
+def test_kernel_settings_defaults_are_the_op_schemas():
+    """RasterKernelSettings repeats the defaults that csrc/raster/raster.h writes into the schemas."""
+    s = RasterKernelSettings()
+    assert _schema_defaults(ops.rasterize) == {
+        "channel_block": s.forward_channel_block, "backward_channel_block": s.backward_channel_block,
+        "colors_channel_block": s.colors_channel_block,
+        "backward_pixels_per_thread": s.backward_pixels_per_thread}
+    assert _schema_defaults(ops.rasterize_backward) == {
+        "channel_block": s.backward_channel_block, "pixels_per_thread": s.backward_pixels_per_thread}
+    assert _schema_defaults(ops.rasterize_backward_colors) == {"channel_block": s.colors_channel_block}
+    assert (s.forward_channel_block, s.backward_pixels_per_thread) == (64, 2)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("geometry", [True, False])
+def test_kernel_settings_reach_the_backward_ops(device, geometry):
+    """The forward op carries the backward's kernel choices; its autograd formula hands them to
+    the full or the features-only backward op (read off the dispatched calls), and any choice
+    gives the same values (the CPU kernels only check them)."""
+    m2, cn, op, col, d, bg, to, ids, w, h = _raster_args(device=device)
+    kernels = RasterKernelSettings(forward_channel_block=32, backward_channel_block=32,
+                                   colors_channel_block=32, backward_pixels_per_thread=1)
+    grads = []
+    for k in (RasterKernelSettings(), kernels):
+        ins = [t.clone().requires_grad_(geometry) for t in (m2, cn, op)] + [col.clone().requires_grad_()]
+        out = rasterize(*ins, d, bg, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, k)
+        log = _ArgLog()
+        with log:
+            out[0].square().sum().backward()
+        name = "tiger.rasterize_backward.default" if geometry else "tiger.rasterize_backward_colors.default"
+        args = [a for n, a in log.calls if n == name]
+        assert len(args) == 1, [n for n, _ in log.calls]
+        want = ((k.backward_channel_block, k.backward_pixels_per_thread) if geometry
+                else (k.colors_channel_block,))
+        assert args[0][-len(want):] == want
+        grads.append([out[0].detach()] + [t.grad for t in ins if t.grad is not None])
+    assert _same(grads[1], grads[0], device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("field, value, message", [
+    ("forward_channel_block", 16, "channel_block must be 64 or 32"),
+    ("backward_channel_block", 128, "backward_channel_block must be 64 or 32"),
+    ("colors_channel_block", 0, "colors_channel_block must be 64 or 32"),
+    ("backward_pixels_per_thread", 4, "backward_pixels_per_thread must be 1 or 2"),
+])
+def test_kernel_settings_reject_bad_values(device, field, value, message):
+    """Every device (and the fake kernel, for tracing) rejects a choice the CUDA kernels lack."""
+    args = _raster_args(device=device)
+    bad = RasterKernelSettings(**{field: value})
+    with pytest.raises(RuntimeError, match=message):
+        rasterize(*args, 16, 0.99, 1 / 255, 1e-4, bad)
+    from torch._subclasses.fake_tensor import FakeTensorMode
+    with FakeTensorMode() as mode, pytest.raises(RuntimeError, match=message):
+        fake = [mode.from_tensor(t) if isinstance(t, torch.Tensor) else t for t in args]
+        ops.rasterize(*fake, 16, 0.99, 1 / 255, 1e-4, *bad.op_args())
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_opcheck_with_other_kernel_settings(device):
+    m2, cn, op, col, d, bg, to, ids, w, h = _raster_args(device=device)
+    args = (m2, cn, op, col, d, bg, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
+    torch.library.opcheck(ops.rasterize.default, (*args, 32, 32, 32, 1))
+    c, a, dep, cnt, tr = ops.rasterize(*args)
+    vc, va, vd = torch.randn_like(c), torch.randn_like(a), torch.randn_like(dep)
+    torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 32, 1))
+    torch.library.opcheck(ops.rasterize_backward_colors.default,
+                          (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 32))
+
+
+def test_rasterize_gaussians_passes_kernel_settings_down():
+    """rasterize_gaussians' binning= / kernels= (RasterSettings' fields) reach the binning and the
+    compositing ops as their arguments; the image is the same."""
+    from tiger.ops.binning import BinningSettings
+
+    w, h = 24, 20
+    m, q, s, o, col = random_scene(30, 3, seed=5, scale_range=(0.05, 0.3))
+    V, K = camera(w, h)
+    binning = BinningSettings(path="global", block_sort_keys=64, warp_sort_keys=8, giant_tiles=9,
+                              _serial=True)
+    kernels = RasterKernelSettings(32, 32, 64, 1)
+    log = _ArgLog()
+    with log:
+        got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
+    want = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h)
+    calls = dict(log.calls)
+    assert calls["tiger.bin_gaussians.default"][-5:] == binning.op_args()
+    assert calls["tiger.rasterize.default"][-4:] == kernels.op_args()
+    assert torch.equal(got["color"], want["color"])

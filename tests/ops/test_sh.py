@@ -47,51 +47,69 @@ def test_public_function_is_the_op(device):
     assert torch.equal(sh_to_color(dirs, coeffs, 2, vis), ops.sh_to_color(dirs, coeffs, 2, vis))
 
 
-_STAGED_SCRIPT = r"""
-import sys, torch
-import tiger
-from tiger.ops.sh import sh_to_color
-out = {}
-for n, k, degree in ((1000, 16, 3), (130, 16, 1), (64, 9, 2), (5, 4, 1)):
-    g = torch.Generator().manual_seed(n + k)
-    dirs = torch.randn(n, 3, generator=g).cuda().requires_grad_()
-    coeffs = torch.randn(n, k, 3, generator=g).cuda().requires_grad_()
-    vis = (torch.rand(n, generator=g) > 0.3).cuda()
-    y = sh_to_color(dirs, coeffs, degree, vis)
-    y.backward(torch.randn(n, 3, generator=g).cuda())
-    out[(n, k, degree)] = (y.detach().cpu(), dirs.grad.cpu(), coeffs.grad.cpu())
-torch.save(out, sys.argv[1])
-"""
+def _sh_with_grads(dirs, coeffs, degree, vis, v_colors, staged: bool):
+    d, c = dirs.clone().requires_grad_(), coeffs.clone().requires_grad_()
+    y = sh_to_color(d, c, degree, vis, _staged=staged)
+    y.backward(v_colors)
+    return y.detach(), d.grad, c.grad
 
 
 @pytest.mark.cuda
 @CUDA_SKIP
-def test_cuda_staged_rows_match_plain_kernel_and_reference(tmp_path):
-    """TIGER_SH_STAGED=1 (coefficient rows through shared memory) against the plain kernels (bit for
-    bit: the same arithmetic on the same values) and the float64 reference; block-boundary sizes,
-    unused stored bases and invisible Gaussians included."""
-    import os
-    import subprocess
-    import sys
+@pytest.mark.parametrize("n, k, degree", [(1000, 16, 3), (130, 16, 1), (64, 9, 2), (5, 4, 1)])
+def test_cuda_staged_rows_match_plain_kernel_and_reference(n, k, degree):
+    """The staged kernels (coefficient rows through shared memory, the default) against the plain
+    ones (_staged=False; bit for bit: the same arithmetic on the same values) and the float64
+    reference; block-boundary sizes, unused stored bases and invisible Gaussians included."""
+    g = torch.Generator().manual_seed(n + k)
+    dirs = torch.randn(n, 3, generator=g)
+    coeffs = torch.randn(n, k, 3, generator=g)
+    vis = torch.rand(n, generator=g) > 0.3
+    v_colors = torch.randn(n, 3, generator=g)
+    on_gpu = [t.cuda() for t in (dirs, coeffs, vis, v_colors)]
+    staged = _sh_with_grads(*on_gpu[:2], degree, *on_gpu[2:], staged=True)
+    plain = _sh_with_grads(*on_gpu[:2], degree, *on_gpu[2:], staged=False)
+    for a, b in zip(staged, plain):
+        assert torch.equal(a, b)
+    d64, c64 = dirs.to(F64).requires_grad_(), coeffs.to(F64).requires_grad_()
+    ref = sh_to_color_ref(d64, c64, degree) * vis[:, None]
+    ref.backward(v_colors.to(F64))
+    for a, r in zip(staged, (ref.detach(), d64.grad, c64.grad)):
+        torch.testing.assert_close(a.double().cpu(), r, atol=2e-5, rtol=2e-5)
 
-    runs = {}
-    for staged in ("0", "1"):
-        path = tmp_path / f"staged{staged}.pt"
-        env = {**os.environ, "TIGER_SH_STAGED": staged}
-        subprocess.run([sys.executable, "-c", _STAGED_SCRIPT, str(path)], check=True, env=env)
-        runs[staged] = torch.load(path)
-    for key, got in runs["1"].items():
-        for a, b in zip(got, runs["0"][key]):
-            assert torch.equal(a, b), key
-        n, k, degree = key
-        g = torch.Generator().manual_seed(n + k)
-        dirs = torch.randn(n, 3, generator=g).to(F64).requires_grad_()  # the script's float32 draws
-        coeffs = torch.randn(n, k, 3, generator=g).to(F64).requires_grad_()
-        vis = torch.rand(n, generator=g) > 0.3
-        ref = sh_to_color_ref(dirs, coeffs, degree) * vis[:, None]
-        ref.backward(torch.randn(n, 3, generator=g).to(F64))
-        for a, r in zip(got, (ref.detach(), dirs.grad, coeffs.grad)):
-            torch.testing.assert_close(a.double(), r, atol=2e-5, rtol=2e-5)
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_staged_choice_reaches_the_backward_op(device):
+    """sh_to_color's _staged is an argument of the forward op that its autograd formula hands to
+    the backward op (read off the dispatched calls); the CPU has one kernel, same values."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class ArgLog(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.calls = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            kwargs = kwargs or {}  # trailing arguments equal to their defaults are left out
+            full = list(args) + [kwargs.get(a.name, a.default_value)
+                                 for a in func._schema.arguments[len(args):]]
+            self.calls.append((str(func), tuple(full)))
+            return func(*args, **kwargs)
+
+    g = torch.Generator().manual_seed(3)
+    dirs, coeffs = torch.randn(9, 3, generator=g), torch.randn(9, 9, 3, generator=g)
+    vis, v_colors = torch.rand(9, generator=g) > 0.2, torch.randn(9, 3, generator=g)
+    ins = [t.to(device) for t in (dirs, coeffs, vis, v_colors)]
+    runs = []
+    for staged in (True, False):
+        log = ArgLog()
+        with log:
+            runs.append(_sh_with_grads(*ins[:2], 2, *ins[2:], staged=staged))
+        backward = [a for n, a in log.calls if n == "tiger.sh_to_color_backward.default"]
+        assert len(backward) == 1 and backward[0][-1] is staged
+    if device == "cpu":
+        assert all(torch.equal(a, b) for a, b in zip(*runs))
+    torch.library.opcheck(ops.sh_to_color.default, (ins[0], ins[1], 2, ins[2], None, False))
 
 
 @pytest.mark.parametrize("device", DEVICES)

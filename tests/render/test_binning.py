@@ -6,15 +6,15 @@ independent of the thread count (the CPU splits work by candidate tiles)."""
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import pytest
 import torch
 
-from benchmarks.common import heavy_tailed_scene, standard_camera
+from tiger.ops.binning import BinningSettings
 
 from .devices import CUDA_SKIP, DEVICES
+from .standard_scenes import heavy_tailed_scene, standard_camera
 from .tile_test_f32 import borderline_gaussians, tile_pairs
 
 ops = torch.ops.tiger
@@ -56,18 +56,12 @@ def _candidates(proj, w, h) -> int:
 PATHS = ["tiles", "global"]
 
 
-def _bin(proj, w, h, serial=False, path=None, **env):
-    """tiger.bin_gaussians with TIGER_BIN_SERIAL=1 (serial), TIGER_BIN_PATH=path and any other
-    TIGER_BIN_* knobs set for the call."""
+def _bin(proj, w, h, serial=False, path="auto", **choices):
+    """tiger.bin_gaussians with the kernel choices of BinningSettings(path, _serial=serial,
+    **choices): serial walks every Gaussian by one thread (the former walk)."""
     m2, cn, d, op, r = proj
-    env = dict(env, **({"TIGER_BIN_SERIAL": "1"} if serial else {}),
-               **({"TIGER_BIN_PATH": path} if path else {}))
-    os.environ.update(env)
-    try:
-        return ops.bin_gaussians(m2, cn, op, d, r, w, h, TS, THR)
-    finally:
-        for k in env:
-            os.environ.pop(k, None)
+    settings = BinningSettings(path=path, _serial=serial, **choices)
+    return ops.bin_gaussians(m2, cn, op, d, r, w, h, TS, THR, *settings.op_args())
 
 
 def _min_quadratic_on_rect(a, b, c, x0, x1, y0, y1):
@@ -198,7 +192,7 @@ def test_cuda_binning_giant_and_culled(dtype, path):
 # The tile test's float32 arithmetic is pinned (csrc/common/raster_math.h spells out its
 # multiply-adds): left to the compiler, the one-thread-per-Gaussian and the chunked CUDA
 # kernels rounded the same source differently, and the heavy scene's lists differed in a few
-# borderline pairs (issue 15). Crafted Gaussians put q = qcut within rounding error of tiles.
+# borderline pairs. Crafted Gaussians put q = qcut within rounding error of tiles.
 def _pairs_of(tile_offsets, gaussian_ids, n):
     to, ids = tile_offsets.cpu(), gaussian_ids.cpu()
     tiles = torch.repeat_interleave(torch.arange(len(to) - 1), to[1:] - to[:-1])
@@ -242,10 +236,10 @@ def test_cuda_balanced_binning_identical_to_former_on_borderline_and_heavy():
 def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     """Equal depths must come out by id as on the CPU. The per-tile path drops each hit's
     (depth, id) key into its tile in any order and sorts every tile on its own: by a warp or
-    (TIGER_BIN_WARP_KEYS lowered) a block, a list at once or as sorted runs of
-    TIGER_BIN_SORT_KEYS keys merged in global memory (2: every merge pass, ragged runs). The
-    global path emits in depth order and sorts stably by tile, whichever kernels (thread, warp,
-    block: TIGER_BIN_GIANT_TILES moves the warp/block split) walk the Gaussians."""
+    (warp_sort_keys lowered) a block, a list at once or as sorted runs of block_sort_keys keys
+    merged in global memory (2: every merge pass, ragged runs). The global path emits in depth
+    order and sorts stably by tile, whichever kernels (thread, warp, block: giant_tiles moves the
+    warp/block split) walk the Gaussians."""
     w, h = 640, 480
     scene = _with_culled(heavy_tailed_scene(6000, 3, dtype=F64, seed=6))
     m2, cn, d, op, r = _project(scene, w, h, "cuda", dtype)
@@ -254,9 +248,9 @@ def test_cuda_depth_ties_and_tile_sort_sizes(dtype):
     cpu = _bin([t.cpu() for t in proj], w, h)
     lengths = cpu[0][1:] - cpu[0][:-1]
     assert int((lengths > 64).sum()) > 50 and int(((lengths > 1) & (lengths <= 64)).sum()) > 50
-    variants = [{"path": "tiles", "TIGER_BIN_SORT_KEYS": k} for k in ("2", "16", "64", "4096")]
-    variants += [{"path": "tiles", "TIGER_BIN_WARP_KEYS": k} for k in ("1", "40", "256")]
-    variants += [{"path": "global", "TIGER_BIN_GIANT_TILES": t} for t in ("33", "200", "100000")]
+    variants = [{"path": "tiles", "block_sort_keys": k} for k in (2, 16, 64, 4096)]
+    variants += [{"path": "tiles", "warp_sort_keys": k} for k in (1, 40, 256)]
+    variants += [{"path": "global", "giant_tiles": t} for t in (33, 200, 100000)]
     variants += [{"path": p, "serial": True} for p in PATHS]
     for v in variants:
         got = _bin(proj, w, h, **v)
@@ -288,32 +282,12 @@ def test_cuda_tile_sort_every_size_class(n):
 
 @pytest.mark.cuda
 @CUDA_SKIP
-@pytest.mark.parametrize("knob, value, message", [
-    ("TIGER_BIN_SORT_KEYS", "0", "TIGER_BIN_SORT_KEYS must be a power of two"),
-    ("TIGER_BIN_SORT_KEYS", "3", "TIGER_BIN_SORT_KEYS must be a power of two"),
-    ("TIGER_BIN_SORT_KEYS", "8192", "TIGER_BIN_SORT_KEYS must be a power of two"),
-    ("TIGER_BIN_SORT_KEYS", "many", "TIGER_BIN_SORT_KEYS must be a power of two"),
-    ("TIGER_BIN_PATH", "fast", "TIGER_BIN_PATH must be 'tiles' or 'global'"),
-    ("TIGER_BIN_WARP_KEYS", "0", "TIGER_BIN_WARP_KEYS must be in"),
-    ("TIGER_BIN_WARP_KEYS", "257", r"TIGER_BIN_WARP_KEYS must be in \[1, 256\]"),
-])
-def test_cuda_binning_knobs_reject_bad_values(knob, value, message):
-    proj = [torch.zeros(1, 2), torch.ones(1, 3), torch.ones(1), torch.ones(1),
-            torch.ones(1, 2, dtype=torch.int32)]
-    with pytest.raises(RuntimeError, match=message):
-        _bin([t.cuda() for t in proj], 32, 32, **{knob: value})
-
-
-@pytest.mark.cuda
-@CUDA_SKIP
-def test_cuda_default_path_switches_above_2_18_gaussians(monkeypatch):
-    """The per-tile path up to 2**18 Gaussians, the global sort beyond: the switch sits between
-    the crossovers measured in benchmarks/gpu/results/session9_call7/binning_paths.txt
-    (per-tile / global = 1.00 at 400k Gaussians on the standard scene, 1.06 at 200k on the
-    heavy-tailed one). Read off the launched count kernel."""
+def test_cuda_default_path_switches_above_2_18_gaussians():
+    """path "auto": the per-tile path up to 2**18 Gaussians, the global sort beyond: the switch
+    sits between the crossovers measured on the H100 (per-tile / global = 1.00 at 400k Gaussians
+    on the standard scene, 1.06 at 200k on the heavy-tailed one; docs/BENCHMARKS.md). Read off
+    the launched count kernel."""
     from torch.profiler import ProfilerActivity, profile
-
-    monkeypatch.delenv("TIGER_BIN_PATH", raising=False)
 
     def path_of(n: int) -> str:
         proj = [torch.zeros(n, 2), torch.ones(n, 3), torch.ones(n), torch.ones(n),

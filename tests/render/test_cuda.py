@@ -2,15 +2,15 @@
 channel storage, 64-bit intersection offsets, streams. Skipped without a GPU."""
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
 
 import tiger
+from tiger.ops.raster import RasterKernelSettings
 
 from .devices import CUDA
 from .scenes import camera, random_scene
+from .standard_scenes import standard_camera, standard_scene
 
 pytestmark = CUDA
 ops = torch.ops.tiger
@@ -35,18 +35,22 @@ def _project_and_bin(m, q, s, o, V, K, w, h):
     return m2, cn, d, op, r, to, ids
 
 
-def _raster_all(device, m2, cn, op, col, d, bg, to, ids, w, h, seed=5):
-    """Forward, full backward and features-only backward of the raster op on `device`."""
+def _raster_all(device, m2, cn, op, col, d, bg, to, ids, w, h, seed=5,
+                kernels: RasterKernelSettings = RasterKernelSettings()):
+    """Forward, full backward and features-only backward of the raster op on `device`, with the
+    CUDA kernel choices of `kernels`."""
+    k = kernels
     args = [t.to(device) for t in (m2, cn, op, col, d, bg, to, ids)]
-    out = ops.rasterize(*args, w, h, 16, 0.99, 1 / 255, 1e-4)
+    out = ops.rasterize(*args, w, h, 16, 0.99, 1 / 255, 1e-4, *k.op_args())
     g = torch.Generator().manual_seed(seed)
     C = col.shape[1]
     vc = torch.randn(h, w, C, generator=g, dtype=F64).to(device, m2.dtype)
     va = torch.randn(h, w, generator=g, dtype=F64).to(device, m2.dtype)
     vd = torch.randn(h, w, generator=g, dtype=F64).to(device, m2.dtype)
-    bwd = ops.rasterize_backward(*args, w, h, 16, 0.99, 1 / 255, 1e-4, out[4], out[3], vc, va, vd)
+    bwd = ops.rasterize_backward(*args, w, h, 16, 0.99, 1 / 255, 1e-4, out[4], out[3], vc, va, vd,
+                                 k.backward_channel_block, k.backward_pixels_per_thread)
     feat = ops.rasterize_backward_colors(args[0], args[1], args[2], args[6], args[7], w, h, 16, 0.99,
-                                         1 / 255, 1e-4, out[3], vc)
+                                         1 / 255, 1e-4, out[3], vc, k.colors_channel_block)
     return out, bwd, feat
 
 
@@ -95,17 +99,17 @@ def test_raster_ops_match_cpu_any_channel_count(channels, dtype):
         assert rel(b, a) <= tol_b
 
 
-@pytest.mark.parametrize("knob", ["TIGER_FWD_CB=32", "TIGER_BWD_CB=32", "TIGER_COLORS_CB=32",
-                                  "TIGER_BWD_PPT=1"])
+@pytest.mark.parametrize("kernels", [RasterKernelSettings(forward_channel_block=32),
+                                     RasterKernelSettings(backward_channel_block=32),
+                                     RasterKernelSettings(colors_channel_block=32),
+                                     RasterKernelSettings(backward_pixels_per_thread=1)], ids=str)
 @pytest.mark.parametrize("channels", [3, 16, 67, 96])
-def test_channel_block_knobs_same_result(knob, channels, monkeypatch):
+def test_kernel_choices_same_result(kernels, channels):
     w, h = 40, 33
     m, q, s, o, col, V, K, bg = _pipeline_inputs(200, channels, w, h, F32, seed=7)
     m2, cn, d, op, r, to, ids = _project_and_bin(*[t.cuda() for t in (m, q, s, o, V, K)], w, h)
     base = _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h)
-    key, val = knob.split("=")
-    monkeypatch.setitem(os.environ, key, val)
-    alt = _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h)
+    alt = _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h, kernels=kernels)
     for group_a, group_b in zip(base, alt):
         for a, b in zip(group_a, group_b):
             assert rel(b, a) <= 1e-5
@@ -139,7 +143,6 @@ def test_half_precision_channels(half):
 
 def test_tens_of_millions_of_intersections_64bit_offsets():
     """~30M tile-Gaussian pairs: offsets are int64, lists complete and front to back."""
-    from benchmarks.common import standard_camera, standard_scene
     w, h = 1920, 1080
     s = standard_scene(4_000_000, 3, device="cuda")
     V, K = standard_camera(w, h, device="cuda")
@@ -275,26 +278,55 @@ def test_host_synchronisations_of_a_render(capfd):
 
 
 @pytest.mark.parametrize("channels, ppt_default", [(3, 2), (16, 2), (17, 1), (64, 1)])
-def test_backward_pixels_per_thread_default(channels, ppt_default, monkeypatch):
+def test_backward_pixels_per_thread_default(channels, ppt_default):
     """Two pixels per backward thread for float32 channel blocks <= 16, one beyond, and
-    TIGER_BWD_PPT=1 forces one: the default measured in
-    benchmarks/gpu/results/session8_call1/issue15_b/train_vs_gsplat.txt (backward 3.09 -> 2.28
-    ms per training step). Read off the launched kernel's template arguments."""
+    backward_pixels_per_thread=1 forces one: the default, measured on the H100 (float32 C = 3
+    backward of 1M Gaussians at 1080x1920: 3.09 -> 2.28 ms per training step; docs/BENCHMARKS.md).
+    Read off the launched kernel's template arguments."""
     from torch.profiler import ProfilerActivity, profile
 
-    monkeypatch.delenv("TIGER_BWD_PPT", raising=False)
     w, h = 40, 33
     m, q, s, o, col, V, K, bg = _pipeline_inputs(200, channels, w, h, F32, seed=11)
     m2, cn, d, op, r, to, ids = _project_and_bin(*[t.cuda() for t in (m, q, s, o, V, K)], w, h)
 
-    def launched_ppt() -> set:
+    def launched_ppt(kernels: RasterKernelSettings = RasterKernelSettings()) -> set:
         with profile(activities=[ProfilerActivity.CUDA]) as prof:
-            _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h)
+            _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h, kernels=kernels)
             torch.cuda.synchronize()
         names = [e.name for e in prof.events() if "raster_cuda::backward_kernel<" in e.name]
         assert names, "no backward kernel seen"
         return {int(n.split(">")[0].split(",")[-1]) for n in names}
 
     assert launched_ppt() == {ppt_default}
-    monkeypatch.setenv("TIGER_BWD_PPT", "1")
-    assert launched_ppt() == {1}
+    assert launched_ppt(RasterKernelSettings(backward_pixels_per_thread=1)) == {1}
+
+
+@pytest.mark.parametrize("channels, block", [(3, 4), (64, 64), (100, 64)])
+def test_channel_block_choice_reaches_the_kernels(channels, block):
+    """forward/backward/colors_channel_block = 32 launch kernels of 32-channel main blocks (C > 32)
+    or tails of at most 32 channels; the default launches 64-channel blocks (read off the launched
+    kernels' template arguments: <T, TC, CBM, CBT, ...>)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    w, h = 40, 33
+    m, q, s, o, col, V, K, bg = _pipeline_inputs(150, channels, w, h, F32, seed=12)
+    m2, cn, d, op, r, to, ids = _project_and_bin(*[t.cuda() for t in (m, q, s, o, V, K)], w, h)
+
+    def largest_block(kernels: RasterKernelSettings) -> dict:
+        with profile(activities=[ProfilerActivity.CUDA]) as prof:
+            _raster_all("cuda", m2, cn, op, col, d, bg, to, ids, w, h, kernels=kernels)
+            torch.cuda.synchronize()
+        out = {}
+        for kind in ("forward_kernel<", "backward_kernel<", "backward_colors_kernel<"):
+            names = [e.name for e in prof.events() if f"raster_cuda::{kind}" in e.name]
+            assert names, f"no {kind} seen"
+            args = names[0].split(kind)[1].split(">")[0].split(",")
+            cbm_cbt = [int(a) for a in args[-3:-1]] if kind == "backward_kernel<" else [
+                int(a) for a in args[-2:]]
+            out[kind] = max(cbm_cbt)
+        return out
+
+    assert set(largest_block(RasterKernelSettings()).values()) == {block}
+    narrow = RasterKernelSettings(forward_channel_block=32, backward_channel_block=32,
+                                  colors_channel_block=32)
+    assert set(largest_block(narrow).values()) == {min(block, 32)}

@@ -3,10 +3,12 @@ semantics in ``csrc/raster/raster.h``).
 
 The backward picks the features-only kernel when no geometry input (means2d,
 conics, opacities, depths) needs a gradient: language-field training then pays
-for no geometry term at all.
+for no geometry term at all. The CUDA kernels' choices (:class:`RasterKernelSettings`) are
+arguments of the forward op, which its autograd formula hands to the backward ops.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import torch
@@ -16,13 +18,44 @@ from tiger.ops._eager_autograd import eager_autograd
 
 _OP = "tiger::rasterize"
 
-__all__ = ["rasterize"]
+__all__ = ["rasterize", "RasterKernelSettings"]
+
+
+@dataclass(frozen=True)
+class RasterKernelSettings:
+    """Kernel choices of the CUDA rasterization (float32; float64 runs blocks of 8 channels, one
+    pixel per thread, and the CPU kernels only check them). Every choice gives the same result up
+    to float32 rounding. Defaults: the measured best on the H100 (docs/BENCHMARKS.md), the same
+    as the op schemas' (``csrc/raster/raster.h``).
+
+    Attributes:
+        forward_channel_block, backward_channel_block, colors_channel_block: the largest
+            channel block held in registers by the forward, the backward and the features-only
+            backward kernel: 64 (a C <= 64 tile list is walked once) or 32.
+        backward_pixels_per_thread: pixels per backward thread, 2 where they apply (16-px tiles,
+            channel blocks of at most 16 channels) or 1.
+    """
+
+    forward_channel_block: int = 64
+    backward_channel_block: int = 64
+    colors_channel_block: int = 64
+    backward_pixels_per_thread: int = 2
+
+    def op_args(self) -> tuple[int, int, int, int]:
+        """The forward op's trailing arguments, in schema order."""
+        return (int(self.forward_channel_block), int(self.backward_channel_block),
+                int(self.colors_channel_block), int(self.backward_pixels_per_thread))
+
+
+_DEFAULT = RasterKernelSettings()
+_N_GEOMETRY_ARGS = 6  # width, height, tile_size, alpha_max, alpha_threshold, t_min
 
 
 def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
               background: Optional[Tensor], tile_offsets: Tensor, gaussian_ids: Tensor, width: int,
               height: int, tile_size: int, alpha_max: float, alpha_threshold: float,
-              t_min: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+              t_min: float, kernels: RasterKernelSettings = _DEFAULT
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Composite projected Gaussians front to back, differentiably.
 
     Args:
@@ -32,6 +65,7 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         tile_offsets, gaussian_ids: from :func:`bin_gaussians`; width, height, tile_size: px;
         alpha_max: per-Gaussian alpha clamp; alpha_threshold: smaller alphas are skipped;
         t_min: a pixel stops once its transmittance would drop below this.
+        kernels: the CUDA kernels' choices, forward and backward (:class:`RasterKernelSettings`).
     Returns:
         color [H, W, C] = Σ c_i a_i T_i + T_final background, alpha [H, W] = 1 - T_final,
         depth_accum [H, W] = Σ z_i a_i T_i, n_contrib [H, W] int32 and transmittance [H, W]
@@ -41,12 +75,30 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         means2d, conics, opacities, colors, depths,
         background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
         int(width), int(height), int(tile_size), float(alpha_max), float(alpha_threshold),
-        float(t_min))
+        float(t_min), *kernels.op_args())
+
+
+def _check_channel_block(op: str, name: str, value: int) -> None:
+    torch._check(value in (64, 32), lambda: f"{op}: {name} must be 64 or 32 (the compiled float32 "
+                                            f"channel blocks), got {value}")
+
+
+def _check_pixels_per_thread(op: str, name: str, value: int) -> None:
+    torch._check(value in (1, 2), lambda: f"{op}: {name} must be 1 or 2, got {value}")
 
 
 @torch.library.register_fake(_OP)
 def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
-                 gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min):
+                 gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
+                 channel_block=_DEFAULT.forward_channel_block,
+                 backward_channel_block=_DEFAULT.backward_channel_block,
+                 colors_channel_block=_DEFAULT.colors_channel_block,
+                 backward_pixels_per_thread=_DEFAULT.backward_pixels_per_thread):
+    op = "tiger.rasterize"
+    _check_channel_block(op, "channel_block", channel_block)
+    _check_channel_block(op, "backward_channel_block", backward_channel_block)
+    _check_channel_block(op, "colors_channel_block", colors_channel_block)
+    _check_pixels_per_thread(op, "backward_pixels_per_thread", backward_pixels_per_thread)
     # Outputs take the geometry dtype: colors may be stored in float16/bfloat16 (CUDA).
     c = colors.shape[1]
     return (means2d.new_empty(height, width, c), means2d.new_empty(height, width),
@@ -57,7 +109,11 @@ def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_of
 @torch.library.register_fake("tiger::rasterize_backward")
 def _raster_backward_fake(means2d, conics, opacities, colors, depths, background, tile_offsets,
                           gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
-                          transmittance, n_contrib, v_color, v_alpha, v_depth):
+                          transmittance, n_contrib, v_color, v_alpha, v_depth,
+                          channel_block=_DEFAULT.backward_channel_block,
+                          pixels_per_thread=_DEFAULT.backward_pixels_per_thread):
+    _check_channel_block("tiger.rasterize_backward", "channel_block", channel_block)
+    _check_pixels_per_thread("tiger.rasterize_backward", "pixels_per_thread", pixels_per_thread)
     return (means2d.new_empty(means2d.shape[0], 8), means2d.new_empty(colors.shape),
             means2d.new_empty(colors.shape[1]))
 
@@ -65,7 +121,8 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
 @torch.library.register_fake("tiger::rasterize_backward_colors")
 def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gaussian_ids, width,
                                  height, tile_size, alpha_max, alpha_threshold, t_min, n_contrib,
-                                 v_color):
+                                 v_color, channel_block=_DEFAULT.colors_channel_block):
+    _check_channel_block("tiger.rasterize_backward_colors", "channel_block", channel_block)
     c = v_color.shape[2]
     return means2d.new_empty(means2d.shape[0], c), means2d.new_empty(c)
 
@@ -76,7 +133,10 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     _, _, _, n_contrib, transmittance = output
     ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
                           gaussian_ids, transmittance, n_contrib)
-    ctx.args = tuple(args)
+    ctx.args = tuple(args[:_N_GEOMETRY_ARGS])
+    # The kernel choices of the backward ops (a call without them: the defaults).
+    _, ctx.backward_channel_block, ctx.colors_channel_block, ctx.backward_pixels_per_thread = (
+        tuple(args[_N_GEOMETRY_ARGS:]) + _DEFAULT.op_args()[len(args) - _N_GEOMETRY_ARGS:])
     ctx.mark_non_differentiable(n_contrib, transmittance)
     # Unused outputs (alpha and depth in a colour-only loss) reach the backward as None, not as
     # [H, W] zero tensors filled for nothing; the kernel reads no gradient for them.
@@ -94,21 +154,22 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
     if not geometry:
         v_colors, v_bg = torch.ops.tiger.rasterize_backward_colors(
             means2d, conics, opacities, tile_offsets, gaussian_ids, *ctx.args, n_contrib,
-            v_color.contiguous())
+            v_color.contiguous(), ctx.colors_channel_block)
         v_colors = v_colors.to(colors.dtype)  # half-precision storage: grads in its dtype
         return (None, None, None, v_colors if need[3] else None, None,
-                v_bg if need[5] else None) + (None,) * 8
+                v_bg if need[5] else None) + (None,) * (len(need) - 6)
     g = torch.ops.tiger.rasterize_backward(
         means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
         *ctx.args, trans, n_contrib, v_color.contiguous(),
         None if v_alpha is None else v_alpha.contiguous(),
-        None if v_depth is None else v_depth.contiguous())
+        None if v_depth is None else v_depth.contiguous(), ctx.backward_channel_block,
+        ctx.backward_pixels_per_thread)
     v_geom, v_colors, v_bg = g   # v_geom [N, 8]: u, v, conic a, b, c, opacity, depth, 0
     v_means2d, v_conics, v_opac, v_depths = v_geom[:, 0:2], v_geom[:, 2:5], v_geom[:, 5], v_geom[:, 6]
     v_colors = v_colors.to(colors.dtype)
     return (v_means2d if need[0] else None, v_conics if need[1] else None,
             v_opac if need[2] else None, v_colors if need[3] else None,
-            v_depths if need[4] else None, v_bg if need[5] else None) + (None,) * 8
+            v_depths if need[4] else None, v_bg if need[5] else None) + (None,) * (len(need) - 6)
 
 
 torch.library.register_autograd(_OP, _backward, setup_context=_setup)

@@ -7,9 +7,9 @@ from typing import NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from tiger.ops.binning import bin_gaussians
+from tiger.ops.binning import BinningSettings, bin_gaussians
 from tiger.ops.projection import project_gaussians
-from tiger.ops.raster import rasterize
+from tiger.ops.raster import RasterKernelSettings, rasterize
 from tiger.ops.sh import sh_to_color
 
 __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
@@ -19,7 +19,8 @@ __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_r
 @dataclass(frozen=True)
 class RasterSettings:
     """The rasterizer's accuracy and speed keywords, with their defaults (SPEC §3); each is a
-    keyword of :func:`rasterize_gaussians` (whose defaults are read from here)."""
+    keyword of :func:`rasterize_gaussians` (whose defaults are read from here). ``binning`` and
+    ``kernels`` are the CUDA kernels' choices (same result; defaults: the measured best)."""
 
     near: float = 0.01
     far: float = 1e10
@@ -30,6 +31,8 @@ class RasterSettings:
     t_min: float = 1e-4
     tile_size: int = 16
     check_finite: bool = True
+    binning: BinningSettings = BinningSettings()
+    kernels: RasterKernelSettings = RasterKernelSettings()
 
 
 class Projection(NamedTuple):
@@ -156,6 +159,8 @@ def rasterize_gaussians(
     t_min: float = RasterSettings.t_min,
     tile_size: int = RasterSettings.tile_size,
     check_finite: bool = RasterSettings.check_finite,
+    binning: BinningSettings = BinningSettings(),
+    kernels: RasterKernelSettings = RasterKernelSettings(),
 ) -> dict[str, Tensor]:
     """Render 3D Gaussians into one pinhole camera, differentiably.
 
@@ -185,6 +190,10 @@ def rasterize_gaussians(
         check_finite: input value checks (one reduction per input; off for speed): raise on
             NaN/Inf in any tensor, on a zero quaternion, an opacity outside [0, 1] or a negative
             scale, naming the tensor and its first bad row.
+        binning: the CUDA binning's kernel choices (:class:`tiger.ops.binning.BinningSettings`;
+            the tile lists are the same whichever runs).
+        kernels: the CUDA compositing kernels' choices, forward and backward
+            (:class:`tiger.ops.raster.RasterKernelSettings`; same result up to float32 rounding).
 
     Returns:
         dict with ``color`` [H, W, C], ``alpha`` [H, W], ``depth`` [H, W] (expected depth,
@@ -198,7 +207,8 @@ def rasterize_gaussians(
     """
     settings = RasterSettings(near=near, far=far, eps2d=eps2d, antialiased=antialiased,
                               alpha_max=alpha_max, alpha_threshold=alpha_threshold, t_min=t_min,
-                              tile_size=tile_size, check_finite=check_finite)
+                              tile_size=tile_size, check_finite=check_finite, binning=binning,
+                              kernels=kernels)
     p = project_for_raster(means, quats, scales, opacities, colors, viewmat, K, width, height,
                            background=background, sh_degree=sh_degree, sh_rest=sh_rest, settings=settings)
     return composite(p, width, height, settings)
@@ -283,7 +293,7 @@ def bin_projection(p: Projection, width: int, height: int,
     On CUDA it reads the intersection count back (one host synchronisation)."""
     with torch.no_grad():
         return bin_gaussians(p.means2d, p.conics, p.opacities, p.depths, p.radii, int(width), int(height),
-                             settings.tile_size, settings.alpha_threshold)
+                             settings.tile_size, settings.alpha_threshold, settings.binning)
 
 
 def composite(p: Projection, width: int, height: int,
@@ -298,7 +308,8 @@ def composite(p: Projection, width: int, height: int,
 
     color, alpha, depth_accum, _, _ = rasterize(
         means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,
-        height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min)
+        height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min,
+        settings.kernels)
     # Expected depth, 0 where alpha == 0 (divided by 1 there, so no 0/0 reaches the backward).
     # Scalar branches: four kernels, no ones/zeros tensors filled for them.
     covered = alpha > 0

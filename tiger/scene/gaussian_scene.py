@@ -8,6 +8,8 @@ from typing import Any, Iterable, Literal, Optional, Sequence, Union
 
 import torch
 
+from tiger.ops.binning import BinningSettings
+from tiger.ops.raster import RasterKernelSettings
 from tiger.render import Camera
 from tiger.render.rasterize import Projection, RasterSettings, bin_projection, composite, project_for_raster, sh_colors
 
@@ -19,7 +21,7 @@ PathLike = Union[str, os.PathLike]
 #: any per-Gaussian channels [N, C], or the SH colour followed by such channels (("rgb", [N, C])).
 ColorSpec = Union[None, Literal["rgb", "lang", "rgb+lang"], torch.Tensor, tuple[Literal["rgb"], torch.Tensor]]
 #: A rasterizer keyword's value (near, far, eps2d, antialiased, tile_size, check_finite, ...).
-RasterOption = Union[float, int, bool]
+RasterOption = Union[float, int, bool, BinningSettings, RasterKernelSettings]
 
 #: Per-Gaussian tensors, in the order used by optimizers and files.
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "lang")
