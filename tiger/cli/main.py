@@ -6,11 +6,11 @@ import logging
 import sys
 from typing import Optional, Sequence
 
-from . import delete, demo, edit, embed, eval_edit, features, info, lerf, query, reconstruct, render
+from . import delete, demo, edit, embed, eval_edit, features, info, lerf, query, reconstruct, render, view
 from .common import CliError
 
 EPILOG = "Run `tiger <command> --help` for the options and an example of each command."
-COMMANDS = [reconstruct, features, embed, query, edit, eval_edit, delete, render, lerf, info, demo]
+COMMANDS = [reconstruct, features, embed, query, edit, eval_edit, delete, render, view, lerf, info, demo]
 
 
 def build_parser() -> argparse.ArgumentParser:
