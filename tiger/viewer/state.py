@@ -188,7 +188,9 @@ class ViewerState:
 
     def _retrieve(self, scene: GaussianScene, query) -> Retrieval:
         try:
-            return retrieve(scene, query, encoder=self.encoder, tau=self.tau)
+            # the selection is the cosine rule of `tiger query` (its default score); the LERF
+            # negatives only matter for the relevancy score, so they are not embedded here
+            return retrieve(scene, query, encoder=self.encoder, tau=self.tau, negatives=None)
         except (KeyError, ValueError) as e:
             raise ViewerError(str(e.args[0] if e.args else e)) from None
 
