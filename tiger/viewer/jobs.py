@@ -43,7 +43,7 @@ def guidance_availability(models: Optional[str] = None) -> dict[str, str]:
             resolve_model_path(name, config=_model_config(models))
             missing[name] = ""
         except (ModelNotFoundError, FileNotFoundError, ValueError) as e:
-            missing[name] = str(e).splitlines()[0]
+            missing[name] = str(e).split(". ")[0]  # 'model ... not found'; the details are in the log
     out["ip2p"] = missing["ip2p"] and f"InstructPix2Pix weights not found: {missing['ip2p']}"
     out["ip2p+mvdream"] = out["ip2p"] or (missing["mvdream"] and f"MVDream weights not found: {missing['mvdream']}")
     return out
