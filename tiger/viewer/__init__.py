@@ -43,7 +43,12 @@ def serve(scene: GaussianScene, *, encoder: Optional[TextEncoder] = None, host: 
     state = ViewerState(scene.to(dev), encoder, encoder_note=encoder_note or (
         "" if encoder is not None else "no text encoder (pass --text-embeddings or CLIP weights via --models): "
         "text queries are off; the point prompt works"), out_dir=out_dir, models=models, cameras=cameras)
-    server = ViewerServer(state, host, port, device=dev).start()
+    server = ViewerServer(state, host, port, device=dev)
+    try:
+        server.start()
+    except KeyboardInterrupt:  # Ctrl-C while starting: stop what started
+        server.stop()
+        return server
     if block:
         server.serve_forever()
     return server
