@@ -163,10 +163,16 @@ def _wxyz(R):
     return _quat(R)
 
 
-def test_browser_ask_highlight_and_edit(served, tmp_path):
+#: Screenshots are kept here (outputs/ is not tracked); README's docs/images/viewer.png is copied from it.
+ARTEFACTS = Path(__file__).resolve().parents[2] / "outputs" / "test-artefacts" / "viewer"
+
+
+def test_browser_ask_highlight_and_edit(served):
     from scipy.ndimage import binary_dilation
 
     lab, folder, port, proc = served
+    tmp_path = ARTEFACTS
+    tmp_path.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
     driver = _browser()
     try:
@@ -217,6 +223,9 @@ def test_browser_ask_highlight_and_edit(served, tmp_path):
         assert np.median(diff[core]) > 30, np.median(diff[core])  # the ball changed
         assert (diff[rest] > 30).mean() < 0.01 and np.median(diff[rest]) < 4  # the rest did not
         assert after[core][:, 0].mean() > lit[core][:, 0].mean()  # redder
+        _field(driver, "Draw box").click()  # the page as a user sees it: selection, box, panels
+        time.sleep(1.0)
+        _keep(_shot(driver), tmp_path / "viewer.png")
         print(f"screenshots in {tmp_path}; browser test {time.time() - t_start:.1f} s")
     finally:
         driver.quit()
