@@ -1,14 +1,11 @@
 """The demo tabletop with per-object language features, built fast (no field training)."""
 from __future__ import annotations
 
-import pytest
 import torch
 
 from tiger.demo.run import label_features
 from tiger.demo.scene import tabletop_scene
 from tiger.retrieval.text import EmbeddingTable
-
-pytest.importorskip("viser", reason="the viewer needs viser: pip install viser==1.1.1")
 
 
 def demo_scene(density: float = 0.3):

@@ -21,6 +21,8 @@ import torch
 
 from .conftest import demo_scene
 
+pytest.importorskip("viser", reason="the viewer needs viser: pip install viser==1.1.1")
+
 CHROMIUM, DRIVER = shutil.which("chromium") or shutil.which("chromium-browser"), shutil.which("chromedriver")
 webdriver = pytest.importorskip("selenium.webdriver", reason="pip install selenium (browser test)")
 pytestmark = [

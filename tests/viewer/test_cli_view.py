@@ -11,6 +11,8 @@ import pytest
 
 from .conftest import demo_scene
 
+pytest.importorskip("viser", reason="the viewer needs viser: pip install viser==1.1.1")
+
 
 def _run(*args, timeout=120):
     return subprocess.run([sys.executable, "-m", "tiger.cli.main", "view", *args], capture_output=True, text=True,
