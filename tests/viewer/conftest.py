@@ -1,6 +1,7 @@
 """The demo tabletop with per-object language features, built fast (no field training)."""
 from __future__ import annotations
 
+import pytest
 import torch
 
 from tiger.demo.run import label_features

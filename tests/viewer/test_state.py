@@ -228,3 +228,69 @@ def _fail_atomic(path):
     with atomic_write(path, "wb") as fh:
         fh.write(b"partial")
         raise OSError("disk full")
+
+
+class _FakeScene:
+    def __init__(self) -> None:
+        self.sent = []
+
+    def set_background_image(self, img, format="jpeg", jpeg_quality=None):
+        self.sent.append((img.shape, format, jpeg_quality))
+
+
+class _FakeClient:
+    def __init__(self, cid: int) -> None:
+        self.client_id, self.scene = cid, _FakeScene()
+
+
+def test_frame_scheduling_latest_camera_small_while_moving(tabletop, tabletop_camera):
+    """Per tab: the latest pose is drawn (small while it moves, canvas size once it rests), a
+    drawn pose is not drawn again, and a scene change redraws every tab."""
+    import time
+
+    from tiger.viewer.server import ClientView, ViewerServer
+
+    st = _state(tabletop)
+    server = ViewerServer(st, device=torch.device("cpu"), moving_pixels=80 * 45, rest_s=0.05)
+    server.gui = None
+    pose = pose_of(tabletop_camera)
+    wxyz = _quat(tabletop_camera.c2w.double()[:3, :3])
+    a, b = ClientView(_FakeClient(1)), ClientView(_FakeClient(2))
+    server.views = {1: a, 2: b}
+    assert server._next_request() is None  # no camera yet
+    now = time.perf_counter()
+    a.pose, a.moved_at, a.dirty = (wxyz, pose["position"], pose["fov"], 320, 180), now, True
+    a.pose = (wxyz, pose["position"], pose["fov"], 640, 360)  # a newer message replaces the older
+    view, full = server._next_request()
+    assert view is a and not full  # moving: small
+    view.dirty = False
+    server.draw(view, full)
+    view.sent_version, view.sent_full = st.version, full
+    assert a.client.scene.sent[-1][0] == (45, 80, 3)
+    time.sleep(0.06)
+    view, full = server._next_request()
+    assert view is a and full  # rested: the canvas size of the latest pose
+    server.draw(view, full)
+    view.sent_version, view.sent_full = st.version, full
+    assert a.client.scene.sent[-1][0] == (360, 640, 3)
+    assert server._next_request() is None  # nothing new
+    b.pose, b.moved_at, b.dirty = (wxyz, pose["position"], pose["fov"], 200, 100), now - 1, False
+    st.ask("ball")  # the scene's look changed: both tabs are redrawn
+    assert {server._next_request()[0].client.client_id} <= {1, 2}
+    a.sent_version = st.version
+    assert server._next_request()[0] is b
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_frames_and_selection_match_cpu(tabletop, tabletop_camera):
+    lab, enc = tabletop
+    cpu = ViewerState(lab.scene, enc)
+    gpu = ViewerState(lab.scene.to("cuda"), enc)
+    assert torch.equal(cpu.ask("ball").mask, gpu.ask("ball").mask.cpu())
+    for mode in ("RGB", "depth", "relevancy"):
+        cpu.set_view(mode=mode)
+        gpu.set_view(mode=mode)
+        a = render_frame(cpu.frame_inputs(), tabletop_camera).astype(np.int16)
+        b = render_frame(gpu.frame_inputs(), tabletop_camera.to("cuda")).astype(np.int16)
+        assert np.abs(a - b).mean() < 1.0, mode
