@@ -226,6 +226,8 @@ def test_browser_ask_highlight_and_edit(served):
         assert (diff[rest] > 30).mean() < 0.01 and np.median(diff[rest]) < 4  # the rest did not
         assert after[core][:, 0].mean() > lit[core][:, 0].mean()  # redder
         _field(driver, "Draw box").click()  # the page as a user sees it: selection, box, panels
+        driver.execute_script(  # headless Chromium's "software WebGL" notice is not the viewer's
+            "document.querySelectorAll('.mantine-Notification-root').forEach(e => e.remove())")
         time.sleep(1.0)
         _keep(_shot(driver), tmp_path / "viewer.png")
         print(f"screenshots in {tmp_path}; browser test {time.time() - t_start:.1f} s")
