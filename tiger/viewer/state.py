@@ -114,9 +114,11 @@ class ViewerState:
         self.background: tuple[float, float, float] = (1.0, 1.0, 1.0)
         self.preview: Optional[GaussianScene] = None  # a running edit's scene, shown while it runs
         self.version = 0  # bumped whenever what a frame shows changes
-        self._pca_cache: tuple[int, Optional[torch.Tensor]] = (-1, None)
-        self._tint_cache: tuple[int, Optional[torch.Tensor]] = (-1, None)
-        self._alone_cache: tuple[int, Optional[GaussianScene]] = (-1, None)
+        # (the objects they were computed from, result): compared by identity, and holding the
+        # objects keeps their ids from being reused by newer ones
+        self._pca_cache: tuple = ((), None)
+        self._tint_cache: tuple = ((), None)
+        self._alone_cache: tuple = ((), None)
 
     # -- scene and history --------------------------------------------------------------------
     @property
@@ -282,15 +284,19 @@ class ViewerState:
                 self.background = tuple(min(max(float(c), 0.0), 1.0) for c in background)
             self._changed()
 
+    @staticmethod
+    def _hit(cache: tuple, *objs) -> bool:
+        return len(cache[0]) == len(objs) and all(a is b for a, b in zip(cache[0], objs))
+
     def _pca_colors(self, scene: GaussianScene) -> torch.Tensor:
-        key = id(scene)
-        if self._pca_cache[0] != key:
+        key = (scene,)
+        if not self._hit(self._pca_cache, *key):
             self._pca_cache = (key, feature_pca_colors(scene.lang))
         return self._pca_cache[1]
 
     def _tint(self, scene: GaussianScene, mask: torch.Tensor) -> torch.Tensor:
-        key = hash((id(scene), id(mask)))
-        if self._tint_cache[0] != key:
+        key = (scene, mask)
+        if not self._hit(self._tint_cache, *key):
             rgb = scene.rgb.detach()
             grey = rgb.mean(1, keepdim=True).expand(-1, 3) * 0.6 + 0.2
             hl = torch.tensor(HIGHLIGHT, dtype=rgb.dtype, device=rgb.device)
@@ -298,8 +304,8 @@ class ViewerState:
         return self._tint_cache[1]
 
     def _alone(self, scene: GaussianScene, mask: torch.Tensor) -> GaussianScene:
-        key = hash((id(scene), id(mask)))
-        if self._alone_cache[0] != key:
+        key = (scene, mask)
+        if not self._hit(self._alone_cache, *key):
             self._alone_cache = (key, scene.subset(mask))
         return self._alone_cache[1]
 
