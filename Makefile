@@ -6,7 +6,7 @@ PIP       := $(PY) -m pip
 TORCH_PIN ?= torch==2.13.0
 DEPS      := scikit-build-core pybind11 ninja cmake numpy tqdm pillow matplotlib scipy \
              pytest pytest-timeout hypothesis nbclient nbformat ipykernel transformers safetensors \
-             opencv-python-headless diffusers==0.42.*
+             opencv-python-headless diffusers==0.42.* viser==1.1.1 selenium
 CSRC      := $(shell find csrc -type f 2>/dev/null) CMakeLists.txt pyproject.toml
 BUILT     := $(VENV)/.tiger-built
 PYTEST_ARGS ?=
@@ -14,12 +14,13 @@ PYTEST_ARGS ?=
 .PHONY: test demo env build cuda-check bench clean
 
 env: $(VENV)/.tiger-env
-$(VENV)/.tiger-env: pyproject.toml tools/ensure_eigen.sh
+$(VENV)/.tiger-env: pyproject.toml tools/ensure_eigen.sh tools/ensure_browser.sh
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# torch only when it is missing: a user's own (CUDA) torch is kept.
 	@$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q $(TORCH_PIN)
 	$(PIP) install -q $(DEPS)
 	bash tools/ensure_eigen.sh
+	bash tools/ensure_browser.sh
 	@touch $@
 
 build: $(BUILT)

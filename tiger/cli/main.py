@@ -13,13 +13,15 @@ import os
 import sys
 from typing import Callable, Optional, Sequence
 
-from . import delete, demo, edit, embed, eval_edit, export, features, info, lerf, prepare, query, reconstruct, render
+from . import (delete, demo, edit, embed, eval_edit, export, features, info, lerf, prepare, query, reconstruct,
+               render, view)
 from .common import CliError, mark_command_start
 
 EPILOG = ("Run `tiger <command> --help` for the options and an example of each command. Exit codes: "
           "0 done, 2 bad input (arguments, files, texts, missing weights), 1 failure while running, "
           "130 interrupted.")
-COMMANDS = [prepare, reconstruct, features, embed, query, edit, eval_edit, delete, render, export, lerf, info, demo]
+COMMANDS = [prepare, reconstruct, features, embed, query, edit, eval_edit, delete, render, view, export, lerf, info,
+            demo]
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 0, 1, 2, 130, 141
 
