@@ -68,7 +68,7 @@ def start_pose(state, scene_kind: str):
     from tiger.viewer.camera import pose_of
 
     if scene_kind == "heavy":
-        from tiger.scene import Camera
+        from tiger.render import Camera
 
         V, K = standard_camera(640, 480)
         cam = Camera(V.double(), K.double(), 640, 480)

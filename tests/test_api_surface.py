@@ -52,6 +52,7 @@ SURFACE = {
                     "write_ply"],
     "tiger.testing": [],
     "tiger.utils": [],
+    "tiger.viewer": ["Selection", "ViewerError", "ViewerState", "serve"],
 }
 #: What the top-level package re-exports from its subpackages (the one-line entry point).
 ALLOWED_TOP = {"rasterize_gaussians"}

@@ -12,7 +12,8 @@ from typing import Optional, Union
 import torch
 
 from tiger.retrieval.text import TextEncoder
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 from .state import Selection, ViewerError, ViewerState
 

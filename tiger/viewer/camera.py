@@ -1,4 +1,4 @@
-"""Browser camera <-> :class:`tiger.scene.Camera`.
+"""Browser camera <-> :class:`tiger.render.Camera`.
 
 viser reports a client's camera as a camera-to-world rotation (quaternion w, x, y, z) and position
 with OpenCV axes (+z forward, +y down), a vertical field of view in radians and the canvas aspect
@@ -11,7 +11,7 @@ from typing import Sequence
 
 import torch
 
-from tiger.scene import Camera
+from tiger.render import Camera
 
 
 def quat_to_matrix(wxyz: Sequence[float]) -> torch.Tensor:

@@ -13,7 +13,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 MODES = ("RGB", "depth", "alpha", "language features", "relevancy")
 

@@ -17,7 +17,8 @@ import torch
 
 from tiger.retrieval import Retrieval, retrieve
 from tiger.retrieval.text import TextEncoder
-from tiger.scene import Camera, GaussianScene
+from tiger.render import Camera
+from tiger.scene import GaussianScene
 
 from .frames import MODES, FrameInputs
 
