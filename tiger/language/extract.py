@@ -102,7 +102,7 @@ class FeatureSet:
         return d["features"], d["valid"]
 
 
-def load_image(path: str | os.PathLike) -> torch.Tensor:
+def read_rgb_image(path: str | os.PathLike) -> torch.Tensor:
     """An image file as [3, H, W] float32 RGB in [0, 1]."""
     from PIL import Image
 
@@ -117,7 +117,7 @@ def _as_image(img: ImageLike) -> torch.Tensor:
         if img.dim() != 3 or img.shape[0] != 3:
             raise ValueError(f"tiger.extract_features: image tensors must be [3, H, W], got {tuple(img.shape)}")
         return img.float() / 255.0 if img.dtype == torch.uint8 else img.float()
-    return load_image(img)
+    return read_rgb_image(img)
 
 
 def _names(images: Sequence[ImageLike], names: Sequence[str] | None) -> list[str]:
