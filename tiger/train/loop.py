@@ -8,8 +8,8 @@ A trainer ("session") owns its state and one step of its recipe; :func:`run_loop
 * Ctrl-C in the main thread is taken at the end of the running step (SIGINT is held while a step
   runs), so the checkpoint holds a whole step and ``resume`` continues exactly; a second Ctrl-C
   interrupts at once. A ``KeyboardInterrupt`` raised inside a step anyway (another thread, a
-  second Ctrl-C) counts as "the step did not happen": the session's generators are set back to
-  where the step began and the step is redone on resume;
+  second Ctrl-C) counts as "the step did not happen": the session's generators and torch's global
+  CPU generator are set back to where the step began and the step is redone on resume;
 * one progress bar whose figures (running means of the step records' ``show`` keys) are read back
   from the device only every ``log_every`` steps.
 """
@@ -113,6 +113,7 @@ def run_loop(session: Session, steps: int, *, checkpoint: Optional[PathLike] = N
             while session.step < steps:
                 gens = list(session.generators())
                 at_start = [g.get_state() for g in gens]
+                global_at_start = torch.get_rng_state()
                 step_before = session.step
                 try:
                     rec = session.step_once()
@@ -120,6 +121,7 @@ def run_loop(session: Session, steps: int, *, checkpoint: Optional[PathLike] = N
                     if session.step == step_before:  # not finished: redo it on resume
                         for g, st in zip(gens, at_start):
                             g.set_state(st)
+                        torch.set_rng_state(global_at_start)
                     raise
                 session.elapsed = before + time.perf_counter() - t0
                 for k in show:

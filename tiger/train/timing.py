@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from typing import Callable, Iterator, Optional, Union
+from typing import Callable, Iterator, Optional, Sequence, Union
 
 import torch
 
@@ -24,13 +24,15 @@ class StageTimer:
         on_stage: called as ``on_stage(name, seconds)`` when a stage ends (e.g. to print it); with
             CUDA events this waits for the stage, so use it for pipelines, not per-step stages.
         prefix: of the profiler range names.
+        stages: names listed (at 0 s) in the summary even if they never run, in this order.
     """
 
     def __init__(self, device: Union[str, torch.device, None] = None,
-                 on_stage: Optional[Callable[[str, float], None]] = None, prefix: str = "tiger") -> None:
+                 on_stage: Optional[Callable[[str, float], None]] = None, prefix: str = "tiger",
+                 stages: Sequence[str] = ()) -> None:
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.on_stage, self.prefix = on_stage, prefix
-        self._done: dict[str, float] = {}
+        self._done: dict[str, float] = {name: 0.0 for name in stages}
         self._pending: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []
 
     @contextmanager
