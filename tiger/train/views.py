@@ -39,6 +39,16 @@ class ViewSampler:
         """The next ``min(k, V)`` view indices (an epoch boundary may fall inside them)."""
         return [self.next() for _ in range(min(int(k), len(self.items)))]
 
+    def peek(self, k: int) -> list[int]:
+        """The next ``min(k, V)`` indices without taking them (e.g. to prefetch their data). Draws
+        the next epoch early when needed: the sequence is the same as long as nothing else draws
+        from the generator in between."""
+        k = min(int(k), len(self.items))
+        while len(self._order) < k:
+            epoch = [self.items[j] for j in torch.randperm(len(self.items), generator=self.generator).tolist()]
+            self._order = epoch + self._order  # taken from the end: after the current epoch
+        return self._order[::-1][:k]
+
     def state_dict(self) -> dict:
         """{"order": the views left in the current epoch}; the generator is saved by the loop."""
         return {"order": list(self._order)}
