@@ -19,7 +19,7 @@ from .config import ReconConfig, expon_lr
 from .init import colors_from_views
 from .losses import photometric_loss, psnr, psnr_tensor, ssim
 from .step import SceneOptimizer
-from .strategy import DensifySchedule, InriaStrategy
+from .strategy import InriaStrategy
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -159,14 +159,7 @@ class Trainer:
                                       c.lr_means_delay_mult)
 
     def _strategy(self) -> InriaStrategy:
-        c = self.cfg
-        # INRIA densifies after (not at) densify_from
-        when = DensifySchedule(c.densify_interval if c.densify else 0, c.densify_from + 1, c.densify_until)
-        return InriaStrategy(len(self.scene), self.device, when, self.extent, grad_threshold=c.densify_grad_threshold,
-                             percent_dense=c.percent_dense, min_opacity=c.min_opacity,
-                             max_screen_size=c.max_screen_size, max_world_size=c.max_world_size,
-                             max_gaussians=c.max_gaussians, opacity_reset_every=c.opacity_reset_interval,
-                             prune_large_from_start=self.finetune)
+        return self.cfg.strategy(len(self.scene), self.device, self.extent, finetune=self.finetune)
 
     def _background(self) -> torch.Tensor:
         if self.cfg.random_background:

@@ -49,9 +49,15 @@ class _Strategy:
     def observe(self, step: int, renders: dict, width: int, height: int) -> None:
         """Add step ``step``'s renders (``means2d`` with its ``.grad``, ``radii``) of views
         ``width`` x ``height`` px to the statistics, while the schedule gathers them."""
-        grad = renders["means2d"].grad
-        if grad is not None and self.schedule.collecting(step):
-            self.stats.add(grad, renders["radii"], width, height)
+        if renders["means2d"].grad is not None:
+            self.observe_grad(step, renders["means2d"].grad, renders["radii"], width, height)
+
+    def observe_grad(self, step: int, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
+                     height: int) -> None:
+        """:meth:`observe` from the gradient itself: ``means2d_grad`` [N, 2] or [V, N, 2] (pixel
+        units) and ``radii`` [N] or [V, N] over all N rows (e.g. scattered from a subset render)."""
+        if self.schedule.collecting(step):
+            self.stats.add(means2d_grad, radii, width, height)
 
     def state_dict(self) -> dict:
         return {"stats": self.stats.state_dict()}
