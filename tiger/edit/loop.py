@@ -14,10 +14,10 @@ through the rasterizer, and take a relevance-scaled Adam step on the editable Ga
 * **View-independent colour.** Editable Gaussians' higher SH bands are zeroed at the start of the
   round and not optimised (``sh_rest`` is not a parameter), so they render ``max(C0 · dc + 0.5, 0)``
   from every direction.
-* **Densification** every ``densify_every`` steps (:func:`tiger.recon.strategy.region_topk_densify`):
-  the top ``densify_fraction`` (1 %) of the editable Gaussians by mean accumulated screen-space
-  gradient are cloned (largest scale ≤ ``percent_dense`` × object radius) or split; editable
-  Gaussians below ``min_opacity`` are pruned (:func:`~tiger.recon.strategy.prune_transparent`).
+* **Densification** every ``densify_every`` steps from ``densify_from`` to ``densify_until``
+  (:class:`tiger.recon.strategy.RegionTopKStrategy`): the top ``densify_fraction`` (1 %) of the
+  editable Gaussians by mean accumulated screen-space gradient are cloned (largest scale ≤
+  ``percent_dense`` × object radius) or split; editable Gaussians below ``min_opacity`` are pruned.
   Children inherit every attribute of their parent: ``lang``, the relevance weight, trainability.
 * **Checkpoints**: every ``checkpoint_every`` steps and on Ctrl-C (then the interrupt is re-raised);
   ``resume=True`` continues bit-for-bit (views, guidance noise, Adam, densification statistics).
