@@ -12,8 +12,9 @@ def add_parser(sub) -> None:
         "embed", help="train the language field of a scene from feature maps",
         description="Optimise only each Gaussian's language embedding L (Adam) so that rendered "
                     "features match the maps written by `tiger features`; geometry stays frozen "
-                    "and the features-only backward computes no geometry gradient. Writes a PLY "
-                    "with lang_* and the PCA basis.",
+                    "and the features-only backward computes no geometry gradient. The maps are "
+                    "read once (kept on the GPU when they fit, else streamed from pinned memory). "
+                    "Writes a PLY with lang_* and the PCA basis.",
         epilog="example: tiger embed outputs/fox/scene.ply ../shared/data/fox "
                "--features outputs/fox/features --out outputs/fox/scene_lang.ply",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -30,7 +31,10 @@ def add_parser(sub) -> None:
     p.add_argument("--lr", type=float, default=2.5e-3)
     p.add_argument("--batch-views", type=int, default=1)
     p.add_argument("--loss", choices=("l1", "l2", "cosine"), default="l1")
-    p.add_argument("--checkpoint", default=None, help="checkpoint file (default: OUT + .ckpt.pt)")
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint file (default: OUT + .ckpt.pt), written every 1000 steps, at the end "
+                        "and on Ctrl-C; an existing one is continued exactly (one made with other "
+                        "settings is refused, naming what differs)")
     p.set_defaults(func=run)
 
 

@@ -35,10 +35,19 @@ def add_parser(sub) -> None:
     add_skip_missing(p)
     p.add_argument("--init-points", type=int, default=100_000,
                    help="random initial Gaussians when the dataset has no points")
-    p.add_argument("--checkpoint-every", type=int, default=1000)
+    p.add_argument("--max-gaussians", type=int, default=None, metavar="N",
+                   help="densification never grows the scene past N Gaussians (the strongest "
+                        "gradients win; default: no cap)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="stop training once it took this long (a resumed run counts its earlier "
+                        "time), then evaluate and write the scene as usual (default: no budget)")
+    p.add_argument("--checkpoint-every", type=int, default=1000,
+                   help="steps between checkpoints (OUT/checkpoint.pt; also written at the end and "
+                        "on Ctrl-C)")
     p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/checkpoint.pt (refused when OUT holds other files but no "
-                        "checkpoint, unless --force)")
+                   help="continue exactly from OUT/checkpoint.pt (refused when OUT holds other files but "
+                        "no checkpoint, unless --force; refused, naming what differs, when the "
+                        "checkpoint was made with other views or settings)")
     p.add_argument("--finetune", default=None, metavar="PLY",
                    help="start from this scene instead of initialising (e.g. after a deletion)")
     p.add_argument("--keep-cache", action="store_true",
@@ -120,10 +129,15 @@ def run(args: argparse.Namespace) -> int:
     from tiger.recon.data import masked_fraction, valid_pixel_masks
     from tiger.scene import GaussianScene
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
+    from tiger.train import CheckpointMismatch
     from tiger.utils.io import atomic_write
 
     _check_arguments(args)
     dev = device_of(args.device)
+    if args.max_gaussians is not None and args.max_gaussians < 1:
+        raise CliError(f"--max-gaussians must be >= 1, got {args.max_gaussians}")
+    if args.time_budget is not None and not args.time_budget > 0:
+        raise CliError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
     data = existing(args.data, "dataset")
     resuming = _resumable(Path(args.out), args.resume)
     if resuming:
@@ -140,8 +154,8 @@ def run(args: argparse.Namespace) -> int:
     test_cams, test_imgs = load_views(test, args.downscale, cache_dir=cache, progress=True)
     # INRIA's 30k schedule compressed to --steps (identical at 30000).
     cfg = ReconConfig.scaled(args.steps, sh_degree=args.sh_degree,
-                             init_random_points=args.init_points,
-                             checkpoint_every=args.checkpoint_every)
+                             init_random_points=args.init_points, max_gaussians=args.max_gaussians,
+                             time_budget_s=args.time_budget, checkpoint_every=args.checkpoint_every)
     scene = GaussianScene.load_ply(existing(args.finetune, "scene")) if args.finetune else None
     # the black border that undistortion leaves counts neither in the loss nor in the metric
     train_masks, test_masks = valid_pixel_masks(train, args.downscale), valid_pixel_masks(test, args.downscale)
@@ -151,7 +165,10 @@ def run(args: argparse.Namespace) -> int:
                       masks=train_masks, test_masks=test_masks)
     ckpt = out / "checkpoint.pt"
     if args.resume and ckpt.is_file():
-        trainer.load(ckpt)
+        try:
+            trainer.load(ckpt)
+        except CheckpointMismatch as exc:
+            raise CliError(f"--resume: {exc}") from None
         summary.add(f"resumed from {ckpt} at step {trainer.step}")
     try:
         scene = trainer.fit()
@@ -159,10 +176,14 @@ def run(args: argparse.Namespace) -> int:
         held = (f"{ckpt} holds step {trainer.checkpoint_step}: continue with --resume"
                 if trainer.checkpoint_step is not None else "this run wrote no checkpoint yet")
         raise KeyboardInterrupt(f"stopped at step {trainer.step} of {cfg.iterations}; {held}") from None
+    if trainer.outcome is not None and trainer.outcome.stopped == "time budget":
+        summary.add(f"time budget of {args.time_budget:g} s reached: stopped at step {trainer.step} of "
+                    f"{cfg.iterations} (--resume with a larger --time-budget continues)")
     scene.save_ply(out / "scene.ply")
     write_cameras_json(cameras_json_path(out / "scene.ply"), ds.cameras)
     summary.add(f"scene: {len(scene)} Gaussians -> {out / 'scene.ply'} (cameras: {out / 'cameras.json'})")
-    metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed}
+    metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed,
+               "stopped": trainer.outcome.stopped if trainer.outcome is not None else "done"}
     if test_cams:
         ev = trainer.evaluate()
         metrics.update({k: v for k, v in ev.items() if isinstance(v, (int, float))})
