@@ -15,7 +15,7 @@ from typing import Callable, Mapping, Optional, Protocol, Sequence, Union
 
 import torch
 
-from tiger.scene import Camera
+from tiger.render import Camera
 
 log = logging.getLogger(__name__)
 #: One view's target: features [H, W, D], (features, valid [H, W]) or {"features", "valid"}.
