@@ -21,9 +21,15 @@ from .test_delete_cli import _scene_file
 
 @pytest.fixture(scope="module")
 def lang_scene(tmp_path_factory):
-    """(PLY with lang_* + PCA sidecar, its text table) of the tabletop; the table knows 'mug', 'cup'."""
+    """(PLY with lang_* + PCA sidecar, its text table) of the tabletop; the table knows 'mug', 'cup'
+    and the canonical negatives."""
     root = tmp_path_factory.mktemp("lang")
     path, _, _ = _scene_file(root)
+    table = torch.load(root / "text.pt")
+    g = torch.Generator().manual_seed(1)
+    for word in ("object", "things", "stuff", "texture"):  # LERF's canonical negatives (edit's weights)
+        table[word] = torch.randn(512, generator=g)
+    torch.save(table, root / "text.pt")
     return path, root / "text.pt"
 
 
@@ -191,7 +197,7 @@ def test_recolor_shades_negations_and_the_rgb_recorded(lang_scene, tmp_path, cap
     printed = capsys.readouterr().out
     rep = json.loads((out / "edit.json").read_text())
     assert rep["recolor_rgb"] == pytest.approx((green * 0.55).tolist(), abs=1e-4)
-    assert "RGB 0.055, 0.358, 0.083" in printed
+    assert "RGB " + ", ".join(f"{v:.3f}" for v in rep["recolor_rgb"]) in printed
     # one edit time: the loop's (as its rounds record it), and the command's wall time beside it
     assert rep["time_s"] == rep["rounds"][-1]["time_s"] and rep["command_s"] >= rep["time_s"]
     assert float(printed.split("done in ")[1].split(" s")[0]) >= rep["time_s"]
