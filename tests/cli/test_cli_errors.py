@@ -226,3 +226,19 @@ def test_render_relevancy_shows_the_score_query_uses():
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     defaults = {name: {a.dest: a.default for a in sub.choices[name]._actions} for name in ("render", "query")}
     assert defaults["render"]["score"] == defaults["query"]["score"]
+
+
+def test_a_default_edit_on_the_cpu_warns_with_the_expected_time(tmp_path, caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="tiger.cli.edit"):
+        code = main(["edit", str(tmp_path / "missing.ply"), "make it red", "--target", "mug", "--guidance",
+                     "recolor", "--out", str(tmp_path / "e"), "--device", "cpu"])
+    assert code == 2  # the scene is missing; the warning came first, from the settings alone
+    warned = [r.getMessage() for r in caplog.records if "edit on the CPU" in r.getMessage()]
+    assert warned and "about 13 min" in warned[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="tiger.cli.edit"):
+        main(["edit", str(tmp_path / "missing.ply"), "make it red", "--target", "mug", "--guidance", "recolor",
+              "--steps", "20", "--size", "64", "--out", str(tmp_path / "e"), "--device", "cpu"])
+    assert not [r for r in caplog.records if "edit on the CPU" in r.getMessage()]  # a short edit: quiet
