@@ -242,3 +242,12 @@ def test_a_default_edit_on_the_cpu_warns_with_the_expected_time(tmp_path, caplog
         main(["edit", str(tmp_path / "missing.ply"), "make it red", "--target", "mug", "--guidance", "recolor",
               "--steps", "20", "--size", "64", "--out", str(tmp_path / "e"), "--device", "cpu"])
     assert not [r for r in caplog.records if "edit on the CPU" in r.getMessage()]  # a short edit: quiet
+
+
+def test_eval_edit_refusals_leave_no_folder(lang_scene, tmp_path, capsys):
+    scene, table = lang_scene
+    out = tmp_path / "ev"
+    assert main(["eval-edit", str(scene), str(scene), "--target", "unicorn", "--text-embeddings", str(table),
+                 "--out", str(out), "--device", "cpu"]) == 2
+    assert "no embedding for ['unicorn']" in _last_line(capsys.readouterr().err)
+    assert not out.exists()
