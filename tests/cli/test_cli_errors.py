@@ -251,3 +251,17 @@ def test_eval_edit_refusals_leave_no_folder(lang_scene, tmp_path, capsys):
                  "--out", str(out), "--device", "cpu"]) == 2
     assert "no embedding for ['unicorn']" in _last_line(capsys.readouterr().err)
     assert not out.exists()
+
+
+def test_features_without_weights_names_every_missing_model(tmp_path, capsys, monkeypatch):
+    from PIL import Image as PILImage
+
+    monkeypatch.delenv("TIGER_MODELS", raising=False)
+    (tmp_path / "imgs").mkdir()
+    PILImage.new("RGB", (8, 8)).save(tmp_path / "imgs" / "a.png")
+    out = tmp_path / "f"
+    assert main(["features", str(tmp_path / "imgs"), "--out", str(out), "--models", str(tmp_path / "none"),
+                 "--upsampler", "jbu"]) == 2
+    line = _last_line(capsys.readouterr().err)
+    assert "3 of 3 models not found" in line and all(f"model '{m}'" in line for m in ("clip", "sam", "featup_jbu"))
+    assert not out.exists()
