@@ -46,8 +46,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.views < 2:
         raise CliError("--views must be at least 2")
+    if args.size < 16 or args.dilate < 0:
+        raise CliError(f"--size must be >= 16 and --dilate >= 0, got {args.size} and {args.dilate}")
     dev = device_of(args.device)
-    out = output_dir(args.out, args.force)
+    output_dir(args.out, args.force, create=False)  # refusals below leave no folder behind
     before, after = load_scene(args.before, dev), load_scene(args.after, dev)
     for name, s in ((args.before, before), (args.after, after)):
         if s.lang is None:
@@ -62,8 +64,11 @@ def run(args: argparse.Namespace) -> int:
     cams = None
     if args.data:
         cams = open_dataset(args.data, args.skip_missing).cameras
+    if args.caption_before and args.caption_after and not hasattr(enc, "clip"):
+        raise CliError("the CLIP metrics need CLIP weights (--models or $TIGER_MODELS), not a text table")
     path = ObjectViews(tb.center, tb.bbox_min, tb.bbox_max, capture=cams, force_360=True if not cams else None,
                        width=args.size, height=args.size).fixed(args.views)
+    out = output_dir(args.out, args.force)
     report = {"target": args.target, "tau": tb.tau, "selected_before": tb.count, "selected_after": ta.count,
               "locality": locality(before, after, path, tb.mask, ta.mask, dilate_px=args.dilate)}
     if args.caption_before and args.caption_after:
