@@ -240,7 +240,7 @@ def extract_features(
     processed there. Returns a :class:`FeatureSet`; ``out_dir/pca.pt`` holds the basis for
     projecting text (``FeatureSet.pca.project(clip.encode_text(...))``).
     """
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress as progress_lines
 
     cfg = config or FeatureConfig()
     cfg.validate()
@@ -263,7 +263,7 @@ def extract_features(
             sam = SamMaskGenerator.from_pretrained(device=dev, config=models, mask_config=cfg.sam)
         if cfg.upsampler == "jbu" and jbu is None:
             jbu = JBUStack.from_checkpoint(config=models).to(dev)
-    bar = tqdm(total=len(mine), desc=f"language features (rank {rank})", disable=not progress or rank != 0)
+    bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
     bar.update(len(mine) - len(todo))
     for i in todo:
         img = _as_image(images[i]).to(dev)

@@ -332,4 +332,4 @@ def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: F
                        untouched=untouched, steps=step, seconds=time.perf_counter() - t0)
 
 
-__all__ = ["FeatureMap", "FeatureSource", "FeatureStore", "FieldConfig", "FieldResult", "train_field"]
+__all__ = ["FieldConfig", "FieldResult", "train_field"]

@@ -72,9 +72,9 @@ def lift(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureS
     num: torch.Tensor | None = None
     den = torch.zeros(n, dtype=torch.float64, device=device)
     t0 = time.perf_counter()
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress as progress_lines
 
-    for v in tqdm(range(len(cameras)), desc="lifting", unit="view", disable=not progress):
+    for v in progress_lines(range(len(cameras)), "lifting", unit="view", disable=not progress):
         feats, valid = as_map(load(v), v)
         h, w, d = (int(s) for s in feats.shape)
         if num is None:
