@@ -9,8 +9,8 @@ import torch
 
 from tiger.utils.dtypes import DTYPE_NAMES
 
-from .common import (CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset,
-                     output_dir)
+from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing,
+                     check_selection_or_refuse, device_of, load_scene, open_dataset, output_dir)
 from .text import text_encoder
 
 GUIDANCES = ("ip2p+mvdream", "ip2p", "mvdream", "recolor")
@@ -53,8 +53,7 @@ def add_parser(sub) -> None:
     add_skip_missing(p)
     p.add_argument("--text-embeddings", default=None,
                    help="torch.save'd {text: [512] tensor} instead of CLIP weights")
-    p.add_argument("--tau", default="auto", help="retrieval threshold, or 'auto'")
-    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
+    add_selection_options(p, guarded=True)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--video", choices=("auto", "mp4", "gif", "none"), default="auto",
                    help="turntable video format (default: %(default)s)")
@@ -100,12 +99,13 @@ def run(args: argparse.Namespace) -> int:
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
     encoder = text_encoder(args.models, args.text_embeddings, dev)
-    tau = args.tau if args.tau == "auto" else float(args.tau)
+    tau = args.tau
     try:
         target = resolve_target(scene, args.target, encoder=encoder, tau=tau, score=args.score)
     except EmptyTargetError as e:
         raise CliError(f"--target {args.target!r} retrieves no Gaussian (tau={args.tau}); try another text "
                        "or a lower --tau") from e
+    check_selection_or_refuse(scene, target.mask, args.target, args.force, "edit")
     dtype = None if args.dtype == "auto" else DTYPE_NAMES[args.dtype]
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
                               color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)

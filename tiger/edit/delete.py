@@ -383,7 +383,8 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     counts = {**removal.counts(), "trainable_kept": int(near.sum()), "seeded": len(seeds),
               "added_by_densify": fit.added, "trainable": int(fit.trainable.sum()), "final": len(fit.scene)}
     log.info("delete: removed %d (retrieved %d + floaters %d + unseen %d + similar %d), %d trainable, "
-             "%d seeds, %d final", counts["removed"], counts["retrieved"], counts["floaters"], counts["unseen"],
+             "%d seeds, %d final", counts["removed"], counts["retrieved"] - counts["stray_kept"], counts["floaters"],
+             counts["unseen"],
              counts["similar"], counts["trainable"], counts["seeded"], counts["final"])
     return DeleteResult(scene=fit.scene, removal=removal, cameras=list(cameras), before=views.before,
                         remaining=views.rest_rgb, targets=targets, after=after, holes=views.holes,
