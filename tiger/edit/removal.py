@@ -25,7 +25,8 @@ says nothing; left in place they would surface once the object is gone.
 The appearance rule (when ``colors`` are given): where the language field blurs the object into
 its support (a mug's bottom band, a ball's underside trained toward "table"), a kept Gaussian
 inside the robust box grown by ``appearance_reach`` margins that touches the removed ones (within
-``radius``; default 3x the median nearest-neighbour spacing of the removed Gaussians) is removed
+``radius``; default 3x the median nearest-neighbour spacing of the removed Gaussians, or twice
+their median size (``sizes``, the largest axis) when larger: such surfels overlap) is removed
 when its colour is much closer to the object's colours than to the surroundings': mean colour
 distance to its nearest eighth of the object's colours < ``appearance_margin`` x the mean
 distance to its nearest quarter of the surrounding colours (fractions, not single neighbours, so
@@ -85,8 +86,9 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
                  box_quantiles: tuple[float, float] = (0.02, 0.98),
                  floater_tau: Optional[float] = None, lang_norms: Optional[torch.Tensor] = None,
                  unseen_norm: float = 0.1, colors: Optional[torch.Tensor] = None,
-                 appearance_margin: Optional[float] = 0.5, appearance_iters: int = 10,
-                 appearance_reach: float = 2.0, radius: Optional[float] = None) -> Removal:
+                 appearance_margin: Optional[float] = 0.5, appearance_iters: int = 50,
+                 appearance_reach: float = 2.0, radius: Optional[float] = None,
+                 sizes: Optional[torch.Tensor] = None) -> Removal:
     """Apply the floater rule (module docstring) around a retrieval.
 
     Args:
@@ -103,7 +105,8 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         colors: [N, 3] Gaussian colours for the appearance rule (None: rule off).
         appearance_margin, appearance_iters, appearance_reach, radius: the appearance rule's
             parameters (``appearance_reach``: how many box margins its candidates may lie outside
-            the robust box).
+            the robust box); ``sizes`` [N]: each Gaussian's largest axis (world units), for the
+            default radius.
     Returns:
         a :class:`Removal`.
     """
@@ -150,7 +153,8 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         if not bool((ring & ~gone).any()):  # nothing around the box: the margin inside it
             ring = inside & ~in_box(0)
         similar = _appearance(m, colors.detach().to(means.device, torch.float64), near | ring, ring, near,
-                              gone, appearance_margin, appearance_iters, radius)
+                              gone, appearance_margin, appearance_iters, radius,
+                              None if sizes is None else float(sizes.detach().to(m.device)[gone].float().median()))
     stray = retrieved & ~inside
     return Removal(mask=(retrieved & inside) | floaters | unseen | similar, retrieved=retrieved, floaters=floaters,
                    unseen=unseen, similar=similar, stray=stray, tau=float(tau),
@@ -183,7 +187,8 @@ def _subsample(x: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
 
 def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor, shell: torch.Tensor,
                 allowed: torch.Tensor, removed: torch.Tensor, margin: float, iters: int,
-                radius: Optional[float], k: int = 8, max_refs: int = 4096) -> torch.Tensor:
+                radius: Optional[float], size: Optional[float] = None, k: int = 8,
+                max_refs: int = 4096) -> torch.Tensor:
     """The appearance rule (module docstring) on means [N,3] and colours [N,3]: candidates in
     ``allowed``, surroundings' colours from the kept ones in ``shell`` (both [N] bool within
     ``inside``); memory O(N), no N x N matrices (scenes of millions of Gaussians have boxes of
@@ -203,7 +208,7 @@ def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor,
         pick = torch.randperm(obj.shape[0], generator=torch.Generator().manual_seed(0))[:4096].to(obj.device)
         d = torch.cdist(obj[pick], obj, compute_mode=_EXACT)
         d[torch.arange(pick.numel(), device=d.device), pick] = float("inf")  # the point itself
-        radius = 3.0 * float(d.min(1).values.median())
+        radius = max(3.0 * float(d.min(1).values.median()), 2.0 * (size or 0.0))  # overlapping surfels touch
     # distance of each kept box Gaussian to the removed ones (only kept ones can be candidates)
     dist = torch.full((p.shape[0],), float("inf"), dtype=p.dtype, device=p.device)
     dist[~gone] = _min_dist(p[~gone], p[gone])
