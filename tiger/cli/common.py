@@ -166,7 +166,7 @@ def warn(text: str) -> None:
 
 RUN_RECORD = "tiger_run.json"
 #: Options that do not change a command's result: they may differ between a run and its resume.
-NOT_SETTINGS = frozenset({"func", "command", "device", "force", "resume", "out"})
+NOT_SETTINGS = frozenset({"func", "command", "device", "force", "resume", "out", "verbose"})
 
 
 def _file_id(path: Path) -> dict:
@@ -214,6 +214,34 @@ def _differences(old: dict, new: dict) -> list[str]:
     return lines
 
 
+def check_record(rec: Path, command: str, settings: dict, where: str) -> None:
+    """A CliError unless the run record ``rec`` is of ``command`` with these ``settings``; the
+    message names every setting that differs."""
+    import json
+
+    try:
+        old = json.loads(rec.read_text())
+    except (OSError, ValueError) as e:
+        raise CliError(f"--resume: cannot read {rec}: {e}") from None
+    if old.get("command") != command:
+        raise CliError(f"--resume: {where} holds a `tiger {old.get('command')}` run, not `tiger {command}`")
+    diff = _differences(old.get("settings", {}), settings)
+    if diff:
+        raise CliError(f"--resume: {where} holds another `tiger {command}` run; these differ: "
+                       f"{'; '.join(diff)}. Use another --out, or the same settings")
+
+
+def write_record(rec: Path, command: str, settings: dict, finished: bool = False) -> None:
+    """Write the run record ``rec`` atomically."""
+    import json
+
+    from tiger.utils.io import atomic_write
+
+    rec.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(rec, "w") as fh:
+        json.dump({"command": command, "settings": settings, "finished": finished}, fh, indent=2, default=str)
+
+
 def claim_output(path: str, command: str, settings: dict, *, force: bool, resume: bool,
                  record: Optional[Path] = None) -> Path:
     """Check and make a command's output folder, before anything is written into it.
@@ -226,10 +254,6 @@ def claim_output(path: str, command: str, settings: dict, *, force: bool, resume
 
     Writes the record with ``finished: false``; :func:`finish_output` marks it finished.
     """
-    import json
-
-    from tiger.utils.io import atomic_write
-
     out = Path(path)
     rec = record or out / RUN_RECORD
     if out.exists() and not out.is_dir():
@@ -237,25 +261,16 @@ def claim_output(path: str, command: str, settings: dict, *, force: bool, resume
     busy = out.is_dir() and any(out.iterdir())
     if resume and busy:
         if not rec.is_file():
+            held = ", ".join(sorted(p.name for p in out.iterdir())[:5])
             raise CliError(f"--resume: {out} holds no record of a `tiger {command}` run ({rec.name} is "
-                           "missing), so it cannot be resumed; use another --out, or --force without "
-                           "--resume to start afresh in it")
-        try:
-            old = json.loads(rec.read_text())
-        except (OSError, ValueError) as e:
-            raise CliError(f"--resume: cannot read {rec}: {e}") from None
-        if old.get("command") != command:
-            raise CliError(f"--resume: {out} holds a `tiger {old.get('command')}` run, not `tiger {command}`")
-        diff = _differences(old.get("settings", {}), settings)
-        if diff:
-            raise CliError(f"--resume: {out} holds another `tiger {command}` run; these differ: "
-                           f"{'; '.join(diff)}. Use another --out, or the same settings")
+                           f"missing; it holds {held}), so it cannot be resumed; use another --out, or "
+                           "--force without --resume to start afresh in it")
+        check_record(rec, command, settings, str(out))
     elif busy and not force:
         raise CliError(f"{out} already exists and is not empty; pass --force to overwrite it"
                        + (" or --resume to continue it" if rec.is_file() else ""))
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_write(rec, "w") as fh:
-        json.dump({"command": command, "settings": settings, "finished": False}, fh, indent=2, default=str)
+    write_record(rec, command, settings)
     return out
 
 

@@ -10,7 +10,8 @@ import torch
 from tiger.utils.dtypes import DTYPE_NAMES
 
 from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing,
-                     check_selection_or_refuse, device_of, load_scene, open_dataset, output_dir)
+                     check_selection_or_refuse, claim_output, device_of, finish_output, load_scene,
+                     open_dataset, output_dir, run_settings)
 from .text import text_encoder
 
 GUIDANCES = ("ip2p+mvdream", "ip2p", "mvdream", "recolor")
@@ -47,7 +48,9 @@ def add_parser(sub) -> None:
                    help="diffusion models' dtype (auto: bf16 on a GPU that has it, else fp16; fp32 on the CPU)")
     p.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
                    help="replay each guidance step as a CUDA graph (default: on with a CUDA --device)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/checkpoint.pt when it exists; refused, naming what differs, when "
+                        "OUT holds an edit of another scene, target, instruction or settings")
     p.add_argument("--data", default=None,
                    help="the scene's dataset: its cameras decide 360° vs forward-facing views (default: 360°)")
     add_skip_missing(p)
@@ -94,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
     dev = device_of(args.device)
     if args.cuda_graph and dev.type != "cuda":
         raise CliError(f"--cuda-graph needs a CUDA --device, got {dev}")
-    out = output_dir(args.out, args.force or args.resume)
+    settings = run_settings(args, ignore=("cuda_graph", "dtype", "video"))
+    output_dir(args.out, args.force or args.resume, create=False)  # refusals below leave nothing behind
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
@@ -110,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
                               color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)
     cams = _cameras(args.data, args.skip_missing)
+    out = claim_output(args.out, "edit", settings, force=args.force, resume=args.resume)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
     t0 = time.perf_counter()
     res = edit(scene, args.instruction, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
@@ -140,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
 
     with atomic_write(out / "edit.json", "w") as fh:
         json.dump(report, fh, indent=2)
+    finish_output(out, "edit")
     s = Summary("tiger edit")
     s.add(f"{args.target!r}: {target.count} of {len(scene)} Gaussians edited ({args.guidance}, {args.steps} steps)")
     s.add(f"locality PSNR outside the object: {metrics['locality']['psnr']:.2f} dB")

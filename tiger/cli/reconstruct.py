@@ -4,9 +4,9 @@ from __future__ import annotations
 import argparse
 import json
 
-from pathlib import Path
 
-from .common import CliError, Summary, add_common, add_skip_missing, device_of, existing, open_dataset, output_dir
+from .common import (Summary, add_common, add_skip_missing, claim_output, device_of, existing, finish_output,
+                     open_dataset, run_settings)
 
 
 def add_parser(sub) -> None:
@@ -32,24 +32,11 @@ def add_parser(sub) -> None:
                    help="random initial Gaussians when the dataset has no points")
     p.add_argument("--checkpoint-every", type=int, default=1000)
     p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/checkpoint.pt (refused when OUT holds other files but no "
-                        "checkpoint, unless --force)")
+                   help="continue from OUT/checkpoint.pt; refused, naming what differs, when OUT holds "
+                        "a reconstruction with another dataset or settings (or no record of one)")
     p.add_argument("--finetune", default=None, metavar="PLY",
                    help="start from this scene instead of initialising (e.g. after a deletion)")
     p.set_defaults(func=run)
-
-
-def _resumable(out: Path, resume: bool) -> bool:
-    """--resume may write into a non-empty OUT only when OUT holds the checkpoint it resumes."""
-    if not resume:
-        return False
-    if (out / "checkpoint.pt").is_file():
-        return True
-    if out.is_dir() and any(out.iterdir()):
-        raise CliError(f"--resume: {out} has no checkpoint.pt to resume from but is not empty "
-                       f"({', '.join(sorted(p.name for p in out.iterdir())[:5])}); pass --force to "
-                       "start from scratch in it (overwriting its scene.ply, metrics.json, ...)")
-    return False
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
 
     dev = device_of(args.device)
     data = existing(args.data, "dataset")
-    out = output_dir(args.out, args.force or _resumable(Path(args.out), args.resume))
+    out = claim_output(args.out, "reconstruct", run_settings(args, ignore=("checkpoint_every",)),
+                       force=args.force, resume=args.resume)
     summary = Summary("tiger reconstruct")
     ds = open_dataset(args.data, args.skip_missing)
     train, test = ds.split(args.test_every)
@@ -97,5 +85,6 @@ def run(args: argparse.Namespace) -> int:
                     f"SSIM {ev.get('ssim', float('nan')):.4f}")
     with atomic_write(out / "metrics.json", "w") as fh:
         json.dump(metrics, fh, indent=2)
+    finish_output(out, "reconstruct")
     summary.print()
     return 0

@@ -348,6 +348,9 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     inp = make_inpainter(inpainter, models=models, device=scene.device) if isinstance(inpainter, str) else inpainter
     t0 = now()
     removal = select_removal(scene, target, cfg, encoder)
+    if bool(removal.mask.all()):
+        raise ValueError(f"tiger.edit.delete: the target covers all {len(scene)} Gaussians; deleting it "
+                         "would leave an empty scene (check the threshold)")
     rest = scene.subset(~removal.mask)
     times["remove"] = now() - t0
 
