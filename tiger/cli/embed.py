@@ -39,6 +39,14 @@ def run(args: argparse.Namespace) -> int:
 
     dev = device_of(args.device)
     out = output_file(args.out, args.force)
+    # an interrupted run's checkpoint is continued: only with the same inputs and settings
+    ckpt = args.checkpoint or str(out) + ".ckpt.pt"
+    record, settings = Path(ckpt + ".run.json"), run_settings(args, ignore=("checkpoint",))
+    if Path(ckpt).is_file() and not args.force:
+        if not record.is_file():
+            raise CliError(f"{ckpt} holds an earlier run with no record of its settings; remove it or "
+                           "pass --force to start afresh")
+        check_record(record, "embed", settings, ckpt)
     feat_dir = existing(args.features, "feature folder")
     scene = load_scene(args.scene, dev)
     cams = capture = open_dataset(args.data, args.skip_missing).cameras
@@ -51,15 +59,7 @@ def run(args: argparse.Namespace) -> int:
                          f"in {feat_dir}/features (run `tiger features` first)")
     cams = [cams[i].to(dev) if hasattr(cams[i], "to") else cams[i] for i in keep]
     summary = Summary("tiger embed")
-    ckpt = args.checkpoint or str(out) + ".ckpt.pt"
-    # an interrupted run's checkpoint is continued: only with the same inputs and settings
-    record, settings = Path(ckpt + ".run.json"), run_settings(args, ignore=("checkpoint",))
-    if Path(ckpt).is_file() and not args.force:
-        if not record.is_file():
-            raise CliError(f"{ckpt} holds an earlier run with no record of its settings; remove it or "
-                           "pass --force to start afresh")
-        check_record(record, "embed", settings, ckpt)
-    elif Path(ckpt).is_file():
+    if Path(ckpt).is_file() and args.force:
         Path(ckpt).unlink()  # --force: start afresh
     write_record(record, "embed", settings)
     res = train_field(scene, cams, lambda i: fs.load(names[keep[i]]), pca=pca, checkpoint=ckpt,

@@ -370,7 +370,12 @@ def retrieve(scene: Union[GaussianScene, torch.Tensor], query: Query, *,
     neg = None
     can_embed_neg = negatives is not None and (encoder is not None or torch.is_tensor(negatives))
     if can_embed_neg:
-        neg = embed_negatives(negatives, dim=d, encoder=encoder, pca=pca_src)
+        try:
+            neg = embed_negatives(negatives, dim=d, encoder=encoder, pca=pca_src)
+        except (KeyError, ValueError):
+            if score == "relevancy":
+                raise
+            neg = None  # the cosine needs no negatives: a text table without them still answers
     elif score == "relevancy":
         raise ValueError("tiger.retrieval: score='relevancy' needs negatives: embeddings, or strings "
                          "with a text encoder")
