@@ -26,7 +26,7 @@ def test_resume_without_checkpoint_refuses_a_non_empty_folder(data, tmp_path, ca
     (out / "scene.ply").write_bytes(b"precious")
     assert _reconstruct(data, out, "--resume") == 2
     err = capsys.readouterr().err
-    assert "no checkpoint.pt" in err and "--force" in err and "scene.ply" in err
+    assert "no record of a `tiger reconstruct` run" in err and "--force" in err and "scene.ply" in err
     assert (out / "scene.ply").read_bytes() == b"precious" and sorted(p.name for p in out.iterdir()) == ["scene.ply"]
 
 
