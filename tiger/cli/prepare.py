@@ -116,10 +116,11 @@ def _changed(old: dict[str, Any], inputs: dict[str, Any]) -> str:
 
 
 def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], work: Callable[[], dict],
-               reset: Callable[[], None], total: int = 3) -> None:
+               reset: Callable[[dict], None], total: int = 3) -> None:
     """Run stage ``name`` unless it finished with the same inputs. A finished stage with other inputs
     is refused (its output may be what the user wants to keep); an unfinished one with other inputs
-    (e.g. a wrong option that made it fail) is started afresh: ``reset`` removes its partial output."""
+    (e.g. a wrong option that made it fail) is started afresh: ``reset(old_inputs)`` removes what of its
+    partial output the new inputs cannot reuse."""
     record = state.stage(name)
     old = record.get("inputs")
     changed = _changed(old, inputs) if old is not None else ""
@@ -130,7 +131,7 @@ def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], wor
         return
     if changed:
         print(f"[{index}/{total}] {name}: unfinished run had other inputs ({changed}); starting it afresh")
-        reset()
+        reset(old)
         record.clear()
     verb = "continuing" if record.get("inputs") else "running"
     print(f"[{index}/{total}] {name}: {verb}", flush=True)
@@ -191,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
         given = existing(args.scene, "scene file").resolve()
         scene_file = given
         _run_stage(state, "reconstruct", 1, {"scene": str(given), "scene_id": _file_id(given)},
-                   lambda: {"gaussians": _count_gaussians(given), "source": "--scene"}, lambda: None)
+                   lambda: {"gaussians": _count_gaussians(given), "source": "--scene"}, lambda old: None)
     else:
         scene_file = recon / "scene.ply"
         inputs = {"data": str(data), "steps": args.recon_steps, "downscale": args.downscale,
@@ -214,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
                 q["psnr_pixels"] = metrics["psnr_pixels"]
             return q
 
-        _run_stage(state, "reconstruct", 1, inputs, reconstruct, lambda: shutil.rmtree(recon, ignore_errors=True))
+        _run_stage(state, "reconstruct", 1, inputs, reconstruct, lambda old: shutil.rmtree(recon, ignore_errors=True))
 
     # 2. the feature maps
     feats = out / FEATURES
@@ -229,8 +230,13 @@ def run(args: argparse.Namespace) -> int:
                               "--no-sam": args.no_sam})])
         return {"maps": len(list((feats / "features").glob("*.pt")))}
 
-    # the per-image cache knows its settings but not the models: other inputs start it afresh
-    _run_stage(state, "features", 2, f_inputs, features, lambda: shutil.rmtree(feats, ignore_errors=True))
+    def reset_features(old: dict) -> None:
+        # The per-image cache is keyed by the feature settings (a new PCA size reuses it), not by
+        # the models or the images: those start it afresh.
+        if any(old.get(k) != f_inputs[k] for k in ("data", "models", "skip_missing")):
+            shutil.rmtree(feats, ignore_errors=True)
+
+    _run_stage(state, "features", 2, f_inputs, features, reset_features)
 
     # 3. the language field
     lang = out / SCENE
@@ -251,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
                 q["field_loss"] = float(losses[-1])
         return q
 
-    def reset_embed() -> None:
+    def reset_embed(old: dict) -> None:
         lang.unlink(missing_ok=True)
         Path(str(lang) + ".ckpt.pt").unlink(missing_ok=True)
 
