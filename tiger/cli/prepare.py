@@ -162,7 +162,7 @@ def _table(state: _State) -> list[str]:
             continue
         total += float(rec.get("seconds", 0.0))
         q = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                      for k, v in (rec.get("quality") or {}).items())
+                      for k, v in (rec.get("quality") or {}).items() if not isinstance(v, str) or len(v) < 24)
         rows.append((name, f"{rec.get('seconds', 0.0):.1f}", q))
     rows.append(("total", f"{total:.1f}", ""))
     w0, w1 = max(len(r[0]) for r in rows), max(len(r[1]) for r in rows)
