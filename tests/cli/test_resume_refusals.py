@@ -11,7 +11,7 @@ from tiger.cli.common import RUN_RECORD
 from tiger.cli.main import main
 from tiger.scene import GaussianScene
 
-from .test_cli_pipeline import _dataset
+from .datasets import tabletop_dataset as _dataset
 from .test_delete_cli import _scene_file
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.retrieval.test_default_selection import trained_tabletop
+from ..retrieval.test_default_selection import trained_tabletop
 from tiger.edit.delete import DeleteConfig, delete, views_around
 from tiger.retrieval import retrieve
 
