@@ -5,7 +5,7 @@ Gaussians are in the order of ``tiger.demo.scene.tabletop_scene()``) and synthet
 scenes with trained fields. Recall is reported over every labelled Gaussian and over the ones the
 language field saw (a feature norm of at least 0.1 x the median).
 
-    python benchmarks/selection_labelled.py --demo outputs/demo --rules auto valley
+    python -m benchmarks.selection_labelled --demo outputs/demo --rules auto valley
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def demo_rows(folder: str, rules: list[str]) -> list[str]:
 def synthetic_rows(rules: list[str]) -> list[str]:
     from tiger.language.field import train_field
     from tiger.retrieval import retrieve
-    from tiger.retrieval.synthetic import make_labelled_scene, oracle_feature_maps
+    from tiger.testing.labelled_scene import make_labelled_scene, oracle_feature_maps
 
     rows = []
     for labels in [("red mug", "teddy bear", "green apple", "blue book"),

@@ -81,6 +81,6 @@ def test_resume_with_other_settings_is_refused_naming_them(distorted, tmp_path, 
     capsys.readouterr()
     assert _reconstruct(distorted, out, "--resume", "--downscale", "2", "--steps", "8") == 2
     err = capsys.readouterr().err
-    assert "--steps 12 -> 8" in err and "--downscale 1.0 -> 2.0" in err
+    assert "--steps (was 12, now 8)" in err and "--downscale (was 1.0, now 2.0)" in err
     assert (out / "scene.ply").read_bytes() == before
     assert _reconstruct(distorted, out, "--resume", "--keep-cache") == 0  # the same settings resume

@@ -41,14 +41,15 @@ def trained_tabletop(density: float = 0.4, steps: int = 150):
     """(labelled tabletop with its language field trained as `tiger demo` trains it, fewer steps;
     the demo's built-in text table)."""
     from tiger.demo.language import SYNONYMS, builtin_text_table, label_feature_maps
-    from tiger.demo.scene import orbit_cameras, tabletop_scene
+    from tiger.demo.scene import DEMO_ORBIT, tabletop_scene
+    from tiger.render.views import orbit_cameras
     from tiger.language.field import train_field
 
     torch.manual_seed(0)
     ls = tabletop_scene(density)
     enc = builtin_text_table(ls.names)
     vecs = enc.encode_text([SYNONYMS[n][0] for n in ls.names]).float()
-    cams = orbit_cameras(8, 160, 120, start_deg=5.0, prefix="train")
+    cams = orbit_cameras(8, 160, 120, start_deg=5.0, names="train{}", **DEMO_ORBIT)
     maps, pca = label_feature_maps(ls, vecs, cams)
     train_field(ls.scene, cams, maps, steps=steps, lr=0.02, batch_views=2, loss="l1", progress=False, pca=pca)
     return ls, enc
@@ -81,7 +82,7 @@ def test_demo_default_query_selects_each_named_object(demo_field):
                                     ("lamp", "chair", "vase", "shoe", "clock", "plate")])
 def test_synthetic_default_query_selects_each_label(labels):
     from tiger.language.field import train_field
-    from tiger.retrieval.synthetic import make_labelled_scene, oracle_feature_maps
+    from tiger.testing.labelled_scene import make_labelled_scene, oracle_feature_maps
 
     torch.manual_seed(0)
     ls = make_labelled_scene(labels, seed=1)

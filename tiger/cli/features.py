@@ -53,13 +53,16 @@ def run(args: argparse.Namespace) -> int:
     cfg = FeatureConfig(upsampler=args.upsampler, use_sam=not args.no_sam,
                         output_long_side=args.long_side, clip_long_side=args.clip_long_side,
                         pca_dim=args.pca_dim)
+    settings, started = run_settings(args), Path(args.out).is_dir() and any(Path(args.out).iterdir())
+    if started:  # an unfinished run in OUT continues (finished images are skipped): same settings only
+        out = claim_output(args.out, "features", settings, force=args.force, resume=not args.force)
     if not (Path(args.out) / "cache").is_dir():  # a fresh run: name every missing model at once
         from tiger.models.paths import require_models
 
         require_models(["clip"] + ([] if args.no_sam else ["sam"]) + (["featup_jbu"] if args.upsampler == "jbu" else []),
                        config=args.models, hint="(--no-sam skips SAM; --upsampler implicit or bilinear needs no FeatUp weights)")
-    # an unfinished run in OUT resumes (finished images are skipped): only with the same settings
-    out = claim_output(args.out, "features", run_settings(args), force=args.force, resume=not args.force)
+    if not started:  # the folder is made only once the models are known to be there
+        out = claim_output(args.out, "features", settings, force=args.force, resume=False)
     summary = Summary("tiger features")
     fs = extract_features(files, args.out, names=names, config=cfg, models=args.models,
                           device=device_of(args.device))

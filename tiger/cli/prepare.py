@@ -245,15 +245,15 @@ def run(args: argparse.Namespace) -> int:
 
     def embed() -> dict:
         ckpt = Path(str(lang) + ".ckpt.pt")
-        # --force: our own output of an interrupted run (the field resumes from its checkpoint)
-        _invoke(["embed", str(scene_file), str(data), "--features", str(feats), "--out", str(lang), "--force",
+        # an interrupted run left its checkpoint (and no PLY): `tiger embed` continues it
+        _invoke(["embed", str(scene_file), str(data), "--features", str(feats), "--out", str(lang),
                  *common, *_flag_args({"--steps": args.embed_steps, "--init": args.init})])
         q: dict[str, Any] = {}
         if ckpt.is_file():
             import torch
 
-            losses = torch.load(str(ckpt), map_location="cpu", weights_only=False).get("losses") or []
-            if losses:
+            losses = torch.load(str(ckpt), map_location="cpu", weights_only=True).get("losses")
+            if losses is not None and len(losses):
                 q["field_loss"] = float(losses[-1])
         return q
 
