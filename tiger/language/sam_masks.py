@@ -14,6 +14,8 @@ per mask): the prompts are decoded in large batches, the clean-up is ``tiger::re
 from __future__ import annotations
 
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,8 +128,8 @@ def _label(binary: np.ndarray) -> tuple[np.ndarray, int]:
 def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple[np.ndarray, bool]:
     """SAM's ``remove_small_regions`` on one mask [H, W] as SAM writes it: fill holes (mode 'holes')
     or drop islands ('islands') smaller than ``area_thresh`` pixels (8-connectivity); an all-small
-    mask keeps its largest island. The generator runs ``tiger::remove_small_regions`` (all masks
-    at once, on their device); this per-mask version is its reference."""
+    mask keeps its largest island. ``tiger::remove_small_regions`` gives the same result for all
+    masks at once on the GPU."""
     if mode not in ("holes", "islands"):
         raise ValueError(f"tiger.remove_small_regions: mode must be 'holes' or 'islands', got {mode!r}")
     holes = mode == "holes"
@@ -146,6 +148,23 @@ def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple
         if not keep.any():
             keep[int(np.argmax(sizes)) + 1] = True
     return keep[labels], True
+
+
+def clean_masks_on_host(masks: torch.Tensor, area_thresh: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """SAM's clean-up of masks [M, H, W] bool (holes, then islands, by :func:`remove_small_regions`)
+    on host copies, one mask per thread (OpenCV releases the GIL): (masks, changed [M] bool)."""
+    host = masks.cpu().numpy().copy()
+    changed = np.zeros(len(host), dtype=bool)
+
+    def one(k: int) -> None:
+        m, c1 = remove_small_regions(host[k], area_thresh, "holes")
+        m, c2 = remove_small_regions(m, area_thresh, "islands")
+        if c1 or c2:
+            host[k], changed[k] = m, True
+
+    with ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1)) as pool:
+        list(pool.map(one, range(len(host))))
+    return torch.from_numpy(host).to(masks.device), torch.from_numpy(changed).to(masks.device)
 
 
 class SamMaskGenerator:
@@ -203,17 +222,16 @@ class SamMaskGenerator:
         return 256 if self.device.type == "cuda" else 64
 
     @torch.no_grad()
-    def predict(self, image: torch.Tensor, size: tuple[int, int] | None = None):
-        """Raw point-grid predictions passing the IoU/stability filters: (masks [N, h, w] bool,
-        iou [N], stability [N]), before any NMS, in prompt order.
-
-        The decoder sees ``points_per_batch`` prompts at a time and returns low-resolution logits
-        only; the IoU filter is one read of all scores, and the kept logits are upscaled to ``size``
-        in chunks bounded by memory (the masks do not depend on the chunking)."""
-        cfg = self.config
-        size = tuple(size) if size is not None else tuple(image.shape[-2:])
+    def embed(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+        """SAM's image embedding of image [3, H, W] and the resized (h, w) inside SAM's input frame."""
         pixels, resized = self.preprocess(image.to(self.device))
-        emb = self.model.get_image_embeddings(pixels.to(self.dtype))
+        return self.model.get_image_embeddings(pixels.to(self.dtype)), resized
+
+    @torch.no_grad()
+    def decode(self, emb: torch.Tensor, resized: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The point grid through SAM's decoder, ``points_per_batch`` prompts at a time: the chosen
+        level's low-resolution logits [P, 256, 256] and predicted IoU [P], in prompt order."""
+        cfg = self.config
         pts = point_grid(cfg.points_per_side) * torch.tensor([resized[1], resized[0]], dtype=torch.float64)
         pts = pts.to(self.device, torch.float32)
         batch = self._batch()
@@ -225,9 +243,17 @@ class SamMaskGenerator:
                              multimask_output=True)
             ious.append(out.iou_scores[0, :, cfg.level].float())
             lows.append(out.pred_masks[0, :, cfg.level].contiguous())
-        iou = torch.cat(ious)
-        keep = torch.nonzero(iou > cfg.pred_iou_thresh).squeeze(1)  # one host read for all prompts
-        low, iou = torch.cat(lows).index_select(0, keep), iou.index_select(0, keep)
+        return torch.cat(lows), torch.cat(ious)
+
+    @torch.no_grad()
+    def select(self, low: torch.Tensor, iou: torch.Tensor, resized: tuple[int, int], size: tuple[int, int]):
+        """SAM's filters on decoded prompts: IoU > pred_iou_thresh (one host read for all prompts),
+        then the kept logits upscaled to ``size`` (in chunks bounded by memory, which do not change
+        the masks), stability >= stability_score_thresh. Returns (masks [N, h, w] bool, iou [N],
+        stability [N])."""
+        cfg = self.config
+        keep = torch.nonzero(iou > cfg.pred_iou_thresh).squeeze(1)
+        low, iou = low.index_select(0, keep), iou.index_select(0, keep)
         n = keep.shape[0]
         masks = torch.empty(n, *size, dtype=torch.bool, device=self.device)
         stab = torch.empty(n, device=self.device)
@@ -241,6 +267,16 @@ class SamMaskGenerator:
         if ok.shape[0] == n:
             return masks, iou, stab
         return masks.index_select(0, ok), iou.index_select(0, ok), stab.index_select(0, ok)
+
+    @torch.no_grad()
+    def predict(self, image: torch.Tensor, size: tuple[int, int] | None = None):
+        """Raw point-grid predictions passing the IoU/stability filters: (masks [N, h, w] bool,
+        iou [N], stability [N]), before any NMS, in prompt order (:meth:`embed`, :meth:`decode`,
+        :meth:`select`)."""
+        size = tuple(size) if size is not None else tuple(image.shape[-2:])
+        emb, resized = self.embed(image)
+        low, iou = self.decode(emb, resized)
+        return self.select(low, iou, resized, size)
 
     @torch.no_grad()
     def __call__(self, image: torch.Tensor, size: tuple[int, int] | None = None) -> SamMasks:
@@ -264,6 +300,9 @@ class SamMaskGenerator:
         return SamMasks(masks[keep], iou[keep], stab[keep])
 
     def _clean(self, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Small holes, then small islands, removed from every mask [M, H, W] bool on its device
-        (``tiger::remove_small_regions``); returns (masks, changed [M] bool)."""
+        """Small holes, then small islands, removed from every mask [M, H, W] bool; returns (masks,
+        changed [M] bool). On the GPU all masks at once (``tiger::remove_small_regions``); on the CPU
+        OpenCV's labelling per mask is the faster of the two exact paths."""
+        if masks.device.type == "cpu":
+            return clean_masks_on_host(masks, self.config.min_mask_region_area)
         return clean_small_regions(masks, self.config.min_mask_region_area)
