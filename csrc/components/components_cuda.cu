@@ -5,8 +5,10 @@
 // with shared atomics; (2) only the pixels on tile borders join their neighbours in other tiles,
 // by the same union-find on the global labels; (3) every pixel finds its root (path compression)
 // and each tile-local root adds its local size to its global root: one global atomic per tile
-// and component instead of one per pixel. Each pass reads or writes every pixel once, so the
-// cost is a few passes over M x H x W int32 plus short finds (tile roots form the only chains).
+// and component instead of one per pixel; then every pixel reads its global root through its
+// tile-local root. Uniform tiles (all inside or all outside the mask: most tiles of SAM's masks)
+// skip the shared-memory union-find. Each pass reads or writes every pixel once, so the cost is
+// a few passes over M x H x W int32 plus finds only from tile-local roots.
 #include <cuda_runtime.h>
 
 #include "components/components.h"
@@ -56,6 +58,15 @@ __global__ void tile_label_kernel(const bool* __restrict__ masks, bool invert, i
   const long long base = static_cast<long long>(blockIdx.y) * h * w;
   const bool inside = x < w && y < h;
   const bool fg = inside && (masks[base + static_cast<long long>(y) * w + x] != invert);
+  const int n_fg = __syncthreads_count(fg), n_inside = __syncthreads_count(inside);
+  const long long p = base + static_cast<long long>(y) * w + x;
+  if (n_fg == 0 || n_fg == n_inside) {  // a uniform tile (most of them): one component or none
+    if (inside) {
+      labels[p] = n_fg ? y0 * w + x0 : -1;
+      local_size[p] = (n_fg && t == 0) ? n_fg : 0;
+    }
+    return;
+  }
   parent[t] = fg ? t : -1;
   count[t] = 0;
   __syncthreads();
@@ -73,7 +84,6 @@ __global__ void tile_label_kernel(const bool* __restrict__ masks, bool invert, i
   if (fg) atomicAdd(&count[root], 1);
   __syncthreads();
   if (!inside) return;
-  const long long p = base + static_cast<long long>(y) * w + x;
   labels[p] = fg ? (y0 + root / kTile) * w + x0 + root % kTile : -1;
   local_size[p] = (fg && root == t) ? count[t] : 0;
 }
@@ -97,19 +107,29 @@ __global__ void border_merge_kernel(int h, int w, int tiles_x, int* __restrict__
   }
 }
 
-// Every pixel points straight at its root; tile-local roots add their sizes to it.
-__global__ void compress_count_kernel(long long total, int hw, int* __restrict__ labels,
-                                      const int* __restrict__ local_size, int* __restrict__ sizes) {
+// Tile-local roots find their global root, add their sizes to it and point straight at it.
+// (Border merging only relinks roots, so every other pixel still points at its tile-local root.)
+__global__ void local_roots_kernel(long long total, int hw, int* __restrict__ labels,
+                                   const int* __restrict__ local_size, int* __restrict__ sizes) {
   const long long i = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= total) return;
+  const int own = local_size[i];
+  if (own == 0) return;
   const long long base = (i / hw) * hw;
   int* lab = labels + base;
-  const int p = static_cast<int>(i - base);
-  if (lab[p] < 0) return;
-  const int root = find_root(lab, p);
-  const int own = local_size[i];
-  if (own > 0) atomicAdd(sizes + base + root, own);
-  lab[p] = root;  // a valid shortcut for concurrent finds: root is an ancestor of p
+  const int root = find_root(lab, static_cast<int>(i - base));
+  atomicAdd(sizes + base + root, own);
+  lab[i - base] = root;  // a valid shortcut for concurrent finds: root is an ancestor
+}
+
+// Every pixel takes its tile-local root's global root: two reads.
+__global__ void final_labels_kernel(long long total, int hw, int* __restrict__ labels) {
+  const long long i = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= total) return;
+  const int local = labels[i];
+  if (local < 0) return;
+  const long long base = (i / hw) * hw;
+  labels[i] = labels[base + local];
 }
 
 __device__ __forceinline__ unsigned long long size_key(int size, int root) {
@@ -168,7 +188,8 @@ void launch_label(const bool* masks, bool invert, int64_t m, int64_t h, int64_t 
     border_merge_kernel<<<grid, block, 0, s>>>(int(h), int(w), tiles_x, labels + off);
   }
   const long long total = static_cast<long long>(m) * h * w;
-  compress_count_kernel<<<blocks_for(total), kThreads, 0, s>>>(total, int(h * w), labels, local_size, sizes);
+  local_roots_kernel<<<blocks_for(total), kThreads, 0, s>>>(total, int(h * w), labels, local_size, sizes);
+  final_labels_kernel<<<blocks_for(total), kThreads, 0, s>>>(total, int(h * w), labels);
 }
 
 void launch_small_region_step(const bool* masks, bool holes, int64_t m, int64_t h, int64_t w,
