@@ -169,10 +169,16 @@ def test_cuda_mask_path_equals_cpu(generator):
     assert g_masks.shape == masks.shape
     assert (g_masks.cpu() != masks).float().mean() < 1e-3  # only logits within rounding of 0 differ
     torch.testing.assert_close(g_iou.cpu(), iou, atol=1e-4, rtol=1e-4)
-    ref = cpu.postprocess(masks, iou, stab)
-    out = gpu.postprocess(masks.cuda(), iou.cuda(), stab.cuda())
-    assert ref.masks.shape[0] > 1
-    assert torch.equal(out.masks.cpu(), ref.masks) and torch.equal(out.iou.cpu(), ref.iou)
-    assert torch.equal(out.id_map().cpu(), ref.id_map())
+    from benchmarks.masks import _grow, realistic_masks
+
+    many, scores = realistic_masks(150, 96, 128, seed=1)  # a SAM-like set: every stage has work to do
+    many ^= _grow(many, 3) & (torch.rand(many.shape, generator=torch.Generator().manual_seed(2)) < 0.01)
+    for m, i, s in [(masks, iou, stab), (many, scores, torch.full_like(scores, 0.9))]:
+        ref = cpu.postprocess(m, i, s)
+        out = gpu.postprocess(m.cuda(), i.cuda(), s.cuda())
+        assert ref.masks.shape[0] >= 1
+        assert torch.equal(out.masks.cpu(), ref.masks) and torch.equal(out.iou.cpu(), ref.iou)
+        assert torch.equal(out.id_map().cpu(), ref.id_map())
+    assert ref.masks.shape[0] > 10
     whole = gpu(image.cuda())  # the whole path on the device runs and obeys its filters
     assert whole.masks.device.type == "cuda" and (whole.masks.flatten(1).sum(1) >= 20).all()
