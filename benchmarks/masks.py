@@ -1,4 +1,8 @@
-"""Synthetic SAM-like mask sets and the baselines the mask NMS is measured against.
+"""Synthetic SAM-like mask sets, the baselines the mask NMS is measured against, and the
+per-image SAM mask path's stage table.
+
+    python -m benchmarks.masks --device cuda --models full          # H100: 1080x1920, 100/300/1000 masks
+    python -m benchmarks.masks --device cpu --models tiny --image 270x480 --mask-counts 100,300
 
 ``realistic_masks`` builds what SAM's 32x32 automatic prompts hand to the mask stages of one
 image: segments of a partition of the frame (adjacent, no overlap), near-duplicates of them (the
@@ -19,8 +23,10 @@ Baselines (all exact, none extrapolated):
 """
 from __future__ import annotations
 
+import argparse
 import math
-
+import os
+import time
 import torch
 import torch.nn.functional as F
 
@@ -184,3 +190,144 @@ def realistic_masks(m: int, h: int, w: int, device="cpu", seed: int = 0) -> tupl
     iou = 0.7 + 0.3 * torch.rand(m, generator=g) ** 0.5
     stab = 0.85 + 0.15 * torch.rand(m, generator=g) ** 0.5
     return masks, (iou * stab).to(device)
+
+
+# ---------------------------------------------------------------------------------------------
+# The per-image mask path, stage by stage.
+
+
+def _timed(fn, dev: torch.device, repeats: int):
+    """(result of the last call, median seconds over ``repeats`` calls after one warm-up)."""
+    def once():
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        t = time.perf_counter()
+        out = fn()
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        return out, time.perf_counter() - t
+
+    out, _ = once()
+    times = []
+    for _ in range(repeats):
+        out, t = once()
+        times.append(t)
+    return out, sorted(times)[len(times) // 2]
+
+
+def bench_mask_path(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: tuple[int, int],
+                    counts: list[int], feature_dim: int, repeats: int, baseline_max: int) -> list[dict]:
+    """Seconds per image of each stage of SamMaskGenerator on ``dev`` (full or tiny random SAM),
+    the mask stages on SAM-like sets of ``counts`` masks at the image size."""
+    from tiger.language.sam_masks import (SamMaskConfig, SamMaskGenerator, SamMasks, clean_masks_on_host,
+                                          masks_to_boxes)
+    from tiger.ops.components import remove_small_regions
+    from tiger.ops.masked_average import masked_average
+    from tiger.ops.nms import box_nms, mask_nms
+    from tiger.testing.random_models import random_sam
+
+    rows: list[dict] = []
+
+    def row(masks: str, stage: str, seconds: float, note: str = "") -> None:
+        rows.append({"masks": masks, "stage": stage, "seconds": seconds, "note": note})
+        print(f"  [{masks}] {stage}: {seconds:.4f} s  {note}", flush=True)  # partial results survive a time-out
+
+    with torch.device(dev):
+        model = random_sam(kind).to(dtype)
+    h, w = image_hw
+    image = torch.rand(3, h, w, generator=torch.Generator().manual_seed(0)).to(dev)
+    gen_off = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0))
+    (emb, resized), t_enc = _timed(lambda: gen_off.embed(image), dev, repeats)
+    (low, piou), t_dec = _timed(lambda: gen_off.decode(emb, resized), dev, repeats)
+    (pm, _, _), t_up = _timed(lambda: gen_off.select(low, piou, resized, (h, w)), dev, repeats)
+    row("-", "SAM encoder", t_enc, f"{kind} ViT, {dtype}")
+    row("-", "prompt decoding", t_dec, f"{low.shape[0]} prompts, {gen_off._batch()} per batch")
+    row("-", "filters + upscale + stability", t_up, f"{pm.shape[0]} masks to {h}x{w} (random weights, filters "
+        "off: every prompt upscaled, an upper bound)")
+    shared = t_enc + t_dec + t_up
+    del pm
+    cfg = SamMaskConfig()
+    gen = SamMaskGenerator(model, cfg)
+    feats = F.normalize(torch.randn(h * w, feature_dim, device=dev), dim=1)
+    for mm in counts:
+        tag = str(mm)
+        masks, scores = realistic_masks(mm, h, w, dev, seed=mm)
+        # realistic masks are clean: SAM's own have specks and pinholes for the clean-up to find
+        # pinholes inside and specks within 3 px outside (SAM's are near the mask: boxes stay tight)
+        near = torch.cat([_grow(masks[i : i + 64], 3) for i in range(0, mm, 64)]).view(-1)
+        flip = torch.randint(0, mm * h * w, (400 * mm,), generator=torch.Generator().manual_seed(mm)).to(dev)
+        flat = masks.view(-1)
+        flat[flip] = flat[flip] ^ near[flip]
+        del near
+        iou, stab = scores, torch.ones_like(scores)
+        keep, t_box = _timed(lambda: box_nms(masks_to_boxes(masks), iou, cfg.box_nms_thresh), dev, repeats)
+        m1, i1, s1 = masks[keep], iou[keep], stab[keep]
+        row(tag, "box NMS (+ boxes)", t_box, f"{mm} -> {m1.shape[0]}")
+        (m2, changed), t_clean = _timed(lambda: gen._clean(m1), dev, repeats)
+        row(tag, "small-region clean-up (as the generator runs it)", t_clean,
+            f"{int(changed.sum())} of {m1.shape[0]} changed; " + ("tiger::remove_small_regions" if dev.type == "cuda"
+                                                                 else "OpenCV per mask, threads"))
+        (m2_op, _), t_op = _timed(lambda: remove_small_regions(m1, cfg.min_mask_region_area), dev, repeats)
+        row(tag, "  tiger::remove_small_regions", t_op, f"same masks: {bool(torch.equal(m2_op, m2))}")
+        if m1.shape[0] <= baseline_max:
+            (ref, _), t_ref = _timed(lambda: clean_masks_on_host(m1, cfg.min_mask_region_area), dev, 1)
+            row(tag, "  SAM's per-mask clean-up on the host (OpenCV, threads)", t_ref,
+                f"same masks: {bool(torch.equal(ref, m2))}")
+        assert torch.equal(m2_op, m2), f"clean-up of {mm} masks: the op differs from the generator's path"
+
+        def second_nms():
+            k = box_nms(masks_to_boxes(m2), (~changed).float(), cfg.box_nms_thresh)
+            a, b, c = m2[k], i1[k], s1[k]
+            big = torch.nonzero(a.flatten(1).sum(1) >= cfg.min_mask_region_area).squeeze(1)
+            return a[big], b[big], c[big]
+
+        (m3, i3, s3), t_box2 = _timed(second_nms, dev, repeats)
+        row(tag, "box NMS of changed masks + area filter", t_box2, f"-> {m3.shape[0]}")
+        keep, t_mnms = _timed(lambda: mask_nms(m3, i3 * s3, cfg.mask_nms_iou, cfg.mask_nms_score,
+                                               cfg.mask_nms_inner), dev, repeats)
+        row(tag, "mask NMS", t_mnms, f"-> {keep.numel()}")
+        sm = SamMasks(m3[keep], i3[keep], s3[keep])
+        ids, t_ids = _timed(lambda: sm.id_map().reshape(-1), dev, repeats)
+        row(tag, "id map", t_ids, f"{100 * float((ids >= 0).float().mean()):.0f} % of pixels in a mask")
+        _, t_ma = _timed(lambda: masked_average(feats, ids, sm.masks.shape[0]), dev, repeats)
+        row(tag, "masked average", t_ma, f"{h * w} px x {feature_dim} channels")
+        out, t_post = _timed(lambda: gen.postprocess(masks, iou, stab), dev, repeats)
+        assert torch.equal(out.masks, sm.masks), "postprocess differs from its stages"
+        row(tag, "postprocess as the generator runs it (box NMS .. mask NMS)", t_post)
+        total = shared + t_post + t_ids + t_ma
+        row(tag, "TOTAL per image (SAM + mask stages + id map + masked average)", total)
+        del masks, m1, m2, m3, sm, ids, out
+        if dev.type == "cuda":
+            torch.cuda.empty_cache()
+    return rows
+
+
+def main() -> None:
+    from benchmarks.common import print_table
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--models", choices=["tiny", "full"], default=None, help="random SAM size (default: full on "
+                    "CUDA, tiny on CPU)")
+    ap.add_argument("--image", default="1080x1920", help="HxW of the image and the masks")
+    ap.add_argument("--mask-counts", default="100,300,1000", help="SAM-like mask set sizes")
+    ap.add_argument("--feature-dim", type=int, default=512, help="channels of the masked average's map (CLIP: 512)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed calls per stage (median; default 5 CUDA, 1 CPU)")
+    ap.add_argument("--baseline-max", type=int, default=400,
+                    help="run SAM's per-mask host clean-up (the previous path) up to this many masks")
+    args = ap.parse_args()
+    dev = torch.device(args.device)
+    cuda = dev.type == "cuda"
+    kind = args.models or ("full" if cuda else "tiny")
+    dtype = torch.bfloat16 if cuda else torch.float32  # random full-size weights overflow fp16
+    ih, iw = (int(v) for v in args.image.split("x"))
+    counts = [int(c) for c in args.mask_counts.split(",")]
+    print(f"device {dev} ({torch.cuda.get_device_name(dev) if cuda else f'{os.cpu_count()} CPU threads'}), "
+          f"SAM {kind}, image {ih}x{iw}")
+    rows = bench_mask_path(dev, kind, dtype, (ih, iw), counts, args.feature_dim,
+                           args.repeats or (5 if cuda else 1), args.baseline_max)
+    print_table(rows, f"per-image SAM mask path, seconds ({kind} SAM, {dtype}, {ih}x{iw})")
+
+
+if __name__ == "__main__":
+    main()

@@ -117,3 +117,68 @@ def test_full_generator_output_obeys_its_filters(generator):
     for k in ids.unique().tolist():
         if k >= 0:
             assert m[k][ids == k].all()
+
+
+CUDA = torch.cuda.is_available() and __import__("tiger").ops.cuda_enabled()
+
+
+def _id_map_loop(masks):
+    """The id map painted mask by mask, largest first (the definition)."""
+    m, h, w = masks.shape
+    ids = torch.full((h, w), -1, dtype=torch.int64)
+    for k in torch.argsort(masks.flatten(1).sum(1), descending=True, stable=True).tolist():
+        ids[masks[k]] = k
+    return ids
+
+
+def test_id_map_matches_painting_loop():
+    g = torch.Generator().manual_seed(0)
+    masks = torch.rand(70, 23, 31, generator=g) < 0.3
+    masks[5] = masks[9]  # equal areas: the later index wins
+    masks[11] = False
+    torch.testing.assert_close(SamMasks(masks, torch.ones(70), torch.ones(70)).id_map(), _id_map_loop(masks),
+                               rtol=0, atol=0)
+
+
+def test_clean_matches_sams_per_mask_reference(generator):
+    from benchmarks.masks import realistic_masks
+
+    masks, _ = realistic_masks(40, 60, 90, seed=2)
+    holes = torch.rand(40, 60, 90, generator=torch.Generator().manual_seed(1)) < 0.01
+    masks = masks ^ holes  # pinholes inside and specks outside every mask
+    gen = SamMaskGenerator(generator.model, SamMaskConfig(min_mask_region_area=30))
+    cleaned, changed = gen._clean(masks)
+    for k in range(40):
+        m, c1 = remove_small_regions(masks[k].numpy(), 30, "holes")
+        m, c2 = remove_small_regions(m, 30, "islands")
+        assert np.array_equal(cleaned[k].numpy(), m) and bool(changed[k]) == (c1 or c2)
+    assert changed.all()
+
+
+@pytest.mark.skipif(not CUDA, reason="needs CUDA and tiger's CUDA kernels")
+def test_cuda_mask_path_equals_cpu(generator):
+    """One whole image: SAM's predictions on CUDA agree with the CPU's, and every later stage
+    (NMS, clean-up, id map) gives exactly the CPU result on the same predictions."""
+    cfg = SamMaskConfig(points_per_side=8, pred_iou_thresh=-1e9, stability_score_thresh=0.0, mask_nms_score=-1e9,
+                        min_mask_region_area=20)
+    cpu = SamMaskGenerator(generator.model, cfg)
+    image = torch.rand(3, 96, 128, generator=torch.Generator().manual_seed(4))
+    masks, iou, stab = cpu.predict(image)
+    gpu = SamMaskGenerator(__import__("copy").deepcopy(generator.model).cuda(), cfg)
+    g_masks, g_iou, g_stab = gpu.predict(image.cuda())
+    assert g_masks.shape == masks.shape
+    assert (g_masks.cpu() != masks).float().mean() < 1e-3  # only logits within rounding of 0 differ
+    torch.testing.assert_close(g_iou.cpu(), iou, atol=1e-4, rtol=1e-4)
+    from benchmarks.masks import _grow, realistic_masks
+
+    many, scores = realistic_masks(150, 96, 128, seed=1)  # a SAM-like set: every stage has work to do
+    many ^= _grow(many, 3) & (torch.rand(many.shape, generator=torch.Generator().manual_seed(2)) < 0.01)
+    for m, i, s in [(masks, iou, stab), (many, scores, torch.full_like(scores, 0.9))]:
+        ref = cpu.postprocess(m, i, s)
+        out = gpu.postprocess(m.cuda(), i.cuda(), s.cuda())
+        assert ref.masks.shape[0] >= 1
+        assert torch.equal(out.masks.cpu(), ref.masks) and torch.equal(out.iou.cpu(), ref.iou)
+        assert torch.equal(out.id_map().cpu(), ref.id_map())
+    assert ref.masks.shape[0] > 10
+    whole = gpu(image.cuda())  # the whole path on the device runs and obeys its filters
+    assert whole.masks.device.type == "cuda" and (whole.masks.flatten(1).sum(1) >= 20).all()

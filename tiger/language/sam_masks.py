@@ -6,11 +6,16 @@ NMS (IoU 0.7, ``tiger::box_nms``), cleaned of small holes and islands (< 100 px)
 box NMS preferring unchanged masks, masks under 100 px are dropped, and LangSplat's mask NMS
 (IoU 0.8, score = IoU x stability > 0.7, nested 0.5; ``tiger::mask_nms``) runs last. Masks are
 produced directly at the requested working resolution.
+
+Every stage runs on the model's device with a handful of host synchronisations per image (none
+per mask): the prompts are decoded in large batches, the clean-up is ``tiger::remove_small_regions``
+(connected components by union-find, CPU and CUDA kernels) and the id map is one max-reduction.
 """
 from __future__ import annotations
 
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from tiger.ops.components import remove_small_regions as clean_small_regions
 from tiger.ops.nms import box_nms, mask_nms
 
 logger = logging.getLogger(__name__)
@@ -28,10 +34,13 @@ SAM_STD = (0.229, 0.224, 0.225)
 
 @dataclass
 class SamMaskConfig:
-    """Thresholds of SAM's automatic mask generator as set by SPEC §4 and LangSplat."""
+    """Thresholds of SAM's automatic mask generator as set by SPEC §4 and LangSplat.
+
+    ``points_per_batch`` prompts go through SAM's decoder at once (None: 256 on CUDA, 64 elsewhere;
+    only memory and speed depend on it, not the masks)."""
 
     points_per_side: int = 32
-    points_per_batch: int = 64
+    points_per_batch: int | None = None
     level: int = 0
     pred_iou_thresh: float = 0.7
     stability_score_thresh: float = 0.85
@@ -55,15 +64,22 @@ class SamMasks:
 
     def id_map(self) -> torch.Tensor:
         """Per-pixel mask id [H, W] int64 (-1: in no mask). Where masks overlap the smallest wins,
-        so the finest segment decides (masks painted from the largest down)."""
+        so the finest segment decides (masks painted from the largest down; between equal areas the
+        higher index wins). One max-reduction over the masks, no host synchronisation."""
         m, h, w = self.masks.shape
-        ids = torch.full((h, w), -1, dtype=torch.int64, device=self.masks.device)
+        dev = self.masks.device
         if m == 0:
-            return ids
-        areas = self.masks.flatten(1).sum(1)
-        for k in torch.argsort(areas, descending=True, stable=True).tolist():
-            ids[self.masks[k]] = k
-        return ids
+            return torch.full((h, w), -1, dtype=torch.int64, device=dev)
+        order = torch.argsort(self.masks.flatten(1).sum(1), descending=True, stable=True)  # paint order
+        rank_dtype = torch.int16 if m < 2**15 else torch.int32
+        rank = torch.empty(m, dtype=rank_dtype, device=dev)
+        rank[order] = torch.arange(1, m + 1, dtype=rank_dtype, device=dev)  # painted later: higher rank
+        top = torch.zeros(h, w, dtype=rank_dtype, device=dev)
+        for s in range(0, m, 32):  # bounds the [chunk, H, W] temporary
+            chunk = torch.where(self.masks[s : s + 32], rank[s : s + 32].view(-1, 1, 1), 0).amax(0)
+            top = torch.maximum(top, chunk)
+        top = top.long()
+        return torch.where(top > 0, order[(top - 1).clamp_min(0)], -1)
 
 
 def point_grid(n: int) -> torch.Tensor:
@@ -110,8 +126,10 @@ def _label(binary: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple[np.ndarray, bool]:
-    """SAM's ``remove_small_regions``: fill holes (mode 'holes') or drop islands ('islands')
-    smaller than ``area_thresh`` pixels (8-connectivity); an all-small mask keeps its largest island."""
+    """SAM's ``remove_small_regions`` on one mask [H, W] as SAM writes it: fill holes (mode 'holes')
+    or drop islands ('islands') smaller than ``area_thresh`` pixels (8-connectivity); an all-small
+    mask keeps its largest island. ``tiger::remove_small_regions`` gives the same result for all
+    masks at once on the GPU."""
     if mode not in ("holes", "islands"):
         raise ValueError(f"tiger.remove_small_regions: mode must be 'holes' or 'islands', got {mode!r}")
     holes = mode == "holes"
@@ -130,6 +148,23 @@ def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple
         if not keep.any():
             keep[int(np.argmax(sizes)) + 1] = True
     return keep[labels], True
+
+
+def clean_masks_on_host(masks: torch.Tensor, area_thresh: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """SAM's clean-up of masks [M, H, W] bool (holes, then islands, by :func:`remove_small_regions`)
+    on host copies, one mask per thread (OpenCV releases the GIL): (masks, changed [M] bool)."""
+    host = masks.cpu().numpy().copy()
+    changed = np.zeros(len(host), dtype=bool)
+
+    def one(k: int) -> None:
+        m, c1 = remove_small_regions(host[k], area_thresh, "holes")
+        m, c2 = remove_small_regions(m, area_thresh, "islands")
+        if c1 or c2:
+            host[k], changed[k] = m, True
+
+    with ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1)) as pool:
+        list(pool.map(one, range(len(host))))
+    return torch.from_numpy(host).to(masks.device), torch.from_numpy(changed).to(masks.device)
 
 
 class SamMaskGenerator:
@@ -181,68 +216,93 @@ class SamMaskGenerator:
         x = x[..., : resized[0], : resized[1]]
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False)[:, 0]
 
+    def _batch(self) -> int:
+        if self.config.points_per_batch is not None:
+            return max(1, int(self.config.points_per_batch))
+        return 256 if self.device.type == "cuda" else 64
+
     @torch.no_grad()
-    def predict(self, image: torch.Tensor, size: tuple[int, int] | None = None):
-        """Raw point-grid predictions passing the IoU/stability filters: (masks [N, h, w] bool,
-        iou [N], stability [N]), before any NMS."""
-        cfg = self.config
-        size = tuple(size) if size is not None else tuple(image.shape[-2:])
+    def embed(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+        """SAM's image embedding of image [3, H, W] and the resized (h, w) inside SAM's input frame."""
         pixels, resized = self.preprocess(image.to(self.device))
-        emb = self.model.get_image_embeddings(pixels.to(self.dtype))
+        return self.model.get_image_embeddings(pixels.to(self.dtype)), resized
+
+    @torch.no_grad()
+    def decode(self, emb: torch.Tensor, resized: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The point grid through SAM's decoder, ``points_per_batch`` prompts at a time: the chosen
+        level's low-resolution logits [P, 256, 256] and predicted IoU [P], in prompt order."""
+        cfg = self.config
         pts = point_grid(cfg.points_per_side) * torch.tensor([resized[1], resized[0]], dtype=torch.float64)
         pts = pts.to(self.device, torch.float32)
-        masks, ious, stabs = [], [], []
-        for i in range(0, pts.shape[0], cfg.points_per_batch):
-            p = pts[i : i + cfg.points_per_batch]
+        batch = self._batch()
+        lows, ious = [], []
+        for i in range(0, pts.shape[0], batch):
+            p = pts[i : i + batch]
             out = self.model(image_embeddings=emb, input_points=p[None, :, None, :],
                              input_labels=torch.ones(1, p.shape[0], 1, dtype=torch.int64, device=self.device),
                              multimask_output=True)
-            iou = out.iou_scores[0, :, cfg.level].float()
-            keep = iou > cfg.pred_iou_thresh
-            if not bool(keep.any()):
-                continue
-            logits = self._upscale(out.pred_masks[0, keep, cfg.level], resized, size)
-            stab = stability_score(logits, cfg.mask_threshold, cfg.stability_score_offset)
-            ok = stab >= cfg.stability_score_thresh
-            masks.append(logits[ok] > cfg.mask_threshold)
-            ious.append(iou[keep][ok])
-            stabs.append(stab[ok])
-        if not masks:
-            empty = torch.zeros(0, *size, dtype=torch.bool, device=self.device)
-            return empty, torch.zeros(0, device=self.device), torch.zeros(0, device=self.device)
-        return torch.cat(masks), torch.cat(ious), torch.cat(stabs)
+            ious.append(out.iou_scores[0, :, cfg.level].float())
+            lows.append(out.pred_masks[0, :, cfg.level].contiguous())
+        return torch.cat(lows), torch.cat(ious)
+
+    @torch.no_grad()
+    def select(self, low: torch.Tensor, iou: torch.Tensor, resized: tuple[int, int], size: tuple[int, int]):
+        """SAM's filters on decoded prompts: IoU > pred_iou_thresh (one host read for all prompts),
+        then the kept logits upscaled to ``size`` (in chunks bounded by memory, which do not change
+        the masks), stability >= stability_score_thresh. Returns (masks [N, h, w] bool, iou [N],
+        stability [N])."""
+        cfg = self.config
+        keep = torch.nonzero(iou > cfg.pred_iou_thresh).squeeze(1)
+        low, iou = low.index_select(0, keep), iou.index_select(0, keep)
+        n = keep.shape[0]
+        masks = torch.empty(n, *size, dtype=torch.bool, device=self.device)
+        stab = torch.empty(n, device=self.device)
+        s = self.input_size
+        chunk = max(1, (1 << 27) // (s * s + size[0] * size[1]))  # float32 upscale temporaries <= 1 GiB
+        for i in range(0, n, chunk):
+            logits = self._upscale(low[i : i + chunk], resized, size)
+            stab[i : i + chunk] = stability_score(logits, cfg.mask_threshold, cfg.stability_score_offset)
+            masks[i : i + chunk] = logits > cfg.mask_threshold
+        ok = torch.nonzero(stab >= cfg.stability_score_thresh).squeeze(1)
+        if ok.shape[0] == n:
+            return masks, iou, stab
+        return masks.index_select(0, ok), iou.index_select(0, ok), stab.index_select(0, ok)
+
+    @torch.no_grad()
+    def predict(self, image: torch.Tensor, size: tuple[int, int] | None = None):
+        """Raw point-grid predictions passing the IoU/stability filters: (masks [N, h, w] bool,
+        iou [N], stability [N]), before any NMS, in prompt order (:meth:`embed`, :meth:`decode`,
+        :meth:`select`)."""
+        size = tuple(size) if size is not None else tuple(image.shape[-2:])
+        emb, resized = self.embed(image)
+        low, iou = self.decode(emb, resized)
+        return self.select(low, iou, resized, size)
 
     @torch.no_grad()
     def __call__(self, image: torch.Tensor, size: tuple[int, int] | None = None) -> SamMasks:
         """Finest-level automatic masks of image [3, H, W] (RGB in [0, 1]) at ``size`` (h, w)."""
+        return self.postprocess(*self.predict(image, size))
+
+    @torch.no_grad()
+    def postprocess(self, masks: torch.Tensor, iou: torch.Tensor, stab: torch.Tensor) -> SamMasks:
+        """Box NMS, small-region clean-up, second box NMS, area filter and mask NMS of the filtered
+        predictions (masks [N, h, w] bool, iou [N], stability [N]), on their device."""
         cfg = self.config
-        masks, iou, stab = self.predict(image, size)
         keep = box_nms(masks_to_boxes(masks), iou, cfg.box_nms_thresh)
         masks, iou, stab = masks[keep], iou[keep], stab[keep]
         if cfg.min_mask_region_area > 0 and masks.shape[0] > 0:
             masks, changed = self._clean(masks)
             keep = box_nms(masks_to_boxes(masks), (~changed).float(), cfg.box_nms_thresh)
             masks, iou, stab = masks[keep], iou[keep], stab[keep]
-            big = masks.flatten(1).sum(1) >= cfg.min_mask_region_area
+            big = torch.nonzero(masks.flatten(1).sum(1) >= cfg.min_mask_region_area).squeeze(1)
             masks, iou, stab = masks[big], iou[big], stab[big]
         keep = mask_nms(masks, iou * stab, cfg.mask_nms_iou, cfg.mask_nms_score, cfg.mask_nms_inner)
         return SamMasks(masks[keep], iou[keep], stab[keep])
 
     def _clean(self, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Small holes and islands removed from every mask; connected components run on the CPU,
-        one mask per thread (OpenCV releases the GIL)."""
-        from concurrent.futures import ThreadPoolExecutor
-
-        area = self.config.min_mask_region_area
-        host = masks.cpu().numpy()
-        changed = np.zeros(len(host), dtype=bool)
-
-        def one(k: int) -> None:
-            m, c1 = remove_small_regions(host[k], area, "holes")
-            m, c2 = remove_small_regions(m, area, "islands")
-            if c1 or c2:
-                host[k], changed[k] = m, True
-
-        with ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1)) as pool:
-            list(pool.map(one, range(len(host))))
-        return torch.from_numpy(host).to(masks.device), torch.from_numpy(changed).to(masks.device)
+        """Small holes, then small islands, removed from every mask [M, H, W] bool; returns (masks,
+        changed [M] bool). On the GPU all masks at once (``tiger::remove_small_regions``); on the CPU
+        OpenCV's labelling per mask is the faster of the two exact paths."""
+        if masks.device.type == "cpu":
+            return clean_masks_on_host(masks, self.config.min_mask_region_area)
+        return clean_small_regions(masks, self.config.min_mask_region_area)
