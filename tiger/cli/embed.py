@@ -71,12 +71,13 @@ def run(args: argparse.Namespace) -> int:
         Path(ckpt).unlink()  # --force: start afresh
     write_record(record, "embed", settings)
     maps = lambda i: fs.load(names[keep[i]])  # noqa: E731
-    init = "random"
-    if args.init == "lift" and not Path(ckpt).is_file():  # a checkpoint is resumed instead
+    # lifted embeddings start the field ("keep"); a checkpoint of such a run is resumed instead
+    init = "keep" if args.init == "lift" else "random"
+    if args.init == "lift" and not Path(ckpt).is_file():
         from tiger.language.lift import lift
 
         lifted = lift(scene, cams, maps, progress=True)
-        scene.lang, init = lifted.lang, "keep"
+        scene.lang = lifted.lang
         summary.add(f"lifted in {lifted.seconds:.1f} s; {lifted.coverage()}")
     res = train_field(scene, cams, maps, pca=pca, checkpoint=ckpt, init=init,
                       steps=args.steps, lr=args.lr, batch_views=args.batch_views, loss=args.loss)

@@ -245,7 +245,9 @@ def run(args: argparse.Namespace) -> int:
 
     def embed() -> dict:
         ckpt = Path(str(lang) + ".ckpt.pt")
-        # an interrupted run left its checkpoint (and no PLY): `tiger embed` continues it
+        # an interrupted run left its checkpoint: `tiger embed` continues it. A PLY of this stage not
+        # recorded as done is our own unfinished output: it is written again from the checkpoint.
+        lang.unlink(missing_ok=True)
         _invoke(["embed", str(scene_file), str(data), "--features", str(feats), "--out", str(lang),
                  *common, *_flag_args({"--steps": args.embed_steps, "--init": args.init})])
         q: dict[str, Any] = {}
