@@ -25,6 +25,8 @@ with the largest output and gradient differences.
 from __future__ import annotations
 
 import argparse
+import statistics
+import time
 
 import torch
 
@@ -116,9 +118,21 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
     def batched(_=None):
         (render_views(scene, cams, check_finite=False)["color"] * upstream).sum().backward()
 
-    cuda = device == "cuda"
-    t_loop = median_time(loop, repeats=repeats, cuda=cuda, setup=leaves)
-    t_views = median_time(batched, repeats=repeats, cuda=cuda, setup=leaves)
+    if device == "cuda":
+        t_loop = median_time(loop, repeats=repeats, cuda=True, setup=leaves)
+        t_views = median_time(batched, repeats=repeats, cuda=True, setup=leaves)
+    else:  # alternate the two, so that a shared machine's changing load hits both alike
+        times: dict = {loop: [], batched: []}
+        for fn in (loop, batched):  # warm-up
+            leaves()
+            fn()
+        for _ in range(repeats):
+            for fn in (loop, batched):
+                leaves()
+                t0 = time.perf_counter()
+                fn()
+                times[fn].append(time.perf_counter() - t0)
+        t_loop, t_views = (statistics.median(times[f]) for f in (loop, batched))
     leaves()
     with torch.no_grad():
         ref = torch.stack([scene.render(cam)["color"] for cam in cams])
