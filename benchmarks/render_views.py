@@ -11,12 +11,22 @@ standard scene and four orbit cameras:
 and the largest difference of render_views' outputs and gradients from the raw calls
 (0 = bit-identical; gradients are summed over views in another order, so a few ulp).
 
+``--edit``: the edit loop's render stage instead: the demo tabletop of ``benchmarks/edit.py``
+at ``--density`` with SH degree 3, V orbit cameras of ``--size`` px around it, SH colour,
+forward + backward into every scene tensor: render_views (the CPU bins and rasterizes the V
+views in one call each; CUDA draws them one by one) against a loop of GaussianScene.render,
+with the largest output and gradient differences.
+
     python -m benchmarks.render_views               # CPU
     python -m benchmarks.render_views --device cuda
+    python -m benchmarks.render_views --edit --density 1 --size 128 --views 8            # CPU
+    python -m benchmarks.render_views --edit --density 16 --size 512 --views 8 --device cuda
 """
 from __future__ import annotations
 
 import argparse
+import statistics
+import time
 
 import torch
 
@@ -87,12 +97,72 @@ def run(n: int, size: int, channels: int, views: int, device: str, repeats: int)
             "rel grad diff colors": rel(c2.grad, g_raw[1])}
 
 
+def run_edit(density: float, size: int, views: int, device: str, repeats: int) -> dict:
+    """The edit step's render stage: render_views of V cameras vs V GaussianScene.render calls."""
+    from benchmarks.edit import demo_scene
+    from tiger.render.views import orbit_cameras_around
+
+    scene, _ = demo_scene(density, device)
+    scene.lang = None
+    cams = [c.to(device) for c in orbit_cameras_around(scene.means, views, size, size, elevation_deg=20.0)]
+    upstream = torch.rand(views, size, size, 3, device=device,
+                          generator=torch.Generator(device=device).manual_seed(1))
+
+    def leaves():
+        scene.parameter_groups()
+
+    def loop(_=None):
+        for v, cam in enumerate(cams):
+            (scene.render(cam, check_finite=False)["color"] * upstream[v]).sum().backward()
+
+    def batched(_=None):
+        (render_views(scene, cams, check_finite=False)["color"] * upstream).sum().backward()
+
+    if device == "cuda":
+        t_loop = median_time(loop, repeats=repeats, cuda=True, setup=leaves)
+        t_views = median_time(batched, repeats=repeats, cuda=True, setup=leaves)
+    else:  # alternate the two, so that a shared machine's changing load hits both alike
+        times: dict = {loop: [], batched: []}
+        for fn in (loop, batched):  # warm-up
+            leaves()
+            fn()
+        for _ in range(repeats):
+            for fn in (loop, batched):
+                leaves()
+                t0 = time.perf_counter()
+                fn()
+                times[fn].append(time.perf_counter() - t0)
+        t_loop, t_views = (statistics.median(times[f]) for f in (loop, batched))
+    leaves()
+    with torch.no_grad():
+        ref = torch.stack([scene.render(cam)["color"] for cam in cams])
+    loop()
+    g_loop = {k: t.grad.clone() for k, t in scene.params().items()}
+    leaves()
+    out = render_views(scene, cams)
+    (out["color"] * upstream).sum().backward()
+    rel = max(float((t.grad - g_loop[k]).abs().max() / g_loop[k].abs().max().clamp_min(1e-30))
+              for k, t in scene.params().items())
+    return {"N": len(scene), "px": f"{size}x{size}", "V": views, "loop ms": 1e3 * t_loop,
+            "render_views ms": 1e3 * t_views, "speed-up": t_loop / t_views,
+            "isects/view": int(out["n_isects"].float().mean()),
+            "max|out diff|": float((out["color"].detach() - ref).abs().max()), "max rel grad diff": rel}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--edit", action="store_true", help="time the edit loop's render stage instead")
+    ap.add_argument("--density", type=float, default=1.0, help="--edit: demo scene density (16 = the edit benchmark's)")
+    ap.add_argument("--size", type=int, default=128, help="--edit: image width and height (px)")
+    ap.add_argument("--views", type=int, default=8, help="--edit: cameras per render")
     args = ap.parse_args()
+    if args.edit:
+        print_table([run_edit(args.density, args.size, args.views, args.device, args.repeats)],
+                    f"edit render stage: render_views vs a loop of render, forward + backward ({args.device})")
+        return
     cases = [(20000, 128, 3, 4)] if args.quick else [(20000, 128, 3, 4), (100000, 256, 3, 4), (100000, 256, 64, 4)]
     print_table([run(*c, args.device, args.repeats) for c in cases],
                 f"render path vs raw rasterizer calls, forward + backward ({args.device})")

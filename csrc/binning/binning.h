@@ -11,6 +11,11 @@
 //   path "auto" | "tiles" | "global", block_sort_keys, warp_sort_keys, giant_tiles, and
 //   _serial (every Gaussian walked by one thread: the former walk, for comparisons). The CPU
 //   kernel has one walk and only checks them.
+//   views (default 1): the N Gaussians are V consecutive blocks of N / V, block v projected
+//   into image v of V images of width x height; the tiles are V consecutive grids (image v's
+//   tile (ty, tx) is v * tiles_y * tiles_x + ty * tiles_x + tx) and a Gaussian of block v is
+//   listed only in image v's tiles: the tile lists of rasterize(views=V). Each image's lists
+//   are those of a views=1 call on its block (ids offset by v * N / V).
 #include <ATen/ATen.h>
 
 #include <c10/util/string_view.h>
@@ -25,6 +30,9 @@ void check_binning_inputs(const char* op, const at::Tensor& means2d, const at::T
                           const at::Tensor& opacities, const at::Tensor& depths,
                           const at::Tensor& radii, int64_t width, int64_t height, int64_t tile_size);
 
+// Rejects views < 1 or a Gaussian count n that views does not divide.
+void check_binning_views(const char* op, int64_t n, int64_t views);
+
 // Rejects kernel choices outside their bounds (binning_choices.h), naming the argument.
 void check_binning_choices(const char* op, c10::string_view path, int64_t block_sort_keys,
                            int64_t warp_sort_keys, int64_t giant_tiles);
@@ -36,6 +44,7 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
                                                      int64_t width, int64_t height, int64_t tile_size,
                                                      double alpha_threshold, c10::string_view path,
                                                      int64_t block_sort_keys, int64_t warp_sort_keys,
-                                                     int64_t giant_tiles, bool serial);
+                                                     int64_t giant_tiles, bool serial,
+                                                     int64_t views);
 
 }  // namespace tiger

@@ -40,16 +40,22 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
                                                      int64_t width, int64_t height, int64_t tile_size,
                                                      double alpha_threshold, c10::string_view path,
                                                      int64_t block_sort_keys, int64_t warp_sort_keys,
-                                                     int64_t giant_tiles, bool /*serial*/) {
+                                                     int64_t giant_tiles, bool /*serial*/,
+                                                     int64_t views) {
   check_binning_inputs("tiger.bin_gaussians", means2d, conics, opacities, depths, radii, width,
                        height, tile_size);
   // One walk on the CPU: the CUDA kernel choices are only checked (same errors on every device).
   check_binning_choices("tiger.bin_gaussians", path, block_sort_keys, warp_sort_keys, giant_tiles);
   const int64_t n = means2d.size(0);
+  check_binning_views("tiger.bin_gaussians", n, views);
+  const int64_t per_view = n / views;  // Gaussian i is in image i / per_view
   const int ts = static_cast<int>(tile_size);
   const int tiles_x = static_cast<int>((width + ts - 1) / ts);
   const int tiles_y = static_cast<int>((height + ts - 1) / ts);
-  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  const int64_t view_tiles = int64_t(tiles_x) * tiles_y;
+  const int64_t n_tiles = views * view_tiles;
+  TORCH_CHECK(n_tiles < (int64_t(1) << 31), "tiger.bin_gaussians: ", views, " images of ",
+              view_tiles, " tiles are more than 2^31 tiles");
   auto tile_offsets = at::zeros({n_tiles + 1}, means2d.options().dtype(at::kLong));
   const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
              d_c = depths.contiguous(), r_c = radii.contiguous();
@@ -65,12 +71,13 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cpu(const at::Tensor& means2d,
       const T u = mp[2 * i], v = mp[2 * i + 1];
       const TileRect r = tile_rect(u, v, rp[2 * i], rp[2 * i + 1], ts, tiles_x, tiles_y);
       const T qcut = cutoff_quadratic<T>(op[i], T(alpha_threshold));
+      const int64_t first = i / per_view * view_tiles;  // its image's first tile
       for (int ty = r.y0; ty < r.y1; ++ty)
         for (int tx = r.x0; tx < r.x1; ++tx) {
           const int px0 = tx * ts, py0 = ty * ts;
           const int px1 = std::min<int>(px0 + ts, width), py1 = std::min<int>(py0 + ts, height);
           if (tile_touches<T>(u, v, cp[3 * i], cp[3 * i + 1], cp[3 * i + 2], qcut, px0, px1, py0, py1))
-            emit(ty * tiles_x + tx);
+            emit(int32_t(first + ty * tiles_x + tx));
         }
     };
     // Work ranges of equal candidate-tile counts (+1 per Gaussian for its fixed cost).

@@ -189,9 +189,13 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
                                                       c10::string_view path,
                                                       int64_t block_sort_keys,
                                                       int64_t warp_sort_keys, int64_t giant_tiles,
-                                                      bool serial) {
+                                                      bool serial, int64_t views) {
   check_binning_inputs("tiger.bin_gaussians", means2d, conics, opacities, depths, radii, width,
                        height, tile_size);
+  check_binning_views("tiger.bin_gaussians", means2d.size(0), views);
+  // The CUDA kernels bin one image per call: render_views loops over the views on CUDA.
+  TORCH_CHECK(views == 1, "tiger.bin_gaussians: views > 1 (stacked images) is not implemented "
+              "on CUDA, got ", views);
   check_binning_choices("tiger.bin_gaussians", path, block_sort_keys, warp_sort_keys, giant_tiles);
   const c10::cuda::CUDAGuard guard(means2d.device());
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();

@@ -30,6 +30,12 @@ void check_binning_inputs(const char* op, const at::Tensor& means2d, const at::T
               tile_size);
 }
 
+void check_binning_views(const char* op, int64_t n, int64_t views) {
+  TORCH_CHECK(views >= 1, op, ": views must be at least 1, got ", views);
+  TORCH_CHECK(n % views == 0, op, ": views=", views, " must divide the number of Gaussians (",
+              n, "): they are views consecutive blocks of one view's Gaussians each");
+}
+
 void check_binning_choices(const char* op, c10::string_view path, int64_t block_sort_keys,
                            int64_t warp_sort_keys, int64_t giant_tiles) {
   TORCH_CHECK(path == "auto" || path == "tiles" || path == "global", op,
@@ -52,7 +58,7 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "str path=\"auto\", int block_sort_keys=" + std::to_string(kBinSortKeysMax) +
       ", int warp_sort_keys=" + std::to_string(kWarpSortKeys) +
       ", int giant_tiles=" + std::to_string(kBinGiantTiles) +
-      ", bool _serial=False) -> (Tensor tile_offsets, Tensor gaussian_ids)";
+      ", bool _serial=False, int views=1) -> (Tensor tile_offsets, Tensor gaussian_ids)";
   m.def(schema.c_str());
 }
 

@@ -31,7 +31,8 @@ void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Te
   TORCH_CHECK(a.width > 0 && a.height > 0, op, ": width and height must be positive, got ", a.width,
               "x", a.height);
   TORCH_CHECK(a.tile_size >= 1 && a.tile_size <= 64, op, ": tile_size must be in [1, 64]");
-  const int64_t tiles = ((a.width + a.tile_size - 1) / a.tile_size) *
+  TORCH_CHECK(a.views >= 1, op, ": views must be at least 1, got ", a.views);
+  const int64_t tiles = a.views * ((a.width + a.tile_size - 1) / a.tile_size) *
                         ((a.height + a.tile_size - 1) / a.tile_size);
   check_shape(tile_offsets, op, "tile_offsets", {tiles + 1});
   check_dtype(tile_offsets, at::kLong, op, "tile_offsets");
@@ -65,7 +66,7 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, int height, "
       "int tile_size, float alpha_max, float alpha_threshold, float t_min, int channel_block=" + cb +
       ", int backward_channel_block=" + cb + ", int colors_channel_block=" + cb +
-      ", int backward_pixels_per_thread=" + ppt +
+      ", int backward_pixels_per_thread=" + ppt + ", int views=1"
       ") -> (Tensor color, Tensor alpha, Tensor depth, Tensor n_contrib, Tensor transmittance)")
             .c_str());
   m.def((
@@ -73,14 +74,14 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "Tensor depths, Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, "
       "int height, int tile_size, float alpha_max, float alpha_threshold, float t_min, "
       "Tensor transmittance, Tensor n_contrib, Tensor v_color, Tensor? v_alpha, Tensor? v_depth, "
-      "int channel_block=" + cb + ", int pixels_per_thread=" + ppt +
+      "int channel_block=" + cb + ", int pixels_per_thread=" + ppt + ", int views=1"
       ") -> (Tensor v_geometry, Tensor v_colors, Tensor v_background)")
             .c_str());
   m.def((
       "rasterize_backward_colors(Tensor means2d, Tensor conics, Tensor opacities, "
       "Tensor tile_offsets, Tensor gaussian_ids, int width, int height, int tile_size, "
       "float alpha_max, float alpha_threshold, float t_min, Tensor n_contrib, Tensor v_color, "
-      "int channel_block=" + cb + ") -> (Tensor v_colors, Tensor v_background)")
+      "int channel_block=" + cb + ", int views=1) -> (Tensor v_colors, Tensor v_background)")
             .c_str());
 }
 

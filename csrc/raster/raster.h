@@ -9,6 +9,11 @@
 //      n_contrib [H,W] int32: entries of the pixel's tile list up to its last contributor,
 //      transmittance [H,W] = T_final, kept apart from alpha because 1 - (1 - T) loses
 //      T's relative precision in float32 where pixels saturate.
+//   views (default 1): V images of width x height in one call, stacked along the rows: every
+//   per-pixel tensor (outputs, transmittance, n_contrib, v_color, ...) is [V*H, W(, C)] and
+//   tile_offsets has V*tiles_y*tiles_x + 1 entries (bin_gaussians(views=V)); image v's tiles
+//   come after image v-1's and its pixels are evaluated at their own coordinates, so each image
+//   is bit-identical to a views=1 call with its own Gaussians.
 // rasterize_backward: gradients from v_color [H,W,C], v_alpha [H,W] or None, v_depth [H,W] or
 //   None (None: zero, nothing is read); walks each list back to front. Returns v_geometry [N,8]
 //   (per row: means2d u, v, conics a, b, c, opacity, depth, 0: one buffer that the CUDA kernel
@@ -35,6 +40,10 @@ namespace tiger {
 struct RasterArgs {
   int64_t width, height, tile_size;
   double alpha_max, alpha_threshold, t_min;
+  // Images drawn in one call: `views` images of width x height stacked along the rows (outputs
+  // [views * height, width, ...]); tile t belongs to image t / tiles_per_view, whose pixels are
+  // evaluated at their own image's coordinates (bin_gaussians(views=) makes such tile lists).
+  int64_t views = 1;
 };
 
 // Defaults: the measured best on the H100 (docs/BENCHMARKS.md). 64-channel blocks walk a
@@ -60,7 +69,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread);
+    int64_t backward_pixels_per_thread, int64_t views);
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
@@ -71,12 +80,12 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
-                       int64_t pixels_per_thread);
+                       int64_t pixels_per_thread, int64_t views);
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block);
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views);
 
 }  // namespace tiger

@@ -30,17 +30,28 @@ struct Scene2D {
   const int64_t* tile_offsets;
   const int32_t* ids;
   int width, height, ts, tiles_x;
+  int64_t tiles_per_view;  // tiles of one image (RasterArgs::views images stacked along the rows)
   RasterOptions<T> opt;
 };
 
+// A tile's pixels: px0, py0 in its own image's coordinates (where Gaussians are evaluated),
+// row0 the first output row of that image (image v of a views > 1 call starts at v * height).
 struct TileGeom {
   int px0, py0, pw, ph;
+  int64_t row0;
+  // Output pixel index of the tile-local linear pixel p.
+  int64_t pixel(int p, int width) const {
+    return (row0 + py0 + p / pw) * width + px0 + p % pw;
+  }
 };
 
-inline TileGeom tile_geom(int64_t tile, int tiles_x, int ts, int width, int height) {
-  const int tx = int(tile % tiles_x), ty = int(tile / tiles_x);
-  const int px0 = tx * ts, py0 = ty * ts;
-  return {px0, py0, std::min(ts, width - px0), std::min(ts, height - py0)};
+template <typename T>
+inline TileGeom tile_geom(const Scene2D<T>& s, int64_t tile) {
+  const int64_t view = tile / s.tiles_per_view, local = tile % s.tiles_per_view;
+  const int tx = int(local % s.tiles_x), ty = int(local / s.tiles_x);
+  const int px0 = tx * s.ts, py0 = ty * s.ts;
+  return {px0, py0, std::min(s.ts, s.width - px0), std::min(s.ts, s.height - py0),
+          view * s.height};
 }
 
 // The part of a tile where a Gaussian can reach alpha >= threshold: the
@@ -126,7 +137,7 @@ inline SubRect tile_alpha(const Scene2D<T>& s, int32_t g, T qcut, const TileGeom
 template <typename T>
 void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors, const T* bg,
                   T* out_color, T* out_alpha, T* out_depth, int32_t* out_count, T* out_trans) {
-  const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
+  const TileGeom tg = tile_geom(s, tile);
   const int P = tg.pw * tg.ph;
   std::vector<T> Tr(P, T(1)), acc(size_t(P) * C, T(0)), accd(P, T(0)), alpha(P);
   std::vector<int32_t> cnt(P, 0);
@@ -157,7 +168,7 @@ void forward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors,
     });
   }
   for (int p = 0; p < P; ++p) {
-    const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    const int64_t pix = tg.pixel(p, s.width);
     T* oc = out_color + pix * C;
     const T* a = acc.data() + int64_t(p) * C;
     for (int64_t c = 0; c < C; ++c) oc[c] = a[c] + (bg ? Tr[p] * bg[c] : T(0));
@@ -175,7 +186,7 @@ template <typename T>
 void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors, const T* bg,
                    const T* trans, const int32_t* count, const T* v_color, const T* v_alpha,
                    const T* v_depth, T* rows, T* v_bg_tile) {
-  const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
+  const TileGeom tg = tile_geom(s, tile);
   const int P = tg.pw * tg.ph;
   const int64_t S = C + kGeomGrads;
   std::vector<T> Tr(P), Tfin(P), R(size_t(P) * C), Rd(P, T(0)), vC(size_t(P) * C), vA(P), vD(P),
@@ -183,7 +194,7 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
   std::vector<int32_t> cnt(P);
   int32_t max_cnt = 0;
   for (int p = 0; p < P; ++p) {
-    const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    const int64_t pix = tg.pixel(p, s.width);
     Tfin[p] = Tr[p] = trans[pix];
     cnt[p] = count[pix];
     max_cnt = std::max(max_cnt, cnt[p]);
@@ -263,14 +274,14 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
 template <typename T>
 void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const int32_t* count,
                           const T* v_color, T* rows, T* per_gaussian, T* v_bg_tile) {
-  const TileGeom tg = tile_geom(tile, s.tiles_x, s.ts, s.width, s.height);
+  const TileGeom tg = tile_geom(s, tile);
   const int P = tg.pw * tg.ph;
   std::vector<T> Tr(P, T(1)), alpha(P), wl(P);
   std::vector<int32_t> cnt(P);
   std::vector<const T*> vrow(P), src(P);
   int32_t max_cnt = 0;
   for (int p = 0; p < P; ++p) {
-    const int64_t pix = int64_t(tg.py0 + p / tg.pw) * s.width + tg.px0 + p % tg.pw;
+    const int64_t pix = tg.pixel(p, s.width);
     vrow[p] = v_color + pix * C;
     cnt[p] = count[pix];
     max_cnt = std::max(max_cnt, cnt[p]);
@@ -328,6 +339,7 @@ Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const
   s.height = int(a.height);
   s.ts = int(a.tile_size);
   s.tiles_x = int((a.width + a.tile_size - 1) / a.tile_size);
+  s.tiles_per_view = int64_t(s.tiles_x) * ((a.height + a.tile_size - 1) / a.tile_size);
   s.opt = {T(a.alpha_max), T(a.alpha_threshold), T(a.t_min)};
   return s;
 }
@@ -339,7 +351,7 @@ int64_t tile_grain(int64_t tiles, int64_t isects) {
 }
 
 int64_t num_tiles(const RasterArgs& a) {
-  return ((a.width + a.tile_size - 1) / a.tile_size) * ((a.height + a.tile_size - 1) / a.tile_size);
+  return a.views * ((a.width + a.tile_size - 1) / a.tile_size) * ((a.height + a.tile_size - 1) / a.tile_size);
 }
 
 }  // namespace
@@ -350,9 +362,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread) {
+    int64_t backward_pixels_per_thread, int64_t views) {
   const char* op = "tiger.rasterize";
-  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
+  const int64_t rows = views * height;  // the views' images, stacked
   // The CUDA kernel choices: checked only, so that every device rejects the same values.
   check_channel_block(op, "channel_block", channel_block);
   check_channel_block(op, "backward_channel_block", backward_channel_block);
@@ -363,11 +376,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
                       tile_offsets, gaussian_ids, a);
   check_same(colors, means2d, op, "colors");
   const int64_t C = colors.size(1);
-  auto out_color = at::empty({height, width, C}, means2d.options());
-  auto out_alpha = at::empty({height, width}, means2d.options());
-  auto out_depth = at::empty({height, width}, means2d.options());
-  auto out_count = at::empty({height, width}, means2d.options().dtype(at::kInt));
-  auto out_trans = at::empty({height, width}, means2d.options());
+  auto out_color = at::empty({rows, width, C}, means2d.options());
+  auto out_alpha = at::empty({rows, width}, means2d.options());
+  auto out_depth = at::empty({rows, width}, means2d.options());
+  auto out_count = at::empty({rows, width}, means2d.options().dtype(at::kInt));
+  auto out_trans = at::empty({rows, width}, means2d.options());
   const auto m_c = means2d.contiguous(), c_c = conics.contiguous(), o_c = opacities.contiguous(),
              d_c = depths.contiguous(), col_c = colors.contiguous(), t_c = tile_offsets.contiguous(),
              i_c = gaussian_ids.contiguous();
@@ -396,9 +409,10 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
-                       int64_t pixels_per_thread) {
+                       int64_t pixels_per_thread, int64_t views) {
   const char* op = "tiger.rasterize_backward";
-  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
+  const int64_t H = views * height;  // the views' images, stacked
   check_channel_block(op, "channel_block", channel_block);  // CUDA choices: checked only
   check_pixels_per_thread(op, "pixels_per_thread", pixels_per_thread);
   const int64_t n = means2d.size(0);
@@ -406,12 +420,12 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   const int64_t C = colors.size(1);
   check_raster_inputs(op, means2d, conics, opacities, depths, background, C, tile_offsets,
                       gaussian_ids, a);
-  check_shape(transmittance, op, "transmittance", {height, width});
-  check_shape(n_contrib, op, "n_contrib", {height, width});
+  check_shape(transmittance, op, "transmittance", {H, width});
+  check_shape(n_contrib, op, "n_contrib", {H, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
-  check_shape(v_color, op, "v_color", {height, width, C});
-  if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {height, width});
-  if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {height, width});
+  check_shape(v_color, op, "v_color", {H, width, C});
+  if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {H, width});
+  if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {H, width});
   const int64_t S = C + kGeomGrads, m = gaussian_ids.size(0), tiles = num_tiles(a);
   auto rows = at::zeros({m, S}, means2d.options());
   auto v_bg_tiles = at::zeros({tiles, C}, means2d.options());
@@ -446,17 +460,18 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block) {
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views) {
   const char* op = "tiger.rasterize_backward_colors";
-  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
+  const int64_t H = views * height;  // the views' images, stacked
   check_channel_block(op, "channel_block", channel_block);  // a CUDA choice: checked only
   const int64_t n = means2d.size(0);
-  check_shape(v_color, op, "v_color", {height, width, -1});
+  check_shape(v_color, op, "v_color", {H, width, -1});
   const int64_t C = v_color.size(2);
   check_raster_inputs(op, means2d, conics, opacities, opacities.new_empty({n}), std::nullopt, C,
                       tile_offsets, gaussian_ids, a);
   check_same(v_color, means2d, op, "v_color");
-  check_shape(n_contrib, op, "n_contrib", {height, width});
+  check_shape(n_contrib, op, "n_contrib", {H, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
   const int64_t m = gaussian_ids.size(0), tiles = num_tiles(a);
   // Gradients go either straight into one [N, C] buffer per thread (summed at the end), or,

@@ -73,9 +73,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread) {
+    int64_t backward_pixels_per_thread, int64_t views) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  // The CUDA kernels draw one image per call: render_views loops over the views on CUDA.
+  TORCH_CHECK(views == 1, op, ": views > 1 (stacked images) is not implemented on CUDA, got ", views);
   check_channel_block(op, "channel_block", channel_block);
   // the backward's choices, carried for the autograd formula: checked here as on the CPU
   check_channel_block(op, "backward_channel_block", backward_channel_block);
@@ -123,9 +125,11 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         const at::Tensor& n_contrib, const at::Tensor& v_color,
                         const std::optional<at::Tensor>& v_alpha,
                         const std::optional<at::Tensor>& v_depth, int64_t channel_block,
-                        int64_t pixels_per_thread) {
+                        int64_t pixels_per_thread, int64_t views) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  // The CUDA kernels draw one image per call: render_views loops over the views on CUDA.
+  TORCH_CHECK(views == 1, op, ": views > 1 (stacked images) is not implemented on CUDA, got ", views);
   check_channel_block(op, "channel_block", channel_block);
   check_pixels_per_thread(op, "pixels_per_thread", pixels_per_thread);
   const int64_t n = means2d.size(0);
@@ -188,9 +192,11 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block) {
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
+  // The CUDA kernels draw one image per call: render_views loops over the views on CUDA.
+  TORCH_CHECK(views == 1, op, ": views > 1 (stacked images) is not implemented on CUDA, got ", views);
   check_channel_block(op, "channel_block", channel_block);
   const int64_t n = means2d.size(0);
   check_shape(v_color, op, "v_color", {height, width, -1});

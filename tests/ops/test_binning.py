@@ -65,7 +65,7 @@ def test_settings_defaults_are_the_op_schemas():
     s = BinningSettings()
     assert defaults == {"path": s.path, "block_sort_keys": s.block_sort_keys,
                         "warp_sort_keys": s.warp_sort_keys, "giant_tiles": s.giant_tiles,
-                        "_serial": s._serial}
+                        "_serial": s._serial, "views": 1}  # one image unless views= says more
     assert (s.path, s.block_sort_keys, s.warp_sort_keys, s.giant_tiles) == ("auto", 4096, 256, 512)
 
 

@@ -48,7 +48,7 @@ _DEFAULT = BinningSettings()
 
 def bin_gaussians(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
                   width: int, height: int, tile_size: int, alpha_threshold: float,
-                  settings: BinningSettings = _DEFAULT) -> tuple[Tensor, Tensor]:
+                  settings: BinningSettings = _DEFAULT, views: int = 1) -> tuple[Tensor, Tensor]:
     """Which Gaussians touch which tile, front to back (inputs from :func:`project_gaussians`).
 
     Args:
@@ -56,14 +56,20 @@ def bin_gaussians(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Te
             (0 = culled); width, height: image size (px); tile_size: tile edge (px);
         alpha_threshold: a tile is kept only where the ellipse reaches o*G >= threshold.
         settings: the CUDA kernels' choices (:class:`BinningSettings`; the lists are the same).
+        views: V images in one call (CPU only for V > 1): the N Gaussians are V consecutive
+            blocks of N / V, block v projected into image v (its own pixel coordinates); image
+            v's tiles follow image v-1's and list only block v's Gaussians (the tile lists of
+            ``rasterize(views=V)``; each image's lists are those of its block alone, ids offset
+            by v * N / V).
     Returns:
-        tile_offsets [tiles_y * tiles_x + 1] int64 (row-major tiles; tile t's list is
+        tile_offsets [views * tiles_y * tiles_x + 1] int64 (row-major tiles; tile t's list is
         ``gaussian_ids[tile_offsets[t]:tile_offsets[t + 1]]``), gaussian_ids [M] int32 sorted by
         (tile, depth, id).
     """
     return torch.ops.tiger.bin_gaussians(means2d.detach(), conics.detach(), opacities.detach(),
                                          depths.detach(), radii, int(width), int(height),
-                                         int(tile_size), float(alpha_threshold), *settings.op_args())
+                                         int(tile_size), float(alpha_threshold), *settings.op_args(),
+                                         int(views))
 
 
 def _check_choices(path: str, block_sort_keys: int, warp_sort_keys: int, giant_tiles: int) -> None:
@@ -85,9 +91,13 @@ def _check_choices(path: str, block_sort_keys: int, warp_sort_keys: int, giant_t
 def _bin_fake(means2d, conics, opacities, depths, radii, width, height, tile_size, alpha_threshold,
               path=_DEFAULT.path, block_sort_keys=_DEFAULT.block_sort_keys,
               warp_sort_keys=_DEFAULT.warp_sort_keys, giant_tiles=_DEFAULT.giant_tiles,
-              _serial=False):
+              _serial=False, views=1):
     _check_choices(path, block_sort_keys, warp_sort_keys, giant_tiles)
-    tiles = ((width + tile_size - 1) // tile_size) * ((height + tile_size - 1) // tile_size)
+    torch._check(views >= 1, lambda: f"tiger.bin_gaussians: views must be at least 1, got {views}")
+    torch._check(means2d.shape[0] % views == 0,
+                 lambda: f"tiger.bin_gaussians: views={views} must divide the number of Gaussians "
+                         f"({means2d.shape[0]})")
+    tiles = views * ((width + tile_size - 1) // tile_size) * ((height + tile_size - 1) // tile_size)
     m = torch.library.get_ctx().new_dynamic_size()
     return (means2d.new_empty(tiles + 1, dtype=torch.int64),
             means2d.new_empty(m, dtype=torch.int32))

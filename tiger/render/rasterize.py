@@ -13,7 +13,7 @@ from tiger.ops.raster import RasterKernelSettings, rasterize
 from tiger.ops.sh import sh_to_color
 
 __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
-           "composite", "bin_projection", "camera_center", "sh_colors"]
+           "composite", "composite_views", "bin_projection", "camera_center", "sh_colors"]
 
 
 @dataclass(frozen=True)
@@ -324,4 +324,72 @@ def composite(p: Projection, width: int, height: int,
         "conics": conics,
         "depths": depths,
         "n_isects": int(gaussian_ids.shape[0]),
+    }
+
+
+def composite_views(projections: list[Projection], width: int, height: int,
+                    settings: RasterSettings = RasterSettings(),
+                    means2d: Optional[Tensor] = None) -> dict[str, Tensor]:
+    """V views' :class:`Projection` s (of one scene of N Gaussians, one image size, one
+    background) composited into stacked images: the second half of ``render_views``.
+
+    On the CPU the V views are binned and rasterized in one call each (``views=V``: the V*N
+    projected Gaussians, block v listed only in image v's tiles and evaluated at image v's own
+    pixel coordinates), so view v is bit-identical to :func:`composite` of its projection. The
+    CUDA kernels draw one image per call, so on CUDA the views are binned and composited one
+    by one (every binning first, so the GPU runs the composites while the host goes on).
+
+    Args:
+        projections: V projections of the same N Gaussians (features [N, C] each).
+        means2d: [V, N, 2] the stacked ``means2d`` of the projections to composite from (default:
+            stacked here); a tensor in the caller's graph, so that its ``retain_grad()`` gives
+            the per-view screen-space gradients.
+    Returns:
+        dict with 'color' [V, H, W, C], 'alpha', 'depth', 'depth_accum' [V, H, W], 'radii'
+        [V, N] int32, 'means2d' [V, N, 2], 'conics' [V, N, 3], 'depths' [V, N], 'n_isects' [V]
+        int64.
+    """
+    width, height = int(width), int(height)
+    views = len(projections)
+    if means2d is None:
+        means2d = torch.stack([p.means2d for p in projections])
+    n = means2d.shape[1]
+    if means2d.is_cuda or views == 1:
+        binned = [bin_projection(p, width, height, settings) for p in projections]
+        outs = [composite(p._replace(means2d=m), width, height, settings, binned=b)
+                for p, m, b in zip(projections, means2d.unbind(0), binned)]
+        stacked = {k: torch.stack([o[k] for o in outs]) for k in outs[0] if k not in ("n_isects", "means2d")}
+        stacked["means2d"] = means2d
+        stacked["n_isects"] = torch.tensor([o["n_isects"] for o in outs], dtype=torch.int64)
+        return stacked
+    flat = means2d.reshape(views * n, 2)
+    conics = torch.cat([p.conics for p in projections])
+    depths = torch.cat([p.depths for p in projections])
+    opac = torch.cat([p.opacities for p in projections])
+    radii = torch.cat([p.radii for p in projections])
+    feats = torch.cat([p.features for p in projections])
+    with torch.no_grad():
+        tile_offsets, gaussian_ids = bin_gaussians(flat, conics, opac, depths, radii, width, height,
+                                                   settings.tile_size, settings.alpha_threshold,
+                                                   settings.binning, views=views)
+    color, alpha, depth_accum, _, _ = rasterize(
+        flat, conics, opac, feats, depths, projections[0].background, tile_offsets, gaussian_ids,
+        width, height, settings.tile_size, settings.alpha_max, settings.alpha_threshold,
+        settings.t_min, settings.kernels, views=views)
+    color = color.reshape(views, height, width, -1)
+    alpha = alpha.reshape(views, height, width)
+    depth_accum = depth_accum.reshape(views, height, width)
+    covered = alpha > 0
+    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, 1.0), 0.0)
+    view_tiles = (tile_offsets.shape[0] - 1) // views
+    return {
+        "color": color,
+        "alpha": alpha,
+        "depth": depth,
+        "depth_accum": depth_accum,
+        "radii": radii.amax(dim=1).reshape(views, n),
+        "means2d": means2d,
+        "conics": conics.reshape(views, n, 3),
+        "depths": depths.reshape(views, n),
+        "n_isects": tile_offsets[view_tiles::view_tiles] - tile_offsets[:-1:view_tiles],
     }

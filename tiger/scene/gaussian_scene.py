@@ -11,7 +11,8 @@ import torch
 from tiger.ops.binning import BinningSettings
 from tiger.ops.raster import RasterKernelSettings
 from tiger.render import Camera
-from tiger.render.rasterize import Projection, RasterSettings, bin_projection, composite, project_for_raster, sh_colors
+from tiger.render.rasterize import (Projection, RasterSettings, composite, composite_views, project_for_raster,
+                                   sh_colors)
 
 from .ply import read_ply_state, write_ply_state
 from .sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh, sh_degree_from_rest, sh_to_rgb
@@ -437,7 +438,9 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     ``colors``, ``background``, ``sh_degree`` and ``options`` are those of
     :meth:`GaussianScene.render` (one ``colors`` tensor [N, C] serves every view). The scene's
     activations (scales, opacities) are computed once for all views, so gradients of a loss
-    over the V renders reach the scene's tensors and ``colors`` through one graph.
+    over the V renders reach the scene's tensors and ``colors`` through one graph. Each view is
+    projected by its own call; on the CPU the V views are then binned and rasterized in one call
+    each (:func:`tiger.render.rasterize.composite_views`), on CUDA one view at a time.
 
     Returns:
         dict with 'color' [V, H, W, C], 'alpha' [V, H, W], 'depth' [V, H, W],
@@ -455,18 +458,9 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
                              f"('{cam.image_name}') is {cam.width}x{cam.height}, camera 0 is "
                              f"{size[0]}x{size[1]}")
     projections = _project_each(scene, cameras, colors, background, sh_degree, options)
-    # Composite from slices of one stacked means2d, so that its retain_grad() sees every view.
+    # Composite from one stacked means2d, so that its retain_grad() sees every view.
     means2d = torch.stack([p.means2d for p in projections])
-    settings = _settings(options)
-    # Every view's binning (one read-back each) before any compositing: the GPU then runs the
-    # composites while the host goes on, instead of waiting at each view's read-back.
-    binned = [bin_projection(p, size[0], size[1], settings) for p in projections]
-    outs = [composite(p._replace(means2d=m), size[0], size[1], settings, binned=b)
-            for p, m, b in zip(projections, means2d.unbind(0), binned)]
-    stacked = {k: torch.stack([o[k] for o in outs]) for k in outs[0] if k not in ("n_isects", "means2d")}
-    stacked["means2d"] = means2d
-    stacked["n_isects"] = torch.tensor([o["n_isects"] for o in outs], dtype=torch.int64)
-    return stacked
+    return composite_views(projections, size[0], size[1], _settings(options), means2d)
 
 
 #: Views rendered together by :func:`render_rgb` (bounds the stacked per-view projections).
