@@ -135,7 +135,7 @@ def _photo(h, w):
     return img
 
 
-FIT = ImplicitConfig(steps=150, n_views=40, pca_batch=40, proj_dim=16, kernel_size=11, jitters_per_step=4)
+FIT = ImplicitConfig(steps=60, n_views=40, pca_batch=40, proj_dim=16, kernel_size=11, jitters_per_step=4)
 
 
 def test_fast_fit_gives_the_reference_fit():

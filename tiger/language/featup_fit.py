@@ -156,6 +156,7 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     opt = torch.optim.NAdam(params_all, lr=cfg.lr)
     lin = down.attention[1]
     losses = torch.empty(cfg.steps, device=dev)
+    window_dtype = torch.bfloat16 if cfg.precision == "bf16" and dev.type == "cuda" else torch.float32
     steps = range(cfg.steps)
     if progress:
         from tqdm.auto import tqdm
@@ -173,7 +174,8 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
         logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
         logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
         sampled = apply_jitters(torch.cat([logit_map, blurred], dim=1), jitter_grid(params[idx], h, w))
-        out = window_attention(down, sampled[:, :1], sampled[:, 1:], (fh, fw))
+        # the window sums are memory-bound: in bf16 on CUDA (the jitter's coordinates stay float32)
+        out = window_attention(down, sampled[:, :1], sampled[:, 1:].to(window_dtype), (fh, fw)).float()
         magnitude, pred = out[:, :1], out[:, 1:]
         target = targets[idx]
         scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
