@@ -162,7 +162,7 @@ def main() -> None:
     if "fast bf16 seed 1" in maps:
         cmp_rows.append({"map": "fast bf16 seed 1", "vs": "fast bf16", **cosine_stats(maps["fast bf16 seed 1"],
                                                                                     maps["fast bf16"])})
-    print_table(cmp_rows, f"per-pixel cosine similarity at {img_hw[0]}x{img_hw[1]} (512-d features)")
+    print_table(cmp_rows, f"per-pixel cosine similarity at {img_hw[0]}x{img_hw[1]} ({next(iter(maps.values())).shape[0]}-d features)")
 
 
 if __name__ == "__main__":
