@@ -106,6 +106,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=None, help="jittered views (default 3000 CUDA, 60 CPU)")
     ap.add_argument("--no-reference", action="store_true", help="time the fast fit only")
     ap.add_argument("--no-fp32", action="store_true", help="skip the fast fit in float32")
+    ap.add_argument("--profile", action="store_true", help="print a profile of 20 fast steps (64 views)")
     args = ap.parse_args()
     dev = torch.device(args.device)
     cuda = dev.type == "cuda"
@@ -139,6 +140,25 @@ def main() -> None:
     with torch.no_grad():
         fh, fw = clip(clip_in[None]).shape[-2:]
     flops = fit_flops(h, w, fh, fw, base, bb)
+    # the backbone share of the fast fit: the jittered views' features alone
+    from tiger.language.featup import sample_jitter
+    from tiger.language.featup_fit import featurize_jitters, jitter_params
+
+    gen = torch.Generator().manual_seed(0)
+    pad = min(int(round(base.max_pad * min(h, w) / 224)), min(h, w) - 1)
+    params = jitter_params([sample_jitter(h, w, pad, base.max_zoom, True, gen) for _ in range(views)], h, w, dev)
+    _, t_bb = timed(lambda: featurize_jitters(clip_in[None], clip, params, base.featurize_batch, "bf16",
+                                              lambda f: f), dev)
+    print(f"  backbone of {views} jittered views (fast path, bf16 on CUDA): {t_bb:.2f} s, "
+          f"{bb * views / t_bb / 1e12:.1f} TFLOP/s", flush=True)
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+        with profile(activities=acts) as prof:
+            ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=20, n_views=64))
+            sync(dev)
+        print(prof.key_averages().table(sort_by="cuda_time_total" if cuda else "cpu_time_total", row_limit=25))
     for name, cfg in runs:
         up, t_fit = timed(lambda: ImplicitUpsampler.fit(clip_in, clip, cfg), dev)
         hr, t_eval = timed(lambda: up(img_hw), dev)
