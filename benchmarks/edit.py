@@ -66,7 +66,7 @@ def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cu
     """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
     SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py);
     ``fused_norms`` as for the real loaders (None, their default: VAE and UNet fused on CUDA)."""
-    from guidance import build_models, tokenizer
+    from benchmarks.guidance import build_models, tokenizer
 
     from tiger.edit import CSDGuidance
     from tiger.edit.guidance import InstructPix2PixGuidance, MVDreamGuidance

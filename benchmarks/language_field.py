@@ -12,8 +12,17 @@
     The full backward follows the same trajectory (only L is updated), so its time to
     convergence is the features-only time x the per-step ratio of table (1).
 
+(3) The ``train_field`` loop as ``tiger embed`` runs it, at its defaults (batch of 1 view, L1,
+    lr 2.5e-3): V float16 64-d maps of H x W written to disk in ``tiger features``' layout and
+    read through ``FeatureSet.load``, N Gaussians of the synthetic labelled scene (maps: renders
+    of their label embeddings at the map size); steps per second of the whole call (reading the
+    maps included) and the loss at the first and last step.
+
     python -m benchmarks.language_field                 # CPU
     python -m benchmarks.language_field --device cuda   # GPU (needs the CUDA rasterizer)
+    # tiger embed's default run on the fox (12 views of 1080x1920x64 float16, ~172k Gaussians):
+    python -m benchmarks.language_field --device cuda --only loop --loop-views 12 --loop-size 1080 1920 \
+        --loop-gaussians 172000 --loop-steps 10000
 """
 from __future__ import annotations
 
@@ -120,10 +129,48 @@ def convergence(device: str, steps: int, lr: float = 0.05) -> list[dict]:
     return rows
 
 
+def train_loop(device: str, views: int, height: int, width: int, gaussians: int, steps: int) -> list[dict]:
+    """One ``train_field`` call at tiger embed's defaults on maps read from disk (module docstring, 3)."""
+    import logging
+    import tempfile
+
+    from tiger.language.extract import FeatureSet
+    from tiger.language.field import train_field
+    from tiger.retrieval.synthetic import DEFAULT_LABELS, make_labelled_scene
+
+    logging.getLogger("tiger.language.field").setLevel(logging.ERROR)
+    k = len(DEFAULT_LABELS)
+    per_object = max(1, gaussians // (2 * k))
+    ls = make_labelled_scene(per_object=per_object, floor=max(1, gaussians - k * per_object), views=views,
+                             size=64)
+    scene = ls.scene.to(device)
+    cams = [c.to(device) for c in ls.cameras]
+    lang = ls.label_lang[ls.labelled.labels].to(device)
+    names = [f"view{i:03d}" for i in range(views)]
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "features").mkdir()
+        with torch.no_grad():
+            for name, cam in zip(names, cams):
+                out = scene.render(cam.resized(width, height), lang)
+                torch.save({"features": out["color"].half().cpu(), "valid": (out["alpha"] >= 0.5).cpu()},
+                           Path(tmp) / "features" / f"{name}.pt")
+        fs = FeatureSet(Path(tmp), names, None)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        r = train_field(scene, cams, lambda i: fs.load(names[i]), steps=steps, progress=False)
+    return [{"N": len(scene), "views": views, "map": f"{height}x{width}x64 f16", "steps": steps,
+             "seconds": r.seconds, "steps/s": steps / r.seconds, "loss_first": r.losses[0], "loss_last": r.losses[-1]}]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--only", choices=("step", "convergence", "loop"), default=None, help="run one table only")
+    ap.add_argument("--loop-views", type=int, default=6)
+    ap.add_argument("--loop-size", type=int, nargs=2, default=(240, 320), metavar=("H", "W"))
+    ap.add_argument("--loop-gaussians", type=int, default=5000)
+    ap.add_argument("--loop-steps", type=int, default=100)
     args = ap.parse_args()
     if args.device == "cuda":
         if not torch.cuda.is_available():
@@ -135,8 +182,15 @@ def main() -> None:
             print(f"SKIPPED: the rasterizer has no CUDA kernels in this build ({str(exc).splitlines()[0]})")
             return
     cases = [(100_000, 256), (1_000_000, 512)] if args.device == "cuda" else [(5_000, 64), (20_000, 128)]
-    print_table(per_step(args.device, cases), title=f"language field step (render 64-d + L1 + backward + Adam), {args.device}")
-    print_table(convergence(args.device, args.steps), title=f"language field convergence, synthetic labelled scene, {args.device}")
+    if args.only in (None, "step"):
+        print_table(per_step(args.device, cases),
+                    title=f"language field step (render 64-d + L1 + backward + Adam), {args.device}")
+    if args.only in (None, "convergence"):
+        print_table(convergence(args.device, args.steps),
+                    title=f"language field convergence, synthetic labelled scene, {args.device}")
+    if args.only in (None, "loop"):
+        print_table(train_loop(args.device, args.loop_views, *args.loop_size, args.loop_gaussians, args.loop_steps),
+                    title=f"train_field at tiger embed's defaults, maps read from disk, {args.device}")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ total, with the stage quality (held-out PSNR, Gaussians, field loss), for each u
         --long-side 120 --embed-steps 50                       # a CPU smoke run
 
 ``--models full|tiny`` writes random models of that size in their real formats first
-(benchmarks/gpu/write_random_models.py); a folder or JSON config is used as it is. The data is
+(benchmarks/gpu/write_random_models.py) and points $TIGER_MODELS at them; another value is passed
+to ``--models`` (a JSON config of name -> path). The data is
 ``--data`` (default ``.carry/fox`` when present, else ``<repo>/../shared/data/fox``). Each run
 starts from scratch (--force) in ``--out/<upsampler>``; prepare.json is kept there.
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -51,15 +53,16 @@ def main(argv: list | None = None) -> int:
             subprocess.run([sys.executable, str(REPO / "benchmarks" / "gpu" / "write_random_models.py"), str(folder),
                             "--size", models], check=True)
             print(f"random {models} models written in {time.perf_counter() - t0:.1f} s")
-        models = str(folder)
+        models = None
+        os.environ["TIGER_MODELS"] = str(folder)  # found as a user's $TIGER_MODELS folder
 
     from tiger.cli.main import main as tiger
 
     rows = []
     for up in args.upsampler:
         out = args.out / up
-        cmd = ["prepare", str(args.data), "--out", str(out), "--force", "--device", args.device, "--models", models,
-               "--upsampler", up, "--downscale", str(args.downscale), "--recon-steps", str(args.recon_steps)]
+        cmd = ["prepare", str(args.data), "--out", str(out), "--force", "--device", args.device,
+               *(["--models", models] if models else []), "--upsampler", up, "--downscale", str(args.downscale), "--recon-steps", str(args.recon_steps)]
         if args.long_side:
             cmd += ["--long-side", str(args.long_side)]
         if args.embed_steps is not None:

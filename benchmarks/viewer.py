@@ -123,8 +123,15 @@ def main() -> None:
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    import cv2
     import viser
+    from viser._image_encoding import cv2_imencode_with_fallback
+
+    try:  # viser encodes with OpenCV when it is installed, else with imageio (Pillow)
+        import cv2  # noqa: F401
+
+        encoder_name = "opencv"
+    except ImportError:
+        encoder_name = "imageio (no OpenCV)"
 
     from tiger.viewer.camera import camera_from_pose
     from tiger.viewer.frames import render_frame
@@ -146,8 +153,8 @@ def main() -> None:
             cam = camera_from_pose(wxyz, pos, fov, w, h).to(dev)
             img = render_frame(state.frame_inputs(), cam)
             render_ms = _median_ms(lambda: render_frame(state.frame_inputs(), cam), args.iters, dev)
-            encode_ms = _median_ms(lambda: cv2.imencode(".jpeg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
-                                                        [int(cv2.IMWRITE_JPEG_QUALITY), 90]), args.iters, dev)
+            encode_ms = _median_ms(lambda: cv2_imencode_with_fallback("jpeg", img, jpeg_quality=90,
+                                                                      channel_ordering="rgb"), args.iters, dev)
             frame_ms, frame_cpu = _median_ms(lambda: server.draw(view, full=True), args.iters, dev, cpu_time=True)
             moving_ms = _median_ms(lambda: server.draw(view, full=False), args.iters, dev)
             small = server.browser_camera(view, full=False)
@@ -172,7 +179,8 @@ def main() -> None:
     import os
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print_table(rows, f"viewer frames ({torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, load {load:.1f})")
+    print_table(rows, f"viewer frames ({torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs, load {load:.1f}, "
+                      f"JPEG by {encoder_name})")
     print_table(rows_q, "query -> highlight")
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

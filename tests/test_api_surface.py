@@ -31,15 +31,16 @@ SURFACE = {
     "tiger.eval": [],
     "tiger.language": ["FeatureConfig", "FeatureSet", "FieldConfig", "FieldResult", "ImplicitConfig",
                        "ImplicitUpsampler", "JBUStack", "MaskCLIP", "PCABasis", "SamMaskConfig", "SamMaskGenerator",
-                       "SamMasks", "StreamingPCA", "extract_features", "load_image", "train_field",
+                       "SamMasks", "StreamingPCA", "extract_features", "read_rgb_image", "train_field",
                        "upsample_features"],
     "tiger.models": ["ENV_VAR", "ModelNotFoundError", "ModelSpec", "REGISTRY", "load_clip", "load_jbu_checkpoint",
                      "load_sam", "resolve_model_path"],
     "tiger.ops": ["cuda_enabled"],
     "tiger.recon": ["ReconConfig", "SceneOptimizer", "StepOutput", "Trainer", "expon_lr", "load_views",
                     "photometric_loss", "psnr", "ssim", "ssim_map"],
-    "tiger.recon.strategy": ["DensifyStats", "duplicate", "inria_densify", "prune_transparent",
-                             "region_topk_densify", "remove", "reset_opacity", "split"],
+    "tiger.recon.strategy": ["DensifySchedule", "DensifyStats", "InriaStrategy", "RegionTopKStrategy", "duplicate",
+                             "inria_densify", "prune_transparent", "region_topk_densify", "remove",
+                             "reset_opacity", "split"],
     "tiger.render": ["Camera", "Distortion", "RasterSettings", "camera_center", "rasterize_gaussians",
                      "sh_colors"],
     "tiger.retrieval": ["CANONICAL_NEGATIVES", "DEFAULT_TEMPERATURE", "EmbeddingTable", "Retrieval", "TextEncoder",
@@ -51,6 +52,9 @@ SURFACE = {
                     "PARAM_NAMES", "SceneFormatError", "read_ply", "render_rgb", "render_views", "scene_extent",
                     "write_ply"],
     "tiger.testing": [],
+    "tiger.train": ["CheckpointError", "CheckpointMismatch", "LoopOutcome", "StageTimer", "ViewSampler", "progress_bar",
+                    "read_checkpoint", "restore_rng", "rng_state", "run_loop", "signature_differences",
+                    "write_checkpoint"],
     "tiger.utils": [],
     "tiger.viewer": ["Selection", "ViewerError", "ViewerState", "serve"],
 }
@@ -58,6 +62,11 @@ SURFACE = {
 ALLOWED_TOP = {"rasterize_gaussians"}
 #: Names that were aliases or second homes once: they must not come back anywhere.
 RETIRED = {"RasterDefaults", "render_color", "render_rgb_and_footprint", "clear_condition_cache"}
+#: Public names every CLI module defines by contract (one per command module).
+COMMAND_PROTOCOL = {"add_parser", "run", "main", "build_parser"}
+#: Second definitions still to be replaced by the one helper (the deletion stage's own RGB renders
+#: become tiger.scene.render_rgb when the deletion package moves): remove the entry then.
+PENDING = {"render_rgb": {"tiger.scene.gaussian_scene", "tiger.edit.delete"}}
 
 
 def _packages() -> list[str]:
@@ -110,6 +119,19 @@ def test_one_name_and_one_home_per_thing():
                 assert home == mod.__name__, f"module {mod.__name__} re-exports {name} from {home}"
     twice = [homes for homes in exported.values() if len(homes) > 1]
     assert not twice, f"exported by two packages: {twice}"
+
+
+def test_no_two_public_definitions_share_a_name():
+    """A public class or function name is defined in one module only (else one of them is a second
+    implementation of one thing, or two things share a name: rename one)."""
+    where: dict[str, set[str]] = {}
+    for mod in _modules():
+        for name, obj in vars(mod).items():
+            if not name.startswith("_") and _is_code(obj) and obj.__module__ == mod.__name__:
+                where.setdefault(name, set()).add(mod.__name__)
+    twice = {n: sorted(m) for n, m in where.items()
+             if len(m) > 1 and n not in COMMAND_PROTOCOL and PENDING.get(n) != m}
+    assert not twice, f"defined in several modules: {twice}"
 
 
 def test_retired_names_do_not_come_back():

@@ -4,7 +4,10 @@
 # non-zero exit (a crash, or a command that ran past CMD_TIMEOUT) fails the script.
 #
 #   bash benchmarks/gpu/default_commands.sh            # defaults throughout (hours: implicit FeatUp on 50 images)
-#   QUICK=1 bash benchmarks/gpu/default_commands.sh    # fewer steps and a 2-image capture for implicit FeatUp
+#   QUICK=1 bash benchmarks/gpu/default_commands.sh    # the first 12 fox images, fewer steps, implicit
+#                                                      # FeatUp on 2 images (each command within minutes)
+#   ONLY="prepare reconstruct" QUICK=1 bash ...        # only these commands (the work folder is kept, so
+#                                                      # later calls can run the commands that need its files)
 #
 # Run from the repo root after `make build`. The fox must be inside the repo on the GPU machine:
 # FOX (default .carry/fox, else ../shared/data/fox). Results: $OUT/default_commands.txt.
@@ -19,11 +22,13 @@ export TIGER_MODELS="${TIGER_MODELS:-$OUT/models}" PYTHONUNBUFFERED=1 TOKENIZERS
 mkdir -p "$OUT"
 LOG="$OUT/default_commands.txt"
 W="$OUT/work"
-rm -rf "$W" && mkdir -p "$W"
+[ -z "${ONLY:-}" ] && rm -rf "$W"
+mkdir -p "$W"
 FAILED=0
 
 run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one summary line
   local name=$1; shift
+  if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then return 0; fi
   local t0=$(date +%s%N)
   timeout "$CMD_TIMEOUT" "$PY" -m tiger.cli.main "$@" > "$W/$name.log" 2>&1
   local rc=$?
@@ -41,18 +46,21 @@ run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one s
   fi
   R=(); F=(); E=(); P=(); ED=()
   IMPLICIT_DATA="$FOX"
+  subset() {  # subset N FOLDER: the first N frames of the fox as a capture of its own
+    mkdir -p "$2"; [ -e "$2/images" ] || ln -s "$(cd "$FOX" && pwd)/images" "$2/images"
+    "$PY" -c "import json; m=json.load(open('$FOX/transforms.json')); m['frames']=m['frames'][:$1]; json.dump(m, open('$2/transforms.json','w'))"
+  }
   if [ "${QUICK:-0}" = 1 ]; then
     R=(--steps 3000 --downscale 2); E=(--steps 200); ED=(--steps 100)
     P=(--recon-steps 3000 --downscale 2 --upsampler jbu --embed-steps 200)
     # implicit FeatUp (about 80 s an image before its speed-up) on the first two images only
-    IMPLICIT_DATA="$W/fox2"; mkdir -p "$IMPLICIT_DATA"
-    ln -s "$(cd "$FOX" && pwd)/images" "$IMPLICIT_DATA/images"
-    "$PY" -c "import json,sys; m=json.load(open('$FOX/transforms.json')); m['frames']=m['frames'][:2]; json.dump(m, open('$IMPLICIT_DATA/transforms.json','w'))"
+    subset 2 "$W/fox2"; IMPLICIT_DATA="$W/fox2"
+    subset 12 "$W/fox12"; FOX="$W/fox12"   # SAM ViT-H takes ~7.5 s an image at 1080p
   fi
   run prepare        prepare "$FOX" --out "$W/prepared" --device "$DEVICE" "${P[@]}"
-  sed -n '/^tiger prepare:/,$p' "$W/prepare.log"
+  [ -f "$W/prepare.log" ] && sed -n '/^tiger prepare:/,$p' "$W/prepare.log"
   run reconstruct    reconstruct "$FOX" --out "$W/recon" --device "$DEVICE" "${R[@]}"
-  grep -h "test views" "$W/reconstruct.log"
+  grep -h "test views" "$W/reconstruct.log" 2>/dev/null
   run features_implicit features "$IMPLICIT_DATA" --out "$W/feat_implicit" --device "$DEVICE"
   run features_jbu   features "$FOX" --out "$W/feat_jbu" --upsampler jbu --device "$DEVICE"
   run features_bilinear features "$FOX" --out "$W/feat_bilinear" --upsampler bilinear --device "$DEVICE"

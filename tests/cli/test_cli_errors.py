@@ -21,9 +21,15 @@ from .test_delete_cli import _scene_file
 
 @pytest.fixture(scope="module")
 def lang_scene(tmp_path_factory):
-    """(PLY with lang_* + PCA sidecar, its text table) of the tabletop; the table knows 'mug', 'cup'."""
+    """(PLY with lang_* + PCA sidecar, its text table) of the tabletop; the table knows 'mug', 'cup'
+    and the canonical negatives."""
     root = tmp_path_factory.mktemp("lang")
     path, _, _ = _scene_file(root)
+    table = torch.load(root / "text.pt")
+    g = torch.Generator().manual_seed(1)
+    for word in ("object", "things", "stuff", "texture"):  # LERF's canonical negatives (edit's weights)
+        table[word] = torch.randn(512, generator=g)
+    torch.save(table, root / "text.pt")
     return path, root / "text.pt"
 
 
@@ -191,7 +197,7 @@ def test_recolor_shades_negations_and_the_rgb_recorded(lang_scene, tmp_path, cap
     printed = capsys.readouterr().out
     rep = json.loads((out / "edit.json").read_text())
     assert rep["recolor_rgb"] == pytest.approx((green * 0.55).tolist(), abs=1e-4)
-    assert "RGB 0.055, 0.358, 0.083" in printed
+    assert "RGB " + ", ".join(f"{v:.3f}" for v in rep["recolor_rgb"]) in printed
     # one edit time: the loop's (as its rounds record it), and the command's wall time beside it
     assert rep["time_s"] == rep["rounds"][-1]["time_s"] and rep["command_s"] >= rep["time_s"]
     assert float(printed.split("done in ")[1].split(" s")[0]) >= rep["time_s"]
@@ -220,3 +226,42 @@ def test_render_relevancy_shows_the_score_query_uses():
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     defaults = {name: {a.dest: a.default for a in sub.choices[name]._actions} for name in ("render", "query")}
     assert defaults["render"]["score"] == defaults["query"]["score"]
+
+
+def test_a_default_edit_on_the_cpu_warns_with_the_expected_time(tmp_path, caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="tiger.cli.edit"):
+        code = main(["edit", str(tmp_path / "missing.ply"), "make it red", "--target", "mug", "--guidance",
+                     "recolor", "--out", str(tmp_path / "e"), "--device", "cpu"])
+    assert code == 2  # the scene is missing; the warning came first, from the settings alone
+    warned = [r.getMessage() for r in caplog.records if "edit on the CPU" in r.getMessage()]
+    assert warned and "about 13 min" in warned[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="tiger.cli.edit"):
+        main(["edit", str(tmp_path / "missing.ply"), "make it red", "--target", "mug", "--guidance", "recolor",
+              "--steps", "20", "--size", "64", "--out", str(tmp_path / "e"), "--device", "cpu"])
+    assert not [r for r in caplog.records if "edit on the CPU" in r.getMessage()]  # a short edit: quiet
+
+
+def test_eval_edit_refusals_leave_no_folder(lang_scene, tmp_path, capsys):
+    scene, table = lang_scene
+    out = tmp_path / "ev"
+    assert main(["eval-edit", str(scene), str(scene), "--target", "unicorn", "--text-embeddings", str(table),
+                 "--out", str(out), "--device", "cpu"]) == 2
+    assert "no embedding for ['unicorn']" in _last_line(capsys.readouterr().err)
+    assert not out.exists()
+
+
+def test_features_without_weights_names_every_missing_model(tmp_path, capsys, monkeypatch):
+    from PIL import Image as PILImage
+
+    monkeypatch.delenv("TIGER_MODELS", raising=False)
+    (tmp_path / "imgs").mkdir()
+    PILImage.new("RGB", (8, 8)).save(tmp_path / "imgs" / "a.png")
+    out = tmp_path / "f"
+    assert main(["features", str(tmp_path / "imgs"), "--out", str(out), "--models", str(tmp_path / "none"),
+                 "--upsampler", "jbu"]) == 2
+    line = _last_line(capsys.readouterr().err)
+    assert "3 of 3 models not found" in line and all(f"model '{m}'" in line for m in ("clip", "sam", "featup_jbu"))
+    assert not out.exists()

@@ -30,7 +30,7 @@ def test_reconstruct_features_embed_query(tmp_path):
     data = tabletop_dataset(tmp_path / "data")
     out = tmp_path / "recon"
     r = _run("reconstruct", str(data), "--out", str(out), "--steps", "60", "--init-points", "800",
-             "--test-every", "3", "--device", "cpu")
+             "--test-every", "3", "--device", "cpu", "--keep-cache")  # keeps checkpoint.pt
     assert r.returncode == 0, r.stderr[-2000:]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["gaussians"] > 0 and math.isfinite(metrics["psnr"])

@@ -41,11 +41,22 @@ def test_prepare_resume_and_query(tmp_path):
     assert (out / "recon" / "scene.ply").stat().st_mtime_ns == mtime
     assert json.loads((out / "prepare.json").read_text())["stages"]["embed"]["done"]
 
-    # other inputs for a finished stage: one line naming the stage and the setting
+    # an unfinished stage with other inputs (say a wrong option made it fail) starts afresh
+    rec = json.loads((out / "prepare.json").read_text())
+    rec["stages"]["embed"]["done"] = False
+    (out / "prepare.json").write_text(json.dumps(rec))
     changed = [a if a != "10" else "11" for a in TINY]
     r = _run("prepare", str(data), "--out", str(out), "--models", str(cfg), *changed)
-    assert r.returncode == 2 and "stage 'embed'" in r.stderr and "steps: 10 -> 11" in r.stderr
-    assert "steps" in r.stderr and "--force" in r.stderr
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "[3/3] embed: unfinished run had other inputs (steps: 10 -> 11); starting it afresh" in r.stdout
+    embed = json.loads((out / "prepare.json").read_text())["stages"]["embed"]
+    assert embed["done"] and embed["inputs"]["steps"] == 11
+
+    # other inputs for a finished stage: one line naming the stage and the setting
+    changed = [a if a != "10" else "12" for a in TINY]
+    r = _run("prepare", str(data), "--out", str(out), "--models", str(cfg), *changed)
+    assert r.returncode == 2 and "stage 'embed' finished with other inputs (steps: 11 -> 12)" in r.stderr
+    assert "--force" in r.stderr and (out / "scene_lang.ply").is_file()
 
     # the prepared folder stands for its scene
     r = _run("query", str(out), "mug", "--models", str(cfg), "--views", "1", "--out", str(tmp_path / "q"),

@@ -1,5 +1,5 @@
-"""tiger reconstruct: --resume never writes into a folder it cannot resume, Ctrl-C says which
-step the last checkpoint holds."""
+"""tiger reconstruct: --resume never writes into a folder it cannot resume, Ctrl-C writes a
+checkpoint and says which step it holds, --time-budget and --max-gaussians."""
 from __future__ import annotations
 
 import pytest
@@ -26,7 +26,7 @@ def test_resume_without_checkpoint_refuses_a_non_empty_folder(data, tmp_path, ca
     (out / "scene.ply").write_bytes(b"precious")
     assert _reconstruct(data, out, "--resume") == 2
     err = capsys.readouterr().err
-    assert "no checkpoint.pt" in err and "--force" in err and "scene.ply" in err
+    assert "no record of a `tiger reconstruct` run" in err and "--force" in err and "scene.ply" in err
     assert (out / "scene.ply").read_bytes() == b"precious" and sorted(p.name for p in out.iterdir()) == ["scene.ply"]
 
 
@@ -64,10 +64,55 @@ def test_ctrl_c_names_the_checkpoint_step_and_resume_continues(data, tmp_path, c
     monkeypatch.setattr(Trainer, "train_step", interrupted_at_25)
     assert _reconstruct(data, out) == 130
     err = capsys.readouterr().err
-    assert "stopped at step 25 of 30" in err and "checkpoint.pt holds step 20" in err and "--resume" in err
+    # the interrupt itself leaves a checkpoint of the last whole step (not the periodic one of step 20)
+    assert "stopped at step 25 of 30" in err and "checkpoint.pt holds step 25" in err and "--resume" in err
     monkeypatch.setattr(Trainer, "train_step", real)
     assert _reconstruct(data, out, "--resume") == 0
     assert "resumed from" in capsys.readouterr().out and (out / "scene.ply").is_file()
+    # the resumed scene is the uninterrupted one, bit for bit
+    assert _reconstruct(data, tmp_path / "straight") == 0
+    from tiger.scene import GaussianScene
+
+    assert GaussianScene.load_ply(out / "scene.ply").equal(GaussianScene.load_ply(tmp_path / "straight" / "scene.ply"))
+
+
+def test_resume_with_other_settings_is_refused_naming_them(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert _reconstruct(data, out, "--steps", "10") == 0
+    before = (out / "checkpoint.pt").read_bytes()
+    assert _reconstruct(data, out, "--resume", "--sh-degree", "1") == 2
+    err = capsys.readouterr().err
+    assert "belongs to another reconstruction" in err and "config.sh_degree: 3 in the checkpoint, 1 now" in err
+    assert (out / "checkpoint.pt").read_bytes() == before
+
+
+def test_time_budget_stops_early_and_resume_continues(data, tmp_path, capsys):
+    import json
+
+    out = tmp_path / "out"
+    assert _reconstruct(data, out, "--time-budget", "1e-9") == 0    # every step outlasts it: one step
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["steps"] == 1 and m["stopped"] == "time budget"
+    assert "time budget of 1e-09 s reached: stopped at step 1 of 30" in capsys.readouterr().out
+    assert _reconstruct(data, out, "--resume") == 0                # no budget: runs to the end
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["steps"] == 30 and m["stopped"] == "done"
+    assert _reconstruct(data, tmp_path / "bad", "--time-budget", "0") == 2
+    assert "--time-budget must be > 0" in capsys.readouterr().err
+
+
+def test_max_gaussians_caps_densification(data, tmp_path, capsys):
+    import json
+
+    # 300 steps: INRIA's schedule scaled down densifies at steps 150 and 200
+    assert _reconstruct(data, tmp_path / "free", "--steps", "300", "--init-points", "100") == 0
+    free = json.loads((tmp_path / "free" / "metrics.json").read_text())["gaussians"]
+    assert free > 110, free                                         # it does grow without a cap
+    assert _reconstruct(data, tmp_path / "cap", "--steps", "300", "--init-points", "100",
+                        "--max-gaussians", "110") == 0
+    assert json.loads((tmp_path / "cap" / "metrics.json").read_text())["gaussians"] <= 110
+    assert _reconstruct(data, tmp_path / "bad", "--max-gaussians", "0") == 2
+    assert "--max-gaussians must be >= 1" in capsys.readouterr().err
 
 
 def test_ctrl_c_before_the_first_checkpoint(data, tmp_path, capsys, monkeypatch):

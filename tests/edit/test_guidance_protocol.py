@@ -99,7 +99,7 @@ def test_resume_refuses_other_guidance_settings(tmp_path):
     edit(scene, query_a(), CSDGuidance(_Seeded("ip2p", 0), _Seeded("mvdream", 1)), tau=0.5, steps=2,
          checkpoint=ck, **SMALL)
     other = CSDGuidance(_Seeded("ip2p", 0), _Seeded("mvdream", 1), CSDSchedule(mv_end=0.5))
-    with pytest.raises(ValueError, match="differs in guidance_settings"):
+    with pytest.raises(ValueError, match="guidance_settings.schedule.mv_end: 0.75 in the checkpoint, 0.5 now"):
         edit(scene, query_a(), other, tau=0.5, steps=2, checkpoint=ck, resume=True, **SMALL)
 
 

@@ -34,7 +34,7 @@ def test_floater_rule_removes_near_floaters_only():
     assert int(bg_in_box.sum()) > 0 and not bool(r.mask[bg_in_box].any())  # table under the mug stays
     med = float(scores.double().median())
     assert r.floater_tau == pytest.approx(med + 0.5 * (tau - med))
-    assert r.counts() == {"retrieved": 500, "floaters": 40, "unseen": 0, "similar": 0, "removed": 540,
+    assert r.counts() == {"retrieved": 500, "floaters": 40, "unseen": 0, "similar": 0, "stray_kept": 0, "removed": 540,
                           "total": 3570, "kept": 3030}
 
 

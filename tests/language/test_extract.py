@@ -6,7 +6,7 @@ import torch
 import torch.multiprocessing as mp
 
 from tiger.language import extract as extract_mod
-from tiger.language.extract import FeatureConfig, FeatureSet, extract_features, load_image
+from tiger.language.extract import FeatureConfig, FeatureSet, extract_features, read_rgb_image
 from tiger.language.featup import ImplicitConfig
 from tiger.language.maskclip import MaskCLIP
 from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator
@@ -110,7 +110,7 @@ def test_paths_implicit_and_no_sam(models, tmp_path):
         p = tmp_path / f"view_{k}.png"
         Image.fromarray((img.permute(1, 2, 0) * 255).round().byte().numpy()).save(p)
         paths.append(p)
-    assert torch.allclose(load_image(paths[0]), images(1)[0], atol=1 / 255)
+    assert torch.allclose(read_rgb_image(paths[0]), images(1)[0], atol=1 / 255)
     cfg = config(upsampler="implicit", use_sam=False,
                  implicit=ImplicitConfig(steps=3, n_views=4, pca_batch=4, kernel_size=3, jitters_per_step=2))
     fs = extract_features(paths, tmp_path / "out", clip=clip, config=cfg, progress=False)

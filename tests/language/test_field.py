@@ -189,3 +189,86 @@ def test_gaussian_scene_ply_round_trip(tmp_path):
     back = GaussianScene.load_ply(tmp_path / "scene.ply")
     torch.testing.assert_close(back.lang, gs.lang)
     torch.testing.assert_close(back.lang_pca_basis, s.lang_pca_basis)
+
+
+def test_maps_are_read_once_and_the_loss_is_the_indexed_mean():
+    """Each map is loaded once for the whole run (not once per step), and the masked loss equals
+    the mean over the valid pixels taken by boolean indexing."""
+    from tiger.language.feature_maps import ViewMap
+    from tiger.language.field import _loss
+
+    ls = make_labelled_scene(views=3, per_object=6, floor=6)
+    maps = oracle_feature_maps(ls)
+    loads = []
+
+    def load(i):
+        loads.append(i)
+        return maps[i]
+
+    train_field(copy.deepcopy(ls.scene), ls.cameras, load, steps=12, **FAST)
+    assert sorted(loads) == [0, 1, 2]
+    g = torch.Generator().manual_seed(0)
+    pred, target = torch.randn(9, 7, 5, generator=g), torch.randn(9, 7, 5, generator=g).half()
+    valid = torch.rand(9, 7, generator=g) > 0.4
+    vm = ViewMap(target, valid, int(valid.sum()))
+    f = target.float()
+    ref = {"l1": (pred[valid] - f[valid]).abs().mean(), "l2": (pred[valid] - f[valid]).square().mean(),
+           "cosine": (1 - torch.nn.functional.cosine_similarity(pred[valid], f[valid], dim=-1, eps=1e-8)).mean()}
+    for kind, want in ref.items():
+        torch.testing.assert_close(_loss(pred, vm, kind), want, rtol=1e-5, atol=1e-7)
+    assert float(_loss(pred, ViewMap(target, torch.zeros(9, 7, dtype=torch.bool), 0), "l1")) == 0.0
+
+
+def test_initial_embeddings_and_their_shape_check():
+    ls = make_labelled_scene(views=3, per_object=6, floor=6)
+    maps = oracle_feature_maps(ls)
+    init = torch.randn(len(ls.scene), 64, generator=torch.Generator().manual_seed(1))
+    s = copy.deepcopy(ls.scene)
+    res = train_field(s, ls.cameras, maps, steps=0, init=init, **FAST)
+    vis = ~res.invisible
+    assert torch.equal(res.lang[vis], init[vis]) and bool((res.lang[~vis] == 0).all())
+    trained = train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=5, init=init, **FAST)
+    rand = train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=5, **FAST)
+    assert not torch.allclose(trained.lang, rand.lang)
+    with pytest.raises(ValueError, match=r"init must be \[N=\d+, D=64\], got \[3, 64\]"):
+        train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=1, init=init[:3], **FAST)
+
+
+def test_ctrl_c_leaves_a_checkpoint_and_resume_is_exact(tmp_path):
+    ls = make_labelled_scene(views=3, per_object=8, floor=8)
+    maps = oracle_feature_maps(ls)
+    full = train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=9, **FAST)
+
+    def interrupt(step, loss):
+        if step == 4:
+            raise KeyboardInterrupt
+
+    ck = tmp_path / "field.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=9, checkpoint=ck, checkpoint_every=0,
+                    callback=interrupt, **FAST)
+    from tiger.train import read_checkpoint
+
+    assert read_checkpoint(ck, "tiger.field-checkpoint/1")["step"] == 4
+    res = train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=9, checkpoint=ck, **FAST)
+    np.testing.assert_allclose(res.losses, full.losses, rtol=1e-6)
+    torch.testing.assert_close(res.lang, full.lang, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="belongs to another language field .*config.lr: 0.05 in the checkpoint, "
+                                         "0.01 now"):
+        train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=9, checkpoint=ck, **{**FAST, "lr": 0.01})
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_streamed_maps_train_like_resident_ones_on_cuda():
+    if not torch._C._dispatch_has_kernel_for_dispatch_key("tiger::rasterize", "CUDA"):
+        pytest.skip("this build has no CUDA kernel for tiger::rasterize")
+    ls = make_labelled_scene(views=4, per_object=8, floor=8)
+    maps = [(f.half(), v) for f, v in oracle_feature_maps(ls)]
+    cams = [c.to("cuda") for c in ls.cameras]
+    out = {}
+    for placement in ("device", "host"):
+        s = copy.deepcopy(ls.scene).to("cuda")
+        out[placement] = train_field(s, cams, maps, steps=20, map_placement=placement, **FAST)
+    np.testing.assert_allclose(out["host"].losses, out["device"].losses, rtol=1e-6)
+    torch.testing.assert_close(out["host"].lang, out["device"].lang)

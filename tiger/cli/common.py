@@ -36,8 +36,9 @@ def positive_size(width: int, height: int, option: str = "--size") -> tuple[int,
 
 #: Bytes a rendered pixel costs on its way to a picture, per colour channel and fixed: the
 #: rasterizer's float32 colour, alpha and depth, its per-pixel bookkeeping, the clamped copy
-#: and the 8-bit picture (measured order of magnitude, rounded up).
-_BYTES_PER_PIXEL_CHANNEL, _BYTES_PER_PIXEL_FIXED = 12, 40
+#: and the 8-bit pictures. Peak memory of a 3000x3000 colour + depth render of the demo scene on
+#: the CPU grew by 79 bytes a pixel; 12 * 3 + 44 = 80.
+_BYTES_PER_PIXEL_CHANNEL, _BYTES_PER_PIXEL_FIXED = 12, 44
 
 
 def render_bytes(width: int, height: int, channels: int = 3) -> int:
@@ -165,3 +166,198 @@ class Summary:
         print(f"\n{self.title} done in {time.perf_counter() - self.t0:.1f} s")
         for line in self.lines:
             print(f"  {line}")
+
+
+# --- selection: one --tau parser and one guard for every command that selects by text ---------
+
+TAU_RULE_NAMES = ("auto", "valley", "kittler", "otsu")
+TAU_HELP = ("selection threshold: a number, or a rule: auto (default: the emptiest stretch below "
+            "the highest-scoring cluster of scores, so 'plant' does not also take the other objects "
+            "on the table), valley (the same between two classes only), kittler "
+            "(Kittler-Illingworth minimum error), otsu. Rules run on the cosine, or on the margin to "
+            "the hardest canonical negative for --score relevancy (never below 0.5 there)")
+
+
+def parse_tau(text: str):
+    """argparse ``type`` of ``--tau``: a rule name (case-insensitive) or a finite number."""
+    low = text.strip().lower()
+    if low in TAU_RULE_NAMES:
+        return low
+    try:
+        value = float(low)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number or one of {', '.join(TAU_RULE_NAMES)}, "
+                                         f"got {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def add_selection_options(p: argparse.ArgumentParser, guarded: bool) -> None:
+    """--score and --tau; ``guarded``: the command refuses a suspect selection without --force."""
+    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine",
+                   help="per-Gaussian score: cosine with the text (default), or LERF relevancy "
+                        "against the canonical negatives (object, things, stuff, texture)")
+    guard = ("A selection holding more than half of the scene's Gaussians, or falling into several "
+             "separate groups in space, is " + ("refused unless --force is given" if guarded else
+                                                 "reported with a warning") + ".")
+    p.add_argument("--tau", type=parse_tau, default="auto", help=f"{TAU_HELP}. {guard}")
+
+
+def check_selection_or_refuse(scene, mask, text: str, force: bool, command: str) -> None:
+    """The selection guard (:mod:`tiger.retrieval.guard`) for edit and delete: a CliError naming
+    the problem unless ``force``; with ``force`` a warning."""
+    from tiger.retrieval import check_selection
+
+    check = check_selection(scene.means, mask)
+    if check.ok:
+        return
+    msg = f"{text!r}: {check.problem}"
+    if not force:
+        raise CliError(f"{msg}; look at `tiger query` pictures and choose --tau or --score, or pass "
+                       f"--force to {command} it anyway")
+    warn(f"{msg} (going on: --force)")
+
+
+def warn(text: str) -> None:
+    """One warning line on stderr."""
+    import sys
+
+    print(f"warning: {text}", file=sys.stderr)
+
+
+# --- run records: a resume continues the same run, nothing finished is overwritten ----------------
+
+RUN_RECORD = "tiger_run.json"
+#: Options that do not change a command's result: they may differ between a run and its resume.
+NOT_SETTINGS = frozenset({"func", "command", "device", "force", "resume", "out", "verbose"})
+
+
+def _file_id(path: Path) -> dict:
+    """What identifies an input file's contents cheaply: size and a hash of its first and last MiB."""
+    import hashlib
+
+    h = hashlib.sha1()
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        h.update(fh.read(1 << 20))
+        if size > 2 << 20:
+            fh.seek(size - (1 << 20))
+            h.update(fh.read())
+    return {"path": str(path.resolve()), "bytes": size, "sha1_ends": h.hexdigest()}
+
+
+def run_settings(args: argparse.Namespace, ignore: tuple = ()) -> dict:
+    """The options of a command that decide its result (``NOT_SETTINGS`` and ``ignore`` left out);
+    an option naming an existing file is recorded with its size and content hash, a folder by its
+    absolute path, so a resume on a changed scene is caught even under the same name."""
+    out = {}
+    for key, value in sorted(vars(args).items()):
+        if key in NOT_SETTINGS or key in ignore:
+            continue
+        if isinstance(value, str) and value and Path(value).is_file():
+            value = _file_id(Path(value))
+        elif isinstance(value, str) and value and Path(value).is_dir():
+            value = str(Path(value).resolve())
+        elif isinstance(value, tuple):
+            value = list(value)
+        out[key] = value
+    return out
+
+
+def _differences(old: dict, new: dict) -> list[str]:
+    """'--name: was A, now B' for each setting that differs."""
+    lines = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if a != b:
+            show = lambda v: v.get("path", v) if isinstance(v, dict) else v  # noqa: E731
+            what = "contents changed" if isinstance(a, dict) and isinstance(b, dict) and \
+                a.get("path") == b.get("path") else f"was {show(a)!r}, now {show(b)!r}"
+            lines.append(f"--{key.replace('_', '-')} ({what})")
+    return lines
+
+
+def check_record(rec: Path, command: str, settings: dict, where: str) -> None:
+    """A CliError unless the run record ``rec`` is of ``command`` with these ``settings``; the
+    message names every setting that differs."""
+    import json
+
+    try:
+        old = json.loads(rec.read_text())
+    except (OSError, ValueError) as e:
+        raise CliError(f"--resume: cannot read {rec}: {e}") from None
+    if old.get("command") != command:
+        raise CliError(f"--resume: {where} holds a `tiger {old.get('command')}` run, not `tiger {command}`")
+    diff = _differences(old.get("settings", {}), settings)
+    if diff:
+        raise CliError(f"--resume: {where} holds another `tiger {command}` run; these differ: "
+                       f"{'; '.join(diff)}. Use another --out, or the same settings")
+
+
+def write_record(rec: Path, command: str, settings: dict, finished: bool = False) -> None:
+    """Write the run record ``rec`` atomically."""
+    import json
+
+    from tiger.utils.io import atomic_write
+
+    rec.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(rec, "w") as fh:
+        json.dump({"command": command, "settings": settings, "finished": finished}, fh, indent=2, default=str)
+
+
+def claim_output(path: str, command: str, settings: dict, *, force: bool, resume: bool,
+                 record: Optional[Path] = None, leftovers: tuple = ()) -> Path:
+    """Check and make a command's output folder, before anything is written into it.
+
+    * ``resume``: an empty or missing folder starts afresh; otherwise the folder must hold the run
+      record of the same command with the same ``settings`` (``record``, default
+      ``OUT/tiger_run.json``), else a CliError naming what differs (whatever ``force`` says: a
+      resume never continues another run's state).
+    * otherwise a non-empty folder is refused unless ``force`` (then the run starts afresh in it).
+
+    * ``leftovers``: names (caches) that a stopped run may leave; a folder holding only those and
+      an unfinished record of the same command is not a finished result, so a rerun may reuse it.
+
+    Writes the record with ``finished: false``; :func:`finish_output` marks it finished.
+    """
+    import json
+
+    out = Path(path)
+    rec = record or out / RUN_RECORD
+    if out.exists() and not out.is_dir():
+        raise CliError(f"{out} exists and is not a folder")
+    busy = out.is_dir() and any(out.iterdir())
+    if busy and not resume and leftovers and rec.is_file():
+        try:
+            stopped = json.loads(rec.read_text())
+        except (OSError, ValueError):
+            stopped = {}
+        rest = [q.name for q in out.iterdir() if q.name not in leftovers and q != rec]
+        busy = bool(rest) or stopped.get("command") != command or bool(stopped.get("finished"))
+    if resume and busy:
+        if not rec.is_file():
+            held = ", ".join(sorted(p.name for p in out.iterdir())[:5])
+            raise CliError(f"--resume: {out} holds no record of a `tiger {command}` run ({rec.name} is "
+                           f"missing; it holds {held}), so it cannot be resumed; use another --out, or "
+                           "--force without --resume to start afresh in it")
+        check_record(rec, command, settings, str(out))
+    elif busy and not force:
+        raise CliError(f"{out} already exists and is not empty; pass --force to overwrite it"
+                       + (" or --resume to continue it" if rec.is_file() else ""))
+    out.mkdir(parents=True, exist_ok=True)
+    write_record(rec, command, settings)
+    return out
+
+
+def finish_output(out: Path, command: str, record: Optional[Path] = None) -> None:
+    """Mark the run record in ``out`` finished (after every result is written)."""
+    import json
+
+    from tiger.utils.io import atomic_write
+
+    rec = record or Path(out) / RUN_RECORD
+    data = json.loads(rec.read_text()) if rec.is_file() else {"command": command, "settings": {}}
+    data["finished"] = True
+    with atomic_write(rec, "w") as fh:
+        json.dump(data, fh, indent=2, default=str)

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import torch
 
-from .common import (CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset,
-                     output_dir)
+from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing,
+                     check_selection_or_refuse, claim_output, device_of, finish_output, load_scene,
+                     open_dataset, output_dir, run_settings)
 from .text import text_encoder
 
 
@@ -35,8 +36,7 @@ def add_parser(sub) -> None:
                    help="opencv: Telea (built in); lama: big-lama.pt from --models/$TIGER_MODELS/lama")
     p.add_argument("--text-embeddings", default=None,
                    help="torch.save'd {text: [512] tensor} instead of CLIP weights")
-    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
-    p.add_argument("--tau", default="auto", help="retrieval threshold, or auto/valley/kittler/otsu")
+    add_selection_options(p, guarded=True)
     p.add_argument("--views", type=int, default=12,
                    help="views around the object without --data; the most of the capture's with it")
     p.add_argument("--size", default="320x240", help="WxH of the views around the object")
@@ -44,7 +44,9 @@ def add_parser(sub) -> None:
     p.add_argument("--steps", type=int, default=150, help="refit steps (one view each)")
     p.add_argument("--dilate", type=int, default=3, help="hole dilation in pixels")
     p.add_argument("--background", default="0,0,0", help="R,G,B behind the scene, in [0, 1]")
-    p.add_argument("--resume", action="store_true", help="continue the refit from --out's checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the refit from --out's checkpoint; refused, naming what differs, when "
+                        "--out holds a deletion with another scene, text or settings")
     p.set_defaults(func=run)
 
 
@@ -73,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     dev = device_of(args.device)
     if args.resume and not Path(args.out).is_dir():
         raise CliError(f"--resume: {args.out} has no earlier run to resume")
-    out = output_dir(args.out, args.force or args.resume)
+    settings = run_settings(args)
+    output_dir(args.out, args.force or args.resume, create=False)  # refusals below leave nothing behind
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
@@ -85,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--background must be R,G,B with each in [0, 1], got {args.background!r}")
     if args.steps < 0 or args.views <= 0 or args.dilate < 0:
         raise CliError("--steps and --dilate must be >= 0 and --views > 0")
-    tau = args.tau if args.tau in ("auto", "valley", "kittler", "otsu") else float(args.tau)
+    size = _size(args.size)
+    tau = args.tau
     cfg = DeleteConfig(score=args.score, tau=tau, steps=args.steps, dilate=args.dilate, background=bg)
     encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     from tiger.retrieval import CANONICAL_NEGATIVES, retrieve
@@ -95,19 +99,23 @@ def run(args: argparse.Namespace) -> int:
     if retrieval.count == 0:
         raise CliError(f"{args.text!r} selected no Gaussian ({args.score} > {retrieval.tau:.3f}); "
                        "nothing to delete (try a lower --tau)")
+    check_selection_or_refuse(scene, retrieval.mask, args.text, args.force, "delete")
+    out = claim_output(args.out, "delete", settings, force=args.force, resume=args.resume)
     images = None
     if args.data:
         cams, images = _dataset_views(args.data, args.views, args.downscale, dev, args.skip_missing)
     else:
-        cams = [c.to(dev) for c in views_around(retrieval, args.views, *_size(args.size))]
+        cams = [c.to(dev) for c in views_around(retrieval, args.views, *size)]
     res = delete(scene, retrieval, cams, images, inpainter=args.inpainter, encoder=encoder, config=cfg,
                  checkpoint_dir=out, resume=args.resume, models=args.models)
     res.save(out, extra={"text": args.text, "inpainter": args.inpainter, "scene": str(args.scene),
                          "data": args.data, "config": vars(cfg)})
+    finish_output(out, "delete")
     summary = Summary("tiger delete")
     c, t, m = res.counts, res.timings, res.metrics
-    summary.add(f"removed {c['removed']} Gaussians ({c['retrieved']} retrieved + {c['floaters']} floaters + "
-                f"{c['unseen']} unseen + {c['similar']} similar) "
+    summary.add(f"removed {c['removed']} Gaussians ({c['retrieved'] - c['stray_kept']} retrieved + {c['floaters']} "
+                f"floaters + {c['unseen']} unseen + {c['similar']} similar; {c['stray_kept']} retrieved far "
+                "from the object kept) "
                 f"of {c['total']}; {c['trainable']} trainable, {c['seeded']} seeded; {c['final']} now")
     summary.add("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
     summary.add(f"locality PSNR {m['locality_psnr']:.1f} dB outside the object; hole PSNR "

@@ -10,8 +10,9 @@ import torch
 from tiger.utils.dtypes import DTYPE_NAMES
 from tiger.utils.video import KINDS as VIDEO_KINDS
 
-from .common import (CliError, Summary, add_common, add_skip_missing, command_elapsed_s, device_of, load_scene,
-                     open_dataset, output_dir)
+from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing,
+                     check_selection_or_refuse, claim_output, command_elapsed_s, device_of, finish_output,
+                     load_scene, open_dataset, output_dir, run_settings)
 from .text import text_encoder
 
 GUIDANCES = ("ip2p+mvdream", "ip2p", "mvdream", "recolor")
@@ -52,14 +53,15 @@ def add_parser(sub) -> None:
                    help="diffusion models' dtype (auto: bf16 on a GPU that has it, else fp16; fp32 on the CPU)")
     p.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
                    help="replay each guidance step as a CUDA graph (default: on with a CUDA --device)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/checkpoint.pt when it exists; refused, naming what differs, when "
+                        "OUT holds an edit of another scene, target, instruction or settings")
     p.add_argument("--data", default=None,
                    help="the scene's dataset: its cameras decide 360° vs forward-facing views (default: 360°)")
     add_skip_missing(p)
     p.add_argument("--text-embeddings", default=None,
                    help="torch.save'd {text: [512] tensor} instead of CLIP weights")
-    p.add_argument("--tau", default="auto", help="retrieval threshold, or 'auto'")
-    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
+    add_selection_options(p, guarded=True)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--video", choices=VIDEO_KINDS, default="auto",
                    help="turntable video (auto: H.264 MP4, else VP9/VP8 WebM, else GIF: all play in "
@@ -90,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     dev = device_of(args.device)
     if args.cuda_graph and dev.type != "cuda":
         raise CliError(f"--cuda-graph needs a CUDA --device, got {dev}")
+    settings = run_settings(args, ignore=("cuda_graph", "dtype", "video"))
     output_dir(args.out, args.force or args.resume, create=False)  # refusals below leave no folder
     needed = [m for m in ("ip2p", "mvdream") if m in args.guidance.split("+")]
     if needed:
@@ -108,17 +111,18 @@ def run(args: argparse.Namespace) -> int:
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
     encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
-    tau = args.tau if args.tau == "auto" else float(args.tau)
+    tau = args.tau
     try:
         target = resolve_target(scene, args.target, encoder=encoder, tau=tau, score=args.score)
     except EmptyTargetError as e:
         raise CliError(f"--target {args.target!r} retrieves no Gaussian (tau={args.tau}); try another text "
                        "or a lower --tau") from e
+    check_selection_or_refuse(scene, target.mask, args.target, args.force, "edit")
     dtype = None if args.dtype == "auto" else DTYPE_NAMES[args.dtype]
     guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
                               color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)
-    out = output_dir(args.out, args.force or args.resume)
     cams = _cameras(args.data, args.skip_missing)
+    out = claim_output(args.out, "edit", settings, force=args.force, resume=args.resume)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
     res = edit(scene, target, guidance, cameras=cams, config=cfg, checkpoint=out / "checkpoint.pt", resume=args.resume)
     res.scene.save_ply(out / "edited.ply")
@@ -153,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
 
     with atomic_write(out / "edit.json", "w") as fh:
         json.dump(report, fh, indent=2)
+    finish_output(out, "edit")
     s = Summary("tiger edit")
     s.add(f"{args.target!r}: {target.count} of {len(scene)} Gaussians edited ({args.guidance}, {args.steps} steps)")
     if "recolor_rgb" in report:

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import argparse
 
-from .common import (Summary, add_common, add_skip_missing, device_of, existing, load_scene, open_dataset,
-                     output_file)
+from .common import (CliError, Summary, add_common, add_skip_missing, check_record, device_of, existing, load_scene,
+                     open_dataset, output_file, run_settings, write_record)
 
 
 def add_parser(sub) -> None:
@@ -12,8 +12,9 @@ def add_parser(sub) -> None:
         "embed", help="train the language field of a scene from feature maps",
         description="Optimise only each Gaussian's language embedding L (Adam) so that rendered "
                     "features match the maps written by `tiger features`; geometry stays frozen "
-                    "and the features-only backward computes no geometry gradient. Writes a PLY "
-                    "with lang_* and the PCA basis.",
+                    "and the features-only backward computes no geometry gradient. The maps are "
+                    "read once (kept on the GPU when they fit, else streamed from pinned memory). "
+                    "Writes a PLY with lang_* and the PCA basis.",
         epilog="example: tiger embed outputs/fox/scene.ply ../shared/data/fox "
                "--features outputs/fox/features --out outputs/fox/scene_lang.ply",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -30,7 +31,10 @@ def add_parser(sub) -> None:
     p.add_argument("--lr", type=float, default=2.5e-3)
     p.add_argument("--batch-views", type=int, default=1)
     p.add_argument("--loss", choices=("l1", "l2", "cosine"), default="l1")
-    p.add_argument("--checkpoint", default=None, help="checkpoint file (default: OUT + .ckpt.pt)")
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint file (default: OUT + .ckpt.pt), written every 1000 steps, at the end "
+                        "and on Ctrl-C; an existing one is continued exactly (one made with other "
+                        "settings is refused, naming what differs)")
     p.set_defaults(func=run)
 
 
@@ -43,6 +47,14 @@ def run(args: argparse.Namespace) -> int:
 
     dev = device_of(args.device)
     out = output_file(args.out, args.force)
+    # an interrupted run's checkpoint is continued: only with the same inputs and settings
+    ckpt = args.checkpoint or str(out) + ".ckpt.pt"
+    record, settings = Path(ckpt + ".run.json"), run_settings(args, ignore=("checkpoint",))
+    if Path(ckpt).is_file() and not args.force:
+        if not record.is_file():
+            raise CliError(f"{ckpt} holds an earlier run with no record of its settings; remove it or "
+                           "pass --force to start afresh")
+        check_record(record, "embed", settings, ckpt)
     feat_dir = existing(args.features, "feature folder")
     scene = load_scene(args.scene, dev)
     cams = capture = open_dataset(args.data, args.skip_missing).cameras
@@ -55,7 +67,9 @@ def run(args: argparse.Namespace) -> int:
                          f"in {feat_dir}/features (run `tiger features` first)")
     cams = [cams[i].to(dev) if hasattr(cams[i], "to") else cams[i] for i in keep]
     summary = Summary("tiger embed")
-    ckpt = args.checkpoint or str(out) + ".ckpt.pt"
+    if Path(ckpt).is_file() and args.force:
+        Path(ckpt).unlink()  # --force: start afresh
+    write_record(record, "embed", settings)
     maps = lambda i: fs.load(names[keep[i]])  # noqa: E731
     init = "random"
     if args.init == "lift" and not Path(ckpt).is_file():  # a checkpoint is resumed instead
@@ -67,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     res = train_field(scene, cams, maps, pca=pca, checkpoint=ckpt, init=init,
                       steps=args.steps, lr=args.lr, batch_views=args.batch_views, loss=args.loss)
     scene.save_ply(out)
+    write_record(record, "embed", settings, finished=True)
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
 
     if not cameras_json_path(out).is_file():  # `tiger render` renders along the capture's cameras

@@ -5,8 +5,8 @@ import argparse
 import json
 
 
-from .common import (CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset,
-                     output_dir)
+from .common import (TAU_HELP, CliError, Summary, add_common, add_skip_missing, device_of, load_scene,
+                     open_dataset, output_dir, parse_tau)
 from .text import text_encoder
 
 
@@ -27,7 +27,8 @@ def add_parser(sub) -> None:
     p.add_argument("--target", required=True, help="text naming the edited object")
     add_common(p, models=True)
     p.add_argument("--text-embeddings", default=None, help="torch.save'd {text: [512] tensor} instead of CLIP")
-    p.add_argument("--tau", default="auto", help="retrieval threshold, or 'auto' (chosen on the before scene)")
+    p.add_argument("--tau", type=parse_tau, default="auto",
+                   help=TAU_HELP + "; chosen on the before scene and used on both")
     p.add_argument("--caption-before", default=None, help="caption of the original object (CLIP metrics)")
     p.add_argument("--caption-after", default=None, help="caption of the edited object (CLIP metrics)")
     p.add_argument("--views", type=int, default=8, help="cameras on the path around the object")
@@ -46,14 +47,16 @@ def run(args: argparse.Namespace) -> int:
 
     if args.views < 2:
         raise CliError("--views must be at least 2")
+    if args.size < 16 or args.dilate < 0:
+        raise CliError(f"--size must be >= 16 and --dilate >= 0, got {args.size} and {args.dilate}")
     dev = device_of(args.device)
-    out = output_dir(args.out, args.force)
+    output_dir(args.out, args.force, create=False)  # refusals below leave no folder behind
     before, after = load_scene(args.before, dev), load_scene(args.after, dev)
     for name, s in ((args.before, before), (args.after, after)):
         if s.lang is None:
             raise CliError(f"{name} has no language features (lang_*); both scenes need them")
     enc = text_encoder(args.models, args.text_embeddings, dev, before, args.before)
-    tau = args.tau if args.tau == "auto" else float(args.tau)
+    tau = args.tau
     try:
         tb = resolve_target(before, args.target, encoder=enc, tau=tau)
         ta = resolve_target(after, args.target, encoder=enc, tau=tb.tau)
@@ -62,8 +65,11 @@ def run(args: argparse.Namespace) -> int:
     cams = None
     if args.data:
         cams = open_dataset(args.data, args.skip_missing).cameras
+    if args.caption_before and args.caption_after and not hasattr(enc, "clip"):
+        raise CliError("the CLIP metrics need CLIP weights (--models or $TIGER_MODELS), not a text table")
     path = ObjectViews(tb.center, tb.bbox_min, tb.bbox_max, capture=cams, force_360=True if not cams else None,
                        width=args.size, height=args.size).fixed(args.views)
+    out = output_dir(args.out, args.force)
     report = {"target": args.target, "tau": tb.tau, "selected_before": tb.count, "selected_after": ta.count,
               "locality": locality(before, after, path, tb.mask, ta.mask, dilate_px=args.dilate)}
     if args.caption_before and args.caption_after:

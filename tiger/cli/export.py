@@ -14,7 +14,8 @@ def add_parser(sub) -> None:
         "export", help="write a scene as .splat, .spz or a compressed PLY for web viewers",
         description="Convert a PLY scene to the formats 3DGS web viewers share: 'splat' (antimatter15, "
                     "32 bytes a Gaussian, no view-dependent colour), 'spz' (Niantic, gzip, version 2, "
-                    "~10x smaller than the PLY, SH kept; axes turned to SPZ's right-up-back), "
+                    "SH kept, 5-8x smaller than the PLY on the demo and a random SH-3 scene; axes turned to "
+                    "SPZ's right-up-back), "
                     "'ply-compressed' (PlayCanvas/SuperSplat, 256-Gaussian chunks, 16 bytes a Gaussian "
                     "plus 8-bit SH). Language features stay in the PLY. The layouts are described in "
                     "tiger/scene/export.py.",

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from .common import Summary, add_common, add_skip_missing, device_of, existing, open_dataset
+from .common import (Summary, add_common, add_skip_missing, claim_output, device_of, existing, finish_output,
+                     open_dataset, run_settings)
 
 
 def add_parser(sub) -> None:
@@ -51,9 +53,17 @@ def run(args: argparse.Namespace) -> int:
     cfg = FeatureConfig(upsampler=args.upsampler, use_sam=not args.no_sam,
                         output_long_side=args.long_side, clip_long_side=args.clip_long_side,
                         pca_dim=args.pca_dim)
+    if not (Path(args.out) / "cache").is_dir():  # a fresh run: name every missing model at once
+        from tiger.models.paths import require_models
+
+        require_models(["clip"] + ([] if args.no_sam else ["sam"]) + (["featup_jbu"] if args.upsampler == "jbu" else []),
+                       config=args.models, hint="(--no-sam skips SAM; --upsampler implicit or bilinear needs no FeatUp weights)")
+    # an unfinished run in OUT resumes (finished images are skipped): only with the same settings
+    out = claim_output(args.out, "features", run_settings(args), force=args.force, resume=not args.force)
     summary = Summary("tiger features")
     fs = extract_features(files, args.out, names=names, config=cfg, models=args.models,
                           device=device_of(args.device))
+    finish_output(out, "features")
     summary.add(f"{len(fs.names)} feature maps in {fs.out_dir / 'features'}; PCA in {fs.out_dir / 'pca.pt'}")
     summary.print()
     return 0

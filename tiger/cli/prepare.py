@@ -4,8 +4,8 @@ Each stage is the command of the same name run into a folder of DIR; ``DIR/prepa
 every stage's inputs, time and quality, written atomically after each stage. A re-run skips the
 finished stages whose recorded inputs match, continues an interrupted one (the stages resume on
 their own: the reconstruction from its checkpoint, the features image by image, the field from its
-checkpoint) and refuses, naming the stage and the setting, when the inputs changed (--force
-starts over). `tiger query/edit/delete/render` take DIR for its scene.
+checkpoint), starts an unfinished stage afresh when its inputs changed, and refuses, naming the
+stage and the setting, when a finished stage's inputs changed (--force starts over). `tiger query/edit/delete/render` take DIR for its scene.
 """
 from __future__ import annotations
 
@@ -109,22 +109,30 @@ class _State:
             json.dump(self.data, fh, indent=2)
 
 
-def _check_inputs(name: str, record: dict[str, Any], inputs: dict[str, Any]) -> None:
-    old = record.get("inputs")
-    if old is None or old == inputs:
-        return
-    changed = sorted(k for k in set(old) | set(inputs) if old.get(k) != inputs.get(k))
-    detail = ", ".join(f"{k}: {old.get(k)!r} -> {inputs.get(k)!r}" for k in changed)
-    raise CliError(f"stage '{name}' was run with other inputs ({detail}); pass --force to start over")
+def _changed(old: dict[str, Any], inputs: dict[str, Any]) -> str:
+    """'' when equal, else 'key: old -> new, ...'."""
+    keys = sorted(k for k in set(old) | set(inputs) if old.get(k) != inputs.get(k))
+    return ", ".join(f"{k}: {old.get(k)!r} -> {inputs.get(k)!r}" for k in keys)
 
 
 def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], work: Callable[[], dict],
-               total: int = 3) -> None:
+               reset: Callable[[dict], None], total: int = 3) -> None:
+    """Run stage ``name`` unless it finished with the same inputs. A finished stage with other inputs
+    is refused (its output may be what the user wants to keep); an unfinished one with other inputs
+    (e.g. a wrong option that made it fail) is started afresh: ``reset(old_inputs)`` removes what of its
+    partial output the new inputs cannot reuse."""
     record = state.stage(name)
-    _check_inputs(name, record, inputs)
+    old = record.get("inputs")
+    changed = _changed(old, inputs) if old is not None else ""
     if record.get("done"):
+        if changed:
+            raise CliError(f"stage '{name}' finished with other inputs ({changed}); pass --force to start over")
         print(f"[{index}/{total}] {name}: done before ({record.get('seconds', 0):.1f} s), inputs unchanged")
         return
+    if changed:
+        print(f"[{index}/{total}] {name}: unfinished run had other inputs ({changed}); starting it afresh")
+        reset(old)
+        record.clear()
     verb = "continuing" if record.get("inputs") else "running"
     print(f"[{index}/{total}] {name}: {verb}", flush=True)
     record["inputs"] = inputs
@@ -154,7 +162,7 @@ def _table(state: _State) -> list[str]:
             continue
         total += float(rec.get("seconds", 0.0))
         q = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                      for k, v in (rec.get("quality") or {}).items())
+                      for k, v in (rec.get("quality") or {}).items() if not isinstance(v, str) or len(v) < 24)
         rows.append((name, f"{rec.get('seconds', 0.0):.1f}", q))
     rows.append(("total", f"{total:.1f}", ""))
     w0, w1 = max(len(r[0]) for r in rows), max(len(r[1]) for r in rows)
@@ -184,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
         given = existing(args.scene, "scene file").resolve()
         scene_file = given
         _run_stage(state, "reconstruct", 1, {"scene": str(given), "scene_id": _file_id(given)},
-                   lambda: {"gaussians": _count_gaussians(given), "source": "--scene"})
+                   lambda: {"gaussians": _count_gaussians(given), "source": "--scene"}, lambda old: None)
     else:
         scene_file = recon / "scene.ply"
         inputs = {"data": str(data), "steps": args.recon_steps, "downscale": args.downscale,
@@ -207,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
                 q["psnr_pixels"] = metrics["psnr_pixels"]
             return q
 
-        _run_stage(state, "reconstruct", 1, inputs, reconstruct)
+        _run_stage(state, "reconstruct", 1, inputs, reconstruct, lambda old: shutil.rmtree(recon, ignore_errors=True))
 
     # 2. the feature maps
     feats = out / FEATURES
@@ -222,7 +230,13 @@ def run(args: argparse.Namespace) -> int:
                               "--no-sam": args.no_sam})])
         return {"maps": len(list((feats / "features").glob("*.pt")))}
 
-    _run_stage(state, "features", 2, f_inputs, features)
+    def reset_features(old: dict) -> None:
+        # The per-image cache is keyed by the feature settings (a new PCA size reuses it), not by
+        # the models or the images: those start it afresh.
+        if any(old.get(k) != f_inputs[k] for k in ("data", "models", "skip_missing")):
+            shutil.rmtree(feats, ignore_errors=True)
+
+    _run_stage(state, "features", 2, f_inputs, features, reset_features)
 
     # 3. the language field
     lang = out / SCENE
@@ -243,7 +257,11 @@ def run(args: argparse.Namespace) -> int:
                 q["field_loss"] = float(losses[-1])
         return q
 
-    _run_stage(state, "embed", 3, e_inputs, embed)
+    def reset_embed(old: dict) -> None:
+        lang.unlink(missing_ok=True)
+        Path(str(lang) + ".ckpt.pt").unlink(missing_ok=True)
+
+    _run_stage(state, "embed", 3, e_inputs, embed, reset_embed)
 
     state.data["result"] = {"scene": str(lang), "features": str(feats),
                             "seconds_this_run": time.perf_counter() - t_start}

@@ -11,7 +11,8 @@ from tiger.render import Camera
 from tiger.scene import GaussianScene
 from tiger.utils.io import atomic_write, file_slug
 
-from .common import CliError, Summary, add_common, add_skip_missing, device_of, load_scene, open_dataset, output_dir
+from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing, device_of, load_scene,
+                     open_dataset, output_dir, warn)
 from .text import text_encoder
 
 
@@ -34,8 +35,7 @@ def add_parser(sub) -> None:
     p.add_argument("--data", default=None, help="dataset whose cameras to draw (default: an orbit)")
     add_skip_missing(p)
     p.add_argument("--views", type=int, default=3, help="pictures per query")
-    p.add_argument("--score", choices=("cosine", "relevancy"), default="cosine")
-    p.add_argument("--tau", default="auto", help="selection threshold, or 'auto' (Otsu)")
+    add_selection_options(p, guarded=False)
     p.set_defaults(func=run)
 
 
@@ -64,7 +64,7 @@ def _slugs(texts: list[str]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiger.retrieval import retrieve, write_relevancy_pictures
+    from tiger.retrieval import check_selection, retrieve, write_relevancy_pictures
     from tiger.utils.images import save_png
 
     # Everything that can refuse runs before the output folder is made: a refused query
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
-    tau = args.tau if args.tau == "auto" else float(args.tau)
+    tau = args.tau
     encoder = text_encoder(args.models, args.text_embeddings, dev, scene, args.scene)
     texts = list(dict.fromkeys(args.text))
     try:
@@ -89,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
     report = {}
     for text, slug in zip(texts, _slugs(texts)):
         r = results[text]
+        check = check_selection(scene.means, r.mask)
+        if not check.ok:
+            warn(f"{text!r}: {check.problem}; see the highlight pictures and choose --tau or --score")
         if r.count:
             scene.subset(r.mask).save_ply(out / f"{slug}.ply")
         write_relevancy_pictures(scene, cams, text, out / "relevancy", encoder=encoder,
@@ -101,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
                 img = scene.render(cam, tint, background=torch.ones(3, device=rgb.device))
             save_png(out / f"{slug}_highlight_{i}.png", img["color"])
         report[text] = {"selected": r.count, "tau": r.tau, "score": r.score, "files": slug,
+                        "warning": check.problem,
                         "center": None if r.center is None else r.center.tolist(),
                         "bbox_min": None if r.bbox_min is None else r.bbox_min.tolist(),
                         "bbox_max": None if r.bbox_max is None else r.bbox_max.tolist()}

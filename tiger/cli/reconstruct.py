@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import argparse
 import json
-
 from pathlib import Path
 
-from .common import CliError, Summary, add_common, add_skip_missing, device_of, existing, open_dataset, output_dir
+from .common import (CliError, Summary, add_common, add_skip_missing, claim_output, device_of, existing,
+                     finish_output, open_dataset, run_settings)
 
 
 def add_parser(sub) -> None:
@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
                     "undistortion is left out of the loss and of the metric (metrics.json: psnr_pixels); "
                     "random initial points take their colour from the views. Checkpoints allow --resume. Writes "
                     "OUT/scene.ply (INRIA's PLY), OUT/cameras.json (the capture's cameras, INRIA's "
-                    "format; `tiger render` renders along them), OUT/metrics.json, OUT/run.json "
+                    "format; `tiger render` renders along them), OUT/metrics.json, OUT/tiger_run.json "
                     "(the settings; --resume must match them). The undistorted-image cache and the "
                     "checkpoint are removed when the run finishes (--keep-cache keeps them); a "
                     "cache left by a stopped run does not block a rerun.",
@@ -35,10 +35,18 @@ def add_parser(sub) -> None:
     add_skip_missing(p)
     p.add_argument("--init-points", type=int, default=100_000,
                    help="random initial Gaussians when the dataset has no points")
-    p.add_argument("--checkpoint-every", type=int, default=1000)
+    p.add_argument("--max-gaussians", type=int, default=None, metavar="N",
+                   help="densification never grows the scene past N Gaussians (the strongest "
+                        "gradients win; default: no cap)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="stop training once it took this long (a resumed run counts its earlier "
+                        "time), then evaluate and write the scene as usual (default: no budget)")
+    p.add_argument("--checkpoint-every", type=int, default=1000,
+                   help="steps between checkpoints (OUT/checkpoint.pt; also written at the end and "
+                        "on Ctrl-C)")
     p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/checkpoint.pt (refused when OUT holds other files but no "
-                        "checkpoint, unless --force)")
+                   help="continue from OUT/checkpoint.pt; refused, naming what differs, when OUT holds "
+                        "a reconstruction with another dataset or settings (or no record of one)")
     p.add_argument("--finetune", default=None, metavar="PLY",
                    help="start from this scene instead of initialising (e.g. after a deletion)")
     p.add_argument("--keep-cache", action="store_true",
@@ -47,9 +55,7 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-CACHE, RUN_FILE = "image_cache", "run.json"
-#: Settings a --resume must share with the run it continues (the schedule is scaled by --steps).
-RESUME_SETTINGS = ("data", "steps", "downscale", "sh_degree", "test_every", "init_points", "finetune")
+CACHE = "image_cache"
 
 
 def _check_arguments(args: argparse.Namespace) -> None:
@@ -62,41 +68,6 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise CliError(f"--sh-degree must be 0..3, got {args.sh_degree}")
     if args.test_every < 0 or args.checkpoint_every < 0 or args.init_points < 1:
         raise CliError("--test-every and --checkpoint-every must be >= 0 and --init-points >= 1")
-
-
-def _run_settings(args: argparse.Namespace) -> dict:
-    return {"data": str(Path(args.data).resolve()), "steps": args.steps, "downscale": args.downscale,
-            "sh_degree": args.sh_degree, "test_every": args.test_every, "init_points": args.init_points,
-            "finetune": str(Path(args.finetune).resolve()) if args.finetune else None}
-
-
-def _check_resume_settings(out: Path, args: argparse.Namespace) -> None:
-    """A --resume continues only the run it was started as: settings that differ are named."""
-    import json
-
-    stored = out / RUN_FILE
-    if not stored.is_file():
-        return  # a checkpoint from before run.json existed: nothing to compare
-    before = json.loads(stored.read_text())
-    now = _run_settings(args)
-    diff = [f"--{k.replace('_', '-')} {before.get(k)} -> {now[k]}" for k in RESUME_SETTINGS if before.get(k) != now[k]]
-    if diff:
-        raise CliError(f"--resume: {out / 'checkpoint.pt'} was made with other settings ({'; '.join(diff)}); "
-                       "resume with the same ones, or start over with --force")
-
-
-def _resumable(out: Path, resume: bool) -> bool:
-    """--resume may write into a non-empty OUT only when OUT holds the checkpoint it resumes."""
-    if not resume:
-        return False
-    if (out / "checkpoint.pt").is_file():
-        return True
-    content = sorted(p.name for p in out.iterdir() if p.name not in (CACHE, RUN_FILE)) if out.is_dir() else []
-    if content:
-        raise CliError(f"--resume: {out} has no checkpoint.pt to resume from but is not empty "
-                       f"({', '.join(content[:5])}); pass --force to "
-                       "start from scratch in it (overwriting its scene.ply, metrics.json, ...)")
-    return False
 
 
 def _clean_up(out: Path, keep: bool) -> list[str]:
@@ -120,28 +91,31 @@ def run(args: argparse.Namespace) -> int:
     from tiger.recon.data import masked_fraction, valid_pixel_masks
     from tiger.scene import GaussianScene
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
+    from tiger.train import CheckpointMismatch
     from tiger.utils.io import atomic_write
 
     _check_arguments(args)
     dev = device_of(args.device)
+    if args.max_gaussians is not None and args.max_gaussians < 1:
+        raise CliError(f"--max-gaussians must be >= 1, got {args.max_gaussians}")
+    if args.time_budget is not None and not args.time_budget > 0:
+        raise CliError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
     data = existing(args.data, "dataset")
-    resuming = _resumable(Path(args.out), args.resume)
-    if resuming:
-        _check_resume_settings(Path(args.out), args)
     ds = open_dataset(args.data, args.skip_missing)  # a bad dataset is refused before OUT exists
-    out = output_dir(args.out, args.force or resuming, ignore=(CACHE, RUN_FILE))  # a stopped run's leftovers
-    with atomic_write(out / RUN_FILE, "w") as fh:
-        json.dump(_run_settings(args), fh, indent=2)
+    # a stopped run's image cache does not block a rerun; --resume must match the run's settings
+    out = claim_output(args.out, "reconstruct",
+                       run_settings(args, ignore=("checkpoint_every", "keep_cache", "time_budget")),
+                       force=args.force, resume=args.resume, leftovers=(CACHE,))
     summary = Summary("tiger reconstruct")
     train, test = ds.split(args.test_every)
     summary.add(f"{len(train)} training views, {len(test)} test views from {data} ({ds.kind})")
-    cache = out / "image_cache"
+    cache = out / CACHE
     train_cams, train_imgs = load_views(train, args.downscale, cache_dir=cache, progress=True)
     test_cams, test_imgs = load_views(test, args.downscale, cache_dir=cache, progress=True)
     # INRIA's 30k schedule compressed to --steps (identical at 30000).
     cfg = ReconConfig.scaled(args.steps, sh_degree=args.sh_degree,
-                             init_random_points=args.init_points,
-                             checkpoint_every=args.checkpoint_every)
+                             init_random_points=args.init_points, max_gaussians=args.max_gaussians,
+                             time_budget_s=args.time_budget, checkpoint_every=args.checkpoint_every)
     scene = GaussianScene.load_ply(existing(args.finetune, "scene")) if args.finetune else None
     # the black border that undistortion leaves counts neither in the loss nor in the metric
     train_masks, test_masks = valid_pixel_masks(train, args.downscale), valid_pixel_masks(test, args.downscale)
@@ -151,7 +125,10 @@ def run(args: argparse.Namespace) -> int:
                       masks=train_masks, test_masks=test_masks)
     ckpt = out / "checkpoint.pt"
     if args.resume and ckpt.is_file():
-        trainer.load(ckpt)
+        try:
+            trainer.load(ckpt)
+        except CheckpointMismatch as exc:
+            raise CliError(f"--resume: {exc}") from None
         summary.add(f"resumed from {ckpt} at step {trainer.step}")
     try:
         scene = trainer.fit()
@@ -159,10 +136,14 @@ def run(args: argparse.Namespace) -> int:
         held = (f"{ckpt} holds step {trainer.checkpoint_step}: continue with --resume"
                 if trainer.checkpoint_step is not None else "this run wrote no checkpoint yet")
         raise KeyboardInterrupt(f"stopped at step {trainer.step} of {cfg.iterations}; {held}") from None
+    if trainer.outcome is not None and trainer.outcome.stopped == "time budget":
+        summary.add(f"time budget of {args.time_budget:g} s reached: stopped at step {trainer.step} of "
+                    f"{cfg.iterations} (--resume with a larger --time-budget continues)")
     scene.save_ply(out / "scene.ply")
     write_cameras_json(cameras_json_path(out / "scene.ply"), ds.cameras)
     summary.add(f"scene: {len(scene)} Gaussians -> {out / 'scene.ply'} (cameras: {out / 'cameras.json'})")
-    metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed}
+    metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed,
+               "stopped": trainer.outcome.stopped if trainer.outcome is not None else "done"}
     if test_cams:
         ev = trainer.evaluate()
         metrics.update({k: v for k, v in ev.items() if isinstance(v, (int, float))})
@@ -176,5 +157,6 @@ def run(args: argparse.Namespace) -> int:
     gone = _clean_up(out, args.keep_cache)
     if gone:
         summary.add(f"removed {', '.join(gone)} (--keep-cache keeps them)")
+    finish_output(out, "reconstruct")
     summary.print()
     return 0

@@ -2,15 +2,13 @@
 from __future__ import annotations
 
 import logging
-import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import torch
 
 from tiger.render.views import orbit_cameras
 from tiger.scene.labelled import LabelledScene
+from tiger.train import StageTimer
 from tiger.utils.images import colorize, feature_pca_image, pca_basis, save_png
 
 from .scene import DEMO_ORBIT, tabletop_scene
@@ -18,24 +16,8 @@ from .scene import DEMO_ORBIT, tabletop_scene
 log = logging.getLogger(__name__)
 
 
-class StageTimer:
-    """Collects (stage, seconds) and prints one line per stage."""
-
-    def __init__(self) -> None:
-        self.rows: list[tuple[str, float]] = []
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        yield
-        dt = time.perf_counter() - t0
-        self.rows.append((name, dt))
-        print(f"  [{dt:6.2f} s] {name}", flush=True)
-
-    def summary(self) -> str:
-        total = sum(t for _, t in self.rows)
-        return "\n".join([f"{n:<40s} {t:7.2f} s" for n, t in self.rows] +
-                         [f"{'total':<40s} {total:7.2f} s"])
+def _print_stage(name: str, seconds: float) -> None:
+    print(f"  [{seconds:6.2f} s] {name}", flush=True)
 
 
 def label_features(scene: LabelledScene, dim: int = 64, seed: int = 0,
@@ -88,7 +70,7 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
     queries and ``edit_steps`` > 0) recolour the ball red. Returns what it did."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    timer = StageTimer()
+    timer = StageTimer(on_stage=_print_stage)  # the demo renders on the CPU
     print(f"TIGER demo → {out}/")
     with timer.stage("build procedural tabletop scene"):
         scene = tabletop_scene(density)
@@ -108,7 +90,7 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
 
         edited = recolor_demo(out, timer, models=models, steps=edit_steps)
     deleted = _delete_demo(out, timer, models) if found and "mug" in queries else None
-    print("\nstage timings\n" + timer.summary())
+    print("\nstage timings\n" + timer.table())
     if found:
         print("\nqueries")
         for r in found:
@@ -117,7 +99,7 @@ def run_demo(out_dir: str = "outputs/demo", width: int = 480, height: int = 360,
     print(f"\npictures in {out}/: view*_{{color,depth,alpha,features_pca}}.png, "
           "relevancy/*.png, highlight_*.png, retrieved_*.png" + (", edit_before_after.png" if edited else "")
           + (", delete_mug.png (before above after), delete_mug/" if deleted else ""))
-    return {"timer": timer.rows, "views": views, "scene": scene, "queries": found, "edit": edited,
+    return {"timer": list(timer.summary().items()), "views": views, "scene": scene, "queries": found, "edit": edited,
             "delete": deleted}
 
 

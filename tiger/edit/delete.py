@@ -190,7 +190,8 @@ def select_removal(scene: GaussianScene, target: Target, cfg: DeleteConfig,
     return removal_mask(r.scores.to(scene.device), r.mask.to(scene.device), scene.means, r.tau,
                         floater_fraction=cfg.floater_fraction, box_margin=cfg.box_margin,
                         lang_norms=norms, unseen_norm=cfg.unseen_norm, colors=scene.rgb,
-                        appearance_margin=cfg.appearance_margin)
+                        appearance_margin=cfg.appearance_margin,
+                        sizes=scene.log_scales.detach().exp().amax(dim=1))
 
 
 @dataclass
@@ -347,6 +348,9 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     inp = make_inpainter(inpainter, models=models, device=scene.device) if isinstance(inpainter, str) else inpainter
     t0 = now()
     removal = select_removal(scene, target, cfg, encoder)
+    if bool(removal.mask.all()):
+        raise ValueError(f"tiger.edit.delete: the target covers all {len(scene)} Gaussians; deleting it "
+                         "would leave an empty scene (check the threshold)")
     rest = scene.subset(~removal.mask)
     times["remove"] = now() - t0
 
@@ -383,7 +387,8 @@ def delete(scene: GaussianScene, target: Target, cameras: Sequence[Camera],
     counts = {**removal.counts(), "trainable_kept": int(near.sum()), "seeded": len(seeds),
               "added_by_densify": fit.added, "trainable": int(fit.trainable.sum()), "final": len(fit.scene)}
     log.info("delete: removed %d (retrieved %d + floaters %d + unseen %d + similar %d), %d trainable, "
-             "%d seeds, %d final", counts["removed"], counts["retrieved"], counts["floaters"], counts["unseen"],
+             "%d seeds, %d final", counts["removed"], counts["retrieved"] - counts["stray_kept"], counts["floaters"],
+             counts["unseen"],
              counts["similar"], counts["trainable"], counts["seeded"], counts["final"])
     return DeleteResult(scene=fit.scene, removal=removal, cameras=list(cameras), before=views.before,
                         remaining=views.rest_rgb, targets=targets, after=after, holes=views.holes,

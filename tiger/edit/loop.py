@@ -14,31 +14,30 @@ through the rasterizer, and take a relevance-scaled Adam step on the editable Ga
 * **View-independent colour.** Editable Gaussians' higher SH bands are zeroed at the start of the
   round and not optimised (``sh_rest`` is not a parameter), so they render ``max(C0 · dc + 0.5, 0)``
   from every direction.
-* **Densification** every ``densify_every`` steps (:func:`tiger.recon.strategy.region_topk_densify`):
-  the top ``densify_fraction`` (1 %) of the editable Gaussians by mean accumulated screen-space
-  gradient are cloned (largest scale ≤ ``percent_dense`` × object radius) or split; editable
-  Gaussians below ``min_opacity`` are pruned (:func:`~tiger.recon.strategy.prune_transparent`).
+* **Densification** every ``densify_every`` steps from ``densify_from`` to ``densify_until``
+  (:class:`tiger.recon.strategy.RegionTopKStrategy`): the top ``densify_fraction`` (1 %) of the
+  editable Gaussians by mean accumulated screen-space gradient are cloned (largest scale ≤
+  ``percent_dense`` × object radius) or split; editable Gaussians below ``min_opacity`` are pruned.
   Children inherit every attribute of their parent: ``lang``, the relevance weight, trainability.
 * **Checkpoints**: every ``checkpoint_every`` steps and on Ctrl-C (then the interrupt is re-raised);
   ``resume=True`` continues bit-for-bit (views, guidance noise, Adam, densification statistics).
+  The loop itself (progress, checkpoints, Ctrl-C) is :func:`tiger.train.run_loop`.
 """
 from __future__ import annotations
 
 import logging
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Optional, Sequence, Union
+from typing import Any, Optional, Sequence, Union
 
 import torch
 
 from tiger.retrieval.text import TextEncoder
 from tiger.recon.step import SceneOptimizer
-from tiger.recon.strategy.rules import DensifyStats, prune_transparent, region_topk_densify
+from tiger.recon.strategy import DensifySchedule, RegionTopKStrategy
 from tiger.render import Camera
 from tiger.scene.gaussian_scene import GaussianScene, render_rgb, render_views
-from tiger.utils.io import atomic_torch_save
+from tiger.train import StageTimer, read_checkpoint, restore_rng, run_loop, write_checkpoint
 
 from .config import EditConfig
 from .guidance.base import Guidance, ViewBatch, check_guidance
@@ -90,48 +89,6 @@ class ViewPool:
     masks: torch.Tensor
 
 
-class _Timer:
-    """Seconds per stage. On CUDA each stage is bracketed by CUDA events, read back only when the
-    totals are asked for, so timing adds no host synchronisation to the loop (a sync per stage
-    would leave the GPU idle while the next stage's launches are prepared)."""
-
-    def __init__(self, device: torch.device) -> None:
-        self.device = device
-        self._done = {k: 0.0 for k in STAGES}
-        self._pending: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []
-
-    @contextmanager
-    def __call__(self, stage: str) -> Iterator[None]:
-        if self.device.type == "cuda":
-            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            start.record()
-            with torch.profiler.record_function(f"edit::{stage}"):  # named ranges for a profiler, if one runs
-                yield
-            end.record()
-            self._pending.append((stage, start, end))
-            if len(self._pending) >= 512:  # bounded: resolve (one sync) now and then
-                self._resolve()
-        else:
-            t0 = time.perf_counter()
-            yield
-            self._done[stage] = self._done.get(stage, 0.0) + time.perf_counter() - t0
-
-    def _resolve(self) -> None:
-        if self._pending:
-            self._pending[-1][2].synchronize()
-            for stage, start, end in self._pending:
-                self._done[stage] = self._done.get(stage, 0.0) + 1e-3 * start.elapsed_time(end)
-            self._pending.clear()
-
-    @property
-    def total(self) -> dict[str, float]:
-        """{stage: seconds} so far (reading it waits for the stages still running on the GPU)."""
-        self._resolve()
-        return self._done
-
-    def load(self, totals: dict[str, float]) -> None:
-        self._resolve()
-        self._done.update(totals)
 
 
 class EditSession:
@@ -166,9 +123,12 @@ class EditSession:
         self.step = 0
         self.history: list[dict] = []
         self.elapsed = 0.0
-        self.timer = _Timer(self.device)
-        self._rng_at_start: Optional[tuple] = None
-        self.stats = DensifyStats.zeros(len(work), self.device)
+        self.timer = StageTimer(self.device, prefix="edit", stages=STAGES)
+        until = config.densify_until if config.densify_until is not None else int(0.9 * config.steps)
+        self.strategy = RegionTopKStrategy(len(work), self.device,
+                                           DensifySchedule(config.densify_every, config.densify_from, until),
+                                           extent=max(self.radius, 1e-6), top_percent=100.0 * config.densify_fraction,
+                                           percent_dense=config.percent_dense, min_opacity=config.min_opacity)
         self.pool: Optional[ViewPool] = None
         guidance.reset_caches()  # view ids of an earlier round named other cameras
         if config.view_pool:
@@ -225,7 +185,6 @@ class EditSession:
         """One CSD step (views, renders, guidance, backward, scaled Adam, densification); the
         record's ``loss`` may be a 0-d tensor (not read back, so the host need not wait)."""
         cfg, T = self.cfg, self.timer
-        self._rng_at_start = (self.gen.get_state(), [g.get_state() for g in self.guidance.generators()])
         with T("render"):
             cams, originals, masks, view_ids = self._views()
             out = render_views(self.opt.render_scene(), cams, "rgb", background=self.background, check_finite=False)
@@ -241,33 +200,24 @@ class EditSession:
                              f"of shape {list(g.shape)} for renders {list(x.shape)}")
         with T("backward"):
             x.backward(torch.nan_to_num(g.to(x), nan=0.0, posinf=0.0, neginf=0.0))
-            if cfg.densify_every and out["means2d"].grad is not None:
-                self.stats.add(out["means2d"].grad, out["radii"], cams[0].width, cams[0].height)  # one size
+            self.strategy.observe(self.step + 1, out, cams[0].width, cams[0].height)  # one size for all views
         with T("optimizer"):
             self.opt.update()
         self.step += 1
-        self._rng_at_start = None  # from here on an interrupt keeps this step
         # the loss stays a (0-d) tensor: reading it here would wait for the GPU every step
         loss = info.loss.detach().float() if isinstance(info.loss, torch.Tensor) else float(info.loss)
         rec = {"step": self.step, "loss": loss, "gaussians": len(self.scene)}
         rec.update({k: float(v) for k, v in info.extra.items() if k.startswith("lambda")})
-        until = cfg.densify_until if cfg.densify_until is not None else int(0.9 * cfg.steps)
-        if (cfg.densify_every and self.step >= cfg.densify_from and self.step <= until
-                and self.step % cfg.densify_every == 0):
+        if self.strategy.schedule.due(self.step):
             with T("densify"):
-                rec["densify"] = self.densify()
+                editable_before = self.opt.num_trainable
+                rec["densify"] = self.strategy.step_post_backward(self.opt, self.step, self.gen)
+                rec["densify"].update(editable_before=editable_before, editable=self.opt.num_trainable)
         return rec
 
-    def densify(self) -> dict:
-        """Clone/split the top ``densify_fraction`` of the editable Gaussians, prune transparent ones."""
-        editable_before = self.opt.num_trainable
-        info = region_topk_densify(self.opt, self.stats, extent=max(self.radius, 1e-6),
-                                   top_percent=100.0 * self.cfg.densify_fraction,
-                                   percent_dense=self.cfg.percent_dense, generator=self.gen)
-        info["pruned"] = prune_transparent(self.opt, self.cfg.min_opacity, state=self.stats.rows())
-        info["total"] = len(self.scene)
-        info["editable_before"], info["editable"] = editable_before, self.opt.num_trainable
-        return info
+    def generators(self) -> list[torch.Generator]:
+        """The view sampler's generator and the guidance's (set back when a step is interrupted)."""
+        return [self.gen] + list(self.guidance.generators())
 
     # -- result -----------------------------------------------------------------------------------
     def result_scene(self) -> tuple[GaussianScene, torch.Tensor]:
@@ -285,33 +235,21 @@ class EditSession:
                 "config": self.cfg.to_dict()}
 
     def save(self, path: Union[str, Path]) -> None:
-        payload = {
-            "format": CHECKPOINT_FORMAT, "signature": self.signature(), "step": self.step,
-            "optimizer": self.opt.state_dict(), "stats": self.stats.state_dict(), "view_rng": self.gen.get_state(),
-            "guidance_rng": [g.get_state() for g in self.guidance.generators()],
-            "history": self.history, "elapsed": self.elapsed, "timings": dict(self.timer.total),
-        }
-        atomic_torch_save(payload, path)
+        state = {"step": self.step, "optimizer": self.opt.state_dict(), "strategy": self.strategy.state_dict(),
+                 "history": self.history, "elapsed": self.elapsed, "timings": self.timer.summary()}
+        write_checkpoint(path, CHECKPOINT_FORMAT, state, signature=self.signature(), generators=self.generators())
 
     def load(self, path: Union[str, Path]) -> None:
-        path = Path(path)
+        """Continue from :meth:`save`'s checkpoint; one of another edit (instruction, target,
+        guidance, settings) is refused naming what differs."""
         try:
-            ck = torch.load(path, map_location=self.device, weights_only=True)
-        except Exception as exc:  # corrupt files raise many types
-            raise ValueError(f"tiger.edit: cannot read checkpoint {path} ({type(exc).__name__}: {exc})") from None
-        if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"tiger.edit: {path} is not an edit checkpoint (format {CHECKPOINT_FORMAT})")
-        if ck["signature"] != self.signature():
-            mine = self.signature()
-            differ = sorted(k for k in set(mine) | set(ck["signature"]) if mine.get(k) != ck["signature"].get(k))
-            raise ValueError(f"tiger.edit: checkpoint {path} belongs to another edit "
-                             f"({ck['signature'].get('instruction')!r} on {ck['signature'].get('target')!r}; "
-                             f"differs in {', '.join(differ)}); use another output folder or start without --resume")
+            ck = read_checkpoint(path, CHECKPOINT_FORMAT, signature=self.signature(), map_location=self.device,
+                                 what="edit")
+        except ValueError as exc:
+            raise ValueError(f"tiger.edit: {exc}") from None
         self.opt.load_state_dict(ck["optimizer"])
-        self.stats = DensifyStats.from_state_dict({k: v.to(self.device) for k, v in ck["stats"].items()})
-        self.gen.set_state(ck["view_rng"].cpu())
-        for g, st in zip(self.guidance.generators(), ck.get("guidance_rng", [])):
-            g.set_state(st.cpu())
+        self.strategy.load_state_dict(ck["strategy"], self.device)
+        restore_rng(ck["rng"], self.generators())
         self.step, self.history, self.elapsed = int(ck["step"]), list(ck["history"]), float(ck["elapsed"])
         self.timer.load(ck.get("timings", {}))
         log.info("edit resumed from %s at step %d of %d", path, self.step, self.cfg.steps)
@@ -319,38 +257,15 @@ class EditSession:
     # -- the loop -----------------------------------------------------------------------------------
     def run(self, checkpoint: Optional[Union[str, Path]] = None) -> None:
         """Step until ``config.steps``; checkpoints as configured and on Ctrl-C (re-raised)."""
-        from tqdm.auto import tqdm
-
         cfg = self.cfg
-        bar = tqdm(total=cfg.steps, initial=self.step, desc=f"edit: {self.instruction}"[:40],
-                   disable=not cfg.progress, dynamic_ncols=True)
-        t0, start = time.perf_counter(), self.elapsed
-        ema = None
-        try:
-            while self.step < cfg.steps:
-                rec = self.step_once()
-                self.elapsed = start + time.perf_counter() - t0
-                ema = rec["loss"] if ema is None else 0.9 * ema + 0.1 * rec["loss"]
-                if self.step % 10 == 0 or self.step == cfg.steps or "densify" in rec:
-                    rec["loss"] = float(rec["loss"])  # one read-back per logged step
-                    self.history.append(rec)
-                    bar.set_postfix(loss=f"{float(ema):.4g}", N=rec["gaussians"], refresh=False)
-                bar.update(1)
-                if checkpoint and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
-                    self.save(checkpoint)
-        except KeyboardInterrupt:
-            if self._rng_at_start is not None:  # the step did not finish: it is redone on resume
-                self.gen.set_state(self._rng_at_start[0])
-                for g, st in zip(self.guidance.generators(), self._rng_at_start[1]):
-                    g.set_state(st)
-            if checkpoint:
-                self.save(checkpoint)
-                log.warning("edit interrupted at step %d; resumable checkpoint in %s", self.step, checkpoint)
-            raise
-        finally:
-            bar.close()
-        if checkpoint:
-            self.save(checkpoint)
+
+        def keep(rec: dict) -> None:
+            if self.step % 10 == 0 or self.step == cfg.steps or "densify" in rec:
+                rec["loss"] = float(rec["loss"])  # one read-back per logged step
+                self.history.append(rec)
+
+        run_loop(self, cfg.steps, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
+                 progress=cfg.progress, desc=f"edit: {self.instruction}"[:40], after_step=keep)
 
 
 def edit(scene: GaussianScene, target: TargetLike, guidance: Guidance, *,
@@ -397,7 +312,7 @@ def edit(scene: GaussianScene, target: TargetLike, guidance: Guidance, *,
     rounds = list(scene.metadata.get("tiger_edits", [])) + [record]
     out.metadata["tiger_edits"] = rounds
     return EditResult(scene=out, weights=w, rounds=rounds, history=session.history,
-                      timings_s=dict(session.timer.total))
+                      timings_s=session.timer.summary())
 
 
 __all__ = ["EditResult", "EditSession", "edit"]

@@ -61,6 +61,18 @@ def _state_rows(opt: SceneOptimizer) -> int:
     return max((int(st["exp_avg"].shape[0]) for st in opt.optimizer.state.values() if "exp_avg" in st), default=0)
 
 
+def _load_checkpoint(ckpt: Path, fingerprint: list[float], device: torch.device) -> dict:
+    """The refit checkpoint at ``ckpt``, refused unless it belongs to this deletion."""
+    try:
+        ck = torch.load(ckpt, map_location=device, weights_only=True)
+    except Exception as e:  # zip/pickle errors come in many types
+        raise ValueError(f"tiger.edit.refit: cannot read the checkpoint {ckpt}: {e}") from None
+    if [round(x, 3) for x in ck.get("fingerprint", [])] != [round(x, 3) for x in fingerprint]:
+        raise ValueError(f"tiger.edit.refit: {ckpt} belongs to another deletion (different scene, "
+                         "target, views or settings); remove it or use another output folder")
+    return ck
+
+
 def refit(scene: GaussianScene, trainable: torch.Tensor, cameras: Sequence[Camera], targets: torch.Tensor,
           windows: Sequence[Optional[tuple[int, int, int, int]]], cfg, *,
           checkpoint_dir: Optional[PathLike] = None, resume: bool = False, progress: bool = True) -> RefitResult:
@@ -84,13 +96,15 @@ def refit(scene: GaussianScene, trainable: torch.Tensor, cameras: Sequence[Camer
     trainable = trainable.to(dev)
     views = [i for i, w in enumerate(windows) if w is not None]
     work = scene.clone()
-    if not views or cfg.steps <= 0 or not bool(trainable.any()):
+    fingerprint = _fingerprint(scene, trainable, targets)
+    ckpt = Path(checkpoint_dir) / CHECKPOINT if checkpoint_dir is not None else None
+    ck = _load_checkpoint(ckpt, fingerprint, dev) if resume and ckpt is not None and ckpt.is_file() else None
+    if not views or cfg.steps <= 0 or not bool(trainable.any()):  # nothing to fit (checkpoint checked first)
         return RefitResult(work, trainable.clone(), [], 0, 0, 0)
     crops = {i: crop_camera(cameras[i], *windows[i]).to(dev, scene.dtype) for i in views}
     crop_targets = {i: targets[i, windows[i][1]:windows[i][1] + windows[i][3],
                                windows[i][0]:windows[i][0] + windows[i][2]].to(dev, scene.dtype)
                     for i in views}
-    fingerprint = _fingerprint(scene, trainable, targets)
     bg = torch.tensor(cfg.background, dtype=scene.dtype, device=dev)
     lrs = {k: v for k, v in cfg.lrs.items() if getattr(work, k, None) is not None}
     opt = SceneOptimizer(work, lrs, trainable=trainable)
@@ -98,15 +112,7 @@ def refit(scene: GaussianScene, trainable: torch.Tensor, cameras: Sequence[Camer
     gen = torch.Generator().manual_seed(int(cfg.seed))
     extent = scene_extent(list(cameras))
     step, losses, added, order = 0, [], 0, []
-    ckpt = Path(checkpoint_dir) / CHECKPOINT if checkpoint_dir is not None else None
-    if resume and ckpt is not None and ckpt.is_file():
-        try:
-            ck = torch.load(ckpt, map_location=dev, weights_only=True)
-        except Exception as e:  # zip/pickle errors come in many types
-            raise ValueError(f"tiger.edit.refit: cannot read the checkpoint {ckpt}: {e}") from None
-        if [round(x, 3) for x in ck.get("fingerprint", [])] != [round(x, 3) for x in fingerprint]:
-            raise ValueError(f"tiger.edit.refit: {ckpt} belongs to another deletion (different scene, "
-                             "target, views or settings); remove it or use another output folder")
+    if ck is not None:
         opt.load_state_dict(ck["optimizer"])
         stats = DensifyStats.from_state_dict(ck["stats"])
         gen.set_state(ck["generator"])

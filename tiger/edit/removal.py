@@ -12,8 +12,9 @@ The floater rule: a Gaussian is also removed when
      ``floater_tau = median(scores) + floater_fraction * (tau - median(scores))``
      (half-way between a typical Gaussian and the retrieval threshold by default).
 Gaussians of the surroundings inside the box (the table under a mug) score near the median and
-stay; stray Gaussians far from the object stay whatever their score (they may be another
-instance). ``floater_fraction = 1`` turns the rule off.
+stay; stray Gaussians outside the grown box stay whatever their score, retrieved ones included
+(a few Gaussians of the neighbouring objects lean toward the text; deleting the ball must not
+take them). ``floater_fraction = 1`` turns the rule off.
 
 The unseen rule: a Gaussian inside the same box whose language feature is (nearly) zero, with a
 norm below ``unseen_norm`` times the median norm of the retrieved ones, is removed too. Language
@@ -22,15 +23,18 @@ are the parts the object hid from every view (a mug's inner wall and bottom). Th
 says nothing; left in place they would surface once the object is gone.
 
 The appearance rule (when ``colors`` are given): where the language field blurs the object into
-its support (a mug's bottom band trained toward "table"), a kept Gaussian inside the box that
-touches the removed ones (within ``radius``; default 3x the median nearest-neighbour spacing of
-the removed Gaussians) is removed when its colour is much closer to the object's colours than to
-the surroundings' (the kept Gaussians in the margin between the object's robust box and the
-grown box): mean colour distance to its nearest eighth of the object's colours <
-``appearance_margin`` x the mean distance to its nearest quarter of the surrounding colours
-(fractions, not single neighbours, so that a few misretrieved Gaussians in the object or a few
-object-coloured ones in the margin do not decide). Repeated up to ``appearance_iters`` times, so it grows along the object inside the box
-only. ``appearance_margin = None`` turns it off.
+its support (a mug's bottom band, a ball's underside trained toward "table"), a kept Gaussian
+inside the robust box grown by ``appearance_reach`` margins that touches the removed ones (within
+``radius``; default 3x the median nearest-neighbour spacing of the removed Gaussians, or twice
+their median size (``sizes``, the largest axis) when larger: such surfels overlap) is removed
+when its colour is much closer to the object's colours than to the surroundings': mean colour
+distance to its nearest eighth of the object's colours < ``appearance_margin`` x the mean
+distance to its nearest quarter of the surrounding colours (fractions, not single neighbours, so
+that a few misretrieved Gaussians in the object or a few object-coloured ones around do not
+decide). The surroundings are the kept Gaussians in the next margin *outside* that region (the
+table around a ball), never the candidates themselves: an unretrieved part of the object (the
+ball's underside) cannot vote for itself. Repeated up to ``appearance_iters`` times, so it grows
+along the object inside the region only. ``appearance_margin = None`` turns it off.
 """
 from __future__ import annotations
 
@@ -47,11 +51,14 @@ class Removal:
     """The Gaussians a deletion removes (all masks [N] bool over the scene before deletion).
 
     Attributes:
-        mask: everything removed (``retrieved | floaters``).
+        mask: everything removed: the retrieved Gaussians inside the grown box, the floaters,
+            the unseen and the similar ones.
         retrieved: the retrieval's selection (``scores > tau``).
         floaters: added by the floater rule (not retrieved).
         unseen: added by the unseen rule (neither retrieved nor floaters).
         similar: added by the appearance rule (none of the above).
+        stray: retrieved but outside the grown box, so kept: a few Gaussians of other objects
+            whose language leans toward the text (far from the object, they are not part of it).
         tau, floater_tau: the two thresholds on the scores.
         box_min, box_max: [3] the grown robust box of the retrieved centres (world units).
     """
@@ -61,6 +68,7 @@ class Removal:
     floaters: torch.Tensor
     unseen: torch.Tensor
     similar: torch.Tensor
+    stray: torch.Tensor
     tau: float
     floater_tau: float
     box_min: torch.Tensor
@@ -68,7 +76,8 @@ class Removal:
 
     def counts(self) -> dict[str, int]:
         return {"retrieved": int(self.retrieved.sum()), "floaters": int(self.floaters.sum()),
-                "unseen": int(self.unseen.sum()), "similar": int(self.similar.sum()), "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
+                "unseen": int(self.unseen.sum()), "similar": int(self.similar.sum()),
+                "stray_kept": int(self.stray.sum()), "removed": int(self.mask.sum()), "total": int(self.mask.numel()),
                 "kept": int((~self.mask).sum())}
 
 
@@ -77,8 +86,9 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
                  box_quantiles: tuple[float, float] = (0.02, 0.98),
                  floater_tau: Optional[float] = None, lang_norms: Optional[torch.Tensor] = None,
                  unseen_norm: float = 0.1, colors: Optional[torch.Tensor] = None,
-                 appearance_margin: Optional[float] = 0.5, appearance_iters: int = 10,
-                 radius: Optional[float] = None) -> Removal:
+                 appearance_margin: Optional[float] = 0.5, appearance_iters: int = 50,
+                 appearance_reach: float = 2.0, radius: Optional[float] = None,
+                 sizes: Optional[torch.Tensor] = None) -> Removal:
     """Apply the floater rule (module docstring) around a retrieval.
 
     Args:
@@ -93,7 +103,10 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         lang_norms: [N] norms of the language features, for the unseen rule (None: rule off).
         unseen_norm: the unseen rule's relative norm threshold.
         colors: [N, 3] Gaussian colours for the appearance rule (None: rule off).
-        appearance_margin, appearance_iters, radius: the appearance rule's parameters.
+        appearance_margin, appearance_iters, appearance_reach, radius: the appearance rule's
+            parameters (``appearance_reach``: how many box margins its candidates may lie outside
+            the robust box); ``sizes`` [N]: each Gaussian's largest axis (world units), for the
+            default radius.
     Returns:
         a :class:`Removal`.
     """
@@ -130,11 +143,21 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
     if colors is not None and appearance_margin is not None:
         if colors.shape != (n, 3):
             raise ValueError(f"tiger.edit.removal_mask: colors must be [N={n}, 3], got {list(colors.shape)}")
-        shell = inside & ~((m >= tight_lo.to(m.device)) & (m <= tight_hi.to(m.device))).all(dim=1)
-        similar = _appearance(m, colors.detach().to(means.device, torch.float64), inside, shell,
-                              retrieved | floaters | unseen, appearance_margin, appearance_iters, radius)
-    return Removal(mask=retrieved | floaters | unseen | similar, retrieved=retrieved, floaters=floaters,
-                   unseen=unseen, similar=similar, tau=float(tau),
+        def in_box(k: float) -> torch.Tensor:  # the robust box grown by k margins
+            lo_k, hi_k = (tight_lo - k * grow).to(m.device), (tight_hi + k * grow).to(m.device)
+            return ((m >= lo_k) & (m <= hi_k)).all(dim=1)
+
+        near = in_box(appearance_reach)
+        ring = in_box(appearance_reach + 1) & ~near
+        gone = retrieved | floaters | unseen
+        if not bool((ring & ~gone).any()):  # nothing around the box: the margin inside it
+            ring = inside & ~in_box(0)
+        similar = _appearance(m, colors.detach().to(means.device, torch.float64), near | ring, ring, near,
+                              gone, appearance_margin, appearance_iters, radius,
+                              None if sizes is None else float(sizes.detach().to(m.device)[gone].float().median()))
+    stray = retrieved & ~inside
+    return Removal(mask=(retrieved & inside) | floaters | unseen | similar, retrieved=retrieved, floaters=floaters,
+                   unseen=unseen, similar=similar, stray=stray, tau=float(tau),
                    floater_tau=float(floater_tau), box_min=lo.float(), box_max=hi.float())
 
 
@@ -163,11 +186,15 @@ def _subsample(x: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
 
 
 def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor, shell: torch.Tensor,
-                removed: torch.Tensor, margin: float, iters: int, radius: Optional[float],
-                k: int = 8, max_refs: int = 4096) -> torch.Tensor:
-    """The appearance rule (module docstring) on means [N,3] and colours [N,3]; memory O(N), no
-    N x N matrices (scenes of millions of Gaussians have boxes of tens of thousands)."""
+                allowed: torch.Tensor, removed: torch.Tensor, margin: float, iters: int,
+                radius: Optional[float], size: Optional[float] = None, k: int = 8,
+                max_refs: int = 4096) -> torch.Tensor:
+    """The appearance rule (module docstring) on means [N,3] and colours [N,3]: candidates in
+    ``allowed``, surroundings' colours from the kept ones in ``shell`` (both [N] bool within
+    ``inside``); memory O(N), no N x N matrices (scenes of millions of Gaussians have boxes of
+    tens of thousands)."""
     idx = torch.nonzero(inside).reshape(-1)
+    allowed_i = allowed[idx]
     added = torch.zeros_like(removed)
     gone = removed[idx].clone()
     if idx.numel() < 2 or int(gone.sum()) < 2 or bool(gone.all()):
@@ -181,13 +208,13 @@ def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor,
         pick = torch.randperm(obj.shape[0], generator=torch.Generator().manual_seed(0))[:4096].to(obj.device)
         d = torch.cdist(obj[pick], obj, compute_mode=_EXACT)
         d[torch.arange(pick.numel(), device=d.device), pick] = float("inf")  # the point itself
-        radius = 3.0 * float(d.min(1).values.median())
+        radius = max(3.0 * float(d.min(1).values.median()), 2.0 * (size or 0.0))  # overlapping surfels touch
     # distance of each kept box Gaussian to the removed ones (only kept ones can be candidates)
     dist = torch.full((p.shape[0],), float("inf"), dtype=p.dtype, device=p.device)
     dist[~gone] = _min_dist(p[~gone], p[gone])
     gen = torch.Generator().manual_seed(1)
     for _ in range(max(int(iters), 0)):
-        cand = ~gone & (dist <= radius)
+        cand = ~gone & (dist <= radius) & allowed_i
         if not bool(cand.any()) or int(ref_kept.sum()) == 0:
             break
         # the nearest eighth of the object's colours and the nearest quarter of the surroundings',

@@ -217,10 +217,10 @@ def evaluate_scene(name: str, labels: Sequence[FrameLabels], relevancy_fn: Relev
         image_fn: ``frame -> [H, W, 3]`` picture background (default: the frame's image file).
         out_dir: where pictures go (``<out_dir>/<frame>/<category>.png``).
     """
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress as progress_bar
 
     res = SceneResult(name)
-    for fr in tqdm(labels, desc=f"lerf {name}", unit="frame", disable=not progress):
+    for fr in progress_bar(labels, f"lerf {name}", unit="frame", disable=not progress):
         cats = list(fr.categories)
         if not cats:
             continue

@@ -9,7 +9,7 @@ _EXPORTS = {
     "extract_features": "extract",
     "FeatureConfig": "extract",
     "FeatureSet": "extract",
-    "load_image": "extract",
+    "read_rgb_image": "extract",
     "MaskCLIP": "maskclip",
     "SamMaskGenerator": "sam_masks",
     "SamMaskConfig": "sam_masks",

@@ -102,7 +102,7 @@ class FeatureSet:
         return d["features"], d["valid"]
 
 
-def load_image(path: str | os.PathLike) -> torch.Tensor:
+def read_rgb_image(path: str | os.PathLike) -> torch.Tensor:
     """An image file as [3, H, W] float32 RGB in [0, 1]."""
     from PIL import Image
 
@@ -117,7 +117,7 @@ def _as_image(img: ImageLike) -> torch.Tensor:
         if img.dim() != 3 or img.shape[0] != 3:
             raise ValueError(f"tiger.extract_features: image tensors must be [3, H, W], got {tuple(img.shape)}")
         return img.float() / 255.0 if img.dtype == torch.uint8 else img.float()
-    return load_image(img)
+    return read_rgb_image(img)
 
 
 def _names(images: Sequence[ImageLike], names: Sequence[str] | None) -> list[str]:
@@ -240,7 +240,7 @@ def extract_features(
     processed there. Returns a :class:`FeatureSet`; ``out_dir/pca.pt`` holds the basis for
     projecting text (``FeatureSet.pca.project(clip.encode_text(...))``).
     """
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress as progress_lines
 
     cfg = config or FeatureConfig()
     cfg.validate()
@@ -263,7 +263,7 @@ def extract_features(
             sam = SamMaskGenerator.from_pretrained(device=dev, config=models, mask_config=cfg.sam)
         if cfg.upsampler == "jbu" and jbu is None:
             jbu = JBUStack.from_checkpoint(config=models).to(dev)
-    bar = tqdm(total=len(mine), desc=f"language features (rank {rank})", disable=not progress or rank != 0)
+    bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
     bar.update(len(mine) - len(todo))
     for i in todo:
         img = _as_image(images[i]).to(dev)

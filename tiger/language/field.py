@@ -6,6 +6,11 @@ D-dim features with per-view feature maps (pixels marked invalid, e.g. in no SAM
 ignored). Gaussians culled in every view are reported and skipped (their L stays 0, so no query
 ever retrieves them); Gaussians that are in view but never receive a gradient are reported and
 reset to 0 at the end for the same reason.
+
+The maps are read once (:class:`tiger.language.feature_maps.ResidentMaps`: on the device when they
+fit, else pinned host memory streamed a step ahead) and the loss stays on the device (read back
+for the progress bar every 10 steps), so a step costs what its render, backward and Adam cost.
+The loop is :func:`tiger.train.run_loop` (checkpoints, Ctrl-C).
 """
 from __future__ import annotations
 
@@ -15,30 +20,23 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Mapping, Optional, Protocol, Sequence, Union
+from typing import Callable, Optional, Sequence, Union
 
 import torch
 
 from tiger.retrieval.text import PCASource
 from tiger.render import Camera
 from tiger.scene import GaussianScene
-from tiger.utils.io import atomic_torch_save
+from tiger.train import (CheckpointMismatch, ViewSampler, read_checkpoint, restore_rng, run_loop,
+                         signature_differences, write_checkpoint)
+
+from .feature_maps import PLACEMENTS, FeatureMap, FeatureSource, FeatureStore, ResidentMaps, ViewMap, map_loader
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
-#: One view's target: features [H, W, D], (features, valid [H, W]) or {"features", "valid"}.
-FeatureMap = Union[torch.Tensor, tuple[torch.Tensor, Optional[torch.Tensor]], Mapping[str, torch.Tensor]]
-
-
-class FeatureStore(Protocol):
-    """Feature maps on disk by image name (``tiger.language.FeatureSet``)."""
-
-    names: Sequence[str]
-
-    def load(self, name: str) -> FeatureMap: ...
-
-
-FeatureSource = Union[Sequence[FeatureMap], Callable[[int], FeatureMap], FeatureStore]
+CHECKPOINT_FORMAT = "tiger.field-checkpoint/1"
+#: FieldConfig fields that may change between a run and its resume.
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "progress", "map_placement")
 
 
 @dataclass
@@ -56,6 +54,8 @@ class FieldConfig:
         checkpoint_every: steps between checkpoints (0: only at the end) when a path is given.
         seed: seeds the initialisation and the view order (resumed runs continue the stream).
         progress: show a tqdm progress bar.
+        map_placement: where the maps are kept: ``"auto"`` (the device when they fit, else pinned
+            host memory streamed to it), ``"device"`` or ``"host"``.
     """
 
     steps: int = 10_000
@@ -68,6 +68,7 @@ class FieldConfig:
     checkpoint_every: int = 1000
     seed: int = 0
     progress: bool = True
+    map_placement: str = "auto"
 
     def validate(self) -> None:
         if self.steps < 0:
@@ -80,6 +81,9 @@ class FieldConfig:
             raise ValueError(f"tiger.train_field: loss must be 'l1', 'l2' or 'cosine', got '{self.loss}'")
         if self.init not in ("random", "zeros", "keep"):
             raise ValueError(f"tiger.train_field: init must be 'random', 'zeros' or 'keep', got '{self.init}'")
+        if self.map_placement not in PLACEMENTS:
+            raise ValueError(f"tiger.train_field: map_placement must be one of {PLACEMENTS}, "
+                             f"got '{self.map_placement}'")
 
 
 @dataclass
@@ -113,58 +117,11 @@ class FieldResult:
                 f"reaching no valid pixel (hidden or masked out)")
 
 
-# ------------------------------------------------------------------------------------ inputs
-def _as_map(item: FeatureMap, index: int) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
-    """(features [H, W, D], valid [H, W] bool or None) from a tensor, a pair or a dict."""
-    if isinstance(item, dict):
-        feats, valid = item.get("features"), item.get("valid", item.get("mask"))
-    elif isinstance(item, (tuple, list)) and len(item) == 2:
-        feats, valid = item
-    else:
-        feats, valid = item, None
-    if not torch.is_tensor(feats) or feats.dim() != 3:
-        raise ValueError(f"tiger.train_field: feature map {index} must be [H, W, D], got "
-                         f"{list(feats.shape) if torch.is_tensor(feats) else type(feats).__name__}")
-    if valid is not None:
-        valid = torch.as_tensor(valid)
-        if valid.shape != feats.shape[:2]:
-            raise ValueError(f"tiger.train_field: valid mask {index} is {list(valid.shape)}, its feature "
-                             f"map is {list(feats.shape[:2])}")
-        valid = valid.bool()
-    return feats, valid
-
-
-def _map_loader(feature_maps: FeatureSource, cameras: Sequence[Camera]) -> Callable[[int], FeatureMap]:
-    """index -> raw map item. Accepts a sequence, a callable, or a store with ``names``/``load(name)``
-    (``tiger.language.FeatureSet``), matched to cameras by image name (or its stem)."""
-    n = len(cameras)
-    if hasattr(feature_maps, "load") and hasattr(feature_maps, "names"):
-        names = list(feature_maps.names)
-        by_name = {nm: nm for nm in names}
-        by_name.update({Path(nm).stem: nm for nm in names})
-        chosen = []
-        for i, cam in enumerate(cameras):
-            img = cam.image_name
-            key = img if img in by_name else Path(img).stem if Path(img).stem in by_name else None
-            if key is None:
-                if len(names) != n:
-                    raise ValueError(f"tiger.train_field: camera {i} ('{img}') has no feature map among "
-                                     f"{len(names)} names, and the counts differ ({n} cameras)")
-                chosen.append(names[i])
-            else:
-                chosen.append(by_name[key])
-        return lambda i: feature_maps.load(chosen[i])
-    if callable(feature_maps):
-        return feature_maps
-    if len(feature_maps) != n:
-        raise ValueError(f"tiger.train_field: {len(feature_maps)} feature maps for {n} cameras")
-    return lambda i: feature_maps[i]
-
-
-def _render(scene: GaussianScene, camera: Camera, lang: torch.Tensor, height: int, width: int) -> dict:
-    """``lang`` rendered at ``width x height`` (K rescaled); ``scene`` is detached, so the backward
-    is the features-only kernel."""
-    return scene.render(camera.resized(width, height), lang, check_finite=False)
+# ------------------------------------------------------------------------------------ steps
+def _render(scene: GaussianScene, camera: Camera, lang: torch.Tensor) -> dict:
+    """``lang`` rendered from ``camera`` (already at its map's size); ``scene`` is detached, so
+    the backward is the features-only kernel."""
+    return scene.render(camera, lang, check_finite=False)
 
 
 def _visibility(scene: GaussianScene, cameras: Sequence[Camera]) -> torch.Tensor:
@@ -177,35 +134,72 @@ def _visibility(scene: GaussianScene, cameras: Sequence[Camera]) -> torch.Tensor
     return vis
 
 
-def _loss(pred: torch.Tensor, target: torch.Tensor, valid: Optional[torch.Tensor], kind: str) -> torch.Tensor:
-    if valid is not None:
-        pred, target = pred[valid], target[valid]
-    if pred.numel() == 0:
-        return pred.sum()
-    if kind == "l1":
-        return (pred - target).abs().mean()
-    if kind == "l2":
-        return (pred - target).square().mean()
-    return (1 - torch.nn.functional.cosine_similarity(pred, target, dim=-1, eps=1e-8)).mean()
+def _loss(pred: torch.Tensor, target: ViewMap, kind: str) -> torch.Tensor:
+    """Mean per-pixel loss over the valid pixels. Masked sums, not boolean indexing: indexing
+    would wait for the device to count the pixels every step (they are counted once)."""
+    t = target.features
+    if kind == "cosine":
+        per = 1 - torch.nn.functional.cosine_similarity(pred, t.to(pred.dtype), dim=-1, eps=1e-8)
+        per_pixel = 1
+    else:
+        per = (pred - t).abs() if kind == "l1" else (pred - t).square()  # promotes float16 maps on the fly
+        per_pixel = pred.shape[-1]
+    if target.valid is not None:
+        per = torch.where(target.valid if per.dim() == 2 else target.valid[..., None], per, 0)
+    return per.sum() / max(target.n_valid * per_pixel, 1)
 
 
-# ------------------------------------------------------------------------------- checkpoints
-def _save_ckpt(path: Path, lang_full: torch.Tensor, opt: torch.optim.Optimizer, step: int,
-               gen: torch.Generator, order: list, losses: list, touched: torch.Tensor,
-               visible: torch.Tensor, cfg: FieldConfig) -> None:
-    atomic_torch_save({"lang": lang_full.detach().cpu(), "optimizer": opt.state_dict(), "step": step,
-                       "generator": gen.get_state(), "order": list(order), "losses": list(losses),
-                       "touched": touched.cpu(), "visible": visible.cpu(), "config": asdict(cfg)}, path)
+class _FieldSession:
+    """The state :func:`tiger.train.run_loop` drives: L of the Gaussians in view, Adam, the view
+    sampler, the per-step losses (on the device) and which Gaussians got a gradient."""
+
+    def __init__(self, frozen: GaussianScene, cameras: list, maps: ResidentMaps, lang: torch.Tensor,
+                 cfg: FieldConfig, gen: torch.Generator, signature: dict, total_steps: int) -> None:
+        self.frozen, self.cameras, self.maps, self.cfg, self.gen = frozen, cameras, maps, cfg, gen
+        self.lang = lang.requires_grad_(True)
+        self.opt = torch.optim.Adam([self.lang], lr=cfg.lr)
+        self.views = ViewSampler(len(cameras), gen)
+        self.losses = torch.zeros(total_steps, device=lang.device)
+        self.touched = torch.zeros(lang.shape[0], dtype=torch.bool, device=lang.device)
+        self.step, self.elapsed, self.signature = 0, 0.0, signature
+        self.full: Optional[Callable[[], tuple]] = None  # set by train_field: (L [N, D], touched, visible)
+
+    def generators(self) -> list:
+        return [self.gen]
+
+    def step_once(self) -> dict:
+        views = self.views.take(self.cfg.batch_views)
+        self.opt.zero_grad(set_to_none=True)
+        total = self.lang.new_zeros(())
+        for v in views:
+            out = _render(self.frozen, self.cameras[v], self.lang)
+            loss = _loss(out["color"], self.maps.get(v), self.cfg.loss) / len(views)
+            loss.backward()
+            total = total + loss.detach()
+        self.maps.prefetch(self.views.peek(self.cfg.batch_views))  # the next step's maps, while this one runs
+        if self.lang.grad is not None:
+            self.touched |= (self.lang.grad != 0).any(dim=1)
+        self.opt.step()
+        self.losses[self.step] = total
+        self.step += 1
+        return {"loss": total}
+
+    def save(self, path: PathLike) -> None:
+        lang_full, touched, visible = self.full()
+        state = {"lang": lang_full.detach().cpu(), "optimizer": self.opt.state_dict(), "step": self.step,
+                 "views": self.views.state_dict(), "losses": self.losses[:self.step].cpu(),
+                 "touched": touched.cpu(), "visible": visible.cpu()}
+        write_checkpoint(path, CHECKPOINT_FORMAT, state, signature=self.signature, generators=self.generators())
 
 
-def _load_ckpt(path: Path, n: int, d: int) -> dict:
-    ck = torch.load(str(path), map_location="cpu", weights_only=False)
-    missing = {"lang", "optimizer", "step", "generator", "order", "losses", "touched", "visible"} - set(ck)
-    if missing:
-        raise ValueError(f"tiger.train_field: checkpoint {path} is incomplete (missing {sorted(missing)})")
+def _read_ckpt(path: Path, n: int, d: int, signature: dict) -> dict:
+    ck = read_checkpoint(path, CHECKPOINT_FORMAT)
     if tuple(ck["lang"].shape) != (n, d):
         raise ValueError(f"tiger.train_field: checkpoint {path} holds L of shape {list(ck['lang'].shape)}, "
                          f"the scene needs [{n}, {d}]")
+    diff = signature_differences(ck.get("signature") or {}, signature)
+    if diff:
+        raise CheckpointMismatch(path, diff, "language field")
     return ck
 
 
@@ -213,6 +207,7 @@ def _load_ckpt(path: Path, n: int, d: int) -> dict:
 def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureSource, *,
                 config: Optional[FieldConfig] = None, pca: PCASource = None,
                 checkpoint: Optional[PathLike] = None, resume: bool = True,
+                init: Union[torch.Tensor, str, None] = None,
                 callback: Optional[Callable[[int, float], None]] = None,
                 **overrides: Union[int, float, str, bool, None]) -> FieldResult:
     """Optimise each Gaussian's language embedding L so that rendered features match the maps.
@@ -225,13 +220,22 @@ def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: F
         feature_maps: per view ``[H, W, D]`` (any float dtype), ``(features, valid)`` or
             ``{"features", "valid"}`` with ``valid`` [H, W] bool (False: ignored pixel); a
             sequence, a callable ``i -> map`` (for maps on disk), or a ``tiger.language.FeatureSet``.
+            Each map is read once (see the module docstring).
         config: :class:`FieldConfig`; keyword ``overrides`` replace its fields (``steps=...``).
         pca: the PCA that produced the maps (``PCABasis`` or (basis, mean)), stored with the scene.
-        checkpoint: file for periodic checkpoints; with ``resume`` an existing one is continued.
-        callback: called as ``callback(step, loss)`` after every step.
+        checkpoint: file for checkpoints (every ``checkpoint_every`` steps, at the end and on
+            Ctrl-C); with ``resume`` an existing one is continued exactly (one made with other
+            settings or another scene is refused, naming what differs).
+        init: [N, D] initial embeddings (e.g. lifted from the maps without training), replacing
+            ``config.init``; Gaussians culled in every view still start (and stay) at 0. A string
+            is ``config.init`` (``"random"``, ``"zeros"``, ``"keep"``).
+        callback: called as ``callback(step, loss)`` after every step (reading the loss back from
+            the device every step: leave it None for speed).
     Returns:
         :class:`FieldResult`.
     """
+    if isinstance(init, str):
+        overrides["init"], init = init, None
     cfg = FieldConfig(**{**asdict(config or FieldConfig()), **overrides})
     cfg.validate()
     cameras = list(cameras)
@@ -239,16 +243,21 @@ def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: F
         raise ValueError("tiger.train_field: no cameras given")
     means = scene.means.detach()
     n, device, dtype = means.shape[0], means.device, means.dtype
-    load = _map_loader(feature_maps, cameras)
-
-    # Only the first map is read up front (for D): maps may live on disk, one per view.
-    first, _ = _as_map(load(0), 0)
-    d = cfg.dim or (scene.lang.shape[1] if scene.lang is not None else first.shape[2])
-    del first
+    t0 = time.perf_counter()
+    maps = ResidentMaps(map_loader(feature_maps, cameras), len(cameras),
+                        cfg.dim or (scene.lang.shape[1] if scene.lang is not None else None), device,
+                        cfg.map_placement)
+    d = maps.dim
+    if init is not None and (not torch.is_tensor(init) or tuple(init.shape) != (n, d)):
+        raise ValueError(f"tiger.train_field: init must be [N={n}, D={d}], got "
+                         f"{list(init.shape) if torch.is_tensor(init) else type(init).__name__}")
+    signature = {"gaussians": n, "dim": d, "views": len(cameras), "map_sizes": maps.sizes,
+                 "init": "tensor" if init is not None else cfg.init,
+                 "config": {k: v for k, v in asdict(cfg).items() if k not in RESUMABLE_CHANGES + ("init",)}}
 
     gen = torch.Generator().manual_seed(cfg.seed)
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
-    ck = _load_ckpt(ckpt_path, n, d) if (ckpt_path and resume and ckpt_path.is_file()) else None
+    ck = _read_ckpt(ckpt_path, n, d, signature) if (ckpt_path and resume and ckpt_path.is_file()) else None
 
     if ck is not None:
         visible = ck["visible"].to(device)
@@ -257,7 +266,9 @@ def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: F
     else:
         # Culling does not depend on the resolution (K scales with it): the cameras' own sizes do.
         visible = _visibility(scene.detach(), cameras)
-        if cfg.init == "keep":
+        if init is not None:
+            lang_full = init.detach().to(device=device, dtype=dtype).clone()
+        elif cfg.init == "keep":
             if scene.lang is None or scene.lang.shape != (n, d):
                 raise ValueError("tiger.train_field: init='keep' needs scene.lang of shape [N, D]")
             lang_full = scene.lang.detach().to(dtype).clone()
@@ -272,67 +283,38 @@ def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: F
                     "skipped (L = 0)", n_invisible, n)
 
     vis_idx = torch.nonzero(visible).reshape(-1)
-    lang = lang_full[vis_idx].clone().requires_grad_(True)
-    opt = torch.optim.Adam([lang], lr=cfg.lr)
-    touched = torch.zeros(n, dtype=torch.bool, device=device)
-    losses: list = []
-    step, order = 0, []
-    if ck is not None:
-        opt.load_state_dict(ck["optimizer"])
-        gen.set_state(ck["generator"])
-        step, order, losses = int(ck["step"]), list(ck["order"]), list(ck["losses"])
-        touched = ck["touched"].to(device)
     # The frozen geometry of the Gaussians in view, detached once for every step.
     frozen = scene.detach() if not n_invisible else scene.subset(visible)
     frozen.lang = None
+    at_map_size = [c.resized(w, h) for c, (h, w) in zip(cameras, maps.sizes)]
+    done = int(ck["step"]) if ck is not None else 0
+    session = _FieldSession(frozen, at_map_size, maps, lang_full[vis_idx].clone(), cfg, gen, signature,
+                            max(cfg.steps, done))
+    if ck is not None:
+        session.opt.load_state_dict(ck["optimizer"])
+        restore_rng(ck["rng"], session.generators())
+        session.views.load_state_dict(ck["views"])
+        session.step = done
+        session.losses[:done] = ck["losses"].to(device)
+        session.touched = ck["touched"].to(device)[vis_idx]
 
-    def save() -> None:
-        if ckpt_path is not None:
-            full = lang_full.clone()
-            full[vis_idx] = lang.detach()
-            _save_ckpt(ckpt_path, full, opt, step, gen, order, losses, touched, visible, cfg)
+    def full() -> tuple:
+        out = lang_full.clone()
+        out[vis_idx] = session.lang.detach()
+        touched = torch.zeros(n, dtype=torch.bool, device=device)
+        touched[vis_idx] = session.touched
+        return out, touched, visible
 
-    from tqdm.auto import tqdm
+    session.full = full
+    after = (lambda rec: callback(session.step, float(rec["loss"]))) if callback is not None else None
+    if vis_idx.numel() > 0:
+        run_loop(session, cfg.steps, checkpoint=ckpt_path, checkpoint_every=cfg.checkpoint_every,
+                 progress=cfg.progress, desc="language field", after_step=after)
+    elif ckpt_path is not None:
+        session.save(ckpt_path)
 
-    t0 = time.perf_counter()
-    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), desc="language field", unit="step",
-               disable=not cfg.progress)
-    try:
-        while step < cfg.steps and vis_idx.numel() > 0:
-            views = []
-            while len(views) < min(cfg.batch_views, len(cameras)):
-                if not order:
-                    order = torch.randperm(len(cameras), generator=gen).tolist()
-                views.append(order.pop())
-            opt.zero_grad(set_to_none=True)
-            total = 0.0
-            for v in views:
-                feats, valid = _as_map(load(v), v)
-                if feats.shape[2] != d:
-                    raise ValueError(f"tiger.train_field: feature map {v} has {feats.shape[2]} channels, L has {d}")
-                h, w = int(feats.shape[0]), int(feats.shape[1])
-                out = _render(frozen, cameras[v], lang, h, w)
-                target = feats.to(device=device, dtype=dtype)
-                loss = _loss(out["color"], target, None if valid is None else valid.to(device), cfg.loss)
-                (loss / len(views)).backward()
-                total += float(loss.detach()) / len(views)
-            if lang.grad is not None:
-                touched[vis_idx] |= (lang.grad != 0).any(dim=1)
-            opt.step()
-            step += 1
-            losses.append(total)
-            bar.update(1)
-            if step % 10 == 0 or step == cfg.steps:
-                bar.set_postfix(loss=f"{total:.4g}")
-            if callback is not None:
-                callback(step, total)
-            if ckpt_path is not None and cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0:
-                save()
-    finally:
-        bar.close()
-    save()
-
-    lang_full[vis_idx] = lang.detach()
+    lang_full, touched, _ = full()
+    step = session.step
     untouched = visible & ~touched
     n_untouched = int(untouched.sum())
     if n_untouched and step > 0:
@@ -346,5 +328,8 @@ def train_field(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: F
         pair = pca_of(pca)
         if pair is not None:
             scene.lang_pca_basis, scene.lang_pca_mean = pair[0].to(device), pair[1].to(device)
-    return FieldResult(lang=lang_full, losses=losses, invisible=~visible, untouched=untouched, steps=step,
-                       seconds=time.perf_counter() - t0)
+    return FieldResult(lang=lang_full, losses=session.losses[:step].tolist(), invisible=~visible,
+                       untouched=untouched, steps=step, seconds=time.perf_counter() - t0)
+
+
+__all__ = ["FieldConfig", "FieldResult", "train_field"]

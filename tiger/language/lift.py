@@ -23,7 +23,7 @@ import torch
 from tiger.render import Camera
 from tiger.scene import GaussianScene
 
-from .field import FeatureSource, _as_map, _map_loader
+from .feature_maps import FeatureSource, as_map, map_loader
 
 log = logging.getLogger(__name__)
 
@@ -65,17 +65,17 @@ def lift(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureS
     cameras = list(cameras)
     if not cameras:
         raise ValueError("tiger.lift: no cameras given")
-    load = _map_loader(feature_maps, cameras)
+    load = map_loader(feature_maps, cameras)
     frozen = scene.detach()
     frozen.lang = None
     n, device, dtype = len(frozen), frozen.device, frozen.dtype
     num: torch.Tensor | None = None
     den = torch.zeros(n, dtype=torch.float64, device=device)
     t0 = time.perf_counter()
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress as progress_lines
 
-    for v in tqdm(range(len(cameras)), desc="lifting", unit="view", disable=not progress):
-        feats, valid = _as_map(load(v), v)
+    for v in progress_lines(range(len(cameras)), "lifting", unit="view", disable=not progress):
+        feats, valid = as_map(load(v), v)
         h, w, d = (int(s) for s in feats.shape)
         if num is None:
             num = torch.zeros(n, d, dtype=torch.float64, device=device)

@@ -127,11 +127,12 @@ def _is_complete(folder: Path, spec: ModelSpec) -> bool:
 
 
 def _config_root(config: ConfigLike) -> Path | None:
-    """The folder a config names, when it is one (searched like ``$TIGER_MODELS``)."""
+    """The folder a config names (searched like ``$TIGER_MODELS``): any path that is neither a
+    file nor a ``.json`` name, so a missing folder is reported by the files looked for in it."""
     if config is None or isinstance(config, Mapping):
         return None
     path = Path(config).expanduser()
-    return path if path.is_dir() else None
+    return None if path.is_file() or path.suffix == ".json" else path
 
 
 def _from_config(name: str, config: ConfigLike) -> Path | None:

@@ -109,6 +109,19 @@ class ReconConfig:
         kw.update(overrides)
         return cls(**kw)
 
+    def strategy(self, n: int, device, extent: float, finetune: bool = False):
+        """The :class:`~tiger.recon.strategy.InriaStrategy` of these settings for ``n`` Gaussians
+        in a scene of radius ``extent`` (INRIA densifies after, not at, ``densify_from``;
+        ``finetune``: huge Gaussians are pruned from the first densification)."""
+        from .strategy import DensifySchedule, InriaStrategy
+
+        when = DensifySchedule(self.densify_interval if self.densify else 0, self.densify_from + 1, self.densify_until)
+        return InriaStrategy(n, device, when, extent, grad_threshold=self.densify_grad_threshold,
+                             percent_dense=self.percent_dense, min_opacity=self.min_opacity,
+                             max_screen_size=self.max_screen_size, max_world_size=self.max_world_size,
+                             max_gaussians=self.max_gaussians, opacity_reset_every=self.opacity_reset_interval,
+                             prune_large_from_start=finetune)
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 

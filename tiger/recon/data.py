@@ -18,10 +18,10 @@ def load_views(cameras: Sequence[Camera], downscale: float = 1.0, cache_dir: Opt
 
     Distorted images are undistorted once and cached (see :func:`tiger.scene.images.load_image`).
     """
-    from tqdm.auto import tqdm
+    from tiger.utils.progress import progress as progress_lines
 
     cams, imgs = [], []
-    for cam in tqdm(cameras, desc="loading images", disable=not progress):
+    for cam in progress_lines(cameras, "loading images", disable=not progress):
         img, c = load_image(cam, downscale, cache_dir=cache_dir, background=background)
         cams.append(c)
         imgs.append(img)

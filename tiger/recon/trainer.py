@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import logging
 import os
-import time
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
@@ -14,13 +13,14 @@ from tiger.scene.cameras import scene_extent
 from tiger.scene.checkpoint import load_checkpoint, save_checkpoint
 from tiger.scene.dataset import points_in_views
 from tiger.scene.gaussian_scene import GaussianScene
+from tiger.train import LoopOutcome, ViewSampler, restore_rng, run_loop
 
 from .appearance import AffineAppearance
 from .config import ReconConfig, expon_lr
 from .init import colors_from_views
 from .losses import photometric_loss, psnr, psnr_tensor, ssim
 from .step import SceneOptimizer
-from .strategy import DensifyStats, inria_densify, reset_opacity
+from .strategy import InriaStrategy
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -31,7 +31,8 @@ class Trainer:
 
     The recipe on top of :class:`tiger.recon.step.SceneOptimizer` (``self.opt``; every
     Gaussian trainable): one view per step, the photometric loss, INRIA's schedule and
-    densification rule (:func:`tiger.recon.strategy.inria_densify`).
+    densification (:class:`tiger.recon.strategy.InriaStrategy`), driven by
+    :func:`tiger.train.run_loop` (time budget, checkpoints, Ctrl-C).
 
     Args:
         cameras: training views (pinhole; sizes must match ``images``).
@@ -75,6 +76,7 @@ class Trainer:
         self.extent = float(self.cfg.extent) if self.cfg.extent else scene_extent(self.cameras)
         self.gen = torch.Generator().manual_seed(self.cfg.seed)
         self.finetune = scene is not None
+        self.input_gaussians = len(scene) if scene is not None else 0
         self.checkpoint_step: Optional[int] = None  # step held by the last checkpoint saved or loaded
         if trainable is not None and scene is None:
             raise ValueError("tiger.recon: a trainable mask needs a starting scene (scene=...)")
@@ -86,11 +88,12 @@ class Trainer:
         self.scene = scene.to(self.device, torch.float32).clone()
         self.step = 0
         self.active_sh = self.cfg.sh_degree if (self.finetune or self.cfg.sh_increase_every == 0) else 0
-        self._order: list = []
+        self.views = ViewSampler(len(self.cameras), self.gen)
         self.history: list = []
         self.elapsed = 0.0
+        self.outcome: Optional[LoopOutcome] = None
         self._build_optimizer()
-        self.stats = DensifyStats.zeros(len(self.scene), self.device)
+        self.strategy = self._strategy()
         self.appearance: Optional[AffineAppearance] = None
         if self.cfg.appearance:
             self.appearance = AffineAppearance(len(self.cameras), self.device)
@@ -156,10 +159,8 @@ class Trainer:
                                       c.lr_means_max_steps or c.iterations, c.lr_means_delay_steps,
                                       c.lr_means_delay_mult)
 
-    def _next_view(self) -> int:
-        if not self._order:
-            self._order = torch.randperm(len(self.cameras), generator=self.gen).tolist()
-        return self._order.pop()
+    def _strategy(self) -> InriaStrategy:
+        return self.cfg.strategy(len(self.scene), self.device, self.extent, finetune=self.finetune)
 
     def _background(self) -> torch.Tensor:
         if self.cfg.random_background:
@@ -176,7 +177,7 @@ class Trainer:
         self.opt.set_lr("means", self._means_lr())
         if c.sh_increase_every and self.step % c.sh_increase_every == 0:
             self.active_sh = min(self.active_sh + 1, c.sh_degree)
-        i = self._next_view()
+        i = self.views.next()
         cam, target = self.cameras[i], self.images[i]
         mask = self.masks[i] if self.masks is not None else None
         background = self._background()
@@ -197,58 +198,43 @@ class Trainer:
             self.appearance_optimizer.step()
             self.appearance_optimizer.zero_grad(set_to_none=True)
         out = res.renders
-        densifying = c.densify and self.step <= c.densify_until
-        if densifying and out["means2d"].grad is not None:
-            self.stats.add(out["means2d"].grad, out["radii"], cam.width, cam.height)
+        self.strategy.observe(self.step, out, cam.width, cam.height)
         info = {"loss": res.loss, "psnr": psnr_tensor(out["color"], target, mask), "gaussians": len(self.scene)}
         if read_back:
             info["loss"], info["psnr"] = float(info["loss"]), float(info["psnr"])
-        if densifying and self.step > c.densify_from and self.step % c.densify_interval == 0:
-            reset_done = c.opacity_reset_interval and self.step > c.opacity_reset_interval
-            info["densify"] = inria_densify(
-                self.opt, self.stats, c.densify_grad_threshold, self.extent, c.percent_dense,
-                c.min_opacity, c.max_screen_size if reset_done else None,
-                c.max_world_size if (reset_done or self.finetune) else None, c.max_gaussians, self.gen)
-        if densifying and c.opacity_reset_interval and self.step % c.opacity_reset_interval == 0:
-            reset_opacity(self.opt)
+        densified = self.strategy.step_post_backward(self.opt, self.step, self.gen)
+        if densified is not None:
+            info["densify"] = densified
         return info
 
-    def fit(self) -> GaussianScene:
-        """Train until ``config.iterations`` (continuing a resumed run) or until
-        ``config.time_budget_s``; evaluates the test views at the end and writes
-        ``out_dir/checkpoint.pt`` when ``out_dir`` is set. Returns the scene (detached)."""
-        from tqdm.auto import tqdm
+    # -- the loop (tiger.train.run_loop) ---------------------------------------------------
+    def step_once(self) -> dict:
+        """:meth:`train_step` without read-back, PSNR bounded for the running mean."""
+        info = self.train_step(read_back=False)
+        info["psnr"] = info["psnr"].nan_to_num(posinf=99.0)
+        return info
 
+    def generators(self) -> list:
+        return [self.gen]
+
+    def fit(self) -> GaussianScene:
+        """Train until ``config.iterations`` (continuing a resumed run), ``config.time_budget_s``
+        seconds of training or Ctrl-C (:func:`tiger.train.run_loop`); evaluates the test views at
+        the end. With ``out_dir``, ``out_dir/checkpoint.pt`` is written every
+        ``config.checkpoint_every`` steps, at the end and on Ctrl-C (then KeyboardInterrupt is
+        re-raised). :attr:`outcome` says why it stopped. Returns the scene (detached)."""
         c = self.cfg
-        bar = tqdm(total=c.iterations, initial=self.step, desc="3DGS fit", disable=not c.progress,
-                   dynamic_ncols=True)
-        ema_loss = ema_psnr = None
-        t0 = time.perf_counter()
-        start = self.elapsed
-        while self.step < c.iterations:
-            info = self.train_step(read_back=False)
-            self.elapsed = start + time.perf_counter() - t0
-            # running means on the device; read back only when shown
-            ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
-            p = info["psnr"].nan_to_num(posinf=99.0)
-            ema_psnr = p if ema_psnr is None else 0.9 * ema_psnr + 0.1 * p
-            if self.step % 10 == 0 or self.step == c.iterations:
-                bar.set_postfix(loss=f"{float(ema_loss):.4f}", psnr=f"{float(ema_psnr):.2f}", N=len(self.scene),
-                                refresh=False)
-            bar.update(1)
+
+        def after(rec: dict) -> None:
             if c.eval_every and self.test_cameras and self.step % c.eval_every == 0:
                 self._record_eval()
-            if c.checkpoint_every and self.out_dir and self.step % c.checkpoint_every == 0:
-                self.save(self.out_dir / "checkpoint.pt")
-            if c.time_budget_s is not None and self.elapsed >= c.time_budget_s:
-                log.info("time budget of %.0f s reached at step %d of %d", c.time_budget_s, self.step,
-                         c.iterations)
-                break
-        bar.close()
+
+        self.outcome = run_loop(self, c.iterations, checkpoint=self.out_dir / "checkpoint.pt" if self.out_dir else None,
+                                checkpoint_every=c.checkpoint_every, time_budget_s=c.time_budget_s,
+                                progress=c.progress, desc="3DGS fit", show={"loss": ".4f", "psnr": ".2f"},
+                                after_step=after)
         if self.test_cameras and (not self.history or self.history[-1]["step"] != self.step):
             self._record_eval()
-        if self.out_dir is not None:
-            self.save(self.out_dir / "checkpoint.pt")
         return self.scene.detach()
 
     def _record_eval(self) -> None:
@@ -282,22 +268,32 @@ class Trainer:
                 "per_view": per}
 
     # -- checkpoints ----------------------------------------------------------------------
+    def signature(self) -> dict:
+        """The inputs and settings a checkpoint belongs to (a resume with others is refused)."""
+        cfg = {k: v for k, v in self.cfg.to_dict().items()
+               if k not in ("iterations", "progress", "checkpoint_every", "eval_every", "time_budget_s")}
+        return {"views": len(self.cameras), "size": [self.cameras[0].width, self.cameras[0].height],
+                "test_views": len(self.test_cameras), "masks": self.masks is not None,
+                "start_gaussians": None if not self.finetune else self.input_gaussians, "config": cfg}
+
     def save(self, path: PathLike) -> None:
         """Checkpoint everything needed to resume bit-for-bit (atomic write)."""
-        extra = {"config": self.cfg.to_dict(), "stats": self.stats.state_dict(), "active_sh": self.active_sh,
-                 "generator": self.gen.get_state(), "order": list(self._order), "extent": self.extent,
+        extra = {"strategy": self.strategy.state_dict(), "active_sh": self.active_sh,
+                 "views": self.views.state_dict(), "extent": self.extent,
                  "history": self.history, "elapsed": self.elapsed, "finetune": self.finetune}
         if self.opt.trainable is not None:
             extra["trainable"] = self.opt.trainable
         if self.appearance is not None:
             extra["appearance"] = self.appearance.state_dict()
             extra["appearance_optimizer"] = self.appearance_optimizer.state_dict()
-        save_checkpoint(path, self.scene, self.optimizer, self.step, extra)
+        save_checkpoint(path, self.scene, self.optimizer, self.step, extra, signature=self.signature(),
+                        generators=self.generators())
         self.checkpoint_step = self.step
 
     def load(self, path: PathLike) -> None:
-        """Resume from a checkpoint written by :meth:`save` (same views and config)."""
-        ck = load_checkpoint(path, map_location=self.device)
+        """Resume from a checkpoint written by :meth:`save`; one of other views or settings is
+        refused (:class:`tiger.train.CheckpointMismatch` naming what differs)."""
+        ck = load_checkpoint(path, map_location=self.device, signature=self.signature(), what="reconstruction")
         ex = ck["extra"]
         self.scene = ck["scene"].to(self.device, torch.float32)
         self.step = self.checkpoint_step = ck["step"]
@@ -308,10 +304,10 @@ class Trainer:
         self._build_optimizer()
         if ck["optimizer"] is not None:
             self.optimizer.load_state_dict(ck["optimizer"])
-        self.stats = DensifyStats.from_state_dict({k: v.to(self.device) for k, v in ex["stats"].items()})
-        if "generator" in ex:
-            self.gen.set_state(ex["generator"].cpu())
-        self._order = list(ex.get("order", []))
+        self.strategy = self._strategy()
+        self.strategy.load_state_dict(ex["strategy"], self.device)
+        restore_rng(ck["rng"], self.generators())
+        self.views.load_state_dict(ex["views"])
         self.history = list(ex.get("history", []))
         self.elapsed = float(ex.get("elapsed", 0.0))
         if self.appearance is not None and "appearance" in ex:

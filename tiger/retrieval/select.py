@@ -94,24 +94,17 @@ def min_error_threshold(scores: torch.Tensor, bins: int = 512) -> float:
     return lo + (k + 1) * width
 
 
-def valley_threshold(scores: torch.Tensor, bins: int = 256, sigma_bins: float = 2.0) -> float:
-    """The automatic threshold: the middle of the widest lowest-density stretch between the two classes.
+class _Valley(NamedTuple):
+    cut: float  # the threshold
+    depth: float  # smoothed density at the cut / the smaller of the two modes' densities (1: no valley)
 
-    1. The minimum-error threshold (:func:`min_error_threshold`) splits the scores into a lower
-       (background) and an upper (object) side.
-    2. The score histogram (``bins`` bins over [min, max]) is smoothed with a Gaussian of
-       ``sigma_bins`` bins; each side's mode is its densest bin.
-    3. Between the two modes, the bins of minimal smoothed density are found; the cut is the centre
-       of the longest run of them (the widest gap, so a maximal margin on both sides).
 
-    Kittler-Illingworth alone survives small objects (where Otsu cuts inside the background) but
-    can cut inside an object whose scores have a tail (Gaussians blended at its borders); the
-    valley search keeps its split and moves the cut to the emptiest place between the classes.
-    """
+def _valley(scores: torch.Tensor, bins: int, sigma_bins: float) -> _Valley:
+    """The valley search of :func:`valley_threshold`, with how deep the valley is."""
     t_split = min_error_threshold(scores, bins=2 * bins)
     h = _histogram(scores, bins)
     if h.hist is None:
-        return h.hi
+        return _Valley(h.hi, 1.0)
     hist, centres, lo, width = h.hist, h.centres, h.lo, h.width
     r = int(3 * sigma_bins) + 1
     x = torch.arange(-r, r + 1, dtype=torch.float64, device=hist.device)
@@ -121,11 +114,11 @@ def valley_threshold(scores: torch.Tensor, bins: int = 256, sigma_bins: float = 
     below = torch.nonzero(centres < t_split).reshape(-1)
     above = torch.nonzero(centres >= t_split).reshape(-1)
     if below.numel() == 0 or above.numel() == 0:
-        return t_split
+        return _Valley(t_split, 1.0)
     b = int(below[torch.argmax(dens[below])])
     a = int(above[torch.argmax(dens[above])])
     if a - b < 2:
-        return t_split
+        return _Valley(t_split, 1.0)
     seg = dens[b + 1:a]
     low = float(seg.min())
     is_min = (seg <= low + 1e-9 * max(1.0, low)).tolist()
@@ -141,30 +134,98 @@ def valley_threshold(scores: torch.Tensor, bins: int = 256, sigma_bins: float = 
         else:
             i += 1
     k0, k1 = b + 1 + best_start, b + best_start + best_len
-    return lo + ((k0 + k1) / 2 + 0.5) * width
+    depth = low / max(min(float(dens[a]), float(dens[b])), 1e-300)
+    return _Valley(lo + ((k0 + k1) / 2 + 0.5) * width, min(depth, 1.0))
 
 
-_RULES = {"auto": valley_threshold, "valley": valley_threshold, "kittler": min_error_threshold,
-          "otsu": otsu_threshold}
+def valley_threshold(scores: torch.Tensor, bins: int = 256, sigma_bins: float = 2.0) -> float:
+    """The middle of the widest lowest-density stretch between the two classes of ``scores`` [K].
+
+    1. The minimum-error threshold (:func:`min_error_threshold`) splits the scores into a lower
+       (background) and an upper (object) side.
+    2. The score histogram (``bins`` bins over [min, max]) is smoothed with a Gaussian of
+       ``sigma_bins`` bins; each side's mode is its densest bin.
+    3. Between the two modes, the bins of minimal smoothed density are found; the cut is the centre
+       of the longest run of them (the widest gap, so a maximal margin on both sides).
+
+    Kittler-Illingworth alone survives small objects (where Otsu cuts inside the background) but
+    can cut inside an object whose scores have a tail (Gaussians blended at its borders); the
+    valley search keeps its split and moves the cut to the emptiest place between the classes.
+    """
+    return _valley(scores, bins, sigma_bins).cut
+
+
+def top_cluster_threshold(scores: torch.Tensor, bins: int = 256, sigma_bins: float = 2.0,
+                          max_depth: float = 0.35, min_fraction: float = 0.002, min_count: int = 32) -> float:
+    """The automatic threshold: the valley below the highest-scoring cluster of ``scores`` [K].
+
+    A scene's scores for one text usually form more than two clusters: the named object high, the
+    other objects in the middle, and the largest surface (a table, a floor) lowest. Any two-class
+    rule (Otsu, Kittler-Illingworth, :func:`valley_threshold`) splits off the largest cluster and
+    selects everything else (all objects on the table for "potted plant"). This rule starts with
+    :func:`valley_threshold` and then splits the upper side again, as long as
+
+    * the new split has a real valley: the smoothed density at the cut is at most ``max_depth``
+      times the lower of the two modes' densities (a single object's peak with a tail has no
+      such valley, so the object is not cut into pieces), and
+    * each side of the new split keeps at least ``min_fraction`` of all the scores and at least
+      ``min_count`` scores (a few stray scores in the gap, or the sparse tail of a small object's
+      peak, are not a cluster: their histogram is noise).
+
+    Every split after the first uses the first one's bin width, so a tight peak is not stretched
+    over the whole histogram and split at its noise.
+
+    The last accepted cut is returned: the valley right below the top cluster.
+    """
+    s = scores.detach().reshape(-1).to(torch.float64)
+    s = s[torch.isfinite(s)]
+    if s.numel() == 0:
+        raise ValueError("tiger.retrieval: no finite scores to threshold")
+    v = _valley(s, bins, sigma_bins)
+    cut = v.cut
+    width = (float(s.max()) - float(s.min())) / bins  # every split sees the scores at this resolution
+    min_count = max(int(min_fraction * s.numel()), int(min_count), 2)
+    while True:
+        upper = s[s > cut]
+        if upper.numel() < 2 * min_count or width <= 0:
+            return cut
+        # the same bin width as the first split: a tight peak is not stretched over 256 bins
+        sub_bins = int((float(upper.max()) - float(upper.min())) / width)
+        if sub_bins < 8:
+            return cut
+        nxt = _valley(upper, sub_bins, sigma_bins)
+        above = int((upper > nxt.cut).sum())
+        if nxt.depth > max_depth or not nxt.cut > cut or min(above, upper.numel() - above) < min_count:
+            return cut
+        cut = nxt.cut
+
+
+#: The threshold rules by name (``"auto"`` is :func:`top_cluster_threshold`).
+TAU_RULES = {"auto": top_cluster_threshold, "valley": valley_threshold, "kittler": min_error_threshold,
+             "otsu": otsu_threshold}
 
 
 def choose_tau(scores: torch.Tensor, tau: Tau, score: str,
-               temperature: float = DEFAULT_TEMPERATURE) -> float:
-    """The selection threshold.
+               temperature: float = DEFAULT_TEMPERATURE, margin: Optional[torch.Tensor] = None) -> float:
+    """The selection threshold for ``scores`` [K].
 
-    A number is used as given. ``None`` / ``"auto"`` / ``"valley"``: :func:`valley_threshold`;
-    ``"kittler"``: :func:`min_error_threshold`; ``"otsu"``: :func:`otsu_threshold`. For
-    the LERF relevancy ``r = sigmoid(t m)`` the rule runs on the margin ``m = logit(r) / t`` (query
-    cosine minus the hardest negative's: a cosine scale, where r itself saturates at 1), the cut is
-    mapped back through the sigmoid and is never below 0.5 (query no more similar than a negative).
+    A number is used as given. ``None`` / ``"auto"``: :func:`top_cluster_threshold` (the valley
+    below the highest-scoring cluster); ``"valley"``: :func:`valley_threshold` (two classes);
+    ``"kittler"``: :func:`min_error_threshold`; ``"otsu"``: :func:`otsu_threshold`. For the LERF
+    relevancy ``r = sigmoid(t m)`` the rule runs on the margin ``m`` (query cosine minus the
+    hardest negative's: a cosine scale, where r itself saturates at 1 in float32): ``margin`` [K]
+    when given (exact), else ``logit(r) / t``; the cut is mapped back through the sigmoid and is
+    never below 0.5 (query no more similar than a negative).
     """
-    rule = _RULES.get("auto" if tau is None else tau) if (tau is None or isinstance(tau, str)) else None
+    rule = TAU_RULES.get("auto" if tau is None else tau) if (tau is None or isinstance(tau, str)) else None
     if rule is not None:
         if score != "relevancy":
             return rule(scores)
-        r = scores.detach().to(torch.float64).clamp(1e-12, 1 - 1e-12)
-        margin = torch.log(r / (1 - r)) / temperature
-        t = float(torch.sigmoid(torch.tensor(rule(margin) * temperature, dtype=torch.float64)))
+        if margin is None:
+            r = scores.detach().to(torch.float64).clamp(1e-12, 1 - 1e-12)
+            margin = torch.log(r / (1 - r)) / temperature
+        t = float(torch.sigmoid(torch.tensor(rule(margin.detach().to(torch.float64)) * temperature,
+                                             dtype=torch.float64)))
         return max(t, 0.5)
     if isinstance(tau, str):
         raise ValueError(f"tiger.retrieval: tau must be a number, 'auto', 'valley', 'kittler' or 'otsu', "
@@ -253,6 +314,22 @@ def _features_of(scene: Union[GaussianScene, torch.Tensor]) -> tuple[torch.Tenso
     return scene.lang, scene.means
 
 
+#: A Gaussian whose language feature is shorter than this fraction of the median norm carries no
+#: language information (no training view saw it: the field left it at zero).
+FEATURELESS_NORM = 0.1
+
+
+def _informative(feats: torch.Tensor) -> torch.Tensor:
+    """[N] bool: the Gaussians whose language feature [N, D] says something (norm at least
+    :data:`FEATURELESS_NORM` times the median norm). Featureless Gaussians all score ~0 and would
+    form a spike in the score histogram that the threshold rules take for a cluster; they are left
+    out of the threshold's choice (and score below any cut above 0). All of them when fewer than
+    two are informative."""
+    norms = feats.detach().float().norm(dim=1)
+    keep = norms >= FEATURELESS_NORM * norms.median()
+    return keep if int(keep.sum()) >= 2 else torch.ones_like(keep)
+
+
 def retrieve(scene: Union[GaussianScene, torch.Tensor], query: Query, *,
              encoder: Optional[TextEncoder] = None, pca: PCASource = None,
              negatives: Union[None, Sequence[str], torch.Tensor] = CANONICAL_NEGATIVES,
@@ -271,8 +348,9 @@ def retrieve(scene: Union[GaussianScene, torch.Tensor], query: Query, *,
         negatives: canonical negatives for the LERF relevancy (strings or [M, F]/[M, D] embeddings);
             computed when they can be embedded, required for ``score="relevancy"``.
         score: ``"cosine"`` (the paper's s_i) or ``"relevancy"`` (LERF).
-        tau: threshold, or a rule: ``"auto"`` (= ``"valley"``), ``"kittler"``, ``"otsu"``
-            (see :func:`choose_tau`).
+        tau: threshold, or a rule: ``"auto"`` (the valley below the top cluster),
+            ``"valley"``, ``"kittler"``, ``"otsu"`` (see :func:`choose_tau`). Gaussians without a
+            language feature (no training view saw them) are left out of a rule's choice.
         temperature: LERF softmax temperature.
         quantiles: per-axis quantiles of the selected positions for the bounding box.
     Returns:
@@ -292,7 +370,12 @@ def retrieve(scene: Union[GaussianScene, torch.Tensor], query: Query, *,
     neg = None
     can_embed_neg = negatives is not None and (encoder is not None or torch.is_tensor(negatives))
     if can_embed_neg:
-        neg = embed_negatives(negatives, dim=d, encoder=encoder, pca=pca_src)
+        try:
+            neg = embed_negatives(negatives, dim=d, encoder=encoder, pca=pca_src)
+        except (KeyError, ValueError):
+            if score == "relevancy":
+                raise
+            neg = None  # the cosine needs no negatives: a text table without them still answers
     elif score == "relevancy":
         raise ValueError("tiger.retrieval: score='relevancy' needs negatives: embeddings, or strings "
                          "with a text encoder")
@@ -300,7 +383,12 @@ def retrieve(scene: Union[GaussianScene, torch.Tensor], query: Query, *,
     cos = cos[:, 0]
     rel = rel[:, 0] if rel is not None else None
     s = rel if score == "relevancy" else cos
-    t = choose_tau(s, tau, score, temperature)
+    keep = _informative(feats)
+    margin = None
+    if score == "relevancy":  # exact margins: the relevancy saturates at 1 in float32
+        neg_cos, _ = relevancy(feats.detach(), neg, None, check_finite=False)
+        margin = (cos.to(torch.float64) - neg_cos.to(torch.float64).amax(dim=1))[keep]
+    t = choose_tau(s[keep], tau, score, temperature, margin=margin)
     mask = s > t
     out = Retrieval(scores=s, cosine=cos, relevancy=rel, mask=mask, tau=t, score=score)
     k = int(mask.sum())

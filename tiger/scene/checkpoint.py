@@ -1,18 +1,17 @@
-"""Training checkpoints: the scene, the optimizer state and the trainer's own state.
+"""Scene checkpoints: the scene, the optimizer state and the trainer's own state.
 
-Files are ``torch.save`` dicts written atomically and read with ``weights_only=True``
-(plain tensors, numbers, strings, lists and dicts only), so loading a checkpoint can
-never run code.
+A thin layer over :mod:`tiger.train.checkpoint` (atomic write, ``weights_only`` read, format
+tag, signature, RNG states) that stores a :class:`GaussianScene` and reports bad files as
+:class:`SceneFormatError`.
 """
 from __future__ import annotations
 
 import os
-from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any, Optional, Sequence, Union
 
 import torch
 
-from tiger.utils.io import atomic_torch_save
+from tiger.train.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 
 from .errors import SceneFormatError
 from .gaussian_scene import GaussianScene
@@ -23,37 +22,38 @@ FORMAT = "tiger.checkpoint/1"
 
 def save_checkpoint(path: PathLike, scene: GaussianScene,
                     optimizer: Optional[torch.optim.Optimizer] = None, step: int = 0,
-                    extra: Optional[dict[str, Any]] = None) -> None:
-    """Write ``scene`` (+ optimizer state, step, trainer state ``extra``) atomically."""
-    payload = {
-        "format": FORMAT,
-        "step": int(step),
-        "scene": scene.state_dict(),
-        "optimizer": None if optimizer is None else optimizer.state_dict(),
-        "extra": extra or {},
-    }
-    atomic_torch_save(payload, path)
+                    extra: Optional[dict[str, Any]] = None, *, signature: Optional[dict] = None,
+                    generators: Sequence[torch.Generator] = ()) -> None:
+    """Write ``scene`` (+ optimizer state, step, trainer state ``extra``, the ``signature`` of the
+    run and the RNG states of ``generators`` and torch) atomically."""
+    state = {"step": int(step), "scene": scene.state_dict(),
+             "optimizer": None if optimizer is None else optimizer.state_dict(), "extra": extra or {}}
+    write_checkpoint(path, FORMAT, state, signature=signature, generators=generators)
 
 
-def load_checkpoint(path: PathLike, map_location: Union[str, torch.device] = "cpu") -> dict[str, Any]:
+def load_checkpoint(path: PathLike, map_location: Union[str, torch.device] = "cpu",
+                    signature: Optional[dict] = None, what: str = "run") -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint`.
 
     Returns a dict with ``scene`` (:class:`GaussianScene`), ``optimizer`` (state dict or
-    None), ``step`` (int) and ``extra`` (dict). Raises :class:`SceneFormatError` when the
-    file is missing, corrupt or not a TIGER checkpoint.
+    None), ``step`` (int), ``extra`` (dict) and ``rng`` (for :func:`tiger.train.restore_rng`).
+    Raises :class:`SceneFormatError` when the file is missing, corrupt or not a TIGER
+    checkpoint, and :class:`tiger.train.CheckpointMismatch` naming what differs when
+    ``signature`` is given and the file's is another.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise SceneFormatError(path, "checkpoint file not found")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # pickle/zip raise many types on corrupt input
-        raise SceneFormatError(path, f"cannot read checkpoint ({type(exc).__name__}: {exc})") from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise SceneFormatError(path, f"not a TIGER checkpoint (expected format '{FORMAT}')", "format")
+        payload = read_checkpoint(path, FORMAT, signature=signature, map_location=map_location, what=what)
+    except CheckpointError as exc:
+        if exc.reason == "signature":
+            raise
+        if exc.reason == "missing":
+            raise SceneFormatError(path, "checkpoint file not found") from None
+        if exc.reason == "format":
+            raise SceneFormatError(path, f"not a TIGER checkpoint (expected format '{FORMAT}')", "format") from None
+        raise SceneFormatError(path, str(exc).split(": ", 1)[-1]) from None
     try:
         scene = GaussianScene.from_state_dict(payload["scene"])
     except (KeyError, TypeError, ValueError) as exc:
         raise SceneFormatError(path, f"invalid scene in checkpoint: {exc}", "scene") from None
     return {"scene": scene, "optimizer": payload.get("optimizer"), "step": int(payload.get("step", 0)),
-            "extra": payload.get("extra") or {}}
+            "extra": payload.get("extra") or {}, "rng": payload.get("rng") or {}}

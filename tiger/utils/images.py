@@ -110,7 +110,7 @@ def with_colorbar(picture: Tensor, vmin: float, vmax: float, cmap: str = "turbo"
     x = w + BAR_GAP + BAR_WIDTH + 2
     draw.text((x, 0), f"{vmax:.3g}{unit}", fill=(0, 0, 0))
     draw.text((x, max(h - 11, 10)), f"{vmin:.3g}{unit}", fill=(0, 0, 0))
-    return torch.from_numpy(np.asarray(canvas)).float() / 255
+    return torch.from_numpy(np.array(canvas)).float() / 255
 
 
 def depth_picture(depth: Tensor, mask: Optional[Tensor] = None, cmap: str = "turbo") -> Tensor:

@@ -1,8 +1,9 @@
 """Guidance modules: each turns rendered views into a gradient on those renders.
 
-The edit loop only sees :class:`~tiger.edit.guidance.base.Guidance`; the models behind a
-guidance (diffusion UNets, VAEs, text encoders) stay inside it. diffusers and transformers are
-imported only when a model is loaded or built.
+The edit loop and ``tiger edit`` only see the :class:`~tiger.edit.guidance.base.Guidance` protocol
+(name, instruction, grad, settings, generators, reset_caches); the models behind a guidance
+(diffusion UNets, VAEs, text encoders) stay inside it. diffusers and transformers are imported
+only when a model is loaded or built.
 
 - :class:`InstructPix2PixGuidance` (``ip2p``): 2D instruction-edit SDS on any number of views.
 - :class:`MVDreamGuidance` (``mvdream``): multi-view SDS on exactly 4 views (loads lazily).
