@@ -1,6 +1,7 @@
 """The implicit FeatUp fit on every device: its tensors (PCA mean and basis, targets, network) live
 on the image's device, and on CUDA the fit follows the CPU fit (every random number but the
-dropout masks is drawn from one CPU generator; with ``dropout=0`` there are none)."""
+dropout masks is drawn from one CPU generator; with ``dropout=0`` there are none; ``precision="fp32"``
+keeps the fast fit out of bf16 autocast on CUDA)."""
 import pytest
 import torch
 import torch.nn.functional as F
@@ -12,7 +13,7 @@ CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="needs CUDA")
 
 TINY = ImplicitConfig(steps=6, n_views=6, pca_batch=6, proj_dim=5, kernel_size=5, jitters_per_step=2,
-                      n_freqs=4, dropout=0.0)
+                      n_freqs=4, dropout=0.0, precision="fp32")
 
 
 def image(h=24, w=32, seed=0):

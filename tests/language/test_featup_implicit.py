@@ -69,3 +69,112 @@ def test_fit_is_deterministic_and_leaves_global_rng_alone():
     assert torch.equal(torch.rand(1), expected_next)
     b = ImplicitUpsampler.fit(img, backbone, cfg)()
     assert torch.equal(a, b)
+
+
+# ----------------------------------------------------------------------------- the fast fit
+import dataclasses  # noqa: E402
+
+import pytest  # noqa: E402
+
+import tiger.ops  # noqa: E402
+from tiger.language.featup import AttentionDownsampler, sample_jitter  # noqa: E402
+from tiger.language.featup_fit import apply_jitters, jitter_grid, jitter_params, window_attention  # noqa: E402
+from tiger.utils.filters import gaussian_blur  # noqa: E402
+
+CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
+needs_cuda = pytest.mark.skipif(not CUDA, reason="needs CUDA")
+
+
+def test_jitter_grid_reads_what_jitter_apply_reads():
+    """One grid_sample per batch of jitters = FeatUp's pad/zoom/crop/flip, zoomed or not, flipped or not."""
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(1, 4, 30, 52, generator=gen, dtype=torch.float64)
+    jitters = [sample_jitter(30, 52, 6, 1.8, True, gen) for _ in range(64)]
+    assert any(j.zoom > 1 for j in jitters) and any(j.zoom == 1 for j in jitters) and any(j.flip for j in jitters)
+    grid = jitter_grid(jitter_params(jitters, 30, 52, x.device), 30, 52).double()
+    fast = apply_jitters(x, grid)
+    ref = torch.cat([j.apply(x) for j in jitters])
+    assert torch.allclose(fast, ref, atol=1e-4), (fast - ref).abs().max()  # float32 grid coordinates
+
+
+@pytest.mark.parametrize("hw,size,kernel", [((40, 72), (5, 9), 11), ((40, 72), (3, 4), 11), ((33, 47), (8, 14), 7),
+                                            ((64, 112), (4, 7), 29)])
+def test_window_attention_equals_the_downsampler(hw, size, kernel):
+    """Logits on one channel + fold/avg-pool window sums = the reference's unfold-patches downsampler."""
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 5, *hw, generator=gen, dtype=torch.float64)
+    down = AttentionDownsampler(5, kernel, gen).double().eval()
+    ref = down(x, size)
+    blurred = gaussian_blur(x, 5, 1.0, padding="reflect")
+    lin = down.attention[1]
+    logit_map = F.conv2d(blurred, lin.weight.view(1, -1, 1, 1), lin.bias)
+    out = window_attention(down, logit_map, blurred, size)
+    assert out.shape == ref.shape
+    assert torch.allclose(out, ref, atol=1e-10), (out - ref).abs().max()
+
+
+class PatchBackbone(torch.nn.Module):
+    """A ViT-like stand-in: 8x8 patches embedded to 48 channels, a 3x3 token mixer, GELU."""
+
+    def __init__(self):
+        super().__init__()
+        g = torch.Generator().manual_seed(5)
+        self.embed = torch.nn.Parameter(torch.randn(48, 3, 8, 8, generator=g) / 8)
+        self.mix = torch.nn.Parameter(torch.randn(48, 48, 3, 3, generator=g) / 20)
+
+    def forward(self, images):
+        tokens = F.conv2d(images, self.embed, stride=8)
+        return tokens + F.gelu(F.conv2d(tokens, self.mix, padding=1))
+
+
+def _photo(h, w):
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    img = torch.stack([0.3 + 0.4 * xx, 0.2 + 0.5 * yy, 0.6 - 0.3 * xx * yy])
+    img[:, (yy - 0.4) ** 2 + (xx - 0.6) ** 2 < 0.06] = torch.tensor([0.9, 0.2, 0.1])[:, None]
+    img[:, (yy > 0.7) & (xx < 0.3)] = torch.tensor([0.1, 0.8, 0.4])[:, None]
+    return img
+
+
+FIT = ImplicitConfig(steps=60, n_views=40, pca_batch=40, proj_dim=16, kernel_size=11, jitters_per_step=4)
+
+
+def test_fast_fit_gives_the_reference_fit():
+    """The default (fast) fit's upsampled map against the reference loop's, same seed: per-pixel
+    cosine similarity mean >= 0.99 (dropout on, as by default; the masks differ by construction)."""
+    img, backbone = _photo(48, 80), PatchBackbone()
+    fast = ImplicitUpsampler.fit(img, backbone, FIT)((96, 160))
+    ref = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(FIT, method="reference"))((96, 160))
+    cos = F.cosine_similarity(fast, ref, dim=0)
+    assert cos.mean() >= 0.99 and torch.quantile(cos.flatten(), 0.01) >= 0.95, (cos.mean(), cos.min())
+
+
+def test_config_names_a_bad_method_or_precision():
+    with pytest.raises(ValueError, match="method"):
+        ImplicitConfig(method="quick")
+    with pytest.raises(ValueError, match="precision"):
+        ImplicitConfig(precision="fp16")
+
+
+@needs_cuda
+def test_fast_fit_on_cuda_equals_cpu():
+    """float32 on CUDA without TF32 and without dropout follows the CPU fit: the first losses to
+    rounding, the maps in direction (NAdam's first steps follow the sign of near-zero gradients,
+    which rounding picks: see test_featup_devices.py); the default bf16 fit stays within the fit's
+    tolerance (per-pixel cosine mean >= 0.99) of the CPU fit."""
+    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    try:
+        img, backbone = _photo(48, 80), PatchBackbone()
+        cfg = dataclasses.replace(FIT, dropout=0.0, precision="fp32")
+        cpu = ImplicitUpsampler.fit(img, backbone, cfg)
+        gpu = ImplicitUpsampler.fit(img.cuda(), backbone.cuda(), cfg)
+        assert gpu.mean.device.type == "cuda"
+        assert torch.allclose(torch.tensor(gpu.history[:6]), torch.tensor(cpu.history[:6]), rtol=2e-3, atol=1e-5)
+        a, b = cpu((96, 160)), gpu((96, 160)).cpu()
+        cos = F.cosine_similarity(a, b, dim=0)
+        assert cos.mean() >= 0.99 and cos.min() > 0.9, (cos.mean(), cos.min())
+        bf16 = ImplicitUpsampler.fit(img.cuda(), backbone.cuda(), dataclasses.replace(cfg, precision="bf16"))
+        cos = F.cosine_similarity(a, bf16((96, 160)).cpu(), dim=0)
+        assert cos.mean() >= 0.99, cos.mean()
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old

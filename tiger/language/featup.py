@@ -250,6 +250,12 @@ class ImplicitConfig:
     CPU would cost more than the fit); every other random number (jitters, view picks,
     initial weights) comes from a CPU generator, so with ``dropout=0`` a fit on CUDA follows the
     CPU fit up to floating-point rounding.
+
+    ``method``: ``"fast"`` (default; :mod:`tiger.language.featup_fit`: batched jitters, the
+    downsampler without its patch tensor, no per-step host sync) or ``"reference"`` (the
+    original loop, kept to check the fast fit against). ``precision``: ``"bf16"`` runs the
+    network and the backbone passes of the fast fit under bf16 autocast on CUDA (float32 on the
+    CPU either way); ``"fp32"`` keeps float32 everywhere.
     """
 
     steps: int = 1200
@@ -270,6 +276,14 @@ class ImplicitConfig:
     dropout: float = 0.2
     featurize_batch: int = 64
     seed: int = 0
+    method: str = "fast"
+    precision: str = "bf16"
+
+    def __post_init__(self) -> None:
+        if self.method not in ("fast", "reference"):
+            raise ValueError(f"tiger.ImplicitConfig: method must be 'fast' or 'reference', got {self.method!r}")
+        if self.precision not in ("bf16", "fp32"):
+            raise ValueError(f"tiger.ImplicitConfig: precision must be 'bf16' or 'fp32', got {self.precision!r}")
 
 
 def _tv(x: torch.Tensor) -> torch.Tensor:
@@ -313,18 +327,25 @@ class ImplicitUpsampler:
         norm = (lambda f: F.layer_norm(f.permute(0, 2, 3, 1), f.shape[1:2]).permute(0, 3, 1, 2)) if cfg.channel_norm \
             else (lambda f: f)
 
+        fast = cfg.method == "fast"
         with torch.no_grad():
-            lr = norm(featurizer(img).float())
-            fh, fw = lr.shape[-2:]
             jitters = [sample_jitter(h, w, max_pad, cfg.max_zoom, cfg.use_flips, gen) for _ in range(cfg.n_views)]
-            feats: list[torch.Tensor] = []
-            for i in range(0, cfg.n_views, cfg.featurize_batch):
-                batch = torch.cat([j.apply(img) for j in jitters[i : i + cfg.featurize_batch]])
-                feats.append(norm(featurizer(batch).float()))
-            views = torch.cat(feats)  # [N, D, fh, fw]
+            if fast:
+                from .featup_fit import featurize_jitters, jitter_params
+
+                params = jitter_params(jitters, h, w, dev)
+                views = featurize_jitters(img, featurizer, params, cfg.featurize_batch, cfg.precision, norm)
+            else:
+                feats: list[torch.Tensor] = []
+                for i in range(0, cfg.n_views, cfg.featurize_batch):
+                    batch = torch.cat([j.apply(img) for j in jitters[i : i + cfg.featurize_batch]])
+                    feats.append(norm(featurizer(batch).float()))
+                views = torch.cat(feats)  # [N, D, fh, fw]
+                del feats
+            fh, fw = views.shape[-2:]
             mean, basis = _pca_basis(views[: cfg.pca_batch], cfg.proj_dim)  # on the views' device
             targets = _project(views, mean, basis)  # [N, k, fh, fw]
-            del views, feats
+            del views
         k = basis.shape[1]
         net = ImplicitNet(k, cfg.n_freqs, gen, cfg.dropout).to(dev)
         down = AttentionDownsampler(k + 1, cfg.kernel_size, gen, cfg.dropout).to(dev)
@@ -332,6 +353,11 @@ class ImplicitUpsampler:
         with torch.no_grad():
             outlier.weight.mul_(0.1)
             outlier.bias.mul_(0.1)
+        if fast:
+            from .featup_fit import fit_loop
+
+            history = fit_loop(img, targets, params, net, down, outlier, cfg, gen, progress)
+            return cls(net, img, mean, basis, history)
         params = list(net.parameters()) + list(down.parameters()) + list(outlier.parameters())
         opt = torch.optim.NAdam(params, lr=cfg.lr)
         history: list[float] = []

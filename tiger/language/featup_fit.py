@@ -1,0 +1,194 @@
+"""The fast fit of FeatUp's implicit upsampler (the default of :meth:`ImplicitUpsampler.fit`).
+
+Same model, parameters, initial weights, jitters and view picks as the reference loop in
+:mod:`tiger.language.featup` (one CPU generator drives both), with the work rearranged:
+
+* **Jitters as one batched ``grid_sample``.** A FeatUp jitter (reflect-pad, bilinear zoom, crop,
+  flip) is a bilinear resampling at affine coordinates; with ``align_corners=True`` and
+  ``padding_mode="reflection"`` it reflects about the border pixel centres exactly as
+  ``F.pad(mode="reflect")`` does, so the jittered copies of the backbone input (3000 of them,
+  featurised once before the loop in batches) and of the network output (10 per step) come from
+  one call each instead of a Python loop of pad/interpolate/crop/flip.
+* **The attention downsampler without the patch tensor.** The reference unfolds the jittered,
+  blurred 129-channel maps into [B, 129 x 29 x 29, cells] patches. Its attention logit is a
+  linear map of each pixel, so it is computed on one channel before any unfolding (the linear
+  map commutes with blur and jitter, both linear and constant-preserving); the attention-weighted
+  window sums run per group of non-overlapping windows as ``fold`` (the weights painted into a
+  full-size map) times the features, summed by ``avg_pool2d(divisor_override=1)``.
+* **Blur once, before the jitters** (the reference blurs each jittered copy): the blurred output
+  is also the blur-pin regulariser's, so one blur serves both.
+* **No host sync per step** (losses stay on the device until the end), bf16 autocast for the
+  network and the backbone passes on CUDA (``ImplicitConfig.precision``).
+
+Where the rearrangement is not exact (blur before zoom, the attention input's dropout mask shared
+by overlapping windows and by the step's jitters, rounding), the fitted map is compared with the
+reference fit by per-pixel cosine similarity (tests/language/test_featup_implicit.py,
+benchmarks/featup_implicit.py).
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+from typing import TYPE_CHECKING
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from tiger.utils.filters import gaussian_blur
+
+if TYPE_CHECKING:  # imported at run time by featup.py, which imports this module lazily
+    from .featup import AttentionDownsampler, Featurizer, ImplicitConfig, Jitter
+
+
+def jitter_params(jitters: "list[Jitter]", h: int, w: int, device: torch.device) -> torch.Tensor:
+    """[N, 7] float32 (pad, zoom, y, x, flip, zoomed rows, zoomed columns) of FeatUp jitters of an
+    h x w image, for :func:`jitter_grid`. ``F.interpolate`` leaves a dimension whose zoomed size
+    floor(size * zoom) equals its size untouched (scale 1), so the zoom is flagged per dimension."""
+    rows = []
+    for j in jitters:
+        hp, wp = h + 2 * j.pad, w + 2 * j.pad
+        zoomed = j.zoom > 1.0
+        rows.append([j.pad, j.zoom, j.y, j.x, float(j.flip), float(zoomed and math.floor(hp * j.zoom) != hp),
+                     float(zoomed and math.floor(wp * j.zoom) != wp)])
+    return torch.tensor(rows, dtype=torch.float64).to(device, torch.float32)
+
+
+def jitter_grid(params: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Sampling grids [N, h, w, 2] (normalised, ``align_corners=True``) of jitters ``params`` [N, 7]
+    applied to an h x w image: output pixel (y, x) reads the source at the coordinates
+    ``Jitter.apply`` reads (flip, crop offset, zoom as ``F.interpolate(scale_factor=zoom)``
+    computes its source index, minus the pad; the reflection is ``grid_sample``'s)."""
+    pad, zoom, oy, ox, flip, zoom_y, zoom_x = (params[:, i].view(-1, 1) for i in range(7))
+    dev = params.device
+    ys = torch.arange(h, device=dev, dtype=torch.float32).view(1, -1)
+    xs = torch.arange(w, device=dev, dtype=torch.float32).view(1, -1)
+    xs = torch.where(flip > 0.5, (w - 1) - xs, xs)
+
+    def source(coord: torch.Tensor, zoomed: torch.Tensor) -> torch.Tensor:  # zoomed-padded -> image coordinate
+        src = torch.where(zoomed > 0.5, ((coord + 0.5) / zoom - 0.5).clamp_min(0.0), coord)
+        return src - pad
+
+    sy, sx = source(ys + oy, zoom_y), source(xs + ox, zoom_x)  # [N, h], [N, w]
+    gy = (2.0 * sy / max(h - 1, 1) - 1.0).view(-1, h, 1).expand(-1, h, w)
+    gx = (2.0 * sx / max(w - 1, 1) - 1.0).view(-1, 1, w).expand(-1, h, w)
+    return torch.stack([gx, gy], dim=-1)
+
+
+def apply_jitters(x: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Jittered copies [N, C, h, w] of ``x`` [1, C, h, w] (or [N, C, h, w]) on ``grid`` [N, h, w, 2]."""
+    src = x.expand(grid.shape[0], -1, -1, -1) if x.shape[0] == 1 else x
+    return F.grid_sample(src, grid.to(src.dtype), mode="bilinear", padding_mode="reflection", align_corners=True)
+
+
+def window_geometry(h: int, w: int, size: tuple[int, int], kernel: int) -> tuple[int, int, int, int, int]:
+    """(k, sh, sw, nh, nw): the reference downsampler's window size, strides and window counts."""
+    fh, fw = size
+    k = min(kernel, h, w)
+    sh = max(1, (h - k) // max(fh - 1, 1))
+    sw = max(1, (w - k) // max(fw - 1, 1))
+    return k, sh, sw, (h - k) // sh + 1, (w - k) // sw + 1
+
+
+def window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, x: torch.Tensor,
+                     size: tuple[int, int]) -> torch.Tensor:
+    """The attention downsampler's output [B, C, fh, fw] from its per-pixel logits ``logit_map``
+    [B, 1, H, W] (the attention Linear applied to the blurred features) and the blurred features
+    ``x`` [B, C, H, W]; the same windows, strides, logit mask and softmax as
+    ``AttentionDownsampler.forward``, without its [B, fh, fw, k*k, C] patch tensor."""
+    b, c, h, w = x.shape
+    fh, fw = size
+    k, sh, sw, nh, nw = window_geometry(h, w, size, down.kernel)
+    logits = F.unfold(logit_map, k, stride=(sh, sw)).view(b, k * k, nh, nw)[:, :, :fh, :fw]
+    if down.training and down.dropout > 0:
+        logits = logits * (torch.rand(b, 1, fh, fw, device=x.device) > down.dropout)
+    wk = down.w[:k, :k].reshape(1, -1, 1, 1)
+    bk = down.b[:k, :k].reshape(1, -1, 1, 1)
+    attn = F.softmax(logits * wk + bk, dim=1)  # [B, k*k, fh, fw]
+    # windows a stride apart overlap; every ceil(k / stride)-th one does not
+    gy_n, gx_n = math.ceil(k / sh), math.ceil(k / sw)
+    out = x.new_zeros(b, c, fh, fw)
+    for a in range(min(gy_n, fh)):
+        for g in range(min(gx_n, fw)):
+            sub = attn[:, :, a::gy_n, g::gx_n]
+            gy, gx = sub.shape[-2:]
+            sy, sx = gy_n * sh, gx_n * sw
+            rh, rw = (gy - 1) * sy + k, (gx - 1) * sx + k
+            weights = F.fold(sub.reshape(b, k * k, gy * gx), (rh, rw), k, stride=(sy, sx))  # [B, 1, rh, rw]
+            region = x[:, :, a * sh : a * sh + rh, g * sw : g * sw + rw]
+            out[:, :, a::gy_n, g::gx_n] = F.avg_pool2d(region * weights.to(region.dtype), k, stride=(sy, sx),
+                                                       divisor_override=1)
+    return out
+
+
+def _autocast(device: torch.device, precision: str):
+    if precision == "bf16" and device.type == "cuda":
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def featurize_jitters(img: torch.Tensor, featurizer: "Featurizer", params: torch.Tensor, batch: int,
+                      precision: str, norm) -> torch.Tensor:
+    """Backbone features [N, D, fh, fw] (float32) of the N jittered copies of ``img`` [1, 3, h, w]."""
+    h, w = img.shape[-2:]
+    feats = []
+    with torch.no_grad(), _autocast(img.device, precision):
+        for i in range(0, params.shape[0], batch):
+            views = apply_jitters(img, jitter_grid(params[i : i + batch], h, w))
+            feats.append(norm(featurizer(views).float()))
+    return torch.cat(feats)
+
+
+def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net: nn.Module,
+             down: "AttentionDownsampler", outlier: nn.Conv2d, cfg: "ImplicitConfig", gen: torch.Generator,
+             progress: bool) -> list[float]:
+    """Run the fit's ``cfg.steps`` NAdam steps in place on (net, down, outlier); returns the losses.
+
+    ``img`` [1, 3, h, w]; ``targets`` [N, k, fh, fw] PCA coefficients of the jittered views whose
+    jitters are ``params`` [N, 5]; ``gen`` draws each step's view picks (as the reference does).
+    """
+    from .featup import _tv
+
+    dev = img.device
+    h, w = img.shape[-2:]
+    fh, fw = targets.shape[-2:]
+    params_all = list(net.parameters()) + list(down.parameters()) + list(outlier.parameters())
+    opt = torch.optim.NAdam(params_all, lr=cfg.lr)
+    lin = down.attention[1]
+    losses = torch.empty(cfg.steps, device=dev)
+    window_dtype = torch.bfloat16 if cfg.precision == "bf16" and dev.type == "cuda" else torch.float32
+    steps = range(cfg.steps)
+    if progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc="FeatUp implicit", leave=False)
+    net.train()
+    down.train()
+    for step in steps:
+        idx = torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen).to(dev, non_blocking=True)
+        with _autocast(dev, cfg.precision):
+            hr = net(img)
+        hr = hr.float()
+        hr_mag = hr.norm(dim=1, keepdim=True)
+        blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
+        logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
+        logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
+        sampled = apply_jitters(torch.cat([logit_map, blurred], dim=1), jitter_grid(params[idx], h, w))
+        # the window sums are memory-bound: in bf16 on CUDA (the jitter's coordinates stay float32)
+        out = window_attention(down, sampled[:, :1], sampled[:, 1:].to(window_dtype), (fh, fw)).float()
+        magnitude, pred = out[:, :1], out[:, 1:]
+        target = targets[idx]
+        scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
+        loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
+        if cfg.mag_weight > 0:
+            loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
+        if cfg.mag_tv_weight > 0:
+            loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
+        if cfg.blur_pin > 0:
+            loss = loss + cfg.blur_pin * (blurred[:, 1:] - hr).square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses[step] = loss.detach()
+    net.eval()
+    return losses.tolist()
