@@ -207,8 +207,11 @@ def test_batched_render_views_are_the_single_camera_renders_with_gradients(devic
         for k in KEYS:
             assert torch.equal(b_outs[v][k], o_outs[v][k]), (k, v)
     assert float(b_outs[0]["alpha"].detach().amin()) > 0.05  # the large Gaussians cover every pixel
-    assert torch.equal(b_m2d, o_m2d)
     tol = 1e-11 if dtype == torch.float64 else 2e-5
+    if device == "cpu":
+        assert torch.equal(b_m2d, o_m2d)
+    else:  # the CUDA backward sums screen gradients with atomics: the order (and rounding) varies per run
+        torch.testing.assert_close(b_m2d, o_m2d, rtol=tol, atol=tol)
     for k, a in b_grads.items():
         if a is None:
             assert o_grads[k] is None, k
