@@ -10,7 +10,7 @@ from tiger.language.sam_masks import (
     SamMasks,
     masks_to_boxes,
     point_grid,
-    remove_small_regions,
+    remove_small_regions_of_mask as remove_small_regions,
     stability_score,
 )
 

@@ -1,12 +1,12 @@
 """tiger::connected_components and tiger::remove_small_regions against scipy.ndimage.label and
-SAM's per-mask clean-up (tiger.language.sam_masks.remove_small_regions, OpenCV or scipy)."""
+SAM's per-mask clean-up (tiger.language.sam_masks.remove_small_regions_of_mask, OpenCV or scipy)."""
 import numpy as np
 import pytest
 import torch
 from scipy import ndimage
 
 import tiger  # noqa: F401
-from tiger.language.sam_masks import remove_small_regions as sam_remove_small_regions
+from tiger.language.sam_masks import remove_small_regions_of_mask as sam_remove_small_regions
 from tiger.ops.components import connected_components, remove_small_regions
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()

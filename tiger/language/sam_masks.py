@@ -125,7 +125,7 @@ def _label(binary: np.ndarray) -> tuple[np.ndarray, int]:
         return labels, n
 
 
-def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple[np.ndarray, bool]:
+def remove_small_regions_of_mask(mask: np.ndarray, area_thresh: int, mode: str) -> tuple[np.ndarray, bool]:
     """SAM's ``remove_small_regions`` on one mask [H, W] as SAM writes it: fill holes (mode 'holes')
     or drop islands ('islands') smaller than ``area_thresh`` pixels (8-connectivity); an all-small
     mask keeps its largest island. ``tiger::remove_small_regions`` gives the same result for all
@@ -151,14 +151,14 @@ def remove_small_regions(mask: np.ndarray, area_thresh: int, mode: str) -> tuple
 
 
 def clean_masks_on_host(masks: torch.Tensor, area_thresh: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """SAM's clean-up of masks [M, H, W] bool (holes, then islands, by :func:`remove_small_regions`)
+    """SAM's clean-up of masks [M, H, W] bool (holes, then islands, by :func:`remove_small_regions_of_mask`)
     on host copies, one mask per thread (OpenCV releases the GIL): (masks, changed [M] bool)."""
     host = masks.cpu().numpy().copy()
     changed = np.zeros(len(host), dtype=bool)
 
     def one(k: int) -> None:
-        m, c1 = remove_small_regions(host[k], area_thresh, "holes")
-        m, c2 = remove_small_regions(m, area_thresh, "islands")
+        m, c1 = remove_small_regions_of_mask(host[k], area_thresh, "holes")
+        m, c2 = remove_small_regions_of_mask(m, area_thresh, "islands")
         if c1 or c2:
             host[k], changed[k] = m, True
 
