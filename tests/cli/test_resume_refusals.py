@@ -58,7 +58,7 @@ def test_delete_guard_refuses_a_threshold_that_takes_the_scene(scene_file, tmp_p
 
 
 def test_delete_library_refuses_an_empty_result(scene_file):
-    from tiger.edit.delete import delete
+    from tiger.delete import delete
     from tiger.render.views import orbit_cameras_around
 
     scene = GaussianScene.load_ply(scene_file)

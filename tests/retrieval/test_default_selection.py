@@ -41,14 +41,15 @@ def trained_tabletop(density: float = 0.4, steps: int = 150):
     """(labelled tabletop with its language field trained as `tiger demo` trains it, fewer steps;
     the demo's built-in text table)."""
     from tiger.demo.language import SYNONYMS, builtin_text_table, label_feature_maps
-    from tiger.demo.scene import orbit_cameras, tabletop_scene
+    from tiger.demo.scene import DEMO_ORBIT, tabletop_scene
+    from tiger.render.views import orbit_cameras
     from tiger.language.field import train_field
 
     torch.manual_seed(0)
     ls = tabletop_scene(density)
     enc = builtin_text_table(ls.names)
     vecs = enc.encode_text([SYNONYMS[n][0] for n in ls.names]).float()
-    cams = orbit_cameras(8, 160, 120, start_deg=5.0, prefix="train")
+    cams = orbit_cameras(8, 160, 120, start_deg=5.0, names="train{}", **DEMO_ORBIT)
     maps, pca = label_feature_maps(ls, vecs, cams)
     train_field(ls.scene, cams, maps, steps=steps, lr=0.02, batch_views=2, loss="l1", progress=False, pca=pca)
     return ls, enc

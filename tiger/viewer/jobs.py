@@ -194,10 +194,7 @@ class DeleteJob(Job):
         self.steps, self.views, self.size = steps, views, size
 
     def run(self):
-        try:
-            from tiger.delete import DeleteConfig, delete, views_around
-        except ImportError:  # the deletion package's earlier home
-            from tiger.edit.delete import DeleteConfig, delete, views_around
+        from tiger.delete import DeleteConfig, delete, views_around
         from tiger.retrieval import Retrieval
 
         self.message = "removing, inpainting and refitting"
