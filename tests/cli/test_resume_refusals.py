@@ -11,7 +11,7 @@ from tiger.cli.common import RUN_RECORD
 from tiger.cli.main import main
 from tiger.scene import GaussianScene
 
-from .test_cli_pipeline import _dataset
+from .datasets import tabletop_dataset
 from .test_delete_cli import _scene_file
 
 
@@ -21,7 +21,7 @@ def _snapshot(folder):
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    return _dataset(tmp_path_factory.mktemp("resume_data"), n_views=3, w=32, h=24)
+    return tabletop_dataset(tmp_path_factory.mktemp("resume_data"), n_views=3, w=32, h=24)
 
 
 @pytest.fixture()
