@@ -1,11 +1,11 @@
-"""Object deletion (``tiger.edit.delete``): time per stage and the quality of the result.
+"""Object deletion (``tiger.delete``): time per stage and the quality of the result.
 
 Scene: the demo tabletop at ``--density`` (1 = ~20k Gaussians, 15 = ~300k), language features from
 its labels (one fixed unit vector per object plus noise, as ``tiger demo`` builds them before
 training), target "mug" (cosine > 0.5 to its label vector). ``--carve`` removes the table's
 Gaussians under the mug first (a capture never sees them), so the deletion leaves a real hole
 that seeds and the refit must fill. Views: ``--views`` cameras around the mug
-(``tiger.edit.views_around``), OpenCV Telea inpainting (built in).
+(``tiger.delete.views_around``), OpenCV Telea inpainting (built in).
 
 Stages: remove (retrieval + floater/unseen/appearance rules), render (before/after removal,
 holes, hole weights), inpaint (OpenCV, per view in a window around the hole), refit
@@ -31,7 +31,8 @@ from benchmarks.common import print_table  # noqa: E402
 
 from tiger.demo.run import label_features  # noqa: E402
 from tiger.demo.scene import tabletop_scene  # noqa: E402
-from tiger.edit import DeleteConfig, delete, views_around  # noqa: E402
+from tiger.delete import DeleteConfig, delete, views_around  # noqa: E402
+from tiger.eval.reprojection import evaluate_delete  # noqa: E402
 from tiger.retrieval import retrieve  # noqa: E402
 
 MUG_AXIS = (-0.4, 0.1)  # the mug's (x, z) in the demo scene
@@ -66,7 +67,7 @@ def main() -> None:
     cams = [c.to(dev) for c in views_around(r, a.views, w, h)]
     cfg = DeleteConfig(tau=0.5, steps=a.steps, background=(1.0, 1.0, 1.0))
     load0 = os.getloadavg()
-    print(f"tiger.edit.delete on {dev} ({torch.cuda.get_device_name(dev) if dev.type == 'cuda' else 'CPU'}, "
+    print(f"tiger.delete on {dev} ({torch.cuda.get_device_name(dev) if dev.type == 'cuda' else 'CPU'}, "
           f"{torch.get_num_threads()} threads): N={len(scene)} Gaussians, {a.views} views {w}x{h}, "
           f"{a.steps} refit steps, carve={a.carve}; load average {load0[0]:.1f}")
     delete(scene, r, cams, config=DeleteConfig(**{**vars(cfg), "steps": 2}), progress=False)  # warm-up
@@ -78,6 +79,7 @@ def main() -> None:
             torch.cuda.synchronize(dev)
         runs.append((time.perf_counter() - t0, time.process_time() - c0, res))
     wall, cpu, res = min(runs, key=lambda x: x[0])
+    evaluate_delete(res, cfg.background)  # after the timing: the library call does no evaluation
     t, m, c = res.timings, res.metrics, res.counts
     print_table([{"stage": k, "seconds": round(t[k], 3)} for k in ("remove", "render", "inpaint", "refit", "total")],
                 "time per stage (best of the timed runs)")

@@ -20,11 +20,11 @@ import tiger
 SURFACE = {
     "tiger": ["__version__", "rasterize_gaussians"],
     "tiger.cli": [],
+    "tiger.delete": ["DeleteConfig", "DeleteResult", "Inpainter", "LamaInpainter", "OpenCVInpainter", "delete",
+                     "make_inpainter", "views_around"],
     "tiger.demo": ["DEMO_ORBIT", "tabletop_scene"],
-    "tiger.edit": ["CSDGuidance", "CSDSchedule", "DEFAULT_EDIT_LRS", "DeleteConfig", "DeleteResult", "EditConfig",
-                   "EditResult", "EditSession", "EditTarget", "EmptyTargetError", "Inpainter", "LamaInpainter",
-                   "ObjectViews", "OpenCVInpainter", "capture_layout", "delete", "edit", "make_inpainter",
-                   "resolve_target", "views_around"],
+    "tiger.edit": ["CSDGuidance", "CSDSchedule", "DEFAULT_EDIT_LRS", "EditConfig", "EditResult", "EditSession",
+                   "EditTarget", "EmptyTargetError", "ObjectViews", "capture_layout", "edit", "resolve_target"],
     "tiger.edit.guidance": ["Guidance", "GuidanceInfo", "IP2PModels", 
                             "InstructPix2PixGuidance", "MVDreamGuidance", "MVDreamModels", "RecolorGuidance",
                             "ViewBatch", "load_ip2p", "load_mvdream", "parse_color"],
@@ -64,9 +64,8 @@ ALLOWED_TOP = {"rasterize_gaussians"}
 RETIRED = {"RasterDefaults", "render_color", "render_rgb_and_footprint", "clear_condition_cache"}
 #: Public names every CLI module defines by contract (one per command module).
 COMMAND_PROTOCOL = {"add_parser", "run", "main", "build_parser"}
-#: Second definitions still to be replaced by the one helper (the deletion stage's own RGB renders
-#: become tiger.scene.render_rgb when the deletion package moves): remove the entry then.
-PENDING = {"render_rgb": {"tiger.scene.gaussian_scene", "tiger.edit.delete"}}
+#: Second definitions still to be replaced by the one helper: {name: modules defining it}.
+PENDING: dict[str, set[str]] = {}
 
 
 def _packages() -> list[str]:

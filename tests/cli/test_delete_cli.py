@@ -8,7 +8,7 @@ import torch
 from tiger.cli.main import main
 from tiger.scene import GaussianScene
 
-from ..edit.test_delete import _tabletop
+from ..delete.test_pipeline import _tabletop
 from .datasets import tabletop_dataset
 
 

@@ -11,7 +11,7 @@ from tiger.cli.common import RUN_RECORD
 from tiger.cli.main import main
 from tiger.scene import GaussianScene
 
-from .datasets import tabletop_dataset as _dataset
+from .datasets import tabletop_dataset
 from .test_delete_cli import _scene_file
 
 
@@ -21,7 +21,7 @@ def _snapshot(folder):
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    return _dataset(tmp_path_factory.mktemp("resume_data"), n_views=3, w=32, h=24)
+    return tabletop_dataset(tmp_path_factory.mktemp("resume_data"), n_views=3, w=32, h=24)
 
 
 @pytest.fixture()
@@ -58,7 +58,7 @@ def test_delete_guard_refuses_a_threshold_that_takes_the_scene(scene_file, tmp_p
 
 
 def test_delete_library_refuses_an_empty_result(scene_file):
-    from tiger.edit.delete import delete
+    from tiger.delete import delete
     from tiger.render.views import orbit_cameras_around
 
     scene = GaussianScene.load_ply(scene_file)

@@ -70,7 +70,7 @@ def _dataset_views(data: str, n: int, downscale: float, device, skip_missing: bo
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiger.edit.delete import DeleteConfig, delete, views_around
+    from tiger.delete import DeleteConfig, delete, views_around
 
     dev = device_of(args.device)
     if args.resume and not Path(args.out).is_dir():
@@ -108,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
         cams = [c.to(dev) for c in views_around(retrieval, args.views, *size)]
     res = delete(scene, retrieval, cams, images, inpainter=args.inpainter, encoder=encoder, config=cfg,
                  checkpoint_dir=out, resume=args.resume, models=args.models)
+    from tiger.eval.reprojection import evaluate_delete
+
+    evaluate_delete(res, cfg.background)  # measured here, as `tiger edit` measures its locality
     res.save(out, extra={"text": args.text, "inpainter": args.inpainter, "scene": str(args.scene),
                          "data": args.data, "config": vars(cfg)})
     finish_output(out, "delete")

@@ -9,7 +9,7 @@ import torch
 
 from tiger.render import Camera
 from tiger.scene import GaussianScene
-from tiger.utils.io import atomic_write, file_slug
+from tiger.utils.io import atomic_write, unique_file_slugs
 
 from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing, device_of, load_scene,
                      open_dataset, output_dir, warn)
@@ -51,18 +51,6 @@ def pick_cameras(scene: GaussianScene, data: Optional[str], n: int,
     return orbit_cameras_around(scene.means, n, 480, 360)
 
 
-def _slugs(texts: list[str]) -> list[str]:
-    """File-name stems of the texts, made unique ("fox ears" and "fox-ears" both give fox_ears)."""
-    out: list[str] = []
-    for text in texts:
-        slug = file_slug(text)
-        stem, k = slug, 2
-        while slug in out:
-            slug, k = f"{stem}_{k}", k + 1
-        out.append(slug)
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     from tiger.retrieval import check_selection, retrieve, write_relevancy_pictures
     from tiger.utils.images import save_png
@@ -87,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     out = output_dir(args.out, args.force)
     summary = Summary("tiger query")
     report = {}
-    for text, slug in zip(texts, _slugs(texts)):
+    for text, slug in zip(texts, unique_file_slugs(texts)):
         r = results[text]
         check = check_selection(scene.means, r.mask)
         if not check.ok:

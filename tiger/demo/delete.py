@@ -15,7 +15,8 @@ def delete_stage(out: Path, timer, text: str = "mug", models: Optional[str] = No
     OpenCV inpainting and views around the object. Writes ``out/delete_<text>/`` (scene.ply,
     before_k/after_k.png for 4 views, holes/, inpainted/, delete.json) and
     ``out/delete_<text>.png`` (before above after). Returns the deletion's report."""
-    from tiger.edit.delete import DeleteConfig, delete, views_around
+    from tiger.delete import DeleteConfig, delete, views_around
+    from tiger.eval.reprojection import evaluate_delete
     from tiger.retrieval import retrieve
     from tiger.scene import GaussianScene
     from tiger.utils.io import file_slug
@@ -33,6 +34,8 @@ def delete_stage(out: Path, timer, text: str = "mug", models: Optional[str] = No
         cams = views_around(r, n_views, *size)
     with timer.stage(f"delete '{text}': remove, inpaint (OpenCV), refit {steps} steps"):
         res = delete(scene, r, cams, inpainter="opencv", config=cfg, progress=False)
+    with timer.stage(f"delete '{text}': metrics"):
+        evaluate_delete(res, cfg.background)
     with timer.stage(f"delete '{text}': pictures"):
         res.save(folder, extra={"text": text})
         best = res.best_views(4)

@@ -1,4 +1,4 @@
-"""Deletion metrics: locality outside the removed object, fidelity inside the holes, and the
+"""Deletion metrics (the edit's, :mod:`tiger.eval.edit`, plus the hole's): locality outside the removed object, fidelity inside the holes, and the
 multi-view consistency of the fill by reprojection between neighbouring views.
 
 Reprojection consistency: each hole pixel of view i with an opaque result (alpha > 0.5) is
@@ -111,3 +111,12 @@ def delete_metrics(cameras: Sequence[Camera], before: torch.Tensor, remaining: t
             "fill_reprojection_psnr": pair_psnr(after, pairs),
             "inpaint_reprojection_psnr": pair_psnr(targets, pairs),
             "reprojected_pixels": int(sum(p.shape[0] for _, _, p, _ in pairs))}
+
+
+def evaluate_delete(result, background=(0.0, 0.0, 0.0)) -> dict:
+    """:func:`delete_metrics` of a :class:`tiger.delete.DeleteResult` (its views, renders and
+    masks), stored in ``result.metrics`` (so ``result.save`` writes them) and returned.
+    ``background``: the deletion's (``DeleteConfig.background``)."""
+    result.metrics = delete_metrics(result.cameras, result.before, result.remaining, result.targets, result.after,
+                                    result.holes, result.footprint, result.scene, background)
+    return result.metrics

@@ -161,7 +161,7 @@ class EditJob(Job):
         lrs = {"sh_dc": 0.1} if req.guidance == "recolor" else {}
         cfg = EditConfig(steps=req.steps, width=req.size, height=req.size, seed=req.seed, background=bg,
                          checkpoint_every=0, progress=False, lrs=lrs)
-        session = EditSession(self.scene, target, guidance, req.instruction, None, cfg)
+        session = EditSession(self.scene, target, guidance, None, cfg)  # the instruction is the guidance's
         while session.step < cfg.steps:
             self._check_cancel()
             session.step_once()
@@ -194,10 +194,7 @@ class DeleteJob(Job):
         self.steps, self.views, self.size = steps, views, size
 
     def run(self):
-        try:
-            from tiger.delete import DeleteConfig, delete, views_around
-        except ImportError:  # the deletion package's earlier home
-            from tiger.edit.delete import DeleteConfig, delete, views_around
+        from tiger.delete import DeleteConfig, delete, views_around
         from tiger.retrieval import Retrieval
 
         self.message = "removing, inpainting and refitting"

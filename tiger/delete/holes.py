@@ -35,7 +35,7 @@ def hole_masks(removed_visible: torch.Tensor, remaining_alpha: torch.Tensor, *,
         [V, H, W] bool.
     """
     if removed_visible.shape != remaining_alpha.shape or removed_visible.dim() != 3:
-        raise ValueError(f"tiger.edit.hole_masks: removed_visible and remaining_alpha must both be "
+        raise ValueError(f"tiger.delete.hole_masks: removed_visible and remaining_alpha must both be "
                          f"[V, H, W], got {list(removed_visible.shape)} and {list(remaining_alpha.shape)}")
     core = (removed_visible >= visible_alpha) & (remaining_alpha < thin_alpha)
     return disk_dilate(core, int(dilate))

@@ -4,8 +4,8 @@ import torch
 
 from tiger.demo.run import label_features
 from tiger.demo.scene import tabletop_scene
-from tiger.edit.delete import DeleteConfig, delete
-from tiger.edit.refit import refit
+from tiger.delete import DeleteConfig, delete
+from tiger.delete.refit import refit
 from tiger.render.views import orbit_cameras
 from tiger.retrieval import retrieve
 
@@ -71,10 +71,12 @@ def _table_hole_pixels(res):
 
 
 def test_renders_outside_hole_unchanged_and_hole_filled(deleted):
-    from tiger.eval.reprojection import _psnr_inside
+    from tiger.eval.reprojection import _psnr_inside, evaluate_delete
 
     _, _, _, res = deleted
-    m = res.metrics
+    assert res.metrics == {}  # the library call does no evaluation
+    m = evaluate_delete(res, (1.0, 1.0, 1.0))
+    assert res.metrics is m
     assert int(res.holes.sum()) > 0
     assert m["locality_psnr"] >= 40.0, m  # outside the object's dilated footprint, vs before
     assert m["rest_psnr"] >= 40.0, m  # outside the dilated holes, vs the scene right after removal
@@ -119,3 +121,24 @@ def test_refit_holds_no_state_for_frozen_and_resumes(tmp_path):
                     progress=False)
     assert resumed.losses == full.losses
     assert resumed.scene.equal(full.scene)
+
+
+def test_refit_refuses_another_deletions_checkpoint_even_with_nothing_to_train(tmp_path):
+    from tiger.train import CheckpointMismatch
+
+    scene, is_mug, _ = _tabletop(density=0.25)
+    cams = _cameras(2, (32, 24))
+    targets = torch.rand(2, 24, 32, 3, generator=torch.Generator().manual_seed(1))
+    trainable = torch.zeros(len(scene), dtype=torch.bool)
+    trainable[torch.nonzero(~is_mug)[:50, 0]] = True
+    cfg = DeleteConfig(steps=2, densify_every=0, checkpoint_every=1)
+    windows = [(0, 0, 32, 24)] * 2
+    refit(scene, trainable, cams, targets, windows, cfg, checkpoint_dir=tmp_path, progress=False)
+    assert (tmp_path / "delete_refit.pt").is_file()
+    with pytest.raises(CheckpointMismatch, match="another deletion.*targets_sum"):
+        refit(scene, trainable, cams, targets * 0.5, windows, cfg, checkpoint_dir=tmp_path,
+              resume=True, progress=False)
+    # nothing trainable: the early return comes after the check
+    with pytest.raises(CheckpointMismatch, match="trainable"):
+        refit(scene, torch.zeros_like(trainable), cams, targets, windows, cfg, checkpoint_dir=tmp_path,
+              resume=True, progress=False)

@@ -6,7 +6,7 @@ grid of ``stride`` pixels are lifted to 3D at an inpainted depth (the remainder'
 into the thin region from the surrounding surface), coloured with the inpainted target.
 
 A seed is kept only if the other views agree: in every other view it projects either outside
-the image, inside that view's ``allowed`` region (the hole; :func:`tiger.edit.delete` grows it by
+the image, inside that view's ``allowed`` region (the hole; :func:`tiger.delete` grows it by
 a few pixels of slack for the filled depth's error), or behind the remainder's surface
 (occluded). A seed that would show up in another view outside its hole is dropped, so seeding
 does not change what a view showed elsewhere. Seeds are only made where the target differs from the remainder's
@@ -32,7 +32,7 @@ def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Ca
     render equals that window of the full render (principal point shifted, pixel centres kept)."""
     if not (0 <= x0 and 0 <= y0 and width > 0 and height > 0 and x0 + width <= camera.width
             and y0 + height <= camera.height):
-        raise ValueError(f"tiger.edit.crop_camera: window x0={x0} y0={y0} {width}x{height} is not inside "
+        raise ValueError(f"tiger.delete.crop_camera: window x0={x0} y0={y0} {width}x{height} is not inside "
                          f"the {camera.width}x{camera.height} image")
     K = camera.K.clone()
     K[0, 2] -= x0

@@ -32,15 +32,15 @@ def check_inpaint_inputs(images: torch.Tensor, masks: torch.Tensor, who: str) ->
     """Validate an inpainter's inputs; return the mask as bool [B, 1, H, W]."""
     if not isinstance(images, torch.Tensor) or images.ndim != 4 or images.shape[1] != 3:
         shape = list(images.shape) if isinstance(images, torch.Tensor) else type(images).__name__
-        raise ValueError(f"tiger.edit.{who}: images must be [B, 3, H, W], got {shape}")
+        raise ValueError(f"tiger.delete.{who}: images must be [B, 3, H, W], got {shape}")
     if not images.is_floating_point():
-        raise ValueError(f"tiger.edit.{who}: images must be float in [0, 1], got {images.dtype}")
+        raise ValueError(f"tiger.delete.{who}: images must be float in [0, 1], got {images.dtype}")
     b, _, h, w = images.shape
     if not isinstance(masks, torch.Tensor) or tuple(masks.shape) != (b, 1, h, w):
         shape = list(masks.shape) if isinstance(masks, torch.Tensor) else type(masks).__name__
-        raise ValueError(f"tiger.edit.{who}: masks must be [B={b}, 1, H={h}, W={w}], got {shape}")
+        raise ValueError(f"tiger.delete.{who}: masks must be [B={b}, 1, H={h}, W={w}], got {shape}")
     if not bool(torch.isfinite(images).all()):
-        raise ValueError(f"tiger.edit.{who}: images contain NaN or Inf")
+        raise ValueError(f"tiger.delete.{who}: images contain NaN or Inf")
     return masks.to(images.device) != 0
 
 
@@ -60,9 +60,9 @@ class OpenCVInpainter:
 
     def __init__(self, radius: float = 5.0, method: str = "telea") -> None:
         if method not in ("telea", "ns"):
-            raise ValueError(f"tiger.edit.OpenCVInpainter: method must be 'telea' or 'ns', got {method!r}")
+            raise ValueError(f"tiger.delete.OpenCVInpainter: method must be 'telea' or 'ns', got {method!r}")
         if not radius > 0:
-            raise ValueError(f"tiger.edit.OpenCVInpainter: radius must be > 0, got {radius}")
+            raise ValueError(f"tiger.delete.OpenCVInpainter: radius must be > 0, got {radius}")
         self.radius, self.method = float(radius), method
         self.name = f"opencv-{method}"
 
@@ -147,7 +147,7 @@ class LamaInpainter:
         try:
             module = torch.jit.load(str(file), map_location=device or "cpu")
         except Exception as e:  # torch raises RuntimeError or ValueError, depending on the damage
-            raise ValueError(f"tiger.edit.LamaInpainter: {file} is not a TorchScript module "
+            raise ValueError(f"tiger.delete.LamaInpainter: {file} is not a TorchScript module "
                              f"(expected lama-cleaner's big-lama.pt): {e}") from e
         log.info("LaMa inpainter loaded from %s", file)
         return cls(module, device=device, batch=batch, path=Path(file))
@@ -164,7 +164,7 @@ class LamaInpainter:
             res = self.net(img, msk)
             if not isinstance(res, torch.Tensor) or tuple(res.shape) != tuple(img.shape):
                 got = list(res.shape) if isinstance(res, torch.Tensor) else type(res).__name__
-                raise ValueError(f"tiger.edit.LamaInpainter: the network returned {got}, expected "
+                raise ValueError(f"tiger.delete.LamaInpainter: the network returned {got}, expected "
                                  f"{list(img.shape)} (is {self.path} a big-lama TorchScript module?)")
             outs.append(res[..., :h, :w].clamp(0, 1).to(images.device))
         return paste(images, torch.cat(outs), m)
@@ -180,4 +180,4 @@ def make_inpainter(name: str = "opencv", *, path: Optional[PathLike] = None, mod
         return OpenCVInpainter(method="ns", **kwargs)
     if name == "lama":
         return LamaInpainter.load(path, models=models, device=device, **kwargs)
-    raise ValueError(f"tiger.edit: unknown inpainter {name!r}; use 'opencv' (Telea), 'ns' or 'lama'")
+    raise ValueError(f"tiger.delete: unknown inpainter {name!r}; use 'opencv' (Telea), 'ns' or 'lama'")

@@ -2,8 +2,8 @@
 import pytest
 import torch
 
-from tiger.edit.holes import disk_dilate, hole_masks
-from tiger.edit.removal import removal_mask
+from tiger.delete.holes import disk_dilate, hole_masks
+from tiger.delete.removal import removal_mask
 
 
 def _planted(seed=0):

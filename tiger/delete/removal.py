@@ -112,16 +112,16 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
     """
     n = means.shape[0] if means.dim() == 2 else -1
     if means.dim() != 2 or means.shape[1] != 3:
-        raise ValueError(f"tiger.edit.removal_mask: means must be [N, 3], got {list(means.shape)}")
+        raise ValueError(f"tiger.delete.removal_mask: means must be [N, 3], got {list(means.shape)}")
     if scores.shape != (n,) or retrieved.shape != (n,) or retrieved.dtype != torch.bool:
-        raise ValueError(f"tiger.edit.removal_mask: scores and retrieved must be [N={n}] (float, bool), "
+        raise ValueError(f"tiger.delete.removal_mask: scores and retrieved must be [N={n}] (float, bool), "
                          f"got {list(scores.shape)} {scores.dtype} and {list(retrieved.shape)} {retrieved.dtype}")
     if not 0.0 <= floater_fraction <= 1.0 or box_margin < 0:
-        raise ValueError(f"tiger.edit.removal_mask: need 0 <= floater_fraction <= 1 and box_margin >= 0, "
+        raise ValueError(f"tiger.delete.removal_mask: need 0 <= floater_fraction <= 1 and box_margin >= 0, "
                          f"got {floater_fraction} and {box_margin}")
     retrieved = retrieved.to(means.device)
     if not bool(retrieved.any()):
-        raise ValueError("tiger.edit.removal_mask: the retrieval selected no Gaussian: nothing to delete")
+        raise ValueError("tiger.delete.removal_mask: the retrieval selected no Gaussian: nothing to delete")
     s = scores.detach().to(means.device, torch.float64)
     _, lo, hi = robust_bounds(means.detach()[retrieved], box_quantiles)
     tight_lo, tight_hi = lo.clone(), hi.clone()
@@ -136,13 +136,13 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
     unseen = torch.zeros_like(retrieved)
     if lang_norms is not None:
         if lang_norms.shape != (n,):
-            raise ValueError(f"tiger.edit.removal_mask: lang_norms must be [N={n}], got {list(lang_norms.shape)}")
+            raise ValueError(f"tiger.delete.removal_mask: lang_norms must be [N={n}], got {list(lang_norms.shape)}")
         norms = lang_norms.detach().to(means.device, torch.float64)
         unseen = inside & (norms <= unseen_norm * float(norms[retrieved].median())) & ~retrieved & ~floaters
     similar = torch.zeros_like(retrieved)
     if colors is not None and appearance_margin is not None:
         if colors.shape != (n, 3):
-            raise ValueError(f"tiger.edit.removal_mask: colors must be [N={n}, 3], got {list(colors.shape)}")
+            raise ValueError(f"tiger.delete.removal_mask: colors must be [N={n}, 3], got {list(colors.shape)}")
         def in_box(k: float) -> torch.Tensor:  # the robust box grown by k margins
             lo_k, hi_k = (tight_lo - k * grow).to(m.device), (tight_hi + k * grow).to(m.device)
             return ((m >= lo_k) & (m <= hi_k)).all(dim=1)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ..retrieval.test_default_selection import trained_tabletop
-from tiger.edit.delete import DeleteConfig, delete, views_around
+from tiger.delete import DeleteConfig, delete, views_around
 from tiger.retrieval import retrieve
 
 

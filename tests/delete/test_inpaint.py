@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from tiger.edit.inpaint import LamaInpainter, OpenCVInpainter, make_inpainter
+from tiger.delete.inpaint import LamaInpainter, OpenCVInpainter, make_inpainter
 from tiger.models.paths import ENV_VAR, ModelNotFoundError
 
 
