@@ -103,7 +103,7 @@ def test_render_turntable_auto_video_and_errors(tmp_path):
             "--height", 18)
     assert r.returncode == 0, r.stderr
     videos = list((tmp_path / "tt").glob("turntable.*"))
-    assert len(videos) == 1 and videos[0].suffix in (".mp4", ".gif") and videos[0].stat().st_size > 0
+    assert len(videos) == 1 and videos[0].suffix in (".mp4", ".webm", ".gif") and videos[0].stat().st_size > 0
     assert "missing.ply" in cli_error("render_turntable.py", tmp_path / "missing.ply", "--out", tmp_path / "x")
     assert "--views" in cli_error("render_turntable.py", tmp_path / "s.ply", "--out", tmp_path / "x", "--views", 0)
     # OpenCV (a dependency) encodes MP4: an explicit request gets one, not a silent GIF.
