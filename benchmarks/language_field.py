@@ -136,7 +136,7 @@ def train_loop(device: str, views: int, height: int, width: int, gaussians: int,
 
     from tiger.language.extract import FeatureSet
     from tiger.language.field import train_field
-    from tiger.retrieval.synthetic import DEFAULT_LABELS, make_labelled_scene
+    from tiger.testing.labelled_scene import DEFAULT_LABELS, make_labelled_scene
 
     logging.getLogger("tiger.language.field").setLevel(logging.ERROR)
     k = len(DEFAULT_LABELS)

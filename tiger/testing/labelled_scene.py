@@ -105,7 +105,7 @@ def make_labelled_scene(labels: Sequence[str] = DEFAULT_LABELS, *, per_object: i
 def oracle_feature_maps(ls: SyntheticRetrievalScene, min_alpha: float = 0.5) -> list:
     """Per view ``(features [H, W, D], valid [H, W])``: renders of each Gaussian's label embedding;
     pixels with alpha < ``min_alpha`` are invalid (they stand for pixels in no SAM mask)."""
-    lang = ls.label_lang[ls.labelled.labels]
+    lang = ls.label_lang.to(ls.scene.device)[ls.labelled.labels.to(ls.scene.device)]
     maps = []
     with torch.no_grad():
         for cam in ls.cameras:
