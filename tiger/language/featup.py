@@ -363,9 +363,9 @@ class ImplicitUpsampler:
         history: list[float] = []
         steps = range(cfg.steps)
         if progress:
-            from tqdm.auto import tqdm
+            from tiger.utils.progress import progress as progress_lines
 
-            steps = tqdm(steps, desc="FeatUp implicit", leave=False)
+            steps = progress_lines(steps, "FeatUp implicit", leave=False)
         net.train()
         down.train()
         for _ in steps:

@@ -159,9 +159,9 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     window_dtype = torch.bfloat16 if cfg.precision == "bf16" and dev.type == "cuda" else torch.float32
     steps = range(cfg.steps)
     if progress:
-        from tqdm.auto import tqdm
+        from tiger.utils.progress import progress as progress_lines
 
-        steps = tqdm(steps, desc="FeatUp implicit", leave=False)
+        steps = progress_lines(steps, "FeatUp implicit", leave=False)
     net.train()
     down.train()
     for step in steps:
