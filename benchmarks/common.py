@@ -81,3 +81,18 @@ def print_table(rows: list[dict], title: str = "") -> str:
         text = title + "\n" + text
     print(text, flush=True)
     return text
+
+
+def sync(device: torch.device) -> None:
+    """Wait for ``device``'s queued work (CUDA); nothing on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn: Callable[[], object], device: torch.device) -> tuple[object, float]:
+    """(``fn()``'s result, its wall seconds) with the device's queue drained before and after."""
+    sync(device)
+    t = time.perf_counter()
+    out = fn()
+    sync(device)
+    return out, time.perf_counter() - t

@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import time
 
 import torch
 import torch.nn.functional as F
 
 import tiger  # noqa: F401
-from benchmarks.common import print_table
+from benchmarks.common import print_table, sync, timed
 from benchmarks.features import synthetic_image
 from tiger.language.featup import ImplicitConfig, ImplicitUpsampler
 from tiger.language.featup_fit import window_geometry
@@ -48,19 +47,6 @@ def build_clip(kind: str, dev: torch.device) -> MaskCLIP:
     tok_dir = tempfile.mkdtemp()
     write_byte_level_clip_tokenizer(tok_dir)
     return MaskCLIP(model, transformers.CLIPTokenizer.from_pretrained(tok_dir))
-
-
-def sync(dev: torch.device) -> None:
-    if dev.type == "cuda":
-        torch.cuda.synchronize()
-
-
-def timed(fn, dev):
-    sync(dev)
-    t = time.perf_counter()
-    out = fn()
-    sync(dev)
-    return out, time.perf_counter() - t
 
 
 def backbone_flops_per_view(clip: MaskCLIP, clip_in: torch.Tensor) -> float:

@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import time
 
 import torch
 import torch.nn.functional as F
 
-from benchmarks.common import median_time, print_table, rel_err  # noqa: E402
+from benchmarks.common import median_time, print_table, rel_err, timed  # noqa: E402
 
 import tiger  # noqa: E402,F401
 from tiger.language.featup import ImplicitConfig, ImplicitUpsampler, JBUStack, upsample_features  # noqa: E402
@@ -31,19 +30,6 @@ from tiger.ops.jbu import adaptive_conv  # noqa: E402
 from tiger.ops.masked_average import masked_average  # noqa: E402
 from tiger.ops.nms import box_nms, mask_intersections, mask_nms  # noqa: E402
 from benchmarks.masks import langsplat_loop, matmul_counts, pairwise_loop, realistic_masks  # noqa: E402
-
-
-def sync(dev: torch.device) -> None:
-    if dev.type == "cuda":
-        torch.cuda.synchronize()
-
-
-def timed(fn, dev):
-    sync(dev)
-    t = time.perf_counter()
-    out = fn()
-    sync(dev)
-    return out, time.perf_counter() - t
 
 
 def synthetic_image(h: int, w: int, seed: int = 0) -> torch.Tensor:

@@ -13,9 +13,8 @@ resolution.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterable
 
 import torch
 import torch.nn.functional as F
@@ -358,16 +357,8 @@ class ImplicitUpsampler:
 
             history = fit_loop(img, targets, params, net, down, outlier, cfg, gen, progress)
             return cls(net, img, mean, basis, history)
-        params = list(net.parameters()) + list(down.parameters()) + list(outlier.parameters())
-        opt = torch.optim.NAdam(params, lr=cfg.lr)
+        opt, steps = _fit_setup(net, down, outlier, cfg, progress)
         history: list[float] = []
-        steps = range(cfg.steps)
-        if progress:
-            from tiger.utils.progress import progress as progress_lines
-
-            steps = progress_lines(steps, "FeatUp implicit", leave=False)
-        net.train()
-        down.train()
         for _ in steps:
             hr = net(img)
             hr_mag = hr.norm(dim=1, keepdim=True)
@@ -401,6 +392,21 @@ class ImplicitUpsampler:
             img = F.interpolate(img, size=size, mode="bilinear", align_corners=False, antialias=True)
         coeffs = self.net(img)[0]  # [k, H, W]
         return torch.einsum("dk,khw->dhw", self.basis, coeffs) + self.mean.view(-1, 1, 1)
+
+
+def _fit_setup(net: nn.Module, down: nn.Module, outlier: nn.Module, cfg: "ImplicitConfig",
+               progress: bool) -> tuple[torch.optim.Optimizer, Iterable[int]]:
+    """What both fits start with: NAdam over the three modules' parameters, the step range (a
+    progress bar when asked), and the network and downsampler in training mode (dropout)."""
+    opt = torch.optim.NAdam([*net.parameters(), *down.parameters(), *outlier.parameters()], lr=cfg.lr)
+    steps: Iterable[int] = range(cfg.steps)
+    if progress:
+        from tiger.utils.progress import progress as progress_lines
+
+        steps = progress_lines(steps, "FeatUp implicit", leave=False)
+    net.train()
+    down.train()
+    return opt, steps
 
 
 def _pca_basis(views: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:

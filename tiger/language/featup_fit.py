@@ -147,23 +147,15 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     ``img`` [1, 3, h, w]; ``targets`` [N, k, fh, fw] PCA coefficients of the jittered views whose
     jitters are ``params`` [N, 5]; ``gen`` draws each step's view picks (as the reference does).
     """
-    from .featup import _tv
+    from .featup import _fit_setup, _tv
 
     dev = img.device
     h, w = img.shape[-2:]
     fh, fw = targets.shape[-2:]
-    params_all = list(net.parameters()) + list(down.parameters()) + list(outlier.parameters())
-    opt = torch.optim.NAdam(params_all, lr=cfg.lr)
+    opt, steps = _fit_setup(net, down, outlier, cfg, progress)
     lin = down.attention[1]
     losses = torch.empty(cfg.steps, device=dev)
     window_dtype = torch.bfloat16 if cfg.precision == "bf16" and dev.type == "cuda" else torch.float32
-    steps = range(cfg.steps)
-    if progress:
-        from tiger.utils.progress import progress as progress_lines
-
-        steps = progress_lines(steps, "FeatUp implicit", leave=False)
-    net.train()
-    down.train()
     for step in steps:
         idx = torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen).to(dev, non_blocking=True)
         with _autocast(dev, cfg.precision):

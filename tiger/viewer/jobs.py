@@ -7,6 +7,7 @@ leaves the scene as it was (the edit works on a copy) and keeps its error for th
 """
 from __future__ import annotations
 
+import abc
 import logging
 import threading
 import time
@@ -14,6 +15,8 @@ from dataclasses import dataclass
 from typing import Optional
 
 import torch
+
+from tiger.scene import GaussianScene
 
 from .state import MAX_TEXT, ViewerError, ViewerState
 
@@ -62,8 +65,9 @@ class EditRequest:
     seed: int = 0
 
 
-class Job:
-    """A worker thread with progress, message, cancellation and an error slot."""
+class Job(abc.ABC):
+    """A worker thread with progress, message, cancellation and an error slot; a subclass says
+    what it computes in :meth:`run`."""
 
     kind = "job"
 
@@ -110,8 +114,10 @@ class Job:
                 self.state.version += 1
             self.finished.set()
 
-    def run(self) -> tuple[str, "torch.nn.Module"]:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def run(self) -> tuple[str, GaussianScene]:
+        """The work, in the worker thread: (a label for the history, the new scene). Call
+        :meth:`_check_cancel` between steps; the scene in the viewer is replaced only on return."""
 
 
 def _target_of(state: ViewerState):
@@ -145,7 +151,7 @@ class EditJob(Job):
             self.scene, self.target = state.scene, _target_of(state)
         self.request, self.device = request, device
 
-    def run(self):
+    def run(self) -> tuple[str, GaussianScene]:
         from tiger.edit import EditConfig
         from tiger.edit.build import build_guidance
         from tiger.edit.loop import EditSession
@@ -193,7 +199,7 @@ class DeleteJob(Job):
             self.scene, self.target, self.tau = state.scene, _target_of(state), state.tau
         self.steps, self.views, self.size = steps, views, size
 
-    def run(self):
+    def run(self) -> tuple[str, GaussianScene]:
         from tiger.delete import DeleteConfig, delete, views_around
         from tiger.retrieval import Retrieval
 
