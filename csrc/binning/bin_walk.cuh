@@ -30,11 +30,18 @@ __device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const i
   return tile_rect(means2d[2 * i], means2d[2 * i + 1], rx, ry, g.tile_size, g.tiles_x, g.tiles_y);
 }
 
+// The index of image `view`'s first tile: the images' tile grids follow one another
+// (bin_gaussians(views=V)); below 2^31 as the glue checks the total.
+__device__ __forceinline__ int view_first_tile(int64_t i, int64_t per_view, const BinGeometry& g) {
+  return int(i / per_view * (int64_t(g.tiles_x) * g.tiles_y));
+}
+
 // The exact test of one Gaussian, loaded once.
 template <typename T>
 struct TileTester {
   T u, v, ca, cb, cc, qcut;
   TileRect r;
+  int first_tile;  // the first tile of the Gaussian's image: tile ids are first_tile + local id
 
   __device__ void load(int64_t i, const BinInputs<T>& in, const BinGeometry& g) {
     u = in.means2d[2 * i];
@@ -44,18 +51,23 @@ struct TileTester {
     cc = in.conics[3 * i + 2];
     qcut = cutoff_quadratic<T>(in.opacities[i], in.alpha_threshold);
     r = rect_of(i, in.means2d, in.radii, g);
+    first_tile = view_first_tile(i, in.per_view, g);
   }
   __device__ bool touches(int tx, int ty, const BinGeometry& g) const {
     const int px0 = tx * g.tile_size, py0 = ty * g.tile_size;
     return tile_touches<T>(u, v, ca, cb, cc, qcut, px0, min(px0 + g.tile_size, g.width), py0,
                            min(py0 + g.tile_size, g.height));
   }
+  // The tile id of the Gaussian's image's tile (tx, ty).
+  __device__ __forceinline__ int tile_id(int tx, int ty, const BinGeometry& g) const {
+    return first_tile + ty * g.tiles_x + tx;
+  }
   // Candidate k (row-major in the box; k < count() < 2^31): its tile if touched, else -1.
   __device__ int test(int k, const BinGeometry& g) const {
     const int w = r.width();
     const int row = k / w, col = k - row * w;
     const int tx = r.x0 + col, ty = r.y0 + row;
-    return touches(tx, ty, g) ? ty * g.tiles_x + tx : -1;
+    return touches(tx, ty, g) ? tile_id(tx, ty, g) : -1;
   }
 };
 

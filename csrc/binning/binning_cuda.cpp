@@ -193,17 +193,16 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
   check_binning_inputs("tiger.bin_gaussians", means2d, conics, opacities, depths, radii, width,
                        height, tile_size);
   check_binning_views("tiger.bin_gaussians", means2d.size(0), views);
-  // The CUDA kernels bin one image per call: render_views loops over the views on CUDA.
-  TORCH_CHECK(views == 1, "tiger.bin_gaussians: views > 1 (stacked images) is not implemented "
-              "on CUDA, got ", views);
   check_binning_choices("tiger.bin_gaussians", path, block_sort_keys, warp_sort_keys, giant_tiles);
   const c10::cuda::CUDAGuard guard(means2d.device());
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   const int64_t n = means2d.size(0);
   const int ts = int(tile_size);
   BinGeometry g{int(width), int(height), ts, int((width + ts - 1) / ts), int((height + ts - 1) / ts)};
-  const int64_t n_tiles = int64_t(g.tiles_x) * g.tiles_y;
-  TORCH_CHECK(n_tiles < (int64_t(1) << 31), "tiger.bin_gaussians: too many tiles (", n_tiles, ")");
+  // views images' tile grids, one after the other (binning.h)
+  const int64_t view_tiles = int64_t(g.tiles_x) * g.tiles_y, n_tiles = views * view_tiles;
+  TORCH_CHECK(n_tiles < (int64_t(1) << 31), "tiger.bin_gaussians: ", views, " images of ",
+              view_tiles, " tiles are more than 2^31 tiles");
   TORCH_CHECK(n < (int64_t(1) << 31), "tiger.bin_gaussians: at most 2^31-1 Gaussians, got ", n);
   // path "auto": the per-tile path up to kBinTilePathMaxGaussians Gaussians, else the global sort
   const bool per_tile = path == "auto" ? n <= kBinTilePathMaxGaussians : path == "tiles";
@@ -219,7 +218,7 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians_cuda(const at::Tensor& means2d,
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians_cuda", [&] {
     using T = scalar_t;
     const BinInputs<T> in{m2.data_ptr<T>(), cn.data_ptr<T>(), op.data_ptr<T>(), dp.data_ptr<T>(),
-                          r.data_ptr<int32_t>(), nullptr, n, T(alpha_threshold)};
+                          r.data_ptr<int32_t>(), nullptr, n, T(alpha_threshold), n / views};
     gaussian_ids = per_tile ? bin_per_tile<T>(in, g, n_tiles, tile_offsets, choice, means2d, stream)
                             : bin_global<T>(in, g, n_tiles, tile_offsets, choice, means2d, stream);
   });

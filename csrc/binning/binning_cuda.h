@@ -46,6 +46,7 @@
 
 namespace tiger {
 
+// One image's size and tile grid (every image of a views > 1 call has the same).
 struct BinGeometry {
   int width, height, tile_size, tiles_x, tiles_y;
 };
@@ -60,6 +61,9 @@ struct BinInputs {
   const int32_t* depth_rank; // [n]: per-tile path with float64 depths, else unused
   int64_t n;
   T alpha_threshold;
+  // Gaussians per image (bin_gaussians(views=V): n / V; n for one image): Gaussian i is listed
+  // only in the tiles of image i / per_view, which follow the tiles of the images before it.
+  int64_t per_view;
 };
 
 // ---- per-tile path ----

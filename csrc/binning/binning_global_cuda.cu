@@ -146,7 +146,7 @@ __device__ void visit_tiles(int64_t i, const TileRect& r, const BinInputs<T>& in
   t.load(i, in, g);
   for (int ty = r.y0; ty < r.y1; ++ty)
     for (int tx = r.x0; tx < r.x1; ++tx)
-      if (t.touches(tx, ty, g)) f(ty * g.tiles_x + tx);
+      if (t.touches(tx, ty, g)) f(t.tile_id(tx, ty, g));
 }
 
 // Appends the block's large Gaussians to large_ids: those for a warp from the front

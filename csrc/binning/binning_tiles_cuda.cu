@@ -106,9 +106,9 @@ __global__ void __launch_bounds__(kThreads)
         const int tx = r.x0 + col, ty = r.y0 + row;
         if (t.touches(tx, ty, g)) {
           if constexpr (kEmit)
-            sink.emit(ty * g.tiles_x + tx, key);
+            sink.emit(t.tile_id(tx, ty, g), key);
           else
-            sink.count(ty * g.tiles_x + tx);
+            sink.count(t.tile_id(tx, ty, g));
         }
         for (col += lanes; col >= w; col -= w) ++row;
       }

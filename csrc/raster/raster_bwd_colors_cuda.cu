@@ -13,7 +13,7 @@ cudaError_t launch_colors_cb(const RasterLaunch<T>& a, const int32_t* n_contrib,
                              const T* v_color, T* v_colors, T* v_bg_tiles, cudaStream_t stream) {
   const ChannelPlan plan = plan_channels(a.channels, CB_MAX);
   const int threads = block_threads(a.tile_size);
-  const int blocks = a.tiles_x * a.tiles_y;
+  const int blocks = a.views * a.tiles_x * a.tiles_y;  // every image's tiles
   return dispatch_plan<CB_MAX>(plan, [&](auto m, auto t) -> cudaError_t {
     constexpr int CBM = decltype(m)::value, CBT = decltype(t)::value;
     constexpr int CBX = CBM > CBT ? CBM : CBT;

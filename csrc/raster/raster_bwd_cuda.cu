@@ -13,7 +13,7 @@ template <int CB_MAX, typename T, typename TC>
 cudaError_t launch_backward_cb(const RasterLaunch<T>& a, const TC* colors,
                                const BackwardIO<T>& io, int pixels_wanted, cudaStream_t stream) {
   const ChannelPlan plan = plan_channels(a.channels, CB_MAX);
-  const int blocks = a.tiles_x * a.tiles_y;
+  const int blocks = a.views * a.tiles_x * a.tiles_y;  // every image's tiles
   return dispatch_plan<CB_MAX>(plan, [&](auto m, auto t) -> cudaError_t {
     constexpr int CBM = decltype(m)::value, CBT = decltype(t)::value;
     constexpr int CBX = CBM > CBT ? CBM : CBT;

@@ -44,6 +44,7 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
   l.tile_size = int(a.tile_size);
   l.tiles_x = int((a.width + a.tile_size - 1) / a.tile_size);
   l.tiles_y = int((a.height + a.tile_size - 1) / a.tile_size);
+  l.views = int(a.views);
   l.channels = int(channels);
   l.alpha_max = T(a.alpha_max);
   l.alpha_threshold = T(a.alpha_threshold);
@@ -51,14 +52,20 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
   return l;
 }
 
+// Tiles of every image (views images, raster.h).
 int64_t num_tiles(const RasterArgs& a) {
-  return ((a.width + a.tile_size - 1) / a.tile_size) * ((a.height + a.tile_size - 1) / a.tile_size);
+  return a.views * ((a.width + a.tile_size - 1) / a.tile_size) *
+         ((a.height + a.tile_size - 1) / a.tile_size);
 }
 
-// Checked before any dispatch: one block per tile holds at most 256 pixel threads.
+// Checked before any dispatch: one block per tile holds at most 256 pixel threads, and the
+// kernels index tiles and pixel rows of an image with int.
 void check_cuda_limits(const char* op, const RasterArgs& a, int64_t channels) {
   TORCH_CHECK(a.tile_size <= 16, op, ": the CUDA kernels take tile_size <= 16, got ", a.tile_size);
   TORCH_CHECK(channels < (int64_t(1) << 24), op, ": too many channels (", channels, ")");
+  TORCH_CHECK(num_tiles(a) < (int64_t(1) << 31) && a.width < (int64_t(1) << 30) &&
+                  a.height < (int64_t(1) << 30),
+              op, ": ", a.views, " images of ", a.width, "x", a.height, " are too many tiles");
 }
 
 void check_ok(cudaError_t err, const char* op) {
@@ -75,9 +82,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
     int64_t backward_pixels_per_thread, int64_t views) {
   const char* op = "tiger.rasterize";
-  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
-  // The CUDA kernels draw one image per call: render_views loops over the views on CUDA.
-  TORCH_CHECK(views == 1, op, ": views > 1 (stacked images) is not implemented on CUDA, got ", views);
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
   // the backward's choices, carried for the autograd formula: checked here as on the CPU
   check_channel_block(op, "backward_channel_block", backward_channel_block);
@@ -93,11 +98,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_device(gaussian_ids, means2d, op, "gaussian_ids");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const int64_t C = colors.size(1);
-  auto out_color = at::empty({height, width, C}, means2d.options());
-  auto out_alpha = at::empty({height, width}, means2d.options());
-  auto out_depth = at::empty({height, width}, means2d.options());
-  auto out_count = at::empty({height, width}, means2d.options().dtype(at::kInt));
-  auto out_trans = at::empty({height, width}, means2d.options());
+  const int64_t rows = views * height;  // the views' images, stacked
+  auto out_color = at::empty({rows, width, C}, means2d.options());
+  auto out_alpha = at::empty({rows, width}, means2d.options());
+  auto out_depth = at::empty({rows, width}, means2d.options());
+  auto out_count = at::empty({rows, width}, means2d.options().dtype(at::kInt));
+  auto out_trans = at::empty({rows, width}, means2d.options());
   const auto m = means2d.contiguous(), c = conics.contiguous(), o = opacities.contiguous(),
              d = depths.contiguous(), col = colors.contiguous(), to = tile_offsets.contiguous(),
              ids = gaussian_ids.contiguous();
@@ -127,9 +133,7 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         const std::optional<at::Tensor>& v_depth, int64_t channel_block,
                         int64_t pixels_per_thread, int64_t views) {
   const char* op = "tiger.rasterize_backward";
-  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
-  // The CUDA kernels draw one image per call: render_views loops over the views on CUDA.
-  TORCH_CHECK(views == 1, op, ": views > 1 (stacked images) is not implemented on CUDA, got ", views);
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
   check_pixels_per_thread(op, "pixels_per_thread", pixels_per_thread);
   const int64_t n = means2d.size(0);
@@ -138,12 +142,13 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   check_raster_inputs(op, means2d, conics, opacities, depths, background, C, tile_offsets,
                       gaussian_ids, a);
   const ColorStorage storage = color_storage(colors, means2d, op);
-  check_shape(transmittance, op, "transmittance", {height, width});
-  check_shape(n_contrib, op, "n_contrib", {height, width});
+  const int64_t H = views * height;  // the views' images, stacked
+  check_shape(transmittance, op, "transmittance", {H, width});
+  check_shape(n_contrib, op, "n_contrib", {H, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
-  check_shape(v_color, op, "v_color", {height, width, C});
-  if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {height, width});
-  if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {height, width});
+  check_shape(v_color, op, "v_color", {H, width, C});
+  if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {H, width});
+  if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {H, width});
   check_cuda_limits(op, a, C);
   check_device(colors, means2d, op, "colors");
   check_device(tile_offsets, means2d, op, "tile_offsets");
@@ -194,16 +199,15 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views) {
   const char* op = "tiger.rasterize_backward_colors";
-  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min};
-  // The CUDA kernels draw one image per call: render_views loops over the views on CUDA.
-  TORCH_CHECK(views == 1, op, ": views > 1 (stacked images) is not implemented on CUDA, got ", views);
+  const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
   const int64_t n = means2d.size(0);
-  check_shape(v_color, op, "v_color", {height, width, -1});
+  const int64_t H = views * height;  // the views' images, stacked
+  check_shape(v_color, op, "v_color", {H, width, -1});
   const int64_t C = v_color.size(2);
   check_raster_inputs(op, means2d, conics, opacities, opacities.new_empty({n}), std::nullopt, C,
                       tile_offsets, gaussian_ids, a);
-  check_shape(n_contrib, op, "n_contrib", {height, width});
+  check_shape(n_contrib, op, "n_contrib", {H, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
   check_cuda_limits(op, a, C);
   check_device(tile_offsets, means2d, op, "tile_offsets");

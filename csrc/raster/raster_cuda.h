@@ -1,6 +1,6 @@
 #pragma once
 // Raw-pointer launchers of the CUDA rasterization kernels (no torch headers).
-// Shapes and semantics as in raster.h. One thread block per tile, one thread per pixel (two
+// Shapes and semantics as in raster.h (views images stacked along the rows). One thread block per tile, one thread per pixel (two
 // in the float32 backward of up to 16 channels); channels are processed in register blocks
 // whose size is a template parameter (up to 64 channels per block in float32), so any C runs
 // in one launch.
@@ -21,7 +21,10 @@ struct RasterLaunch {
   const T* depths;  // may be null for the features-only backward
   const int64_t* tile_offsets;
   const int32_t* ids;
-  int width, height, tile_size, tiles_x, tiles_y;
+  int width, height, tile_size, tiles_x, tiles_y;  // of one image
+  // Images drawn (raster.h): one block per tile of views * tiles_y * tiles_x; tile t belongs
+  // to image t / (tiles_x * tiles_y), whose pixels are rows image * height ... of the outputs.
+  int views;
   int channels;
   T alpha_max, alpha_threshold, t_min;
 };

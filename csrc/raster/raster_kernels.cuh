@@ -26,20 +26,43 @@ struct alignas(4 * sizeof(T)) SplatGeom {
   T cc, o, z, qcut;
 };
 
+// The block's tile: blockIdx.x over the views' tile grids one after the other (raster.h).
+// (tx, ty) its place in its own image, row0 the image's first row in the stacked outputs.
+struct BlockTile {
+  int tile, tx, ty;
+  int64_t row0;
+};
+
+template <typename T>
+__device__ __forceinline__ BlockTile block_tile(const RasterLaunch<T>& a) {
+  BlockTile b;
+  b.tile = blockIdx.x;
+  const int view_tiles = a.tiles_x * a.tiles_y;
+  const int view = b.tile / view_tiles, local = b.tile - view * view_tiles;
+  b.tx = local % a.tiles_x;
+  b.ty = local / a.tiles_x;
+  b.row0 = int64_t(view) * a.height;
+  return b;
+}
+
+// One thread's pixel: (px, py) in its own image's coordinates (where the Gaussians are
+// evaluated), pix its index in the stacked [views * H, W] outputs.
 struct TilePixel {
   int tile, px, py;
+  int64_t pix;
   bool inside;
 };
 
-__device__ __forceinline__ TilePixel tile_pixel(int tile_size, int tiles_x, int width,
-                                                int height) {
+template <typename T>
+__device__ __forceinline__ TilePixel tile_pixel(const RasterLaunch<T>& a) {
+  const BlockTile b = block_tile(a);
   TilePixel p;
-  p.tile = blockIdx.x;
-  const int tx = p.tile % tiles_x, ty = p.tile / tiles_x;
+  p.tile = b.tile;
   const int t = threadIdx.x;
-  p.px = tx * tile_size + t % tile_size;
-  p.py = ty * tile_size + t / tile_size;
-  p.inside = t < tile_size * tile_size && p.px < width && p.py < height;
+  p.px = b.tx * a.tile_size + t % a.tile_size;
+  p.py = b.ty * a.tile_size + t / a.tile_size;
+  p.pix = (b.row0 + p.py) * a.width + p.px;
+  p.inside = t < a.tile_size * a.tile_size && p.px < a.width && p.py < a.height;
   return p;
 }
 
@@ -51,31 +74,33 @@ __device__ __forceinline__ TilePixel tile_pixel(int tile_size, int tiles_x, int 
 template <int PPT>
 struct TilePixels {
   int tile;
-  int px[PPT], py[PPT];
+  int px[PPT], py[PPT];  // in the pixel's own image
+  int64_t pix[PPT];      // index in the stacked outputs
   bool inside[PPT];
 };
 
-template <int PPT>
-__device__ __forceinline__ TilePixels<PPT> tile_pixels(int tile_size, int tiles_x, int width,
-                                                       int height) {
+template <int PPT, typename T>
+__device__ __forceinline__ TilePixels<PPT> tile_pixels(const RasterLaunch<T>& a) {
   TilePixels<PPT> p;
   if constexpr (PPT == 1) {
-    const TilePixel q = tile_pixel(tile_size, tiles_x, width, height);
+    const TilePixel q = tile_pixel(a);
     p.tile = q.tile;
     p.px[0] = q.px;
     p.py[0] = q.py;
+    p.pix[0] = q.pix;
     p.inside[0] = q.inside;
   } else {
     static_assert(PPT == 2, "1 or 2 pixels per thread");
-    p.tile = blockIdx.x;
-    const int tx = p.tile % tiles_x, ty = p.tile / tiles_x;
+    const BlockTile b = block_tile(a);
+    p.tile = b.tile;
     const int t = threadIdx.x, lane = t & 31;
     const int row0 = 4 * (t >> 5) + (lane >> 4);
 #pragma unroll
     for (int k = 0; k < 2; ++k) {
-      p.px[k] = tx * tile_size + (lane & 15);
-      p.py[k] = ty * tile_size + row0 + 2 * k;
-      p.inside[k] = p.px[k] < width && p.py[k] < height;
+      p.px[k] = b.tx * a.tile_size + (lane & 15);
+      p.py[k] = b.ty * a.tile_size + row0 + 2 * k;
+      p.pix[k] = (b.row0 + p.py[k]) * a.width + p.px[k];
+      p.inside[k] = p.px[k] < a.width && p.py[k] < a.height;
     }
   }
   return p;
@@ -232,7 +257,7 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
     }
   }
   if (!p.inside) return;
-  const int64_t pix = int64_t(p.py) * a.width + p.px;
+  const int64_t pix = p.pix;
   if (out.bg) {
 #pragma unroll
     for (int c = 0; c < CB; ++c)
@@ -253,7 +278,7 @@ __global__ void __launch_bounds__(256) forward_kernel(RasterLaunch<T> a, const T
   extern __shared__ __align__(16) unsigned char smem[];
   SplatGeom<T>* s_geom = reinterpret_cast<SplatGeom<T>*>(smem);
   T* s_col = reinterpret_cast<T*>(s_geom + blockDim.x);
-  const TilePixel p = tile_pixel(a.tile_size, a.tiles_x, a.width, a.height);
+  const TilePixel p = tile_pixel(a);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM) {
@@ -272,13 +297,13 @@ __global__ void __launch_bounds__(256) forward_kernel(RasterLaunch<T> a, const T
 // ----------------------------------------------------------------------------------------
 template <int PPT>
 __device__ __forceinline__ int block_max_count(const int32_t* n_contrib, const TilePixels<PPT>& p,
-                                               int width, int* s_max) {
+                                               int* s_max) {
   if (threadIdx.x == 0) *s_max = 0;
   __syncthreads();
   int32_t cnt = 0;
 #pragma unroll
   for (int k = 0; k < PPT; ++k)
-    if (p.inside[k]) cnt = max(cnt, n_contrib[int64_t(p.py[k]) * width + p.px[k]]);
+    if (p.inside[k]) cnt = max(cnt, n_contrib[p.pix[k]]);
   if (cnt > 0) atomicMax(s_max, cnt);
   __syncthreads();
   return *s_max;
@@ -406,7 +431,7 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
 #pragma unroll
     for (int c = 0; c < CB; ++c) vc[k][c] = T(0);
     if (p.inside[k]) {
-      const int64_t pix = int64_t(p.py[k]) * a.width + p.px[k];
+      const int64_t pix = p.pix[k];
       q.Tfin = io.trans[pix];
       q.cnt = io.count[pix];
       q.vA = io.v_alpha ? io.v_alpha[pix] : T(0);  // null: no alpha / depth gradient
@@ -512,8 +537,8 @@ __global__ void __launch_bounds__(256) backward_kernel(RasterLaunch<T> a, const 
   T* s_bg = s_col + BS * CBX;
   int32_t* s_id = reinterpret_cast<int32_t*>(s_bg + CBX);
   int* s_max = s_id + BS;
-  const TilePixels<PPT> p = tile_pixels<PPT>(a.tile_size, a.tiles_x, a.width, a.height);
-  const int max_cnt = block_max_count<PPT>(io.count, p, a.width, s_max);
+  const TilePixels<PPT> p = tile_pixels<PPT>(a);
+  const int max_cnt = block_max_count<PPT>(io.count, p, s_max);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)
@@ -541,7 +566,7 @@ __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int3
 #pragma unroll
   for (int c = 0; c < CB; ++c) vc[0][c] = T(0);
   if (p.inside[0]) {
-    const int64_t pix = int64_t(p.py[0]) * a.width + p.px[0];
+    const int64_t pix = p.pix[0];
     cnt = count[pix];
     load_channel_row<CB>(v_color, pix, C, c0, vc[0]);
   }
@@ -589,8 +614,8 @@ __global__ void __launch_bounds__(256) backward_colors_kernel(RasterLaunch<T> a,
   T* s_bg = reinterpret_cast<T*>(s_geom + blockDim.x);
   int32_t* s_id = reinterpret_cast<int32_t*>(s_bg + CBX);
   int* s_max = s_id + blockDim.x;
-  const TilePixels<1> p = tile_pixels<1>(a.tile_size, a.tiles_x, a.width, a.height);
-  const int max_cnt = block_max_count<1>(count, p, a.width, s_max);
+  const TilePixels<1> p = tile_pixels<1>(a);
+  const int max_cnt = block_max_count<1>(count, p, s_max);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)

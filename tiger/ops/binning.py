@@ -56,7 +56,7 @@ def bin_gaussians(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Te
             (0 = culled); width, height: image size (px); tile_size: tile edge (px);
         alpha_threshold: a tile is kept only where the ellipse reaches o*G >= threshold.
         settings: the CUDA kernels' choices (:class:`BinningSettings`; the lists are the same).
-        views: V images in one call (CPU only for V > 1): the N Gaussians are V consecutive
+        views: V images in one call (CPU and CUDA): the N Gaussians are V consecutive
             blocks of N / V, block v projected into image v (its own pixel coordinates); image
             v's tiles follow image v-1's and list only block v's Gaussians (the tile lists of
             ``rasterize(views=V)``; each image's lists are those of its block alone, ids offset

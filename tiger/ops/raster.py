@@ -68,7 +68,7 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         t_min: a pixel stops once its transmittance would drop below this.
         kernels: the CUDA kernels' choices, forward and backward (:class:`RasterKernelSettings`).
         views: V images of ``width`` x ``height`` drawn in one call from tile lists of
-            :func:`bin_gaussians` with the same ``views`` (CPU only for V > 1): every per-pixel
+            :func:`bin_gaussians` with the same ``views`` (CPU and CUDA): every per-pixel
             output is [V * H, W(, C)], image v in rows v*H .. (v+1)*H - 1, each equal to a
             ``views=1`` call on its own Gaussians.
     Returns:

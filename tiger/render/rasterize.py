@@ -333,11 +333,11 @@ def composite_views(projections: list[Projection], width: int, height: int,
     """V views' :class:`Projection` s (of one scene of N Gaussians, one image size, one
     background) composited into stacked images: the second half of ``render_views``.
 
-    On the CPU the V views are binned and rasterized in one call each (``views=V``: the V*N
+    The V views are binned and rasterized in one call each (``views=V``, CPU and CUDA: the V*N
     projected Gaussians, block v listed only in image v's tiles and evaluated at image v's own
-    pixel coordinates), so view v is bit-identical to :func:`composite` of its projection. The
-    CUDA kernels draw one image per call, so on CUDA the views are binned and composited one
-    by one (every binning first, so the GPU runs the composites while the host goes on).
+    pixel coordinates), so view v is bit-identical to :func:`composite` of its projection (its
+    gradients too on the CPU; on CUDA they are summed with atomics, equal up to rounding).
+    On CUDA the binning reads its intersection count back once for all V views.
 
     Args:
         projections: V projections of the same N Gaussians (features [N, C] each).
@@ -347,21 +347,13 @@ def composite_views(projections: list[Projection], width: int, height: int,
     Returns:
         dict with 'color' [V, H, W, C], 'alpha', 'depth', 'depth_accum' [V, H, W], 'radii'
         [V, N] int32, 'means2d' [V, N, 2], 'conics' [V, N, 3], 'depths' [V, N], 'n_isects' [V]
-        int64.
+        int64 (on the projections' device).
     """
     width, height = int(width), int(height)
     views = len(projections)
     if means2d is None:
         means2d = torch.stack([p.means2d for p in projections])
     n = means2d.shape[1]
-    if means2d.is_cuda or views == 1:
-        binned = [bin_projection(p, width, height, settings) for p in projections]
-        outs = [composite(p._replace(means2d=m), width, height, settings, binned=b)
-                for p, m, b in zip(projections, means2d.unbind(0), binned)]
-        stacked = {k: torch.stack([o[k] for o in outs]) for k in outs[0] if k not in ("n_isects", "means2d")}
-        stacked["means2d"] = means2d
-        stacked["n_isects"] = torch.tensor([o["n_isects"] for o in outs], dtype=torch.int64)
-        return stacked
     flat = means2d.reshape(views * n, 2)
     conics = torch.cat([p.conics for p in projections])
     depths = torch.cat([p.depths for p in projections])

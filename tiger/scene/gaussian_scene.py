@@ -439,8 +439,8 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     :meth:`GaussianScene.render` (one ``colors`` tensor [N, C] serves every view). The scene's
     activations (scales, opacities) are computed once for all views, so gradients of a loss
     over the V renders reach the scene's tensors and ``colors`` through one graph. Each view is
-    projected by its own call; on the CPU the V views are then binned and rasterized in one call
-    each (:func:`tiger.render.rasterize.composite_views`), on CUDA one view at a time.
+    projected by its own call; the V views are then binned and rasterized in one call each, on
+    the CPU and on CUDA (:func:`tiger.render.rasterize.composite_views`).
 
     Returns:
         dict with 'color' [V, H, W, C], 'alpha' [V, H, W], 'depth' [V, H, W],
