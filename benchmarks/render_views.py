@@ -12,10 +12,12 @@ and the largest difference of render_views' outputs and gradients from the raw c
 (0 = bit-identical; gradients are summed over views in another order, so a few ulp).
 
 ``--edit``: the edit loop's render stage instead: the demo tabletop of ``benchmarks/edit.py``
-at ``--density`` with SH degree 3, V orbit cameras of ``--size`` px around it, SH colour,
-forward + backward into every scene tensor: render_views (the CPU bins and rasterizes the V
-views in one call each; CUDA draws them one by one) against a loop of GaussianScene.render,
-with the largest output and gradient differences.
+at ``--density`` (16: the edit benchmark's 317,600 Gaussians) with SH degree 3, V orbit cameras
+of ``--size`` px around it, SH colour: render_views (one binning and one rasterization of the V
+stacked views, CPU and CUDA) against a loop of GaussianScene.render, forward and backward (into
+every scene tensor) timed apart; the edit step's own stage (half the views as originals with
+the footprint channel, half with gradient); the largest output difference from the per-view
+renders (0: bit-identical) and relative gradient difference (atomics' order on CUDA).
 
     python -m benchmarks.render_views               # CPU
     python -m benchmarks.render_views --device cuda
@@ -30,7 +32,7 @@ import time
 
 import torch
 
-from benchmarks.common import median_time, print_table  # noqa: E402
+from benchmarks.common import cpu_time_ms, cuda_time_ms, median_time, print_table  # noqa: E402
 from tests.render.standard_scenes import standard_scene  # noqa: E402
 
 import tiger  # noqa: E402
@@ -97,56 +99,90 @@ def run(n: int, size: int, channels: int, views: int, device: str, repeats: int)
             "rel grad diff colors": rel(c2.grad, g_raw[1])}
 
 
-def run_edit(density: float, size: int, views: int, device: str, repeats: int) -> dict:
-    """The edit step's render stage: render_views of V cameras vs V GaussianScene.render calls."""
+def _stage_timer(device: str, repeats: int):
+    """time(fn, setup) -> median ms of fn(setup()) (setup untimed): CUDA events on CUDA, wall
+    clock on the CPU."""
+    if device == "cuda":
+        return lambda fn, setup: cuda_time_ms(fn, iters=repeats, warmup=2, setup=setup)
+    return lambda fn, setup: cpu_time_ms(fn, iters=repeats, warmup=1, setup=setup)
+
+
+def run_edit(density: float, size: int, views: int, device: str, repeats: int) -> list[dict]:
+    """The edit step's render stage: V views of the edit scene (SH degree 3, full SH colour),
+    render_views (one projection per view, then ONE binning and ONE rasterization of the V
+    stacked views, forward and backward) against a loop of V GaussianScene.render calls;
+    forward and backward timed apart; plus the edit loop's own stage (half the views rendered
+    as originals with the footprint channel, no gradient; half with gradient)."""
     from benchmarks.edit import demo_scene
     from tiger.render.views import orbit_cameras_around
+    from tiger.scene import render_rgb
 
     scene, _ = demo_scene(density, device)
     scene.lang = None
     cams = [c.to(device) for c in orbit_cameras_around(scene.means, views, size, size, elevation_deg=20.0)]
     upstream = torch.rand(views, size, size, 3, device=device,
                           generator=torch.Generator(device=device).manual_seed(1))
+    time_ms = _stage_timer(device, repeats)
 
     def leaves():
         scene.parameter_groups()
 
-    def loop(_=None):
-        for v, cam in enumerate(cams):
-            (scene.render(cam, check_finite=False)["color"] * upstream[v]).sum().backward()
+    def forward_loop(_=None):
+        return [scene.render(cam, check_finite=False) for cam in cams]
 
-    def batched(_=None):
-        (render_views(scene, cams, check_finite=False)["color"] * upstream).sum().backward()
+    def forward_batched(_=None):
+        return render_views(scene, cams, check_finite=False)
 
-    if device == "cuda":
-        t_loop = median_time(loop, repeats=repeats, cuda=True, setup=leaves)
-        t_views = median_time(batched, repeats=repeats, cuda=True, setup=leaves)
-    else:  # alternate the two, so that a shared machine's changing load hits both alike
-        times: dict = {loop: [], batched: []}
-        for fn in (loop, batched):  # warm-up
-            leaves()
-            fn()
-        for _ in range(repeats):
-            for fn in (loop, batched):
-                leaves()
-                t0 = time.perf_counter()
-                fn()
-                times[fn].append(time.perf_counter() - t0)
-        t_loop, t_views = (statistics.median(times[f]) for f in (loop, batched))
+    def loss_loop():
+        leaves()
+        return sum((o["color"] * upstream[v]).sum() for v, o in enumerate(forward_loop()))
+
+    def loss_batched():
+        leaves()
+        return (forward_batched()["color"] * upstream).sum()
+
+    def backward(loss):
+        loss.backward()
+
+    t = {"fwd loop": time_ms(forward_loop, leaves), "fwd batched": time_ms(forward_batched, leaves),
+         "bwd loop": time_ms(backward, loss_loop), "bwd batched": time_ms(backward, loss_batched)}
+
+    # the edit loop's render stage: originals (footprint channel, no gradient) + current views
+    half = max(views // 2, 1)
+    footprint = (torch.arange(len(scene), device=device) % 8 == 0).float()
+    bg = torch.zeros(3, device=device)
+
+    def stage_batched(_=None):
+        render_rgb(scene, cams[:half], bg, footprint=footprint)
+        return render_views(scene, cams[half:], "rgb", background=bg, check_finite=False)
+
+    def stage_loop(_=None):
+        for cam in cams[:half]:
+            render_rgb(scene, [cam], bg, footprint=footprint)
+        return [scene.render(cam, "rgb", background=bg, check_finite=False) for cam in cams[half:]]
+
+    t["stage loop"] = time_ms(stage_loop, leaves)
+    t["stage batched"] = time_ms(stage_batched, leaves)
+
+    # agreement: every output of render_views against the per-view renders, and the gradients
     leaves()
     with torch.no_grad():
-        ref = torch.stack([scene.render(cam)["color"] for cam in cams])
-    loop()
-    g_loop = {k: t.grad.clone() for k, t in scene.params().items()}
-    leaves()
-    out = render_views(scene, cams)
-    (out["color"] * upstream).sum().backward()
-    rel = max(float((t.grad - g_loop[k]).abs().max() / g_loop[k].abs().max().clamp_min(1e-30))
-              for k, t in scene.params().items())
-    return {"N": len(scene), "px": f"{size}x{size}", "V": views, "loop ms": 1e3 * t_loop,
-            "render_views ms": 1e3 * t_views, "speed-up": t_loop / t_views,
-            "isects/view": int(out["n_isects"].float().mean()),
-            "max|out diff|": float((out["color"].detach() - ref).abs().max()), "max rel grad diff": rel}
+        ref = forward_loop()
+        out = forward_batched()
+    diff = max(float((out[k][v] - ref[v][k]).abs().max()) for v in range(views)
+               for k in ("color", "alpha", "depth"))
+    loss_loop().backward()
+    g_loop = {k: p.grad.clone() for k, p in scene.params().items()}
+    loss_batched().backward()
+    rel = max(float((p.grad - g_loop[k]).abs().max() / g_loop[k].abs().max().clamp_min(1e-30))
+              for k, p in scene.params().items())
+    row = {"device": device, "N": len(scene), "px": f"{size}x{size}", "V": views,
+           "isects/view": int(out["n_isects"].float().mean())}
+    row.update({f"{k} ms": v for k, v in t.items()})
+    row.update({"fwd speed-up": t["fwd loop"] / t["fwd batched"],
+                "bwd speed-up": t["bwd loop"] / t["bwd batched"],
+                "max|out diff|": diff, "max rel grad diff": rel})
+    return [row]
 
 
 def main() -> None:
@@ -160,8 +196,13 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=8, help="--edit: cameras per render")
     args = ap.parse_args()
     if args.edit:
-        print_table([run_edit(args.density, args.size, args.views, args.device, args.repeats)],
-                    f"edit render stage: render_views vs a loop of render, forward + backward ({args.device})")
+        rows = run_edit(args.density, args.size, args.views, args.device, args.repeats)
+        print_table([{k: r[k] for k in list(r)[:5]} | {k: r[k] for k in r if k.startswith(("fwd", "bwd"))}
+                     for r in rows], f"edit scene, {args.views} views: render_views (batched) vs a loop of "
+                                     f"render, forward and backward apart ({args.device}, ms)")
+        print_table([{k: r[k] for k in ("device", "V")} | {k: r[k] for k in r if k.startswith(("stage", "max"))}
+                     for r in rows], "the edit step's render stage (half originals + footprint, half with "
+                                     "gradient; ms) and the batched render's error vs per-view renders")
         return
     cases = [(20000, 128, 3, 4)] if args.quick else [(20000, 128, 3, 4), (100000, 256, 3, 4), (100000, 256, 64, 4)]
     print_table([run(*c, args.device, args.repeats) for c in cases],

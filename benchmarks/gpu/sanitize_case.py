@@ -4,9 +4,16 @@ Exercises every CUDA op of the rendering core once per configuration: projection
 backward with camera gradients), SH, binning, rasterize forward, full backward and the
 features-only backward, for float32, float64 and float16/bfloat16 channel storage, with
 channel counts that hit single, main+tail and masked channel blocks, and a partial edge tile;
-then the training loss's fused SSIM (forward and backward, ragged tiles, two window radii).
+then the training loss's fused SSIM (forward and backward, ragged tiles, two window radii);
+then a batched render of ``--views`` stacked views (binning of both paths and rasterization with
+views=V, full and features-only backward; ``--views-only`` runs just that part).
+
+    compute-sanitizer --tool memcheck python -m benchmarks.gpu.sanitize_case --views 3
+    compute-sanitizer --tool racecheck python -m benchmarks.gpu.sanitize_case --views 3 --views-only
 """
 from __future__ import annotations
+
+import argparse
 
 import torch
 
@@ -90,8 +97,61 @@ def run_sh_split(n: int, degree: int) -> None:
     print(f"ok sh split n={n} degree={degree}", flush=True)
 
 
+def run_views(views: int, n: int, C: int, dtype: torch.dtype, path: str, features_only: bool,
+              w: int = 70, h: int = 45) -> None:
+    """views=V binning and rasterization (forward, backward) of V projections of one scene, a
+    few Gaussians covering whole images (the warp and block walkers of the binning); every view
+    must equal its own views=1 render."""
+    from tiger.ops.binning import BinningSettings, bin_gaussians
+    from tiger.ops.raster import rasterize
+
+    s = heavy_tailed_scene(n, C, device="cuda", dtype=dtype, seed=11)
+    ops = torch.ops.tiger
+    per_view = []
+    for v in range(views):
+        V, K = standard_camera(w, h, device="cuda", dtype=dtype)
+        V[:3, 3] += torch.tensor([0.1 * v, -0.05 * v, 0.0], device="cuda", dtype=dtype)
+        per_view.append(ops.project_gaussians(s["means"], s["quats"], s["scales"], s["opacities"],
+                                              V, K, w, h, 0.3, 0.01, 1e10, 1 / 255, False))
+    m2, cn, d, op, r = [torch.cat([p[i] for p in per_view]) for i in range(5)]
+    settings = BinningSettings(path=path, giant_tiles=8)  # block walks at this small size
+    to, ids = bin_gaussians(m2, cn, op, d, r, w, h, 16, 1 / 255, settings, views=views)
+    cols = s["colors"].repeat(views, 1)
+    bg = torch.rand(C, device="cuda", dtype=dtype)
+    leaves = [t.detach().clone().requires_grad_(not features_only or k in (3, 5))
+              for k, t in enumerate((m2, cn, op, cols, d, bg))]
+    color, alpha, depth, _, _ = rasterize(*leaves[:5], leaves[5], to, ids, w, h, 16, 0.99, 1 / 255,
+                                          1e-4, views=views)
+    loss = (color * torch.randn_like(color)).sum()
+    if not features_only:
+        loss = loss + alpha.sum() + depth.sum()
+    loss.backward()
+    torch.cuda.synchronize()
+    nv = m2.shape[0] // views
+    for v, p in enumerate(per_view):
+        one_to, one_ids = bin_gaussians(p[0], p[1], p[3], p[2], p[4], w, h, 16, 1 / 255, settings)
+        one = rasterize(p[0], p[1], p[3], cols[v * nv:(v + 1) * nv], p[2], bg, one_to, one_ids, w, h, 16,
+                        0.99, 1 / 255, 1e-4)
+        assert torch.equal(color.detach()[v * h:(v + 1) * h], one[0]), f"view {v} differs from its own render"
+    for k, t in enumerate(leaves):
+        if t.grad is not None:
+            assert bool(torch.isfinite(t.grad.float()).all()), k
+    print(f"ok views={views} n={n} C={C} {dtype} path={path} features_only={features_only} "
+          f"isects={ids.numel()}", flush=True)
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=3, help="stacked views of the batched case")
+    ap.add_argument("--views-only", action="store_true", help="run only the batched-views case")
+    args = ap.parse_args()
     assert tiger.ops.cuda_enabled() and torch.cuda.is_available()
+    for path in ("tiles", "global"):
+        for C, dtype in ((3, torch.float32), (67, torch.float32), (5, torch.float64)):
+            run_views(args.views, 200, C, dtype, path, False)
+        run_views(args.views, 200, 3, torch.float32, path, True)
+    if args.views_only:
+        return
     for n, degree in ((200, 3), (130, 2), (5, 1)):
         run_sh_split(n, degree)
     for shape, taps, dtype in (((1, 3, 37, 70), 11, torch.float32), ((2, 2, 19, 33), 5, torch.float32),

@@ -30,10 +30,14 @@ __device__ __forceinline__ TileRect rect_of(int64_t i, const T* means2d, const i
   return tile_rect(means2d[2 * i], means2d[2 * i + 1], rx, ry, g.tile_size, g.tiles_x, g.tiles_y);
 }
 
-// The index of image `view`'s first tile: the images' tile grids follow one another
-// (bin_gaussians(views=V)); below 2^31 as the glue checks the total.
-__device__ __forceinline__ int view_first_tile(int64_t i, int64_t per_view, const BinGeometry& g) {
-  return int(i / per_view * (int64_t(g.tiles_x) * g.tiles_y));
+// The first tile of Gaussian i's image: the images' tile grids follow one another
+// (bin_gaussians(views=V)); below 2^31 as the glue checks the total. One image (per_view = n):
+// 0 without the 64-bit division.
+template <typename T>
+__device__ __forceinline__ int view_first_tile(int64_t i, const BinInputs<T>& in,
+                                               const BinGeometry& g) {
+  if (in.per_view >= in.n) return 0;
+  return int(i / in.per_view * (int64_t(g.tiles_x) * g.tiles_y));
 }
 
 // The exact test of one Gaussian, loaded once.
@@ -51,7 +55,7 @@ struct TileTester {
     cc = in.conics[3 * i + 2];
     qcut = cutoff_quadratic<T>(in.opacities[i], in.alpha_threshold);
     r = rect_of(i, in.means2d, in.radii, g);
-    first_tile = view_first_tile(i, in.per_view, g);
+    first_tile = view_first_tile(i, in, g);
   }
   __device__ bool touches(int tx, int ty, const BinGeometry& g) const {
     const int px0 = tx * g.tile_size, py0 = ty * g.tile_size;
