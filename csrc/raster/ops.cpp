@@ -45,6 +45,15 @@ void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Te
   TORCH_CHECK(a.t_min >= 0 && a.t_min < 1, op, ": t_min must be in [0, 1), got ", a.t_min);
 }
 
+void check_trainable(const char* op, const std::optional<at::Tensor>& trainable,
+                     const at::Tensor& means2d) {
+  if (!trainable.has_value()) return;
+  check_dtype(*trainable, at::kBool, op, "trainable");
+  check_shape(*trainable, op, "trainable", {means2d.size(0)});
+  TORCH_CHECK(trainable->device() == means2d.device(), op, ": trainable is on ",
+              trainable->device(), " but means2d is on ", means2d.device());
+}
+
 void check_channel_block(const char* op, const char* name, int64_t channel_block) {
   TORCH_CHECK(channel_block == kRasterChannelBlock || channel_block == 32, op, ": ", name,
               " must be ", kRasterChannelBlock, " or 32 (the compiled float32 channel blocks), got ",
@@ -66,7 +75,7 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, int height, "
       "int tile_size, float alpha_max, float alpha_threshold, float t_min, int channel_block=" + cb +
       ", int backward_channel_block=" + cb + ", int colors_channel_block=" + cb +
-      ", int backward_pixels_per_thread=" + ppt + ", int views=1"
+      ", int backward_pixels_per_thread=" + ppt + ", int views=1, Tensor? trainable=None"
       ") -> (Tensor color, Tensor alpha, Tensor depth, Tensor n_contrib, Tensor transmittance)")
             .c_str());
   m.def((
@@ -74,14 +83,15 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "Tensor depths, Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, "
       "int height, int tile_size, float alpha_max, float alpha_threshold, float t_min, "
       "Tensor transmittance, Tensor n_contrib, Tensor v_color, Tensor? v_alpha, Tensor? v_depth, "
-      "int channel_block=" + cb + ", int pixels_per_thread=" + ppt + ", int views=1"
-      ") -> (Tensor v_geometry, Tensor v_colors, Tensor v_background)")
+      "int channel_block=" + cb + ", int pixels_per_thread=" + ppt + ", int views=1, "
+      "Tensor? trainable=None) -> (Tensor v_geometry, Tensor v_colors, Tensor v_background)")
             .c_str());
   m.def((
       "rasterize_backward_colors(Tensor means2d, Tensor conics, Tensor opacities, "
       "Tensor tile_offsets, Tensor gaussian_ids, int width, int height, int tile_size, "
       "float alpha_max, float alpha_threshold, float t_min, Tensor n_contrib, Tensor v_color, "
-      "int channel_block=" + cb + ", int views=1) -> (Tensor v_colors, Tensor v_background)")
+      "int channel_block=" + cb + ", int views=1, Tensor? trainable=None"
+      ") -> (Tensor v_colors, Tensor v_background)")
             .c_str());
 }
 

@@ -21,6 +21,13 @@
 //   v_background [C].
 // rasterize_backward_colors: the features-only backward: gradients w.r.t. colors and
 //   background only (geometry and opacity frozen); walks front to back, no division.
+// trainable (optional, all three ops): bool [N] (N the stacked count with views > 1): the
+//   Gaussians whose gradients are wanted. The backward ops still walk every listed Gaussian
+//   (the frozen ones shape the transmittance and the colour behind), but add no gradient for
+//   a frozen one: its rows of v_geometry and v_colors are zero, and on CUDA it costs no
+//   reduction and no atomics. The trainable ones' gradients are those of the full backward
+//   (the same sums; on CUDA up to the atomics' order). rasterize only checks and carries it
+//   for its autograd formula.
 //
 // Kernel choices of the CUDA kernels (op arguments, float32 only: float64 runs blocks of 8
 // channels, one pixel per thread; the CPU kernels only check them). Every choice gives the same
@@ -57,6 +64,10 @@ constexpr int64_t kRasterPixelsPerThread = 2;
 void check_channel_block(const char* op, const char* name, int64_t channel_block);
 void check_pixels_per_thread(const char* op, const char* name, int64_t pixels_per_thread);
 
+// Rejects a trainable mask that is not bool [n] on means2d's device, naming it.
+void check_trainable(const char* op, const std::optional<at::Tensor>& trainable,
+                     const at::Tensor& means2d);
+
 void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Tensor& conics,
                          const at::Tensor& opacities, const at::Tensor& depths,
                          const std::optional<at::Tensor>& background, int64_t channels,
@@ -69,7 +80,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread, int64_t views);
+    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable);
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
@@ -80,12 +91,14 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
-                       int64_t pixels_per_thread, int64_t views);
+                       int64_t pixels_per_thread, int64_t views,
+                       const std::optional<at::Tensor>& trainable);
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views);
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
+    const std::optional<at::Tensor>& trainable);
 
 }  // namespace tiger

@@ -32,6 +32,8 @@ struct Scene2D {
   int width, height, ts, tiles_x;
   int64_t tiles_per_view;  // tiles of one image (RasterArgs::views images stacked along the rows)
   RasterOptions<T> opt;
+  const bool* trainable;  // [N] or null (all): the backward adds gradients only for these
+  bool frozen(int32_t g) const { return trainable && !trainable[g]; }
 };
 
 // A tile's pixels: px0, py0 in its own image's coordinates (where Gaussians are evaluated),
@@ -256,7 +258,7 @@ void backward_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const T* colors
         gv -= vq * T(2) * (cb * dx + cc * dy);
       }
     });
-    if (!touched) continue;
+    if (!touched || s.frozen(g)) continue;  // a frozen Gaussian's row stays zero
     T* row = rows + k * S;
     for (int64_t c = 0; c < C; ++c) row[c] = gcol[c];
     row[C] = T(gu);
@@ -302,7 +304,7 @@ void backward_colors_tile(const Scene2D<T>& s, int64_t tile, int64_t C, const in
       Tr[p] *= T(1) - a;
       n += a != T(0);
     });
-    if (n == 0) continue;
+    if (n == 0 || s.frozen(g)) continue;  // the transmittance is updated, no gradient added
     T* out = per_gaussian ? per_gaussian + int64_t(g) * C  // this thread's own [N, C] buffer
                           : rows + k * C;
     simd::weighted_sum(src.data(), wl.data(), n, C, out);
@@ -327,7 +329,8 @@ void reduce_rows(const T* rows, int64_t m, int64_t S, const int32_t* ids, T* out
 template <typename T>
 Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
                       const at::Tensor& depths, const at::Tensor& tile_offsets,
-                      const at::Tensor& ids, const RasterArgs& a) {
+                      const at::Tensor& ids, const RasterArgs& a,
+                      const at::Tensor& trainable = at::Tensor()) {
   Scene2D<T> s;
   s.means2d = means2d.data_ptr<T>();
   s.conics = conics.data_ptr<T>();
@@ -341,6 +344,7 @@ Scene2D<T> make_scene(const at::Tensor& means2d, const at::Tensor& conics, const
   s.tiles_x = int((a.width + a.tile_size - 1) / a.tile_size);
   s.tiles_per_view = int64_t(s.tiles_x) * ((a.height + a.tile_size - 1) / a.tile_size);
   s.opt = {T(a.alpha_max), T(a.alpha_threshold), T(a.t_min)};
+  s.trainable = trainable.defined() ? trainable.data_ptr<bool>() : nullptr;
   return s;
 }
 
@@ -362,7 +366,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread, int64_t views) {
+    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t rows = views * height;  // the views' images, stacked
@@ -375,6 +379,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
                       tile_offsets, gaussian_ids, a);
   check_same(colors, means2d, op, "colors");
+  check_trainable(op, trainable, means2d);  // carried for the autograd formula
   const int64_t C = colors.size(1);
   auto out_color = at::empty({rows, width, C}, means2d.options());
   auto out_alpha = at::empty({rows, width}, means2d.options());
@@ -409,7 +414,8 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        double t_min, const at::Tensor& transmittance, const at::Tensor& n_contrib,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
-                       int64_t pixels_per_thread, int64_t views) {
+                       int64_t pixels_per_thread, int64_t views,
+                       const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t H = views * height;  // the views' images, stacked
@@ -426,6 +432,8 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   check_shape(v_color, op, "v_color", {H, width, C});
   if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {H, width});
   if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {H, width});
+  check_trainable(op, trainable, means2d);
+  const at::Tensor train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
   const int64_t S = C + kGeomGrads, m = gaussian_ids.size(0), tiles = num_tiles(a);
   auto rows = at::zeros({m, S}, means2d.options());
   auto v_bg_tiles = at::zeros({tiles, C}, means2d.options());
@@ -439,7 +447,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   const auto bg_c = background.has_value() ? background->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_cpu", [&] {
     using T = scalar_t;
-    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a);
+    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, d_c, t_c, i_c, a, train);
     const T* bg = bg_c.defined() ? bg_c.data_ptr<T>() : nullptr;
     at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t)
@@ -460,7 +468,8 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views) {
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
+    const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t H = views * height;  // the views' images, stacked
@@ -473,6 +482,8 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
   check_same(v_color, means2d, op, "v_color");
   check_shape(n_contrib, op, "n_contrib", {H, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
+  check_trainable(op, trainable, means2d);
+  const at::Tensor train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
   const int64_t m = gaussian_ids.size(0), tiles = num_tiles(a);
   // Gradients go either straight into one [N, C] buffer per thread (summed at the end), or,
   // when that would take more memory than one row per intersection, into per-intersection
@@ -488,7 +499,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
              n_c = n_contrib.contiguous(), vc_c = v_color.contiguous();
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward_colors_cpu", [&] {
     using T = scalar_t;
-    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a);
+    const Scene2D<T> s = make_scene<T>(m_c, c_c, o_c, at::Tensor(), t_c, i_c, a, train);
     at::parallel_for(0, tiles, tile_grain(tiles, m), [&](int64_t b, int64_t e) {
       T* mine = per_thread ? partial.data_ptr<T>() + int64_t(at::get_thread_num()) * n * C : nullptr;
       for (int64_t t = b; t < e; ++t)

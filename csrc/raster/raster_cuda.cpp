@@ -31,7 +31,8 @@ template <typename T>
 RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
                             const at::Tensor& opac, const at::Tensor* depths,
                             const at::Tensor& tile_offsets, const at::Tensor& ids,
-                            const RasterArgs& a, int64_t channels) {
+                            const RasterArgs& a, int64_t channels,
+                            const at::Tensor& trainable = at::Tensor()) {
   RasterLaunch<T> l;
   l.means2d = means2d.data_ptr<T>();
   l.conics = conics.data_ptr<T>();
@@ -39,6 +40,7 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
   l.depths = depths ? depths->data_ptr<T>() : nullptr;
   l.tile_offsets = tile_offsets.data_ptr<int64_t>();
   l.ids = ids.data_ptr<int32_t>();
+  l.trainable = trainable.defined() ? trainable.data_ptr<bool>() : nullptr;
   l.width = int(a.width);
   l.height = int(a.height);
   l.tile_size = int(a.tile_size);
@@ -80,7 +82,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread, int64_t views) {
+    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -96,6 +98,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_device(colors, means2d, op, "colors");
   check_device(tile_offsets, means2d, op, "tile_offsets");
   check_device(gaussian_ids, means2d, op, "gaussian_ids");
+  check_trainable(op, trainable, means2d);  // carried for the autograd formula
   const c10::cuda::CUDAGuard guard(means2d.device());
   const int64_t C = colors.size(1);
   const int64_t rows = views * height;  // the views' images, stacked
@@ -131,7 +134,8 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         const at::Tensor& n_contrib, const at::Tensor& v_color,
                         const std::optional<at::Tensor>& v_alpha,
                         const std::optional<at::Tensor>& v_depth, int64_t channel_block,
-                        int64_t pixels_per_thread, int64_t views) {
+                        int64_t pixels_per_thread, int64_t views,
+                        const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -158,6 +162,7 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   check_device(v_color, means2d, op, "v_color");
   if (v_alpha.has_value()) check_device(*v_alpha, means2d, op, "v_alpha");
   if (v_depth.has_value()) check_device(*v_depth, means2d, op, "v_depth");
+  check_trainable(op, trainable, means2d);
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto opts = means2d.options();
   // The kernel adds into these atomically. The geometry rows and the per-tile background
@@ -176,9 +181,10 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   const auto va = v_alpha.has_value() ? v_alpha->to(dt).contiguous() : at::Tensor(),
              vd = v_depth.has_value() ? v_depth->to(dt).contiguous() : at::Tensor();
   const auto bg = background.has_value() ? background->contiguous() : at::Tensor();
+  const auto train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C);
+    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, train);
     check_ok(rasterize_backward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(),
@@ -197,7 +203,8 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
-    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views) {
+    const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
+    const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -214,6 +221,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
   check_device(gaussian_ids, means2d, op, "gaussian_ids");
   check_device(n_contrib, means2d, op, "n_contrib");
   check_device(v_color, means2d, op, "v_color");
+  check_trainable(op, trainable, means2d);
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto dt = means2d.scalar_type();
   auto v_colors = at::zeros({n, C}, means2d.options());
@@ -221,9 +229,10 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
   const auto m = means2d.contiguous(), c = conics.contiguous(), o = opacities.contiguous(),
              to = tile_offsets.contiguous(), ids = gaussian_ids.contiguous(),
              cnt = n_contrib.contiguous(), vc = v_color.to(dt).contiguous();
+  const auto train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_colors_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C);
+    const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C, train);
     check_ok(rasterize_backward_colors_cuda_launch<T>(
                  l, cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), v_colors.data_ptr<T>(),
                  v_bg_tiles.data_ptr<T>(), int(channel_block),

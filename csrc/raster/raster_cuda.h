@@ -21,6 +21,8 @@ struct RasterLaunch {
   const T* depths;  // may be null for the features-only backward
   const int64_t* tile_offsets;
   const int32_t* ids;
+  // [N] or null (all): the backward kernels add gradients only for these Gaussians (raster.h)
+  const bool* trainable;
   int width, height, tile_size, tiles_x, tiles_y;  // of one image
   // Images drawn (raster.h): one block per tile of views * tiles_y * tiles_x; tile t belongs
   // to image t / (tiles_x * tiles_y), whose pixels are rows image * height ... of the outputs.

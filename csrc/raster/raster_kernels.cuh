@@ -373,13 +373,15 @@ __device__ __forceinline__ void warp_add_color_grads(const T (&vc)[PPT][CB], con
   });
 }
 
-// Stages the batch entries [b0, b0 + nb) of the tile list: geometry and id per entry.
+// Stages the batch entries [b0, b0 + nb) of the tile list: geometry and id per entry, the id
+// of a frozen Gaussian (a.trainable) as ~id < 0: the walk updates the pixels' state through it
+// but adds no gradient (no reduction, no atomics).
 template <typename T>
 __device__ __forceinline__ void load_batch_geometry(const RasterLaunch<T>& a, int64_t b0, int nb,
                                                     SplatGeom<T>* s_geom, int32_t* s_id) {
   for (int e = threadIdx.x; e < nb; e += blockDim.x) {
     const int32_t g = a.ids[b0 + e];
-    s_id[e] = g;
+    s_id[e] = a.trainable && !a.trainable[g] ? ~g : g;
     load_geom(a, g, s_geom[e]);
   }
 }
@@ -482,6 +484,8 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
         any = any || contrib[k];
       }
       if (!__any_sync(kFullMask, any)) continue;
+      const int32_t sid = s_id[j];  // < 0: frozen (uniform in the block)
+      const bool train = sid >= 0;
       T geo[8];
 #pragma unroll
       for (int i = 0; i < 8; ++i) geo[i] = T(0);
@@ -506,7 +510,7 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
           geo[6] += w[k] * q.vD;
         }
         q.Tr = Ti;
-        if (!clamped[k]) {
+        if (train && !clamped[k]) {
           const T ddx = dx[k], ddy = dy[k];
           geo[5] += v_a * gauss[k];
           const T vq = T(-0.5) * v_a * g.o * gauss[k];  // d alpha / d q = -o G / 2
@@ -517,7 +521,8 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
           geo[1] += -vq * T(2) * (g.cb * ddx + g.cc * ddy);
         }
       }
-      const int64_t gid = s_id[j];
+      if (!train) continue;  // the state is updated; a frozen Gaussian gets no gradient
+      const int64_t gid = sid;
       warp_add_color_grads<CB, PPT>(vc, w, gid, C, c0, lane, io.v_colors);
       // Lanes 0-6 add to one 32-byte row: a single sector per warp and Gaussian.
       const T sg = cuda::warp_reduce_scatter<8>(geo, lane);
@@ -596,7 +601,8 @@ __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int3
           }
         }
       }
-      if (!__any_sync(kFullMask, contrib)) continue;
+      // a frozen Gaussian (s_id < 0, uniform in the block) only updates the transmittance
+      if (s_id[j] < 0 || !__any_sync(kFullMask, contrib)) continue;
       warp_add_color_grads<CB, 1>(vc, w, s_id[j], C, c0, lane, v_colors);
     }
   }

@@ -174,12 +174,12 @@ def test_kernel_settings_defaults_are_the_op_schemas():
     assert _schema_defaults(ops.rasterize) == {
         "channel_block": s.forward_channel_block, "backward_channel_block": s.backward_channel_block,
         "colors_channel_block": s.colors_channel_block,
-        "backward_pixels_per_thread": s.backward_pixels_per_thread, "views": 1}
+        "backward_pixels_per_thread": s.backward_pixels_per_thread, "views": 1, "trainable": None}
     assert _schema_defaults(ops.rasterize_backward) == {
         "channel_block": s.backward_channel_block, "pixels_per_thread": s.backward_pixels_per_thread,
-        "views": 1}
+        "views": 1, "trainable": None}
     assert _schema_defaults(ops.rasterize_backward_colors) == {"channel_block": s.colors_channel_block,
-                                                               "views": 1}
+                                                               "views": 1, "trainable": None}
     assert (s.forward_channel_block, s.backward_pixels_per_thread) == (64, 2)
 
 
@@ -204,7 +204,7 @@ def test_kernel_settings_reach_the_backward_ops(device, geometry):
         assert len(args) == 1, [n for n, _ in log.calls]
         want = ((k.backward_channel_block, k.backward_pixels_per_thread) if geometry
                 else (k.colors_channel_block,))
-        assert args[0][-len(want) - 1:] == want + (1,)  # then views (one image)
+        assert args[0][-len(want) - 2:] == want + (1, None)  # then views (one image), trainable (all)
         grads.append([out[0].detach()] + [t.grad for t in ins if t.grad is not None])
     assert _same(grads[1], grads[0], device)
 
@@ -257,5 +257,5 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
     want = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h)
     calls = dict(log.calls)
     assert calls["tiger.bin_gaussians.default"][-6:] == binning.op_args() + (1,)  # views last
-    assert calls["tiger.rasterize.default"][-5:] == kernels.op_args() + (1,)
+    assert calls["tiger.rasterize.default"][-6:] == kernels.op_args() + (1, None)  # views, trainable
     assert torch.equal(got["color"], want["color"])

@@ -49,14 +49,14 @@ class RasterKernelSettings:
 
 _DEFAULT = RasterKernelSettings()
 _N_GEOMETRY_ARGS = 6  # width, height, tile_size, alpha_max, alpha_threshold, t_min
-_N_KERNEL_ARGS = 4  # RasterKernelSettings.op_args(); the forward's last argument is views
+_N_KERNEL_ARGS = 4  # RasterKernelSettings.op_args(); then the forward's views and trainable
 
 
 def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
               background: Optional[Tensor], tile_offsets: Tensor, gaussian_ids: Tensor, width: int,
               height: int, tile_size: int, alpha_max: float, alpha_threshold: float,
-              t_min: float, kernels: RasterKernelSettings = _DEFAULT, views: int = 1
-              ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+              t_min: float, kernels: RasterKernelSettings = _DEFAULT, views: int = 1,
+              trainable: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Composite projected Gaussians front to back, differentiably.
 
     Args:
@@ -71,6 +71,10 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
             :func:`bin_gaussians` with the same ``views`` (CPU and CUDA): every per-pixel
             output is [V * H, W(, C)], image v in rows v*H .. (v+1)*H - 1, each equal to a
             ``views=1`` call on its own Gaussians.
+        trainable: optional bool [N] (N the stacked count): the Gaussians whose gradients the
+            backward computes. Frozen ones still shape every pixel's transmittance, but get zero
+            gradients and cost no gradient reduction or atomics on CUDA; the trainable ones'
+            gradients equal the full backward's (on CUDA up to the atomics' summation order).
     Returns:
         color [H, W, C] = Σ c_i a_i T_i + T_final background, alpha [H, W] = 1 - T_final,
         depth_accum [H, W] = Σ z_i a_i T_i, n_contrib [H, W] int32 and transmittance [H, W]
@@ -80,7 +84,7 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         means2d, conics, opacities, colors, depths,
         background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
         int(width), int(height), int(tile_size), float(alpha_max), float(alpha_threshold),
-        float(t_min), *kernels.op_args(), int(views))
+        float(t_min), *kernels.op_args(), int(views), trainable)
 
 
 def _check_channel_block(op: str, name: str, value: int) -> None:
@@ -98,7 +102,8 @@ def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_of
                  channel_block=_DEFAULT.forward_channel_block,
                  backward_channel_block=_DEFAULT.backward_channel_block,
                  colors_channel_block=_DEFAULT.colors_channel_block,
-                 backward_pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1):
+                 backward_pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1,
+                 trainable=None):
     op = "tiger.rasterize"
     _check_channel_block(op, "channel_block", channel_block)
     _check_channel_block(op, "backward_channel_block", backward_channel_block)
@@ -117,7 +122,8 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
                           gaussian_ids, width, height, tile_size, alpha_max, alpha_threshold, t_min,
                           transmittance, n_contrib, v_color, v_alpha, v_depth,
                           channel_block=_DEFAULT.backward_channel_block,
-                          pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1):
+                          pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1,
+                          trainable=None):
     _check_channel_block("tiger.rasterize_backward", "channel_block", channel_block)
     _check_pixels_per_thread("tiger.rasterize_backward", "pixels_per_thread", pixels_per_thread)
     return (means2d.new_empty(means2d.shape[0], 8), means2d.new_empty(colors.shape),
@@ -127,7 +133,8 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
 @torch.library.register_fake("tiger::rasterize_backward_colors")
 def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gaussian_ids, width,
                                  height, tile_size, alpha_max, alpha_threshold, t_min, n_contrib,
-                                 v_color, channel_block=_DEFAULT.colors_channel_block, views=1):
+                                 v_color, channel_block=_DEFAULT.colors_channel_block, views=1,
+                                 trainable=None):
     _check_channel_block("tiger.rasterize_backward_colors", "channel_block", channel_block)
     c = v_color.shape[2]
     return means2d.new_empty(means2d.shape[0], c), means2d.new_empty(c)
@@ -137,14 +144,16 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids,
      *args) = inputs
     _, _, _, n_contrib, transmittance = output
-    ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
-                          gaussian_ids, transmittance, n_contrib)
-    ctx.args = tuple(args[:_N_GEOMETRY_ARGS])
-    # The kernel choices of the backward ops (a call without them: the defaults).
+    # The kernel choices of the backward ops, views and trainable (a call without them: defaults).
     kernel_args = tuple(args[_N_GEOMETRY_ARGS:_N_GEOMETRY_ARGS + _N_KERNEL_ARGS])
     _, ctx.backward_channel_block, ctx.colors_channel_block, ctx.backward_pixels_per_thread = (
         kernel_args + _DEFAULT.op_args()[len(kernel_args):])
-    ctx.views = args[_N_GEOMETRY_ARGS + _N_KERNEL_ARGS] if len(args) > _N_GEOMETRY_ARGS + _N_KERNEL_ARGS else 1
+    extra = args[_N_GEOMETRY_ARGS + _N_KERNEL_ARGS:]
+    ctx.views = extra[0] if len(extra) > 0 else 1
+    trainable = extra[1] if len(extra) > 1 else None
+    ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
+                          gaussian_ids, transmittance, n_contrib, trainable)
+    ctx.args = tuple(args[:_N_GEOMETRY_ARGS])
     ctx.mark_non_differentiable(n_contrib, transmittance)
     # Unused outputs (alpha and depth in a colour-only loss) reach the backward as None, not as
     # [H, W] zero tensors filled for nothing; the kernel reads no gradient for them.
@@ -153,7 +162,7 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
 
 def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
     (means2d, conics, opacities, colors, depths, background, tile_offsets, gaussian_ids, trans,
-     n_contrib) = ctx.saved_tensors
+     n_contrib, trainable) = ctx.saved_tensors
     need = ctx.needs_input_grad
     if v_color is None:
         v_color = torch.zeros(trans.shape + colors.shape[1:], dtype=colors.dtype,
@@ -162,7 +171,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
     if not geometry:
         v_colors, v_bg = torch.ops.tiger.rasterize_backward_colors(
             means2d, conics, opacities, tile_offsets, gaussian_ids, *ctx.args, n_contrib,
-            v_color.contiguous(), ctx.colors_channel_block, ctx.views)
+            v_color.contiguous(), ctx.colors_channel_block, ctx.views, trainable)
         v_colors = v_colors.to(colors.dtype)  # half-precision storage: grads in its dtype
         return (None, None, None, v_colors if need[3] else None, None,
                 v_bg if need[5] else None) + (None,) * (len(need) - 6)
@@ -171,7 +180,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         *ctx.args, trans, n_contrib, v_color.contiguous(),
         None if v_alpha is None else v_alpha.contiguous(),
         None if v_depth is None else v_depth.contiguous(), ctx.backward_channel_block,
-        ctx.backward_pixels_per_thread, ctx.views)
+        ctx.backward_pixels_per_thread, ctx.views, trainable)
     v_geom, v_colors, v_bg = g   # v_geom [N, 8]: u, v, conic a, b, c, opacity, depth, 0
     v_means2d, v_conics, v_opac, v_depths = v_geom[:, 0:2], v_geom[:, 2:5], v_geom[:, 5], v_geom[:, 6]
     v_colors = v_colors.to(colors.dtype)

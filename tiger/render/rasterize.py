@@ -329,7 +329,8 @@ def composite(p: Projection, width: int, height: int,
 
 def composite_views(projections: list[Projection], width: int, height: int,
                     settings: RasterSettings = RasterSettings(),
-                    means2d: Optional[Tensor] = None) -> dict[str, Tensor]:
+                    means2d: Optional[Tensor] = None,
+                    trainable: Optional[Tensor] = None) -> dict[str, Tensor]:
     """V views' :class:`Projection` s (of one scene of N Gaussians, one image size, one
     background) composited into stacked images: the second half of ``render_views``.
 
@@ -344,6 +345,9 @@ def composite_views(projections: list[Projection], width: int, height: int,
         means2d: [V, N, 2] the stacked ``means2d`` of the projections to composite from (default:
             stacked here); a tensor in the caller's graph, so that its ``retain_grad()`` gives
             the per-view screen-space gradients.
+        trainable: optional bool [N]: the Gaussians whose gradients the rasterizer's backward
+            computes (the others, frozen, get zero screen-space and colour gradients and cost
+            no gradient work; :func:`tiger.ops.raster.rasterize`'s ``trainable``, for every view).
     Returns:
         dict with 'color' [V, H, W, C], 'alpha', 'depth', 'depth_accum' [V, H, W], 'radii'
         [V, N] int32, 'means2d' [V, N, 2], 'conics' [V, N, 3], 'depths' [V, N], 'n_isects' [V]
@@ -354,6 +358,12 @@ def composite_views(projections: list[Projection], width: int, height: int,
     if means2d is None:
         means2d = torch.stack([p.means2d for p in projections])
     n = means2d.shape[1]
+    if trainable is not None:
+        if not isinstance(trainable, Tensor) or trainable.dtype != torch.bool or trainable.shape != (n,):
+            got = (f"{trainable.dtype} {list(trainable.shape)}" if isinstance(trainable, Tensor)
+                   else type(trainable).__name__)
+            raise ValueError(f"{_NAME}: trainable must be a bool tensor [N={n}], got {got}")
+        trainable = trainable.to(means2d.device).repeat(views)  # the mask of every view's block
     flat = means2d.reshape(views * n, 2)
     conics = torch.cat([p.conics for p in projections])
     depths = torch.cat([p.depths for p in projections])
@@ -367,7 +377,7 @@ def composite_views(projections: list[Projection], width: int, height: int,
     color, alpha, depth_accum, _, _ = rasterize(
         flat, conics, opac, feats, depths, projections[0].background, tile_offsets, gaussian_ids,
         width, height, settings.tile_size, settings.alpha_max, settings.alpha_threshold,
-        settings.t_min, settings.kernels, views=views)
+        settings.t_min, settings.kernels, views=views, trainable=trainable)
     color = color.reshape(views, height, width, -1)
     alpha = alpha.reshape(views, height, width)
     depth_accum = depth_accum.reshape(views, height, width)

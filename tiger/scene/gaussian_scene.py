@@ -432,6 +432,7 @@ class GaussianScene:
 
 def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec = None, *,
                  background: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None,
+                 trainable: Optional[torch.Tensor] = None,
                  **options: RasterOption) -> dict[str, torch.Tensor]:
     """Render ``scene`` from V cameras of one image size; the outputs are stacked.
 
@@ -440,7 +441,9 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     activations (scales, opacities) are computed once for all views, so gradients of a loss
     over the V renders reach the scene's tensors and ``colors`` through one graph. Each view is
     projected by its own call; the V views are then binned and rasterized in one call each, on
-    the CPU and on CUDA (:func:`tiger.render.rasterize.composite_views`).
+    the CPU and on CUDA (:func:`tiger.render.rasterize.composite_views`). ``trainable``: optional
+    bool [N]: the Gaussians whose gradients the rasterizer's backward computes (an edit's
+    editable ones); the frozen ones get zero gradients and cost no gradient work there.
 
     Returns:
         dict with 'color' [V, H, W, C], 'alpha' [V, H, W], 'depth' [V, H, W],
@@ -460,7 +463,7 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     projections = _project_each(scene, cameras, colors, background, sh_degree, options)
     # Composite from one stacked means2d, so that its retain_grad() sees every view.
     means2d = torch.stack([p.means2d for p in projections])
-    return composite_views(projections, size[0], size[1], _settings(options), means2d)
+    return composite_views(projections, size[0], size[1], _settings(options), means2d, trainable)
 
 
 #: Views rendered together by :func:`render_rgb` (bounds the stacked per-view projections).
