@@ -26,11 +26,10 @@ struct alignas(4 * sizeof(T)) SplatGeom {
   T cc, o, z, qcut;
 };
 
-// The block's tile: blockIdx.x over the views' tile grids one after the other (raster.h).
-// (tx, ty) its place in its own image, row0 the image's first row in the stacked outputs.
+// The block's tile: blockIdx.x over the views' tile grids one after the other (raster.h);
+// (tx, ty) its place in its own image.
 struct BlockTile {
   int tile, tx, ty;
-  int64_t row0;
 };
 
 template <typename T>
@@ -38,18 +37,24 @@ __device__ __forceinline__ BlockTile block_tile(const RasterLaunch<T>& a) {
   BlockTile b;
   b.tile = blockIdx.x;
   const int view_tiles = a.tiles_x * a.tiles_y;
-  const int view = b.tile / view_tiles, local = b.tile - view * view_tiles;
+  const int local = b.tile - b.tile / view_tiles * view_tiles;
   b.tx = local % a.tiles_x;
   b.ty = local / a.tiles_x;
-  b.row0 = int64_t(view) * a.height;
   return b;
 }
 
+// Index in the stacked [views * H, W] outputs of pixel (px, py) of tile `tile`'s image. Computed
+// where it is used rather than kept in registers across the list walk.
+template <typename T>
+__device__ __forceinline__ int64_t stacked_pixel(const RasterLaunch<T>& a, int tile, int px, int py) {
+  const int view = tile / (a.tiles_x * a.tiles_y);
+  return (int64_t(view) * a.height + py) * a.width + px;
+}
+
 // One thread's pixel: (px, py) in its own image's coordinates (where the Gaussians are
-// evaluated), pix its index in the stacked [views * H, W] outputs.
+// evaluated; stacked_pixel gives its output index).
 struct TilePixel {
   int tile, px, py;
-  int64_t pix;
   bool inside;
 };
 
@@ -61,7 +66,6 @@ __device__ __forceinline__ TilePixel tile_pixel(const RasterLaunch<T>& a) {
   const int t = threadIdx.x;
   p.px = b.tx * a.tile_size + t % a.tile_size;
   p.py = b.ty * a.tile_size + t / a.tile_size;
-  p.pix = (b.row0 + p.py) * a.width + p.px;
   p.inside = t < a.tile_size * a.tile_size && p.px < a.width && p.py < a.height;
   return p;
 }
@@ -74,8 +78,7 @@ __device__ __forceinline__ TilePixel tile_pixel(const RasterLaunch<T>& a) {
 template <int PPT>
 struct TilePixels {
   int tile;
-  int px[PPT], py[PPT];  // in the pixel's own image
-  int64_t pix[PPT];      // index in the stacked outputs
+  int px[PPT], py[PPT];  // in the pixel's own image (stacked_pixel: the output index)
   bool inside[PPT];
 };
 
@@ -87,7 +90,6 @@ __device__ __forceinline__ TilePixels<PPT> tile_pixels(const RasterLaunch<T>& a)
     p.tile = q.tile;
     p.px[0] = q.px;
     p.py[0] = q.py;
-    p.pix[0] = q.pix;
     p.inside[0] = q.inside;
   } else {
     static_assert(PPT == 2, "1 or 2 pixels per thread");
@@ -99,7 +101,6 @@ __device__ __forceinline__ TilePixels<PPT> tile_pixels(const RasterLaunch<T>& a)
     for (int k = 0; k < 2; ++k) {
       p.px[k] = b.tx * a.tile_size + (lane & 15);
       p.py[k] = b.ty * a.tile_size + row0 + 2 * k;
-      p.pix[k] = (b.row0 + p.py[k]) * a.width + p.px[k];
       p.inside[k] = p.px[k] < a.width && p.py[k] < a.height;
     }
   }
@@ -257,7 +258,7 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
     }
   }
   if (!p.inside) return;
-  const int64_t pix = p.pix;
+  const int64_t pix = stacked_pixel(a, p.tile, p.px, p.py);
   if (out.bg) {
 #pragma unroll
     for (int c = 0; c < CB; ++c)
@@ -295,15 +296,15 @@ __global__ void __launch_bounds__(256) forward_kernel(RasterLaunch<T> a, const T
 // ----------------------------------------------------------------------------------------
 // Shared by the two backward kernels
 // ----------------------------------------------------------------------------------------
-template <int PPT>
-__device__ __forceinline__ int block_max_count(const int32_t* n_contrib, const TilePixels<PPT>& p,
-                                               int* s_max) {
+template <int PPT, typename T>
+__device__ __forceinline__ int block_max_count(const RasterLaunch<T>& a, const int32_t* n_contrib,
+                                               const TilePixels<PPT>& p, int* s_max) {
   if (threadIdx.x == 0) *s_max = 0;
   __syncthreads();
   int32_t cnt = 0;
 #pragma unroll
   for (int k = 0; k < PPT; ++k)
-    if (p.inside[k]) cnt = max(cnt, n_contrib[p.pix[k]]);
+    if (p.inside[k]) cnt = max(cnt, n_contrib[stacked_pixel(a, p.tile, p.px[k], p.py[k])]);
   if (cnt > 0) atomicMax(s_max, cnt);
   __syncthreads();
   return *s_max;
@@ -433,7 +434,7 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
 #pragma unroll
     for (int c = 0; c < CB; ++c) vc[k][c] = T(0);
     if (p.inside[k]) {
-      const int64_t pix = p.pix[k];
+      const int64_t pix = stacked_pixel(a, p.tile, p.px[k], p.py[k]);
       q.Tfin = io.trans[pix];
       q.cnt = io.count[pix];
       q.vA = io.v_alpha ? io.v_alpha[pix] : T(0);  // null: no alpha / depth gradient
@@ -543,7 +544,7 @@ __global__ void __launch_bounds__(256) backward_kernel(RasterLaunch<T> a, const 
   int32_t* s_id = reinterpret_cast<int32_t*>(s_bg + CBX);
   int* s_max = s_id + BS;
   const TilePixels<PPT> p = tile_pixels<PPT>(a);
-  const int max_cnt = block_max_count<PPT>(io.count, p, s_max);
+  const int max_cnt = block_max_count<PPT>(a, io.count, p, s_max);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)
@@ -571,7 +572,7 @@ __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int3
 #pragma unroll
   for (int c = 0; c < CB; ++c) vc[0][c] = T(0);
   if (p.inside[0]) {
-    const int64_t pix = p.pix[0];
+    const int64_t pix = stacked_pixel(a, p.tile, p.px[0], p.py[0]);
     cnt = count[pix];
     load_channel_row<CB>(v_color, pix, C, c0, vc[0]);
   }
@@ -621,7 +622,7 @@ __global__ void __launch_bounds__(256) backward_colors_kernel(RasterLaunch<T> a,
   int32_t* s_id = reinterpret_cast<int32_t*>(s_bg + CBX);
   int* s_max = s_id + blockDim.x;
   const TilePixels<1> p = tile_pixels<1>(a);
-  const int max_cnt = block_max_count<1>(count, p, s_max);
+  const int max_cnt = block_max_count<1>(a, count, p, s_max);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)
