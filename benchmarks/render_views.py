@@ -17,7 +17,9 @@ of ``--size`` px around it, SH colour: render_views (one binning and one rasteri
 stacked views, CPU and CUDA) against a loop of GaussianScene.render, forward and backward (into
 every scene tensor) timed apart; the edit step's own stage (half the views as originals with
 the footprint channel, half with gradient); the largest output difference from the per-view
-renders (0: bit-identical) and relative gradient difference (atomics' order on CUDA).
+renders (0: bit-identical) and relative gradient difference (atomics' order on CUDA); and the
+backward with ``trainable`` = the ball's Gaussians (what the edit optimises: no gradient work for
+the frozen ones), its editable gradients against the full backward's and its frozen ones (0).
 
     python -m benchmarks.render_views               # CPU
     python -m benchmarks.render_views --device cuda
@@ -117,7 +119,8 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
     from tiger.render.views import orbit_cameras_around
     from tiger.scene import render_rgb
 
-    scene, _ = demo_scene(density, device)
+    scene, query = demo_scene(density, device)
+    editable = (scene.lang @ query) > 0.5  # the ball's Gaussians: what the edit optimises
     scene.lang = None
     cams = [c.to(device) for c in orbit_cameras_around(scene.means, views, size, size, elevation_deg=20.0)]
     upstream = torch.rand(views, size, size, 3, device=device,
@@ -141,11 +144,16 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
         leaves()
         return (forward_batched()["color"] * upstream).sum()
 
+    def loss_batched_editable():  # the rasterizer's backward for the editable Gaussians only
+        leaves()
+        return (render_views(scene, cams, check_finite=False, trainable=editable)["color"] * upstream).sum()
+
     def backward(loss):
         loss.backward()
 
     t = {"fwd loop": time_ms(forward_loop, leaves), "fwd batched": time_ms(forward_batched, leaves),
-         "bwd loop": time_ms(backward, loss_loop), "bwd batched": time_ms(backward, loss_batched)}
+         "bwd loop": time_ms(backward, loss_loop), "bwd batched": time_ms(backward, loss_batched),
+         "bwd batched editable": time_ms(backward, loss_batched_editable)}
 
     # the edit loop's render stage: originals (footprint channel, no gradient) + current views
     half = max(views // 2, 1)
@@ -176,12 +184,17 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
     loss_batched().backward()
     rel = max(float((p.grad - g_loop[k]).abs().max() / g_loop[k].abs().max().clamp_min(1e-30))
               for k, p in scene.params().items())
-    row = {"device": device, "N": len(scene), "px": f"{size}x{size}", "V": views,
-           "isects/view": int(out["n_isects"].float().mean())}
+    loss_batched_editable().backward()  # editable rows as the full backward's, the rest zero
+    rel_editable = max(float((p.grad[editable] - g_loop[k][editable]).abs().max()
+                             / g_loop[k][editable].abs().max().clamp_min(1e-30)) for k, p in scene.params().items())
+    frozen_max = max(float(p.grad[~editable].abs().max()) for p in scene.params().values())
+    row = {"device": device, "N": len(scene), "editable": int(editable.sum()), "px": f"{size}x{size}",
+           "V": views, "isects/view": int(out["n_isects"].float().mean())}
     row.update({f"{k} ms": v for k, v in t.items()})
     row.update({"fwd speed-up": t["fwd loop"] / t["fwd batched"],
                 "bwd speed-up": t["bwd loop"] / t["bwd batched"],
-                "max|out diff|": diff, "max rel grad diff": rel})
+                "max|out diff|": diff, "max rel grad diff": rel,
+                "max rel grad diff editable": rel_editable, "max|frozen grad|": frozen_max})
     return [row]
 
 
@@ -197,7 +210,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.edit:
         rows = run_edit(args.density, args.size, args.views, args.device, args.repeats)
-        print_table([{k: r[k] for k in list(r)[:5]} | {k: r[k] for k in r if k.startswith(("fwd", "bwd"))}
+        print_table([{k: r[k] for k in list(r)[:6]} | {k: r[k] for k in r if k.startswith(("fwd", "bwd"))}
                      for r in rows], f"edit scene, {args.views} views: render_views (batched) vs a loop of "
                                      f"render, forward and backward apart ({args.device}, ms)")
         print_table([{k: r[k] for k in ("device", "V")} | {k: r[k] for k in r if k.startswith(("stage", "max"))}
