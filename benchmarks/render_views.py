@@ -109,13 +109,15 @@ def _stage_timer(device: str, repeats: int):
     return lambda fn, setup: cpu_time_ms(fn, iters=repeats, warmup=1, setup=setup)
 
 
-def run_edit(density: float, size: int, views: int, device: str, repeats: int) -> list[dict]:
+def run_edit(density: float, size: int, views: int, device: str, repeats: int,
+             binning_path: str = "auto") -> list[dict]:
     """The edit step's render stage: V views of the edit scene (SH degree 3, full SH colour),
     render_views (one projection per view, then ONE binning and ONE rasterization of the V
     stacked views, forward and backward) against a loop of V GaussianScene.render calls;
     forward and backward timed apart; plus the edit loop's own stage (half the views rendered
     as originals with the footprint channel, no gradient; half with gradient)."""
     from benchmarks.edit import demo_scene
+    from tiger.ops.binning import BinningSettings
     from tiger.render.views import orbit_cameras_around
     from tiger.scene import render_rgb
 
@@ -126,15 +128,16 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
     upstream = torch.rand(views, size, size, 3, device=device,
                           generator=torch.Generator(device=device).manual_seed(1))
     time_ms = _stage_timer(device, repeats)
+    opts = {"check_finite": False, "binning": BinningSettings(path=binning_path)}
 
     def leaves():
         scene.parameter_groups()
 
     def forward_loop(_=None):
-        return [scene.render(cam, check_finite=False) for cam in cams]
+        return [scene.render(cam, **opts) for cam in cams]
 
     def forward_batched(_=None):
-        return render_views(scene, cams, check_finite=False)
+        return render_views(scene, cams, **opts)
 
     def loss_loop():
         leaves()
@@ -146,7 +149,7 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
 
     def loss_batched_editable():  # the rasterizer's backward for the editable Gaussians only
         leaves()
-        return (render_views(scene, cams, check_finite=False, trainable=editable)["color"] * upstream).sum()
+        return (render_views(scene, cams, trainable=editable, **opts)["color"] * upstream).sum()
 
     def backward(loss):
         loss.backward()
@@ -162,12 +165,12 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
 
     def stage_batched(_=None):
         render_rgb(scene, cams[:half], bg, footprint=footprint)
-        return render_views(scene, cams[half:], "rgb", background=bg, check_finite=False)
+        return render_views(scene, cams[half:], "rgb", background=bg, **opts)
 
     def stage_loop(_=None):
         for cam in cams[:half]:
             render_rgb(scene, [cam], bg, footprint=footprint)
-        return [scene.render(cam, "rgb", background=bg, check_finite=False) for cam in cams[half:]]
+        return [scene.render(cam, "rgb", background=bg, **opts) for cam in cams[half:]]
 
     t["stage loop"] = time_ms(stage_loop, leaves)
     t["stage batched"] = time_ms(stage_batched, leaves)
@@ -188,7 +191,8 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int) -
     rel_editable = max(float((p.grad[editable] - g_loop[k][editable]).abs().max()
                              / g_loop[k][editable].abs().max().clamp_min(1e-30)) for k, p in scene.params().items())
     frozen_max = max(float(p.grad[~editable].abs().max()) for p in scene.params().values())
-    row = {"device": device, "N": len(scene), "editable": int(editable.sum()), "px": f"{size}x{size}",
+    row = {"device": device, "binning": binning_path, "N": len(scene), "editable": int(editable.sum()),
+           "px": f"{size}x{size}",
            "V": views, "isects/view": int(out["n_isects"].float().mean())}
     row.update({f"{k} ms": v for k, v in t.items()})
     row.update({"fwd speed-up": t["fwd loop"] / t["fwd batched"],
@@ -207,10 +211,12 @@ def main() -> None:
     ap.add_argument("--density", type=float, default=1.0, help="--edit: demo scene density (16 = the edit benchmark's)")
     ap.add_argument("--size", type=int, default=128, help="--edit: image width and height (px)")
     ap.add_argument("--views", type=int, default=8, help="--edit: cameras per render")
+    ap.add_argument("--binning-path", default="auto", choices=("auto", "tiles", "global"),
+                    help="--edit: the CUDA binning path of the timed renders (same lists; auto: by Gaussian count)")
     args = ap.parse_args()
     if args.edit:
-        rows = run_edit(args.density, args.size, args.views, args.device, args.repeats)
-        print_table([{k: r[k] for k in list(r)[:6]} | {k: r[k] for k in r if k.startswith(("fwd", "bwd"))}
+        rows = run_edit(args.density, args.size, args.views, args.device, args.repeats, args.binning_path)
+        print_table([{k: r[k] for k in list(r)[:7]} | {k: r[k] for k in r if k.startswith(("fwd", "bwd"))}
                      for r in rows], f"edit scene, {args.views} views: render_views (batched) vs a loop of "
                                      f"render, forward and backward apart ({args.device}, ms)")
         print_table([{k: r[k] for k in ("device", "V")} | {k: r[k] for k in r if k.startswith(("stage", "max"))}
