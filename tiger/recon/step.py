@@ -129,6 +129,19 @@ class SceneOptimizer:
     def num_trainable(self) -> int:
         return len(self.scene) if self._idx is None else int(self._idx.numel())
 
+    @property
+    def trainable_index(self) -> Optional[torch.Tensor]:
+        """[M] sorted rows of the trainable Gaussians (None: every row trains); row j of each
+        :attr:`leaves` tensor is Gaussian ``trainable_index[j]``."""
+        return self._idx
+
+    @property
+    def leaves(self) -> Mapping[str, torch.Tensor]:
+        """The optimised tensors by name: [M, ...] (the trainable rows only) with a trainable
+        mask, else the scene's own [N, ...] tensors. Read-only: row changes go through
+        :meth:`edit_rows` / :meth:`set_rows`."""
+        return dict(self._leaves)
+
     def trainable_mask(self) -> torch.Tensor:
         """[N] bool, True for the Gaussians that are parameters."""
         if self.trainable is None:
