@@ -128,8 +128,8 @@ def test_device_cameras_equal_casts_and_stay_put():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_loop_parts_do_not_synchronise():
-    """On CUDA the loop's own parts (cameras up, layout render scene, statistics, Adam with the
-    relevance scaling, history) run with torch's sync debug mode set to error."""
+    """On CUDA the loop's own parts (cameras up, the layout's render scene, statistics, Adam with
+    the relevance scaling, history) run with torch's sync debug mode set to error."""
     scene = two_objects().to("cuda")
     t = resolve_target(scene, query_a().cuda(), tau=0.5)
     s = EditSession(scene, t, RecolorGuidance("make it red"), None,
@@ -140,12 +140,12 @@ def test_cuda_loop_parts_do_not_synchronise():
     out = render_views(layout.scene(s.opt.leaves), device_cameras(cams, s.device, s.scene.dtype), "rgb",
                        background=s.background, check_finite=False)
     out["means2d"].retain_grad()
+    out["color"].sum().backward()  # the rasterizer's own work is not the loop's
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
         on_device = device_cameras(cams, s.device, s.scene.dtype)
         rows = layout.scene(s.opt.leaves)
-        out["color"].sum().backward()
         s.strategy.observe_grad(2, layout.to_scene_order(out["means2d"].grad), layout.to_scene_order(out["radii"]),
                                 32, 32)
         s.opt.update()

@@ -93,15 +93,25 @@ class ViewPool:
     """Camera sets pre-sampled for an edit (``EditConfig.view_pool``): ``cameras[k]`` is one
     step's set (float64 on the CPU, what the guidance sees), ``device_cameras[k]`` the same set
     on the scene's device and dtype (what the rasterizer reads); ``originals`` [K, V, 3, H, W]
-    and ``masks`` [K, V, 1, H, W] (float16) are the unedited scene's renders and the object's
-    footprint from them, rendered when a set is first drawn (``rendered[k]``), so a pool costs
-    no more renders than the sets an edit uses."""
+    and ``masks`` [K, V, 1, H, W] are the unedited scene's renders and the object's footprint
+    from them, in [0, 1] stored as 8-bit steps (uint8, value x 255, rounded: the precision of
+    a photograph, a quarter of float32's memory), rendered when a set is first drawn
+    (``rendered[k]``), so a pool costs no more renders than the sets an edit uses."""
 
     cameras: list[Sequence[Camera]]
     device_cameras: list[Sequence[Camera]]
     originals: torch.Tensor
     masks: torch.Tensor
     rendered: list[bool]
+
+
+def _to_8bit(x: torch.Tensor) -> torch.Tensor:
+    """[0, 1] values as uint8 steps of 1/255 (rounded)."""
+    return (x.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def _from_8bit(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    return x.to(dtype) / 255
 
 
 #: Scene tensors the edit renders, and the activation the rasterizer input applies to each.
@@ -281,7 +291,7 @@ class EditSession:
         cams = [self.views.sample(gen) for _ in range(sets)]
         on_device = [device_cameras(c, self.device, self.scene.dtype) for c in cams]
         V, H, W = self.cfg.n_views, self.cfg.height, self.cfg.width
-        empty = lambda c: torch.zeros(sets, V, c, H, W, dtype=torch.float16, device=self.device)  # noqa: E731
+        empty = lambda c: torch.zeros(sets, V, c, H, W, dtype=torch.uint8, device=self.device)  # noqa: E731
         return ViewPool(cams, on_device, empty(3), empty(1), [False] * sets)
 
     def _pool_set(self) -> int:
@@ -291,7 +301,7 @@ class EditSession:
         if not self.pool.rendered[k]:
             with self.timer("view_pool"):
                 rgb, foot = self._render_originals(self.pool.device_cameras[k])
-                self.pool.originals[k], self.pool.masks[k] = rgb.half(), foot.half()
+                self.pool.originals[k], self.pool.masks[k] = _to_8bit(rgb), _to_8bit(foot)
                 self.pool.rendered[k] = True
         return k
 
@@ -305,8 +315,8 @@ class EditSession:
             on_device = device_cameras(cams, self.device, self.scene.dtype)
             return (cams, on_device, *self._render_originals(on_device), None)
         v = len(self.pool.cameras[k])
-        return (self.pool.cameras[k], self.pool.device_cameras[k], self.pool.originals[k].float(),
-                self.pool.masks[k].float(), torch.arange(k * v, (k + 1) * v))
+        return (self.pool.cameras[k], self.pool.device_cameras[k], _from_8bit(self.pool.originals[k], self.scene.dtype),
+                _from_8bit(self.pool.masks[k], self.scene.dtype), torch.arange(k * v, (k + 1) * v))
 
     def render_layout(self) -> RenderLayout:
         """The current :class:`RenderLayout` (built after the start, a densification or a resume)."""
