@@ -1,4 +1,4 @@
-"""The edit's camera rule (EditConfig.view_pool): a pool of 64 camera sets by default, chosen by
+"""The edit's camera rule (EditConfig.view_pool): a pool of 256 camera sets by default, chosen by
 measurement (benchmarks/edit_view_pool.py). Pinned here: the pool's cameras cover the views the
 fresh sampler draws, a pooled edit reaches the analytic guidance's known answer as well as fresh
 cameras do, a pool never renders more originals than the steps use, and the CLI says the same."""
@@ -17,8 +17,8 @@ from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets
 from .scenes import query_a, two_objects
 
 #: Every fresh camera has a pooled one within this angle (degrees, seen from the object's centre).
-#: 64 sets of 4 (the default) give <= 11.1 deg at these seeds; 16 sets leave 19 deg gaps.
-COVER_DEG = 12.0
+#: 256 sets of 4 (the default) give <= 5.9 deg at these seeds; 64 sets leave 11 deg gaps, 16 sets 19.
+COVER_DEG = 6.5
 
 
 def _directions(views, cams):
@@ -33,8 +33,8 @@ def _largest_gap_deg(views, pool_sets, fresh_steps=500):
     return math.degrees(float(torch.acos((fresh @ pool.T).clamp(-1, 1).max(1).values.min())))
 
 
-def test_default_is_a_pool_of_64_sets_everywhere():
-    assert DEFAULT_VIEW_POOL == 64 and EditConfig().view_pool == DEFAULT_VIEW_POOL
+def test_default_is_a_pool_of_256_sets_everywhere():
+    assert DEFAULT_VIEW_POOL == 256 and EditConfig().view_pool == DEFAULT_VIEW_POOL
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     edit_cli = {a.dest: a for a in sub.choices["edit"]._actions}
     assert edit_cli["view_pool"].default == DEFAULT_VIEW_POOL
@@ -49,7 +49,7 @@ def test_default_pool_covers_the_fresh_sampler_360_and_forward_facing():
                                            30.0, 140.0, 5.0, 35.0, 220.0))
     for views in (ring, arc):
         assert _largest_gap_deg(views, DEFAULT_VIEW_POOL) <= COVER_DEG
-    assert _largest_gap_deg(ring, 16) > COVER_DEG  # the pin can fail: a smaller pool leaves gaps
+    assert _largest_gap_deg(ring, 64) > COVER_DEG  # the pin can fail: a smaller pool leaves gaps
 
 
 def test_pooled_edit_reaches_the_known_answer_as_well_as_fresh():
@@ -73,6 +73,8 @@ def test_pooled_edit_reaches_the_known_answer_as_well_as_fresh():
     before, _ = render_rgb(scene, cams, footprint=t.mask)
     psnr_before = -10 * math.log10(float((before - want).square().mean(-1)[obj].mean()))
     assert psnr[0] > psnr_before + 10  # the edit did reach toward the target
+    # (60 steps measure convergence, not coverage: what a pool's size costs shows after many reuses,
+    # benchmarks/edit_view_pool.py; the coverage test above pins the size)
     assert psnr[DEFAULT_VIEW_POOL] >= psnr[0] - 1.0, psnr
 
 

@@ -45,7 +45,7 @@ def add_parser(sub) -> None:
     p.add_argument("--color", default=None,
                    help="recolor: colour name, #rrggbb or r,g,b (default: the colour named in the instruction)")
     p.add_argument("--steps", type=int, default=1200, help="optimisation steps (default: %(default)s)")
-    p.add_argument("--view-pool", type=int, default=64,
+    p.add_argument("--view-pool", type=int, default=256,
                    help="draw each step's 4 cameras from this many sets sampled at the start, their original "
                         "renders made once (as good as fresh cameras on the analytic edit's known answer, "
                         "and faster); 0: fresh cameras every step, as the paper (default: %(default)s)")
