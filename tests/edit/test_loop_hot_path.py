@@ -10,7 +10,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from tiger.edit import EditConfig, EditSession, resolve_target
 from tiger.edit.guidance import RecolorGuidance
-from tiger.edit.loop import RenderLayout, device_cameras
+from tiger.edit.loop import device_cameras
 from tiger.scene import render_views
 
 from .scenes import query_a, two_objects

@@ -2,7 +2,7 @@
 notebook, plain lines otherwise) over a step count."""
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any
 
 import torch
 
