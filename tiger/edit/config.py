@@ -36,9 +36,10 @@ class EditConfig:
             per step otherwise). 0: a fresh set every step (the paper). The rule, measured on the
             analytic guidance's known answer (``benchmarks/edit_view_pool.py``, demo scene, mean
             of 2 seeds, PSNR to the target on the object's pixels from held-out views): 256 sets
-            reach it as well as fresh cameras (within 0.3 dB, the seeds' spread, at 100, 300 and
-            1200 steps; locality unchanged); fewer sets fall behind as each is reused more (16
-            sets: -0.7 dB at 300 steps, -1.1 dB at 1200; 64: about -0.5 dB). The pool's 1024
+            reach it as well as fresh cameras (within 0.3 dB, less than the seeds' spread, at 100, 300 and
+            1200 steps, worst held-out view included; locality unchanged); fewer sets fall behind
+            as each is reused more (16 sets: -0.7 dB at 300 steps, -1.1 dB at 1200; 64: -0.5 dB at
+            300 and -0.8 dB on the worst view at 300 and 1200). The pool's 1024
             views leave no fresh camera more than ~6° from a pooled one (64 sets: 11°, 16: 19°).
             On the GPU a pool saves the originals' renders and condition encodes of the steps
             that reuse a set (1200 steps: 136 s fresh vs 110 s with 64 sets on an H100).
