@@ -12,8 +12,8 @@ Guidances:
                  initialised models of the real architectures (same cost as the real weights) directly
                  on the device (benchmarks/guidance.py's build_models), in ``--dtype``
 
-Per step: render (4 views + the 4 original renders the guidance is conditioned on, or with
-``--view-pool K`` those of K pre-sampled camera sets once: stage view_pool), guidance,
+Per step: render (4 views; with ``--view-pool 0`` also the 4 original renders the guidance is
+conditioned on, else those of the K pre-sampled camera sets, each when first drawn: stage view_pool), guidance,
 backward through the rasterizer, optimizer (relevance-scaled Adam), densification (amortised).
 Peak memory is torch.cuda.max_memory_allocated on CUDA.
 
@@ -163,8 +163,10 @@ def run(args) -> dict:
         warm = edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
         if cuda:
             torch.cuda.synchronize()
-        pool_s = warm.timings_s.get("view_pool", 0.0)  # once per edit, not per step
+        pool_s = warm.timings_s.get("view_pool", 0.0)  # once per pooled set (about one per warm-up step)
         per_step = (time.perf_counter() - t0 - pool_s) / args.warmup
+        sets = min(args.view_pool, args.warmup)
+        pool_s = pool_s / sets * min(args.view_pool, args.steps) if sets else 0.0  # the whole edit's
         projected = per_step * args.steps + pool_s
         if args.time_budget_s and projected > args.time_budget_s:  # keep within the device call
             cfg = dataclasses.replace(cfg, steps=max(args.warmup, int((args.time_budget_s - pool_s) / per_step)))
@@ -219,8 +221,9 @@ def main() -> None:
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")
     p.add_argument("--steps", type=int, default=100)
-    p.add_argument("--view-pool", type=int, default=0,
-                   help="camera sets pre-sampled with their original renders (EditConfig.view_pool; 0: fresh views)")
+    p.add_argument("--view-pool", type=int, default=EditConfig().view_pool,
+                   help="camera sets pre-sampled, their original renders made when first drawn "
+                        "(EditConfig.view_pool, default %(default)s as tiger edit; 0: fresh views every step)")
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--lr-color", type=float, default=0.05)
     p.add_argument("--densify-every", type=int, default=25)

@@ -206,9 +206,17 @@ def test_view_pool_renders_originals_once_and_resumes_exactly(tmp_path, monkeypa
         EditConfig(view_pool=-1)
 
 
-def test_default_views_are_fresh_every_step():
-    """The paper (§3.2) re-draws the 4 cameras every step; the pool is an opt-in speed setting."""
-    assert EditConfig().view_pool == 0
-    s = EditSession(two_objects(), resolve_target(two_objects(), query_a(), tau=0.5), RecolorGuidance("red"),
-                    None, EditConfig(**SMALL))
-    assert s.pool is None
+def test_view_pool_zero_draws_fresh_views_every_step():
+    """``view_pool=0``: the paper's rule (§3.2), 4 cameras re-drawn every step, no pool."""
+    seen = []
+
+    class _Record(RecolorGuidance):
+        def grad(self, renders, views):
+            seen.append((views.view_ids, tuple(c.viewmat.sum().item() for c in views.cameras)))
+            return super().grad(renders, views)
+
+    s = EditSession(two_objects(), resolve_target(two_objects(), query_a(), tau=0.5), _Record("red"),
+                    None, EditConfig(**dict(SMALL, view_pool=0)))
+    for _ in range(3):
+        s.step_once()
+    assert s.pool is None and all(ids is None for ids, _ in seen) and len({c for _, c in seen}) == 3

@@ -6,8 +6,17 @@ through the rasterizer, and take a relevance-scaled Adam step on the editable Ga
 
 * **Sparse parameters** (:class:`tiger.recon.step.SceneOptimizer` with a trainable mask): Gaussians
   of weight 0 are not parameters (no gradient tensor, no Adam state, no update) and come out
-  bit-identical, in their original order. (The rasterizer's backward still visits every Gaussian
-  in a tile; only the editable rows are kept from it.)
+  bit-identical, in their original order.
+* **Autograd over the editable rows only** (:class:`RenderLayout`): the step renders the frozen
+  Gaussians first (their tensors and activations built once per layout, detached) and the
+  editable leaves behind them, so the graph (activations, concatenation, the scatter of the
+  screen-space gradients back to scene order) spans the editable rows. The rasterizer's kernels
+  still compute gradients for every row; ``RenderLayout.frozen_rows`` is what one that can skip
+  rows needs (render rows below it want no gradient).
+* **No read-backs per step**: cameras go to the device in one asynchronous copy
+  (:func:`device_cameras`; pooled ones once), statistics, Adam and the relevance scaling stay on
+  the device, the history's losses are read back at checkpoints and at the end. Only a
+  densification step (the scene's size changes) reads counts back.
 * **Score-based updating.** Adam normalises gradients, so scaling a gradient would not scale the
   update; the optimizer scales each Adam *update*: ``p ← p_old + w_i · (p_adam − p_old)``, with
   ``w_i`` the Gaussian's relevance (:mod:`tiger.edit.target`).
@@ -25,6 +34,7 @@ through the rasterizer, and take a relevance-scaled Adam step on the editable Ga
 """
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,13 +91,126 @@ class EditResult:
 @dataclass
 class ViewPool:
     """Camera sets pre-sampled for an edit (``EditConfig.view_pool``): ``cameras[k]`` is one
-    step's set; ``originals`` [K, V, 3, H, W] and ``masks`` [K, V, 1, H, W] (float16) are the
-    unedited scene's renders and the object's footprint from them."""
+    step's set (float64 on the CPU, what the guidance sees), ``device_cameras[k]`` the same set
+    on the scene's device and dtype (what the rasterizer reads); ``originals`` [K, V, 3, H, W]
+    and ``masks`` [K, V, 1, H, W] are the unedited scene's renders and the object's footprint
+    from them, in [0, 1] stored as 8-bit steps (uint8, value x 255, rounded: the precision of
+    a photograph, a quarter of float32's memory), rendered when a set is first drawn
+    (``rendered[k]``), so a pool costs no more renders than the sets an edit uses."""
 
     cameras: list[Sequence[Camera]]
+    device_cameras: list[Sequence[Camera]]
     originals: torch.Tensor
     masks: torch.Tensor
+    rendered: list[bool]
 
+
+def _to_8bit(x: torch.Tensor) -> torch.Tensor:
+    """[0, 1] values as uint8 steps of 1/255 (rounded)."""
+    return (x.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def _from_8bit(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    return x.to(dtype) / 255
+
+
+#: Scene tensors the edit renders, and the activation the rasterizer input applies to each.
+_RENDERED = {"means": "means", "quats": "quats", "log_scales": "scales", "opacity_logits": "opacities",
+             "sh_dc": "sh_dc", "sh_rest": "sh_rest"}
+_ACTIVATIONS = {"log_scales": torch.exp, "opacity_logits": torch.sigmoid}
+
+
+class _RenderRows(GaussianScene):
+    """A scene as the rasterizer reads it (means, quats, activated scales and opacities, SH), built
+    from given rows without re-validation (they come from a validated scene); no ``log_scales`` /
+    ``opacity_logits`` / ``lang``."""
+
+    scales = None  # plain attributes here, not the base class's activations of the logits
+    opacities = None
+
+    def __init__(self, rows: dict[str, torch.Tensor]) -> None:  # noqa: D107 (no base __init__: no checks)
+        self.__dict__.update(rows, log_scales=None, opacity_logits=None, lang=None, lang_pca_basis=None,
+                             lang_pca_mean=None, metadata={})
+
+
+@dataclass
+class RenderLayout:
+    """The row order the edit renders in, so that autograd works on the editable rows only.
+
+    Render rows ``[0, frozen_rows)`` are the frozen Gaussians (constant: densification and pruning
+    touch editable rows only), their tensors and activations built once per layout and detached;
+    rows ``[frozen_rows, N)`` are the optimizer's editable leaves, concatenated behind them each
+    step. So the step's autograd graph (activations, concatenation, the screen-space gradients'
+    scatter back to scene order) spans the M editable rows, not N. The rasterizer's kernels still
+    compute gradients for every row; a rasterizer that can skip rows needs no more than
+    ``frozen_rows``: no gradient is wanted for render rows below it (a contiguous head).
+
+    Attributes:
+        frozen_rows: F, the number of frozen Gaussians.
+        order: [N] long, the scene row of each render row (frozen rows, then the editable ones,
+            each in scene order).
+        frozen: [F, ...] detached rasterizer inputs of the frozen rows by input name (``means``,
+            ``quats``, ``scales``, ``opacities``, ``sh_dc``, ``sh_rest``).
+        fixed: [N, ...] full render-order tensors of the inputs that are not optimised (``sh_rest``).
+    """
+
+    frozen_rows: int
+    order: torch.Tensor
+    frozen: dict[str, torch.Tensor]
+    fixed: dict[str, torch.Tensor]
+
+    @classmethod
+    @torch.no_grad()
+    def of(cls, opt: SceneOptimizer) -> "RenderLayout":
+        """The layout of ``opt``'s current rows (no read-back: the frozen count is known on the host)."""
+        s, idx, leaves = opt.scene, opt.trainable_index, opt.leaves
+        n = len(s)
+        if idx is None:
+            idx = torch.arange(n, device=s.device)
+        frozen_idx = torch.nonzero_static(~opt.trainable_mask(), size=n - int(idx.numel())).reshape(-1)
+        order = torch.cat([frozen_idx, idx])
+        frozen, fixed = {}, {}
+        for name, key in _RENDERED.items():
+            t = getattr(s, name).detach()
+            act = _ACTIVATIONS.get(name, lambda v: v)
+            if name in leaves:
+                frozen[key] = act(t[frozen_idx])
+            else:
+                fixed[key] = act(t[order])
+        return cls(int(frozen_idx.numel()), order, frozen, fixed)
+
+    def scene(self, leaves: dict[str, torch.Tensor]) -> GaussianScene:
+        """The scene to render: frozen rows, then ``leaves`` (the editable rows, by scene tensor name)."""
+        rows = dict(self.fixed)
+        for name, leaf in leaves.items():
+            key = _RENDERED.get(name)
+            if key is not None:
+                rows[key] = torch.cat([self.frozen[key], _ACTIVATIONS.get(name, lambda v: v)(leaf)])
+        return _RenderRows(rows)
+
+    def to_scene_order(self, per_view_rows: torch.Tensor) -> torch.Tensor:
+        """[V, N, ...] in render order -> the same in the scene's row order."""
+        return torch.zeros_like(per_view_rows).index_copy_(1, self.order, per_view_rows)
+
+
+def device_cameras(cameras: Sequence[Camera], device: torch.device, dtype: torch.dtype) -> list[Camera]:
+    """``cameras`` on ``device`` in ``dtype`` with one host-to-device copy (from pinned memory,
+    asynchronous on CUDA: a plain ``Camera.to`` per camera would copy from pageable memory and
+    re-validate the values there, each waiting for the GPU). The values are the validated ones of
+    ``cameras``; the rest of each camera (size, name, metadata) is shared."""
+    cams = list(cameras)
+    packed = torch.cat([torch.stack([c.viewmat for c in cams]).reshape(len(cams), 16),
+                        torch.stack([c.K for c in cams]).reshape(len(cams), 9)], 1).to(dtype)
+    if device.type == "cuda":
+        packed = packed.pin_memory().to(device, non_blocking=True)
+    else:
+        packed = packed.to(device)
+    out = []
+    for cam, row in zip(cams, packed):
+        moved = copy.copy(cam)  # no __post_init__: it would read the device values back
+        moved.viewmat, moved.K = row[:16].view(4, 4), row[16:].view(3, 3)
+        out.append(moved)
+    return out
 
 
 
@@ -130,10 +253,10 @@ class EditSession:
                                            extent=max(self.radius, 1e-6), top_percent=100.0 * config.densify_fraction,
                                            percent_dense=config.percent_dense, min_opacity=config.min_opacity)
         self.pool: Optional[ViewPool] = None
+        self._layout: Optional[RenderLayout] = None  # rebuilt after every change of rows
         guidance.reset_caches()  # view ids of an earlier round named other cameras
         if config.view_pool:
-            with self.timer("view_pool"):
-                self.pool = self._build_pool(config.view_pool)
+            self.pool = self._build_pool(config.view_pool)
 
     def _lrs(self) -> dict[str, float]:
         lrs = self.cfg.learning_rates()
@@ -163,31 +286,60 @@ class EditSession:
 
     def _build_pool(self, sets: int) -> "ViewPool":
         """``sets`` camera sets drawn with the per-step rules from their own seeded generator
-        (a resumed run rebuilds the same pool), with their original renders and footprints."""
+        (a resumed run rebuilds the same pool); their original renders come when first drawn."""
         gen = torch.Generator().manual_seed(self.cfg.seed + POOL_SEED_OFFSET)
         cams = [self.views.sample(gen) for _ in range(sets)]
-        rendered = [self._render_originals(c) for c in cams]
-        return ViewPool(cams, torch.stack([o for o, _ in rendered]).half(),
-                        torch.stack([m for _, m in rendered]).half())
+        on_device = [device_cameras(c, self.device, self.scene.dtype) for c in cams]
+        V, H, W = self.cfg.n_views, self.cfg.height, self.cfg.width
+        empty = lambda c: torch.zeros(sets, V, c, H, W, dtype=torch.uint8, device=self.device)  # noqa: E731
+        return ViewPool(cams, on_device, empty(3), empty(1), [False] * sets)
 
-    def _views(self) -> tuple[Sequence[Camera], torch.Tensor, torch.Tensor, Optional[torch.Tensor]]:
-        """This step's cameras, original renders [V,3,H,W], footprints [V,1,H,W] and pool ids."""
-        if self.pool is None:
-            cams = self.views.sample(self.gen)
-            return (cams, *self._render_originals(cams), None)
+    def _pool_set(self) -> int:
+        """Draw this step's pool set (from the sampler's CPU generator) and render its originals
+        if it is new (stage ``view_pool``)."""
         k = int(torch.randint(len(self.pool.cameras), (1,), generator=self.gen))
+        if not self.pool.rendered[k]:
+            with self.timer("view_pool"):
+                rgb, foot = self._render_originals(self.pool.device_cameras[k])
+                self.pool.originals[k], self.pool.masks[k] = _to_8bit(rgb), _to_8bit(foot)
+                self.pool.rendered[k] = True
+        return k
+
+    def _views(self, k: Optional[int]) -> tuple[Sequence[Camera], Sequence[Camera], torch.Tensor, torch.Tensor,
+                                                Optional[torch.Tensor]]:
+        """This step's cameras (on the CPU for the guidance, and on the scene's device for the
+        rasterizer), original renders [V,3,H,W], footprints [V,1,H,W] and pool ids: fresh ones,
+        or pool set ``k``."""
+        if k is None:
+            cams = self.views.sample(self.gen)
+            on_device = device_cameras(cams, self.device, self.scene.dtype)
+            return (cams, on_device, *self._render_originals(on_device), None)
         v = len(self.pool.cameras[k])
-        return (self.pool.cameras[k], self.pool.originals[k].float(), self.pool.masks[k].float(),
-                torch.arange(k * v, (k + 1) * v))
+        return (self.pool.cameras[k], self.pool.device_cameras[k], _from_8bit(self.pool.originals[k], self.scene.dtype),
+                _from_8bit(self.pool.masks[k], self.scene.dtype), torch.arange(k * v, (k + 1) * v))
+
+    def render_layout(self) -> RenderLayout:
+        """The current :class:`RenderLayout` (built after the start, a densification or a resume)."""
+        if self._layout is None:
+            self._layout = RenderLayout.of(self.opt)
+        return self._layout
 
     # -- one step -------------------------------------------------------------------------------
     def step_once(self) -> dict:
         """One CSD step (views, renders, guidance, backward, scaled Adam, densification); the
-        record's ``loss`` may be a 0-d tensor (not read back, so the host need not wait)."""
+        record's ``loss`` may be a 0-d tensor (not read back, so the host need not wait).
+
+        Apart from a densification step, the loop's own work reads nothing back from the device:
+        cameras go up in one asynchronous copy, the screen-space statistics, Adam and the
+        relevance scaling stay on the device (what the rasterizer and the guidance do is theirs).
+        """
         cfg, T = self.cfg, self.timer
+        k = self._pool_set() if self.pool is not None else None
         with T("render"):
-            cams, originals, masks, view_ids = self._views()
-            out = render_views(self.opt.render_scene(), cams, "rgb", background=self.background, check_finite=False)
+            cams, cams_on_device, originals, masks, view_ids = self._views(k)
+            layout = self.render_layout()
+            out = render_views(layout.scene(self.opt.leaves), cams_on_device, "rgb", background=self.background,
+                               check_finite=False)
             out["means2d"].retain_grad()
             x = out["color"].permute(0, 3, 1, 2).clamp(0, 1)
         batch = ViewBatch(cameras=cams, originals=originals, masks=masks, view_ids=view_ids, step=self.step,
@@ -200,19 +352,24 @@ class EditSession:
                              f"of shape {list(g.shape)} for renders {list(x.shape)}")
         with T("backward"):
             x.backward(torch.nan_to_num(g.to(x), nan=0.0, posinf=0.0, neginf=0.0))
-            self.strategy.observe(self.step + 1, out, cams[0].width, cams[0].height)  # one size for all views
+            if self.strategy.schedule.collecting(self.step + 1) and out["means2d"].grad is not None:
+                self.strategy.observe_grad(self.step + 1, layout.to_scene_order(out["means2d"].grad),
+                                           layout.to_scene_order(out["radii"]), cams[0].width,
+                                           cams[0].height)  # one size for all views
         with T("optimizer"):
             self.opt.update()
         self.step += 1
         # the loss stays a (0-d) tensor: reading it here would wait for the GPU every step
         loss = info.loss.detach().float() if isinstance(info.loss, torch.Tensor) else float(info.loss)
         rec = {"step": self.step, "loss": loss, "gaussians": len(self.scene)}
-        rec.update({k: float(v) for k, v in info.extra.items() if k.startswith("lambda")})
+        rec.update({k: (v.detach() if torch.is_tensor(v) else float(v)) for k, v in info.extra.items()
+                    if k.startswith("lambda")})
         if self.strategy.schedule.due(self.step):
-            with T("densify"):
+            with T("densify"):  # the scene's size changes: this step reads counts back
                 editable_before = self.opt.num_trainable
                 rec["densify"] = self.strategy.step_post_backward(self.opt, self.step, self.gen)
                 rec["densify"].update(editable_before=editable_before, editable=self.opt.num_trainable)
+                self._layout = None
         return rec
 
     def generators(self) -> list[torch.Generator]:
@@ -234,7 +391,16 @@ class EditSession:
                 "guidance": self.guidance.name, "guidance_settings": self.guidance.settings(),
                 "config": self.cfg.to_dict()}
 
+    def settle_history(self) -> None:
+        """Turn the 0-d device tensors kept in :attr:`history` into floats, in one read-back."""
+        pending = [(r, k) for r in self.history for k, v in r.items() if torch.is_tensor(v)]
+        if pending:
+            values = torch.stack([r[k].reshape(()).float().to(self.device) for r, k in pending]).tolist()
+            for (r, k), v in zip(pending, values):
+                r[k] = v
+
     def save(self, path: Union[str, Path]) -> None:
+        self.settle_history()
         state = {"step": self.step, "optimizer": self.opt.state_dict(), "strategy": self.strategy.state_dict(),
                  "history": self.history, "elapsed": self.elapsed, "timings": self.timer.summary()}
         write_checkpoint(path, CHECKPOINT_FORMAT, state, signature=self.signature(), generators=self.generators())
@@ -251,6 +417,7 @@ class EditSession:
         self.strategy.load_state_dict(ck["strategy"], self.device)
         restore_rng(ck["rng"], self.generators())
         self.step, self.history, self.elapsed = int(ck["step"]), list(ck["history"]), float(ck["elapsed"])
+        self._layout = None
         self.timer.load(ck.get("timings", {}))
         log.info("edit resumed from %s at step %d of %d", path, self.step, self.cfg.steps)
 
@@ -261,11 +428,13 @@ class EditSession:
 
         def keep(rec: dict) -> None:
             if self.step % 10 == 0 or self.step == cfg.steps or "densify" in rec:
-                rec["loss"] = float(rec["loss"])  # one read-back per logged step
-                self.history.append(rec)
+                self.history.append(rec)  # device values stay there until settle_history
 
-        run_loop(self, cfg.steps, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
-                 progress=cfg.progress, desc=f"edit: {self.instruction}"[:40], after_step=keep)
+        try:
+            run_loop(self, cfg.steps, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
+                     progress=cfg.progress, desc=f"edit: {self.instruction}"[:40], after_step=keep)
+        finally:
+            self.settle_history()
 
 
 def edit(scene: GaussianScene, target: TargetLike, guidance: Guidance, *,
@@ -315,4 +484,4 @@ def edit(scene: GaussianScene, target: TargetLike, guidance: Guidance, *,
                       timings_s=session.timer.summary())
 
 
-__all__ = ["EditResult", "EditSession", "edit"]
+__all__ = ["EditResult", "EditSession", "RenderLayout", "ViewPool", "device_cameras", "edit"]

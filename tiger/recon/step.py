@@ -129,6 +129,19 @@ class SceneOptimizer:
     def num_trainable(self) -> int:
         return len(self.scene) if self._idx is None else int(self._idx.numel())
 
+    @property
+    def trainable_index(self) -> Optional[torch.Tensor]:
+        """[M] sorted rows of the trainable Gaussians (None: every row trains); row j of each
+        :attr:`leaves` tensor is Gaussian ``trainable_index[j]``."""
+        return self._idx
+
+    @property
+    def leaves(self) -> Mapping[str, torch.Tensor]:
+        """The optimised tensors by name: [M, ...] (the trainable rows only) with a trainable
+        mask, else the scene's own [N, ...] tensors. Read-only: row changes go through
+        :meth:`edit_rows` / :meth:`set_rows`."""
+        return dict(self._leaves)
+
     def trainable_mask(self) -> torch.Tensor:
         """[N] bool, True for the Gaussians that are parameters."""
         if self.trainable is None:
@@ -247,10 +260,12 @@ class SceneOptimizer:
         tr = self.trainable_mask()
         keep_t = keep if self._idx is None else keep[self._idx]          # [M] kept trainable rows
         child_t = tr[parents]                                            # [K] trainable children
-        n_child_t = int(child_t.sum())
+        # the masks as indices once (each boolean index would read its count back from the device)
+        keep_idx, keep_t_idx, child_t_idx = (torch.nonzero(m).reshape(-1) for m in (keep, keep_t, child_t))
+        n_child_t = int(child_t_idx.numel())
         for name, old in s.params().items():
             add = overrides[name].to(old) if name in overrides else old.detach()[parents]
-            full = torch.cat([old.detach()[keep], add])
+            full = torch.cat([old.detach().index_select(0, keep_idx), add])
             leaf = self._leaves.get(name)
             if leaf is None:
                 setattr(s, name, full)
@@ -259,19 +274,21 @@ class SceneOptimizer:
                 new_leaf = full.requires_grad_(True)
                 setattr(s, name, new_leaf)
             else:
-                new_leaf = torch.cat([leaf.detach()[keep_t], add[child_t]]).requires_grad_(True)
+                new_leaf = torch.cat([leaf.detach().index_select(0, keep_t_idx),
+                                      add.index_select(0, child_t_idx)]).requires_grad_(True)
                 setattr(s, name, full)
             self._swap_leaf(name, new_leaf, lambda v: torch.cat(
-                [v[keep_t], v.new_zeros((n_child_t,) + tuple(v.shape[1:]))]))
+                [v.index_select(0, keep_t_idx), v.new_zeros((n_child_t,) + tuple(v.shape[1:]))]))
         for d in (self.extras, state if state is not None else {}):
             for key, v in list(d.items()):
-                d[key] = torch.cat([v[keep], v[parents]])
+                d[key] = torch.cat([v.index_select(0, keep_idx), v[parents]])
         if self.update_weight is not None:
             pos = torch.cumsum(tr.long(), 0) - 1                         # row -> trainable position
-            self.update_weight = torch.cat([self.update_weight[keep_t], self.update_weight[pos[parents[child_t]]]])
+            self.update_weight = torch.cat([self.update_weight.index_select(0, keep_t_idx),
+                                            self.update_weight[pos[parents.index_select(0, child_t_idx)]]])
         if self._idx is not None:
-            self.trainable = torch.cat([tr[keep], child_t])
-            self._idx = torch.nonzero(self.trainable).reshape(-1)
+            self.trainable = torch.cat([tr.index_select(0, keep_idx), child_t])
+            self._idx = torch.nonzero_static(self.trainable, size=int(keep_t_idx.numel()) + n_child_t).reshape(-1)
 
     @torch.no_grad()
     def set_rows(self, name: str, rows: torch.Tensor, values: torch.Tensor, reset_moments: bool = True) -> None:

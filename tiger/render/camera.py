@@ -181,8 +181,12 @@ class Camera:
 
     def to(self, device: Optional[torch.device | str] = None,
            dtype: Optional[torch.dtype] = None) -> "Camera":
-        return dataclasses.replace(self, viewmat=self.viewmat.to(device=device, dtype=dtype),
-                                   K=self.K.to(device=device, dtype=dtype))
+        """This camera with viewmat and K on ``device`` in ``dtype``; itself when they already
+        are (like ``Tensor.to``: no copy, and no re-validation, which would read device values back)."""
+        viewmat, K = self.viewmat.to(device=device, dtype=dtype), self.K.to(device=device, dtype=dtype)
+        if viewmat is self.viewmat and K is self.K:
+            return self
+        return dataclasses.replace(self, viewmat=viewmat, K=K)
 
 
 def rigid_inverse(T: torch.Tensor) -> torch.Tensor:

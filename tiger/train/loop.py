@@ -10,8 +10,10 @@ A trainer ("session") owns its state and one step of its recipe; :func:`run_loop
   interrupts at once. A ``KeyboardInterrupt`` raised inside a step anyway (another thread, a
   second Ctrl-C) counts as "the step did not happen": the session's generators and torch's global
   CPU generator are set back to where the step began and the step is redone on resume;
-* one progress bar whose figures (running means of the step records' ``show`` keys) are read back
-  from the device only every ``log_every`` steps.
+* one progress bar whose figures (running means of the step records' ``show`` keys) are copied
+  from the device every ``log_every`` steps without waiting for it (:class:`LaggedScalars`: the
+  bar shows the newest copy that has arrived; the last step's is awaited), and not at all when the
+  bar is off.
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from typing import Any, Callable, Iterator, Optional, Protocol, Sequence, Union
 
 import torch
 
-from .progress import progress_bar
+from .progress import LaggedScalars, progress_bar
 
 log = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
@@ -106,6 +108,7 @@ def run_loop(session: Session, steps: int, *, checkpoint: Optional[PathLike] = N
     first = session.step
     bar = progress_bar(steps, desc, initial=session.step, enabled=progress)
     means: dict[str, Any] = {}
+    shown = LaggedScalars()
     t0, before = time.perf_counter(), session.elapsed
     stopped = "done"
     try:
@@ -124,11 +127,14 @@ def run_loop(session: Session, steps: int, *, checkpoint: Optional[PathLike] = N
                         torch.set_rng_state(global_at_start)
                     raise
                 session.elapsed = before + time.perf_counter() - t0
-                for k in show:
-                    if k in rec:
-                        means[k] = rec[k] if k not in means else 0.9 * means[k] + 0.1 * rec[k]
-                if session.step % log_every == 0 or session.step == steps:
-                    post = {k: format(float(v), show[k]) for k, v in means.items()}  # the only read-back
+                if progress:
+                    for k in show:
+                        if k in rec:
+                            means[k] = rec[k] if k not in means else 0.9 * means[k] + 0.1 * rec[k]
+                if progress and (session.step % log_every == 0 or session.step == steps):
+                    if means:
+                        shown.push(means)
+                    post = {k: format(v, show[k]) for k, v in shown.latest(wait=session.step == steps).items()}
                     if "gaussians" in rec:
                         post["N"] = rec["gaussians"]
                     bar.set_postfix(post, refresh=False)
