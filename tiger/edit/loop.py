@@ -10,9 +10,9 @@ through the rasterizer, and take a relevance-scaled Adam step on the editable Ga
 * **Autograd over the editable rows only** (:class:`RenderLayout`): the step renders the frozen
   Gaussians first (their tensors and activations built once per layout, detached) and the
   editable leaves behind them, so the graph (activations, concatenation, the scatter of the
-  screen-space gradients back to scene order) spans the editable rows. The rasterizer's kernels
-  still compute gradients for every row; ``RenderLayout.frozen_rows`` is what one that can skip
-  rows needs (render rows below it want no gradient).
+  screen-space gradients back to scene order) spans the editable rows, and the rasterizer's
+  backward is told which rows are trainable (``RenderLayout.trainable``): frozen rows still shape
+  every pixel's transmittance but get no gradient terms and no atomics.
 * **No read-backs per step**: cameras go to the device in one asynchronous copy
   (:func:`device_cameras`; pooled ones once), statistics, Adam and the relevance scaling stay on
   the device, the history's losses are read back at checkpoints and at the end. Only a
@@ -141,9 +141,8 @@ class RenderLayout:
     touch editable rows only), their tensors and activations built once per layout and detached;
     rows ``[frozen_rows, N)`` are the optimizer's editable leaves, concatenated behind them each
     step. So the step's autograd graph (activations, concatenation, the screen-space gradients'
-    scatter back to scene order) spans the M editable rows, not N. The rasterizer's kernels still
-    compute gradients for every row; a rasterizer that can skip rows needs no more than
-    ``frozen_rows``: no gradient is wanted for render rows below it (a contiguous head).
+    scatter back to scene order) spans the M editable rows, not N, and the rasterizer's backward
+    skips the gradient work of the frozen head (``trainable``).
 
     Attributes:
         frozen_rows: F, the number of frozen Gaussians.
@@ -152,12 +151,15 @@ class RenderLayout:
         frozen: [F, ...] detached rasterizer inputs of the frozen rows by input name (``means``,
             ``quats``, ``scales``, ``opacities``, ``sh_dc``, ``sh_rest``).
         fixed: [N, ...] full render-order tensors of the inputs that are not optimised (``sh_rest``).
+        trainable: [N] bool in render order, False on the frozen head: the rasterizer's backward
+            does no gradient work for those rows.
     """
 
     frozen_rows: int
     order: torch.Tensor
     frozen: dict[str, torch.Tensor]
     fixed: dict[str, torch.Tensor]
+    trainable: torch.Tensor
 
     @classmethod
     @torch.no_grad()
@@ -177,7 +179,9 @@ class RenderLayout:
                 frozen[key] = act(t[frozen_idx])
             else:
                 fixed[key] = act(t[order])
-        return cls(int(frozen_idx.numel()), order, frozen, fixed)
+        trainable = torch.ones(n, dtype=torch.bool, device=s.device)
+        trainable[: frozen_idx.numel()] = False
+        return cls(int(frozen_idx.numel()), order, frozen, fixed, trainable)
 
     def scene(self, leaves: dict[str, torch.Tensor]) -> GaussianScene:
         """The scene to render: frozen rows, then ``leaves`` (the editable rows, by scene tensor name)."""
@@ -339,7 +343,7 @@ class EditSession:
             cams, cams_on_device, originals, masks, view_ids = self._views(k)
             layout = self.render_layout()
             out = render_views(layout.scene(self.opt.leaves), cams_on_device, "rgb", background=self.background,
-                               check_finite=False)
+                               check_finite=False, trainable=layout.trainable)
             out["means2d"].retain_grad()
             x = out["color"].permute(0, 3, 1, 2).clamp(0, 1)
         batch = ViewBatch(cameras=cams, originals=originals, masks=masks, view_ids=view_ids, step=self.step,
