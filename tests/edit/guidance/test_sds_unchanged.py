@@ -120,3 +120,26 @@ def test_folded_resnet_add_matches_separate_adds():
     plain.weight = conv.weight
     torch.testing.assert_close(_conv_then_add(plain, x, None, r), plain(x) + r)
     assert torch.equal(_conv_then_add(plain, x), plain(x))
+
+
+def test_ip2p_fresh_views_encode_the_condition_in_the_step(tiny_models, ring_cameras):
+    """Views without camera ids run ``fresh_step`` (the condition encoded inside the step, one CUDA
+    graph on the device): the same gradient as the cached path with ids, and nothing cached."""
+    models = load_ip2p(tiny_models / "instruct-pix2pix")
+    g = InstructPix2PixGuidance(models, "make it red", short_side=16)
+    gen = torch.Generator().manual_seed(5)
+    renders, originals = torch.rand(4, 3, 16, 16, generator=gen), torch.rand(4, 3, 16, 16, generator=gen)
+    draws = dict(t=torch.tensor([25, 70, 110, 160]), noise=torch.randn(4, 4, 8, 8, generator=gen),
+                 vae_noise=torch.randn(4, 4, 8, 8, generator=gen))
+    cams = ring_cameras(size=(16, 16))
+    fresh, _ = g.grad(renders, ViewBatch(cameras=cams, originals=originals, object_center=torch.zeros(3)), **draws)
+    assert not g._cond_cache
+    pooled, _ = g.grad(renders, ViewBatch(cameras=cams, originals=originals, view_ids=torch.arange(4),
+                                          object_center=torch.zeros(3)), **draws)
+    assert len(g._cond_cache) == 4
+    cos, rel = _cosine_and_rel(fresh, pooled)  # float32 sums in another order: ~1e-7
+    assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
+    size = g.resolution(16, 16)
+    want = g.step(renders, g.condition_latents(originals, size), draws["t"], draws["noise"], draws["vae_noise"])
+    cos, rel = _cosine_and_rel(g.fresh_step(renders, originals, draws["t"], draws["noise"], draws["vae_noise"]), want)
+    assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
