@@ -16,7 +16,9 @@ Variants (one call measures all, each with a freshly captured CUDA graph):
   embedding, conv2's bias and the shortcut as separate passes; the VAE attention's float32
   softmax upcast), reproduced here as the reference row;
 - ``after``: the loaders' models as they are (:mod:`tiger.edit.guidance.fused_norms`);
-- ``after+cudnn_benchmark``: the same with cuDNN's autotuning on (the edit leaves it off).
+- ``after+cudnn_benchmark``: the same with cuDNN's autotuning on (the edit leaves it off);
+- ``after+flash_sdpa``: the UNets' attention without cuDNN's SDPA kernels (torch's flash kernels
+  first), to see which serves heads of width 40–160 better on the device.
 
     python -m benchmarks.guidance_floor --device cuda              # full size, about 2 minutes
     python -m benchmarks.guidance_floor                            # CPU, tiny models (a smoke run)
@@ -24,6 +26,7 @@ Variants (one call measures all, each with a freshly captured CUDA graph):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
@@ -93,6 +96,18 @@ def set_folded(models, folded: bool) -> int:
     return changed
 
 
+@contextlib.contextmanager
+def attention_backends(flash_first: bool):
+    """SDPA without cuDNN's kernels (flash, then memory-efficient, then math) when ``flash_first``."""
+    if not flash_first:
+        yield
+        return
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    with sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH]):
+        yield
+
+
 def step_flops(fn) -> float:
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -135,8 +150,8 @@ def main() -> None:
     ap.add_argument("--render", type=int, default=None, help="render side in pixels (default 512 full, 64 tiny)")
     ap.add_argument("--dtype", default=None, help="bf16 (CUDA default), fp16 or fp32 (CPU default)")
     ap.add_argument("--reps", type=int, default=10)
-    ap.add_argument("--variants", default="before,after,after+cudnn_benchmark",
-                    help="comma list of before, after, after+cudnn_benchmark")
+    ap.add_argument("--variants", default="before,after,after+cudnn_benchmark,after+flash_sdpa",
+                    help="comma list of before, after, after+cudnn_benchmark, after+flash_sdpa")
     ap.add_argument("--no-reference", action="store_true", help="skip the float32 reference gradients")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the rows")
     args = ap.parse_args()
@@ -146,7 +161,7 @@ def main() -> None:
     res = args.render or (512 if size == "full" else 64)
     dtype = DTYPE_NAMES[args.dtype or ("bf16" if cuda else "fp32")]
     variants = args.variants.split(",")
-    known = ("before", "after", "after+cudnn_benchmark")
+    known = ("before", "after", "after+cudnn_benchmark", "after+flash_sdpa")
     if any(v not in known for v in variants):
         ap.error(f"--variants takes a comma list of {', '.join(known)}, got '{args.variants}'")
     torch.manual_seed(0)
@@ -180,36 +195,37 @@ def main() -> None:
     rows: list[dict] = []
     grads: dict[str, dict[str, torch.Tensor]] = {}
     for variant in variants:
-        set_folded(ip_models, variant != "before")
-        set_folded(mv_models, variant != "before")
-        torch.backends.cudnn.benchmark = variant == "after+cudnn_benchmark"
-        ip_g, mv_g = make_guidances(ip_models, mv_models, graph=cuda, size=size)
-        csd = CSDGuidance(ip_g, mv_g)
-        row = {"variant": variant}
-        row["ip2p_fresh_ms"] = timer(lambda: ip_g.grad(renders, views(0, False)))
-        row["ip2p_pooled_ms"] = timer(lambda: ip_g.grad(renders, views(0, True)))
-        row["mvdream_ms"] = timer(lambda: mv_g.grad(renders, views(0, False)))
-        both = {p: timer(lambda: csd.grad(renders, views(0, p == "pooled"))) for p in ("fresh", "pooled")}
-        alone = {p: timer(lambda: csd.grad(renders, views(3, p == "pooled"))) for p in ("fresh", "pooled")}
-        for p in ("fresh", "pooled"):
-            ms = MV_FRACTION * both[p] + (1 - MV_FRACTION) * alone[p]
-            floor_ms = flops[f"csd_{p}"] / (H100_BF16_TFLOPS * 1e12) * 1e3
-            row[f"csd_{p}_ms"] = ms
-            row[f"csd_{p}_tflop"] = flops[f"csd_{p}"] / 1e12
-            row[f"csd_{p}_floor_ms"] = floor_ms
-            row[f"csd_{p}_x_floor"] = ms / floor_ms
-        ip_eager, mv_eager = make_guidances(ip_models, mv_models, graph=False, size=size)
-        grads[variant] = {"ip2p": ip_eager.grad(renders, views(0, False), **draws["ip2p"])[0],
-                          "mvdream": mv_eager.grad(renders, views(0, False), **draws["mvdream"])[0]}
-        if variant != variants[0]:
-            for name in ("ip2p", "mvdream"):
-                cos, rel = cosine_rel(grads[variant][name], grads[variants[0]][name])
-                row[f"{name}_cos_vs_{variants[0]}"], row[f"{name}_rel_vs_{variants[0]}"] = cos, rel
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-        ip_g = mv_g = csd = ip_eager = mv_eager = None  # the graphs' memory goes back to the pool
-        if cuda:
-            torch.cuda.empty_cache()
+        with attention_backends(flash_first=variant == "after+flash_sdpa"):
+            set_folded(ip_models, variant != "before")
+            set_folded(mv_models, variant != "before")
+            torch.backends.cudnn.benchmark = variant == "after+cudnn_benchmark"
+            ip_g, mv_g = make_guidances(ip_models, mv_models, graph=cuda, size=size)
+            csd = CSDGuidance(ip_g, mv_g)
+            row = {"variant": variant}
+            row["ip2p_fresh_ms"] = timer(lambda: ip_g.grad(renders, views(0, False)))
+            row["ip2p_pooled_ms"] = timer(lambda: ip_g.grad(renders, views(0, True)))
+            row["mvdream_ms"] = timer(lambda: mv_g.grad(renders, views(0, False)))
+            both = {p: timer(lambda: csd.grad(renders, views(0, p == "pooled"))) for p in ("fresh", "pooled")}
+            alone = {p: timer(lambda: csd.grad(renders, views(3, p == "pooled"))) for p in ("fresh", "pooled")}
+            for p in ("fresh", "pooled"):
+                ms = MV_FRACTION * both[p] + (1 - MV_FRACTION) * alone[p]
+                floor_ms = flops[f"csd_{p}"] / (H100_BF16_TFLOPS * 1e12) * 1e3
+                row[f"csd_{p}_ms"] = ms
+                row[f"csd_{p}_tflop"] = flops[f"csd_{p}"] / 1e12
+                row[f"csd_{p}_floor_ms"] = floor_ms
+                row[f"csd_{p}_x_floor"] = ms / floor_ms
+            ip_eager, mv_eager = make_guidances(ip_models, mv_models, graph=False, size=size)
+            grads[variant] = {"ip2p": ip_eager.grad(renders, views(0, False), **draws["ip2p"])[0],
+                              "mvdream": mv_eager.grad(renders, views(0, False), **draws["mvdream"])[0]}
+            if variant != variants[0]:
+                for name in ("ip2p", "mvdream"):
+                    cos, rel = cosine_rel(grads[variant][name], grads[variants[0]][name])
+                    row[f"{name}_cos_vs_{variants[0]}"], row[f"{name}_rel_vs_{variants[0]}"] = cos, rel
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+            ip_g = mv_g = csd = ip_eager = mv_eager = None  # the graphs' memory goes back to the pool
+            if cuda:
+                torch.cuda.empty_cache()
     torch.backends.cudnn.benchmark = False
 
     if not args.no_reference and dtype != torch.float32:  # the float32 reference of the same weights
