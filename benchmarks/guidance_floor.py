@@ -18,7 +18,11 @@ Variants (one call measures all, each with a freshly captured CUDA graph):
 - ``after``: the loaders' models as they are (:mod:`tiger.edit.guidance.fused_norms`);
 - ``after+cudnn_benchmark``: the same with cuDNN's autotuning on (the edit leaves it off);
 - ``after+flash_sdpa``: the UNets' attention without cuDNN's SDPA kernels (torch's flash kernels
-  first), to see which serves heads of width 40–160 better on the device.
+  first), to see which serves heads of width 40–160 better on the device;
+- ``after+downsample_4x4``: the VAEs' stride-2 downsampling convolutions without their
+  (0, 1, 0, 1) zero pad (a full copy of the map, forward and backward): the 3x3 kernel placed in
+  a zero 4x4 kernel with padding 1 computes the same sums (16/9 of those convolutions' FLOPs;
+  the floor keeps the 3x3 count). A candidate measured here, not in the package.
 
     python -m benchmarks.guidance_floor --device cuda              # full size, about 2 minutes
     python -m benchmarks.guidance_floor                            # CPU, tiny models (a smoke run)
@@ -42,8 +46,10 @@ from tiger.edit.guidance.diffusers_models import _attention_probs_one_pass, free
 from tiger.edit.guidance.fused_norms import _continuous_output_keep_layout, _resnet_forward_folded
 from tiger.edit.guidance.ip2p import InstructPix2PixGuidance
 from tiger.edit.guidance.mvdream import MVDreamGuidance
+from tiger.ops.channel_bias import channel_bias_add
 from tiger.utils.dtypes import DTYPE_NAMES
 
+VARIANTS = ("before", "after", "after+cudnn_benchmark", "after+flash_sdpa", "after+downsample_4x4")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 
 
@@ -93,6 +99,33 @@ def set_folded(models, folded: bool) -> int:
                 else:
                     m.__dict__.pop("get_attention_scores", None)
                 changed += 1
+    return changed
+
+
+def set_downsample_4x4(models, on: bool) -> int:
+    """The VAE's padded stride-2 convolutions as unpadded-input 4x4 convolutions (``on``) or
+    diffusers' pad + 3x3 (off); returns how many layers changed."""
+    from diffusers.models.downsampling import Downsample2D
+
+    changed = 0
+    for m in models.vae.modules():
+        if type(m) is not Downsample2D or not (m.use_conv and m.padding == 0) or m.norm is not None:
+            continue
+        if not on:
+            m.__dict__.pop("forward", None)
+            changed += 1
+            continue
+        conv = m.conv
+        w4 = conv.weight.new_zeros(conv.weight.shape[0], conv.weight.shape[1], 4, 4)
+        w4[:, :, 1:, 1:] = conv.weight.detach()
+        w4 = w4.contiguous(memory_format=torch.channels_last)
+
+        def forward(hidden_states, *args, _w4=w4, _conv=conv, **kwargs):
+            y = torch.nn.functional.conv2d(hidden_states, _w4, None, stride=_conv.stride, padding=1)
+            return y if _conv.bias is None else channel_bias_add(y, _conv.bias)
+
+        m.forward = forward
+        changed += 1
     return changed
 
 
@@ -150,8 +183,7 @@ def main() -> None:
     ap.add_argument("--render", type=int, default=None, help="render side in pixels (default 512 full, 64 tiny)")
     ap.add_argument("--dtype", default=None, help="bf16 (CUDA default), fp16 or fp32 (CPU default)")
     ap.add_argument("--reps", type=int, default=10)
-    ap.add_argument("--variants", default="before,after,after+cudnn_benchmark,after+flash_sdpa",
-                    help="comma list of before, after, after+cudnn_benchmark, after+flash_sdpa")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma list of {', '.join(VARIANTS)}")
     ap.add_argument("--no-reference", action="store_true", help="skip the float32 reference gradients")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the rows")
     args = ap.parse_args()
@@ -161,9 +193,8 @@ def main() -> None:
     res = args.render or (512 if size == "full" else 64)
     dtype = DTYPE_NAMES[args.dtype or ("bf16" if cuda else "fp32")]
     variants = args.variants.split(",")
-    known = ("before", "after", "after+cudnn_benchmark", "after+flash_sdpa")
-    if any(v not in known for v in variants):
-        ap.error(f"--variants takes a comma list of {', '.join(known)}, got '{args.variants}'")
+    if any(v not in VARIANTS for v in variants):
+        ap.error(f"--variants takes a comma list of {', '.join(VARIANTS)}, got '{args.variants}'")
     torch.manual_seed(0)
     tok = tokenizer(Path(tempfile.mkdtemp()))
     ip_models, mv_models = build_models(size, args.device, dtype, tok, fused_norms=True)  # as the loaders on CUDA
@@ -198,6 +229,8 @@ def main() -> None:
         with attention_backends(flash_first=variant == "after+flash_sdpa"):
             set_folded(ip_models, variant != "before")
             set_folded(mv_models, variant != "before")
+            for models in (ip_models, mv_models):
+                set_downsample_4x4(models, variant == "after+downsample_4x4")
             torch.backends.cudnn.benchmark = variant == "after+cudnn_benchmark"
             ip_g, mv_g = make_guidances(ip_models, mv_models, graph=cuda, size=size)
             csd = CSDGuidance(ip_g, mv_g)
@@ -232,8 +265,9 @@ def main() -> None:
         for models in (ip_models, mv_models):
             freeze(models.unet, dtype=torch.float32)
             freeze(models.vae, dtype=torch.float32)
-        set_folded(ip_models, True)
-        set_folded(mv_models, True)
+        for models in (ip_models, mv_models):
+            set_folded(models, True)
+            set_downsample_4x4(models, False)
         ip_r, mv_r = make_guidances(ip_models, mv_models, graph=False, size=size)
         ref = {"ip2p": ip_r.grad(renders, views(0, False), **draws["ip2p"])[0],
                "mvdream": mv_r.grad(renders, views(0, False), **draws["mvdream"])[0]}
