@@ -47,8 +47,12 @@ def main() -> None:
         for dtype in (torch.float32, torch.bfloat16, torch.float16):
             x = torch.randn(n, c, h, w, device="cuda", dtype=dtype)
             b = torch.randn(c, device="cuda", dtype=dtype)
+            bn = torch.randn(n, c, device="cuda", dtype=dtype)
             for t in (x, x.contiguous(memory_format=torch.channels_last)):
                 assert torch.equal(channel_bias_add(t, b), t + b[None, :, None, None])
+                r = torch.randn_like(t)  # per-sample bias and residual: the folded ResNet adds
+                want = ((t.float() + bn.float()[:, :, None, None]) + r.float()).to(dtype)
+                assert torch.equal(channel_bias_add(t, bn, r), want)
     base = torch.randn(1 + 2 * 30 * 5 * 7, device="cuda", dtype=torch.bfloat16)
     xu = base[1:].view(2, 30, 5, 7)
     assert torch.equal(channel_bias_add(xu, base[:30]), xu + base[:30, None, None])

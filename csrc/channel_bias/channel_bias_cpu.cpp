@@ -1,5 +1,5 @@
-// CPU implementation of tiger::channel_bias_add: the reference semantics (ATen's broadcast add,
-// which computes in float for reduced-precision dtypes and rounds once).
+// CPU implementation of tiger::channel_bias_add: the reference semantics, x + bias (+ residual)
+// computed in float (double for float64) and rounded once to x's dtype, as the CUDA kernel does.
 #include <torch/library.h>
 
 #include "channel_bias/channel_bias_glue.h"
@@ -8,11 +8,15 @@ namespace tiger {
 namespace channel_bias {
 namespace {
 
-at::Tensor channel_bias_add_cpu(const at::Tensor& x, const at::Tensor& bias) {
-  check_inputs(x, bias);
+at::Tensor channel_bias_add_cpu(const at::Tensor& x, const at::Tensor& bias, const std::optional<at::Tensor>& residual) {
+  check_inputs(x, bias, residual);
   const auto fmt = memory_format(is_nhwc(x));
+  const auto acc = x.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  const auto b = bias.reshape({bias.dim() == 2 ? bias.size(0) : 1, x.size(1), 1, 1}).to(acc);
+  auto sum = at::add(x.to(acc), b);
+  if (residual.has_value() && residual->defined()) sum.add_(residual->to(acc));
   auto y = at::empty_like(x, fmt);
-  at::add_out(y, x, bias.reshape({1, -1, 1, 1}));
+  y.copy_(sum);
   return y;
 }
 

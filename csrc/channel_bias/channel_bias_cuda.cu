@@ -1,7 +1,10 @@
-// y = x + bias[c] for NCHW and NHWC tensors. ATen's broadcast add takes its generic, unvectorised
-// path for a [1, C, 1, 1] operand (an index computation per element); here every thread moves
-// 16-byte vectors whose V elements share one channel (NCHW, H·W % V == 0) or hold V consecutive
-// channels (NHWC, C % V == 0), with a scalar kernel for the other shapes.
+// y = x + bias[(n,) c] (+ residual) for NCHW and NHWC tensors. ATen's broadcast add takes its
+// generic, unvectorised path for a [1, C, 1, 1] operand (an index computation per element); here
+// every thread moves 16-byte vectors whose V elements share one channel (NCHW, H·W % V == 0) or
+// hold V consecutive channels (NHWC, C % V == 0), with a scalar kernel for the other shapes. A
+// vector never spans two samples, so a per-sample bias ([N, C]: a convolution's bias plus a
+// ResNet block's time embedding) costs one index more. The residual (a ResNet block's shortcut)
+// is read in the same pass: bias and residual cost one read-write of the map instead of two.
 #include <cuda_bf16.h>
 #include <cuda_fp16.h>
 #include <cuda_runtime.h>
@@ -23,32 +26,44 @@ constexpr int kThreads = 256;
 
 template <typename T, int V>
 __global__ void __launch_bounds__(kThreads) bias_kernel(const T* __restrict__ x, const T* __restrict__ bias,
-                                                        T* __restrict__ y, int64_t n_vec, int64_t C, int64_t inner,
-                                                        bool nhwc) {
+                                                        const T* __restrict__ residual, T* __restrict__ y,
+                                                        int64_t n_vec, int64_t C, int64_t inner, int64_t plane,
+                                                        bool per_sample, bool nhwc) {
   const int64_t stride = static_cast<int64_t>(gridDim.x) * blockDim.x;
   for (int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x; i < n_vec; i += stride) {
     const int64_t e = i * V;  // first element of the vector
+    const T* b = per_sample ? bias + (e / plane) * C : bias;
     const Vec<T, V> xv = reinterpret_cast<const Vec<T, V>*>(x)[i];
-    Vec<T, V> out;
+    float acc[V];
     if (nhwc) {
       const int64_t c0 = e % C;  // V consecutive channels (V divides C, or V == 1)
 #pragma unroll
-      for (int j = 0; j < V; ++j)
-        out.v[j] = store_as<T>(load_as<float>(xv.v[j]) + load_as<float>(bias[c0 + j]));
+      for (int j = 0; j < V; ++j) acc[j] = load_as<float>(xv.v[j]) + load_as<float>(b[c0 + j]);
     } else {
-      const float b = load_as<float>(bias[(e / inner) % C]);  // one channel (V divides H·W, or V == 1)
+      const float bc = load_as<float>(b[(e / inner) % C]);  // one channel (V divides H·W, or V == 1)
 #pragma unroll
-      for (int j = 0; j < V; ++j) out.v[j] = store_as<T>(load_as<float>(xv.v[j]) + b);
+      for (int j = 0; j < V; ++j) acc[j] = load_as<float>(xv.v[j]) + bc;
     }
+    if (residual != nullptr) {
+      const Vec<T, V> rv = reinterpret_cast<const Vec<T, V>*>(residual)[i];
+#pragma unroll
+      for (int j = 0; j < V; ++j) acc[j] += load_as<float>(rv.v[j]);
+    }
+    Vec<T, V> out;
+#pragma unroll
+    for (int j = 0; j < V; ++j) out.v[j] = store_as<T>(acc[j]);
     reinterpret_cast<Vec<T, V>*>(y)[i] = out;
   }
 }
 
 template <typename T, int V>
-void launch(const T* x, const T* bias, T* y, int64_t n, int64_t C, int64_t inner, bool nhwc, cudaStream_t st) {
+void launch(const T* x, const T* bias, const T* residual, T* y, int64_t n, int64_t C, int64_t inner, int64_t plane,
+            bool per_sample, bool nhwc, cudaStream_t st) {
   const int64_t n_vec = n / V;
   const int64_t blocks = std::min<int64_t>((n_vec + kThreads - 1) / kThreads, 65535LL * 8);
-  if (blocks > 0) bias_kernel<T, V><<<static_cast<unsigned>(blocks), kThreads, 0, st>>>(x, bias, y, n_vec, C, inner, nhwc);
+  if (blocks > 0)
+    bias_kernel<T, V><<<static_cast<unsigned>(blocks), kThreads, 0, st>>>(x, bias, residual, y, n_vec, C, inner, plane,
+                                                                         per_sample, nhwc);
 }
 
 bool aligned(const void* p, int bytes) { return reinterpret_cast<uintptr_t>(p) % bytes == 0; }
@@ -56,22 +71,25 @@ bool aligned(const void* p, int bytes) { return reinterpret_cast<uintptr_t>(p) %
 }  // namespace
 
 template <typename T>
-void launch_channel_bias(const T* x, const T* bias, T* y, int64_t n, int64_t C, int64_t inner, bool nhwc,
-                         void* stream) {
+void launch_channel_bias(const T* x, const T* bias, const T* residual, T* y, int64_t n, int64_t C, int64_t inner,
+                         int64_t plane, bool per_sample, bool nhwc, void* stream) {
   constexpr int V = 16 / sizeof(T);
   const auto st = static_cast<cudaStream_t>(stream);
-  const bool vec = (nhwc ? C % V == 0 : inner % V == 0) && aligned(x, 16) && aligned(y, 16);
+  const bool vec = (nhwc ? C % V == 0 : inner % V == 0) && aligned(x, 16) && aligned(y, 16) &&
+                   (residual == nullptr || aligned(residual, 16));
   if (vec)
-    launch<T, V>(x, bias, y, n, C, inner, nhwc, st);
+    launch<T, V>(x, bias, residual, y, n, C, inner, plane, per_sample, nhwc, st);
   else
-    launch<T, 1>(x, bias, y, n, C, inner, nhwc, st);
+    launch<T, 1>(x, bias, residual, y, n, C, inner, plane, per_sample, nhwc, st);
 }
 
-template void launch_channel_bias<float>(const float*, const float*, float*, int64_t, int64_t, int64_t, bool, void*);
-template void launch_channel_bias<__half>(const __half*, const __half*, __half*, int64_t, int64_t, int64_t, bool,
-                                          void*);
-template void launch_channel_bias<__nv_bfloat16>(const __nv_bfloat16*, const __nv_bfloat16*, __nv_bfloat16*, int64_t,
-                                                 int64_t, int64_t, bool, void*);
+#define TIGER_CHANNEL_BIAS_INSTANTIATE(T)                                                                   \
+  template void launch_channel_bias<T>(const T*, const T*, const T*, T*, int64_t, int64_t, int64_t, int64_t, \
+                                       bool, bool, void*);
+TIGER_CHANNEL_BIAS_INSTANTIATE(float)
+TIGER_CHANNEL_BIAS_INSTANTIATE(__half)
+TIGER_CHANNEL_BIAS_INSTANTIATE(__nv_bfloat16)
+#undef TIGER_CHANNEL_BIAS_INSTANTIATE
 
 }  // namespace channel_bias
 }  // namespace tiger

@@ -5,11 +5,13 @@
 namespace tiger {
 namespace channel_bias {
 
-// y[e] = x[e] + bias[channel(e)] over n elements of a contiguous NCHW (inner = H·W) or NHWC
-// (inner = 1) tensor with C channels; computed in float, rounded once to T.
+// y[e] = x[e] + bias[(n,) channel(e)] (+ residual[e]) over n elements of a contiguous NCHW
+// (inner = H·W) or NHWC (inner = 1) tensor with C channels and `plane` = C·H·W elements per
+// sample; bias is [C], or [N, C] when per_sample; residual (same layout as x) may be null.
+// Computed in float, rounded once to T.
 template <typename T>
-void launch_channel_bias(const T* x, const T* bias, T* y, int64_t n, int64_t C, int64_t inner, bool nhwc,
-                         void* stream);
+void launch_channel_bias(const T* x, const T* bias, const T* residual, T* y, int64_t n, int64_t C, int64_t inner,
+                         int64_t plane, bool per_sample, bool nhwc, void* stream);
 
 }  // namespace channel_bias
 }  // namespace tiger

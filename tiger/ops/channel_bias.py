@@ -4,10 +4,13 @@ autograd, the function). Kernels in ``csrc/channel_bias/``.
 A convolution's bias is a per-channel add after the convolution. For channels-last bf16 maps
 (the fused diffusion models of :mod:`tiger.edit.guidance.fused_norms`) PyTorch runs that add
 through its generic broadcast kernel, about a tenth of an InstructPix2Pix SDS step on an H100;
-the CUDA kernel here moves 16-byte vectors instead. Values are identical to ``x + bias`` (float
-arithmetic, one rounding).
+the CUDA kernel here moves 16-byte vectors instead. A per-sample bias ([N, C]) and a residual fold a
+ResNet block's time embedding and shortcut into the same pass. Values are the float sum, rounded
+once (identical to ``x + bias`` without a residual).
 """
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 
@@ -17,37 +20,44 @@ __all__ = ["channel_bias_add"]
 
 
 @torch.library.register_fake("tiger::channel_bias_add")
-def _fake(x, bias):
+def _fake(x, bias, residual=None):
     return torch.empty_like(x, memory_format=output_format(x))
 
 
 def _setup_context(ctx, inputs, output):
     ctx.bias_dtype = inputs[1].dtype
+    ctx.per_sample = inputs[1].dim() == 2
 
 
 def _backward(ctx, grad_y):
-    need_x, need_b = ctx.needs_input_grad[:2]
+    need_x, need_b, need_r = (tuple(ctx.needs_input_grad) + (False,))[:3]  # residual may be left out
     acc = torch.float64 if grad_y.dtype == torch.float64 else torch.float32  # reduced types sum in float32
-    gb = grad_y.sum(dim=(0, 2, 3), dtype=acc).to(ctx.bias_dtype) if need_b else None
-    return (grad_y if need_x else None), gb
+    gb = None
+    if need_b:
+        gb = grad_y.sum(dim=(2, 3) if ctx.per_sample else (0, 2, 3), dtype=acc).to(ctx.bias_dtype)
+    grads = ((grad_y if need_x else None), gb, (grad_y if need_r else None))
+    return grads[:len(ctx.needs_input_grad)]
 
 
 torch.library.register_autograd("tiger::channel_bias_add", _backward, setup_context=_setup_context)
 
 
-def channel_bias_add(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """``x + bias`` broadcast over channels.
+def channel_bias_add(x: torch.Tensor, bias: torch.Tensor, residual: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``x + bias`` broadcast over channels (and, for a [N, C] bias, per sample), plus ``residual``.
 
     Args:
         x: [N, C, H, W] floating point (float32/bfloat16/float16 on CUDA), channels-last or NCHW.
-        bias: [C], x's dtype and device.
+        bias: [C], or [N, C] (a convolution's bias plus a per-sample term such as a ResNet block's
+            time embedding); x's dtype and device.
+        residual: optional [N, C, H, W] added in the same pass (x's dtype and device, any layout).
 
     Returns:
-        [N, C, H, W] ``x[n, c, h, w] + bias[c]`` in x's dtype; channels-last when x is.
+        [N, C, H, W] ``x[n, c, h, w] + bias[(n,) c] (+ residual[n, c, h, w])`` in x's dtype, summed
+        in float and rounded once; channels-last when x is.
 
     Example:
         >>> x = torch.zeros(1, 2, 1, 2)
         >>> channel_bias_add(x, torch.tensor([1.0, -1.0])).flatten().tolist()
         [1.0, 1.0, -1.0, -1.0]
     """
-    return torch.ops.tiger.channel_bias_add(x, bias)
+    return torch.ops.tiger.channel_bias_add(x, bias, residual)

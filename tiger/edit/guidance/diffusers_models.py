@@ -7,6 +7,7 @@ so ``dL/dz = g / V``; the noise schedule is :mod:`.noise_schedule`.
 """
 from __future__ import annotations
 
+import types
 from typing import Callable, Optional
 
 import torch
@@ -104,6 +105,24 @@ def freeze(module: torch.nn.Module, device: torch.device | str | None = None,
     return module
 
 
+def _attention_probs_one_pass(self, query: torch.Tensor, key: torch.Tensor,
+                              attention_mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """diffusers' ``Attention.get_attention_scores`` with the softmax run on the scores in their own
+    dtype: torch's softmax of bfloat16/float16 input reduces and exponentiates in float32 and
+    rounds its output once, which is what the upcast (``upcast_softmax``: scores to float32,
+    softmax, back to the model's dtype) computes, without writing and reading the [B, L, L]
+    scores three more times in float32 (forward and backward). Same values up to the order of the
+    float32 sums; identical for float32 models."""
+    if self.upcast_attention:
+        query, key = query.float(), key.float()
+    if attention_mask is None:
+        base, beta = query.new_empty(query.shape[0], query.shape[1], key.shape[1]), 0
+    else:
+        base, beta = attention_mask, 1
+    scores = torch.baddbmm(base, query, key.transpose(-1, -2), beta=beta, alpha=self.scale)
+    return scores.softmax(dim=-1)
+
+
 def matmul_vae_attention(vae: torch.nn.Module) -> int:
     """Run the VAE's attention layers as two batched matmuls and a softmax; returns how many.
 
@@ -112,7 +131,9 @@ def matmul_vae_attention(vae: torch.nn.Module) -> int:
     kernel, whose backward alone took 16.9 ms of a 108 ms InstructPix2Pix step on the H100 (4
     renders at 512², 4096 tokens each; a torch.profiler trace of the guidance benchmark, see
     docs/BENCHMARKS.md).
-    The score matrix is small here (4 × 4096² floats), so the plain form costs a few GEMMs.
+    The score matrix is small here (4 × 4096² values), so the plain form costs a few GEMMs; its
+    softmax runs on the scores in the model's dtype (:func:`_attention_probs_one_pass`: the VAE
+    asks for a float32 upcast, four passes over the scores more per forward and backward).
     The SDS gradient back-propagates through the encoder every step, so this is the VAE's
     processor in both guidances; the UNets keep SDPA (their heads are 40–160 wide)."""
     require_diffusers("switching the VAE's attention processor")
@@ -121,6 +142,7 @@ def matmul_vae_attention(vae: torch.nn.Module) -> int:
     layers = [m for m in vae.modules() if isinstance(m, Attention)]
     for m in layers:
         m.set_processor(AttnProcessor())
+        m.get_attention_scores = types.MethodType(_attention_probs_one_pass, m)
     return len(layers)
 
 

@@ -16,13 +16,16 @@ What is replaced (diffusers 0.42, read from its ``forward`` methods):
   norms fuse the SiLU and ``nonlinearity`` becomes the identity; its third use, the time
   embedding ``time_emb_proj(nonlinearity(temb))``, keeps its SiLU by turning ``time_emb_proj``
   into :class:`SiLUThenLinear` (same parameters); without resampling and with an output scale
-  factor of 1 the block also adds its time embedding and residual in place. Otherwise the norms
-  are replaced without SiLU and ``nonlinearity`` stays.
+  factor of 1 (and plain convolutions) the block adds conv1's bias with its time embedding, and
+  conv2's bias with the shortcut, in one pass each (:func:`tiger.ops.channel_bias.channel_bias_add`
+  with a per-sample bias and a residual). Otherwise the norms are replaced without SiLU and
+  ``nonlinearity`` stays.
 - ``Encoder`` / ``Decoder`` / ``UNet2DConditionModel``: ``conv_norm_out`` followed by ``conv_act``
   (used nowhere else): SiLU fused, ``conv_act`` the identity.
 - ``Attention.group_norm`` and ``Transformer2DModel.norm``: no SiLU. A continuous-input
   ``Transformer2DModel`` also gets an output method without diffusers' ``.contiguous()``, which
-  otherwise turns every transformer block's output (and the residual sum) back to NCHW.
+  otherwise turns every transformer block's output (and the residual sum) back to NCHW, and
+  whose 1x1-convolution ``proj_out`` adds its bias and the residual in one pass.
 """
 from __future__ import annotations
 
@@ -76,24 +79,53 @@ def _fuse_resnet(block) -> int:
         if block.time_emb_proj is not None and not block.skip_time_act:
             block.time_emb_proj = SiLUThenLinear.from_linear(block.time_emb_proj)
         block.nonlinearity = torch.nn.Identity()
-        if block.upsample is None and block.downsample is None and block.output_scale_factor == 1.0:
-            block.forward = types.MethodType(_resnet_forward_in_place, block)
+        if (block.upsample is None and block.downsample is None and block.output_scale_factor == 1.0
+                and _folds_adds(block)):
+            block.forward = types.MethodType(_resnet_forward_folded, block)
     return 2
 
 
-def _resnet_forward_in_place(self, input_tensor: torch.Tensor, temb: Optional[torch.Tensor],
+def _conv_then_add(conv: torch.nn.Conv2d, x: torch.Tensor, extra_bias: Optional[torch.Tensor] = None,
+                   residual: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``conv(x) + extra_bias + residual`` with the convolution's bias, ``extra_bias`` ([N, C] or
+    [C]) and ``residual`` added by one :func:`channel_bias_add` pass after a bias-free convolution."""
+    y = conv._conv_forward(x, conv.weight, None)
+    bias = conv.bias
+    if extra_bias is not None:
+        bias = extra_bias if bias is None else extra_bias + bias
+    if bias is None:
+        bias = y.new_zeros(y.shape[1]) if residual is not None else None
+    if bias is None:
+        return y
+    if bias.dim() == 2 and bias.shape[0] != y.shape[0]:  # a [1, C] time embedding for the whole batch
+        bias = bias.expand(y.shape[0], -1)
+    return channel_bias_add(y, bias.to(y.dtype), residual)
+
+
+def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torch.Tensor],
                              *args: object, **kwargs: object) -> torch.Tensor:
     """A fused ``ResnetBlock2D`` (SiLUs inside the norms, ``time_embedding_norm == "default"``,
-    no resampling, ``output_scale_factor == 1``): diffusers 0.42's computation with the time
-    embedding and the residual added in place into the convolutions' fresh outputs (their
-    backward keeps no output), and no division by a scale factor of 1: one full-size pass and one
-    allocation fewer per sum. Same values."""
-    h = self.conv1(self.norm1(input_tensor))
+    no resampling, ``output_scale_factor == 1``): diffusers 0.42's computation with the adds
+    folded into the convolutions' bias passes: ``conv1``'s bias and the time embedding as one
+    [N, C] bias, ``conv2``'s bias (plus ``conv_shortcut``'s) and the shortcut in one pass
+    (:func:`_conv_then_add`), and no division by a scale factor of 1: two full-size passes and
+    allocations fewer per block. Same values (the sums rounded once)."""
+    temb_bias = None
     if self.time_emb_proj is not None and temb is not None:
-        h.add_(self.time_emb_proj(temb)[:, :, None, None])  # its SiLU: SiLUThenLinear or skip_time_act
-    h = self.conv2(self.dropout(self.norm2(h)))
-    shortcut = self.conv_shortcut(input_tensor) if self.conv_shortcut is not None else input_tensor
-    return h.add_(shortcut)
+        temb_bias = self.time_emb_proj(temb)  # its SiLU: SiLUThenLinear or skip_time_act
+    h = _conv_then_add(self.conv1, self.norm1(input_tensor), temb_bias)
+    h = self.dropout(self.norm2(h))
+    if self.conv_shortcut is None:
+        return _conv_then_add(self.conv2, h, None, input_tensor)
+    shortcut = self.conv_shortcut._conv_forward(input_tensor, self.conv_shortcut.weight, None)
+    return _conv_then_add(self.conv2, h, self.conv_shortcut.bias, shortcut)
+
+
+def _folds_adds(block) -> bool:
+    """Whether :func:`_resnet_forward_folded` may run ``block``: plain convolutions (a subclass
+    may do more in its forward)."""
+    convs = (block.conv1, block.conv2) + (() if block.conv_shortcut is None else (block.conv_shortcut,))
+    return all(type(c) is torch.nn.Conv2d for c in convs)
 
 
 def _fuse_norm_out(module) -> int:
@@ -111,10 +143,13 @@ def _fuse_norm_out(module) -> int:
 def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, height, width, inner_dim):
     """``Transformer2DModel._get_output_for_continuous_inputs`` of diffusers 0.42 without its
     ``.contiguous()``: the [B, H·W, C] tokens viewed as a [B, C, H, W] map are channels-last, so
-    the output (and the residual sum) stay channels-last, and the residual is added in place into
-    the projection's fresh output (a linear layer's backward keeps no output). Same values."""
+    the output (and the residual sum) stay channels-last; a 1x1-convolution projection adds its
+    bias and the residual in one pass (:func:`_conv_then_add`), a linear one gets the residual in
+    place into its fresh output (a linear layer's backward keeps no output). Same values."""
     if not self.use_linear_projection:
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
+        if type(self.proj_out) is torch.nn.Conv2d:  # bias and residual in one pass
+            return _conv_then_add(self.proj_out, hidden_states, None, residual)
         hidden_states = self.proj_out(hidden_states)
     else:
         hidden_states = self.proj_out(hidden_states)

@@ -5,7 +5,8 @@ in_channels 8, ``vae/``, ``text_encoder/``, ``tokenizer/``, ``scheduler/``).
 
 Per step and view v: render → bilinear resize (shorter side 512, multiples of the VAE's
 downsampling factor) → latents ``z = sample(VAE(2x−1))·scaling_factor``; image condition
-``c = mode(VAE(2·original−1))`` (not scaled, cached per camera id); ``t_v`` uniform in
+``c = mode(VAE(2·original−1))`` (not scaled; cached per camera id, or for views without ids
+encoded inside the step, so it joins the step's CUDA graph); ``t_v`` uniform in
 ``t_range`` of the schedule; one UNet call on the 3 branches (image conditions
 [c, c, 0], texts [instruction, "", ""]) gives ``ε̂ = ε_u + S_T(ε_text − ε_img) + S_I(ε_img − ε_u)``;
 the latent gradient ``w(t)(ε̂ − ε)`` (non-finite zeroed, optionally clamped) is divided by V and
@@ -102,7 +103,8 @@ class InstructPix2PixGuidance:
         t_range: fractions of the schedule t is drawn from, per view (paper: [0.02, 0.2]).
         short_side: the shorter side renders are resized to (512).
         grad_clip: clamp of the latent gradient (None: no clamp).
-        cuda_graph: replay the step (VAE encode, UNet, VAE backward) as a CUDA graph (CUDA only).
+        cuda_graph: replay the step (VAE encode, UNet, VAE backward; the condition encode too for
+            views without ids) as a CUDA graph (CUDA only).
         generator: RNG for t and the noises (None: the global one).
         collect_stats: put the gradient's norm in ``info.extra['grad_norm']`` (one host sync per call).
     """
@@ -133,6 +135,7 @@ class InstructPix2PixGuidance:
             models.prompts.release()
         self._cond_cache: dict[tuple[int, int, int], torch.Tensor] = {}
         self._graphed = GraphedStep(self.step) if cuda_graph else None
+        self._graphed_fresh = GraphedStep(self.fresh_step) if cuda_graph else None
         if cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.ip2p: cuda_graph=True needs the models on a CUDA device")
 
@@ -199,6 +202,18 @@ class InstructPix2PixGuidance:
         size = (cond.shape[-2] * f, cond.shape[-1] * f)
         return render_gradient(m.vae, renders, size, vae_noise, lambda z: self.latent_grad(z, cond, t, noise))
 
+    def fresh_step(self, renders: torch.Tensor, originals: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
+                   vae_noise: torch.Tensor) -> torch.Tensor:
+        """:meth:`step` with the image condition encoded from ``originals`` [V, 3, H, W] (float32, in
+        [0, 1]) inside: views without camera ids (fresh every step) have nothing to cache, so the
+        encode joins the step's CUDA graph instead of running eagerly before it. Same values as
+        ``step(renders, condition_latents(originals, size), ...)``; free of host syncs."""
+        f = vae_downsampling_factor(self.models.vae)
+        size = (noise.shape[-2] * f, noise.shape[-1] * f)
+        with torch.no_grad():
+            cond = encode_latents(self.models.vae, resize(originals, size), None)
+        return self.step(renders, cond, t, noise, vae_noise)
+
     @torch.no_grad()
     def latent_grad(self, z: torch.Tensor, cond: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """dL/dz [V, c, h, w] float32: the 3-branch UNet call, CFG and ``w(t)(ε̂ − ε) / V``."""
@@ -227,7 +242,8 @@ class InstructPix2PixGuidance:
         start = time.perf_counter()
         v, _, h, w = renders.shape
         size = self.resolution(h, w)
-        cond = self.condition_latents(views.originals, size, views.view_ids)
+        fresh = views.view_ids is None  # no ids: nothing to cache, the condition is encoded in the step
+        cond = None if fresh else self.condition_latents(views.originals, size, views.view_ids)
         shape = latent_shape(self.models.vae, v, size)
         if t is None:
             t = self.models.schedule.sample(v, self.t_range, self.generator, self.device)
@@ -235,9 +251,16 @@ class InstructPix2PixGuidance:
         vae_noise = draw_noise(vae_noise, shape, "ip2p.vae_noise", self.generator, self.device)
         t = t.to(self.device, torch.long).reshape(v)
         x = renders.to(self.device, torch.float32)
+        if fresh:
+            originals = views.originals.to(self.device, torch.float32)
         check_render_values(renders, self.name)  # the read-back last: the step is launched right after
-        run = self._graphed if self._graphed is not None else self.step
-        g = run(x, cond, t, noise, vae_noise).to(renders.device, renders.dtype)
+        if fresh:
+            run = self._graphed_fresh if self._graphed_fresh is not None else self.fresh_step
+            g = run(x, originals, t, noise, vae_noise)
+        else:
+            run = self._graphed if self._graphed is not None else self.step
+            g = run(x, cond, t, noise, vae_noise)
+        g = g.to(renders.device, renders.dtype)
         info = GuidanceInfo(t=t, timings_ms={"total": 1e3 * (time.perf_counter() - start)})
         if self.collect_stats:
             info.extra["grad_norm"] = float(g.float().norm())
