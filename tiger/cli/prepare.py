@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from .common import CliError, add_common, add_skip_missing, existing
+from .common import CliError, add_common, add_skip_missing, existing, open_dataset
 
 STATE = "prepare.json"
 SCENE = "scene_lang.ply"
@@ -169,6 +169,26 @@ def _table(state: _State) -> list[str]:
     return [f"  {a:<{w0}}  {b:>{w1}}  {c}".rstrip() for a, b, c in rows]
 
 
+def check_scene_seen(scene_file: Path, cameras: list, data: Path) -> None:
+    """Refuse a scene none of whose Gaussian centres lies in front of a capture camera and inside
+    its picture: nothing could give it a language feature (the scene and the capture are in two
+    coordinate frames, e.g. a scene made from another capture)."""
+    import torch
+
+    from tiger.scene import GaussianScene
+
+    means = GaussianScene.load_ply(scene_file).means.detach().double()
+    seen = torch.zeros(means.shape[0], dtype=torch.bool)
+    for cam in cameras:
+        uv, depth = cam.project(means)
+        seen |= (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if seen.any():
+            return
+    raise CliError(f"{scene_file}: none of its {means.shape[0]} Gaussians is in front of any of the {len(cameras)} "
+                   f"cameras of {data} and inside its picture; the scene and the capture are not in one "
+                   "coordinate frame (was the scene made from another capture?)")
+
+
 def run(args: argparse.Namespace) -> int:
     data = existing(args.data, "dataset").resolve()
     out = Path(args.out)
@@ -176,6 +196,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / STATE).is_file() and not args.force:
         raise CliError(f"{out} is not empty and holds no {STATE}; pass --force to prepare into it anyway")
+    # the capture's poses and images, and a given scene, checked before anything is written
+    cameras = open_dataset(str(data), args.skip_missing).cameras
+    if args.scene:
+        check_scene_seen(existing(args.scene, "scene file").resolve(), cameras, data)
     if args.force:
         for sub in (RECON, FEATURES):
             shutil.rmtree(out / sub, ignore_errors=True)

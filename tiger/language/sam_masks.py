@@ -38,8 +38,8 @@ SAM_STD = (0.229, 0.224, 0.225)
 class SamMaskConfig:
     """Thresholds of SAM's automatic mask generator as set by SPEC §4 and LangSplat.
 
-    ``points_per_batch`` prompts go through SAM's decoder at once (None: on CUDA as many as fit a
-    quarter of the device's memory, at most the whole grid; 64 elsewhere; only memory and speed
+    ``points_per_batch`` prompts go through SAM's decoder at once (None: as many as fit 40 % of
+    the CUDA device's memory, or 2 GiB on the CPU, at most the whole grid; only memory and speed
     depend on it, the masks up to float rounding). ``decoder_bf16`` runs the prompt decoder's matrix
     products in bfloat16 (autocast) on a float32 SAM: faster, but on random full-size SAM weights the
     masks then differ from float32's (see benchmarks/masks.py ``--agreement``), so it is off."""
@@ -238,13 +238,16 @@ class SamMaskGenerator:
         if self.config.points_per_batch is not None:
             return max(1, int(self.config.points_per_batch))
         grid = self.config.points_per_side ** 2
-        if self.device.type != "cuda":
-            return min(grid, 64)
-        # the largest per-prompt temporaries: three [16 L, C / 8] float32 maps of the upscaling
+        # the peak per prompt, in the upscaling: two [16 L, C / 8] float32 maps (a product and its
+        # GELU) beside two [L, C] ones (L image tokens)
         dec = self.model.config.mask_decoder_config
         tokens = self.model.config.prompt_encoder_config.image_embedding_size ** 2
-        per_prompt = 3 * 16 * tokens * (dec.hidden_size // 8) * 4 + 8 * tokens * dec.hidden_size * 4
-        fit = int(0.25 * torch.cuda.get_device_properties(self.device).total_memory) // per_prompt
+        per_prompt = 2 * 16 * tokens * (dec.hidden_size // 8) * 4 + 2 * tokens * dec.hidden_size * 4
+        if self.device.type == "cuda":
+            budget = int(0.4 * torch.cuda.get_device_properties(self.device).total_memory)
+        else:
+            budget = 2 << 30
+        fit = budget // per_prompt
         return max(1, min(grid, fit // 64 * 64 or fit))
 
     @torch.no_grad()
