@@ -125,3 +125,17 @@ def test_killed_stage_resumes_and_other_features_are_refused(tmp_path, capture):
     r = _run("prepare", str(data), "--out", str(out), "--models", str(other), *TINY)
     _one_line_error(r, "stage 'features' finished with other inputs (models:", "other_models.json")
     assert (out / "scene_lang.ply").stat().st_mtime_ns == lang_mtime  # nothing lost
+
+
+def test_view_takes_a_prepared_folder(tmp_path):
+    from tiger.cli.common import CliError
+    from tiger.cli.view import _scene_file
+
+    prepared = tmp_path / "prepared"
+    (prepared / "recon").mkdir(parents=True)
+    (prepared / "recon" / "scene.ply").write_bytes(b"ply")
+    (prepared / "prepare.json").write_text("{}")
+    with pytest.raises(CliError, match="embed stage has not finished"):
+        _scene_file(str(prepared))
+    (prepared / "scene_lang.ply").write_bytes(b"ply")
+    assert _scene_file(str(prepared)) == prepared / "scene_lang.ply"

@@ -125,8 +125,7 @@ def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], wor
     old = record.get("inputs")
     changed = _changed(old, inputs) if old is not None else ""
     if record.get("done"):
-        if changed:
-            raise CliError(f"stage '{name}' finished with other inputs ({changed}); pass --force to start over")
+        _refuse_changed(name, record, inputs)
         print(f"[{index}/{total}] {name}: done before ({record.get('seconds', 0):.1f} s), inputs unchanged")
         return
     if changed:
@@ -190,6 +189,24 @@ def check_scene_seen(scene_file: Path, cameras: list, data: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Under torchrun rank 0 runs every stage; the other ranks join only the features stage (each
+    extracts its share of the images), told by rank 0 whether it runs and with which arguments."""
+    from .features import distributed, on_first_rank
+
+    rank, world = distributed(args.device)
+    if rank != 0:
+        features_argv = on_first_rank(world, rank, None)
+        if features_argv:
+            _invoke(features_argv)
+        return 0
+    ctx = {}
+    features_argv = on_first_rank(world, rank, lambda: _scene_stage(args, ctx))
+    return _features_and_embed(args, ctx, features_argv)
+
+
+def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
+    """Checks, the output folder and stage 1 (the scene); fills ``ctx`` and returns the features
+    stage's `tiger features` arguments, None when that stage finished before with these inputs."""
     data = existing(args.data, "dataset").resolve()
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -241,17 +258,37 @@ def run(args: argparse.Namespace) -> int:
 
         _run_stage(state, "reconstruct", 1, inputs, reconstruct, lambda old: shutil.rmtree(recon, ignore_errors=True))
 
-    # 2. the feature maps
+    # 2. the feature maps: decided here, so that under torchrun every rank knows whether it runs
     feats = out / FEATURES
     f_inputs = {"data": str(data), "models": args.models, "upsampler": args.upsampler,
                 "long_side": args.long_side, "clip_long_side": args.clip_long_side, "pca_dim": args.pca_dim,
                 "no_sam": args.no_sam, "skip_missing": args.skip_missing}
+    features_argv = ["features", str(data), "--out", str(feats), *common,
+                     *_flag_args({"--models": args.models, "--upsampler": args.upsampler,
+                                  "--long-side": args.long_side, "--clip-long-side": args.clip_long_side,
+                                  "--pca-dim": args.pca_dim, "--no-sam": args.no_sam})]
+    ctx.update(data=data, out=out, state=state, common=common, t_start=t_start, scene_file=scene_file,
+               feats=feats, f_inputs=f_inputs)
+    record = state.stage("features")
+    if record.get("done"):
+        _refuse_changed("features", record, f_inputs)
+        return None
+    return features_argv
+
+
+def _refuse_changed(name: str, record: dict, inputs: dict) -> None:
+    changed = _changed(record.get("inputs") or {}, inputs)
+    if changed:
+        raise CliError(f"stage '{name}' finished with other inputs ({changed}); pass --force to start over")
+
+
+def _features_and_embed(args: argparse.Namespace, ctx: dict, features_argv: Optional[list[str]]) -> int:
+    """Stages 2 and 3 on rank 0, the final table and prepare.json."""
+    data, out, state, common, t_start = ctx["data"], ctx["out"], ctx["state"], ctx["common"], ctx["t_start"]
+    scene_file, feats, f_inputs = ctx["scene_file"], ctx["feats"], ctx["f_inputs"]
 
     def features() -> dict:
-        _invoke(["features", str(data), "--out", str(feats), *common,
-                 *_flag_args({"--models": args.models, "--upsampler": args.upsampler, "--long-side": args.long_side,
-                              "--clip-long-side": args.clip_long_side, "--pca-dim": args.pca_dim,
-                              "--no-sam": args.no_sam})])
+        _invoke(features_argv)
         return {"maps": len(list((feats / "features").glob("*.pt")))}
 
     def reset_features(old: dict) -> None:
