@@ -102,6 +102,8 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("--recon-steps", type=int, default=7000)
     ap.add_argument("--long-side", type=int, default=None, help="feature-map long side (default: full size)")
     ap.add_argument("--embed-steps", type=int, default=None, help="default: `tiger embed`'s")
+    ap.add_argument("--pca-dim", type=int, default=None,
+                    help="`tiger features --pca-dim` (default: its 64; 16 with --models tiny, whose CLIP has 24 channels)")
     ap.add_argument("--images", type=int, default=None, help="the first N frames of the capture only")
     ap.add_argument("--ranks", type=int, default=1,
                     help="N > 1: also the feature stage sharded over N processes under torchrun, compared")
@@ -136,6 +138,9 @@ def main(argv: list | None = None) -> int:
             options += ["--long-side", str(args.long_side)]
         if args.embed_steps is not None:
             options += ["--embed-steps", str(args.embed_steps)]
+        pca_dim = args.pca_dim or (16 if args.models == "tiny" else None)
+        if pca_dim:
+            options += ["--pca-dim", str(pca_dim)]
         cmd = ["prepare", str(args.data), "--out", str(out), "--force", *options,
                "--downscale", str(args.downscale), "--recon-steps", str(args.recon_steps)]
         t0 = time.perf_counter()

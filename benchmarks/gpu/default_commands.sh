@@ -66,7 +66,7 @@ run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one s
   fi
   if [ "${SMOKE:-0}" = 1 ]; then  # every command's code path, none of its cost: tiny models, tiny maps
     R=(--steps 30 --downscale 8 --init-points 3000); E=(--steps 10); ED=(--steps 2 --size 64)
-    F=(--long-side 96 --clip-long-side 64)
+    F=(--long-side 96 --clip-long-side 64 --pca-dim 16)
     P=(--recon-steps 30 --downscale 8 --init-points 3000 --upsampler jbu "${F[@]}" --embed-steps 10)
     Q=(--views 1); D=(--steps 2 --downscale 8); RE=(--views 2 --downscale 8)
     subset 3 "$W/fox3"; FOX="$W/fox3"; subset 1 "$W/fox1"; IMPLICIT_DATA="$W/fox1"

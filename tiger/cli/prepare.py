@@ -5,7 +5,10 @@ every stage's inputs, time and quality, written atomically after each stage. A r
 finished stages whose recorded inputs match, continues an interrupted one (the stages resume on
 their own: the reconstruction from its checkpoint, the features image by image, the field from its
 checkpoint), starts an unfinished stage afresh when its inputs changed, and refuses, naming the
-stage and the setting, when a finished stage's inputs changed (--force starts over). `tiger query/edit/delete/render` take DIR for its scene.
+stage and the setting, when a finished stage's inputs changed (--force starts over). The capture
+(images and poses) and a ``--scene`` (some Gaussian in some view) are checked before anything is
+written. Under ``torchrun`` rank 0 runs every stage and the other ranks join the feature stage, each
+extracting its share of the images. `tiger query/edit/delete/render/view` take DIR for its scene.
 """
 from __future__ import annotations
 
@@ -32,9 +35,11 @@ def add_parser(sub) -> None:
                     "and DIR/prepare.json (each stage's inputs, seconds and quality: held-out PSNR, "
                     "Gaussians, field loss). Re-running continues an interrupted stage and skips finished "
                     "ones whose inputs match. Options left out take the stage command's default. "
-                    "`tiger query DIR ...` (and edit, delete, render) use DIR's scene.",
+                    "Under torchrun the feature stage is sharded over the ranks. "
+                    "`tiger query DIR ...` (and edit, delete, render, view) use DIR's scene.",
         epilog="example: tiger prepare ../shared/data/fox --out outputs/fox --downscale 2 "
-               "--recon-steps 7000 --upsampler jbu",
+               "--recon-steps 7000 --upsampler jbu\n"
+               "         torchrun --nproc_per_node 2 -m tiger.cli.main prepare ../shared/data/fox --out outputs/fox",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", help="dataset folder (COLMAP or transforms.json)")
     add_common(p, models=True)
