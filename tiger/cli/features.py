@@ -71,15 +71,16 @@ def on_first_rank(world: int, rank: int, work):
     import torch.distributed as dist
 
     box: list = [None, None]
+    failure: BaseException | None = None
     if rank == 0:
         try:
             box[0] = work()
         except (CliError, SystemExit) as e:
-            box[1] = str(e)
+            failure, box[1] = e, str(e) or type(e).__name__
     dist.broadcast_object_list(box, src=0)
+    if failure is not None:
+        raise failure
     if box[1] is not None:
-        if rank == 0:
-            raise CliError(box[1].split(": error: ", 1)[-1])
         raise SystemExit(1)  # rank 0 prints the line
     return box[0]
 

@@ -149,9 +149,11 @@ def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], wor
 
 def _invoke(argv: list[str]) -> None:
     """Run a tiger subcommand in this process; a failure stops prepare with the stage's message."""
+    from .common import mark_command_start
     from .main import build_parser
 
     args = build_parser().parse_args(argv)
+    mark_command_start()  # the stage's own "done in" counts from here, not from prepare's start
     code = int(args.func(args) or 0)
     if code:
         raise CliError(f"`tiger {' '.join(argv[:1])}` stopped with exit code {code}")
