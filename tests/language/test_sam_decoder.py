@@ -115,6 +115,9 @@ def test_generator_decode_batches(sam):
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
 @pytest.mark.parametrize("autocast", [False, True])
 def test_grid_decoder_cuda_equals_cpu(sam, autocast):
+    """float32 on CUDA equals the CPU's to rounding; under bf16 autocast the device's error against
+    float32 is of the size of the CPU's own bf16-autocast error (random tiny SAM: logits ~1e-5, so
+    only errors relative to bf16's own are meaningful)."""
     import copy
 
     emb, points = _inputs(sam, 40, seed=6)
@@ -122,6 +125,13 @@ def test_grid_decoder_cuda_equals_cpu(sam, autocast):
     model = copy.deepcopy(sam).cuda()
     dec = SamGridDecoder(model, autocast=autocast)
     logits, iou = dec(dec.prepare(emb.cuda()), points.cuda())
-    tol = 2e-2 if autocast else 1e-3  # TF32 / bf16 products on the device
-    torch.testing.assert_close(iou.cpu(), ref_iou, rtol=0, atol=tol)
-    assert (logits.cpu() - ref).abs().max() <= tol * 10 * ref.abs().max()
+    scale = float(ref.abs().max())
+    if not autocast:
+        torch.testing.assert_close(iou.cpu(), ref_iou, rtol=0, atol=1e-3)
+        assert float((logits.cpu() - ref).abs().max()) <= 1e-2 * scale  # TF32 at most
+        return
+    cpu16 = SamGridDecoder(sam, autocast=True)
+    cpu_logits, cpu_iou = cpu16(cpu16.prepare(emb), points)
+    cpu_err = float((cpu_logits - ref).abs().max())
+    assert float((logits.cpu() - ref).abs().max()) <= 4 * cpu_err + 1e-3 * scale
+    assert float((iou.cpu() - ref_iou).abs().max()) <= 4 * float((cpu_iou - ref_iou).abs().max()) + 1e-3
