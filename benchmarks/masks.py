@@ -3,6 +3,7 @@ per-image SAM mask path's stage table.
 
     python -m benchmarks.masks --device cuda --models full          # H100: 1080x1920, 100/300/1000 masks
     python -m benchmarks.masks --device cpu --models tiny --image 270x480 --mask-counts 100,300
+    python -m benchmarks.masks --device cuda --dtype float32 --agreement --profile masks_profile.txt
 
 ``realistic_masks`` builds what SAM's 32x32 automatic prompts hand to the mask stages of one
 image: segments of a partition of the frame (adjacent, no overlap), near-duplicates of them (the
@@ -27,6 +28,8 @@ import argparse
 import math
 import os
 import time
+from pathlib import Path
+
 import torch
 import torch.nn.functional as F
 
@@ -215,10 +218,64 @@ def _timed(fn, dev: torch.device, repeats: int):
     return out, sorted(times)[len(times) // 2]
 
 
+def _decode_with_sam_model(gen, emb: torch.Tensor, resized: tuple[int, int], batch: int = 256):
+    """The prompt grid through ``transformers.SamModel`` as the generator decoded it before
+    SamGridDecoder: (logits [P, 256, 256] float32, iou [P]) of the generator's level."""
+    from tiger.language.sam_masks import point_grid
+
+    cfg = gen.config
+    pts = point_grid(cfg.points_per_side) * torch.tensor([resized[1], resized[0]], dtype=torch.float64)
+    pts = pts.to(emb.device, torch.float32)
+    lows, ious = [], []
+    with torch.no_grad():
+        for i in range(0, pts.shape[0], batch):
+            p = pts[i : i + batch]
+            out = gen.model(image_embeddings=emb, input_points=p[None, :, None, :],
+                            input_labels=torch.ones(1, p.shape[0], 1, dtype=torch.int64, device=emb.device),
+                            multimask_output=True)
+            ious.append(out.iou_scores[0, :, cfg.level].float())
+            lows.append(out.pred_masks[0, :, cfg.level].float())
+    return torch.cat(lows), torch.cat(ious)
+
+
+def mask_agreement(dev: torch.device, kind: str, image_hw: tuple[int, int], seed: int = 0) -> list[dict]:
+    """How far the bf16-autocast decoder's masks are from float32's (float32 SAM, random weights,
+    every prompt kept): share of equal pixels, mask IoU (mean, min), predicted-IoU difference, and
+    the masks each run keeps after SAM's filters (IoU > 0.7 is off: random weights predict ~0)."""
+    from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator
+    from tiger.testing.random_models import random_sam
+
+    with torch.device(dev):
+        model = random_sam(kind, seed=seed).float()
+    h, w = image_hw
+    image = torch.rand(3, h, w, generator=torch.Generator().manual_seed(seed)).to(dev)
+    out = {}
+    for bf16 in (False, True):
+        gen = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0,
+                                                    decoder_bf16=bf16))
+        emb, resized = gen.embed(image)
+        low, iou = gen.decode(emb, resized)
+        masks, _, stab = gen.select(low, iou, resized, (h, w))
+        out[bf16] = (low, iou, masks, stab)
+    (l32, i32, m32, s32), (l16, i16, m16, s16) = out[False], out[True]
+    inter = (m32 & m16).flatten(1).sum(1).float()
+    union = (m32 | m16).flatten(1).sum(1).float()
+    miou = torch.where(union > 0, inter / union.clamp_min(1), torch.ones_like(union))
+    row = {"SAM": kind, "prompts": int(m32.shape[0]), "pixel agreement": float((m32 == m16).float().mean()),
+           "mask IoU mean": float(miou.mean()), "mask IoU min": float(miou.min()),
+           "max |logit diff| / max |logit|": float((l16 - l32).abs().max() / l32.abs().max().clamp_min(1e-30)),
+           "max |pred IoU diff|": float((i16 - i32).abs().max()),
+           "stability >= 0.85 (fp32 / bf16)": f"{int((s32 >= 0.85).sum())} / {int((s16 >= 0.85).sum())}"}
+    print("  agreement:", row, flush=True)
+    return [row]
+
+
 def bench_mask_path(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: tuple[int, int],
-                    counts: list[int], feature_dim: int, repeats: int, baseline_max: int) -> list[dict]:
+                    counts: list[int], feature_dim: int, repeats: int, baseline_max: int,
+                    decoder_bf16: bool = False, compare_decoders: bool = True) -> list[dict]:
     """Seconds per image of each stage of SamMaskGenerator on ``dev`` (full or tiny random SAM),
-    the mask stages on SAM-like sets of ``counts`` masks at the image size."""
+    the mask stages on SAM-like sets of ``counts`` masks at the image size; with
+    ``compare_decoders`` also the prompt decoding through transformers' SamModel (the path before)."""
     from tiger.language.sam_masks import (SamMaskConfig, SamMaskGenerator, SamMasks, clean_masks_on_host,
                                           masks_to_boxes)
     from tiger.ops.components import remove_small_regions
@@ -236,12 +293,21 @@ def bench_mask_path(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: 
         model = random_sam(kind).to(dtype)
     h, w = image_hw
     image = torch.rand(3, h, w, generator=torch.Generator().manual_seed(0)).to(dev)
-    gen_off = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0))
+    gen_off = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0,
+                                                    decoder_bf16=decoder_bf16))
     (emb, resized), t_enc = _timed(lambda: gen_off.embed(image), dev, repeats)
     (low, piou), t_dec = _timed(lambda: gen_off.decode(emb, resized), dev, repeats)
     (pm, _, _), t_up = _timed(lambda: gen_off.select(low, piou, resized, (h, w)), dev, repeats)
     row("-", "SAM encoder", t_enc, f"{kind} ViT, {dtype}")
-    row("-", "prompt decoding", t_dec, f"{low.shape[0]} prompts, {gen_off._batch()} per batch")
+    row("-", "prompt decoding (SamGridDecoder)", t_dec, f"{low.shape[0]} prompts, {gen_off._batch()} per batch"
+        + (", bf16 autocast" if decoder_bf16 else ""))
+    if compare_decoders:
+        (ref_low, ref_iou), t_ref = _timed(lambda: _decode_with_sam_model(gen_off, emb, resized), dev, repeats)
+        scale = float(ref_low.abs().max())
+        row("-", "  before: transformers SamModel, 256 per batch", t_ref,
+            f"max |logit diff| {float((low - ref_low).abs().max()):.2e} of {scale:.2e}, "
+            f"max |IoU diff| {float((piou - ref_iou).abs().max()):.2e}")
+        del ref_low
     row("-", "filters + upscale + stability", t_up, f"{pm.shape[0]} masks to {h}x{w} (random weights, filters "
         "off: every prompt upscaled, an upper bound)")
     shared = t_enc + t_dec + t_up
@@ -302,6 +368,29 @@ def bench_mask_path(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: 
     return rows
 
 
+def profile_generator(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: tuple[int, int], path: Path,
+                      decoder_bf16: bool = False) -> None:
+    """torch.profiler table (by self device time on CUDA, self CPU time elsewhere) of one
+    SamMaskGenerator call on a random image, SAM's filters off so every prompt reaches every stage."""
+    from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator
+    from tiger.testing.random_models import random_sam
+
+    with torch.device(dev):
+        model = random_sam(kind).to(dtype)
+    gen = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0,
+                                                decoder_bf16=decoder_bf16))
+    image = torch.rand(3, *image_hw, generator=torch.Generator().manual_seed(0)).to(dev)
+    gen(image)  # warm-up
+    acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    with torch.profiler.profile(activities=acts) as prof:
+        gen(image)
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+    key = "self_cuda_time_total" if dev.type == "cuda" else "self_cpu_time_total"
+    path.write_text(prof.key_averages().table(sort_by=key, row_limit=40))
+    print(f"profile of one generator call -> {path}")
+
+
 def main() -> None:
     from benchmarks.common import print_table
 
@@ -315,18 +404,33 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=None, help="timed calls per stage (median; default 5 CUDA, 1 CPU)")
     ap.add_argument("--baseline-max", type=int, default=400,
                     help="run SAM's per-mask host clean-up (the previous path) up to this many masks")
+    ap.add_argument("--dtype", choices=("bfloat16", "float32"), default=None,
+                    help="SAM's weights (default bfloat16 on CUDA, float32 on CPU; `tiger features` loads "
+                         "float32; random full-size weights overflow float16)")
+    ap.add_argument("--decoder-bf16", action="store_true", help="time the prompt decoder under bf16 autocast")
+    ap.add_argument("--no-compare", action="store_true",
+                    help="skip timing transformers' SamModel decoder (the path before SamGridDecoder)")
+    ap.add_argument("--agreement", action="store_true",
+                    help="also measure the bf16-autocast decoder's masks against float32's (float32 SAM)")
+    ap.add_argument("--profile", type=Path, default=None, metavar="FILE",
+                    help="write a torch.profiler table of one whole generator call (300-mask image) to FILE")
     args = ap.parse_args()
     dev = torch.device(args.device)
     cuda = dev.type == "cuda"
     kind = args.models or ("full" if cuda else "tiny")
-    dtype = torch.bfloat16 if cuda else torch.float32  # random full-size weights overflow fp16
+    dtype = getattr(torch, args.dtype) if args.dtype else (torch.bfloat16 if cuda else torch.float32)
     ih, iw = (int(v) for v in args.image.split("x"))
     counts = [int(c) for c in args.mask_counts.split(",")]
     print(f"device {dev} ({torch.cuda.get_device_name(dev) if cuda else f'{os.cpu_count()} CPU threads'}), "
           f"SAM {kind}, image {ih}x{iw}")
     rows = bench_mask_path(dev, kind, dtype, (ih, iw), counts, args.feature_dim,
-                           args.repeats or (5 if cuda else 1), args.baseline_max)
+                           args.repeats or (5 if cuda else 1), args.baseline_max, args.decoder_bf16,
+                           not args.no_compare)
     print_table(rows, f"per-image SAM mask path, seconds ({kind} SAM, {dtype}, {ih}x{iw})")
+    if args.agreement:
+        print_table(mask_agreement(dev, kind, (ih, iw)), "bf16-autocast prompt decoder vs float32 (float32 SAM)")
+    if args.profile:
+        profile_generator(dev, kind, dtype, (ih, iw), args.profile, args.decoder_bf16)
 
 
 if __name__ == "__main__":

@@ -8,16 +8,23 @@
 #                                                      # FeatUp on 2 images (each command within minutes)
 #   ONLY="prepare reconstruct" QUICK=1 bash ...        # only these commands (the work folder is kept, so
 #                                                      # later calls can run the commands that need its files)
+#   SMOKE=1 bash benchmarks/gpu/default_commands.sh    # CPU smoke run: tiny random models, 3 fox images, a
+#                                                      # few steps, small maps, implicit FeatUp left out;
+#                                                      # catches the trivial crashes before a GPU run
 #
 # Run from the repo root after `make build`. The fox must be inside the repo on the GPU machine:
-# FOX (default .carry/fox, else ../shared/data/fox). Results: $OUT/default_commands.txt.
+# FOX (default .carry/realscene/fox, else .carry/fox, else ../shared/data/fox). SIZE: the random
+# models' size (full; tiny under SMOKE=1). Results: $OUT/default_commands.txt.
 set -uo pipefail
 OUT="${OUT:-outputs/default_commands}"
 PY="${PYTHON:-python3}"
-FOX="${FOX:-.carry/fox}"
+FOX="${FOX:-.carry/realscene/fox}"
+[ -f "$FOX/transforms.json" ] || FOX=.carry/fox
 [ -f "$FOX/transforms.json" ] || FOX=../shared/data/fox
 CMD_TIMEOUT="${CMD_TIMEOUT:-3600}"
+if [ "${SMOKE:-0}" = 1 ]; then DEVICE="${DEVICE:-cpu}"; SIZE="${SIZE:-tiny}"; fi
 DEVICE="${DEVICE:-cuda}"
+SIZE="${SIZE:-full}"
 export TIGER_MODELS="${TIGER_MODELS:-$OUT/models}" PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 mkdir -p "$OUT"
 LOG="$OUT/default_commands.txt"
@@ -29,6 +36,7 @@ FAILED=0
 run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one summary line
   local name=$1; shift
   if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then return 0; fi
+  if [[ " ${SKIP_CMDS:-} " == *" $name "* ]]; then printf '%-22s skipped (%s)\n' "$name" "${SKIP_WHY:-SKIP_CMDS}"; return 0; fi
   local t0=$(date +%s%N)
   timeout "$CMD_TIMEOUT" "$PY" -m tiger.cli.main "$@" > "$W/$name.log" 2>&1
   local rc=$?
@@ -39,12 +47,12 @@ run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one s
 
 {
   echo "== default commands on the GPU: $(date -u); fox at $FOX; QUICK=${QUICK:-0}"
-  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
+  [ "$DEVICE" = cpu ] || nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
   if [ ! -f "$TIGER_MODELS/featup/maskclip_jbu_stack_cocostuff.ckpt" ]; then
-    t0=$(date +%s); "$PY" -m benchmarks.gpu.write_random_models "$TIGER_MODELS" --size full || FAILED=1
-    echo "random full-size models written to $TIGER_MODELS in $(( $(date +%s) - t0 )) s"
+    t0=$(date +%s); "$PY" -m benchmarks.gpu.write_random_models "$TIGER_MODELS" --size "$SIZE" || FAILED=1
+    echo "random $SIZE models written to $TIGER_MODELS in $(( $(date +%s) - t0 )) s"
   fi
-  R=(); F=(); E=(); P=(); ED=()
+  R=(); F=(); E=(); P=(); ED=(); Q=(); D=(); RE=()
   IMPLICIT_DATA="$FOX"
   subset() {  # subset N FOLDER: the first N frames of the fox as a capture of its own
     mkdir -p "$2"; [ -e "$2/images" ] || ln -s "$(cd "$FOX" && pwd)/images" "$2/images"
@@ -57,19 +65,31 @@ run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one s
     subset 2 "$W/fox2"; IMPLICIT_DATA="$W/fox2"
     subset 12 "$W/fox12"; FOX="$W/fox12"   # SAM ViT-H takes ~7.5 s an image at 1080p
   fi
+  if [ "${SMOKE:-0}" = 1 ]; then  # every command's code path, none of its cost: tiny models, tiny maps
+    # edit: the recolor guidance; the tiny VAE (factor 2) turns InstructPix2Pix's 512-px input into
+    # 256x256 latents whose mid-block attention asks for 64 GiB on the CPU
+    R=(--steps 30 --downscale 8 --init-points 3000); E=(--steps 10); ED=(--steps 2 --size 64 --guidance recolor --color orange)
+    F=(--long-side 96 --clip-long-side 64 --pca-dim 16)
+    P=(--recon-steps 30 --downscale 8 --init-points 3000 --upsampler jbu "${F[@]}" --embed-steps 10)
+    Q=(--views 1); D=(--steps 2 --downscale 8); RE=(--views 2 --downscale 8)
+    subset 3 "$W/fox3"; FOX="$W/fox3"
+    # implicit FeatUp's 1200-step fit takes over 15 minutes of CPU even with tiny models;
+    # tests/language/test_featup_implicit.py runs its code path on the CPU
+    SKIP_CMDS="features_implicit"; SKIP_WHY="SMOKE: the implicit fit is GPU work"
+  fi
   run prepare        prepare "$FOX" --out "$W/prepared" --device "$DEVICE" "${P[@]}"
   [ -f "$W/prepare.log" ] && sed -n '/^tiger prepare:/,$p' "$W/prepare.log"
   run reconstruct    reconstruct "$FOX" --out "$W/recon" --device "$DEVICE" "${R[@]}"
   grep -h "test views" "$W/reconstruct.log" 2>/dev/null
-  run features_implicit features "$IMPLICIT_DATA" --out "$W/feat_implicit" --device "$DEVICE"
-  run features_jbu   features "$FOX" --out "$W/feat_jbu" --upsampler jbu --device "$DEVICE"
-  run features_bilinear features "$FOX" --out "$W/feat_bilinear" --upsampler bilinear --device "$DEVICE"
+  run features_implicit features "$IMPLICIT_DATA" --out "$W/feat_implicit" --device "$DEVICE" "${F[@]}"
+  run features_jbu   features "$FOX" --out "$W/feat_jbu" --upsampler jbu --device "$DEVICE" "${F[@]}"
+  run features_bilinear features "$FOX" --out "$W/feat_bilinear" --upsampler bilinear --device "$DEVICE" "${F[@]}"
   run embed          embed "$W/recon/scene.ply" "$FOX" --features "$W/feat_jbu" --out "$W/scene_lang.ply" --device "$DEVICE" "${E[@]}"
-  run query          query "$W/scene_lang.ply" "fox" --data "$FOX" --out "$W/query" --device "$DEVICE"
-  run query_prepared query "$W/prepared" "fox" --data "$FOX" --out "$W/query_prepared" --device "$DEVICE"
+  run query          query "$W/scene_lang.ply" "fox" --data "$FOX" --out "$W/query" --device "$DEVICE" "${Q[@]}"
+  run query_prepared query "$W/prepared" "fox" --data "$FOX" --out "$W/query_prepared" --device "$DEVICE" "${Q[@]}"
   run edit           edit "$W/scene_lang.ply" "make it look like a tiger" --target "fox" --out "$W/edit" --device "$DEVICE" "${ED[@]}"
-  run delete         delete "$W/scene_lang.ply" "fox" --data "$FOX" --out "$W/delete" --device "$DEVICE"
-  run render         render "$W/scene_lang.ply" --data "$FOX" --out "$W/render" --device "$DEVICE"
+  run delete         delete "$W/scene_lang.ply" "fox" --data "$FOX" --out "$W/delete" --device "$DEVICE" "${D[@]}"
+  run render         render "$W/scene_lang.ply" --data "$FOX" --out "$W/render" --device "$DEVICE" "${RE[@]}"
   echo "== done: $(date -u); $([ $FAILED = 0 ] && echo 'all commands exited 0' || echo 'FAILED')"
 } 2>&1 | tee "$LOG"
 grep -q "all commands exited 0" "$LOG"

@@ -41,7 +41,10 @@ def main(argv: list | None = None) -> int:
     jbu_file = root / spec.folder / spec.files[0]
     jbu_file.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
-    torch.save(JBUStack(512 if args.size == "full" else 32).state_dict(), jbu_file)
+    from tiger.testing.random_models import clip_config
+
+    dim = int(clip_config(args.size).projection_dim)  # the JBU stack upsamples CLIP's features
+    torch.save(JBUStack(dim).state_dict(), jbu_file)
     print(f"featup_jbu: {jbu_file}")
     return 0
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import (Summary, add_common, add_skip_missing, claim_output, device_of, existing, finish_output,
-                     open_dataset, run_settings)
+from .common import (CliError, Summary, add_common, add_skip_missing, claim_output, device_of, existing,
+                     finish_output, open_dataset, run_settings)
 
 
 def add_parser(sub) -> None:
@@ -43,17 +43,78 @@ def _images(path, skip_missing: bool = False):
     return [c.image_path for c in cams], [str(c.image_name).replace("/", "_") for c in cams]
 
 
+def distributed(device: str | None) -> tuple[int, int]:
+    """(rank, world size) under torchrun, the process group initialised once (NCCL for a CUDA
+    device, gloo for the CPU); (0, 1) otherwise. ``tiger.language.extract_features`` shards its
+    images over the group it finds."""
+    import os
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    import torch
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        cuda = torch.cuda.is_available() and not str(device or "").startswith("cpu")
+        if cuda:
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")) % torch.cuda.device_count())
+        dist.init_process_group("nccl" if cuda else "gloo")
+    return dist.get_rank(), dist.get_world_size()
+
+
+def on_first_rank(world: int, rank: int, work):
+    """Run ``work()`` on rank 0 only and hand its result (or its one-line error) to every rank, so
+    an error stops all ranks with the same line instead of leaving the others at a barrier."""
+    if world <= 1:
+        return work()
+    import torch.distributed as dist
+
+    box: list = [None, None]
+    failure: BaseException | None = None
+    if rank == 0:
+        try:
+            box[0] = work()
+        except (CliError, SystemExit) as e:
+            failure, box[1] = e, str(e) or type(e).__name__
+    dist.broadcast_object_list(box, src=0)
+    if failure is not None:
+        raise failure
+    if box[1] is not None:
+        raise SystemExit(1)  # rank 0 prints the line
+    return box[0]
+
+
 def run(args: argparse.Namespace) -> int:
     from tiger.language.extract import FeatureConfig, extract_features
 
     data = existing(args.data, "dataset")
     files, names = _images(data, args.skip_missing)
     if not files:
-        raise SystemExit(f"tiger features: no images found in {data}")
+        raise CliError(f"no images found in {data}")
     cfg = FeatureConfig(upsampler=args.upsampler, use_sam=not args.no_sam,
                         output_long_side=args.long_side, clip_long_side=args.clip_long_side,
                         pca_dim=args.pca_dim)
+    rank, world = distributed(args.device)
+    # the output folder is claimed once, by rank 0, before any rank writes into it
+    out = on_first_rank(world, rank, lambda: _claim(args))
+    summary = Summary("tiger features")
+    fs = extract_features(files, args.out, names=names, config=cfg, models=args.models,
+                          device=device_of(args.device))
+    if rank != 0:
+        return 0
+    finish_output(out, "features")
+    summary.add(f"{len(fs.names)} feature maps in {fs.out_dir / 'features'}; PCA in {fs.out_dir / 'pca.pt'}"
+                + (f" ({world} ranks)" if world > 1 else ""))
+    summary.print()
+    return 0
+
+
+def _claim(args: argparse.Namespace):
+    """OUT claimed for this run (an unfinished run with the same settings continues), the models
+    checked first on a fresh run."""
     settings, started = run_settings(args), Path(args.out).is_dir() and any(Path(args.out).iterdir())
+    out = None
     if started:  # an unfinished run in OUT continues (finished images are skipped): same settings only
         out = claim_output(args.out, "features", settings, force=args.force, resume=not args.force)
     if not (Path(args.out) / "cache").is_dir():  # a fresh run: name every missing model at once
@@ -63,10 +124,4 @@ def run(args: argparse.Namespace) -> int:
                        config=args.models, hint="(--no-sam skips SAM; --upsampler implicit or bilinear needs no FeatUp weights)")
     if not started:  # the folder is made only once the models are known to be there
         out = claim_output(args.out, "features", settings, force=args.force, resume=False)
-    summary = Summary("tiger features")
-    fs = extract_features(files, args.out, names=names, config=cfg, models=args.models,
-                          device=device_of(args.device))
-    finish_output(out, "features")
-    summary.add(f"{len(fs.names)} feature maps in {fs.out_dir / 'features'}; PCA in {fs.out_dir / 'pca.pt'}")
-    summary.print()
-    return 0
+    return out

@@ -5,7 +5,10 @@ every stage's inputs, time and quality, written atomically after each stage. A r
 finished stages whose recorded inputs match, continues an interrupted one (the stages resume on
 their own: the reconstruction from its checkpoint, the features image by image, the field from its
 checkpoint), starts an unfinished stage afresh when its inputs changed, and refuses, naming the
-stage and the setting, when a finished stage's inputs changed (--force starts over). `tiger query/edit/delete/render` take DIR for its scene.
+stage and the setting, when a finished stage's inputs changed (--force starts over). The capture
+(images and poses) and a ``--scene`` (some Gaussian in some view) are checked before anything is
+written. Under ``torchrun`` rank 0 runs every stage and the other ranks join the feature stage, each
+extracting its share of the images. `tiger query/edit/delete/render/view` take DIR for its scene.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from .common import CliError, add_common, add_skip_missing, existing
+from .common import CliError, add_common, add_skip_missing, existing, open_dataset
 
 STATE = "prepare.json"
 SCENE = "scene_lang.ply"
@@ -32,9 +35,11 @@ def add_parser(sub) -> None:
                     "and DIR/prepare.json (each stage's inputs, seconds and quality: held-out PSNR, "
                     "Gaussians, field loss). Re-running continues an interrupted stage and skips finished "
                     "ones whose inputs match. Options left out take the stage command's default. "
-                    "`tiger query DIR ...` (and edit, delete, render) use DIR's scene.",
+                    "Under torchrun the feature stage is sharded over the ranks. "
+                    "`tiger query DIR ...` (and edit, delete, render, view) use DIR's scene.",
         epilog="example: tiger prepare ../shared/data/fox --out outputs/fox --downscale 2 "
-               "--recon-steps 7000 --upsampler jbu",
+               "--recon-steps 7000 --upsampler jbu\n"
+               "         torchrun --nproc_per_node 2 -m tiger.cli.main prepare ../shared/data/fox --out outputs/fox",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", help="dataset folder (COLMAP or transforms.json)")
     add_common(p, models=True)
@@ -125,8 +130,7 @@ def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], wor
     old = record.get("inputs")
     changed = _changed(old, inputs) if old is not None else ""
     if record.get("done"):
-        if changed:
-            raise CliError(f"stage '{name}' finished with other inputs ({changed}); pass --force to start over")
+        _refuse_changed(name, record, inputs)
         print(f"[{index}/{total}] {name}: done before ({record.get('seconds', 0):.1f} s), inputs unchanged")
         return
     if changed:
@@ -145,9 +149,11 @@ def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], wor
 
 def _invoke(argv: list[str]) -> None:
     """Run a tiger subcommand in this process; a failure stops prepare with the stage's message."""
+    from .common import mark_command_start
     from .main import build_parser
 
     args = build_parser().parse_args(argv)
+    mark_command_start()  # the stage's own "done in" counts from here, not from prepare's start
     code = int(args.func(args) or 0)
     if code:
         raise CliError(f"`tiger {' '.join(argv[:1])}` stopped with exit code {code}")
@@ -169,13 +175,55 @@ def _table(state: _State) -> list[str]:
     return [f"  {a:<{w0}}  {b:>{w1}}  {c}".rstrip() for a, b, c in rows]
 
 
+def check_scene_seen(scene_file: Path, cameras: list, data: Path) -> None:
+    """Refuse a scene none of whose Gaussian centres lies in front of a capture camera and inside
+    its picture: nothing could give it a language feature (the scene and the capture are in two
+    coordinate frames, e.g. a scene made from another capture)."""
+    import torch
+
+    from tiger.scene import GaussianScene
+
+    means = GaussianScene.load_ply(scene_file).means.detach().double()
+    seen = torch.zeros(means.shape[0], dtype=torch.bool)
+    for cam in cameras:
+        uv, depth = cam.project(means)
+        seen |= (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if seen.any():
+            return
+    raise CliError(f"{scene_file}: none of its {means.shape[0]} Gaussians is in front of any of the {len(cameras)} "
+                   f"cameras of {data} and inside its picture; the scene and the capture are not in one "
+                   "coordinate frame (was the scene made from another capture?)")
+
+
 def run(args: argparse.Namespace) -> int:
+    """Under torchrun rank 0 runs every stage; the other ranks join only the features stage (each
+    extracts its share of the images), told by rank 0 whether it runs and with which arguments."""
+    from .features import distributed, on_first_rank
+
+    rank, world = distributed(args.device)
+    if rank != 0:
+        features_argv = on_first_rank(world, rank, None)
+        if features_argv:
+            _invoke(features_argv)
+        return 0
+    ctx = {}
+    features_argv = on_first_rank(world, rank, lambda: _scene_stage(args, ctx))
+    return _features_and_embed(args, ctx, features_argv)
+
+
+def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
+    """Checks, the output folder and stage 1 (the scene); fills ``ctx`` and returns the features
+    stage's `tiger features` arguments, None when that stage finished before with these inputs."""
     data = existing(args.data, "dataset").resolve()
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CliError(f"{out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / STATE).is_file() and not args.force:
         raise CliError(f"{out} is not empty and holds no {STATE}; pass --force to prepare into it anyway")
+    # the capture's poses and images, and a given scene, checked before anything is written
+    cameras = open_dataset(str(data), args.skip_missing).cameras
+    if args.scene:
+        check_scene_seen(existing(args.scene, "scene file").resolve(), cameras, data)
     if args.force:
         for sub in (RECON, FEATURES):
             shutil.rmtree(out / sub, ignore_errors=True)
@@ -217,17 +265,37 @@ def run(args: argparse.Namespace) -> int:
 
         _run_stage(state, "reconstruct", 1, inputs, reconstruct, lambda old: shutil.rmtree(recon, ignore_errors=True))
 
-    # 2. the feature maps
+    # 2. the feature maps: decided here, so that under torchrun every rank knows whether it runs
     feats = out / FEATURES
     f_inputs = {"data": str(data), "models": args.models, "upsampler": args.upsampler,
                 "long_side": args.long_side, "clip_long_side": args.clip_long_side, "pca_dim": args.pca_dim,
                 "no_sam": args.no_sam, "skip_missing": args.skip_missing}
+    features_argv = ["features", str(data), "--out", str(feats), *common,
+                     *_flag_args({"--models": args.models, "--upsampler": args.upsampler,
+                                  "--long-side": args.long_side, "--clip-long-side": args.clip_long_side,
+                                  "--pca-dim": args.pca_dim, "--no-sam": args.no_sam})]
+    ctx.update(data=data, out=out, state=state, common=common, t_start=t_start, scene_file=scene_file,
+               feats=feats, f_inputs=f_inputs)
+    record = state.stage("features")
+    if record.get("done"):
+        _refuse_changed("features", record, f_inputs)
+        return None
+    return features_argv
+
+
+def _refuse_changed(name: str, record: dict, inputs: dict) -> None:
+    changed = _changed(record.get("inputs") or {}, inputs)
+    if changed:
+        raise CliError(f"stage '{name}' finished with other inputs ({changed}); pass --force to start over")
+
+
+def _features_and_embed(args: argparse.Namespace, ctx: dict, features_argv: Optional[list[str]]) -> int:
+    """Stages 2 and 3 on rank 0, the final table and prepare.json."""
+    data, out, state, common, t_start = ctx["data"], ctx["out"], ctx["state"], ctx["common"], ctx["t_start"]
+    scene_file, feats, f_inputs = ctx["scene_file"], ctx["feats"], ctx["f_inputs"]
 
     def features() -> dict:
-        _invoke(["features", str(data), "--out", str(feats), *common,
-                 *_flag_args({"--models": args.models, "--upsampler": args.upsampler, "--long-side": args.long_side,
-                              "--clip-long-side": args.clip_long_side, "--pca-dim": args.pca_dim,
-                              "--no-sam": args.no_sam})])
+        _invoke(features_argv)
         return {"maps": len(list((feats / "features").glob("*.pt")))}
 
     def reset_features(old: dict) -> None:

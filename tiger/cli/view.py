@@ -20,7 +20,7 @@ def add_parser(sub) -> None:
         epilog="example: tiger view outputs/demo/scene.ply   (then open http://127.0.0.1:8080)\n"
                "         tiger view outputs/fox/scene_lang.ply --data ../shared/data/fox --port 8081",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", help="PLY (with or without lang_*), or a folder holding scene*.ply")
+    p.add_argument("scene", help="PLY (with or without lang_*), a `tiger prepare` folder, or a folder holding scene*.ply")
     p.add_argument("--data", default=None,
                    help="the capture (COLMAP / transforms.json) whose cameras to list "
                         "(default: cameras.json beside the PLY, when there)")
@@ -40,7 +40,9 @@ def add_parser(sub) -> None:
 
 
 def _scene_file(path: str) -> Path:
-    p = existing(path, "scene")
+    from .prepare import prepared_scene
+
+    p = prepared_scene(existing(path, "scene"))  # a `tiger prepare` folder: its language scene
     if p.is_dir():
         found = sorted(p.glob("scene*.ply")) or sorted(p.glob("*.ply"))
         if not found:

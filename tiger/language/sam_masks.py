@@ -26,6 +26,8 @@ import torch.nn.functional as F
 from tiger.ops.components import remove_small_regions as clean_small_regions
 from tiger.ops.nms import box_nms, mask_nms
 
+from .sam_decoder import SamGridDecoder
+
 logger = logging.getLogger(__name__)
 
 SAM_MEAN = (0.485, 0.456, 0.406)  # SAM's pixel_mean / 255
@@ -36,11 +38,15 @@ SAM_STD = (0.229, 0.224, 0.225)
 class SamMaskConfig:
     """Thresholds of SAM's automatic mask generator as set by SPEC §4 and LangSplat.
 
-    ``points_per_batch`` prompts go through SAM's decoder at once (None: 256 on CUDA, 64 elsewhere;
-    only memory and speed depend on it, not the masks)."""
+    ``points_per_batch`` prompts go through SAM's decoder at once (None: as many as fit 40 % of
+    the CUDA device's memory, or 2 GiB on the CPU, at most the whole grid; only memory and speed
+    depend on it, the masks up to float rounding). ``decoder_bf16`` runs the prompt decoder's matrix
+    products in bfloat16 (autocast) on a float32 SAM: faster, but on random full-size SAM weights the
+    masks then differ from float32's (see benchmarks/masks.py ``--agreement``), so it is off."""
 
     points_per_side: int = 32
     points_per_batch: int | None = None
+    decoder_bf16: bool = False
     level: int = 0
     pred_iou_thresh: float = 0.7
     stability_score_thresh: float = 0.85
@@ -178,6 +184,7 @@ class SamMaskGenerator:
         self.model = model
         self.config = config or SamMaskConfig()
         self.input_size = int(model.config.vision_config.image_size)
+        self.decoder = SamGridDecoder(model, level=self.config.level, autocast=self.config.decoder_bf16)
 
     @classmethod
     def from_pretrained(cls, path=None, *, device="cpu", dtype=torch.float32,
@@ -210,16 +217,38 @@ class SamMaskGenerator:
         return x, (rh, rw)
 
     def _upscale(self, low: torch.Tensor, resized: tuple[int, int], size: tuple[int, int]) -> torch.Tensor:
-        """SAM's postprocess_masks: low-res logits [B, h, w] -> input frame -> crop -> ``size``."""
-        s = self.input_size
-        x = F.interpolate(low[:, None].float(), size=(s, s), mode="bilinear", align_corners=False)
+        """SAM's postprocess_masks: low-res logits [B, h, w] -> input frame -> crop -> ``size``.
+
+        Only the low-res rows and columns the crop reads are upsampled (the input frame's padding is
+        never computed): with the same scale factor, output pixel i reads source (i + 0.5) / f - 0.5
+        either way, so the result is bit-identical to upsampling the whole frame and cropping."""
+        s, lh, lw = self.input_size, low.shape[-2], low.shape[-1]
+        fh, fw = s // lh, s // lw
+        if fh * lh != s or fw * lw != s:  # not an integer factor: upsample the whole frame
+            x = F.interpolate(low[:, None].float(), size=(s, s), mode="bilinear", align_corners=False)
+        else:
+            kh, kw = min(lh, -(-resized[0] // fh) + 1), min(lw, -(-resized[1] // fw) + 1)
+            x = F.interpolate(low[:, None, :kh, :kw].float(), scale_factor=(fh, fw), mode="bilinear",
+                              align_corners=False, recompute_scale_factor=False)
         x = x[..., : resized[0], : resized[1]]
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False)[:, 0]
 
     def _batch(self) -> int:
+        """Prompts per decoder call (see :class:`SamMaskConfig`)."""
         if self.config.points_per_batch is not None:
             return max(1, int(self.config.points_per_batch))
-        return 256 if self.device.type == "cuda" else 64
+        grid = self.config.points_per_side ** 2
+        # the peak per prompt, in the upscaling: two [16 L, C / 8] float32 maps (a product and its
+        # GELU) beside two [L, C] ones (L image tokens)
+        dec = self.model.config.mask_decoder_config
+        tokens = self.model.config.prompt_encoder_config.image_embedding_size ** 2
+        per_prompt = 2 * 16 * tokens * (dec.hidden_size // 8) * 4 + 2 * tokens * dec.hidden_size * 4
+        if self.device.type == "cuda":
+            budget = int(0.4 * torch.cuda.get_device_properties(self.device).total_memory)
+        else:
+            budget = 2 << 30
+        fit = budget // per_prompt
+        return max(1, min(grid, fit // 64 * 64 or fit))
 
     @torch.no_grad()
     def embed(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
@@ -229,20 +258,21 @@ class SamMaskGenerator:
 
     @torch.no_grad()
     def decode(self, emb: torch.Tensor, resized: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """The point grid through SAM's decoder, ``points_per_batch`` prompts at a time: the chosen
-        level's low-resolution logits [P, 256, 256] and predicted IoU [P], in prompt order."""
+        """The point grid through SAM's decoder (:class:`SamGridDecoder`: the image side prepared
+        once), ``points_per_batch`` prompts at a time, no host synchronisation: the chosen level's
+        low-resolution logits [P, 256, 256] float32 and predicted IoU [P], in prompt order."""
         cfg = self.config
         pts = point_grid(cfg.points_per_side) * torch.tensor([resized[1], resized[0]], dtype=torch.float64)
         pts = pts.to(self.device, torch.float32)
+        tokens = self.decoder.prepare(emb)
         batch = self._batch()
+        if batch >= pts.shape[0]:
+            return self.decoder(tokens, pts)
         lows, ious = [], []
         for i in range(0, pts.shape[0], batch):
-            p = pts[i : i + batch]
-            out = self.model(image_embeddings=emb, input_points=p[None, :, None, :],
-                             input_labels=torch.ones(1, p.shape[0], 1, dtype=torch.int64, device=self.device),
-                             multimask_output=True)
-            ious.append(out.iou_scores[0, :, cfg.level].float())
-            lows.append(out.pred_masks[0, :, cfg.level].contiguous())
+            low, iou = self.decoder(tokens, pts[i : i + batch])
+            lows.append(low)
+            ious.append(iou)
         return torch.cat(lows), torch.cat(ious)
 
     @torch.no_grad()
