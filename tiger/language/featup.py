@@ -254,7 +254,8 @@ class ImplicitConfig:
     downsampler without its patch tensor, no per-step host sync) or ``"reference"`` (the
     original loop, kept to check the fast fit against). ``precision``: ``"bf16"`` runs the
     network and the backbone passes of the fast fit under bf16 autocast on CUDA (float32 on the
-    CPU either way); ``"fp32"`` keeps float32 everywhere.
+    CPU either way); ``"fp32"`` keeps float32 everywhere. ``cuda_graph``: the fast fit on CUDA
+    replays its step (forward, backward, NAdam) from one CUDA graph.
     """
 
     steps: int = 1200
@@ -277,6 +278,7 @@ class ImplicitConfig:
     seed: int = 0
     method: str = "fast"
     precision: str = "bf16"
+    cuda_graph: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in ("fast", "reference"):
@@ -395,10 +397,12 @@ class ImplicitUpsampler:
 
 
 def _fit_setup(net: nn.Module, down: nn.Module, outlier: nn.Module, cfg: "ImplicitConfig",
-               progress: bool) -> tuple[torch.optim.Optimizer, Iterable[int]]:
-    """What both fits start with: NAdam over the three modules' parameters, the step range (a
-    progress bar when asked), and the network and downsampler in training mode (dropout)."""
-    opt = torch.optim.NAdam([*net.parameters(), *down.parameters(), *outlier.parameters()], lr=cfg.lr)
+               progress: bool, capturable: bool = False) -> tuple[torch.optim.Optimizer, Iterable[int]]:
+    """What both fits start with: NAdam over the three modules' parameters (``capturable`` for a
+    step captured in a CUDA graph), the step range (a progress bar when asked), and the network
+    and downsampler in training mode (dropout)."""
+    opt = torch.optim.NAdam([*net.parameters(), *down.parameters(), *outlier.parameters()], lr=cfg.lr,
+                            capturable=capturable)
     steps: Iterable[int] = range(cfg.steps)
     if progress:
         from tiger.utils.progress import progress as progress_lines
