@@ -19,6 +19,7 @@ void check_cuda(const at::Tensor& features, const WindowDims& d, const char* op)
               ", got ", d.K, " x ", d.K);
   TORCH_CHECK(d.H * d.W * d.C < (int64_t(1) << 31) && d.J * d.FH * d.FW < (int64_t(1) << 31), op,
               " (CUDA): features or cells too many for 32-bit indices");
+  TORCH_CHECK(d.H < 65536, op, " (CUDA): features must have fewer than 65536 rows, got ", d.H);
 }
 
 std::tuple<at::Tensor, at::Tensor> window_attention_cuda(const at::Tensor& features, const at::Tensor& logit_map,

@@ -178,3 +178,23 @@ def test_fast_fit_on_cuda_equals_cpu():
         assert cos.mean() >= 0.99, cos.mean()
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+def test_network_channels_last_equals_the_convolutions():
+    """The fast fit's per-pixel MLP form of the implicit network = its 1x1-convolution form."""
+    from tiger.language.featup import ImplicitNet
+
+    gen = torch.Generator().manual_seed(7)
+    net = ImplicitNet(12, n_freqs=6, generator=gen).double()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=gen, dtype=p.dtype))
+    img = torch.rand(2, 3, 9, 14, generator=gen, dtype=torch.float64)
+    net.eval()
+    torch.testing.assert_close(net.forward_pixels(img), net(img), atol=1e-12, rtol=1e-12)
+    net.train()  # channel dropout: every channel of an image kept or dropped whole, kept ones scaled
+    torch.manual_seed(0)
+    out = net.forward_pixels(img)
+    assert out.shape == (2, 12, 9, 14)
+    net.net[1].p = net.net[4].p = 0.0
+    torch.testing.assert_close(net.forward_pixels(img), net(img), atol=1e-12, rtol=1e-12)

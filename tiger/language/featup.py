@@ -140,6 +140,22 @@ class FourierFeaturizer(nn.Module):
             [torch.sin(feats + sin_b).reshape(b, n, h, w), torch.cos(feats + cos_b).reshape(b, n, h, w), image], dim=1
         )
 
+    def pixels(self, image: torch.Tensor) -> torch.Tensor:
+        """``forward`` with channels last: [B, 3, H, W] -> [B, H, W, out_dim], same channel order."""
+        b, _, h, w = image.shape
+        gy = torch.linspace(-1, 1, h, device=image.device, dtype=image.dtype)
+        gx = torch.linspace(-1, 1, w, device=image.device, dtype=image.dtype)
+        yy, xx = torch.meshgrid(gy, gx, indexing="ij")
+        colour = image.permute(0, 2, 3, 1)
+        feats = torch.cat([torch.stack([yy, xx], -1).expand(b, h, w, 2), colour], -1)  # [B, H, W, 5]
+        freqs = torch.exp(torch.linspace(-2, 10, self.n_freqs, device=image.device, dtype=image.dtype))
+        feats = feats.unsqueeze(-2) * freqs.view(self.n_freqs, 1)  # [B, H, W, F, 5]
+        n = self.n_freqs * self.dims
+        sin_b = self.biases[0].reshape(self.n_freqs, self.dims)
+        cos_b = self.biases[1].reshape(self.n_freqs, self.dims)
+        return torch.cat([torch.sin(feats + sin_b).reshape(b, h, w, n), torch.cos(feats + cos_b).reshape(b, h, w, n),
+                          colour], -1)
+
 
 class _ChannelNorm(nn.Module):
     def __init__(self, dim: int) -> None:
@@ -172,6 +188,24 @@ class ImplicitNet(nn.Module):
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         return self.net(self.fourier(_min_max(image)))
+
+    def forward_pixels(self, image: torch.Tensor) -> torch.Tensor:
+        """``forward`` computed channels last, as a per-pixel MLP (LayerNorm over the contiguous
+        last dimension, 1x1 convolutions as ``F.linear``, channel dropout as one mask per image
+        and channel): no permuted copies. Returns [B, out_dim, H, W] (a channels-last view)."""
+        x = self.fourier.pixels(_min_max(image))
+        for layer in self.net:
+            if isinstance(layer, _ChannelNorm):
+                x = layer.norm(x)
+            elif isinstance(layer, nn.Conv2d):
+                x = F.linear(x, layer.weight.flatten(1), layer.bias)
+            elif isinstance(layer, nn.Dropout2d):
+                if self.training and layer.p > 0:
+                    keep = x.new_empty(x.shape[0], 1, 1, x.shape[-1]).bernoulli_(1 - layer.p)
+                    x = x * keep.div_(1 - layer.p)
+            else:
+                x = layer(x)
+        return x.permute(0, 3, 1, 2)
 
 
 class AttentionDownsampler(nn.Module):

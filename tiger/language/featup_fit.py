@@ -275,8 +275,8 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
     dev = img.device
     fh, fw = targets.shape[-2:]
     with _autocast(dev, cfg.precision):
-        hr = net(img)
-    hr = hr.float()
+        hr = net.forward_pixels(img)
+    hr = hr.float().contiguous()
     hr_mag = hr.norm(dim=1, keepdim=True)
     blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
     logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
