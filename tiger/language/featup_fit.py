@@ -262,6 +262,8 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     for i in range(done, cfg.steps):
         next(steps)
         eager(i)
+    for _ in steps:  # closes the progress display
+        pass
     net.eval()
     return losses.tolist()
 
