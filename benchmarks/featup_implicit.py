@@ -118,6 +118,8 @@ def main() -> None:
                     help="steps of the reference fit (default: --steps); when fewer, a fast fit of as many "
                          "steps is run for the comparison")
     ap.add_argument("--eager", action="store_true", help="also time the fast fit without its CUDA graph")
+    ap.add_argument("--compile", action="store_true",
+                    help="also time the fast fit with the network through torch.compile (compiled in the warm-up)")
     ap.add_argument("--no-fp32", action="store_true", help="skip the fast fit in float32")
     ap.add_argument("--profile", action="store_true",
                     help="print a profile of 20 fast steps (64 views), run eagerly (no CUDA graph) so that the "
@@ -142,12 +144,17 @@ def main() -> None:
     # warm-up (cuDNN/cuBLAS plans, allocator) on a short fit of each path
     for method in ("fast",) + (() if args.no_reference else ("reference",)):
         ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=3, n_views=8, method=method))
+    if args.compile:
+        ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=5, n_views=8, compile_network=True))
     sync(dev)
 
     rows, maps = [], {}
     runs = [("fast bf16", dataclasses.replace(base, method="fast", precision="bf16"))]
     if not args.no_fp32:
         runs.append(("fast fp32", dataclasses.replace(base, method="fast", precision="fp32")))
+    if args.compile:
+        runs.append(("fast bf16 compiled", dataclasses.replace(base, method="fast", precision="bf16",
+                                                               compile_network=True)))
     if args.eager and cuda:
         runs.append(("fast bf16 eager", dataclasses.replace(base, method="fast", precision="bf16", cuda_graph=False)))
     runs.append(("fast bf16 seed 1", dataclasses.replace(base, method="fast", precision="bf16", seed=1)))

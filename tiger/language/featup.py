@@ -289,7 +289,9 @@ class ImplicitConfig:
     original loop, kept to check the fast fit against). ``precision``: ``"bf16"`` runs the
     network and the backbone passes of the fast fit under bf16 autocast on CUDA (float32 on the
     CPU either way); ``"fp32"`` keeps float32 everywhere. ``cuda_graph``: the fast fit on CUDA
-    replays its step (forward, backward, NAdam) from one CUDA graph.
+    replays its step (forward, backward, NAdam) from one CUDA graph. ``compile_network``: the
+    fast fit runs the network through ``torch.compile`` (fuses the Fourier features, LayerNorm,
+    dropout and casts, the memory-bound part of the step; costs a compilation per process).
     """
 
     steps: int = 1200
@@ -313,6 +315,7 @@ class ImplicitConfig:
     method: str = "fast"
     precision: str = "bf16"
     cuda_graph: bool = True
+    compile_network: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in ("fast", "reference"):

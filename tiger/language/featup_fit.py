@@ -221,9 +221,10 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     coord_y, coord_x = reflect_coords(sy, h).float(), reflect_coords(sx, w).float()
     losses = torch.empty(cfg.steps, device=dev)
     idx = torch.zeros(cfg.jitters_per_step, dtype=torch.long, device=dev)
+    network = torch.compile(net.forward_pixels, dynamic=False) if cfg.compile_network else net.forward_pixels
 
     def step() -> torch.Tensor:
-        loss = _step_loss(img, targets, idx, coord_y, coord_x, net, down, outlier, cfg)
+        loss = _step_loss(img, targets, idx, coord_y, coord_x, network, down, outlier, cfg)
         loss.backward()
         opt.step()
         return loss.detach()
@@ -269,15 +270,16 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
 
 
 def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coord_y: torch.Tensor,
-               coord_x: torch.Tensor, net: nn.Module, down: "AttentionDownsampler", outlier: nn.Conv2d,
+               coord_x: torch.Tensor, network, down: "AttentionDownsampler", outlier: nn.Conv2d,
                cfg: "ImplicitConfig") -> torch.Tensor:
-    """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor)."""
+    """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor);
+    ``network`` is the implicit network's ``forward_pixels`` (or its compiled form)."""
     from .featup import _tv
 
     dev = img.device
     fh, fw = targets.shape[-2:]
     with _autocast(dev, cfg.precision):
-        hr = net.forward_pixels(img)
+        hr = network(img)
     hr = hr.float().contiguous()
     hr_mag = hr.norm(dim=1, keepdim=True)
     blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
