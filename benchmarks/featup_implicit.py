@@ -4,6 +4,7 @@ per-pixel cosine similarity of the fast fit's upsampled map with the reference f
 
 GPU (full-size random CLIP ViT-B/16, a 1080x1920 image, the paper's settings; < 4 min on an H100):
     python -m benchmarks.featup_implicit --device cuda
+    (``--reference-steps 300``: the reference loop, and a fast fit compared with it, at 300 steps)
 CPU (reduced size: a 224x398 image, a small random CLIP, fewer steps and views):
     python -m benchmarks.featup_implicit --device cpu
 
@@ -13,6 +14,9 @@ differ by construction, so the fast fit with another seed is also compared with 
 backbone passes of the jittered views (``torch.utils.flop_counter`` on one view, times the views),
 and per step the network over all pixels at the fit resolution, the blur, the jitter resampling
 and the attention downsampler's logits and window sums (forward + backward = 3x forward).
+The fit loop's time per step is the fit's time less that of a fit with no steps (backbone, PCA,
+set-up), over the steps; its floor is the larger of its FLOPs at the bf16 peak and its bytes at
+the H100's HBM bandwidth, both for the network as PyTorch runs it (``loop_bytes``).
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ from tiger.language.maskclip import MaskCLIP, resize_for_patches
 
 H100_BF16_TFLOPS = 790.0  # dense bf16 tensor-core peak used for the share (the issue's figure)
 H100_TF32_TFLOPS = 400.0
+H100_HBM_TBPS = 3.35  # H100 SXM HBM3 bandwidth
 
 
 def build_clip(kind: str, dev: torch.device) -> MaskCLIP:
@@ -74,6 +79,24 @@ def fit_flops(h: int, w: int, fh: int, fw: int, cfg: ImplicitConfig, backbone_pe
     return parts
 
 
+def loop_bytes(h: int, w: int, fh: int, fw: int, cfg: ImplicitConfig) -> float:
+    """HBM bytes of one fit step, estimated as each tensor written once and read once (forward),
+    the backward twice that: the network as PyTorch runs it (float32 Fourier features and
+    LayerNorm, bf16 matmul operands: 6 tensors of 2 * 5 * n_freqs + 3 channels at 4 bytes, 8 of
+    proj_dim channels at 2 bytes, per pixel), the blur, magnitude and logit map (float32,
+    proj_dim + 1 channels), the fused downsampler's reads of the features (each cell reads its
+    (k + 2)^2 tile of proj_dim + 1 float32 channels, from L2 mostly: counted once per jitter),
+    and the targets of the step's views."""
+    px = h * w
+    d = 2 * 5 * cfg.n_freqs + 3
+    k = cfg.proj_dim
+    net = px * (6 * d * 4 + 8 * k * 2)
+    maps = px * (k + 1) * 4 * 4  # magnitude+coefficients, blurred, dropout input, blur-pin difference
+    down = cfg.jitters_per_step * px * (k + 1) * 4
+    targets = cfg.jitters_per_step * fh * fw * k * 4
+    return 3.0 * 2 * (net + maps) + 3.0 * down + targets
+
+
 def cosine_stats(a: torch.Tensor, b: torch.Tensor) -> dict:
     cos = F.cosine_similarity(a.float(), b.float(), dim=0).flatten().cpu()
     q = torch.quantile(cos[torch.randperm(cos.numel())[:1_000_000]].double(), torch.tensor([0.001, 0.01, 0.05, 0.5]).double())
@@ -91,8 +114,16 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=None, help="fit steps (default 1200 CUDA, 150 CPU)")
     ap.add_argument("--views", type=int, default=None, help="jittered views (default 3000 CUDA, 60 CPU)")
     ap.add_argument("--no-reference", action="store_true", help="time the fast fit only")
+    ap.add_argument("--reference-steps", type=int, default=None,
+                    help="steps of the reference fit (default: --steps); when fewer, a fast fit of as many "
+                         "steps is run for the comparison")
+    ap.add_argument("--eager", action="store_true", help="also time the fast fit without its CUDA graph")
+    ap.add_argument("--compile", action="store_true",
+                    help="also time the fast fit with the network through torch.compile (compiled in the warm-up)")
     ap.add_argument("--no-fp32", action="store_true", help="skip the fast fit in float32")
-    ap.add_argument("--profile", action="store_true", help="print a profile of 20 fast steps (64 views)")
+    ap.add_argument("--profile", action="store_true",
+                    help="print a profile of 20 fast steps (64 views), run eagerly (no CUDA graph) so that the "
+                         "table names each op")
     args = ap.parse_args()
     dev = torch.device(args.device)
     cuda = dev.type == "cuda"
@@ -113,15 +144,26 @@ def main() -> None:
     # warm-up (cuDNN/cuBLAS plans, allocator) on a short fit of each path
     for method in ("fast",) + (() if args.no_reference else ("reference",)):
         ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=3, n_views=8, method=method))
+    if args.compile:
+        ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=5, n_views=8, compile_network=True))
     sync(dev)
 
     rows, maps = [], {}
     runs = [("fast bf16", dataclasses.replace(base, method="fast", precision="bf16"))]
     if not args.no_fp32:
         runs.append(("fast fp32", dataclasses.replace(base, method="fast", precision="fp32")))
+    if args.compile:
+        runs.append(("fast bf16 compiled", dataclasses.replace(base, method="fast", precision="bf16",
+                                                               compile_network=True)))
+    if args.eager and cuda:
+        runs.append(("fast bf16 eager", dataclasses.replace(base, method="fast", precision="bf16", cuda_graph=False)))
     runs.append(("fast bf16 seed 1", dataclasses.replace(base, method="fast", precision="bf16", seed=1)))
+    ref_steps = args.reference_steps or steps
+    ref_name = "reference" if ref_steps == steps else f"reference {ref_steps} steps"
     if not args.no_reference:
-        runs.append(("reference", dataclasses.replace(base, method="reference")))
+        if ref_steps != steps:
+            runs.append((f"fast bf16 {ref_steps} steps", dataclasses.replace(base, steps=ref_steps)))
+        runs.append((ref_name, dataclasses.replace(base, method="reference", steps=ref_steps)))
     bb = backbone_flops_per_view(clip, clip_in)
     with torch.no_grad():
         fh, fw = clip(clip_in[None]).shape[-2:]
@@ -142,28 +184,46 @@ def main() -> None:
 
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
         with profile(activities=acts) as prof:
-            ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=20, n_views=64))
+            ImplicitUpsampler.fit(clip_in, clip, dataclasses.replace(base, steps=20, n_views=64, cuda_graph=False))
             sync(dev)
         print(prof.key_averages().table(sort_by="cuda_time_total" if cuda else "cpu_time_total", row_limit=25))
+    # the fit without steps: backbone passes, PCA, set-up (subtracted to time the loop)
+    setup = {}
+    for precision in ("bf16", "fp32"):
+        _, setup[precision] = timed(lambda: ImplicitUpsampler.fit(
+            clip_in, clip, dataclasses.replace(base, steps=0, precision=precision)), dev)
+    print(f"  fit set-up without steps (backbone, PCA): bf16 {setup['bf16']:.2f} s, fp32 {setup['fp32']:.2f} s",
+          flush=True)
+    per_step_flops = (flops["total"] - flops["backbone"]) / steps
     for name, cfg in runs:
         up, t_fit = timed(lambda: ImplicitUpsampler.fit(clip_in, clip, cfg), dev)
         hr, t_eval = timed(lambda: up(img_hw), dev)
         maps[name] = hr
-        tflops = flops["total"] / t_fit / 1e12
-        rows.append({"fit": name, "fit s": t_fit, "eval s": t_eval, "s/image": t_fit + t_eval,
-                     "TFLOP/s": tflops, "% of 790 bf16": 100 * tflops / H100_BF16_TFLOPS,
+        run_flops = flops["backbone"] + per_step_flops * cfg.steps
+        tflops = run_flops / t_fit / 1e12
+        step_ms = 1e3 * max(t_fit - setup[cfg.precision], 0.0) / max(cfg.steps, 1)
+        rows.append({"fit": name, "steps": cfg.steps, "fit s": t_fit, "loop ms/step": step_ms, "eval s": t_eval,
+                     "s/image": t_fit + t_eval, "TFLOP/s": tflops, "% of 790 bf16": 100 * tflops / H100_BF16_TFLOPS,
                      "final loss": up.history[-1]})
-        print(f"  {name}: fit {t_fit:.2f} s + eval {t_eval:.2f} s, {tflops:.1f} TFLOP/s", flush=True)
+        print(f"  {name}: fit {t_fit:.2f} s ({step_ms:.2f} ms/step) + eval {t_eval:.2f} s, {tflops:.1f} TFLOP/s",
+              flush=True)
     print(f"\nFLOPs per fit: " + ", ".join(f"{k} {v / 1e12:.2f} TFLOP" for k, v in flops.items()))
     floor = flops["total"] / (H100_BF16_TFLOPS * 1e12)
     print(f"FLOP floor on an H100: {floor:.3f} s at {H100_BF16_TFLOPS:.0f} TFLOP/s bf16, "
           f"{flops['total'] / (H100_TF32_TFLOPS * 1e12):.3f} s at {H100_TF32_TFLOPS:.0f} TFLOP/s TF32")
+    step_bytes = loop_bytes(h, w, fh, fw, base)
+    floor_flops, floor_bytes = per_step_flops / (H100_BF16_TFLOPS * 1e12), step_bytes / (H100_HBM_TBPS * 1e12)
+    print(f"fit loop per step: {per_step_flops / 1e9:.1f} GFLOP, ~{step_bytes / 1e9:.2f} GB; floor "
+          f"{1e3 * max(floor_flops, floor_bytes):.3f} ms/step ({1e3 * floor_flops:.3f} ms of FLOPs at "
+          f"{H100_BF16_TFLOPS:.0f} TFLOP/s, {1e3 * floor_bytes:.3f} ms of bytes at {H100_HBM_TBPS} TB/s); "
+          f"{steps} steps: {steps * max(floor_flops, floor_bytes):.3f} s")
     print_table(rows, "implicit FeatUp fit, per image")
 
-    ref = "reference" if "reference" in maps else "fast fp32" if "fast fp32" in maps else None
     cmp_rows = []
     for name in maps:
-        if ref is not None and name != ref:
+        ref = ref_name if name.startswith("fast bf16 ") and name.endswith(" steps") else (
+            "reference" if "reference" in maps else "fast fp32" if "fast fp32" in maps else None)
+        if ref is not None and ref in maps and name != ref and not name.startswith("reference"):
             cmp_rows.append({"map": name, "vs": ref, **cosine_stats(maps[name], maps[ref])})
     if "fast bf16 seed 1" in maps:
         cmp_rows.append({"map": "fast bf16 seed 1", "vs": "fast bf16", **cosine_stats(maps["fast bf16 seed 1"],

@@ -140,6 +140,22 @@ class FourierFeaturizer(nn.Module):
             [torch.sin(feats + sin_b).reshape(b, n, h, w), torch.cos(feats + cos_b).reshape(b, n, h, w), image], dim=1
         )
 
+    def pixels(self, image: torch.Tensor) -> torch.Tensor:
+        """``forward`` with channels last: [B, 3, H, W] -> [B, H, W, out_dim], same channel order."""
+        b, _, h, w = image.shape
+        gy = torch.linspace(-1, 1, h, device=image.device, dtype=image.dtype)
+        gx = torch.linspace(-1, 1, w, device=image.device, dtype=image.dtype)
+        yy, xx = torch.meshgrid(gy, gx, indexing="ij")
+        colour = image.permute(0, 2, 3, 1)
+        feats = torch.cat([torch.stack([yy, xx], -1).expand(b, h, w, 2), colour], -1)  # [B, H, W, 5]
+        freqs = torch.exp(torch.linspace(-2, 10, self.n_freqs, device=image.device, dtype=image.dtype))
+        feats = feats.unsqueeze(-2) * freqs.view(self.n_freqs, 1)  # [B, H, W, F, 5]
+        n = self.n_freqs * self.dims
+        sin_b = self.biases[0].reshape(self.n_freqs, self.dims)
+        cos_b = self.biases[1].reshape(self.n_freqs, self.dims)
+        return torch.cat([torch.sin(feats + sin_b).reshape(b, h, w, n), torch.cos(feats + cos_b).reshape(b, h, w, n),
+                          colour], -1)
+
 
 class _ChannelNorm(nn.Module):
     def __init__(self, dim: int) -> None:
@@ -172,6 +188,24 @@ class ImplicitNet(nn.Module):
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         return self.net(self.fourier(_min_max(image)))
+
+    def forward_pixels(self, image: torch.Tensor) -> torch.Tensor:
+        """``forward`` computed channels last, as a per-pixel MLP (LayerNorm over the contiguous
+        last dimension, 1x1 convolutions as ``F.linear``, channel dropout as one mask per image
+        and channel): no permuted copies. Returns [B, out_dim, H, W] (a channels-last view)."""
+        x = self.fourier.pixels(_min_max(image))
+        for layer in self.net:
+            if isinstance(layer, _ChannelNorm):
+                x = layer.norm(x)
+            elif isinstance(layer, nn.Conv2d):
+                x = F.linear(x, layer.weight.flatten(1), layer.bias)
+            elif isinstance(layer, nn.Dropout2d):
+                if self.training and layer.p > 0:
+                    keep = x.new_empty(x.shape[0], 1, 1, x.shape[-1]).bernoulli_(1 - layer.p)
+                    x = x * keep.div_(1 - layer.p)
+            else:
+                x = layer(x)
+        return x.permute(0, 3, 1, 2)
 
 
 class AttentionDownsampler(nn.Module):
@@ -254,7 +288,10 @@ class ImplicitConfig:
     downsampler without its patch tensor, no per-step host sync) or ``"reference"`` (the
     original loop, kept to check the fast fit against). ``precision``: ``"bf16"`` runs the
     network and the backbone passes of the fast fit under bf16 autocast on CUDA (float32 on the
-    CPU either way); ``"fp32"`` keeps float32 everywhere.
+    CPU either way); ``"fp32"`` keeps float32 everywhere. ``cuda_graph``: the fast fit on CUDA
+    replays its step (forward, backward, NAdam) from one CUDA graph. ``compile_network``: the
+    fast fit runs the network through ``torch.compile`` (fuses the Fourier features, LayerNorm,
+    dropout and casts, the memory-bound part of the step; costs a compilation per process).
     """
 
     steps: int = 1200
@@ -277,6 +314,8 @@ class ImplicitConfig:
     seed: int = 0
     method: str = "fast"
     precision: str = "bf16"
+    cuda_graph: bool = True
+    compile_network: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in ("fast", "reference"):
@@ -395,10 +434,12 @@ class ImplicitUpsampler:
 
 
 def _fit_setup(net: nn.Module, down: nn.Module, outlier: nn.Module, cfg: "ImplicitConfig",
-               progress: bool) -> tuple[torch.optim.Optimizer, Iterable[int]]:
-    """What both fits start with: NAdam over the three modules' parameters, the step range (a
-    progress bar when asked), and the network and downsampler in training mode (dropout)."""
-    opt = torch.optim.NAdam([*net.parameters(), *down.parameters(), *outlier.parameters()], lr=cfg.lr)
+               progress: bool, capturable: bool = False) -> tuple[torch.optim.Optimizer, Iterable[int]]:
+    """What both fits start with: NAdam over the three modules' parameters (``capturable`` for a
+    step captured in a CUDA graph), the step range (a progress bar when asked), and the network
+    and downsampler in training mode (dropout)."""
+    opt = torch.optim.NAdam([*net.parameters(), *down.parameters(), *outlier.parameters()], lr=cfg.lr,
+                            capturable=capturable)
     steps: Iterable[int] = range(cfg.steps)
     if progress:
         from tiger.utils.progress import progress as progress_lines

@@ -3,22 +3,28 @@
 Same model, parameters, initial weights, jitters and view picks as the reference loop in
 :mod:`tiger.language.featup` (one CPU generator drives both), with the work rearranged:
 
-* **Jitters as one batched ``grid_sample``.** A FeatUp jitter (reflect-pad, bilinear zoom, crop,
-  flip) is a bilinear resampling at affine coordinates; with ``align_corners=True`` and
-  ``padding_mode="reflection"`` it reflects about the border pixel centres exactly as
-  ``F.pad(mode="reflect")`` does, so the jittered copies of the backbone input (3000 of them,
-  featurised once before the loop in batches) and of the network output (10 per step) come from
-  one call each instead of a Python loop of pad/interpolate/crop/flip.
-* **The attention downsampler without the patch tensor.** The reference unfolds the jittered,
-  blurred 129-channel maps into [B, 129 x 29 x 29, cells] patches. Its attention logit is a
-  linear map of each pixel, so it is computed on one channel before any unfolding (the linear
-  map commutes with blur and jitter, both linear and constant-preserving); the attention-weighted
-  window sums run per group of non-overlapping windows as ``fold`` (the weights painted into a
-  full-size map) times the features, summed by ``avg_pool2d(divisor_override=1)``.
+* **Jitters as affine coordinates.** A FeatUp jitter (reflect-pad, bilinear zoom, crop, flip) is a
+  separable bilinear resampling at affine coordinates (:func:`jitter_coords`); with
+  ``align_corners=True`` and ``padding_mode="reflection"`` it reflects about the border pixel
+  centres exactly as ``F.pad(mode="reflect")`` does, so the jittered copies of the backbone input
+  (3000 of them, featurised once before the loop in batches) come from one ``grid_sample`` per batch.
+* **The jittered downsampler as one op.** The reference unfolds each jittered, blurred 129-channel
+  copy into [B, 129 x 29 x 29, cells] patches. Its attention logit is a linear map of each pixel,
+  so it is computed on one channel before any jitter (the linear map commutes with blur and
+  jitter, both linear and constant-preserving); the fit's copies are never materialised:
+  ``tiger::jittered_window_attention`` (csrc/featup) reads each window's pixels through the
+  bilinear jitter taps, takes the window softmax and the weighted sum, and its backward gathers
+  the features' gradient per source pixel. The PyTorch composition it replaces,
+  :func:`apply_jitters` then :func:`window_attention`, is kept as the reference it is tested
+  against (tests/language/test_featup_fused.py).
 * **Blur once, before the jitters** (the reference blurs each jittered copy): the blurred output
   is also the blur-pin regulariser's, so one blur serves both.
-* **No host sync per step** (losses stay on the device until the end), bf16 autocast for the
-  network and the backbone passes on CUDA (``ImplicitConfig.precision``).
+* **No host sync per step, one CUDA graph** (``ImplicitConfig.cuda_graph``): every step's view
+  picks are drawn up front from the CPU generator in the reference's order, losses stay on the
+  device, and on CUDA the step (forward, backward, NAdam with ``capturable=True``) is captured
+  once and replayed (the dropout masks come from the device generator, which graphs advance per
+  replay). bf16 autocast for the network and the backbone passes on CUDA
+  (``ImplicitConfig.precision``).
 
 Where the rearrangement is not exact (blur before zoom, the attention input's dropout mask shared
 by overlapping windows and by the step's jitters, rounding), the fitted map is compared with the
@@ -28,6 +34,7 @@ benchmarks/featup_implicit.py).
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 from typing import TYPE_CHECKING
 
@@ -36,6 +43,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from tiger.utils.filters import gaussian_blur
+
+logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # imported at run time by featup.py, which imports this module lazily
     from .featup import AttentionDownsampler, Featurizer, ImplicitConfig, Jitter
@@ -54,22 +63,41 @@ def jitter_params(jitters: "list[Jitter]", h: int, w: int, device: torch.device)
     return torch.tensor(rows, dtype=torch.float64).to(device, torch.float32)
 
 
-def jitter_grid(params: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Sampling grids [N, h, w, 2] (normalised, ``align_corners=True``) of jitters ``params`` [N, 7]
-    applied to an h x w image: output pixel (y, x) reads the source at the coordinates
-    ``Jitter.apply`` reads (flip, crop offset, zoom as ``F.interpolate(scale_factor=zoom)``
-    computes its source index, minus the pad; the reflection is ``grid_sample``'s)."""
+def jitter_coords(params: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Source coordinates (pixels, before reflection) read by jitters ``params`` [N, 7] applied to
+    an h x w image: rows [N, h] and columns [N, w] (a jitter is separable). Output pixel (y, x)
+    reads where ``Jitter.apply`` reads: flip, crop offset, zoom as ``F.interpolate(scale_factor=zoom)``
+    computes its source index, minus the pad. Computed in the dtype of ``params``."""
     pad, zoom, oy, ox, flip, zoom_y, zoom_x = (params[:, i].view(-1, 1) for i in range(7))
-    dev = params.device
-    ys = torch.arange(h, device=dev, dtype=torch.float32).view(1, -1)
-    xs = torch.arange(w, device=dev, dtype=torch.float32).view(1, -1)
+    dev, dt = params.device, params.dtype
+    ys = torch.arange(h, device=dev, dtype=dt).view(1, -1)
+    xs = torch.arange(w, device=dev, dtype=dt).view(1, -1)
     xs = torch.where(flip > 0.5, (w - 1) - xs, xs)
 
     def source(coord: torch.Tensor, zoomed: torch.Tensor) -> torch.Tensor:  # zoomed-padded -> image coordinate
         src = torch.where(zoomed > 0.5, ((coord + 0.5) / zoom - 0.5).clamp_min(0.0), coord)
         return src - pad
 
-    sy, sx = source(ys + oy, zoom_y), source(xs + ox, zoom_x)  # [N, h], [N, w]
+    return source(ys + oy, zoom_y), source(xs + ox, zoom_x)
+
+
+def reflect_coords(coord: torch.Tensor, size: int) -> torch.Tensor:
+    """``grid_sample``'s reflection (``padding_mode="reflection"``, ``align_corners=True``) of
+    pixel coordinates about 0 and size - 1, clipped to [0, size - 1]."""
+    if size <= 1:
+        return torch.zeros_like(coord)
+    span = float(size - 1)
+    a = coord.abs()
+    extra = torch.fmod(a, span)
+    flips = torch.floor(a / span)
+    out = torch.where(torch.remainder(flips, 2) == 0, extra, span - extra)
+    return out.clamp(0.0, span)
+
+
+def jitter_grid(params: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Sampling grids [N, h, w, 2] (normalised, ``align_corners=True``) of jitters ``params`` [N, 7]
+    applied to an h x w image, from :func:`jitter_coords` (the reflection is ``grid_sample``'s)."""
+    sy, sx = jitter_coords(params, h, w)  # [N, h], [N, w]
     gy = (2.0 * sy / max(h - 1, 1) - 1.0).view(-1, h, 1).expand(-1, h, w)
     gx = (2.0 * sx / max(w - 1, 1) - 1.0).view(-1, 1, w).expand(-1, h, w)
     return torch.stack([gx, gy], dim=-1)
@@ -91,16 +119,22 @@ def window_geometry(h: int, w: int, size: tuple[int, int], kernel: int) -> tuple
 
 
 def window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, x: torch.Tensor,
-                     size: tuple[int, int]) -> torch.Tensor:
+                     size: tuple[int, int], mask: torch.Tensor | None = None) -> torch.Tensor:
     """The attention downsampler's output [B, C, fh, fw] from its per-pixel logits ``logit_map``
     [B, 1, H, W] (the attention Linear applied to the blurred features) and the blurred features
     ``x`` [B, C, H, W]; the same windows, strides, logit mask and softmax as
-    ``AttentionDownsampler.forward``, without its [B, fh, fw, k*k, C] patch tensor."""
+    ``AttentionDownsampler.forward``, without its [B, fh, fw, k*k, C] patch tensor. ``mask``
+    [B, fh, fw] replaces the logit mask drawn in training mode.
+
+    Composed of PyTorch ops; with :func:`apply_jitters` it is the reference that the fused
+    :func:`fused_window_attention` is tested against."""
     b, c, h, w = x.shape
     fh, fw = size
     k, sh, sw, nh, nw = window_geometry(h, w, size, down.kernel)
     logits = F.unfold(logit_map, k, stride=(sh, sw)).view(b, k * k, nh, nw)[:, :, :fh, :fw]
-    if down.training and down.dropout > 0:
+    if mask is not None:
+        logits = logits * mask.view(b, 1, fh, fw)
+    elif down.training and down.dropout > 0:
         logits = logits * (torch.rand(b, 1, fh, fw, device=x.device) > down.dropout)
     wk = down.w[:k, :k].reshape(1, -1, 1, 1)
     bk = down.b[:k, :k].reshape(1, -1, 1, 1)
@@ -122,9 +156,32 @@ def window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, x: t
 
 
 def _autocast(device: torch.device, precision: str):
+    # no weight-cast cache: every weight is cast once per step anyway, and a cache kept across
+    # a CUDA-graph capture would hold casts of the capture's (not the replays') weights
     if precision == "bf16" and device.type == "cuda":
-        return torch.autocast("cuda", dtype=torch.bfloat16)
+        return torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False)
     return contextlib.nullcontext()
+
+
+def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, x: torch.Tensor,
+                           coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int, int],
+                           mask: torch.Tensor) -> torch.Tensor:
+    """``window_attention(down, *apply_jitters(cat([logit_map, x]), grid).split([1, C], 1), size, mask)``
+    in one op (``tiger::jittered_window_attention``), without the jittered copies.
+
+    ``logit_map`` [1, 1, H, W], ``x`` [1, C, H, W] (float32/float64); ``coord_y`` [J, H] and
+    ``coord_x`` [J, W] the jitters' reflected source coordinates (:func:`jitter_coords`,
+    :func:`reflect_coords`); ``mask`` [J, fh, fw] the logit mask. Returns [J, C, fh, fw].
+    """
+    from tiger.ops.featup import jittered_window_attention
+
+    h, w = x.shape[-2:]
+    k, sh, sw, _, _ = window_geometry(h, w, size, down.kernel)
+    dt = x.dtype
+    out, _ = jittered_window_attention(x[0].permute(1, 2, 0).contiguous(), logit_map[0, 0].to(dt), coord_y.to(dt),
+                                       coord_x.to(dt), down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt),
+                                       (sh, sw))
+    return out.permute(0, 3, 1, 2)
 
 
 def featurize_jitters(img: torch.Tensor, featurizer: "Featurizer", params: torch.Tensor, batch: int,
@@ -145,42 +202,104 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     """Run the fit's ``cfg.steps`` NAdam steps in place on (net, down, outlier); returns the losses.
 
     ``img`` [1, 3, h, w]; ``targets`` [N, k, fh, fw] PCA coefficients of the jittered views whose
-    jitters are ``params`` [N, 5]; ``gen`` draws each step's view picks (as the reference does).
+    jitters are ``params`` [N, 7]; ``gen`` draws each step's view picks (as the reference does:
+    all steps' picks are drawn up front, in the reference's order). On CUDA with
+    ``cfg.cuda_graph`` the step (forward, backward, NAdam) is captured once in a CUDA graph and
+    replayed; if the capture fails the loop goes on eagerly.
     """
-    from .featup import _fit_setup, _tv
+    from .featup import _fit_setup
 
     dev = img.device
     h, w = img.shape[-2:]
     fh, fw = targets.shape[-2:]
-    opt, steps = _fit_setup(net, down, outlier, cfg, progress)
-    lin = down.attention[1]
+    graph = dev.type == "cuda" and cfg.cuda_graph
+    opt, steps = _fit_setup(net, down, outlier, cfg, progress, capturable=graph)
+    steps = iter(steps)
+    picks = torch.stack([torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen)
+                         for _ in range(cfg.steps)]).to(dev) if cfg.steps else None
+    sy, sx = jitter_coords(params.double(), h, w)
+    coord_y, coord_x = reflect_coords(sy, h).float(), reflect_coords(sx, w).float()
     losses = torch.empty(cfg.steps, device=dev)
-    window_dtype = torch.bfloat16 if cfg.precision == "bf16" and dev.type == "cuda" else torch.float32
-    for step in steps:
-        idx = torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen).to(dev, non_blocking=True)
-        with _autocast(dev, cfg.precision):
-            hr = net(img)
-        hr = hr.float()
-        hr_mag = hr.norm(dim=1, keepdim=True)
-        blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
-        logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
-        logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
-        sampled = apply_jitters(torch.cat([logit_map, blurred], dim=1), jitter_grid(params[idx], h, w))
-        # the window sums are memory-bound: in bf16 on CUDA (the jitter's coordinates stay float32)
-        out = window_attention(down, sampled[:, :1], sampled[:, 1:].to(window_dtype), (fh, fw)).float()
-        magnitude, pred = out[:, :1], out[:, 1:]
-        target = targets[idx]
-        scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
-        loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
-        if cfg.mag_weight > 0:
-            loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
-        if cfg.mag_tv_weight > 0:
-            loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
-        if cfg.blur_pin > 0:
-            loss = loss + cfg.blur_pin * (blurred[:, 1:] - hr).square().mean()
-        opt.zero_grad(set_to_none=True)
+    idx = torch.zeros(cfg.jitters_per_step, dtype=torch.long, device=dev)
+    network = torch.compile(net.forward_pixels, dynamic=False) if cfg.compile_network else net.forward_pixels
+
+    def step() -> torch.Tensor:
+        loss = _step_loss(img, targets, idx, coord_y, coord_x, network, down, outlier, cfg)
         loss.backward()
         opt.step()
-        losses[step] = loss.detach()
+        return loss.detach()
+
+    def eager(i: int) -> None:
+        idx.copy_(picks[i])
+        opt.zero_grad(set_to_none=True)
+        losses[i] = step()
+
+    done = 0
+    if graph:
+        warm = min(3, cfg.steps)  # real steps, run on a side stream as graph capture requires
+        side = torch.cuda.Stream(dev)
+        side.wait_stream(torch.cuda.current_stream(dev))
+        with torch.cuda.stream(side):
+            for i in range(warm):
+                next(steps)
+                eager(i)
+        torch.cuda.current_stream(dev).wait_stream(side)
+        done = warm
+        if done < cfg.steps:
+            try:
+                cuda_graph = torch.cuda.CUDAGraph()
+                opt.zero_grad(set_to_none=True)
+                with torch.cuda.graph(cuda_graph):
+                    static_loss = step()
+            except RuntimeError as exc:  # capture is best effort: the eager loop is the same step
+                logger.warning("FeatUp fit: CUDA graph capture failed (%s); running the steps eagerly", exc)
+            else:
+                for i in range(done, cfg.steps):
+                    next(steps)
+                    idx.copy_(picks[i])
+                    cuda_graph.replay()
+                    losses[i] = static_loss
+                done = cfg.steps
+    for i in range(done, cfg.steps):
+        next(steps)
+        eager(i)
+    for _ in steps:  # closes the progress display
+        pass
     net.eval()
     return losses.tolist()
+
+
+def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coord_y: torch.Tensor,
+               coord_x: torch.Tensor, network, down: "AttentionDownsampler", outlier: nn.Conv2d,
+               cfg: "ImplicitConfig") -> torch.Tensor:
+    """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor);
+    ``network`` is the implicit network's ``forward_pixels`` (or its compiled form)."""
+    from .featup import _tv
+
+    dev = img.device
+    fh, fw = targets.shape[-2:]
+    with _autocast(dev, cfg.precision):
+        hr = network(img)
+    hr = hr.float().contiguous()
+    hr_mag = hr.norm(dim=1, keepdim=True)
+    blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
+    logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
+    lin = down.attention[1]
+    logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
+    n = idx.shape[0]
+    if down.dropout > 0:
+        mask = (torch.rand(n, fh, fw, device=dev) > down.dropout).float()
+    else:
+        mask = torch.ones(n, fh, fw, device=dev)
+    out = fused_window_attention(down, logit_map, blurred, coord_y[idx], coord_x[idx], (fh, fw), mask)
+    magnitude, pred = out[:, :1], out[:, 1:]
+    target = targets[idx]
+    scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
+    loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
+    if cfg.mag_weight > 0:
+        loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
+    if cfg.mag_tv_weight > 0:
+        loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
+    if cfg.blur_pin > 0:
+        loss = loss + cfg.blur_pin * (blurred[:, 1:] - hr).square().mean()
+    return loss

@@ -19,6 +19,13 @@ def gaussian_taps(size: int, sigma: float) -> torch.Tensor:
 
 
 @lru_cache(maxsize=16)
+def _taps_on(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """:func:`gaussian_taps` on a device, made once: no host-to-device copy per blur (which a
+    CUDA-graph capture would refuse)."""
+    return gaussian_taps(size, sigma).to(dtype=dtype, device=device)
+
+
+@lru_cache(maxsize=16)
 def _band(n: int, size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """[n, n] matrix M with (M @ x) = the 1-D Gaussian filter of x with zero padding."""
     g = gaussian_taps(size, sigma)
@@ -68,7 +75,7 @@ def _blur(x: torch.Tensor, window_size: int, sigma: float, method: str, padding:
         bh = _band(H, window_size, sigma, x.dtype, x.device)
         bw = _band(W, window_size, sigma, x.dtype, x.device)
         return bh @ (x @ bw)   # both bands are symmetric
-    g = gaussian_taps(window_size, sigma).to(x)
+    g = _taps_on(window_size, sigma, x.dtype, x.device)
     pad = window_size // 2
     if method == "depthwise":  # zero padding inside conv2d (no padded copy); reflect padded first
         zeros = padding == "zeros"

@@ -1,0 +1,65 @@
+#pragma once
+// tiger::jittered_window_attention — FeatUp's attention downsampler applied to jittered copies
+// of one feature map, without materialising the copies.
+//
+//   features  [H, W, C]     the blurred high-resolution map (channels last)
+//   logit_map [H, W]        the attention logit of every source pixel (the Linear on the features)
+//   coord_y   [J, Ho]       source row (pixel units) read by row y of jitter j's copy
+//   coord_x   [J, Wo]       source column read by column x of jitter j's copy
+//   w, b      [K, K]        the downsampler's logit scale and bias
+//   mask      [J, FH, FW]   per-(jitter, cell) logit multiplier (FeatUp's logit dropout; 1 = kept)
+//   stride_h, stride_w      window strides; cell (i, l) covers rows i*stride_h + [0, K) and
+//                           columns l*stride_w + [0, K) of the jittered copy
+//
+// The jittered copy is bilinear and separable: X_j[y, x] = sum over the two rows and two columns
+// around (coord_y[j, y], coord_x[j, x]) (clamped to [0, H-1] x [0, W-1]; FeatUp's reflection is
+// applied by the caller to the coordinates) of their bilinear weights times the source
+// (grid_sample with align_corners=True: a tap past the last row/column has weight 0 and is skipped).
+//   z[j, i, l, p]   = X_j(logit_map)[window pixel p] * mask[j, i, l] * w[p] + b[p]
+//   attn[j, i, l,:] = softmax_p z[j, i, l, :]
+//   out[j, i, l, c] = sum_p attn[j, i, l, p] * X_j(features)[window pixel p, c]
+// Outputs: out [J, FH, FW, C] and attn [J, FH, FW, K*K] (saved for the backward).
+//
+// Backward (jittered_window_attention_backward), g = grad_out [J, FH, FW, C]:
+//   ga[p]  = sum_c g[c] X_j(features)[p, c];  gz[p] = attn[p] (ga[p] - sum_q attn[q] ga[q])
+//   grad_b[p] = sum_cells gz[p];  grad_w[p] = sum_cells gz[p] * mask * X_j(logit_map)[p]
+//   grad_logit_map = bilinear transpose of gz[p] * mask * w[p];
+//   grad_features  = bilinear transpose of g[c] * attn[p].
+//
+// CUDA path: every cell's window reads a source tile of at most (K + 3)^2 pixels, which holds when
+// consecutive rows/columns of a copy read source coordinates at most one pixel apart (FeatUp's
+// zoom >= 1); a cell whose footprint is larger gets NaN outputs. The CPU path has no such limit.
+#include <cstdint>
+
+namespace tiger {
+namespace featup {
+
+constexpr int kMaxKernel = 32;  // K <= 32 on CUDA (FeatUp's downsampler uses 29)
+
+struct WindowDims {
+  int64_t H, W, C, J, Ho, Wo, FH, FW, K, SH, SW;
+};
+
+template <typename scalar_t>
+void launch_window_forward(const scalar_t* features, const scalar_t* logit_map, const scalar_t* coord_y,
+                           const scalar_t* coord_x, const scalar_t* w, const scalar_t* b, const scalar_t* mask,
+                           WindowDims d, scalar_t* out, scalar_t* attn, void* stream);
+
+// Per-cell part of the backward: gz and gz * mask * logit per cell and window pixel ([J*FH*FW, K*K]
+// each, summed over cells by the caller), grad_logit_map (accumulated: zeroed by the caller), and
+// the cells' source tiles (attention pushed through the bilinear weights, [J*FH*FW, T*T] with
+// T = K + 3) and tile origins ([J*FH*FW, 2] row, column) for launch_window_grad_features.
+template <typename scalar_t>
+void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
+                                  const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
+                                  const scalar_t* mask, const scalar_t* attn, WindowDims d, scalar_t* gz,
+                                  scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* tiles,
+                                  int32_t* origins, void* stream);
+
+// grad_features [H, W, C] gathered from the cells' tiles (no atomics).
+template <typename scalar_t>
+void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const int32_t* origins,
+                                 WindowDims d, scalar_t* grad_features, void* stream);
+
+}  // namespace featup
+}  // namespace tiger

@@ -1,0 +1,341 @@
+// CUDA kernels of tiger::jittered_window_attention (raw pointers, no torch headers).
+//
+// One block per cell (jitter j, window row i, window column l) computes the window's bilinear
+// taps, its softmax, and the cell's source tile: the attention pushed through the bilinear
+// weights onto the (at most (K+3)^2) source pixels that the window reads. The output is then a
+// dot product of the tile with the features (channels last, so the threads of a block read
+// neighbouring channels). The features' gradient is gathered per source pixel from the tiles of
+// the cells that cover it (no atomics); the logit map's gradient uses atomics (K*K*4 per cell).
+#include <cuda_runtime.h>
+#include <math.h>
+
+#include "common/cuda_helpers.cuh"
+#include "featup/featup.h"
+#include "featup/featup_math.h"
+
+namespace tiger {
+namespace featup {
+namespace {
+
+constexpr int kMaxTile = kMaxKernel + 3;  // a window of K rows reads at most K + 2 source rows
+constexpr int kMaxThreads = 256;
+constexpr int kPixelsPerBlock = 16;       // grad_features: source pixels of one row per block
+
+template <typename T>
+struct CellShared {
+  Tap<T> ty[kMaxKernel], tx[kMaxKernel];
+  T attn[kMaxKernel * kMaxKernel];
+  T buf[kMaxKernel * kMaxKernel];
+  T tile[kMaxTile * kMaxTile];
+  T red[kMaxThreads / 32];
+  int r0, c0, tr, tc;
+  bool overflow;
+};
+
+template <typename T>
+__device__ __forceinline__ T warp_sum(T v) {
+  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(cuda::kFullMask, v, o);
+  return v;
+}
+
+template <typename T>
+__device__ __forceinline__ T warp_max(T v) {
+  for (int o = 16; o > 0; o >>= 1) {
+    const T other = __shfl_xor_sync(cuda::kFullMask, v, o);
+    v = other > v ? other : v;
+  }
+  return v;
+}
+
+// Block-wide sum or max (blockDim.x a multiple of 32); every thread gets the result.
+template <typename T, bool kMax>
+__device__ T block_reduce(T v, T* red) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
+  v = kMax ? warp_max(v) : warp_sum(v);
+  if (lane == 0) red[warp] = v;
+  __syncthreads();
+  if (warp == 0) {
+    T r = lane < warps ? red[lane] : (kMax ? T(-INFINITY) : T(0));
+    r = kMax ? warp_max(r) : warp_sum(r);
+    if (lane == 0) red[0] = r;
+  }
+  __syncthreads();
+  const T out = red[0];
+  __syncthreads();
+  return out;
+}
+
+// The window's taps and its source tile's origin and extent (all threads; ends synchronised).
+template <typename T>
+__device__ void load_cell(const T* cy, const T* cx, const WindowDims& d, int64_t cell, CellShared<T>& s) {
+  const int64_t j = cell / (d.FH * d.FW), i = (cell / d.FW) % d.FH, l = cell % d.FW;
+  for (int t = threadIdx.x; t < d.K; t += blockDim.x) {
+    s.ty[t] = axis_tap(cy[j * d.Ho + i * d.SH + t], d.H);
+    s.tx[t] = axis_tap(cx[j * d.Wo + l * d.SW + t], d.W);
+  }
+  __syncthreads();
+  if (threadIdx.x == 0) {
+    int rlo = s.ty[0].index, rhi = rlo, clo = s.tx[0].index, chi = clo;
+    for (int t = 0; t < d.K; ++t) {
+      rlo = min(rlo, s.ty[t].index);
+      rhi = max(rhi, s.ty[t].index + (s.ty[t].second ? 1 : 0));
+      clo = min(clo, s.tx[t].index);
+      chi = max(chi, s.tx[t].index + (s.tx[t].second ? 1 : 0));
+    }
+    const int side = static_cast<int>(d.K) + 3;
+    s.r0 = rlo;
+    s.c0 = clo;
+    s.tr = rhi - rlo + 1;
+    s.tc = chi - clo + 1;
+    s.overflow = s.tr > side || s.tc > side;
+  }
+  __syncthreads();
+}
+
+// s.attn = softmax of the window's masked, scaled logits (ends synchronised).
+template <typename T>
+__device__ void cell_softmax(const T* logit_map, const T* w, const T* b, T m, const WindowDims& d, CellShared<T>& s) {
+  const int KK = static_cast<int>(d.K * d.K), K = static_cast<int>(d.K);
+  T zmax = T(-INFINITY);
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) {
+    const T z = bilinear(logit_map, d.W, s.ty[p / K], s.tx[p % K]) * m * w[p] + b[p];
+    s.attn[p] = z;
+    zmax = z > zmax ? z : zmax;
+  }
+  zmax = block_reduce<T, true>(zmax, s.red);
+  T sum = 0;
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) {
+    const T e = exp(s.attn[p] - zmax);
+    s.attn[p] = e;
+    sum += e;
+  }
+  sum = block_reduce<T, false>(sum, s.red);
+  const T inv = T(1) / sum;
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) s.attn[p] *= inv;
+  __syncthreads();
+}
+
+// Calls f(tile index, bilinear weight) for the taps of window pixel (py, px).
+template <typename T, typename F>
+__device__ __forceinline__ void for_tile_taps(const CellShared<T>& s, int py, int px, int side, F&& f) {
+  const Tap<T>& ty = s.ty[py];
+  const Tap<T>& tx = s.tx[px];
+  const int base = (ty.index - s.r0) * side + (tx.index - s.c0);
+  const T wy0 = T(1) - ty.frac, wx0 = T(1) - tx.frac;
+  f(base, wy0 * wx0);
+  if (tx.second) f(base + 1, wy0 * tx.frac);
+  if (ty.second) {
+    f(base + side, ty.frac * wx0);
+    if (tx.second) f(base + side + 1, ty.frac * tx.frac);
+  }
+}
+
+// s.tile = the attention pushed through the bilinear weights (ends synchronised).
+template <typename T>
+__device__ void build_tile(const WindowDims& d, CellShared<T>& s) {
+  const int K = static_cast<int>(d.K), side = K + 3;
+  for (int t = threadIdx.x; t < side * side; t += blockDim.x) s.tile[t] = T(0);
+  __syncthreads();
+  if (!s.overflow)
+    for (int p = threadIdx.x; p < K * K; p += blockDim.x) {
+      const T a = s.attn[p];
+      for_tile_taps(s, p / K, p % K, side, [&](int t, T wt) { atomicAdd(&s.tile[t], a * wt); });
+    }
+  __syncthreads();
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kMaxThreads) forward_kernel(const T* __restrict__ F, const T* __restrict__ logit_map,
+                                                              const T* __restrict__ cy, const T* __restrict__ cx,
+                                                              const T* __restrict__ w, const T* __restrict__ b,
+                                                              const T* __restrict__ mask, WindowDims d,
+                                                              T* __restrict__ out, T* __restrict__ attn) {
+  __shared__ CellShared<T> s;
+  const int64_t cell = blockIdx.x;
+  const int KK = static_cast<int>(d.K * d.K), side = static_cast<int>(d.K) + 3;
+  load_cell(cy, cx, d, cell, s);
+  cell_softmax(logit_map, w, b, mask[cell], d, s);
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) attn[cell * KK + p] = s.attn[p];
+  build_tile(d, s);
+  for (int64_t c = threadIdx.x; c < d.C; c += blockDim.x) {
+    T acc = 0;
+    if (s.overflow) {
+      acc = T(NAN);
+    } else {
+      for (int r = 0; r < s.tr; ++r) {
+        const T* row = F + ((s.r0 + r) * d.W + s.c0) * d.C + c;
+        const T* trow = s.tile + r * side;
+        for (int q = 0; q < s.tc; ++q) acc += trow[q] * row[q * d.C];
+      }
+    }
+    out[cell * d.C + c] = acc;
+  }
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
+    const T* __restrict__ g, const T* __restrict__ F, const T* __restrict__ logit_map, const T* __restrict__ cy,
+    const T* __restrict__ cx, const T* __restrict__ w, const T* __restrict__ mask, const T* __restrict__ attn,
+    WindowDims d, T* __restrict__ gz_out, T* __restrict__ gzl_out, T* __restrict__ grad_logit,
+    T* __restrict__ tiles, int32_t* __restrict__ origins) {
+  __shared__ CellShared<T> s;
+  const int64_t cell = blockIdx.x;
+  const int K = static_cast<int>(d.K), KK = K * K, side = K + 3;
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
+  load_cell(cy, cx, d, cell, s);
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) s.attn[p] = attn[cell * KK + p];
+  // s.tile = D: the output gradient dotted with the features at every tile pixel (a warp per pixel)
+  const T* gc = g + cell * d.C;
+  if (!s.overflow)
+    for (int t = warp; t < s.tr * s.tc; t += warps) {
+      const int r = t / s.tc, q = t % s.tc;
+      const T* f = F + ((s.r0 + r) * d.W + s.c0 + q) * d.C;
+      T acc = 0;
+      for (int64_t c = lane; c < d.C; c += 32) acc += gc[c] * f[c];
+      acc = warp_sum(acc);
+      if (lane == 0) s.tile[r * side + q] = acc;
+    }
+  __syncthreads();
+  // ga[p] = sum over taps of weight * D; the softmax backward
+  T dot = 0;
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) {
+    T ga = 0;
+    if (s.overflow)
+      ga = T(NAN);
+    else
+      for_tile_taps(s, p / K, p % K, side, [&](int t, T wt) { ga += wt * s.tile[t]; });
+    s.buf[p] = ga;
+    dot += s.attn[p] * ga;
+  }
+  dot = block_reduce<T, false>(dot, s.red);
+  const T m = mask[cell];
+  for (int p = threadIdx.x; p < KK; p += blockDim.x) {
+    const int py = p / K, px = p % K;
+    const T gz = s.attn[p] * (s.buf[p] - dot);
+    gz_out[cell * KK + p] = gz;
+    gzl_out[cell * KK + p] = gz * m * bilinear(logit_map, d.W, s.ty[py], s.tx[px]);
+    const T coef = gz * m * w[p];
+    const Tap<T>& ty = s.ty[py];
+    const Tap<T>& tx = s.tx[px];
+    T* base = grad_logit + static_cast<int64_t>(ty.index) * d.W + tx.index;
+    const T wy0 = T(1) - ty.frac, wx0 = T(1) - tx.frac;
+    atomicAdd(base, coef * wy0 * wx0);
+    if (tx.second) atomicAdd(base + 1, coef * wy0 * tx.frac);
+    if (ty.second) {
+      atomicAdd(base + d.W, coef * ty.frac * wx0);
+      if (tx.second) atomicAdd(base + d.W + 1, coef * ty.frac * tx.frac);
+    }
+  }
+  __syncthreads();
+  // the cell's source tile, for the features' gradient
+  build_tile(d, s);
+  for (int t = threadIdx.x; t < side * side; t += blockDim.x) tiles[cell * side * side + t] = s.tile[t];
+  if (threadIdx.x == 0) {
+    origins[cell * 2] = s.r0;
+    origins[cell * 2 + 1] = s.c0;
+  }
+}
+
+// grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c].
+// A block: one source row u, kPixelsPerBlock columns, threads over channels; the covering cells
+// of each jitter are listed in shared memory first (rows and columns tested from the origins).
+template <typename T>
+__global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __restrict__ g,
+                                                                    const T* __restrict__ tiles,
+                                                                    const int32_t* __restrict__ origins,
+                                                                    WindowDims d, T* __restrict__ gF) {
+  __shared__ int list[kMaxThreads];
+  __shared__ int count;
+  const int u = blockIdx.y, v0 = blockIdx.x * kPixelsPerBlock;
+  const int side = static_cast<int>(d.K) + 3, area = side * side;
+  const int64_t cells_per_jitter = d.FH * d.FW;
+  for (int64_t cbase = 0; cbase < d.C; cbase += blockDim.x) {
+    const int64_t c = cbase + threadIdx.x;
+    T acc[kPixelsPerBlock];
+#pragma unroll
+    for (int q = 0; q < kPixelsPerBlock; ++q) acc[q] = T(0);
+    for (int64_t j = 0; j < d.J; ++j)
+      for (int64_t chunk = 0; chunk < cells_per_jitter; chunk += blockDim.x) {
+        if (threadIdx.x == 0) count = 0;
+        __syncthreads();
+        const int64_t local = chunk + threadIdx.x;
+        if (local < cells_per_jitter) {
+          const int64_t cell = j * cells_per_jitter + local;
+          const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
+          if (u >= r0 && u < r0 + side && c0 < v0 + kPixelsPerBlock && c0 + side > v0)
+            list[atomicAdd(&count, 1)] = static_cast<int>(cell);
+        }
+        __syncthreads();
+        const int n = count;
+        if (c < d.C)
+          for (int e = 0; e < n; ++e) {
+            const int64_t cell = list[e];
+            const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
+            const T gval = g[cell * d.C + c];
+            const T* trow = tiles + cell * area + (u - r0) * side;
+#pragma unroll
+            for (int q = 0; q < kPixelsPerBlock; ++q) {
+              const int dv = v0 + q - c0;
+              if (dv >= 0 && dv < side) acc[q] += trow[dv] * gval;
+            }
+          }
+        __syncthreads();
+      }
+    if (c < d.C)
+#pragma unroll
+      for (int q = 0; q < kPixelsPerBlock; ++q)
+        if (v0 + q < d.W) gF[(static_cast<int64_t>(u) * d.W + v0 + q) * d.C + c] = acc[q];
+  }
+}
+
+// Threads per block: the channels rounded up to warps, 64 to 256.
+inline int threads_for(int64_t C) {
+  const int64_t t = (C + 31) / 32 * 32;
+  return static_cast<int>(t < 64 ? 64 : (t > kMaxThreads ? kMaxThreads : t));
+}
+
+}  // namespace
+
+template <typename scalar_t>
+void launch_window_forward(const scalar_t* features, const scalar_t* logit_map, const scalar_t* coord_y,
+                           const scalar_t* coord_x, const scalar_t* w, const scalar_t* b, const scalar_t* mask,
+                           WindowDims d, scalar_t* out, scalar_t* attn, void* stream) {
+  const int64_t cells = d.J * d.FH * d.FW;
+  if (cells == 0) return;
+  forward_kernel<scalar_t><<<static_cast<unsigned>(cells), threads_for(d.C), 0, static_cast<cudaStream_t>(stream)>>>(
+      features, logit_map, coord_y, coord_x, w, b, mask, d, out, attn);
+}
+
+template <typename scalar_t>
+void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
+                                  const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
+                                  const scalar_t* mask, const scalar_t* attn, WindowDims d, scalar_t* gz,
+                                  scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* tiles,
+                                  int32_t* origins, void* stream) {
+  const int64_t cells = d.J * d.FH * d.FW;
+  if (cells == 0) return;
+  backward_cells_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, static_cast<cudaStream_t>(stream)>>>(
+      grad_out, features, logit_map, coord_y, coord_x, w, mask, attn, d, gz, gz_logit, grad_logit_map, tiles, origins);
+}
+
+template <typename scalar_t>
+void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const int32_t* origins,
+                                 WindowDims d, scalar_t* grad_features, void* stream) {
+  if (d.H * d.W * d.C == 0) return;
+  const dim3 grid(static_cast<unsigned>((d.W + kPixelsPerBlock - 1) / kPixelsPerBlock), static_cast<unsigned>(d.H));
+  grad_features_kernel<scalar_t><<<grid, threads_for(d.C), 0, static_cast<cudaStream_t>(stream)>>>(
+      grad_out, tiles, origins, d, grad_features);
+}
+
+#define TIGER_INSTANTIATE(T)                                                                                    \
+  template void launch_window_forward<T>(const T*, const T*, const T*, const T*, const T*, const T*, const T*,  \
+                                         WindowDims, T*, T*, void*);                                            \
+  template void launch_window_backward_cells<T>(const T*, const T*, const T*, const T*, const T*, const T*,     \
+                                                const T*, const T*, WindowDims, T*, T*, T*, T*, int32_t*, void*); \
+  template void launch_window_grad_features<T>(const T*, const T*, const int32_t*, WindowDims, T*, void*);
+TIGER_INSTANTIATE(float)
+TIGER_INSTANTIATE(double)
+#undef TIGER_INSTANTIATE
+
+}  // namespace featup
+}  // namespace tiger
