@@ -98,12 +98,17 @@ def test_render_views_trainable_gradients(device):
         ((out["color"] * weights).sum() + out["alpha"].sum()).backward()
         return {k: t.grad for k, t in scene.params().items()}
 
-    full, masked = grads(None), grads(trainable)
+    full, masked, again = grads(None), grads(trainable), grads(None)
     for k, a in full.items():
         b = masked[k]
         assert not b[~trainable].any(), k
         assert a[trainable].abs().max() > 0, k
-        torch.testing.assert_close(b[trainable], a[trainable], rtol=1e-5, atol=1e-6 * float(a.abs().max()), msg=k)
+        # CUDA accumulates with atomics: two full backward passes already differ in the last bits
+        # (the sum's order), and the quaternions' gradients cancel; the masked pass must agree with
+        # the full one as closely as the full one agrees with itself (exactly on the CPU)
+        spread = float((again[k] - a).abs().max())
+        err = float((b[trainable] - a[trainable]).abs().max())
+        assert err <= 10 * spread + 1e-6 * float(a.abs().max()), (k, err, spread)
     with pytest.raises(ValueError, match=r"trainable must be a bool tensor \[N=300\]"):
         render_views(scene, cams, trainable=trainable[:10])
 
