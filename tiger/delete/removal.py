@@ -152,7 +152,6 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         floater_tau = med + floater_fraction * (float(tau) - med)
     if attach_k < 0:
         raise ValueError(f"tiger.delete.removal_mask: attach_k must be >= 0, got {attach_k}")
-    floaters = inside & (s > float(floater_tau)) & ~retrieved
     unseen = torch.zeros_like(retrieved)
     evidence = torch.ones_like(retrieved)  # language evidence: unknown without lang_norms
     if lang_norms is not None:
@@ -160,7 +159,9 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
             raise ValueError(f"tiger.delete.removal_mask: lang_norms must be [N={n}], got {list(lang_norms.shape)}")
         norms = lang_norms.detach().to(means.device, torch.float64)
         evidence = norms > unseen_norm * float(norms[retrieved].median())
-        unseen = inside & ~evidence & ~retrieved & ~floaters
+        unseen = inside & ~evidence & ~retrieved
+    # a featureless Gaussian's score (0) says nothing: it is never a floater, only unseen
+    floaters = inside & evidence & (s > float(floater_tau)) & ~retrieved
     if attach_k > 0:  # both grow from the retrieved object, through removed neighbours only
         floaters = _grow_attached(m, retrieved & inside, floaters, inside, evidence, attach_k)
         unseen = _vote_unseen(m, (retrieved & inside) | floaters, unseen, inside & evidence, attach_k)

@@ -93,6 +93,11 @@ def label_feature_maps(scene: LabelledScene, label_vecs: torch.Tensor, cameras: 
     return maps, (basis.components, basis.mean)
 
 
+#: A Gaussian whose blending weights over all the training views' valid pixels sum to less than
+#: this (pixels at the maps' size) keeps its lifted embedding after training.
+MIN_TRAINED_WEIGHT = 0.2
+
+
 def train_demo_field(scene: LabelledScene, label_vecs: torch.Tensor, cameras: Sequence[Camera], *,
                      steps: int = 300, progress: bool = True) -> FieldResult:
     """Train the language field of ``scene`` (in place: ``scene.scene.lang`` and its PCA) from the
@@ -104,17 +109,29 @@ def train_demo_field(scene: LabelledScene, label_vecs: torch.Tensor, cameras: Se
     opaque layers (summed blending weight ~1e-3 px). The training's gradient there is tiny; from a
     random start such a Gaussian keeps its random feature, which no threshold can tell from a
     real one (a third of the table scored anywhere in [-0.3, 0.7] for "table"). The lift gives it
-    the features of what covers it in the views, the surface above or the object's own front.
+    the features of what covers it in the views: the surface above, or the object's own front.
     Gaussians that reach no valid pixel at all stay at 0 (no language evidence).
+
+    Training cannot improve on the lift where the views hardly see a Gaussian: its gradient is
+    its blending weight times the residual, and Adam normalises even a 1e-6 gradient into a
+    full-size step, so 300 steps walk it away from what its pixels show (norms up to 2.7 where
+    the seen ones have 0.4-1.3). Gaussians whose summed weight is below
+    :data:`MIN_TRAINED_WEIGHT` keep their lifted embedding.
 
     Args:
         scene: the labelled scene; label_vecs: [K, F] one CLIP-space vector per label.
         cameras: the training views; steps: training steps (2 views each, lr 0.02, L1).
     """
     maps, pca = label_feature_maps(scene, label_vecs, cameras)
-    scene.scene.lang = lift(scene.scene, cameras, maps).lang
-    return train_field(scene.scene, cameras, maps, steps=steps, lr=0.02, batch_views=2, loss="l1",
-                       progress=progress, pca=pca, init="keep")
+    lifted = lift(scene.scene, cameras, maps)
+    scene.scene.lang = lifted.lang.clone()
+    res = train_field(scene.scene, cameras, maps, steps=steps, lr=0.02, batch_views=2, loss="l1",
+                      progress=progress, pca=pca, init="keep")
+    weak = lifted.weight < MIN_TRAINED_WEIGHT
+    lang = scene.scene.lang
+    lang[weak] = lifted.lang[weak].to(lang)
+    res.lang = lang
+    return res
 
 
 def embed_and_query(scene: LabelledScene, out: Path, queries: Sequence[str], timer,
