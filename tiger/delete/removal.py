@@ -36,22 +36,23 @@ table around a ball), never the candidates themselves: an unretrieved part of th
 ball's underside) cannot vote for itself. Repeated up to ``appearance_iters`` times, so it grows
 along the object inside the region only. ``appearance_margin = None`` turns it off.
 
-The attachment rule bounds all three: a floater, unseen or similar Gaussian is added only while
-at least half of those of its ``attach_k`` nearest Gaussians (within the rule's region) that
-vote are already removed, and the additions grow from the retrieved object outward. Removed
-Gaussians vote. For the floater rule so do kept ones with language evidence; kept ones without
-abstain. An unseen Gaussian is decided at once by its ``attach_k`` nearest Gaussians with
-language evidence (not grown through the unseen ones: a patch no view saw where the object meets
-another, the mug's bottom on the table, would be flooded from any one contact). For the appearance rule a kept one votes when its colour is much closer to
-the candidate's than to the object's (``appearance_margin``): it shows the candidate's colour to
-be a thing of its own (the cardboard box on a brown table), while kept neighbours of the object's
-own colour (the rest of a missed band of it) abstain. So every Gaussian a rule adds
-is joined to the object through removed neighbours, and none is taken from another object: a
-Gaussian of the mug standing on a table is surrounded mostly by the mug, which stays when the
-table is deleted, whatever its colour (the cardboard box is table-brown) and however its language
-blends into the table's at the contact (floaters) or fails there (the mug's bottom, which no view
-sees, lies inside the table's box). Without it the box rules, made for an object standing on a
-support, grow the table's deletion into everything standing on it. ``attach_k = 0`` turns it off.
+The attachment rule bounds all three, so that a rule adds only what is joined to the object and
+takes nothing from another object. Without it the box rules, made for an object standing on a
+support, grow the deletion of the support (a table, whose box holds everything on it) into all
+that stands on it: the mug's hidden bottom (unseen), its base blended into the table's language
+(floaters), the table-brown cardboard box (appearance). Each rule asks the ``attach_k`` nearest
+Gaussians:
+  * floater: at least half of its neighbours that have language evidence (or are removed) are
+    removed; grown from the retrieved object outward;
+  * unseen: at least half of its ``attach_k`` nearest Gaussians *with* language evidence are
+    removed; decided at once, not grown through the unseen ones (a patch no view saw where two
+    objects meet would be flooded from any one contact);
+  * appearance: its removed neighbours outnumber its kept neighbours that show the candidate's
+    colour to be a thing of its own (colour closer to the candidate's than ``appearance_margin``
+    times its distance to the retrieved object's colours: the box's cardboard beside the table);
+    kept neighbours of the object's own colour abstain (the rest of a band of the object that the
+    language field missed).
+``attach_k = 0`` turns it off.
 """
 from __future__ import annotations
 
@@ -162,7 +163,7 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
         unseen = inside & ~evidence & ~retrieved
     # a featureless Gaussian's score (0) says nothing: it is never a floater, only unseen
     floaters = inside & evidence & (s > float(floater_tau)) & ~retrieved
-    if attach_k > 0:  # both grow from the retrieved object, through removed neighbours only
+    if attach_k > 0:  # the attachment rule (module docstring)
         floaters = _grow_attached(m, retrieved & inside, floaters, inside, evidence, attach_k)
         unseen = _vote_unseen(m, (retrieved & inside) | floaters, unseen, inside & evidence, attach_k)
     similar = torch.zeros_like(retrieved)
