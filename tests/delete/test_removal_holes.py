@@ -116,3 +116,56 @@ def test_hole_masks_visible_and_thin_then_dilated():
     assert int(disk_dilate(one, 2).sum()) == 13
     with pytest.raises(ValueError, match="hole_masks"):
         hole_masks(vis, rest[0])
+
+
+def _cube_on_plane(seed=3):
+    """A plane (y = 0, brown) with a cardboard cube standing on it; no view sees the cube's bottom
+    face or the plane under it (language feature 0). Returns means, colours, labels (0 plane,
+    1 cube), language norms and the scores of "plane" and of "cube" as a trained field gives them
+    (the plane's language bleeds into the cube's lowest band: mid scores there)."""
+    g = torch.Generator().manual_seed(seed)
+    plane = torch.cat([(torch.rand(2500, 1, generator=g) - 0.5), torch.zeros(2500, 1),
+                       (torch.rand(2500, 1, generator=g) - 0.5)], 1)
+    n = 1800
+    face = torch.randint(0, 6, (n,), generator=g)
+    u = torch.rand(n, 3, generator=g) - 0.5
+    u[torch.arange(n), face % 3] = torch.where(face < 3, 0.5, -0.5)
+    cube = u * 0.2 + torch.tensor([0.1, -0.1, 0.1])  # bottom face (face 1: +y) on the plane
+    means = torch.cat([plane, cube])
+    labels = torch.cat([torch.zeros(2500, dtype=torch.long), torch.ones(n, dtype=torch.long)])
+    brown, cardboard = torch.tensor([0.55, 0.36, 0.2]), torch.tensor([0.78, 0.6, 0.35])
+    colors = torch.cat([brown.expand(2500, 3), cardboard.expand(n, 3)])
+    colors = (colors * (1 + 0.06 * torch.randn(len(means), 1, generator=g))).clamp(0, 1)
+    under = (labels == 0) & ((means[:, [0, 2]] - torch.tensor([0.1, 0.1])).abs() <= 0.1).all(1)
+    bottom = (labels == 1) & (means[:, 1] > -1e-6)
+    unseen = under | bottom
+    norms = torch.where(unseen, 0.0, 1.0)
+    band = (labels == 1) & ~bottom & (means[:, 1] > -0.03)  # the cube's lowest band: blended
+    noise = 0.03 * torch.randn(len(means), generator=g)
+    plane_s = torch.where(labels == 0, 0.9, torch.where(band, 0.3, -0.7)) + noise
+    cube_s = torch.where(labels == 1, 0.9, 0.05) + noise
+    plane_s[unseen], cube_s[unseen] = 0.0, 0.0  # the cosine of a zero feature
+    return means, colors, labels, norms, plane_s, cube_s, unseen
+
+
+def test_deleting_the_support_keeps_what_stands_on_it():
+    """The floater, unseen and appearance rules grow a compact object into the parts its language
+    missed; for the plane a cube stands on (the table under the mug), the plane's box holds the
+    whole cube, the cube's unseen bottom, its blended lowest band and a colour near the plane's:
+    none of it may go with the plane."""
+    means, colors, labels, norms, plane_s, _, unseen = _cube_on_plane()
+    cube = labels == 1
+    r = removal_mask(plane_s, plane_s > 0.5, means, 0.5, lang_norms=norms, colors=colors)
+    assert int((r.mask & cube & ~unseen).sum()) == 0, r.counts()  # nothing of the cube that is seen
+    assert int((r.mask & cube).sum()) <= 0.05 * int((cube & unseen).sum()), r.counts()
+    assert bool(r.mask[(labels == 0) & ~unseen].all())  # the plane goes, all that is seen of it
+
+
+def test_deleting_the_object_on_the_support_takes_all_of_it():
+    """The same cube deleted: all of it goes, its unseen bottom included; of the plane at most
+    what is under it."""
+    means, colors, labels, norms, _, cube_s, unseen = _cube_on_plane()
+    cube = labels == 1
+    r = removal_mask(cube_s, cube_s > 0.5, means, 0.5, lang_norms=norms, colors=colors)
+    assert bool(r.mask[cube].all()), int((cube & ~r.mask).sum())
+    assert not bool(r.mask[(labels == 0) & ~unseen].any())  # the plane around it stays

@@ -40,18 +40,16 @@ def test_top_cluster_rule_on_three_clusters():
 def trained_tabletop(density: float = 0.4, steps: int = 150):
     """(labelled tabletop with its language field trained as `tiger demo` trains it, fewer steps;
     the demo's built-in text table)."""
-    from tiger.demo.language import SYNONYMS, builtin_text_table, label_feature_maps
+    from tiger.demo.language import SYNONYMS, builtin_text_table, train_demo_field
     from tiger.demo.scene import DEMO_ORBIT, tabletop_scene
     from tiger.render.views import orbit_cameras
-    from tiger.language.field import train_field
 
     torch.manual_seed(0)
     ls = tabletop_scene(density)
     enc = builtin_text_table(ls.names)
     vecs = enc.encode_text([SYNONYMS[n][0] for n in ls.names]).float()
     cams = orbit_cameras(8, 160, 120, start_deg=5.0, names="train{}", **DEMO_ORBIT)
-    maps, pca = label_feature_maps(ls, vecs, cams)
-    train_field(ls.scene, cams, maps, steps=steps, lr=0.02, batch_views=2, loss="l1", progress=False, pca=pca)
+    train_demo_field(ls, vecs, cams, steps=steps, progress=False)
     return ls, enc
 
 
@@ -69,13 +67,24 @@ def test_demo_default_query_selects_each_named_object(demo_field):
         for phrase in SYNONYMS[name]:
             r = retrieve(ls.scene, phrase, encoder=enc)
             p, rc = _precision_recall(r.mask, truth)
-            # the table's underside is never seen by the demo's views: its recall is lower
-            assert p >= 0.9 and rc >= (0.55 if name == "table" else 0.7), (phrase, p, rc, r.tau)
+            # the table included: its underside, never seen by the demo's views, is selected too
+            assert p >= 0.9 and rc >= 0.7, (phrase, p, rc, r.tau)
             assert check_selection(ls.scene.means, r.mask).ok, phrase
-    # the two-class rule the default replaced selects several objects for "potted plant"
-    bad = retrieve(ls.scene, "potted plant", encoder=enc, tau="valley")
+    # a deliberately bad threshold (every object on the table and the table too): the guard fires
+    bad = retrieve(ls.scene, "potted plant", encoder=enc, tau=-0.2)
     assert _precision_recall(bad.mask, ls.labels == ls.names.index("plant"))[0] < 0.5
     assert not check_selection(ls.scene.means, bad.mask).ok
+
+
+def test_demo_density_field_selects_the_table_underside_too():
+    """At the demo's own density the table top is opaque: its underside, and the top under each
+    object, reach the views only through it. A field started from random embeddings leaves them
+    random (the table's recall was 0.64 at the defaults); the demo's field, started from the
+    lift as `tiger embed` starts, gives them what covers them, so every object is selected."""
+    ls, enc = trained_tabletop(density=1.0, steps=40)
+    for i, name in enumerate(ls.names):
+        p, rc = _precision_recall(retrieve(ls.scene, name, encoder=enc).mask, ls.labels == i)
+        assert p >= 0.9 and rc >= 0.7, (name, p, rc)
 
 
 @pytest.mark.parametrize("labels", [("red mug", "teddy bear", "green apple", "blue book"),

@@ -24,7 +24,8 @@ class DeleteConfig:
 
     Removal: ``score``/``tau`` of the retrieval; ``floater_fraction``, ``box_margin`` of the floater
     rule, ``unseen_norm`` of the unseen rule, ``appearance_margin`` of the appearance rule (None:
-    off; see :mod:`tiger.delete.removal`). Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
+    off), ``attach_k`` of the attachment rule bounding all three (0: off; see
+    :mod:`tiger.delete.removal`). Holes: ``visible_alpha``, ``thin_alpha``, ``dilate`` (pixels). Inpainting:
     ``inpaint_margin`` (pixels of context around a hole given to the inpainter; None: the whole
     view); ``depth_source_alpha`` (pixels at least this opaque give the depth filled into the
     holes for the seeds). Refit: ``steps`` (one view each), ``near_weight`` and ``hole_share`` (a remaining
@@ -43,6 +44,7 @@ class DeleteConfig:
     floater_fraction: float = 0.5
     unseen_norm: float = 0.1
     appearance_margin: Optional[float] = 0.5
+    attach_k: int = 8
     box_margin: float = 0.1
     visible_alpha: float = 0.3
     thin_alpha: float = 0.9

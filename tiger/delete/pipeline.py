@@ -68,7 +68,7 @@ def select_removal(scene: GaussianScene, target: Target, cfg: DeleteConfig,
     return removal_mask(r.scores.to(scene.device), r.mask.to(scene.device), scene.means, r.tau,
                         floater_fraction=cfg.floater_fraction, box_margin=cfg.box_margin,
                         lang_norms=norms, unseen_norm=cfg.unseen_norm, colors=scene.rgb,
-                        appearance_margin=cfg.appearance_margin,
+                        appearance_margin=cfg.appearance_margin, attach_k=cfg.attach_k,
                         sizes=scene.log_scales.detach().exp().amax(dim=1))
 
 

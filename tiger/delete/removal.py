@@ -35,6 +35,24 @@ decide). The surroundings are the kept Gaussians in the next margin *outside* th
 table around a ball), never the candidates themselves: an unretrieved part of the object (the
 ball's underside) cannot vote for itself. Repeated up to ``appearance_iters`` times, so it grows
 along the object inside the region only. ``appearance_margin = None`` turns it off.
+
+The attachment rule bounds all three, so that a rule adds only what is joined to the object and
+takes nothing from another object. Without it the box rules, made for an object standing on a
+support, grow the deletion of the support (a table, whose box holds everything on it) into all
+that stands on it: the mug's hidden bottom (unseen), its base blended into the table's language
+(floaters), the table-brown cardboard box (appearance). Each rule asks the ``attach_k`` nearest
+Gaussians:
+  * floater: at least half of its neighbours that have language evidence (or are removed) are
+    removed; grown from the retrieved object outward;
+  * unseen: at least half of its ``attach_k`` nearest Gaussians *with* language evidence are
+    removed; decided at once, not grown through the unseen ones (a patch no view saw where two
+    objects meet would be flooded from any one contact);
+  * appearance: its removed neighbours outnumber its kept neighbours that show the candidate's
+    colour to be a thing of its own (colour closer to the candidate's than ``appearance_margin``
+    times its distance to the retrieved object's colours: the box's cardboard beside the table);
+    kept neighbours of the object's own colour abstain (the rest of a band of the object that the
+    language field missed).
+``attach_k = 0`` turns it off.
 """
 from __future__ import annotations
 
@@ -88,7 +106,7 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
                  unseen_norm: float = 0.1, colors: Optional[torch.Tensor] = None,
                  appearance_margin: Optional[float] = 0.5, appearance_iters: int = 50,
                  appearance_reach: float = 2.0, radius: Optional[float] = None,
-                 sizes: Optional[torch.Tensor] = None) -> Removal:
+                 sizes: Optional[torch.Tensor] = None, attach_k: int = 8) -> Removal:
     """Apply the floater rule (module docstring) around a retrieval.
 
     Args:
@@ -107,6 +125,7 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
             parameters (``appearance_reach``: how many box margins its candidates may lie outside
             the robust box); ``sizes`` [N]: each Gaussian's largest axis (world units), for the
             default radius.
+        attach_k: neighbours of the attachment rule (0: off).
     Returns:
         a :class:`Removal`.
     """
@@ -132,13 +151,21 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
     if floater_tau is None:
         med = float(s.median())
         floater_tau = med + floater_fraction * (float(tau) - med)
-    floaters = inside & (s > float(floater_tau)) & ~retrieved
+    if attach_k < 0:
+        raise ValueError(f"tiger.delete.removal_mask: attach_k must be >= 0, got {attach_k}")
     unseen = torch.zeros_like(retrieved)
+    evidence = torch.ones_like(retrieved)  # language evidence: unknown without lang_norms
     if lang_norms is not None:
         if lang_norms.shape != (n,):
             raise ValueError(f"tiger.delete.removal_mask: lang_norms must be [N={n}], got {list(lang_norms.shape)}")
         norms = lang_norms.detach().to(means.device, torch.float64)
-        unseen = inside & (norms <= unseen_norm * float(norms[retrieved].median())) & ~retrieved & ~floaters
+        evidence = norms > unseen_norm * float(norms[retrieved].median())
+        unseen = inside & ~evidence & ~retrieved
+    # a featureless Gaussian's score (0) says nothing: it is never a floater, only unseen
+    floaters = inside & evidence & (s > float(floater_tau)) & ~retrieved
+    if attach_k > 0:  # the attachment rule (module docstring)
+        floaters = _grow_attached(m, retrieved & inside, floaters, inside, evidence, attach_k)
+        unseen = _vote_unseen(m, (retrieved & inside) | floaters, unseen, inside & evidence, attach_k)
     similar = torch.zeros_like(retrieved)
     if colors is not None and appearance_margin is not None:
         if colors.shape != (n, 3):
@@ -154,7 +181,8 @@ def removal_mask(scores: torch.Tensor, retrieved: torch.Tensor, means: torch.Ten
             ring = inside & ~in_box(0)
         similar = _appearance(m, colors.detach().to(means.device, torch.float64), near | ring, ring, near,
                               gone, appearance_margin, appearance_iters, radius,
-                              None if sizes is None else float(sizes.detach().to(m.device)[gone].float().median()))
+                              None if sizes is None else float(sizes.detach().to(m.device)[gone].float().median()),
+                              attach_k=attach_k, core=retrieved & inside)
     stray = retrieved & ~inside
     return Removal(mask=(retrieved & inside) | floaters | unseen | similar, retrieved=retrieved, floaters=floaters,
                    unseen=unseen, similar=similar, stray=stray, tau=float(tau),
@@ -185,14 +213,82 @@ def _subsample(x: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
     return x[torch.randperm(x.shape[0], generator=gen)[:n].to(x.device)]
 
 
+def _neighbours(p: torch.Tensor, rows: torch.Tensor, k: int, chunk: int = 1024) -> torch.Tensor:
+    """[R, k'] indices into ``p`` [P, 3] of the ``k' = min(k, P - 1)`` nearest other points of
+    each ``p[rows]`` (chunked: no R x P matrix)."""
+    k = min(int(k), p.shape[0] - 1)
+    out = []
+    for s in range(0, rows.numel(), chunk):
+        r = rows[s:s + chunk]
+        d = torch.cdist(p[r], p, compute_mode=_EXACT)
+        d[torch.arange(r.numel(), device=d.device), r] = float("inf")  # the point itself
+        out.append(d.topk(k, dim=1, largest=False).indices)
+    return torch.cat(out) if out else torch.zeros(0, max(k, 0), dtype=torch.long, device=p.device)
+
+
+def _attached(gone: torch.Tensor, voters: torch.Tensor, nbr: torch.Tensor) -> torch.Tensor:
+    """[R] bool: at least half of the voting neighbours of each row removed (``nbr`` [R, k]
+    indices into ``gone`` and ``voters``, [P] bool; a removed Gaussian always votes)."""
+    votes = (gone | voters)[nbr].sum(dim=1)
+    return (votes > 0) & (2 * gone[nbr].sum(dim=1) >= votes)
+
+
+def _grow_attached(means: torch.Tensor, removed: torch.Tensor, candidates: torch.Tensor,
+                   region: torch.Tensor, evidence: torch.Tensor, k: int) -> torch.Tensor:
+    """[N] bool: the ``candidates`` (within ``region``, both [N] bool) that join ``removed`` [N]
+    bool by the attachment rule (module docstring): repeatedly add each candidate at least half of
+    whose ``k`` nearest Gaussians of the region that vote (removed, or with language
+    ``evidence`` [N] bool) are removed, until none joins."""
+    idx = torch.nonzero(region).reshape(-1)
+    gone = removed[idx].clone()
+    cand = candidates[idx] & ~gone
+    added = torch.zeros_like(removed)
+    if idx.numel() < 2 or not bool(cand.any()):
+        return added
+    rows = torch.nonzero(cand).reshape(-1)
+    nbr = _neighbours(means[idx].float(), rows, k)
+    voters = evidence[idx]
+    waiting = torch.ones(rows.numel(), dtype=torch.bool, device=rows.device)
+    while True:
+        new = waiting & _attached(gone, voters, nbr)
+        if not bool(new.any()):
+            break
+        gone[rows[new]] = True
+        waiting &= ~new
+    added[idx] = gone & ~removed[idx]
+    return added
+
+
+def _vote_unseen(means: torch.Tensor, removed: torch.Tensor, unseen: torch.Tensor, voters: torch.Tensor,
+                 k: int, chunk: int = 1024) -> torch.Tensor:
+    """[N] bool: the ``unseen`` Gaussians (no language evidence) that at least half of their ``k``
+    nearest ``voters`` (with evidence, [N] bool) vote away: those ``removed`` [N] bool. Decided
+    at once, not grown: an unseen patch where the object meets another (the mug's bottom on the
+    table) goes to whichever the seen Gaussians around each of its Gaussians are."""
+    out = torch.zeros_like(unseen)
+    rows, refs = torch.nonzero(unseen).reshape(-1), torch.nonzero(voters).reshape(-1)
+    if rows.numel() == 0 or refs.numel() == 0:
+        return out
+    kk = min(int(k), refs.numel())
+    pr = means[refs].float()
+    gone = removed[refs]
+    for s in range(0, rows.numel(), chunk):
+        r = rows[s:s + chunk]
+        nb = torch.cdist(means[r].float(), pr, compute_mode=_EXACT).topk(kk, dim=1, largest=False).indices
+        out[r] = 2 * gone[nb].sum(dim=1) >= kk
+    return out
+
+
 def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor, shell: torch.Tensor,
                 allowed: torch.Tensor, removed: torch.Tensor, margin: float, iters: int,
                 radius: Optional[float], size: Optional[float] = None, k: int = 8,
-                max_refs: int = 4096) -> torch.Tensor:
+                max_refs: int = 4096, attach_k: int = 8, core: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The appearance rule (module docstring) on means [N,3] and colours [N,3]: candidates in
     ``allowed``, surroundings' colours from the kept ones in ``shell`` (both [N] bool within
-    ``inside``); memory O(N), no N x N matrices (scenes of millions of Gaussians have boxes of
-    tens of thousands)."""
+    ``inside``), bounded by the attachment rule over ``attach_k`` neighbours (0: off; voters: the
+    removed, and the kept ones of the candidate's colour rather than the colours of ``core`` [N]
+    bool, the retrieved object; default: ``removed``); memory
+    O(N), no N x N matrices (scenes of millions of Gaussians have boxes of tens of thousands)."""
     idx = torch.nonzero(inside).reshape(-1)
     allowed_i = allowed[idx]
     added = torch.zeros_like(removed)
@@ -213,6 +309,15 @@ def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor,
     dist = torch.full((p.shape[0],), float("inf"), dtype=p.dtype, device=p.device)
     dist[~gone] = _min_dist(p[~gone], p[gone])
     gen = torch.Generator().manual_seed(1)
+    # the attachment rule's neighbours, for every Gaussian the rule could ever add
+    open_rows = torch.nonzero(~gone & allowed_i).reshape(-1)
+    slot = torch.full((p.shape[0],), -1, dtype=torch.long, device=p.device)
+    slot[open_rows] = torch.arange(open_rows.numel(), device=p.device)
+    nbr = _neighbours(p, open_rows, attach_k) if attach_k > 0 else None
+    # the object's own colours for the attachment votes: the retrieved ones, not what the rules
+    # added (a rule's mistake must not make the next one look right)
+    core_c = _subsample(c[core[idx]] if core is not None and bool(core[idx].any()) else c[gone], max_refs,
+                        torch.Generator().manual_seed(2))
     for _ in range(max(int(iters), 0)):
         cand = ~gone & (dist <= radius) & allowed_i
         if not bool(cand.any()) or int(ref_kept.sum()) == 0:
@@ -220,10 +325,23 @@ def _appearance(means: torch.Tensor, colors: torch.Tensor, inside: torch.Tensor,
         # the nearest eighth of the object's colours and the nearest quarter of the surroundings',
         # on random subsets of at most ``max_refs`` each (the fractions are what matter)
         obj_c, ref_c = _subsample(c[gone], max_refs, gen), _subsample(c[ref_kept], max_refs, gen)
+        cand_rows = torch.nonzero(cand).reshape(-1)
         to_obj = _mean_nearest(c[cand], obj_c, min(max(k, obj_c.shape[0] // 8), obj_c.shape[0]))
         to_rest = _mean_nearest(c[cand], ref_c, min(max(k, ref_c.shape[0] // 4), ref_c.shape[0]))
+        ok = to_obj < margin * to_rest
+        if nbr is not None and bool(ok.any()):
+            # attachment: the removed neighbours vote for, and a kept neighbour votes against when
+            # it shows the candidate's colour to be a thing of its own (its colour much closer to
+            # the candidate's than to the object's); the others, the object's colour, abstain
+            nb = nbr[slot[cand_rows]]
+            kept_nb = torch.unique(nb[~gone[nb]])
+            to_obj_nb = torch.full((p.shape[0],), float("inf"), dtype=p.dtype, device=p.device)
+            to_obj_nb[kept_nb] = _mean_nearest(c[kept_nb], core_c, min(max(k, core_c.shape[0] // 8), core_c.shape[0]))
+            own = (c[nb] - c[cand_rows][:, None]).norm(dim=-1) < margin * to_obj_nb[nb]
+            against = (~gone[nb] & own).sum(dim=1)
+            ok &= gone[nb].sum(dim=1) > against
         new = torch.zeros_like(gone)
-        new[torch.nonzero(cand).reshape(-1)] = to_obj < margin * to_rest
+        new[cand_rows] = ok
         if not bool(new.any()):
             break
         gone |= new

@@ -2,8 +2,9 @@
 
 Per-pixel language supervision is built the way TIGER's pipeline shapes it (SPEC §4): every
 object mask carries one CLIP-space vector (the masked average), the maps are reduced to 64-d
-with a PCA fitted over all views, and only each Gaussian's 64-d L is trained, through the
-features-only backward. Where the real pipeline gets each mask's vector from MaskCLIP + SAM on
+with a PCA fitted over all views, and each Gaussian's 64-d L starts from the lift (its
+blending-weighted mean of the maps) and is then trained through the features-only backward, as
+``tiger embed`` does by default. Where the real pipeline gets each mask's vector from MaskCLIP + SAM on
 photographs, the demo takes it from the object's name: CLIP's text tower when CLIP weights are
 configured (so free-form queries such as "coffee cup" work through CLIP), otherwise fixed
 built-in embeddings of the label names and a few synonyms.
@@ -16,7 +17,8 @@ from typing import Optional, Sequence
 
 import torch
 
-from tiger.language.field import train_field
+from tiger.language.field import FieldResult, train_field
+from tiger.language.lift import lift
 from tiger.language.pca import StreamingPCA
 from tiger.render import Camera
 from tiger.render.views import orbit_cameras
@@ -91,6 +93,47 @@ def label_feature_maps(scene: LabelledScene, label_vecs: torch.Tensor, cameras: 
     return maps, (basis.components, basis.mean)
 
 
+#: A Gaussian whose blending weights over all the training views' valid pixels sum to less than
+#: this (pixels at the maps' size) keeps its lifted embedding after training.
+MIN_TRAINED_WEIGHT = 0.2
+
+
+def train_demo_field(scene: LabelledScene, label_vecs: torch.Tensor, cameras: Sequence[Camera], *,
+                     steps: int = 300, progress: bool = True) -> FieldResult:
+    """Train the language field of ``scene`` (in place: ``scene.scene.lang`` and its PCA) from the
+    label feature maps of ``cameras``, the way ``tiger embed`` does by default: every Gaussian
+    starts from its lifted embedding (:func:`tiger.language.lift.lift`), then L is trained.
+
+    Why the lift and not a random start: the demo's views look down on the table, so its
+    underside, and the table top under each object, reach the pixels only through one or two
+    opaque layers (summed blending weight ~1e-3 px). The training's gradient there is tiny; from a
+    random start such a Gaussian keeps its random feature, which no threshold can tell from a
+    real one (a third of the table scored anywhere in [-0.3, 0.7] for "table"). The lift gives it
+    the features of what covers it in the views: the surface above, or the object's own front.
+    Gaussians that reach no valid pixel at all stay at 0 (no language evidence).
+
+    Training cannot improve on the lift where the views hardly see a Gaussian: its gradient is
+    its blending weight times the residual, and Adam normalises even a 1e-6 gradient into a
+    full-size step, so 300 steps walk it away from what its pixels show (norms up to 2.7 where
+    the seen ones have 0.4-1.3). Gaussians whose summed weight is below
+    :data:`MIN_TRAINED_WEIGHT` keep their lifted embedding.
+
+    Args:
+        scene: the labelled scene; label_vecs: [K, F] one CLIP-space vector per label.
+        cameras: the training views; steps: training steps (2 views each, lr 0.02, L1).
+    """
+    maps, pca = label_feature_maps(scene, label_vecs, cameras)
+    lifted = lift(scene.scene, cameras, maps)
+    scene.scene.lang = lifted.lang.clone()
+    res = train_field(scene.scene, cameras, maps, steps=steps, lr=0.02, batch_views=2, loss="l1",
+                      progress=progress, pca=pca, init="keep")
+    weak = lifted.weight < MIN_TRAINED_WEIGHT
+    lang = scene.scene.lang
+    lang[weak] = lifted.lang[weak].to(lang)
+    res.lang = lang
+    return res
+
+
 def embed_and_query(scene: LabelledScene, out: Path, queries: Sequence[str], timer,
                     models: Optional[str] = None, train_size=(160, 120), n_train_views: int = 8,
                     steps: int = 300, picture_size=(480, 360), tau: float = 0.5) -> list[dict]:
@@ -102,12 +145,10 @@ def embed_and_query(scene: LabelledScene, out: Path, queries: Sequence[str], tim
         texts = [SYNONYMS.get(n, [n])[0] for n in scene.names]
         label_vecs = encoder.encode_text(texts).float()
     cams = orbit_cameras(n_train_views, *train_size, start_deg=5.0, names="train{}", **DEMO_ORBIT)
-    with timer.stage(f"language feature maps ({n_train_views} views, PCA 512->64)"):
-        maps, (basis, mean) = label_feature_maps(scene, label_vecs, cams)
     field_scene = scene.scene
-    with timer.stage(f"train language field ({steps} steps, features-only backward)"):
-        res = train_field(field_scene, cams, maps, steps=steps, lr=0.02, batch_views=2,
-                          loss="l1", progress=True, pca=(basis, mean))
+    with timer.stage(f"language feature maps ({n_train_views} views, PCA 512->64), lift, "
+                     f"train language field ({steps} steps, features-only backward)"):
+        res = train_demo_field(scene, label_vecs, cams, steps=steps)
     print(f"  field: loss {res.losses[0]:.4f} -> {res.losses[-1]:.4f}; {res.coverage()}")
     with timer.stage("save scene.ply (with lang_* and PCA) and the text-embedding table"):
         field_scene.metadata.update({"source": "tiger demo", "labels": list(scene.names)})
