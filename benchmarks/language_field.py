@@ -223,7 +223,7 @@ def train_loop(device: str, views: int, height: int, width: int, gaussians: int,
             configs.append(("before (whole views, lr 2.5e-3)",
                             FieldConfig.before_lift(steps=reference_steps, progress=False)))
         # warm-up (first-call costs: kernels' set-up, allocator, lazy imports), not reported
-        train_field(copy.deepcopy(start), cams[:2], lambda i: load(i), steps=3, coarse_steps=1, progress=False)
+        train_field(copy.deepcopy(start), cams[:2], lambda i: load(i), steps=3, coarse=0.34, progress=False)
         for name, cfg in configs:
             ls.labelled.scene = copy.deepcopy(start)
             if device == "cuda":
@@ -254,7 +254,7 @@ def main() -> None:
                          "(default 10000; 0 skips this slow run)")
     ap.add_argument("--loop-extra", action="append", default=[], metavar="K=V,...",
                     help="one more row: the defaults with these FieldConfig fields changed, e.g. "
-                         "'coarse_factor=4,coarse_steps=3000,steps=3300' (repeatable)")
+                         "'coarse_factor=4,coarse=0.9,steps=3000' (repeatable)")
     ap.add_argument("--loop-noise", type=float, default=0.05,
                     help="std of the smooth per-view noise added to the maps (default 0.05; 0: exact renders)")
     args = ap.parse_args()

@@ -12,9 +12,9 @@ from tiger.language.field import CHECKPOINT_FORMAT, FieldConfig, train_field
 from tiger.retrieval import CANONICAL_NEGATIVES, embed_negatives, embed_queries, relevancy_maps, retrieve
 from tiger.testing.labelled_scene import label_masks, make_labelled_scene, oracle_feature_maps
 
-# the mechanics' tests: a high constant rate, two views a step (the defaults are pinned in
-# tests/language/test_field_fast.py)
-FAST = dict(lr=0.05, lr_final=1.0, batch_views=2, progress=False)
+# the mechanics' tests: full-resolution steps at a high constant rate, two views a step (the
+# defaults' coarse steps, bands and decaying rate are tested in tests/language/test_field_fast.py)
+FAST = dict(lr=0.05, lr_final=1.0, coarse=0.0, batch_views=2, progress=False)
 
 
 @pytest.fixture(scope="module")

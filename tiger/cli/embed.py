@@ -22,7 +22,7 @@ def add_parser(sub) -> None:
                "--features outputs/fox/features --out outputs/fox/scene_lang.ply\n\n"
                "The defaults start from the lifted embeddings, train first on coarse maps, then at full resolution on "
                "bands of at most\nhalf a million pixels, with a decaying learning rate; the earlier default "
-               "(10,000 steps of whole views at a constant\nrate) is --steps 10000 --coarse-steps 0 --lr 2.5e-3 "
+               "(10,000 steps of whole views at a constant\nrate) is --steps 10000 --coarse 0 --lr 2.5e-3 "
                "--lr-final 1 --crop-pixels 0.",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", help="input PLY")
@@ -33,9 +33,9 @@ def add_parser(sub) -> None:
     d = FieldConfig()
     p.add_argument("--steps", type=int, default=d.steps,
                    help=f"training steps (default {d.steps}); 0 with --init lift: the lifted embeddings as they are")
-    p.add_argument("--coarse-steps", type=int, default=d.coarse_steps,
-                   help=f"how many of the first steps train on maps averaged over --coarse-factor blocks, the "
-                        f"views rendered at that size (default {d.coarse_steps}; 0: all at full resolution)")
+    p.add_argument("--coarse", type=float, default=d.coarse,
+                   help=f"fraction of the steps (the first ones) that train on maps averaged over --coarse-factor "
+                        f"blocks, the views rendered at that size (default {d.coarse}; 0: all at full resolution)")
     p.add_argument("--coarse-factor", type=int, default=d.coarse_factor,
                    help=f"block size of the coarse maps in pixels (default {d.coarse_factor})")
     p.add_argument("--init", choices=("lift", "random"), default="lift",
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     maps = lambda i: fs.load(names[keep[i]])  # noqa: E731
     # lifting reads the maps that training then keeps (one read); a checkpoint's run is resumed instead
     res = train_field(scene, cams, maps, pca=pca, checkpoint=ckpt, init=args.init, steps=args.steps,
-                      coarse_steps=args.coarse_steps, coarse_factor=args.coarse_factor, lr=args.lr,
+                      coarse=args.coarse, coarse_factor=args.coarse_factor, lr=args.lr,
                       lr_final=args.lr_final, crop_pixels=args.crop_pixels, batch_views=args.batch_views,
                       loss=args.loss)
     if res.lift_seconds:

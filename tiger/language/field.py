@@ -15,10 +15,11 @@ synchronisation (the loss is read back for the progress bar every 10 steps).
 
 The defaults spend 1,500 steps, most of them cheap, where the earlier default spent 10,000 steps of
 one whole view each (``FieldConfig.before_lift``): the field starts from the lifted embeddings (:func:`tiger.language.lift.lift_views`, one
-pass over the views, from the maps already read); the first 1,200 steps train on the maps averaged
-over 2 x 2 blocks with the views rendered at half size (a quarter of the pixels, and every Gaussian
-in view still updated); the last 300 at full resolution render a band of at most half a million
-pixels of a view (a quarter of a 1080x1920 view); the learning rate decays from 2e-2 to 2e-3.
+pass over the views, from the maps already read); the first two thirds of the steps train on the
+maps averaged over 2 x 2 blocks with the views rendered at half size (a quarter of the pixels, and
+every Gaussian in view still updated); the last third at full resolution render a band of at most
+half a million pixels of a view (a quarter of a 1080x1920 view); the learning rate decays from
+1e-2 to the earlier default's constant 2.5e-3.
 :attr:`FieldResult.full_loss` is the loss over every pixel of every view at the end, the measure
 the defaults were chosen by (``benchmarks/language_field.py``). The loop is
 :func:`tiger.train.run_loop` (checkpoints, Ctrl-C).
@@ -52,6 +53,9 @@ CHECKPOINT_FORMAT = "tiger.field-checkpoint/2"
 #: FieldConfig fields that may change between a run and its resume.
 RESUMABLE_CHANGES = ("steps", "checkpoint_every", "progress", "map_placement", "evaluate")
 INITS = ("lift", "random", "zeros", "keep")
+#: Views of fewer pixels train at full resolution in the coarse steps too: a whole-view step is
+#: cheap there, and pooling would lose the detail of a small map.
+COARSE_MIN_PIXELS = 1 << 18
 
 
 @dataclass
@@ -60,11 +64,12 @@ class FieldConfig:
 
     Attributes:
         steps: optimisation steps in all (each renders ``batch_views`` views, or bands of them).
-        coarse_steps: how many of the first steps train on coarse maps: each view's map averaged
-            over ``coarse_factor`` x ``coarse_factor`` blocks, the view rendered at that size. A
-            coarse step costs about ``1 / coarse_factor**2`` of a whole view and updates every
-            Gaussian in view, so most of the fitting is done cheaply; the full-resolution steps
-            after them settle the detail. 0: every step at full resolution.
+        coarse: the fraction of the steps (the first ones) that train on coarse maps: each view's
+            map averaged over ``coarse_factor`` x ``coarse_factor`` blocks, the view rendered at
+            that size. A coarse step costs about ``1 / coarse_factor**2`` of a whole view and
+            updates every Gaussian in view, so most of the fitting is done cheaply; the
+            full-resolution steps after them settle the detail. Views of fewer than
+            :data:`COARSE_MIN_PIXELS` pixels are never pooled. 0: every step at full resolution.
         coarse_factor: the block size of the coarse maps (px).
         lr: Adam learning rate for L at the first step (features of unit scale).
         lr_final: the learning rate at the last step, as a fraction of ``lr`` (exponential decay
@@ -92,10 +97,10 @@ class FieldConfig:
     """
 
     steps: int = 1500
-    coarse_steps: int = 1200
+    coarse: float = 0.67
     coarse_factor: int = 2
-    lr: float = 2e-2
-    lr_final: float = 0.1
+    lr: float = 1e-2
+    lr_final: float = 0.25
     batch_views: int = 1
     crop_pixels: int = 1 << 19
     loss: str = "l1"
@@ -112,15 +117,15 @@ class FieldConfig:
     def before_lift(cls, **overrides) -> "FieldConfig":
         """The settings ``tiger embed`` trained with before the fast defaults (10,000 steps of
         one whole view each, constant learning rate 2.5e-3), from the lifted embeddings."""
-        return cls(**{"steps": 10_000, "coarse_steps": 0, "lr": 2.5e-3, "lr_final": 1.0, "crop_pixels": 0,
+        return cls(**{"steps": 10_000, "coarse": 0.0, "lr": 2.5e-3, "lr_final": 1.0, "crop_pixels": 0,
                       **overrides})
 
     def validate(self) -> None:
         if self.steps < 0:
             raise ValueError(f"tiger.train_field: steps must be >= 0, got {self.steps}")
-        if self.coarse_steps < 0 or self.coarse_factor < 1:
-            raise ValueError(f"tiger.train_field: coarse_steps must be >= 0 and coarse_factor >= 1, got "
-                             f"{self.coarse_steps} and {self.coarse_factor}")
+        if not (0 <= self.coarse <= 1) or self.coarse_factor < 1:
+            raise ValueError(f"tiger.train_field: coarse must be in [0, 1] and coarse_factor >= 1, got "
+                             f"{self.coarse} and {self.coarse_factor}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"tiger.train_field: lr must be finite and > 0, got {self.lr}")
         if not (0 < self.lr_final <= 1):
@@ -273,6 +278,7 @@ class _FieldSession:
         # per view: host cumulative valid pixels by row, for the bands' pixel counts
         self.valid_rows = [maps.valid_rows(v) for v in range(len(views))]
         self.coarse: Optional[tuple[FrozenViews, list]] = None  # made at the first coarse step
+        self.coarse_steps = round(cfg.coarse * cfg.steps) if cfg.coarse_factor > 1 else 0
         self.scene: Optional[GaussianScene] = None  # set by train_field (for the coarse views)
 
     def _coarse(self) -> tuple[FrozenViews, list]:
@@ -309,9 +315,9 @@ class _FieldSession:
         self.opt.zero_grad(set_to_none=True)
         total = self.lang.new_zeros(())
         ts = self.frozen.tile_size
-        coarse = self.step < self.cfg.coarse_steps
+        coarse = self.step < self.coarse_steps
         for v in views:
-            if coarse:
+            if coarse and self.frozen.cameras[v].width * self.frozen.cameras[v].height >= COARSE_MIN_PIXELS:
                 coarse_views, coarse_maps = self._coarse()
                 color, _ = coarse_views.render(v, self.lang)
                 target = coarse_maps[v]
@@ -324,7 +330,7 @@ class _FieldSession:
             loss = _loss(color, target, self.cfg.loss) / len(views)
             loss.backward()
             total = total + loss.detach()
-        if self.step + 1 >= self.cfg.coarse_steps:  # the next step's full-resolution maps, while this one runs
+        if self.step + 1 >= self.coarse_steps:  # the next step's full-resolution maps, while this one runs
             self.maps.prefetch(self.views.peek(self.cfg.batch_views))
         if self.lang.grad is not None:
             self.touched |= (self.lang.grad != 0).any(dim=1)
