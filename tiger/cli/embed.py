@@ -35,7 +35,8 @@ def add_parser(sub) -> None:
                    help=f"training steps (default {d.steps}); 0 with --init lift: the lifted embeddings as they are")
     p.add_argument("--coarse", type=float, default=d.coarse,
                    help=f"fraction of the steps (the first ones) that train on maps averaged over --coarse-factor "
-                        f"blocks, the views rendered at that size (default {d.coarse}; 0: all at full resolution)")
+                        f"blocks, the views rendered at that size (default {d.coarse}; views under 2^18 pixels are "
+                        "never pooled; 0: all at full resolution)")
     p.add_argument("--coarse-factor", type=int, default=d.coarse_factor,
                    help=f"block size of the coarse maps in pixels (default {d.coarse_factor})")
     p.add_argument("--init", choices=("lift", "random"), default="lift",

@@ -17,7 +17,7 @@ The defaults spend 1,500 steps, most of them cheap, where the earlier default sp
 one whole view each (``FieldConfig.before_lift``): the field starts from the lifted embeddings (:func:`tiger.language.lift.lift_views`, one
 pass over the views, from the maps already read); the first two thirds of the steps train on the
 maps averaged over 2 x 2 blocks with the views rendered at half size (a quarter of the pixels, and
-every Gaussian in view still updated); the last third at full resolution render a band of at most
+every Gaussian in view still updated; views under 2^18 pixels are not pooled); the last third at full resolution render a band of at most
 half a million pixels of a view (a quarter of a 1080x1920 view); the learning rate decays from
 1e-2 to the earlier default's constant 2.5e-3.
 :attr:`FieldResult.full_loss` is the loss over every pixel of every view at the end, the measure
