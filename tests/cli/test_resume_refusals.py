@@ -121,7 +121,9 @@ def test_embed_continues_only_its_own_checkpoint(data, scene_file, tmp_path, cap
     args = ["embed", str(scene_file), str(data), "--features", str(feats), "--out", str(out), "--device", "cpu"]
     (tmp_path / "lang.ply.ckpt.pt.run.json").write_text(json.dumps({"command": "embed", "settings": {"steps": 5}}))
     assert main(args) == 2
-    assert "--steps (was 5, now 10000)" in capsys.readouterr().err
+    from tiger.language.field import FieldConfig
+
+    assert f"--steps (was 5, now {FieldConfig().steps})" in capsys.readouterr().err
     assert ckpt.read_bytes() == b"checkpoint of another run" and not out.exists()
 
 

@@ -8,11 +8,13 @@ import pytest
 import torch
 
 from tiger.eval.lerf import localize, points_in_boxes
-from tiger.language.field import FieldConfig, train_field
+from tiger.language.field import CHECKPOINT_FORMAT, FieldConfig, train_field
 from tiger.retrieval import CANONICAL_NEGATIVES, embed_negatives, embed_queries, relevancy_maps, retrieve
 from tiger.testing.labelled_scene import label_masks, make_labelled_scene, oracle_feature_maps
 
-FAST = dict(lr=0.05, batch_views=2, progress=False)
+# the mechanics' tests: full-resolution steps at a high constant rate, two views a step (the
+# defaults' coarse steps, bands and decaying rate are tested in tests/language/test_field_fast.py)
+FAST = dict(lr=0.05, lr_final=1.0, coarse=0.0, batch_views=2, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -124,16 +126,19 @@ def test_invalid_pixels_are_ignored():
 
 
 def test_checkpoint_resume_equals_uninterrupted(tmp_path):
+    # a constant rate: a run extended to more steps is then the longer run (a decaying rate is
+    # spread over the steps asked for)
     ls = make_labelled_scene(views=3, per_object=8, floor=8)
     maps = oracle_feature_maps(ls)
     full = copy.deepcopy(ls.scene)
-    r_full = train_field(full, ls.cameras, maps, steps=8, **FAST)
+    const = FAST  # constant rate
+    r_full = train_field(full, ls.cameras, maps, steps=8, **const)
     part = copy.deepcopy(ls.scene)
     ck = tmp_path / "field.ckpt"
-    train_field(part, ls.cameras, maps, steps=5, checkpoint=ck, checkpoint_every=2, **FAST)
+    train_field(part, ls.cameras, maps, steps=5, checkpoint=ck, checkpoint_every=2, **const)
     assert ck.is_file()
     resumed = copy.deepcopy(ls.scene)
-    r_res = train_field(resumed, ls.cameras, maps, steps=8, checkpoint=ck, **FAST)
+    r_res = train_field(resumed, ls.cameras, maps, steps=8, checkpoint=ck, **const)
     assert r_res.steps == 8 and len(r_res.losses) == 8
     np.testing.assert_allclose(r_res.losses, r_full.losses, rtol=1e-6)
     torch.testing.assert_close(resumed.lang, full.lang, rtol=1e-5, atol=1e-6)
@@ -249,7 +254,7 @@ def test_ctrl_c_leaves_a_checkpoint_and_resume_is_exact(tmp_path):
                     callback=interrupt, **FAST)
     from tiger.train import read_checkpoint
 
-    assert read_checkpoint(ck, "tiger.field-checkpoint/1")["step"] == 4
+    assert read_checkpoint(ck, CHECKPOINT_FORMAT)["step"] == 4
     res = train_field(copy.deepcopy(ls.scene), ls.cameras, maps, steps=9, checkpoint=ck, **FAST)
     np.testing.assert_allclose(res.losses, full.losses, rtol=1e-6)
     torch.testing.assert_close(res.lang, full.lang, rtol=1e-5, atol=1e-6)

@@ -94,6 +94,24 @@ class ViewMap:
     n_valid: int
 
 
+def pooled(m: ViewMap, factor: int) -> ViewMap:
+    """``m`` averaged over ``factor`` x ``factor`` blocks (rows and columns past the last whole
+    block dropped): the mean of each block's valid pixels, valid where at least half of the
+    block is; features keep their dtype, the valid pixels are counted here (one read-back)."""
+    f = m.features
+    h, w = f.shape[0] // factor, f.shape[1] // factor
+    f = f[:h * factor, :w * factor]
+    valid = None if m.valid is None else m.valid[:h * factor, :w * factor]
+    x = f.float() if valid is None else f.float() * valid.unsqueeze(-1)
+    feats = torch.nn.functional.avg_pool2d(x.permute(2, 0, 1).unsqueeze(0), factor)[0].permute(1, 2, 0)
+    if valid is None:
+        return ViewMap(feats.to(f.dtype).contiguous(), None, h * w)
+    share = torch.nn.functional.avg_pool2d(valid[None, None].float(), factor)[0, 0]
+    feats = feats / share.clamp_min(1.0 / factor ** 2).unsqueeze(-1)
+    keep = share >= 0.5
+    return ViewMap(feats.to(f.dtype).contiguous(), keep, int(keep.sum()))
+
+
 class ResidentMaps:
     """Every view's map read once (module docstring).
 
@@ -113,6 +131,7 @@ class ResidentMaps:
         self.device = torch.device(device)
         self._host: list[tuple[torch.Tensor, Optional[torch.Tensor]]] = []
         self.n_valid: list[int] = []
+        self._valid_rows: list[torch.Tensor] = []
         for i in range(count):
             feats, valid = as_map(load(i), i)
             dim = dim or int(feats.shape[2])
@@ -120,7 +139,10 @@ class ResidentMaps:
                 raise ValueError(f"tiger.train_field: feature map {i} has {feats.shape[2]} channels, L has {dim}")
             if not feats.is_floating_point():
                 feats = feats.float()
-            self.n_valid.append(int(valid.sum()) if valid is not None else int(feats.shape[0] * feats.shape[1]))
+            per_row = (valid.sum(1) if valid is not None
+                       else torch.full((feats.shape[0],), feats.shape[1])).to("cpu", torch.int64)
+            self._valid_rows.append(torch.cat([per_row.new_zeros(1), per_row.cumsum(0)]))
+            self.n_valid.append(int(self._valid_rows[-1][-1]))
             self._host.append((feats, valid))
         self.dim = int(dim)
         self.sizes = [(int(f.shape[0]), int(f.shape[1])) for f, _ in self._host]
@@ -149,6 +171,11 @@ class ResidentMaps:
 
     def __len__(self) -> int:
         return len(self.sizes)
+
+    def valid_rows(self, i: int) -> torch.Tensor:
+        """[H + 1] int64 on the host: valid pixels of view ``i`` above each row (so rows a..b
+        hold ``valid_rows[b] - valid_rows[a]``), counted once when the map was read."""
+        return self._valid_rows[i]
 
     def _copy(self, i: int) -> ViewMap:
         f, v = self._host[i]
@@ -185,4 +212,5 @@ class ResidentMaps:
         return self._copy(i)
 
 
-__all__ = ["FeatureMap", "FeatureSource", "FeatureStore", "ResidentMaps", "ViewMap", "as_map", "map_loader"]
+__all__ = ["FeatureMap", "FeatureSource", "FeatureStore", "ResidentMaps", "ViewMap", "as_map", "map_loader",
+           "pooled"]

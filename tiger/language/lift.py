@@ -16,14 +16,15 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 
 from tiger.render import Camera
 from tiger.scene import GaussianScene
 
-from .feature_maps import FeatureSource, as_map, map_loader
+from .feature_maps import FeatureSource, ResidentMaps, as_map, map_loader
+from .frozen_views import FrozenViews
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,28 @@ class LiftResult:
         """One line on the Gaussians that reached no valid pixel."""
         silent = int((self.weight <= 0).sum())
         return f"{silent} of {self.lang.shape[0]} Gaussians reach no valid pixel in any view (L = 0)"
+
+
+def _lift_view(color_of: Callable[[torch.Tensor], torch.Tensor], feats: torch.Tensor,
+               valid: Optional[torch.Tensor], n: int, dtype: torch.dtype,
+               device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """One view's (numerator [N, D], denominator [N]) in float64: the gradient of
+    sum_p <color_of(c)(p), [F * valid, valid](p)> with respect to c [N, D + 1].
+
+    ``color_of(channels [N, C]) -> [H, W, C]`` renders the view at the map's size."""
+    h, w, d = (int(s) for s in feats.shape)
+    weight = (torch.ones(h, w, 1, dtype=dtype, device=device) if valid is None
+              else valid.to(device=device, dtype=dtype).unsqueeze(-1))
+    g_out = torch.cat([feats.to(device=device, dtype=dtype) * weight, weight], dim=-1)
+    channels = torch.zeros(n, d + 1, dtype=dtype, device=device, requires_grad=True)
+    with torch.enable_grad():
+        (grad,) = torch.autograd.grad(color_of(channels), channels, g_out)
+    return grad[:, :d].double(), grad[:, d].double()
+
+
+def _result(num: torch.Tensor, den: torch.Tensor, dtype: torch.dtype, t0: float) -> LiftResult:
+    lang = torch.where(den[:, None] > 0, num / den.clamp_min(1e-300)[:, None], torch.zeros_like(num))
+    return LiftResult(lang=lang.to(dtype), weight=den, seconds=time.perf_counter() - t0)
 
 
 def lift(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureSource, *,
@@ -81,18 +104,32 @@ def lift(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureS
             num = torch.zeros(n, d, dtype=torch.float64, device=device)
         elif d != num.shape[1]:
             raise ValueError(f"tiger.lift: feature map {v} has {d} channels, map 0 has {num.shape[1]}")
-        weight = (torch.ones(h, w, 1, dtype=dtype, device=device) if valid is None
-                  else valid.to(device=device, dtype=dtype).unsqueeze(-1))
-        g_out = torch.cat([feats.to(device=device, dtype=dtype) * weight, weight], dim=-1)
-        channels = torch.zeros(n, d + 1, dtype=dtype, device=device, requires_grad=True)
-        with torch.enable_grad():
-            out = frozen.render(cameras[v].resized(w, h), channels, check_finite=False)
-            (grad,) = torch.autograd.grad(out["color"], channels, g_out)
-        num += grad[:, :d].double()
-        den += grad[:, d].double()
+        cam = cameras[v].resized(w, h)
+        part_num, part_den = _lift_view(lambda c: frozen.render(cam, c, check_finite=False)["color"],
+                                        feats, valid, n, dtype, device)
+        num += part_num
+        den += part_den
     assert num is not None
-    lang = torch.where(den[:, None] > 0, num / den.clamp_min(1e-300)[:, None], torch.zeros_like(num))
-    return LiftResult(lang=lang.to(dtype), weight=den, seconds=time.perf_counter() - t0)
+    return _result(num, den, dtype, t0)
+
+
+def lift_views(views: FrozenViews, maps: ResidentMaps, *, progress: bool = False) -> LiftResult:
+    """:func:`lift` from views whose projections and tile lists are kept (the ones the field's
+    training then renders) and maps already read (each view is rendered at its map's size)."""
+    device, dtype = views.cameras[0].viewmat.device, views.cameras[0].viewmat.dtype
+    n, d = views.count, maps.dim
+    num = torch.zeros(n, d, dtype=torch.float64, device=device)
+    den = torch.zeros(n, dtype=torch.float64, device=device)
+    t0 = time.perf_counter()
+    from tiger.utils.progress import progress as progress_lines
+
+    for v in progress_lines(range(len(views)), "lifting", unit="view", disable=not progress):
+        m = maps.get(v)
+        maps.prefetch([v + 1] if v + 1 < len(views) else [])  # streamed maps: the next one while this renders
+        part_num, part_den = _lift_view(lambda c: views.render(v, c)[0], m.features, m.valid, n, dtype, device)
+        num += part_num
+        den += part_den
+    return _result(num, den, dtype, t0)
 
 
 def lift_features(scene: GaussianScene, cameras: Sequence[Camera], feature_maps: FeatureSource, *,
