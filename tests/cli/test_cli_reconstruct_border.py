@@ -38,6 +38,9 @@ def test_psnr_counts_the_undistorted_pixels_only(tmp_path, capsys):
                  "--test-every", "2", "--device", "cpu"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert "border left out" in metrics["psnr_pixels"] and "border left out" in capsys.readouterr().out
+    # the definition it states is the one recomputed below: clamped render, black background, mean of views
+    assert all(w in metrics["psnr_definition"] for w in ("10 log10(1 / MSE)", "black background",
+                                                         "clamped to [0, 1]", "mean over the held-out views"))
 
     # the same number from the saved scene, the undistorted test images and the border masks
     ds = load_dataset(data)
