@@ -1,7 +1,8 @@
 """What raises the fox's held-out PSNR? One training run per candidate change, same views.
 
     python -m benchmarks.recon_fox_study --downscale 8 --iterations 4000 --variants base,appearance
-    python -m benchmarks.recon_fox_study --device cuda --downscale 2 --iterations 7000 --variants all
+    python -m benchmarks.recon_fox_study --device cuda --downscale 2 --iterations 7000 \
+        --variants base,random_bg,appearance,no_reset,grad3e-4 --data FOX   # the command's setting
 
 Every run starts from the settings ``tiger reconstruct`` uses at its defaults (INRIA's schedule
 compressed to ``--iterations`` by :meth:`ReconConfig.scaled`, random initial points coloured

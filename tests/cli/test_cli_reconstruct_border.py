@@ -76,3 +76,21 @@ def test_appearance_run_reports_the_saved_scene(tmp_path):
             pred = scene.render(cam, background=torch.zeros(3))["color"].clamp(0, 1)
         per_view.append(-10 * math.log10(float(((pred.double() - img.double()) ** 2).mean())))
     assert abs(metrics["psnr"] - sum(per_view) / len(per_view)) < 1e-3
+
+
+def test_colour_options_reach_the_training(tmp_path, monkeypatch):
+    from tiger.recon import trainer as trainer_module
+
+    seen = []
+    real_init = trainer_module.Trainer.__init__
+
+    def spy(self, *a, **kw):
+        real_init(self, *a, **kw)
+        seen.append((self.cfg.appearance, self.cfg.random_background))
+
+    monkeypatch.setattr(trainer_module.Trainer, "__init__", spy)
+    data = _dataset(tmp_path / "data", n_views=3, w=24, h=16)
+    for flags, want in (([], (False, False)), (["--appearance", "--random-background"], (True, True))):
+        assert main(["reconstruct", str(data), "--out", str(tmp_path / f"o{len(seen)}"), "--steps", "3",
+                     "--init-points", "50", "--test-every", "0", "--device", "cpu", *flags]) == 0
+        assert seen[-1] == want

@@ -48,6 +48,11 @@ def add_parser(sub) -> None:
                         "loss; its mean over the images is moved into the scene's colours at the end, so "
                         "the saved scene and the held-out PSNR show the average appearance "
                         "(default: %(default)s)")
+    p.add_argument("--random-background", action=argparse.BooleanOptionalAction, default=False,
+                   help="render each training step over a random background colour, so that no "
+                        "Gaussian can leave a see-through gap to the background (for captures of opaque "
+                        "photographs; images with transparency are composited over black and should "
+                        "not use it); held-out views are rendered over black (default: %(default)s)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="stop training once it took this long (a resumed run counts its earlier "
                         "time), then evaluate and write the scene as usual (default: no budget)")
@@ -130,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     # INRIA's 30k schedule compressed to --steps (identical at 30000).
     cfg = ReconConfig.scaled(args.steps, sh_degree=args.sh_degree,
                              init_random_points=args.init_points, max_gaussians=args.max_gaussians,
-                             appearance=args.appearance,
+                             appearance=args.appearance, random_background=args.random_background,
                              time_budget_s=args.time_budget, checkpoint_every=args.checkpoint_every)
     scene = GaussianScene.load_ply(existing(args.finetune, "scene")) if args.finetune else None
     # the black border that undistortion leaves counts neither in the loss nor in the metric
