@@ -14,9 +14,14 @@ def add_parser(sub) -> None:
         "reconstruct", help="fit a Gaussian scene to posed images (COLMAP or transforms.json)",
         description="Fit a 3D Gaussian Splatting scene to a COLMAP model (sparse/0 + images/) or a "
                     "NeRF/instant-ngp transforms.json, with the 3DGS recipe (L1 + 0.2 D-SSIM, "
-                    "densification, opacity reset, SH schedule). Every 8th image is held out; "
-                    "test PSNR/SSIM are printed at the end. With lens distortion the black border of "
-                    "undistortion is left out of the loss and of the metric (metrics.json: psnr_pixels); "
+                    "densification, opacity reset, SH schedule). Every 8th image in name order is held "
+                    "out (INRIA's rule; --test-every) and never trained on. Held-out PSNR, as 3DGS "
+                    "reports it: per held-out view 10 log10(1 / MSE) of the saved scene's render (all SH "
+                    "bands, black background, clamped to [0, 1]) against the photograph (in [0, 1]), MSE "
+                    "over the counted pixels and the 3 channels; the mean over the views (SSIM likewise). "
+                    "With lens distortion the black border of "
+                    "undistortion is left out of the loss and of the metric (metrics.json: psnr_pixels, "
+                    "psnr_definition); "
                     "random initial points take their colour from the views. Checkpoints allow --resume. Writes "
                     "OUT/scene.ply (INRIA's PLY), OUT/cameras.json (the capture's cameras, INRIA's "
                     "format; `tiger render` renders along them), OUT/metrics.json, OUT/tiger_run.json "
@@ -38,6 +43,16 @@ def add_parser(sub) -> None:
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N",
                    help="densification never grows the scene past N Gaussians (the strongest "
                         "gradients win; default: no cap)")
+    p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=False,
+                   help="per-training-image affine colour correction (exposure / white balance) in the "
+                        "loss; its mean over the images is moved into the scene's colours at the end, so "
+                        "the saved scene and the held-out PSNR show the average appearance "
+                        "(default: %(default)s)")
+    p.add_argument("--random-background", action=argparse.BooleanOptionalAction, default=False,
+                   help="render each training step over a random background colour, so that no "
+                        "Gaussian can leave a see-through gap to the background (for captures of opaque "
+                        "photographs; images with transparency are composited over black and should "
+                        "not use it); held-out views are rendered over black (default: %(default)s)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="stop training once it took this long (a resumed run counts its earlier "
                         "time), then evaluate and write the scene as usual (default: no budget)")
@@ -56,6 +71,11 @@ def add_parser(sub) -> None:
 
 
 CACHE = "image_cache"
+#: what metrics.json's "psnr" is (INRIA's evaluation; ``psnr_pixels`` says which pixels count)
+PSNR_DEFINITION = ("mean over the held-out views of 10 log10(1 / MSE), MSE over the counted pixels and the "
+                   "3 channels of the saved scene's render (all SH bands, black background, clamped to "
+                   "[0, 1]) against the held-out photograph (values in [0, 1]); SSIM: 11x11 Gaussian "
+                   "window (sigma 1.5), mean over the same pixels, then over the views")
 
 
 def _check_arguments(args: argparse.Namespace) -> None:
@@ -115,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
     # INRIA's 30k schedule compressed to --steps (identical at 30000).
     cfg = ReconConfig.scaled(args.steps, sh_degree=args.sh_degree,
                              init_random_points=args.init_points, max_gaussians=args.max_gaussians,
+                             appearance=args.appearance, random_background=args.random_background,
                              time_budget_s=args.time_budget, checkpoint_every=args.checkpoint_every)
     scene = GaussianScene.load_ply(existing(args.finetune, "scene")) if args.finetune else None
     # the black border that undistortion leaves counts neither in the loss nor in the metric
@@ -147,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
     if test_cams:
         ev = trainer.evaluate()
         metrics.update({k: v for k, v in ev.items() if isinstance(v, (int, float))})
+        metrics["psnr_definition"] = PSNR_DEFINITION
         metrics["psnr_pixels"] = ("all pixels of the held-out views" if test_masks is None else
                                   f"held-out pixels inside the undistorted image ({100 * masked_fraction(test_masks):.1f} % "
                                   "black undistortion border left out, as in the training loss)")

@@ -4,11 +4,16 @@ Phone captures change exposure and white balance from image to image; a scene fi
 them bakes those changes into view-dependent colour (floaters and wrong colours in held-out
 views). As recent 3DGS trainers do (e.g. the exposure compensation of INRIA's 2024 code),
 each training image ``v`` gets ``c' = A_v c + b_v`` (``A_v`` [3, 3], ``b_v`` [3], identity at
-the start) applied to the render before the loss. Held-out views are rendered without it.
+the start) applied to the render before the loss. Only the mean of the transforms over the
+training images is fixed by nothing (the scene's colours can absorb any common change):
+:meth:`AffineAppearance.recentre` moves it into the scene's colours, so that the saved scene, which
+held-out views are rendered with, shows the capture's average appearance.
 """
 from __future__ import annotations
 
 import torch
+
+from tiger.render.reference import SH_C0
 
 
 class AffineAppearance(torch.nn.Module):
@@ -31,6 +36,29 @@ class AffineAppearance(torch.nn.Module):
         if not 0 <= view < self.matrix.shape[0]:
             raise IndexError(f"tiger.recon: AffineAppearance has {self.matrix.shape[0]} views, not view {view}")
         return image @ self.matrix[view].T + self.bias[view]
+
+    @torch.no_grad()
+    def recentre(self, sh_dc: torch.Tensor, sh_rest: torch.Tensor) -> None:
+        """Move the mean transform (A, b) over the views into the SH colours, in place.
+
+        Args:
+            sh_dc: [N, 3] degree-0 coefficients; sh_rest: [N, K, 3] higher bands (K may be 0).
+        A Gaussian's colour ``c = 0.5 + C0 sh_dc + sum_k Y_k sh_k`` becomes ``A c + b``, and each
+        view's transform ``T_v`` becomes ``T_v o T^-1``, so every training view renders as before
+        (up to the clamp of negative colours; with a black background the blend is affine in
+        the colours where the pixel is covered), while the plain render now shows the average
+        appearance instead of an arbitrary one.
+        """
+        A, b = self.matrix.mean(0), self.bias.mean(0)
+        if bool(torch.linalg.det(A).abs() < 1e-6):
+            return  # a degenerate mean transform cannot be inverted: leave the gauge as it is
+        A_inv = torch.linalg.inv(A)
+        sh_dc.copy_(sh_dc @ A.T + (0.5 * A.sum(1) + b - 0.5) / SH_C0)
+        if sh_rest.numel():
+            sh_rest.copy_(sh_rest @ A.T)
+        new_matrix = self.matrix @ A_inv
+        self.bias.sub_(new_matrix @ b)
+        self.matrix.copy_(new_matrix)
 
 
 def fit_affine_colour(render: torch.Tensor, target: torch.Tensor,

@@ -233,6 +233,10 @@ class Trainer:
                                 checkpoint_every=c.checkpoint_every, time_budget_s=c.time_budget_s,
                                 progress=c.progress, desc="3DGS fit", show={"loss": ".4f", "psnr": ".2f"},
                                 after_step=after)
+        if self.appearance is not None and self.opt.trainable is None:
+            # the saved scene (and held-out views) show the training images' average appearance
+            # (with a trainable mask the frozen Gaussians must stay bit-identical: not recentred)
+            self.appearance.recentre(self.scene.sh_dc.data, self.scene.sh_rest.data)
         if self.test_cameras and (not self.history or self.history[-1]["step"] != self.step):
             self._record_eval()
         return self.scene.detach()
