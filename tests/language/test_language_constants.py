@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from tiger.language.sam_masks import SamMaskGenerator
+from tiger.language.sam_masks import SamMaskConfig, SamMaskGenerator
 
 POINTS_PER_SIDE = 32
 PRED_IOU = 0.7
@@ -107,16 +107,36 @@ class StubSam(torch.nn.Module):
         return SimpleNamespace(iou_scores=iou, pred_masks=logits)
 
 
+class StubDecoder:
+    """The generator's prompt decoder over StubSam's forward (the level-0 mask of each prompt)."""
+
+    def __init__(self, stub: StubSam):
+        self.stub = stub
+
+    def prepare(self, emb):
+        return emb
+
+    def __call__(self, emb, points):
+        p = points.shape[0]
+        out = self.stub(emb, points[None, :, None, :], torch.ones(1, p, 1), multimask_output=True)
+        return out.pred_masks[0, :, 0].float(), out.iou_scores[0, :, 0]
+
+
+def _generator(stub: StubSam) -> SamMaskGenerator:
+    # batching does not change the masks; the stub has no decoder config to size batches from
+    return SamMaskGenerator(stub, SamMaskConfig(points_per_batch=64), decoder=StubDecoder(stub))
+
+
 def test_sam_defaults_on_programmed_masks():
     programmed, survivors = programmed_masks()
     stub = StubSam(programmed)
-    out = SamMaskGenerator(stub)(torch.rand(3, S, S))
+    out = _generator(stub)(torch.rand(3, S, S))
     # the point grid: 32 x 32 cell centres (SAM's build_point_grid), x fastest, in input pixels
     side = (np.arange(POINTS_PER_SIDE) + 0.5) / POINTS_PER_SIDE * S
     grid = np.stack([np.tile(side, POINTS_PER_SIDE), np.repeat(side, POINTS_PER_SIDE)], 1)
     np.testing.assert_allclose(np.asarray(stub.points), grid, atol=1e-4)
     # SAM's filters alone (before any NMS): predicted IoU > 0.7 and stability >= 0.85
-    raw, iou, stab = SamMaskGenerator(StubSam(programmed)).predict(torch.rand(3, S, S))
+    raw, iou, stab = _generator(StubSam(programmed)).predict(torch.rand(3, S, S))
     passed = {name for name, m, _, _ in programmed if any(np.array_equal(r, m) for r in raw.numpy())}
     assert passed == {name for name, _, i, s in programmed if i > PRED_IOU and s >= STABILITY}
     assert len(raw) == len(passed)

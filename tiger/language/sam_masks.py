@@ -180,11 +180,14 @@ class SamMaskGenerator:
     (default the image size).
     """
 
-    def __init__(self, model: Any, config: SamMaskConfig | None = None) -> None:
+    def __init__(self, model: Any, config: SamMaskConfig | None = None, decoder: Any = None) -> None:
         self.model = model
         self.config = config or SamMaskConfig()
         self.input_size = int(model.config.vision_config.image_size)
-        self.decoder = SamGridDecoder(model, level=self.config.level, autocast=self.config.decoder_bf16)
+        # the prompt decoder: ``prepare(embedding) -> tokens`` and ``(tokens, points [P, 2]) ->
+        # (low-res logits [P, h, w], predicted IoU [P])``; SAM's own layers by default
+        self.decoder = decoder if decoder is not None else SamGridDecoder(
+            model, level=self.config.level, autocast=self.config.decoder_bf16)
 
     @classmethod
     def from_pretrained(cls, path=None, *, device="cpu", dtype=torch.float32,
