@@ -89,12 +89,21 @@ def _wait_for(path_glob, proc, timeout=600):
             return True
         if proc.poll() is not None:
             return False
-        time.sleep(0.2)
+        time.sleep(0.02)
     return False
 
 
-def test_killed_stage_resumes_and_other_features_are_refused(tmp_path, capture):
-    data, cfg = capture
+@pytest.fixture(scope="module")
+def long_capture(tmp_path_factory, capture):
+    """The same tiny models with 24 views: a features stage long enough to be killed part-way
+    (with 4 views an idle machine can finish the stage between the first cached image and the kill)."""
+    root = tmp_path_factory.mktemp("prepare_long")
+    return tabletop_dataset(root / "data", n_views=24), capture[1]
+
+
+def test_killed_stage_resumes_and_other_features_are_refused(tmp_path, long_capture):
+    data, cfg = long_capture
+    n_views = len(json.loads((data / "transforms.json").read_text())["frames"])
     out = tmp_path / "prep"
     args = [sys.executable, "-m", "tiger.cli.main", "prepare", str(data), "--out", str(out), "--models", str(cfg),
             *TINY]
@@ -113,7 +122,7 @@ def test_killed_stage_resumes_and_other_features_are_refused(tmp_path, capture):
     assert r.returncode == 0, r.stderr[-3000:]
     assert "[1/3] reconstruct: done before" in r.stdout and "[2/3] features: continuing" in r.stdout
     stages = json.loads((out / "prepare.json").read_text())["stages"]
-    assert all(s["done"] for s in stages.values()) and stages["features"]["quality"]["maps"] == 4
+    assert all(s["done"] for s in stages.values()) and stages["features"]["quality"]["maps"] == n_views
     assert done_before <= {p.name for p in cache.glob("*.pt")}
     lang_mtime = (out / "scene_lang.ply").stat().st_mtime_ns
 
