@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The path from photos to a queryable scene and the viewer, on one GPU: `tiger reconstruct` on the
 # fox at its defaults (half resolution, 7000 steps; held-out PSNR), the language field loop as
-# `tiger embed` runs it (fox-sized maps), training-free lifting at fox scale, the per-image
+# `tiger embed` runs it at its defaults (fox-sized maps), training-free lifting at fox scale, the per-image
 # language-feature stages (implicit FeatUp; the SAM mask path) and the viewer's frame loop.
 #
 # Usage, from the repo root with .whl and .carry carried (after a build, e.g. check.sh's):
@@ -29,8 +29,7 @@ say "GPU: $(nvidia-smi --query-gpu=name --format=csv,noheader)"
 step reconstruct 150 python3 -m tiger.cli.main reconstruct "$FOX" --out /tmp/fox_recon --device cuda \
   --steps 7000 --downscale 2 --force
 [ -f /tmp/fox_recon/metrics.json ] && cp /tmp/fox_recon/metrics.json "$OUT/reconstruct_metrics.json"
-step embed 120 python3 -m benchmarks.language_field --device cuda --only loop --loop-views 12 \
-  --loop-size 1080 1920 --loop-gaussians 172000 --loop-steps 10000
+step embed 120 python3 -m benchmarks.language_field --device cuda --only loop --loop-reference-steps 0
 step lift 90 python3 -m benchmarks.lift --device cuda --gaussians 250000 --views 43 --size 1080x1920
 step featup 200 python3 -m benchmarks.featup_implicit --device cuda
 step masks 120 python3 -m benchmarks.masks --device cuda --models full --image 1080x1920 --mask-counts 100,300,1000

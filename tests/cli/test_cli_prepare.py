@@ -26,6 +26,10 @@ def test_prepare_resume_and_query(tmp_path):
     assert "held_out_psnr_db" in stages["reconstruct"]["quality"]
     assert stages["features"]["quality"]["maps"] == 6
     assert stages["embed"]["quality"]["field_loss"] > 0
+    # the field loss reported is the embed's loss over every view (printed by `tiger embed`), not
+    # the last training step's own loss (a band or a pooled view)
+    printed = float(r.stdout.split("loss over every pixel of every view ")[1].split()[0].rstrip(";"))
+    assert abs(stages["embed"]["quality"]["field_loss"] - printed) <= 1e-4 * max(printed, 1e-6) + 5e-5
     assert (out / "scene_lang.ply").is_file() and (out / "recon" / "scene.ply").is_file()
     for word in ("reconstruct", "features", "embed", "total"):
         assert word in r.stdout

@@ -295,15 +295,19 @@ def check_record(rec: Path, command: str, settings: dict, where: str) -> None:
                        f"{'; '.join(diff)}. Use another --out, or the same settings")
 
 
-def write_record(rec: Path, command: str, settings: dict, finished: bool = False) -> None:
-    """Write the run record ``rec`` atomically."""
+def write_record(rec: Path, command: str, settings: dict, finished: bool = False,
+                 results: Optional[dict] = None) -> None:
+    """Write the run record ``rec`` atomically (``results``: what the finished run measured)."""
     import json
 
     from tiger.utils.io import atomic_write
 
     rec.parent.mkdir(parents=True, exist_ok=True)
+    data = {"command": command, "settings": settings, "finished": finished}
+    if results is not None:
+        data["results"] = results
     with atomic_write(rec, "w") as fh:
-        json.dump({"command": command, "settings": settings, "finished": finished}, fh, indent=2, default=str)
+        json.dump(data, fh, indent=2, default=str)
 
 
 def claim_output(path: str, command: str, settings: dict, *, force: bool, resume: bool,

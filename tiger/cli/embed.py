@@ -100,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     if res.lift_seconds:
         summary.add(f"lifted in {res.lift_seconds:.1f} s")
     scene.save_ply(out)
-    write_record(record, "embed", settings, finished=True)
+    write_record(record, "embed", settings, finished=True,
+                 results={"steps": res.steps, "full_loss": res.full_loss, "seconds": res.seconds})
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
 
     if not cameras_json_path(out).is_file():  # `tiger render` renders along the capture's cameras

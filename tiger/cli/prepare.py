@@ -318,13 +318,14 @@ def _features_and_embed(args: argparse.Namespace, ctx: dict, features_argv: Opti
         lang.unlink(missing_ok=True)
         _invoke(["embed", str(scene_file), str(data), "--features", str(feats), "--out", str(lang),
                  *common, *_flag_args({"--steps": args.embed_steps, "--init": args.init})])
+        # the loss over every valid pixel of every view at the end, as `tiger embed` recorded it
+        # (a training step's own loss is that of a band or a pooled view, not comparable)
         q: dict[str, Any] = {}
-        if ckpt.is_file():
-            import torch
-
-            losses = torch.load(str(ckpt), map_location="cpu", weights_only=True).get("losses")
-            if losses is not None and len(losses):
-                q["field_loss"] = float(losses[-1])
+        record = Path(str(ckpt) + ".run.json")
+        if record.is_file():
+            full_loss = json.loads(record.read_text()).get("results", {}).get("full_loss")
+            if full_loss is not None:
+                q["field_loss"] = float(full_loss)
         return q
 
     def reset_embed(old: dict) -> None:
