@@ -328,6 +328,25 @@ def _tv(x: torch.Tensor) -> torch.Tensor:
     return (x[..., 1:, :] - x[..., :-1, :]).square().mean() + (x[..., :, 1:] - x[..., :, :-1]).square().mean()
 
 
+def _fit_loss(cfg: "ImplicitConfig", out: torch.Tensor, target: torch.Tensor, outlier: nn.Module,
+              hr: torch.Tensor, hr_mag: torch.Tensor, hr_blurred: Callable[[], torch.Tensor]) -> torch.Tensor:
+    """FeatUp's fit loss, shared by the reference and the fast loop: the outlier-weighted
+    reconstruction of the jittered views' coefficients ``target`` [B, k, fh, fw] by the
+    downsampled output ``out`` [B, 1 + k, fh, fw] (magnitude first), the magnitude term, the
+    total variation of the magnitude ``hr_mag`` and the blur pin of ``hr`` (``hr_blurred()``: its
+    5-tap blur, computed only when the pin is on)."""
+    magnitude, pred = out[:, :1], out[:, 1:]
+    scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
+    loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
+    if cfg.mag_weight > 0:
+        loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
+    if cfg.mag_tv_weight > 0:
+        loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
+    if cfg.blur_pin > 0:
+        loss = loss + cfg.blur_pin * (hr_blurred() - hr).square().mean()
+    return loss
+
+
 class ImplicitUpsampler:
     """Fit FeatUp's implicit upsampler to one image, then evaluate it at any resolution.
 
@@ -406,15 +425,8 @@ class ImplicitUpsampler:
             target = targets[idx]
             jittered = torch.cat([jitters[i].apply(both) for i in idx])
             out = down(jittered, (fh, fw))
-            magnitude, pred = out[:, :1], out[:, 1:]
-            scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
-            loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
-            if cfg.mag_weight > 0:
-                loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
-            if cfg.mag_tv_weight > 0:
-                loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
-            if cfg.blur_pin > 0:
-                loss = loss + cfg.blur_pin * (gaussian_blur(hr, 5, 1.0, padding="reflect") - hr).square().mean()
+            loss = _fit_loss(cfg, out, target, outlier, hr, hr_mag,
+                             lambda: gaussian_blur(hr, 5, 1.0, padding="reflect"))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -274,7 +274,7 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
                cfg: "ImplicitConfig") -> torch.Tensor:
     """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor);
     ``network`` is the implicit network's ``forward_pixels`` (or its compiled form)."""
-    from .featup import _tv
+    from .featup import _fit_loss
 
     dev = img.device
     fh, fw = targets.shape[-2:]
@@ -292,14 +292,4 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
     else:
         mask = torch.ones(n, fh, fw, device=dev)
     out = fused_window_attention(down, logit_map, blurred, coord_y[idx], coord_x[idx], (fh, fw), mask)
-    magnitude, pred = out[:, :1], out[:, 1:]
-    target = targets[idx]
-    scales = torch.exp(outlier(target) + 0.1).clamp_min(1e-4)
-    loss = ((pred - target).square() / (2 * scales**2) + scales.log()).mean()
-    if cfg.mag_weight > 0:
-        loss = loss + cfg.mag_weight * (magnitude - target.norm(dim=1, keepdim=True)).square().mean()
-    if cfg.mag_tv_weight > 0:
-        loss = loss + cfg.mag_tv_weight * _tv(hr_mag)
-    if cfg.blur_pin > 0:
-        loss = loss + cfg.blur_pin * (blurred[:, 1:] - hr).square().mean()
-    return loss
+    return _fit_loss(cfg, out, targets[idx], outlier, hr, hr_mag, lambda: blurred[:, 1:])

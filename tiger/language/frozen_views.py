@@ -30,7 +30,7 @@ CACHE_RESERVE_BYTES = 2 << 30
 
 
 class _Cached(NamedTuple):
-    projection: Projection  # features: a [N, 1] placeholder, replaced per render
+    projection: Projection  # its features are a zero [N, 1] column: each render passes the embeddings
     tile_offsets: torch.Tensor
     gaussian_ids: torch.Tensor
 
@@ -50,7 +50,7 @@ class FrozenViews:
         self.cameras = [c.to(device=frozen.device, dtype=frozen.dtype) for c in cameras]
         self.settings = settings
         self._geometry = (frozen.means, frozen.quats, frozen.scales, frozen.opacities)
-        self._placeholder = frozen.means.new_zeros((len(frozen), 1))
+        self._no_features = frozen.means.new_zeros((len(frozen), 1))
         self.count = len(frozen)  # N
         self._cache: dict[int, _Cached] = {}
         self._full = False  # the device ran short: views not cached yet are binned per render
@@ -68,7 +68,7 @@ class FrozenViews:
             return self._cache[v]
         cam = self.cameras[v]
         with torch.no_grad():
-            p = project_for_raster(*self._geometry, self._placeholder, cam.viewmat, cam.K, cam.width, cam.height,
+            p = project_for_raster(*self._geometry, self._no_features, cam.viewmat, cam.K, cam.width, cam.height,
                                    settings=self.settings)
             offsets, ids = bin_projection(p, cam.width, cam.height, self.settings)
         entry = _Cached(p, offsets, ids)
