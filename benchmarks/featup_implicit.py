@@ -117,6 +117,9 @@ def main() -> None:
     ap.add_argument("--reference-steps", type=int, default=None,
                     help="steps of the reference fit (default: --steps); when fewer, a fast fit of as many "
                          "steps is run for the comparison")
+    ap.add_argument("--fast-steps", default="",
+                    help="comma-separated step counts: fast fits of as many steps, each compared with the "
+                         "reference fit of --reference-steps (how many steps the fast fit needs)")
     ap.add_argument("--eager", action="store_true", help="also time the fast fit without its CUDA graph")
     ap.add_argument("--compile", action="store_true",
                     help="also time the fast fit with the network through torch.compile (compiled in the warm-up)")
@@ -164,6 +167,8 @@ def main() -> None:
         if ref_steps != steps:
             runs.append((f"fast bf16 {ref_steps} steps", dataclasses.replace(base, steps=ref_steps)))
         runs.append((ref_name, dataclasses.replace(base, method="reference", steps=ref_steps)))
+    fast_counts = [int(n) for n in args.fast_steps.split(",") if n.strip()]
+    runs += [(f"fast bf16 {n} steps vs ref", dataclasses.replace(base, steps=n)) for n in fast_counts]
     bb = backbone_flops_per_view(clip, clip_in)
     with torch.no_grad():
         fh, fw = clip(clip_in[None]).shape[-2:]
@@ -205,6 +210,9 @@ def main() -> None:
         rows.append({"fit": name, "steps": cfg.steps, "fit s": t_fit, "loop ms/step": step_ms, "eval s": t_eval,
                      "s/image": t_fit + t_eval, "TFLOP/s": tflops, "% of 790 bf16": 100 * tflops / H100_BF16_TFLOPS,
                      "final loss": up.history[-1]})
+        hist = torch.tensor([float(v) for v in up.history])
+        windows = [f"{hist[i:i + 100].mean():.4f}" for i in range(0, len(hist), 100)]
+        print(f"  {name}: loss per 100-step window: {' '.join(windows)}", flush=True)
         print(f"  {name}: fit {t_fit:.2f} s ({step_ms:.2f} ms/step) + eval {t_eval:.2f} s, {tflops:.1f} TFLOP/s",
               flush=True)
     print(f"\nFLOPs per fit: " + ", ".join(f"{k} {v / 1e12:.2f} TFLOP" for k, v in flops.items()))
@@ -221,7 +229,7 @@ def main() -> None:
 
     cmp_rows = []
     for name in maps:
-        ref = ref_name if name.startswith("fast bf16 ") and name.endswith(" steps") else (
+        ref = ref_name if name.startswith("fast bf16 ") and name.endswith((" steps", " vs ref")) else (
             "reference" if "reference" in maps else "fast fp32" if "fast fp32" in maps else None)
         if ref is not None and ref in maps and name != ref and not name.startswith("reference"):
             cmp_rows.append({"map": name, "vs": ref, **cosine_stats(maps[name], maps[ref])})
