@@ -152,7 +152,9 @@ def main() -> None:
     sync(dev)
 
     rows, maps = [], {}
-    runs = [("fast bf16", dataclasses.replace(base, method="fast", precision="bf16"))]
+    runs = [("fast bf16", dataclasses.replace(base, method="fast", precision="bf16")),
+            (f"fast bf16 all {steps} steps", dataclasses.replace(base, method="fast", precision="bf16",
+                                                                 stop_change=0.0))]
     if not args.no_fp32:
         runs.append(("fast fp32", dataclasses.replace(base, method="fast", precision="fp32")))
     if args.compile:
@@ -165,10 +167,10 @@ def main() -> None:
     ref_name = "reference" if ref_steps == steps else f"reference {ref_steps} steps"
     if not args.no_reference:
         if ref_steps != steps:
-            runs.append((f"fast bf16 {ref_steps} steps", dataclasses.replace(base, steps=ref_steps)))
+            runs.append((f"fast bf16 {ref_steps} steps vs ref", dataclasses.replace(base, steps=ref_steps, stop_change=0.0)))
         runs.append((ref_name, dataclasses.replace(base, method="reference", steps=ref_steps)))
     fast_counts = [int(n) for n in args.fast_steps.split(",") if n.strip()]
-    runs += [(f"fast bf16 {n} steps vs ref", dataclasses.replace(base, steps=n)) for n in fast_counts]
+    runs += [(f"fast bf16 {n} steps vs ref", dataclasses.replace(base, steps=n, stop_change=0.0)) for n in fast_counts]
     bb = backbone_flops_per_view(clip, clip_in)
     with torch.no_grad():
         fh, fw = clip(clip_in[None]).shape[-2:]
@@ -204,10 +206,15 @@ def main() -> None:
         up, t_fit = timed(lambda: ImplicitUpsampler.fit(clip_in, clip, cfg), dev)
         hr, t_eval = timed(lambda: up(img_hw), dev)
         maps[name] = hr
-        run_flops = flops["backbone"] + per_step_flops * cfg.steps
+        ran = len(up.history)
+        featurised = up.views_featurised or cfg.n_views
+        run_flops = flops["backbone"] * featurised / cfg.n_views + per_step_flops * ran
         tflops = run_flops / t_fit / 1e12
-        step_ms = 1e3 * max(t_fit - setup[cfg.precision], 0.0) / max(cfg.steps, 1)
-        rows.append({"fit": name, "steps": cfg.steps, "fit s": t_fit, "loop ms/step": step_ms, "eval s": t_eval,
+        step_ms = 1e3 * max(t_fit - setup[cfg.precision], 0.0) / max(ran, 1)
+        if up.checks:
+            print(f"  {name}: stopping checks (step: 1 - cos with the previous check's map): "
+                  + " ".join(f"{st}: {c:.2e}" for st, c in up.checks), flush=True)
+        rows.append({"fit": name, "steps": ran, "views": featurised, "fit s": t_fit, "loop ms/step": step_ms, "eval s": t_eval,
                      "s/image": t_fit + t_eval, "TFLOP/s": tflops, "% of 790 bf16": 100 * tflops / H100_BF16_TFLOPS,
                      "final loss": up.history[-1]})
         hist = torch.tensor([float(v) for v in up.history])
@@ -229,7 +236,7 @@ def main() -> None:
 
     cmp_rows = []
     for name in maps:
-        ref = ref_name if name.startswith("fast bf16 ") and name.endswith((" steps", " vs ref")) else (
+        ref = ref_name if name.startswith("fast bf16 ") and name.endswith(" vs ref") else (
             "reference" if "reference" in maps else "fast fp32" if "fast fp32" in maps else None)
         if ref is not None and ref in maps and name != ref and not name.startswith("reference"):
             cmp_rows.append({"map": name, "vs": ref, **cosine_stats(maps[name], maps[ref])})

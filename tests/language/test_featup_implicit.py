@@ -211,3 +211,34 @@ def test_compiled_network_fit_equals_the_plain_fit():
     # maps in direction: NAdam's first steps amplify rounding where gradients are near zero
     cos = F.cosine_similarity(compiled(), plain(), dim=0)
     assert cos.mean() >= 0.999 and cos.min() >= 0.98, (cos.mean(), cos.min())
+
+
+STOP = dataclasses.replace(FIT, steps=12, check_every=3, min_steps=6, dropout=0.0)
+
+
+def test_stopping_check_measures_the_maps_change():
+    """Each stopping check's reported change equals 1 - the mean per-pixel cosine similarity
+    between the maps of two fits run to that check's step and to the previous check's (same
+    seed: the same trajectory), at the fitting resolution; with stop_change=0 every step runs."""
+    img, backbone = _photo(48, 80), PatchBackbone()
+    full = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(STOP, stop_change=0.0))
+    assert len(full.history) == STOP.steps and full.checks == []
+    watched = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(STOP, stop_change=1e-12))
+    assert [s for s, _ in watched.checks] == [6, 9]  # first map at step 3, compared from step 6 on
+    for step, change in watched.checks:
+        a = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(STOP, steps=step - 3, stop_change=0.0))()
+        b = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(STOP, steps=step, stop_change=0.0))()
+        expected = 1.0 - float(F.cosine_similarity(a.flatten(1), b.flatten(1), dim=0).mean())
+        assert abs(change - expected) <= 1e-4 * max(expected, 1e-3), (step, change, expected)
+
+
+def test_fit_stops_once_the_map_settles_and_featurises_only_picked_views():
+    img, backbone = _photo(48, 80), PatchBackbone()
+    loose = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(STOP, stop_change=0.999,
+                                                                     n_views=400, pca_batch=8))
+    assert len(loose.history) == STOP.min_steps  # any change passes: stops at the first allowed check
+    assert loose.checks[-1][0] == STOP.min_steps and loose.checks[-1][1] < 0.999
+    # 8 PCA views plus at most 6 steps x 4 picks, of 400
+    assert 8 < loose.views_featurised <= 8 + STOP.min_steps * STOP.jitters_per_step
+    with pytest.raises(ValueError, match="stop_change"):
+        ImplicitConfig(stop_change=1.0)

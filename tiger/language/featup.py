@@ -271,6 +271,11 @@ def sample_jitter(h: int, w: int, max_pad: int, max_zoom: float, use_flips: bool
     return Jitter(max_pad, zoom, y, x, flip)
 
 
+# The fast fit's default stopping tolerance (ImplicitConfig.stop_change): calibrated on the H100
+# against the 1200-step reference fit (docs/BENCHMARKS.md, "implicit FeatUp per 1080p image").
+STOP_CHANGE = 1e-3
+
+
 @dataclass
 class ImplicitConfig:
     """FeatUp's implicit-upsampler defaults (``configs/implicit_upsampler.yaml``).
@@ -292,9 +297,20 @@ class ImplicitConfig:
     replays its step (forward, backward, NAdam) from one CUDA graph. ``compile_network``: the
     fast fit runs the network through ``torch.compile`` (fuses the Fourier features, LayerNorm,
     dropout and casts, the memory-bound part of the step; costs a compilation per process).
+
+    ``steps`` is the most the fit runs (FeatUp's 1200). The fast fit stops earlier once the
+    fitted map stops changing: every ``check_every`` steps (from ``min_steps`` on) it evaluates
+    the network at the fitting resolution, projects it to the feature space and stops when the
+    mean per-pixel cosine similarity with the previous check's map is above
+    ``1 - stop_change`` (``stop_change=0`` runs every step). The loss is no stopping signal: its
+    outlier term keeps falling after the map has settled. Views are featurised when a step
+    first picks them, so the views that a stopped fit never picks cost nothing.
     """
 
     steps: int = 1200
+    stop_change: float = STOP_CHANGE
+    check_every: int = 100
+    min_steps: int = 300
     n_views: int = 3000
     jitters_per_step: int = 10
     proj_dim: int = 128
@@ -322,6 +338,10 @@ class ImplicitConfig:
             raise ValueError(f"tiger.ImplicitConfig: method must be 'fast' or 'reference', got {self.method!r}")
         if self.precision not in ("bf16", "fp32"):
             raise ValueError(f"tiger.ImplicitConfig: precision must be 'bf16' or 'fp32', got {self.precision!r}")
+        if not 0.0 <= self.stop_change < 1.0:
+            raise ValueError(f"tiger.ImplicitConfig: stop_change must be in [0, 1), got {self.stop_change}")
+        if self.check_every < 1:
+            raise ValueError(f"tiger.ImplicitConfig: check_every must be >= 1, got {self.check_every}")
 
 
 def _tv(x: torch.Tensor) -> torch.Tensor:
@@ -358,6 +378,10 @@ class ImplicitUpsampler:
     def __init__(self, net: ImplicitNet, image: torch.Tensor, mean: torch.Tensor, basis: torch.Tensor,
                  history: list[float]) -> None:
         self.net, self.image, self.mean, self.basis, self.history = net, image, mean, basis, history
+        # the fast fit's stopping checks [(step, 1 - mean cosine with the previous check's map)]
+        # and how many jittered views it featurised (the reference featurises all of them)
+        self.checks: list[tuple[int, float]] = []
+        self.views_featurised = 0
 
     @classmethod
     def fit(cls, image: torch.Tensor, featurizer: Featurizer, config: ImplicitConfig | None = None,
@@ -388,10 +412,11 @@ class ImplicitUpsampler:
         with torch.no_grad():
             jitters = [sample_jitter(h, w, max_pad, cfg.max_zoom, cfg.use_flips, gen) for _ in range(cfg.n_views)]
             if fast:
-                from .featup_fit import featurize_jitters, jitter_params
+                from .featup_fit import JitterTargets, fit_loop, jitter_params
 
                 params = jitter_params(jitters, h, w, dev)
-                views = featurize_jitters(img, featurizer, params, cfg.featurize_batch, cfg.precision, norm)
+                lazy = JitterTargets(img, featurizer, params, cfg, norm)
+                k = lazy.basis.shape[1]
             else:
                 feats: list[torch.Tensor] = []
                 for i in range(0, cfg.n_views, cfg.featurize_batch):
@@ -399,11 +424,11 @@ class ImplicitUpsampler:
                     feats.append(norm(featurizer(batch).float()))
                 views = torch.cat(feats)  # [N, D, fh, fw]
                 del feats
-            fh, fw = views.shape[-2:]
-            mean, basis = _pca_basis(views[: cfg.pca_batch], cfg.proj_dim)  # on the views' device
-            targets = _project(views, mean, basis)  # [N, k, fh, fw]
-            del views
-        k = basis.shape[1]
+                fh, fw = views.shape[-2:]
+                mean, basis = _pca_basis(views[: cfg.pca_batch], cfg.proj_dim)  # on the views' device
+                targets = _project(views, mean, basis)  # [N, k, fh, fw]
+                k = basis.shape[1]
+                del views
         net = ImplicitNet(k, cfg.n_freqs, gen, cfg.dropout).to(dev)
         down = AttentionDownsampler(k + 1, cfg.kernel_size, gen, cfg.dropout).to(dev)
         outlier = nn.Conv2d(k, 1, 1).to(dev)
@@ -411,10 +436,10 @@ class ImplicitUpsampler:
             outlier.weight.mul_(0.1)
             outlier.bias.mul_(0.1)
         if fast:
-            from .featup_fit import fit_loop
-
-            history = fit_loop(img, targets, params, net, down, outlier, cfg, gen, progress)
-            return cls(net, img, mean, basis, history)
+            history, checks = fit_loop(img, lazy, params, net, down, outlier, cfg, gen, progress)
+            up = cls(net, img, lazy.mean, lazy.basis, history)
+            up.checks, up.views_featurised = checks, lazy.featurised
+            return up
         opt, steps = _fit_setup(net, down, outlier, cfg, progress)
         history: list[float] = []
         for _ in steps:
@@ -432,7 +457,9 @@ class ImplicitUpsampler:
             opt.step()
             history.append(float(loss.detach()))
         net.eval()
-        return cls(net, img, mean, basis, history)
+        up = cls(net, img, mean, basis, history)
+        up.views_featurised = cfg.n_views
+        return up
 
     @torch.no_grad()
     def __call__(self, size: tuple[int, int] | None = None, image: torch.Tensor | None = None) -> torch.Tensor:

@@ -196,14 +196,70 @@ def featurize_jitters(img: torch.Tensor, featurizer: "Featurizer", params: torch
     return torch.cat(feats)
 
 
-def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net: nn.Module,
-             down: "AttentionDownsampler", outlier: nn.Conv2d, cfg: "ImplicitConfig", gen: torch.Generator,
-             progress: bool) -> list[float]:
-    """Run the fit's ``cfg.steps`` NAdam steps in place on (net, down, outlier); returns the losses.
+class JitterTargets:
+    """PCA coefficients of a fit's N jittered views, featurised when a step first picks them.
 
-    ``img`` [1, 3, h, w]; ``targets`` [N, k, fh, fw] PCA coefficients of the jittered views whose
-    jitters are ``params`` [N, 7]; ``gen`` draws each step's view picks (as the reference does:
-    all steps' picks are drawn up front, in the reference's order). On CUDA with
+    The PCA basis comes from the first ``cfg.pca_batch`` views, featurised at construction (as the
+    reference does); ``buffer`` [N, k, fh, fw] (float32, fixed storage, so a CUDA graph may read
+    it) holds the coefficients of the views featurised so far. ``img`` [1, 3, h, w]; ``params``
+    [N, 7] the views' jitters (:func:`jitter_params`)."""
+
+    def __init__(self, img: torch.Tensor, featurizer: "Featurizer", params: torch.Tensor, cfg: "ImplicitConfig",
+                 norm) -> None:
+        from .featup import _pca_basis, _project
+
+        self._project = _project
+        self.img, self.featurizer, self.params, self.cfg, self.norm = img, featurizer, params, cfg, norm
+        n = params.shape[0]
+        first = featurize_jitters(img, featurizer, params[: cfg.pca_batch], cfg.featurize_batch, cfg.precision, norm)
+        self.mean, self.basis = _pca_basis(first, cfg.proj_dim)
+        self.buffer = first.new_empty(n, self.basis.shape[1], *first.shape[-2:])
+        self.buffer[: first.shape[0]] = _project(first, self.mean, self.basis)
+        self.ready = torch.zeros(n, dtype=torch.bool)
+        self.ready[: first.shape[0]] = True
+
+    @property
+    def featurised(self) -> int:
+        return int(self.ready.sum())
+
+    @torch.no_grad()
+    def ensure(self, picks: torch.Tensor) -> None:
+        """Featurise the views among ``picks`` (CPU long tensor, any shape) not featurised yet."""
+        need = picks.flatten().unique()
+        need = need[~self.ready[need]]
+        if need.numel() == 0:
+            return
+        rows = need.to(self.params.device)
+        feats = featurize_jitters(self.img, self.featurizer, self.params[rows], self.cfg.featurize_batch,
+                                  self.cfg.precision, self.norm)
+        self.buffer[rows] = self._project(feats, self.mean, self.basis)
+        self.ready[need] = True
+
+
+@torch.no_grad()
+def fitted_directions(net: nn.Module, img: torch.Tensor, targets: JitterTargets, precision: str) -> torch.Tensor:
+    """The fitted map at the fitting resolution, projected back to the feature space and normalised
+    per pixel: [D, h * w] (what the fit's result is compared by: per-pixel cosine similarity).
+    Evaluated without dropout; the network's training mode is restored."""
+    was_training = net.training
+    net.eval()
+    with _autocast(img.device, precision):
+        coeffs = net.forward_pixels(img)[0].float()  # [k, h, w]
+    net.train(was_training)
+    feats = targets.basis @ coeffs.reshape(coeffs.shape[0], -1) + targets.mean.view(-1, 1)
+    return F.normalize(feats, dim=0)
+
+
+def fit_loop(img: torch.Tensor, targets: JitterTargets, params: torch.Tensor, net: nn.Module,
+             down: "AttentionDownsampler", outlier: nn.Conv2d, cfg: "ImplicitConfig", gen: torch.Generator,
+             progress: bool) -> tuple[list[float], list[tuple[int, float]]]:
+    """Run the fit's NAdam steps in place on (net, down, outlier), at most ``cfg.steps``, stopping
+    once the fitted map settles (``cfg.stop_change``; see ``ImplicitConfig``). Returns the losses
+    and the stopping checks [(step, 1 - mean per-pixel cosine with the previous check's map)].
+
+    ``img`` [1, 3, h, w]; ``targets`` the PCA coefficients of the jittered views whose jitters are
+    ``params`` [N, 7], featurised as steps pick them; ``gen`` draws each step's view picks (as the
+    reference does: all steps' picks are drawn up front, in the reference's order). On CUDA with
     ``cfg.cuda_graph`` the step (forward, backward, NAdam) is captured once in a CUDA graph and
     replayed; if the capture fails the loop goes on eagerly.
     """
@@ -211,12 +267,13 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
 
     dev = img.device
     h, w = img.shape[-2:]
-    fh, fw = targets.shape[-2:]
     graph = dev.type == "cuda" and cfg.cuda_graph
     opt, steps = _fit_setup(net, down, outlier, cfg, progress, capturable=graph)
     steps = iter(steps)
-    picks = torch.stack([torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen)
-                         for _ in range(cfg.steps)]).to(dev) if cfg.steps else None
+    picks_host = torch.stack([torch.randint(0, cfg.n_views, (cfg.jitters_per_step,), generator=gen)
+                              for _ in range(cfg.steps)]) if cfg.steps else None
+    picks = picks_host.to(dev) if cfg.steps else None
+    buffer = targets.buffer
     sy, sx = jitter_coords(params.double(), h, w)
     coord_y, coord_x = reflect_coords(sy, h).float(), reflect_coords(sx, w).float()
     losses = torch.empty(cfg.steps, device=dev)
@@ -224,7 +281,7 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
     network = torch.compile(net.forward_pixels, dynamic=False) if cfg.compile_network else net.forward_pixels
 
     def step() -> torch.Tensor:
-        loss = _step_loss(img, targets, idx, coord_y, coord_x, network, down, outlier, cfg)
+        loss = _step_loss(img, buffer, idx, coord_y, coord_x, network, down, outlier, cfg)
         loss.backward()
         opt.step()
         return loss.detach()
@@ -234,18 +291,22 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
         opt.zero_grad(set_to_none=True)
         losses[i] = step()
 
-    done = 0
-    if graph:
-        warm = min(3, cfg.steps)  # real steps, run on a side stream as graph capture requires
-        side = torch.cuda.Stream(dev)
-        side.wait_stream(torch.cuda.current_stream(dev))
-        with torch.cuda.stream(side):
-            for i in range(warm):
-                next(steps)
-                eager(i)
-        torch.cuda.current_stream(dev).wait_stream(side)
-        done = warm
-        if done < cfg.steps:
+    cuda_graph, static_loss, captured = None, None, False
+
+    def run(start: int, end: int) -> None:
+        nonlocal cuda_graph, static_loss, captured
+        i = start
+        if graph and not captured:
+            captured = True  # one try
+            warm = min(3, end - i)  # real steps, run on a side stream as graph capture requires
+            side = torch.cuda.Stream(dev)
+            side.wait_stream(torch.cuda.current_stream(dev))
+            with torch.cuda.stream(side):
+                for _ in range(warm):
+                    next(steps)
+                    eager(i)
+                    i += 1
+            torch.cuda.current_stream(dev).wait_stream(side)
             try:
                 cuda_graph = torch.cuda.CUDAGraph()
                 opt.zero_grad(set_to_none=True)
@@ -253,20 +314,42 @@ def fit_loop(img: torch.Tensor, targets: torch.Tensor, params: torch.Tensor, net
                     static_loss = step()
             except RuntimeError as exc:  # capture is best effort: the eager loop is the same step
                 logger.warning("FeatUp fit: CUDA graph capture failed (%s); running the steps eagerly", exc)
+                cuda_graph = None
+        for i in range(i, end):
+            next(steps)
+            if cuda_graph is not None:
+                idx.copy_(picks[i])
+                cuda_graph.replay()
+                losses[i] = static_loss
             else:
-                for i in range(done, cfg.steps):
-                    next(steps)
-                    idx.copy_(picks[i])
-                    cuda_graph.replay()
-                    losses[i] = static_loss
-                done = cfg.steps
-    for i in range(done, cfg.steps):
-        next(steps)
-        eager(i)
-    for _ in steps:  # closes the progress display
-        pass
+                eager(i)
+
+    stopping = cfg.stop_change > 0
+    chunk = cfg.check_every if stopping else max(cfg.steps, 1)
+    checks: list[tuple[int, float]] = []
+    previous = None
+    done = 0
+    while done < cfg.steps:
+        end = min(done + chunk, cfg.steps)
+        targets.ensure(picks_host[done:end])
+        run(done, end)
+        done = end
+        if stopping and done < cfg.steps and done + chunk >= cfg.min_steps:
+            current = fitted_directions(net, img, targets, cfg.precision)
+            if previous is not None:
+                change = 1.0 - float((current * previous).sum(0).mean())
+                checks.append((done, change))
+                if done >= cfg.min_steps and change < cfg.stop_change:
+                    logger.debug("FeatUp fit: map settled after %d steps (change %.2e)", done, change)
+                    break
+            previous = current
+    if hasattr(steps, "close"):
+        steps.close()
+    else:
+        for _ in steps:  # closes the progress display
+            pass
     net.eval()
-    return losses.tolist()
+    return losses[:done].tolist(), checks
 
 
 def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coord_y: torch.Tensor,
