@@ -78,3 +78,26 @@ def test_prepare_refuses_a_foreign_folder(tmp_path):
     r = _run("prepare", str(data), "--out", str(out))
     assert r.returncode == 2 and "holds no prepare.json" in r.stderr
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_features_alongside_the_reconstruction_give_the_same_maps(tmp_path):
+    """--alongside (the default on one GPU) runs `tiger features` in a second process while the
+    scene is reconstructed: the same feature files byte for byte as one stage after the other, the
+    stage recorded as run alongside, its output in features.log, and the wall clock in the table."""
+    data = _dataset(tmp_path / "data")
+    cfg = _tiny_models(tmp_path / "models")
+    outs = {}
+    for mode in ("--sequential", "--alongside"):
+        out = tmp_path / mode.strip("-")
+        r = _run("prepare", str(data), "--out", str(out), "--models", str(cfg), *TINY, mode)
+        assert r.returncode == 0, r.stderr[-3000:]
+        outs[mode] = (out, r)
+    seq, (alo, r) = outs["--sequential"][0], outs["--alongside"]
+    assert "features: running alongside the reconstruction" in r.stdout and "wall clock" in r.stdout
+    rec = json.loads((alo / "prepare.json").read_text())["stages"]["features"]
+    assert rec["done"] and rec["quality"]["alongside"] == "reconstruct" and rec["quality"]["maps"] == 6
+    assert (alo / "features.log").stat().st_size > 0 and not (seq / "features.log").exists()
+    files = sorted(p.relative_to(seq / "features") for p in (seq / "features" / "features").glob("*.pt"))
+    assert len(files) == 6
+    for f in files + [p.relative_to(seq / "features") for p in (seq / "features").glob("pca.*")]:
+        assert (seq / "features" / f).read_bytes() == (alo / "features" / f).read_bytes(), f

@@ -7,8 +7,11 @@ their own: the reconstruction from its checkpoint, the features image by image, 
 checkpoint), starts an unfinished stage afresh when its inputs changed, and refuses, naming the
 stage and the setting, when a finished stage's inputs changed (--force starts over). The capture
 (images and poses) and a ``--scene`` (some Gaussian in some view) are checked before anything is
-written. Under ``torchrun`` rank 0 runs every stage and the other ranks join the feature stage, each
-extracting its share of the images. `tiger query/edit/delete/render/view` take DIR for its scene.
+written. On one GPU the feature stage runs in a second process alongside the reconstruction (it
+needs only the images; the two share the GPU, which neither fills), its output in
+DIR/features.log; ``--sequential`` runs one stage after the other (the CPU's default). Under ``torchrun`` rank 0 runs
+every stage and the other ranks join the feature stage, each extracting its share of the images.
+`tiger query/edit/delete/render/view` take DIR for its scene.
 """
 from __future__ import annotations
 
@@ -16,15 +19,18 @@ import argparse
 import hashlib
 import json
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from .common import CliError, add_common, add_skip_missing, existing, open_dataset
+from .common import CliError, add_common, add_skip_missing, device_of, existing, open_dataset
 
 STATE = "prepare.json"
 SCENE = "scene_lang.ply"
 RECON, FEATURES = "recon", "features"
+FEATURES_LOG = "features.log"
 
 
 def add_parser(sub) -> None:
@@ -57,6 +63,13 @@ def add_parser(sub) -> None:
     p.add_argument("--no-sam", action="store_true", help="`tiger features --no-sam`")
     p.add_argument("--embed-steps", type=int, default=None, help="`tiger embed --steps`")
     p.add_argument("--init", choices=("lift", "random"), default=None, help="`tiger embed --init`")
+    order = p.add_mutually_exclusive_group()
+    order.add_argument("--alongside", dest="alongside", action="store_const", const=True, default=None,
+                       help="run the feature stage in a second process alongside the reconstruction "
+                            "(default on one GPU; its output goes to DIR/features.log)")
+    order.add_argument("--sequential", dest="alongside", action="store_const", const=False,
+                       help="run the feature stage after the reconstruction (default on the CPU; always "
+                            "under torchrun, where the ranks share the feature stage)")
     p.set_defaults(func=run)
 
 
@@ -120,31 +133,42 @@ def _changed(old: dict[str, Any], inputs: dict[str, Any]) -> str:
     return ", ".join(f"{k}: {old.get(k)!r} -> {inputs.get(k)!r}" for k in keys)
 
 
-def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], work: Callable[[], dict],
-               reset: Callable[[dict], None], total: int = 3) -> None:
-    """Run stage ``name`` unless it finished with the same inputs. A finished stage with other inputs
-    is refused (its output may be what the user wants to keep); an unfinished one with other inputs
-    (e.g. a wrong option that made it fail) is started afresh: ``reset(old_inputs)`` removes what of its
-    partial output the new inputs cannot reuse."""
+def _begin_stage(state: _State, name: str, index: int, inputs: dict[str, Any], reset: Callable[[dict], None],
+                 total: int = 3, note: str = "") -> bool:
+    """Whether stage ``name`` is to run. A finished stage with the same inputs is skipped; one with
+    other inputs is refused (its output may be what the user wants to keep); an unfinished one with
+    other inputs (e.g. a wrong option that made it fail) is started afresh: ``reset(old_inputs)``
+    removes what of its partial output the new inputs cannot reuse."""
     record = state.stage(name)
     old = record.get("inputs")
     changed = _changed(old, inputs) if old is not None else ""
     if record.get("done"):
         _refuse_changed(name, record, inputs)
         print(f"[{index}/{total}] {name}: done before ({record.get('seconds', 0):.1f} s), inputs unchanged")
-        return
+        return False
     if changed:
         print(f"[{index}/{total}] {name}: unfinished run had other inputs ({changed}); starting it afresh")
         reset(old)
         record.clear()
     verb = "continuing" if record.get("inputs") else "running"
-    print(f"[{index}/{total}] {name}: {verb}", flush=True)
+    print(f"[{index}/{total}] {name}: {verb}{note}", flush=True)
     record["inputs"] = inputs
     state.save()
-    t0 = time.perf_counter()
-    quality = work()
-    record.update(done=True, seconds=record.get("seconds", 0.0) + time.perf_counter() - t0, quality=quality)
+    return True
+
+
+def _finish_stage(state: _State, name: str, started: float, quality: dict) -> None:
+    record = state.stage(name)
+    record.update(done=True, seconds=record.get("seconds", 0.0) + time.perf_counter() - started, quality=quality)
     state.save()
+
+
+def _run_stage(state: _State, name: str, index: int, inputs: dict[str, Any], work: Callable[[], dict],
+               reset: Callable[[dict], None], total: int = 3) -> None:
+    """Run stage ``name`` unless it finished with the same inputs (:func:`_begin_stage`)."""
+    if _begin_stage(state, name, index, inputs, reset, total):
+        t0 = time.perf_counter()
+        _finish_stage(state, name, t0, work())
 
 
 def _invoke(argv: list[str]) -> None:
@@ -170,7 +194,12 @@ def _table(state: _State) -> list[str]:
         q = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                       for k, v in (rec.get("quality") or {}).items() if not isinstance(v, str) or len(v) < 24)
         rows.append((name, f"{rec.get('seconds', 0.0):.1f}", q))
-    rows.append(("total", f"{total:.1f}", ""))
+    wall = (state.data.get("result") or {}).get("seconds_this_run")
+    overlap = any((state.data["stages"].get(n) or {}).get("quality", {}).get("alongside") for n in ("features",))
+    rows.append(("total", f"{total:.1f}", "sum of the stages" if overlap else ""))
+    if wall is not None:
+        rows.append(("wall clock", f"{float(wall):.1f}", "this run, start to end" + (
+            " (features ran alongside the reconstruction)" if overlap else "")))
     w0, w1 = max(len(r[0]) for r in rows), max(len(r[1]) for r in rows)
     return [f"  {a:<{w0}}  {b:>{w1}}  {c}".rstrip() for a, b, c in rows]
 
@@ -206,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
         if features_argv:
             _invoke(features_argv)
         return 0
-    ctx = {}
+    ctx: dict[str, Any] = {"world": world}
     features_argv = on_first_rank(world, rank, lambda: _scene_stage(args, ctx))
     return _features_and_embed(args, ctx, features_argv)
 
@@ -227,14 +256,91 @@ def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
     if args.force:
         for sub in (RECON, FEATURES):
             shutil.rmtree(out / sub, ignore_errors=True)
-        for f in (SCENE, SCENE + ".ckpt.pt", STATE):
+        for f in (SCENE, SCENE + ".ckpt.pt", STATE, FEATURES_LOG):
             (out / f).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     state = _State(out, args.force)
     common = _flag_args({"--device": args.device, "--skip-missing": args.skip_missing})
     t_start = time.perf_counter()
 
-    # 1. the scene
+    # 2. the feature maps (they need only the images): decided here, so that under torchrun every
+    # rank knows whether it runs; on one GPU started now, alongside stage 1
+    feats = out / FEATURES
+    f_inputs = {"data": str(data), "models": args.models, "upsampler": args.upsampler,
+                "long_side": args.long_side, "clip_long_side": args.clip_long_side, "pca_dim": args.pca_dim,
+                "no_sam": args.no_sam, "skip_missing": args.skip_missing}
+    features_argv = ["features", str(data), "--out", str(feats), *common,
+                     *_flag_args({"--models": args.models, "--upsampler": args.upsampler,
+                                  "--long-side": args.long_side, "--clip-long-side": args.clip_long_side,
+                                  "--pca-dim": args.pca_dim, "--no-sam": args.no_sam})]
+    ctx.update(data=data, out=out, state=state, common=common, t_start=t_start, feats=feats, f_inputs=f_inputs)
+    if state.stage("features").get("done"):
+        _refuse_changed("features", state.stage("features"), f_inputs)
+    elif ctx["world"] == 1 and (args.alongside if args.alongside is not None
+                                else device_of(args.device).type == "cuda"):
+        _start_features_alongside(ctx, features_argv)
+    try:
+        _reconstruct_stage(args, ctx, data, out, state, common)
+    except BaseException:
+        _stop_features(ctx)
+        raise
+    return None if state.stage("features").get("done") else features_argv
+
+
+def _start_features_alongside(ctx: dict, features_argv: list[str]) -> None:
+    """Start `tiger features` in a second process (its output in DIR/features.log)."""
+    out, state = ctx["out"], ctx["state"]
+    log_path = out / FEATURES_LOG
+    note = f" alongside the reconstruction (a second process; log: {log_path})"
+    if not _begin_stage(state, "features", 2, ctx["f_inputs"], lambda old: _reset_features(ctx, old), note=note):
+        return
+    log = open(log_path, "ab")
+    proc = subprocess.Popen([sys.executable, "-m", "tiger.cli.main", *features_argv], stdout=log,
+                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    log.close()  # the child holds its own descriptor
+    ctx["features_proc"] = (proc, time.perf_counter())
+
+
+def _stop_features(ctx: dict) -> None:
+    """Stop a feature stage running alongside (prepare failed or was interrupted); a re-run resumes it."""
+    run = ctx.pop("features_proc", None)
+    if run is not None and run[0].poll() is None:
+        run[0].terminate()
+        try:
+            run[0].wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            run[0].kill()
+
+
+def _wait_features(ctx: dict) -> None:
+    """Wait for the feature stage started alongside and record it; its failure stops prepare with
+    the last lines of its log."""
+    proc, started = ctx.pop("features_proc")
+    print("[2/3] features: waiting for the process started alongside the reconstruction", flush=True)
+    try:
+        code = proc.wait()
+    except BaseException:
+        ctx["features_proc"] = (proc, started)
+        _stop_features(ctx)
+        raise
+    log_path = ctx["out"] / FEATURES_LOG
+    if code != 0:
+        tail = log_path.read_text(errors="replace").strip().splitlines()[-3:] if log_path.is_file() else []
+        raise CliError(f"`tiger features` stopped with exit code {code} (log: {log_path}): " + " | ".join(tail))
+    _finish_stage(ctx["state"], "features", started, {"maps": len(list((ctx["feats"] / "features").glob("*.pt"))),
+                                                      "alongside": "reconstruct"})
+
+
+def _reset_features(ctx: dict, old: dict) -> None:
+    # The per-image cache is keyed by the feature settings (a new PCA size reuses it), not by
+    # the models or the images: those start it afresh.
+    if any(old.get(k) != ctx["f_inputs"][k] for k in ("data", "models", "skip_missing")):
+        shutil.rmtree(ctx["feats"], ignore_errors=True)
+
+
+def _reconstruct_stage(args: argparse.Namespace, ctx: dict, data: Path, out: Path, state: _State,
+                       common: list[str]) -> None:
+    """Stage 1: the scene (reconstructed, or given by --scene); sets ``ctx["scene_file"]``."""
     recon = out / RECON
     if args.scene:
         given = existing(args.scene, "scene file").resolve()
@@ -264,23 +370,7 @@ def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
             return q
 
         _run_stage(state, "reconstruct", 1, inputs, reconstruct, lambda old: shutil.rmtree(recon, ignore_errors=True))
-
-    # 2. the feature maps: decided here, so that under torchrun every rank knows whether it runs
-    feats = out / FEATURES
-    f_inputs = {"data": str(data), "models": args.models, "upsampler": args.upsampler,
-                "long_side": args.long_side, "clip_long_side": args.clip_long_side, "pca_dim": args.pca_dim,
-                "no_sam": args.no_sam, "skip_missing": args.skip_missing}
-    features_argv = ["features", str(data), "--out", str(feats), *common,
-                     *_flag_args({"--models": args.models, "--upsampler": args.upsampler,
-                                  "--long-side": args.long_side, "--clip-long-side": args.clip_long_side,
-                                  "--pca-dim": args.pca_dim, "--no-sam": args.no_sam})]
-    ctx.update(data=data, out=out, state=state, common=common, t_start=t_start, scene_file=scene_file,
-               feats=feats, f_inputs=f_inputs)
-    record = state.stage("features")
-    if record.get("done"):
-        _refuse_changed("features", record, f_inputs)
-        return None
-    return features_argv
+    ctx["scene_file"] = scene_file
 
 
 def _refuse_changed(name: str, record: dict, inputs: dict) -> None:
@@ -298,13 +388,10 @@ def _features_and_embed(args: argparse.Namespace, ctx: dict, features_argv: Opti
         _invoke(features_argv)
         return {"maps": len(list((feats / "features").glob("*.pt")))}
 
-    def reset_features(old: dict) -> None:
-        # The per-image cache is keyed by the feature settings (a new PCA size reuses it), not by
-        # the models or the images: those start it afresh.
-        if any(old.get(k) != f_inputs[k] for k in ("data", "models", "skip_missing")):
-            shutil.rmtree(feats, ignore_errors=True)
-
-    _run_stage(state, "features", 2, f_inputs, features, reset_features)
+    if "features_proc" in ctx:
+        _wait_features(ctx)
+    else:
+        _run_stage(state, "features", 2, f_inputs, features, lambda old: _reset_features(ctx, old))
 
     # 3. the language field
     lang = out / SCENE
