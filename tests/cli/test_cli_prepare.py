@@ -96,6 +96,7 @@ def test_features_alongside_the_reconstruction_give_the_same_maps(tmp_path):
     assert "features: running alongside the reconstruction" in r.stdout and "wall clock" in r.stdout
     rec = json.loads((alo / "prepare.json").read_text())["stages"]["features"]
     assert rec["done"] and rec["quality"]["alongside"] == "reconstruct" and rec["quality"]["maps"] == 6
+    assert list(json.loads((alo / "prepare.json").read_text())["stages"]) == ["reconstruct", "features", "embed"]
     assert (alo / "features.log").stat().st_size > 0 and not (seq / "features.log").exists()
     files = sorted(p.relative_to(seq / "features") for p in (seq / "features" / "features").glob("*.pt"))
     assert len(files) == 6

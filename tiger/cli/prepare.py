@@ -118,7 +118,12 @@ class _State:
                 raise CliError(f"{self.path} is not valid JSON ({e}); pass --force to start over") from None
 
     def stage(self, name: str) -> dict[str, Any]:
-        return self.data["stages"].setdefault(name, {})
+        stages = self.data["stages"]
+        if name not in stages:  # kept in pipeline order, whichever stage starts first
+            stages[name] = {}
+            order = ("reconstruct", "features", "embed")
+            self.data["stages"] = dict(sorted(stages.items(), key=lambda kv: order.index(kv[0])))
+        return self.data["stages"][name]
 
     def save(self) -> None:
         from tiger.utils.io import atomic_write
@@ -274,8 +279,9 @@ def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
                                   "--long-side": args.long_side, "--clip-long-side": args.clip_long_side,
                                   "--pca-dim": args.pca_dim, "--no-sam": args.no_sam})]
     ctx.update(data=data, out=out, state=state, common=common, t_start=t_start, feats=feats, f_inputs=f_inputs)
-    if state.stage("features").get("done"):
-        _refuse_changed("features", state.stage("features"), f_inputs)
+    finished = state.data["stages"].get("features", {})  # read only: the record's order is the stages'
+    if finished.get("done"):
+        _refuse_changed("features", finished, f_inputs)
     elif ctx["world"] == 1 and (args.alongside if args.alongside is not None
                                 else device_of(args.device).type == "cuda"):
         _start_features_alongside(ctx, features_argv)
@@ -284,7 +290,7 @@ def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
     except BaseException:
         _stop_features(ctx)
         raise
-    return None if state.stage("features").get("done") else features_argv
+    return None if state.data["stages"].get("features", {}).get("done") else features_argv
 
 
 def _start_features_alongside(ctx: dict, features_argv: list[str]) -> None:
