@@ -1,4 +1,4 @@
-// Schemas of the featup family (formula in featup.h).
+// Schemas of the featup family (formulas in featup.h and fourier.h).
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
@@ -9,4 +9,11 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "jittered_window_attention_backward(Tensor grad_out, Tensor features, Tensor logit_map, "
       "Tensor coord_y, Tensor coord_x, Tensor w, Tensor b, Tensor mask, Tensor attn, int stride_h, "
       "int stride_w) -> (Tensor, Tensor, Tensor, Tensor)");
+  m.def(
+      "fourier_layer_norm(Tensor inputs, Tensor freqs, Tensor phase, Tensor weight, Tensor bias, "
+      "Tensor? scale, float eps, ScalarType? out_dtype) -> (Tensor, Tensor, Tensor)");
+  m.def(
+      "fourier_layer_norm_backward(Tensor grad_out, Tensor inputs, Tensor freqs, Tensor phase, "
+      "Tensor weight, Tensor? scale, Tensor mean, Tensor rstd, bool input_grad) "
+      "-> (Tensor, Tensor, Tensor, Tensor)");
 }

@@ -140,21 +140,32 @@ class FourierFeaturizer(nn.Module):
             [torch.sin(feats + sin_b).reshape(b, n, h, w), torch.cos(feats + cos_b).reshape(b, n, h, w), image], dim=1
         )
 
-    def pixels(self, image: torch.Tensor) -> torch.Tensor:
-        """``forward`` with channels last: [B, 3, H, W] -> [B, H, W, out_dim], same channel order."""
+    def frequencies(self, device: torch.device | str, dtype: torch.dtype) -> torch.Tensor:
+        """The ``n_freqs`` frequencies exp(linspace(-2, 10)) [F] (radians per unit of input)."""
+        return torch.exp(torch.linspace(-2, 10, self.n_freqs, device=device, dtype=dtype))
+
+    @staticmethod
+    def pixel_inputs(image: torch.Tensor) -> torch.Tensor:
+        """The five inputs of every pixel, (y, x, r, g, b) [B, H, W, 5]: the coordinates in
+        [-1, 1] (top-left -1) and the colour of ``image`` [B, 3, H, W]."""
         b, _, h, w = image.shape
         gy = torch.linspace(-1, 1, h, device=image.device, dtype=image.dtype)
         gx = torch.linspace(-1, 1, w, device=image.device, dtype=image.dtype)
         yy, xx = torch.meshgrid(gy, gx, indexing="ij")
         colour = image.permute(0, 2, 3, 1)
-        feats = torch.cat([torch.stack([yy, xx], -1).expand(b, h, w, 2), colour], -1)  # [B, H, W, 5]
-        freqs = torch.exp(torch.linspace(-2, 10, self.n_freqs, device=image.device, dtype=image.dtype))
-        feats = feats.unsqueeze(-2) * freqs.view(self.n_freqs, 1)  # [B, H, W, F, 5]
+        return torch.cat([torch.stack([yy, xx], -1).expand(b, h, w, 2), colour], -1)
+
+    def pixels(self, image: torch.Tensor) -> torch.Tensor:
+        """``forward`` with channels last: [B, 3, H, W] -> [B, H, W, out_dim], same channel order."""
+        b, _, h, w = image.shape
+        inputs = self.pixel_inputs(image)  # [B, H, W, 5]
+        freqs = self.frequencies(image.device, image.dtype)
+        feats = inputs.unsqueeze(-2) * freqs.view(self.n_freqs, 1)  # [B, H, W, F, 5]
         n = self.n_freqs * self.dims
         sin_b = self.biases[0].reshape(self.n_freqs, self.dims)
         cos_b = self.biases[1].reshape(self.n_freqs, self.dims)
         return torch.cat([torch.sin(feats + sin_b).reshape(b, h, w, n), torch.cos(feats + cos_b).reshape(b, h, w, n),
-                          colour], -1)
+                          inputs[..., 2:]], -1)
 
 
 class _ChannelNorm(nn.Module):
@@ -173,13 +184,35 @@ def _min_max(x: torch.Tensor) -> torch.Tensor:
     return (x - lo) / scale - 0.5
 
 
+def _dropout_keep(p: float, shape: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+    """Channel dropout's multiplier of ``shape``: Bernoulli(1 - p) / (1 - p), drawn in ``like``'s
+    dtype from its device's generator."""
+    return like.new_empty(shape).bernoulli_(1 - p).div_(1 - p)
+
+
+def fused_features_available(device: torch.device) -> bool:
+    """Whether ``tiger::fourier_layer_norm`` has a kernel for ``device`` (CPU always; CUDA when
+    the compiled core has its CUDA kernels)."""
+    if device.type == "cpu":
+        return True
+    from tiger.ops import cuda_enabled
+
+    return device.type == "cuda" and cuda_enabled()
+
+
 class ImplicitNet(nn.Module):
-    """FeatUp's implicit network: min-max scaled image -> Fourier features -> 3 1x1 convs."""
+    """FeatUp's implicit network: min-max scaled image -> Fourier features -> 3 1x1 convs.
+
+    ``fused``: :meth:`forward_pixels` computes the Fourier features, the first LayerNorm and the
+    first channel dropout in one op (``tiger::fourier_layer_norm``) where the device has its
+    kernel, else (and with ``fused=False``) as the PyTorch composition of :meth:`forward`.
+    """
 
     def __init__(self, out_dim: int, n_freqs: int = 30, generator: torch.Generator | None = None,
-                 dropout: float = 0.2) -> None:
+                 dropout: float = 0.2, fused: bool = True) -> None:
         super().__init__()
         self.fourier = FourierFeaturizer(n_freqs, generator)
+        self.fused = fused
         d = self.fourier.out_dim
         self.net = nn.Sequential(
             _ChannelNorm(d), nn.Dropout2d(dropout), nn.Conv2d(d, out_dim, 1), nn.ReLU(), nn.Dropout2d(dropout),
@@ -192,20 +225,47 @@ class ImplicitNet(nn.Module):
     def forward_pixels(self, image: torch.Tensor) -> torch.Tensor:
         """``forward`` computed channels last, as a per-pixel MLP (LayerNorm over the contiguous
         last dimension, 1x1 convolutions as ``F.linear``, channel dropout as one mask per image
-        and channel): no permuted copies. Returns [B, out_dim, H, W] (a channels-last view)."""
-        x = self.fourier.pixels(_min_max(image))
-        for layer in self.net:
+        and channel): no permuted copies. Returns [B, out_dim, H, W] (a channels-last view).
+
+        With ``fused`` (and a kernel for the device), the Fourier features, the first LayerNorm
+        and the first dropout are one op that writes its C channels once, in the autocast dtype
+        when autocast is on (bf16 on CUDA in the fast fit), and recomputes the features in the
+        backward; the dropout masks are drawn in the same order, so a seeded fit draws the same
+        masks either way."""
+        scaled = _min_max(image)
+        if self.fused and fused_features_available(image.device):
+            x, rest = self._fused_input_layers(scaled), list(self.net)[2:]
+        else:
+            x, rest = self.fourier.pixels(scaled), list(self.net)
+        for layer in rest:
             if isinstance(layer, _ChannelNorm):
                 x = layer.norm(x)
             elif isinstance(layer, nn.Conv2d):
                 x = F.linear(x, layer.weight.flatten(1), layer.bias)
             elif isinstance(layer, nn.Dropout2d):
                 if self.training and layer.p > 0:
-                    keep = x.new_empty(x.shape[0], 1, 1, x.shape[-1]).bernoulli_(1 - layer.p)
-                    x = x * keep.div_(1 - layer.p)
+                    x = x * _dropout_keep(layer.p, (x.shape[0], 1, 1, x.shape[-1]), x)
             else:
                 x = layer(x)
         return x.permute(0, 3, 1, 2)
+
+    def _fused_input_layers(self, scaled: torch.Tensor) -> torch.Tensor:
+        """Fourier features, LayerNorm and channel dropout of the min-max scaled image [B, 3, H, W]
+        through ``tiger::fourier_layer_norm``: [B, H, W, C]."""
+        from tiger.ops.featup import fourier_layer_norm
+
+        b, _, h, w = scaled.shape
+        norm, drop = self.net[0].norm, self.net[1]
+        c = self.fourier.out_dim
+        inputs = self.fourier.pixel_inputs(scaled).reshape(b, h * w, 5)
+        scale = None
+        if self.training and drop.p > 0:
+            scale = _dropout_keep(drop.p, (b, c), scaled)
+        dev = scaled.device.type
+        out_dtype = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else None
+        x = fourier_layer_norm(inputs, self.fourier.frequencies(scaled.device, scaled.dtype), self.fourier.biases,
+                               norm.weight, norm.bias, scale, norm.eps, out_dtype)
+        return x.view(b, h, w, c)
 
 
 class AttentionDownsampler(nn.Module):
@@ -301,6 +361,10 @@ class ImplicitConfig:
     replays its step (forward, backward, NAdam) from one CUDA graph. ``compile_network``: the
     fast fit runs the network through ``torch.compile`` (fuses the Fourier features, LayerNorm,
     dropout and casts, the memory-bound part of the step; costs a compilation per process).
+    ``fused_network``: the fast fit's network computes its Fourier features, first LayerNorm and
+    first channel dropout in one op (``tiger::fourier_layer_norm``, where the device has its
+    kernel; see :class:`ImplicitNet`), writing the network's widest activation once in the
+    autocast dtype and recomputing it in the backward.
 
     ``steps`` is the most the fit runs (FeatUp's 1200). The fast fit stops earlier once the
     fitted map stops changing: every ``check_every`` steps (from ``min_steps`` on) it evaluates
@@ -331,6 +395,7 @@ class ImplicitConfig:
     channel_norm: bool = False
     dropout: float = 0.2
     featurize_batch: int = 64
+    fused_network: bool = True
     seed: int = 0
     method: str = "fast"
     precision: str = "bf16"
@@ -433,7 +498,7 @@ class ImplicitUpsampler:
                 targets = _project(views, mean, basis)  # [N, k, fh, fw]
                 k = basis.shape[1]
                 del views
-        net = ImplicitNet(k, cfg.n_freqs, gen, cfg.dropout).to(dev)
+        net = ImplicitNet(k, cfg.n_freqs, gen, cfg.dropout, fused=cfg.fused_network).to(dev)
         down = AttentionDownsampler(k + 1, cfg.kernel_size, gen, cfg.dropout).to(dev)
         outlier = nn.Conv2d(k, 1, 1).to(dev)
         with torch.no_grad():

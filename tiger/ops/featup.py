@@ -1,11 +1,17 @@
-"""``tiger::jittered_window_attention`` (FeatUp's attention downsampler over jittered copies of
-one feature map, without materialising the copies): fake kernels, autograd and the Python entry
-point. Formula in ``csrc/featup/featup.h``."""
+"""The featup op family: ``tiger::jittered_window_attention`` (FeatUp's attention downsampler
+over jittered copies of one feature map, without materialising the copies) and
+``tiger::fourier_layer_norm`` (the implicit network's Fourier features, LayerNorm and channel
+dropout in one pass): fake kernels, autograd and the Python entry points. Formulas in
+``csrc/featup/featup.h`` and ``csrc/featup/fourier.h``."""
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 
-__all__ = ["jittered_window_attention"]
+from ._eager_autograd import eager_autograd
+
+__all__ = ["jittered_window_attention", "fourier_layer_norm"]
 
 
 @torch.library.register_fake("tiger::jittered_window_attention")
@@ -66,3 +72,70 @@ def jittered_window_attention(features: torch.Tensor, logit_map: torch.Tensor, c
     """
     return torch.ops.tiger.jittered_window_attention(features, logit_map, coord_y, coord_x, w, b, mask,
                                                      int(stride[0]), int(stride[1]))
+
+
+# ----------------------------------------------------------------------------- fourier_layer_norm
+@torch.library.register_fake("tiger::fourier_layer_norm")
+def _fourier_fake(inputs, freqs, phase, weight, bias, scale, eps, out_dtype):
+    torch._check(inputs.dim() == 3 and inputs.shape[2] == 5, lambda: f"inputs must be [B, N, 5], got {tuple(inputs.shape)}")
+    torch._check(freqs.dim() == 1, lambda: f"freqs must be [F], got {tuple(freqs.shape)}")
+    b, n, _ = inputs.shape
+    c = 10 * freqs.shape[0] + 3
+    out = inputs.new_empty((b, n, c), dtype=out_dtype if out_dtype is not None else inputs.dtype)
+    return out, inputs.new_empty((b, n)), inputs.new_empty((b, n))
+
+
+@torch.library.register_fake("tiger::fourier_layer_norm_backward")
+def _fourier_fake_backward(grad_out, inputs, freqs, phase, weight, scale, mean, rstd, input_grad):
+    grad_inputs = inputs.new_empty(inputs.shape) if input_grad else inputs.new_empty((0,))
+    return grad_inputs, phase.new_empty(phase.shape), weight.new_empty(weight.shape), weight.new_empty(weight.shape)
+
+
+def _fourier_setup_context(ctx, inputs, output):
+    inp, freqs, phase, weight, _bias, scale, _eps, _out_dtype = inputs
+    _, mean, rstd = output
+    ctx.save_for_backward(inp, freqs, phase, weight, scale, mean, rstd)
+    ctx.mark_non_differentiable(mean, rstd)
+
+
+def _fourier_backward(ctx, grad_out, _grad_mean, _grad_rstd):
+    inp, freqs, phase, weight, scale, mean, rstd = ctx.saved_tensors
+    needs = ctx.needs_input_grad
+    if grad_out is None or not (needs[0] or needs[2] or needs[3] or needs[4]):
+        return (None,) * 8
+    gi, gp, gw, gb = torch.ops.tiger.fourier_layer_norm_backward(
+        grad_out.contiguous(), inp, freqs, phase, weight, scale, mean, rstd, bool(needs[0]))
+    return (gi if needs[0] else None, None, gp if needs[2] else None, gw if needs[3] else None,
+            gb if needs[4] else None, None, None, None)
+
+
+torch.library.register_autograd("tiger::fourier_layer_norm", _fourier_backward,
+                                setup_context=_fourier_setup_context)
+_fourier_eager = eager_autograd(torch.ops.tiger.fourier_layer_norm, _fourier_setup_context, _fourier_backward)
+
+
+def fourier_layer_norm(inputs: torch.Tensor, freqs: torch.Tensor, phase: torch.Tensor, weight: torch.Tensor,
+                       bias: torch.Tensor, scale: Optional[torch.Tensor] = None, eps: float = 1e-5,
+                       out_dtype: Optional[torch.dtype] = None) -> torch.Tensor:
+    """FeatUp's Fourier features of each pixel's (y, x, r, g, b), their LayerNorm and a per-image,
+    per-channel multiplier, in one pass (``tiger::fourier_layer_norm``; formula in
+    ``csrc/featup/fourier.h``). The backward recomputes the features from ``inputs``.
+
+    Args:
+        inputs: [B, N, 5] float32/float64, per pixel (y, x, r, g, b).
+        freqs: [F] the frequencies (not differentiable).
+        phase: [2, 5, F] learned phase biases, read as FeatUp reads them: channel c (< 10F) of the
+            output adds ``phase.flatten()[c]``; sin channels first (c < 5F, c = 5 f + d), then cos.
+        weight, bias: [C] the LayerNorm's affine, C = 10F + 3.
+        scale: [B, C] multiplier per image and channel applied after the LayerNorm (the channel
+            dropout's mask divided by the keep rate), or None; not differentiable.
+        eps: added to the biased variance over the C channels.
+        out_dtype: the output's dtype: None (the inputs'), torch.bfloat16 or torch.float16.
+
+    Returns:
+        [B, N, C]: channels (sin, cos of ``inputs[d] * freqs[f] + phase``, then r, g, b),
+        LayerNormed over C, times ``scale``. Differentiable in inputs, phase, weight and bias.
+    """
+    if freqs.requires_grad or (scale is not None and scale.requires_grad):
+        raise ValueError("tiger.fourier_layer_norm: freqs and scale are not differentiable; pass them detached")
+    return _fourier_eager(inputs, freqs, phase, weight, bias, scale, float(eps), out_dtype)[0]
