@@ -124,6 +124,9 @@ def main() -> None:
     ap.add_argument("--compile", action="store_true",
                     help="also time the fast fit with the network through torch.compile (compiled in the warm-up)")
     ap.add_argument("--no-fp32", action="store_true", help="skip the fast fit in float32")
+    ap.add_argument("--composition", action="store_true",
+                    help="also time the fast fit with the network's input layers as the PyTorch composition "
+                         "(ImplicitConfig.fused_network=False; the default fuses them)")
     ap.add_argument("--profile", action="store_true",
                     help="print a profile of 20 fast steps (64 views), run eagerly (no CUDA graph) so that the "
                          "table names each op")
@@ -160,6 +163,9 @@ def main() -> None:
     if args.compile:
         runs.append(("fast bf16 compiled", dataclasses.replace(base, method="fast", precision="bf16",
                                                                compile_network=True)))
+    if args.composition:
+        runs.append(("fast bf16 composition", dataclasses.replace(base, method="fast", precision="bf16",
+                                                                  fused_network=False)))
     if args.eager and cuda:
         runs.append(("fast bf16 eager", dataclasses.replace(base, method="fast", precision="bf16", cuda_graph=False)))
     runs.append(("fast bf16 seed 1", dataclasses.replace(base, method="fast", precision="bf16", seed=1)))

@@ -93,7 +93,7 @@ __global__ void __launch_bounds__(kThreads) fourier_forward_kernel(const T* __re
                                                                   const T* phase, const T* weight, const T* bias,
                                                                   const T* __restrict__ scale, FourierDims d, T eps,
                                                                   O* __restrict__ out, T* mean, T* rstd) {
-  extern __shared__ unsigned char smem_raw[];
+  extern __shared__ __align__(16) unsigned char smem_raw[];
   const SharedParams<T> s = stage_params(reinterpret_cast<T*>(smem_raw), freqs, phase, weight, bias, d);
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, C = static_cast<int>(d.C), F = static_cast<int>(d.F);
   const int64_t P = d.B * d.N;
@@ -145,10 +145,10 @@ __global__ void __launch_bounds__(kThreads, 2) fourier_backward_kernel(
     const O* __restrict__ grad, const T* __restrict__ in, const T* freqs, const T* phase, const T* weight,
     const T* __restrict__ scale, const T* __restrict__ mean, const T* __restrict__ rstd, FourierDims d,
     T* __restrict__ grad_in, T* __restrict__ partials) {
-  extern __shared__ unsigned char smem_raw[];
+  extern __shared__ __align__(16) unsigned char smem_raw[];
   T* smem = reinterpret_cast<T*>(smem_raw);
   const SharedParams<T> s = stage_params<T>(smem, freqs, phase, weight, nullptr, d);
-  T* red = smem + 4 * d.C;  // [kWarps, 3C]: each warp's sums, combined in warp order
+  T* red = smem + 4 * d.C;  // [3C]: the block's sums
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, C = static_cast<int>(d.C), F = static_cast<int>(d.F);
   const int64_t P = d.B * d.N;
   T acc_phase[K], acc_w[K], acc_b[K];
@@ -207,21 +207,22 @@ __global__ void __launch_bounds__(kThreads, 2) fourier_backward_kernel(
       }
     }
   }
+  // the warps' sums added in warp order (one [3C] buffer: 7C values of shared memory in all)
+  for (int w = 0; w < kWarps; ++w) {
+    if (warp == w) {
 #pragma unroll
-  for (int k = 0; k < K; ++k) {
-    const int c = lane + 32 * k;
-    if (c < C) {
-      red[warp * 3 * C + c] = acc_phase[k];
-      red[warp * 3 * C + C + c] = acc_w[k];
-      red[warp * 3 * C + 2 * C + c] = acc_b[k];
+      for (int k = 0; k < K; ++k) {
+        const int c = lane + 32 * k;
+        if (c < C) {
+          red[c] = w == 0 ? acc_phase[k] : red[c] + acc_phase[k];
+          red[C + c] = w == 0 ? acc_w[k] : red[C + c] + acc_w[k];
+          red[2 * C + c] = w == 0 ? acc_b[k] : red[2 * C + c] + acc_b[k];
+        }
+      }
     }
+    __syncthreads();
   }
-  __syncthreads();
-  for (int j = threadIdx.x; j < 3 * C; j += blockDim.x) {
-    T total = 0;
-    for (int w = 0; w < kWarps; ++w) total += red[w * 3 * C + j];
-    partials[int64_t(blockIdx.x) * 3 * C + j] = total;
-  }
+  for (int j = threadIdx.x; j < 3 * C; j += blockDim.x) partials[int64_t(blockIdx.x) * 3 * C + j] = red[j];
 }
 
 // grad_phase / grad_weight / grad_bias: the partial rows summed in block order.
@@ -277,7 +278,7 @@ void launch_fourier_backward(const O* grad_out, const T* inputs, const T* freqs,
                              const T* scale, const T* mean, const T* rstd, FourierDims d, T* grad_inputs,
                              T* partials, int blocks, T* grad_phase, T* grad_weight, T* grad_bias, void* stream) {
   auto st = static_cast<cudaStream_t>(stream);
-  const size_t smem = (4 * d.C + kWarps * 3 * d.C) * sizeof(T);
+  const size_t smem = 7 * d.C * sizeof(T);  // <= 28 KiB (C <= 512, double)
   if (d.C <= 32 * 10) {
     fourier_backward_kernel<T, O, 10><<<blocks, kThreads, smem, st>>>(grad_out, inputs, freqs, phase, weight, scale,
                                                                       mean, rstd, d, grad_inputs, partials);
