@@ -1,4 +1,4 @@
-// Schemas of the featup family (formulas in featup.h and fourier.h).
+// Schemas of the featup family (formulas in featup.h, fourier.h and relu_norm.h).
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
@@ -16,4 +16,10 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "fourier_layer_norm_backward(Tensor grad_out, Tensor inputs, Tensor freqs, Tensor phase, "
       "Tensor weight, Tensor? scale, Tensor mean, Tensor rstd, bool input_grad) "
       "-> (Tensor, Tensor, Tensor, Tensor)");
+  m.def(
+      "relu_scale_layer_norm(Tensor x, Tensor? scale, Tensor weight, Tensor bias, float eps) "
+      "-> (Tensor, Tensor, Tensor)");
+  m.def(
+      "relu_scale_layer_norm_backward(Tensor grad_out, Tensor x, Tensor? scale, Tensor weight, Tensor mean, "
+      "Tensor rstd) -> (Tensor, Tensor, Tensor)");
 }

@@ -1,7 +1,8 @@
-"""``tiger::fourier_layer_norm`` (csrc/featup/fourier*) against the PyTorch composition it
-replaces in the implicit network (``FourierFeaturizer.pixels``, LayerNorm, the channel dropout's
-multiplier) in float64 on the CPU, values and gradients; the fused network and the fast fit with
-it against the composition; and the CUDA kernels against the CPU kernels."""
+"""The implicit network's fused ops against the PyTorch composition they replace, in float64 on
+the CPU, values and gradients: ``tiger::fourier_layer_norm`` (csrc/featup/fourier*: Fourier
+features, LayerNorm, the channel dropout's multiplier) and ``tiger::relu_scale_layer_norm``
+(csrc/featup/relu_norm*: ReLU, the dropout's multiplier, LayerNorm); the fused network and the
+fast fit with it against the composition; and the CUDA kernels against the CPU kernels."""
 import dataclasses
 
 import pytest
@@ -10,7 +11,7 @@ import torch.nn.functional as F
 
 import tiger.ops
 from tiger.language.featup import FourierFeaturizer, ImplicitConfig, ImplicitNet, ImplicitUpsampler
-from tiger.ops.featup import fourier_layer_norm
+from tiger.ops.featup import fourier_layer_norm, relu_scale_layer_norm
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="needs CUDA")
@@ -138,6 +139,70 @@ def test_bad_inputs_name_the_tensor():
         fourier_layer_norm(inputs, freqs.clone().requires_grad_(), phase, weight, bias, s)
 
 
+# ----------------------------------------------------------------------------- relu_scale_layer_norm
+def norm_args(b=2, n=35, d=12, seed=0, dtype=F64, device="cpu", scale=True):
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(b, n, d, generator=gen, dtype=F64)
+    x[0, 0, :3] = 0.0  # ReLU's kink: no gradient there (as torch.relu)
+    pdt = F64 if dtype == F64 else torch.float32
+    weight = (1 + 0.3 * torch.randn(d, generator=gen, dtype=F64)).to(pdt)
+    bias = (0.2 * torch.randn(d, generator=gen, dtype=F64)).to(pdt)
+    s = ((torch.rand(b, d, generator=gen) > 0.2).to(F64) / 0.8).to(pdt) if scale else None
+    return [t.to(device) if t is not None else None for t in (x.to(dtype), weight, bias, s)]
+
+
+def norm_reference(x, weight, bias, scale, eps=1e-5):
+    z = torch.relu(x)
+    z = z * scale.unsqueeze(1) if scale is not None else z
+    return F.layer_norm(z, z.shape[-1:], weight, bias, eps)
+
+
+@pytest.mark.parametrize("scale", [True, False])
+@pytest.mark.parametrize("d", [1, 12, 128, 300])
+def test_relu_norm_equals_the_composition_in_float64(scale, d):
+    x, weight, bias, s = norm_args(d=d, scale=scale)
+    leaves = [t.clone().requires_grad_() for t in (x, weight, bias)]
+    ref = norm_reference(*leaves, s)
+    out = relu_scale_layer_norm(*leaves, s)
+    torch.testing.assert_close(out, ref, atol=1e-12, rtol=1e-12)
+    g = torch.randn(ref.shape, generator=torch.Generator().manual_seed(3), dtype=F64)
+    for name, a, b in zip(("x", "weight", "bias"), torch.autograd.grad((out * g).sum(), leaves),
+                          torch.autograd.grad((ref * g).sum(), leaves)):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10, msg=lambda m, n=name: f"grad {n}: {m}")
+
+
+def test_relu_norm_bf16_follows_the_float32_composition():
+    x, weight, bias, s = norm_args(n=64, d=128, dtype=torch.bfloat16)
+    out = relu_scale_layer_norm(x, weight, bias, s)
+    assert out.dtype == torch.bfloat16
+    torch.testing.assert_close(out.float(), norm_reference(x.float(), weight, bias, s), atol=3e-2, rtol=1e-2)
+
+
+def test_relu_norm_gradcheck_and_opcheck():
+    x, weight, bias, s = norm_args(b=2, n=5, d=6)
+    x = torch.where(x >= 0, x + 0.05, x - 0.05)  # away from the kink for finite differences
+    leaves = [t.clone().requires_grad_() for t in (x, weight, bias)]
+    assert torch.autograd.gradcheck(lambda *a: relu_scale_layer_norm(*a, s), tuple(leaves))
+    assert torch.autograd.gradcheck(lambda *a: relu_scale_layer_norm(*a, None), tuple(leaves))
+    op = torch.ops.tiger.relu_scale_layer_norm
+    torch.library.opcheck(op, (x, s, weight, bias, 1e-5))
+    torch.library.opcheck(op, (leaves[0], s, *leaves[1:], 1e-5))
+    xb, wb, bb, sb = norm_args(b=1, n=7, d=9, dtype=torch.bfloat16)
+    torch.library.opcheck(op, (xb.requires_grad_(), None, wb.requires_grad_(), bb, 1e-5))
+
+
+def test_relu_norm_bad_inputs_name_the_tensor():
+    x, weight, bias, s = norm_args()
+    with pytest.raises(RuntimeError, match="x must be \\[B, N, D\\]"):
+        relu_scale_layer_norm(x[0], weight, bias, s)
+    with pytest.raises(RuntimeError, match="weight must have shape"):
+        relu_scale_layer_norm(x, weight[1:], bias, s)
+    with pytest.raises(RuntimeError, match="scale must be Double"):
+        relu_scale_layer_norm(x, weight, bias, s.float())
+    with pytest.raises(ValueError, match="scale is not differentiable"):
+        relu_scale_layer_norm(x, weight, bias, s.clone().requires_grad_())
+
+
 # ----------------------------------------------------------------------------- the network and the fit
 def _net_pair(n_freqs=5, out_dim=6, seed=0, dtype=F64):
     fused = ImplicitNet(out_dim, n_freqs, torch.Generator().manual_seed(seed)).to(dtype)
@@ -209,6 +274,28 @@ def test_cuda_equals_cpu(dtype, out_dtype, shape):
         tol = dict(atol=3e-2, rtol=2e-2)  # one bf16 rounding apart at most
     for name, a, b in zip(("out", "grad inputs", "grad phase", "grad weight", "grad bias"), gpu, cpu):
         scale = max(1.0, b.abs().max().item()) if name != "out" else 1.0
+        torch.testing.assert_close(a.double() / scale, b.double() / scale, **tol, msg=lambda m, n=name: f"{n}: {m}")
+
+
+def _run_norm(args, device):
+    x, weight, bias, s = [t.to(device) if t is not None else None for t in args]
+    leaves = [t.clone().requires_grad_() for t in (x, weight, bias)]
+    out = relu_scale_layer_norm(*leaves, s)
+    g = torch.randn(out.shape, generator=torch.Generator().manual_seed(4)).to(device, out.dtype)
+    grads = torch.autograd.grad((out * g).sum(), leaves)
+    return [t.detach().cpu() for t in (out, *grads)]
+
+
+@needs_cuda
+@pytest.mark.parametrize("dtype", [F64, torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("shape", [dict(), dict(b=1, n=4000, d=128), dict(b=2, n=333, d=200), dict(b=1, n=50, d=512)])
+def test_cuda_relu_norm_equals_cpu(dtype, shape):
+    args = norm_args(dtype=dtype, **shape)
+    cpu, gpu = _run_norm(args, "cpu"), _run_norm(args, "cuda")
+    tol = {F64: dict(atol=1e-10, rtol=1e-10), torch.float32: dict(atol=2e-4, rtol=1e-4),
+           torch.bfloat16: dict(atol=3e-2, rtol=2e-2)}[dtype]
+    for name, a, b in zip(("out", "grad x", "grad weight", "grad bias"), gpu, cpu):
+        scale = max(1.0, b.abs().max().item()) if name in ("grad weight", "grad bias") else 1.0
         torch.testing.assert_close(a.double() / scale, b.double() / scale, **tol, msg=lambda m, n=name: f"{n}: {m}")
 
 

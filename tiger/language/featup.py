@@ -191,8 +191,9 @@ def _dropout_keep(p: float, shape: tuple[int, ...], like: torch.Tensor) -> torch
 
 
 def fused_features_available(device: torch.device) -> bool:
-    """Whether ``tiger::fourier_layer_norm`` has a kernel for ``device`` (CPU always; CUDA when
-    the compiled core has its CUDA kernels)."""
+    """Whether the implicit network's fused ops (``tiger::fourier_layer_norm``,
+    ``tiger::relu_scale_layer_norm``) have kernels for ``device`` (CPU always; CUDA when the
+    compiled core has its CUDA kernels)."""
     if device.type == "cpu":
         return True
     from tiger.ops import cuda_enabled
@@ -204,8 +205,9 @@ class ImplicitNet(nn.Module):
     """FeatUp's implicit network: min-max scaled image -> Fourier features -> 3 1x1 convs.
 
     ``fused``: :meth:`forward_pixels` computes the Fourier features, the first LayerNorm and the
-    first channel dropout in one op (``tiger::fourier_layer_norm``) where the device has its
-    kernel, else (and with ``fused=False``) as the PyTorch composition of :meth:`forward`.
+    first channel dropout in one op (``tiger::fourier_layer_norm``), and the hidden ReLU, channel
+    dropout and LayerNorm in another (``tiger::relu_scale_layer_norm``), where the device has
+    their kernels; else (and with ``fused=False``) as the PyTorch composition of :meth:`forward`.
     """
 
     def __init__(self, out_dim: int, n_freqs: int = 30, generator: torch.Generator | None = None,
@@ -230,11 +232,15 @@ class ImplicitNet(nn.Module):
         With ``fused`` (and a kernel for the device), the Fourier features, the first LayerNorm
         and the first dropout are one op that writes its C channels once, in the autocast dtype
         when autocast is on (bf16 on CUDA in the fast fit), and recomputes the features in the
-        backward; the dropout masks are drawn in the same order, so a seeded fit draws the same
-        masks either way."""
+        backward; the hidden ReLU, dropout and LayerNorm are a second op, in the first linear
+        layer's output dtype. The dropout masks are drawn in the same order and dtypes, so a
+        seeded fit draws the same masks either way."""
         scaled = _min_max(image)
         if self.fused and fused_features_available(image.device):
-            x, rest = self._fused_input_layers(scaled), list(self.net)[2:]
+            x = self._fused_input_layers(scaled)
+            conv = self.net[2]
+            x = self._fused_hidden_layers(F.linear(x, conv.weight.flatten(1), conv.bias))
+            rest = list(self.net)[6:]
         else:
             x, rest = self.fourier.pixels(scaled), list(self.net)
         for layer in rest:
@@ -248,6 +254,20 @@ class ImplicitNet(nn.Module):
             else:
                 x = layer(x)
         return x.permute(0, 3, 1, 2)
+
+    def _fused_hidden_layers(self, x: torch.Tensor) -> torch.Tensor:
+        """ReLU, channel dropout and LayerNorm of the first linear layer's output x [B, H, W, D]
+        through ``tiger::relu_scale_layer_norm``, in x's dtype (bf16 under the fit's autocast,
+        where the composition's LayerNorm runs in float32): [B, H, W, D]. The dropout mask is
+        drawn as the composition draws it (x's dtype, the same shape)."""
+        from tiger.ops.featup import relu_scale_layer_norm
+
+        b, h, w, d = x.shape
+        drop, norm = self.net[4], self.net[5].norm
+        scale = None
+        if self.training and drop.p > 0:
+            scale = _dropout_keep(drop.p, (b, 1, 1, d), x).view(b, d).to(norm.weight.dtype)
+        return relu_scale_layer_norm(x.reshape(b, h * w, d), norm.weight, norm.bias, scale, norm.eps).view(b, h, w, d)
 
     def _fused_input_layers(self, scaled: torch.Tensor) -> torch.Tensor:
         """Fourier features, LayerNorm and channel dropout of the min-max scaled image [B, 3, H, W]
@@ -362,9 +382,10 @@ class ImplicitConfig:
     fast fit runs the network through ``torch.compile`` (fuses the Fourier features, LayerNorm,
     dropout and casts, the memory-bound part of the step; costs a compilation per process).
     ``fused_network``: the fast fit's network computes its Fourier features, first LayerNorm and
-    first channel dropout in one op (``tiger::fourier_layer_norm``, where the device has its
-    kernel; see :class:`ImplicitNet`), writing the network's widest activation once in the
-    autocast dtype and recomputing it in the backward.
+    first channel dropout in one op (``tiger::fourier_layer_norm``), writing the network's widest
+    activation once in the autocast dtype and recomputing it in the backward, and its hidden
+    ReLU, dropout and LayerNorm in another (where the device has the kernels; see
+    :class:`ImplicitNet`).
 
     ``steps`` is the most the fit runs (FeatUp's 1200). The fast fit stops earlier once the
     fitted map stops changing: every ``check_every`` steps (from ``min_steps`` on) it evaluates

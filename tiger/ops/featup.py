@@ -1,8 +1,9 @@
 """The featup op family: ``tiger::jittered_window_attention`` (FeatUp's attention downsampler
-over jittered copies of one feature map, without materialising the copies) and
+over jittered copies of one feature map, without materialising the copies),
 ``tiger::fourier_layer_norm`` (the implicit network's Fourier features, LayerNorm and channel
-dropout in one pass): fake kernels, autograd and the Python entry points. Formulas in
-``csrc/featup/featup.h`` and ``csrc/featup/fourier.h``."""
+dropout in one pass) and ``tiger::relu_scale_layer_norm`` (its hidden ReLU, channel dropout and
+LayerNorm in one pass): fake kernels, autograd and the Python entry points. Formulas in
+``csrc/featup/featup.h``, ``fourier.h`` and ``relu_norm.h``."""
 from __future__ import annotations
 
 from typing import Optional
@@ -11,7 +12,7 @@ import torch
 
 from ._eager_autograd import eager_autograd
 
-__all__ = ["jittered_window_attention", "fourier_layer_norm"]
+__all__ = ["jittered_window_attention", "fourier_layer_norm", "relu_scale_layer_norm"]
 
 
 @torch.library.register_fake("tiger::jittered_window_attention")
@@ -139,3 +140,63 @@ def fourier_layer_norm(inputs: torch.Tensor, freqs: torch.Tensor, phase: torch.T
     if freqs.requires_grad or (scale is not None and scale.requires_grad):
         raise ValueError("tiger.fourier_layer_norm: freqs and scale are not differentiable; pass them detached")
     return _fourier_eager(inputs, freqs, phase, weight, bias, scale, float(eps), out_dtype)[0]
+
+
+# ----------------------------------------------------------------------------- relu_scale_layer_norm
+def _stat_dtype(x: torch.Tensor) -> torch.dtype:
+    return torch.float64 if x.dtype == torch.float64 else torch.float32
+
+
+@torch.library.register_fake("tiger::relu_scale_layer_norm")
+def _relu_norm_fake(x, scale, weight, bias, eps):
+    torch._check(x.dim() == 3, lambda: f"x must be [B, N, D], got {tuple(x.shape)}")
+    b, n, _ = x.shape
+    return torch.empty_like(x), x.new_empty((b, n), dtype=_stat_dtype(x)), x.new_empty((b, n), dtype=_stat_dtype(x))
+
+
+@torch.library.register_fake("tiger::relu_scale_layer_norm_backward")
+def _relu_norm_fake_backward(grad_out, x, scale, weight, mean, rstd):
+    return torch.empty_like(x), weight.new_empty(weight.shape), weight.new_empty(weight.shape)
+
+
+def _relu_norm_setup_context(ctx, inputs, output):
+    x, scale, weight, _bias, _eps = inputs
+    _, mean, rstd = output
+    ctx.save_for_backward(x, scale, weight, mean, rstd)
+    ctx.mark_non_differentiable(mean, rstd)
+
+
+def _relu_norm_backward(ctx, grad_out, _grad_mean, _grad_rstd):
+    x, scale, weight, mean, rstd = ctx.saved_tensors
+    needs = ctx.needs_input_grad
+    if grad_out is None or not (needs[0] or needs[2] or needs[3]):
+        return (None,) * 5
+    gx, gw, gb = torch.ops.tiger.relu_scale_layer_norm_backward(grad_out.contiguous(), x, scale, weight, mean, rstd)
+    return gx if needs[0] else None, None, gw if needs[2] else None, gb if needs[3] else None, None
+
+
+torch.library.register_autograd("tiger::relu_scale_layer_norm", _relu_norm_backward,
+                                setup_context=_relu_norm_setup_context)
+_relu_norm_eager = eager_autograd(torch.ops.tiger.relu_scale_layer_norm, _relu_norm_setup_context,
+                                  _relu_norm_backward)
+
+
+def relu_scale_layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
+                          scale: Optional[torch.Tensor] = None, eps: float = 1e-5) -> torch.Tensor:
+    """``layer_norm(relu(x) * scale)`` over the last dimension in one pass
+    (``tiger::relu_scale_layer_norm``; formula in ``csrc/featup/relu_norm.h``), read and written
+    in x's dtype with float32 statistics; the backward recomputes ``relu(x) * scale`` from x.
+
+    Args:
+        x: [B, N, D] float32/float64 (bfloat16/float16 too), e.g. a linear layer's output.
+        weight, bias: [D] the LayerNorm's affine, float32 (float64 for float64 x).
+        scale: [B, D] multiplier per image and channel (the channel dropout's mask divided by the
+            keep rate; non-negative), same dtype as weight, or None; not differentiable.
+        eps: added to the biased variance over the D channels.
+
+    Returns:
+        [B, N, D] in x's dtype. Differentiable in x, weight and bias.
+    """
+    if scale is not None and scale.requires_grad:
+        raise ValueError("tiger.relu_scale_layer_norm: scale is not differentiable; pass it detached")
+    return _relu_norm_eager(x, scale, weight, bias, float(eps))[0]
