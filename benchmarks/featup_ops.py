@@ -1,8 +1,9 @@
-"""FeatUp's implicit network per fit step, forward + backward: the fused input layers
-(``tiger::fourier_layer_norm``: Fourier features, LayerNorm, channel dropout in one op) against
-the PyTorch composition, eager and replayed from a CUDA graph (as the fast fit runs its step),
-with each one's error against the float64 composition; and the input layers alone, with the
-HBM bandwidth their bytes reach.
+"""FeatUp's implicit network per fit step, forward + backward: the fused network
+(``tiger::fourier_layer_norm``: Fourier features, LayerNorm, channel dropout in one op;
+``tiger::relu_scale_layer_norm``: the hidden ReLU, dropout and LayerNorm in another) against the
+PyTorch composition, eager and replayed from a CUDA graph (as the fast fit runs its step), with
+each one's error against the float64 composition; and each fused op alone against the
+composition it replaces, with the HBM bandwidth its bytes reach.
 
     python -m benchmarks.featup_ops                          # CPU, 64 x 112 pixels
     python -m benchmarks.featup_ops --device cuda            # the fit's 256 x 448, bf16 autocast
@@ -18,7 +19,7 @@ import torch
 
 from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err
 from tiger.language.featup import ImplicitNet, _min_max
-from tiger.ops.featup import fourier_layer_norm
+from tiger.ops.featup import fourier_layer_norm, relu_scale_layer_norm
 
 H100_HBM_TBPS = 3.35
 
@@ -110,6 +111,40 @@ def input_layer_rows(net: ImplicitNet, image: torch.Tensor, precision: str, time
     return rows
 
 
+def hidden_layer_rows(net: ImplicitNet, image: torch.Tensor, precision: str, timer) -> list[dict]:
+    """The hidden layers alone (ReLU, dropout scale, LayerNorm, as the fit runs them: in the
+    first linear layer's output dtype, the composition's LayerNorm in float32 under autocast),
+    forward + backward of <out, g>."""
+    dev = image.device
+    b, _, h, w = image.shape
+    norm, d = net.net[5].norm, net.net[5].norm.weight.shape[0]
+    act = torch.bfloat16 if dev.type == "cuda" and precision == "bf16" else torch.float32
+    x = torch.randn(b, h * w, d, device=dev).to(act).requires_grad_()
+    grad = torch.randn(b, h * w, d, device=dev).to(act)
+    keep = (torch.rand(b, d, device=dev) > 0.2).float() / 0.8
+
+    def composed() -> None:
+        with autocast(dev, precision):
+            y = torch.nn.functional.layer_norm(torch.relu(x) * keep.to(act).view(b, 1, d), (d,), norm.weight,
+                                               norm.bias, norm.eps)
+        y.to(act).backward(grad)
+
+    def fused() -> None:
+        relu_scale_layer_norm(x, norm.weight, norm.bias, keep, norm.eps).backward(grad)
+
+    # the fused op's HBM traffic: x read twice, the output written, its gradient read, x's written
+    nbytes = b * h * w * (5 * d * x.element_size() + 4 * 4)
+    rows = []
+    for name, fn in (("hidden layers, composition", composed), ("hidden layers, fused", fused)):
+        ms = timer(fn)
+        row = {"what": name, "ms": ms}
+        if name.endswith("fused") and dev.type == "cuda":
+            row["GB/s"] = nbytes / ms / 1e6
+            row["floor ms"] = nbytes / (H100_HBM_TBPS * 1e12) * 1e3
+        rows.append(row)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -149,7 +184,8 @@ def main() -> None:
             row.update(errors(net, image, grad, args.precision))
             rows.append(row)
     print_table(rows, "per step: forward + backward (dropout on); errors against the float64 composition")
-    print_table(input_layer_rows(base, image, args.precision, timer), "input layers alone, forward + backward")
+    print_table(input_layer_rows(base, image, args.precision, timer) + hidden_layer_rows(base, image, args.precision, timer),
+                "each fused op alone against the composition it replaces, forward + backward")
 
 
 if __name__ == "__main__":
