@@ -20,11 +20,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tiger.ops import cuda_enabled
 from tiger.ops.jbu import adaptive_conv
 from tiger.utils.filters import gaussian_blur
 from tiger.utils.pca import fit_pca
 
 logger = logging.getLogger(__name__)
+# read once: a plain bool is what torch.compile can trace through (the library call is not)
+_CUDA_KERNELS = cuda_enabled()
 
 Featurizer = Callable[[torch.Tensor], torch.Tensor]  # images [B,3,H,W] in [0,1] -> [B,D,h,w]
 
@@ -194,11 +197,7 @@ def fused_features_available(device: torch.device) -> bool:
     """Whether the implicit network's fused ops (``tiger::fourier_layer_norm``,
     ``tiger::relu_scale_layer_norm``) have kernels for ``device`` (CPU always; CUDA when the
     compiled core has its CUDA kernels)."""
-    if device.type == "cpu":
-        return True
-    from tiger.ops import cuda_enabled
-
-    return device.type == "cuda" and cuda_enabled()
+    return device.type == "cpu" or (device.type == "cuda" and _CUDA_KERNELS)
 
 
 class ImplicitNet(nn.Module):
