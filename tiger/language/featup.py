@@ -414,7 +414,7 @@ class ImplicitConfig:
     lr: float = 2e-3
     channel_norm: bool = False
     dropout: float = 0.2
-    featurize_batch: int = 64
+    featurize_batch: int = 256  # backbone batch (H100: 2048 views 0.77 s at 64, 0.69 s at 256)
     fused_network: bool = True
     seed: int = 0
     method: str = "fast"
