@@ -227,12 +227,18 @@ class SamMaskGenerator:
     @property
     def dtype(self) -> torch.dtype:
         """The prompt decoder's weight dtype (the image embedding is handed over in it)."""
-        return next(self.model.mask_decoder.parameters()).dtype
+        return self._weight_dtype("mask_decoder")
 
     @property
     def encoder_dtype(self) -> torch.dtype:
         """The image encoder's weight dtype (bfloat16 with ``precision='bf16'``)."""
-        return next(self.model.vision_encoder.parameters()).dtype
+        return self._weight_dtype("vision_encoder")
+
+    def _weight_dtype(self, part: str) -> torch.dtype:
+        """The dtype of the model's ``part`` (the whole model's first weight for a model without it)."""
+        module = getattr(self.model, part, None)
+        weights = module.parameters() if isinstance(module, torch.nn.Module) else self.model.parameters()
+        return next(weights).dtype
 
     def preprocess(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
         """SAM input [1, 3, S, S]: long side resized to S, normalised, zero-padded bottom/right."""
