@@ -182,7 +182,8 @@ def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, 
     else:
         hr = hr_jbu
 
-    lenient = SamMaskConfig(points_per_batch=points_per_batch, pred_iou_thresh=-1e9, stability_score_thresh=0.0)
+    lenient = SamMaskConfig(points_per_batch=points_per_batch, pred_iou_thresh=-1e9, stability_score_thresh=0.0,
+                            precision="fp32")  # the model's own dtype (--dtype) decides
     gen = SamMaskGenerator(sam_model, lenient)
     gen.predict(image, (64, 64))  # warm-up
     pixels, _ = gen.preprocess(image)
@@ -196,7 +197,7 @@ def bench_pipeline(dev, kind, dtype, img_hw, out_hw, clip_long, steps, n_views, 
     # Random SAM weights give no realistic masks: the mask stages run on SAM-like synthetic sets
     # (benchmarks/masks.py) of each size, as SAM's real outputs would reach them.
     feats = F.normalize(hr.float(), dim=0).permute(1, 2, 0).reshape(-1, d)
-    cfg = SamMaskConfig()
+    cfg = SamMaskConfig(precision="fp32")
     for mm in mask_counts:
         masks, scores = realistic_masks(mm, *out_hw, dev, seed=mm)
         first = len(rows)

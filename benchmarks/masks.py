@@ -252,7 +252,7 @@ def mask_agreement(dev: torch.device, kind: str, image_hw: tuple[int, int], seed
     out = {}
     for bf16 in (False, True):
         gen = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0,
-                                                    decoder_bf16=bf16))
+                                                    decoder_bf16=bf16, precision="fp32"))
         emb, resized = gen.embed(image)
         low, iou = gen.decode(emb, resized)
         masks, _, stab = gen.select(low, iou, resized, (h, w))
@@ -294,7 +294,7 @@ def bench_mask_path(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: 
     h, w = image_hw
     image = torch.rand(3, h, w, generator=torch.Generator().manual_seed(0)).to(dev)
     gen_off = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0,
-                                                    decoder_bf16=decoder_bf16))
+                                                    decoder_bf16=decoder_bf16, precision="fp32"))
     (emb, resized), t_enc = _timed(lambda: gen_off.embed(image), dev, repeats)
     (low, piou), t_dec = _timed(lambda: gen_off.decode(emb, resized), dev, repeats)
     (pm, _, _), t_up = _timed(lambda: gen_off.select(low, piou, resized, (h, w)), dev, repeats)
@@ -312,7 +312,7 @@ def bench_mask_path(dev: torch.device, kind: str, dtype: torch.dtype, image_hw: 
         "off: every prompt upscaled, an upper bound)")
     shared = t_enc + t_dec + t_up
     del pm
-    cfg = SamMaskConfig()
+    cfg = SamMaskConfig(precision="fp32")
     gen = SamMaskGenerator(model, cfg)
     feats = F.normalize(torch.randn(h * w, feature_dim, device=dev), dim=1)
     for mm in counts:
@@ -378,7 +378,7 @@ def profile_generator(dev: torch.device, kind: str, dtype: torch.dtype, image_hw
     with torch.device(dev):
         model = random_sam(kind).to(dtype)
     gen = SamMaskGenerator(model, SamMaskConfig(pred_iou_thresh=-1e9, stability_score_thresh=0.0,
-                                                decoder_bf16=decoder_bf16))
+                                                decoder_bf16=decoder_bf16, precision="fp32"))
     image = torch.rand(3, *image_hw, generator=torch.Generator().manual_seed(0)).to(dev)
     gen(image)  # warm-up
     acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if dev.type == "cuda" else [])

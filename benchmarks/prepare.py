@@ -62,15 +62,25 @@ def _tensors(obj, prefix=""):
         yield prefix, obj
 
 
+def _stage1_record(rel: Path) -> bool:
+    """A features folder's per-image stage-1 record (cache/<name>.pt, not its .stats.pt): written
+    only while the disk keeps up when it stayed in memory, so either run may lack it."""
+    return "cache" in rel.parts and not rel.name.endswith(".stats.pt")
+
+
 def compare_folders(ref: Path, other: Path) -> dict:
     """Every file under ``ref`` against ``other``: byte-identical files, and for .pt files whose
-    bytes differ, whether every tensor and value is equal (``torch.equal``)."""
+    bytes differ, whether every tensor and value is equal (``torch.equal``). A stage-1 record that
+    only one run wrote is counted under ``records_in_one_run_only``, not as a difference."""
     import torch
 
     files = sorted(p.relative_to(ref) for p in ref.rglob("*") if p.is_file() and p.suffix in (".pt", ".json"))
-    same_bytes, same_values, differ = 0, 0, []
+    same_bytes, same_values, differ, one_only = 0, 0, [], 0
     for rel in files:
         b = other / rel
+        if not b.is_file() and _stage1_record(rel):
+            one_only += 1
+            continue
         if not b.is_file():
             differ.append(f"{rel}: missing")
             continue
@@ -89,7 +99,7 @@ def compare_folders(ref: Path, other: Path) -> dict:
         else:
             same_values += 1
     return {"files": len(files), "byte_identical": same_bytes, "equal_values_other_bytes": same_values,
-            "differ": differ}
+            "differ": differ, "records_in_one_run_only": one_only}
 
 
 def main(argv: list | None = None) -> int:

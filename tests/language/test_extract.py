@@ -1,4 +1,5 @@
 """extract_features: outputs, caching, resume after an interruption, and rank sharding."""
+import dataclasses
 import os
 
 import pytest
@@ -40,7 +41,8 @@ def models(tiny_models):
 def test_outputs_and_masked_average(models, tmp_path):
     clip, sam = models
     imgs = images()
-    fs = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
+    # memory_budget=0: every stage-1 record goes through the cache files
+    fs = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False, memory_budget=0)
     assert fs.names == ["00000", "00001", "00002"]
     for k, name in enumerate(fs.names):
         feats, valid = fs.load(name)
@@ -57,6 +59,31 @@ def test_outputs_and_masked_average(models, tmp_path):
     q = clip.encode_text(["red cup"])
     assert fs.pca.project(q).shape == (1, 4)
     assert (tmp_path / "pca.pt").is_file()
+    # records kept in memory between the passes give the same bits as records read back from the disk
+    mem = extract_features(imgs, tmp_path / "in_memory", clip=clip, sam=sam, config=config(), progress=False)
+    assert torch.equal(mem.pca.components, fs.pca.components) and torch.equal(mem.pca.mean, fs.pca.mean)
+    for name in fs.names:
+        for x, y in zip(fs.load(name), mem.load(name)):
+            assert torch.equal(x, y), name
+        stats = torch.load(tmp_path / "cache" / f"{name}.stats.pt", weights_only=True)["stats"]
+        assert torch.equal(stats["outer"], torch.load(tmp_path / "in_memory" / "cache" / f"{name}.stats.pt",
+                                                      weights_only=True)["stats"]["outer"])
+
+
+def test_image_statistics_match_a_batch_pca_of_the_pixels(models):
+    """The per-image statistics (mask means weighted by their pixel counts, unmasked rows once, in
+    chunks) equal the moments of the per-pixel feature rows they stand for."""
+    from tiger.utils.pca import moments
+
+    g = torch.Generator().manual_seed(3)
+    means = torch.nn.functional.normalize(torch.randn(5, 16, generator=g), dim=1).half()
+    counts = torch.tensor([3, 0, 7, 1, 2])
+    unmasked = torch.randn(11, 16, generator=g).half()
+    stats = extract_mod.image_statistics(means, counts, unmasked, chunk_rows=4)
+    rows = torch.cat([means.repeat_interleave(counts, 0), unmasked]).double()
+    ref = moments(rows)
+    for key in ("count", "sum", "outer"):
+        assert torch.allclose(stats[key], ref[key], rtol=1e-12, atol=1e-12), key
 
 
 def test_resume_after_interruption(models, tmp_path, monkeypatch):
@@ -77,10 +104,11 @@ def test_resume_after_interruption(models, tmp_path, monkeypatch):
     with pytest.raises(SimulatedCrash):
         extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
     done = sorted(p.name for p in (tmp_path / "cache").iterdir())
-    assert done == ["00000.pt"]  # no torn or temporary file left behind
+    assert done == ["00000.pt", "00000.stats.pt"]  # the finished image's record survives; nothing torn
     first_mtime = os.stat(tmp_path / "cache" / "00000.pt").st_mtime_ns
     calls.clear()
-    fs = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False)
+    # memory_budget=0 from here: every record reaches the cache (the PCA refit below reads them)
+    fs = extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(), progress=False, memory_budget=0)
     assert len(calls) == 2  # the finished image was skipped
     assert os.stat(tmp_path / "cache" / "00000.pt").st_mtime_ns == first_mtime
     # identical to an uninterrupted run
@@ -99,6 +127,57 @@ def test_resume_after_interruption(models, tmp_path, monkeypatch):
     extract_features(imgs, tmp_path, clip=clip, sam=sam, config=config(unmasked="ignore"), progress=False)
     assert len(calls) == 3
     monkeypatch.setattr(extract_mod, "compute_image_features", real)
+
+
+def test_resume_when_records_stayed_in_memory(models, tmp_path, monkeypatch):
+    """A record kept in memory whose background write was dropped (the disk was behind): its map,
+    once written, makes it finished; only a new PCA basis needs the image computed again."""
+    clip, sam = models
+    imgs = images()
+    ref = extract_features(imgs, tmp_path / "ref", clip=clip, sam=sam, config=config(pca_dim=3), progress=False)
+    extract_features(imgs, tmp_path / "run", clip=clip, sam=sam, config=config(), progress=False)
+    for name in ("00000", "00002"):  # as if these writes had been dropped
+        (tmp_path / "run" / "cache" / f"{name}.pt").unlink()
+    calls = []
+    real = extract_mod.compute_image_features
+
+    def spy(image, *a, **kw):
+        calls.append(tuple(image.shape))
+        return real(image, *a, **kw)
+
+    monkeypatch.setattr(extract_mod, "compute_image_features", spy)
+    extract_features(imgs, tmp_path / "run", clip=clip, sam=sam, config=config(), progress=False)
+    assert calls == []  # their maps are written with the current basis
+    fs = extract_features(imgs, tmp_path / "run", clip=clip, sam=sam, config=config(pca_dim=3), progress=False)
+    assert len(calls) == 2  # a new basis needs the two missing records
+    for name in fs.names:
+        assert torch.equal(fs.load(name)[0], ref.load(name)[0])
+
+
+def test_background_saver_and_kept_records(tmp_path):
+    from tiger.language.extract_io import BackgroundSaver, KeptRecords, record_bytes
+
+    saver = BackgroundSaver(torch.device("cpu"), max_pending=1, workers=1)
+    gate = __import__("threading").Event()
+    real = saver._write
+    saver._write = lambda *a: (gate.wait(5), real(*a))
+    saver.save({"x": torch.ones(3)}, tmp_path / "a.pt", fsync=False)
+    saver.save({"x": torch.ones(3)}, tmp_path / "b.pt", fsync=False, optional=True)  # queued behind a.pt
+    saver.drop_optional()
+    gate.set()
+    saver.close()
+    assert saver.dropped == [tmp_path / "b.pt"] and (tmp_path / "a.pt").is_file()
+    assert not (tmp_path / "b.pt").exists()
+    bad = BackgroundSaver(torch.device("cpu"))
+    bad.save({"x": torch.ones(1)}, tmp_path / "a.pt" / "inside_a_file.pt", fsync=False)
+    with pytest.raises(OSError):
+        bad.close()
+    rec = {"ids": torch.zeros(4, 4, dtype=torch.int32), "stats": {"outer": torch.zeros(2, 2, dtype=torch.float64)}}
+    assert record_bytes(rec) == 64 + 32
+    kept = KeptRecords(torch.device("cpu"), budget=150)
+    assert kept.offer("a", rec) and not kept.offer("b", rec)
+    assert kept.pop("a") is rec and kept.kept_bytes == 0 and kept.pop("b") is None
+    assert not KeptRecords(torch.device("cpu"), budget=0).offer("a", rec)
 
 
 def test_paths_implicit_and_no_sam(models, tmp_path):
@@ -165,16 +244,20 @@ def test_two_ranks_share_the_images(tiny_models, tmp_path):
     try:
         clip = MaskCLIP.from_pretrained(tiny_models / "clip-vit-base-patch16")
         sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", mask_config=LENIENT)
-        one = extract_features(images(3), tmp_path / "one", clip=clip, sam=sam, config=config(), progress=False)
+        # through the disk here (memory_budget=0), in memory on the two ranks: the same bits either way
+        one = extract_features(images(3), tmp_path / "one", clip=clip, sam=sam, config=config(), progress=False,
+                               memory_budget=0)
     finally:
         torch.set_num_threads(threads)
     for name in one.names:
-        for sub in ("features", "cache"):
-            a = torch.load(tmp_path / "one" / sub / f"{name}.pt", weights_only=True)
-            b = torch.load(out / sub / f"{name}.pt", weights_only=True)
+        for rel in (f"features/{name}.pt", f"cache/{name}.stats.pt", f"cache/{name}.pt"):
+            if rel.startswith("cache/") and not rel.endswith("stats.pt") and not (out / rel).is_file():
+                continue  # a record kept in memory may not have been written (the disk was behind)
+            a = torch.load(tmp_path / "one" / rel, weights_only=True)
+            b = torch.load(out / rel, weights_only=True)
             for key, value in a.items():
                 if torch.is_tensor(value):
-                    assert torch.equal(value, b[key]), (sub, name, key)
+                    assert torch.equal(value, b[key]), (rel, key)
     assert torch.equal(one.pca.components, fs.pca.components)
 
 
@@ -196,11 +279,12 @@ def test_pipeline_on_cuda_matches_cpu(tiny_models, tmp_path):
     if not tiger.ops.cuda_enabled():
         pytest.skip("tiger built without CUDA kernels")
     outs = {}
+    fp32 = dataclasses.replace(LENIENT, precision="fp32")  # SAM in float32 on both devices
     for dev in ("cpu", "cuda"):
         clip = MaskCLIP.from_pretrained(tiny_models / "clip-vit-base-patch16", device=dev)
-        sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", device=dev, mask_config=LENIENT)
-        fs = extract_features(images(2), tmp_path / dev, clip=clip, sam=sam, config=config(), device=dev,
-                              progress=False)
+        sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", device=dev, mask_config=fp32)
+        fs = extract_features(images(2), tmp_path / dev, clip=clip, sam=sam, config=config(sam=fp32), device=dev,
+                              progress=False, memory_budget=0)
         outs[dev] = [_pixel_features(torch.load(tmp_path / dev / "cache" / f"{n}.pt", weights_only=True))
                      for n in fs.names]
         assert fs.load(fs.names[0])[0].shape[-1] == 4

@@ -160,7 +160,7 @@ def test_cuda_mask_path_equals_cpu(generator):
     """One whole image: SAM's predictions on CUDA agree with the CPU's, and every later stage
     (NMS, clean-up, id map) gives exactly the CPU result on the same predictions."""
     cfg = SamMaskConfig(points_per_side=8, pred_iou_thresh=-1e9, stability_score_thresh=0.0, mask_nms_score=-1e9,
-                        min_mask_region_area=20)
+                        min_mask_region_area=20, precision="fp32")
     cpu = SamMaskGenerator(generator.model, cfg)
     image = torch.rand(3, 96, 128, generator=torch.Generator().manual_seed(4))
     masks, iou, stab = cpu.predict(image)
@@ -182,3 +182,33 @@ def test_cuda_mask_path_equals_cpu(generator):
     assert ref.masks.shape[0] > 10
     whole = gpu(image.cuda())  # the whole path on the device runs and obeys its filters
     assert whole.masks.device.type == "cuda" and (whole.masks.flatten(1).sum(1) >= 20).all()
+
+
+def test_precision_resolves_per_device_and_bf16_runs_the_encoder_in_bfloat16(tiny_models):
+    assert SamMaskConfig().resolved("cpu").precision == "fp32"
+    assert SamMaskConfig().resolved("cuda").precision == "bf16"
+    assert SamMaskConfig(precision="fp32").resolved("cuda").precision == "fp32"
+    with pytest.raises(ValueError, match="precision must be one of"):
+        SamMaskConfig(precision="fp16").resolved("cpu")
+    cfg = SamMaskConfig(points_per_side=4, pred_iou_thresh=-1e9, stability_score_thresh=0.0)
+    ref = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", mask_config=cfg)
+    assert ref.config.precision == "fp32" and ref.encoder_dtype == torch.float32
+    bf = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge",
+                                          mask_config=SamMaskConfig(**{**cfg.__dict__, "precision": "bf16"}))
+    assert bf.encoder_dtype == torch.bfloat16 and bf.dtype == torch.float32 and bf.decoder.autocast
+    image = torch.rand(3, 40, 56, generator=torch.Generator().manual_seed(3))
+    emb, _ = bf.embed(image)
+    emb_ref, _ = ref.embed(image)
+    assert emb.dtype == torch.float32
+    # bfloat16 keeps about 3 significant digits: the embeddings agree to that, not bit for bit
+    assert (emb - emb_ref).norm() / emb_ref.norm() < 3e-2
+    masks, iou, _ = bf.predict(image, (30, 42))
+    assert masks.shape[1:] == (30, 42) and iou.dtype == torch.float32
+
+
+@pytest.mark.skipif(not CUDA, reason="needs CUDA and tiger's CUDA kernels")
+def test_cuda_default_precision_is_bf16(tiny_models):
+    gen = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", device="cuda")
+    assert gen.config.precision == "bf16" and gen.encoder_dtype == torch.bfloat16 and gen.decoder.autocast
+    out = gen(torch.rand(3, 96, 128, device="cuda", generator=None))
+    assert out.masks.device.type == "cuda"

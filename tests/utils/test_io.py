@@ -96,3 +96,15 @@ def test_ctrl_c_outside_writes_is_immediate():
     import signal
 
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored after writes
+
+
+def test_fsync_is_skipped_only_when_asked(tmp_path, monkeypatch):
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real(fd)))
+    atomic_torch_save({"x": torch.arange(3)}, tmp_path / "kept.pt")
+    assert len(synced) == 1
+    atomic_torch_save({"x": torch.arange(4)}, tmp_path / "cache.pt", fsync=False)
+    assert len(synced) == 1  # no flush to the disk, still renamed into place whole
+    assert torch.equal(torch.load(tmp_path / "cache.pt", weights_only=True)["x"], torch.arange(4))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache.pt", "kept.pt"]

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 from .common import CliError, add_common, add_skip_missing, device_of, existing, open_dataset
+from .features import add_sam_precision
 
 STATE = "prepare.json"
 SCENE = "scene_lang.ply"
@@ -61,6 +62,7 @@ def add_parser(sub) -> None:
     p.add_argument("--clip-long-side", type=int, default=None, help="`tiger features --clip-long-side`")
     p.add_argument("--pca-dim", type=int, default=None, help="`tiger features --pca-dim`")
     p.add_argument("--no-sam", action="store_true", help="`tiger features --no-sam`")
+    add_sam_precision(p, passthrough=True)
     p.add_argument("--embed-steps", type=int, default=None, help="`tiger embed --steps`")
     p.add_argument("--init", choices=("lift", "random"), default=None, help="`tiger embed --init`")
     order = p.add_mutually_exclusive_group()
@@ -274,10 +276,13 @@ def _scene_stage(args: argparse.Namespace, ctx: dict) -> Optional[list[str]]:
     f_inputs = {"data": str(data), "models": args.models, "upsampler": args.upsampler,
                 "long_side": args.long_side, "clip_long_side": args.clip_long_side, "pca_dim": args.pca_dim,
                 "no_sam": args.no_sam, "skip_missing": args.skip_missing}
+    if args.sam_precision is not None:  # absent when not given: folders prepared before the option still resume
+        f_inputs["sam_precision"] = args.sam_precision
     features_argv = ["features", str(data), "--out", str(feats), *common,
                      *_flag_args({"--models": args.models, "--upsampler": args.upsampler,
                                   "--long-side": args.long_side, "--clip-long-side": args.clip_long_side,
-                                  "--pca-dim": args.pca_dim, "--no-sam": args.no_sam})]
+                                  "--pca-dim": args.pca_dim, "--no-sam": args.no_sam,
+                                  "--sam-precision": args.sam_precision})]
     ctx.update(data=data, out=out, state=state, common=common, t_start=t_start, feats=feats, f_inputs=f_inputs)
     finished = state.data["stages"].get("features", {})  # read only: the record's order is the stages'
     if finished.get("done"):

@@ -1,14 +1,22 @@
 """``extract_features``: per-pixel 64-d language feature maps for an image set (SPEC §1, §4).
 
-Per image (stage 1, cached): MaskCLIP features -> FeatUp upsampling to the output resolution ->
-L2 normalisation -> SAM finest-level masks -> masked average. The cache keeps the result
-compactly (mask id map, per-mask means, and the features of pixels in no mask, float16) plus the
-image's PCA statistics. Then (stage 2) one PCA 512 -> 64 is fitted over all images and every
-image's map is projected and written as float16 [H, W, 64] with a validity mask.
+Per image (stage 1): MaskCLIP features -> FeatUp upsampling to the output resolution ->
+L2 normalisation -> SAM finest-level masks -> masked average. The result is a compact record
+(mask id map, per-mask means, and the features of pixels in no mask, float16) plus the image's PCA
+statistics. Then (stage 2) one PCA 512 -> 64 is fitted over all images from the per-image
+statistics, and every image's map is projected and written as float16 [H, W, 64] with a validity
+mask.
 
-Every file is written atomically; images already done are skipped, so an interrupted run
-resumes. Under ``torchrun`` (or with ``rank``/``world_size``) each rank handles images
-``rank, rank + world_size, ...`` on its own GPU; rank 0 fits the PCA between two barriers.
+Records stay in device memory between the two stages when they fit (``extract_io``): the 512-d
+features are not read back from the disk, and only the 64-d maps are copied to the host. Each
+image's statistics are written to ``cache/<name>.stats.pt``; its record to ``cache/<name>.pt`` in
+the background (always when it did not fit in memory, else while the disk keeps up). Cache files
+are renamed into place atomically but not fsync'ed (a lost one costs a recomputation); the maps
+and ``pca.pt`` are. An interrupted run resumes: an image with a record, or with its map written
+with the current PCA, is not computed again. Under ``torchrun`` (or with ``rank``/``world_size``)
+each rank handles images ``rank, rank + world_size, ...`` on its own GPU; rank 0 fits the PCA
+between two barriers, summing the per-image statistics in image order, so any number of ranks
+writes the same bits.
 """
 from __future__ import annotations
 
@@ -27,6 +35,7 @@ import torch.nn.functional as F
 from tiger.ops.masked_average import masked_average
 from tiger.utils.io import atomic_torch_save
 
+from .extract_io import BackgroundSaver, KeptRecords, load_mapped
 from .featup import UPSAMPLERS, ImplicitConfig, JBUStack, upsample_features
 from .maskclip import MaskCLIP, normalize_images, resize_for_patches
 from .pca import PCABasis, StreamingPCA
@@ -66,6 +75,7 @@ class FeatureConfig:
             raise ValueError(f"tiger.FeatureConfig: unmasked must be 'keep' or 'ignore', got {self.unmasked!r}")
         if self.clip_long_side < 16:
             raise ValueError(f"tiger.FeatureConfig: clip_long_side must be >= 16, got {self.clip_long_side}")
+        self.sam.resolved("cpu")  # names a bad precision
 
     def fingerprint(self, stage1: bool = False) -> str:
         """Hash of the settings; ``stage1=True`` leaves out what only the PCA uses (``pca_dim``), so
@@ -135,8 +145,9 @@ def _names(images: Sequence[ImageLike], names: Sequence[str] | None) -> list[str
 @torch.no_grad()
 def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGenerator | None,
                            jbu: JBUStack | None, cfg: FeatureConfig) -> dict[str, Any]:
-    """Stage 1 for one image [3, H, W] in [0, 1] (on the models' device): the compact cached record
-    (ids [h, w] int32, means [M, D] and unmasked [U, D] float16) and its PCA statistics."""
+    """Stage 1 for one image [3, H, W] in [0, 1] (on the models' device): the compact record (ids
+    [h, w] int32, means [M, D] and unmasked [U, D] float16, on the image's device) and its PCA
+    statistics (float64, on the CPU)."""
     h, w = image.shape[-2:]
     size = cfg.out_size(h, w)
     clip_in = resize_for_patches(image[None], cfg.clip_long_side, clip.patch_size)[0]
@@ -145,6 +156,7 @@ def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGene
                                guidance_normalizer=lambda x: normalize_images(x, "imagenet"))
     d = hr.shape[0]
     feats = F.normalize(hr.detach().float(), dim=0).permute(1, 2, 0).reshape(-1, d)
+    del hr
     if sam is not None:
         ids = sam(image, size).id_map().reshape(-1)
     else:
@@ -153,20 +165,32 @@ def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGene
     _, means, counts = masked_average(feats, ids, n_masks)
     means = F.normalize(means, dim=1).half()
     unmasked = feats[ids < 0].half() if cfg.unmasked == "keep" else feats.new_zeros(0, d).half()
-    rows = torch.cat([means, unmasked]).double()
-    weights = torch.cat([counts.double(), torch.ones(unmasked.shape[0], dtype=torch.float64, device=rows.device)])
-    stats = StreamingPCA.statistics(rows[weights > 0], weights[weights > 0])
+    del feats
     return {
-        "version": CACHE_VERSION, "size": size, "ids": ids.reshape(size).int().cpu(), "means": means.cpu(),
-        "unmasked": unmasked.cpu(), "stats": stats,
+        "version": CACHE_VERSION, "size": size, "ids": ids.reshape(size).int(), "means": means,
+        "unmasked": unmasked, "stats": image_statistics(means, counts, unmasked),
     }
 
 
+def image_statistics(means: torch.Tensor, counts: torch.Tensor, unmasked: torch.Tensor,
+                     chunk_rows: int = 1 << 18) -> dict[str, torch.Tensor]:
+    """PCA statistics (count, sum [D], outer [D, D]; float64 on the CPU) of one image's features:
+    each mask mean [M, D] weighted by its pixel count [M], each unmasked row [U, D] once. Computed
+    on the rows' device in a fixed order (float64 chunks of ``chunk_rows`` rows), so the same image
+    gives the same bits whichever process computes it."""
+    stats = StreamingPCA.statistics(means.double(), counts.double())
+    for start in range(0, unmasked.shape[0], chunk_rows):
+        part = StreamingPCA.statistics(unmasked[start : start + chunk_rows].double())
+        stats = {k: stats[k] + part[k] for k in stats}
+    return stats
+
+
 def project_record(rec: dict[str, Any], pca: PCABasis, unmasked: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stage 2: the [h, w, k] float16 map and [h, w] validity of a cached record."""
+    """Stage 2: the [h, w, k] float16 map and [h, w] validity of a stage-1 record, on the device of
+    the record's tensors."""
     h, w = rec["size"]
     ids = rec["ids"].reshape(-1).long()
-    out = torch.zeros(h * w, pca.dim, dtype=torch.float32)
+    out = torch.zeros(h * w, pca.dim, dtype=torch.float32, device=ids.device)
     valid = ids >= 0
     if rec["means"].shape[0]:
         out[valid] = pca.project(rec["means"].float())[ids[valid]]
@@ -205,16 +229,42 @@ def _default_device() -> torch.device:
 
 
 def _load_record(path: Path, fingerprint: str) -> dict[str, Any] | None:
-    if not path.is_file():
-        return None
-    try:
-        rec = torch.load(str(path), map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - a torn/old file is recomputed, never trusted
-        logger.warning("ignoring unreadable cache %s (%s)", path, exc)
-        return None
-    if rec.get("version") != CACHE_VERSION or rec.get("config") != fingerprint:
+    """A stage-1 record (or statistics file) written with these settings, memory-mapped (its
+    tensors are read when touched); None when missing, unreadable or made with other settings."""
+    rec = load_mapped(path)
+    if rec is None or rec.get("version") != CACHE_VERSION or rec.get("config") != fingerprint:
         return None
     return rec
+
+
+def _stats_path(cache_dir: Path, name: str) -> Path:
+    return cache_dir / f"{name}.stats.pt"
+
+
+def _image_stats(cache_dir: Path, name: str, fingerprint: str, kept: KeptRecords) -> dict[str, torch.Tensor]:
+    """One image's PCA statistics: from its record in memory, its statistics file or its record file."""
+    rec = kept.records.get(name)
+    if rec is None:
+        rec = _load_record(_stats_path(cache_dir, name), fingerprint) or _load_record(cache_dir / f"{name}.pt", fingerprint)
+    if rec is None:
+        raise RuntimeError(f"tiger.extract_features: the statistics of image '{name}' are missing after stage 1")
+    return {k: v.clone() for k, v in rec["stats"].items()}
+
+
+def _current_pca(out: Path, full_fp: str, names: list[str]) -> str | None:
+    """The fingerprint of ``out/pca.pt`` when it was fitted with these settings over these images."""
+    try:
+        meta = json.loads((out / "pca.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if meta.get("config") != full_fp or meta.get("names") != names or not (out / "pca.pt").is_file():
+        return None
+    return meta.get("pca")
+
+
+def _finished(target: Path, pca_fingerprint: str) -> bool:
+    out = load_mapped(target)
+    return out is not None and out.get("pca") == pca_fingerprint
 
 
 def extract_features(
@@ -231,6 +281,7 @@ def extract_features(
     rank: int | None = None,
     world_size: int | None = None,
     progress: bool = True,
+    memory_budget: int | None = None,
 ) -> FeatureSet:
     """Language feature maps for ``images`` (paths or [3, H, W] tensors in [0, 1]) under ``out_dir``.
 
@@ -239,6 +290,10 @@ def extract_features(
     ``clip``'s device, else this rank's GPU when there is one, else the CPU) and every image is
     processed there. Returns a :class:`FeatureSet`; ``out_dir/pca.pt`` holds the basis for
     projecting text (``FeatureSet.pca.project(clip.encode_text(...))``).
+
+    ``memory_budget``: bytes of stage-1 records held in memory between the two passes (None: as
+    many as fit, see :class:`~tiger.language.extract_io.KeptRecords`; 0: every record is written
+    to ``out_dir/cache`` and read back). The outputs are the same bits either way.
     """
     from tiger.utils.progress import progress as progress_lines
 
@@ -250,12 +305,17 @@ def extract_features(
     # Passed-in models decide the device unless one is named: images follow the models.
     dev = (torch.device(device) if device is not None
            else clip.device if clip is not None else _default_device())
+    # SAM's precision made concrete for the device, so a bf16 and a float32 run never share a cache
+    cfg = dataclasses.replace(cfg, sam=sam.config if sam is not None else cfg.sam.resolved(dev))
     fp = cfg.fingerprint(stage1=True)
     full_fp = cfg.fingerprint()
     mine = list(range(rank, len(images), world))
     cache_dir, feat_dir = out / "cache", out / "features"
 
-    todo = [i for i in mine if _load_record(cache_dir / f"{all_names[i]}.pt", fp) is None]
+    pfp = _current_pca(out, full_fp, all_names)
+    todo = [i for i in mine if _load_record(cache_dir / f"{all_names[i]}.pt", fp) is None
+            and not (pfp is not None and _finished(feat_dir / f"{all_names[i]}.pt", pfp)
+                     and _load_record(_stats_path(cache_dir, all_names[i]), fp) is not None)]
     if todo:
         if clip is None:
             clip = MaskCLIP.from_pretrained(device=dev, config=models)
@@ -263,17 +323,46 @@ def extract_features(
             sam = SamMaskGenerator.from_pretrained(device=dev, config=models, mask_config=cfg.sam)
         if cfg.upsampler == "jbu" and jbu is None:
             jbu = JBUStack.from_checkpoint(config=models).to(dev)
-    bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
-    bar.update(len(mine) - len(todo))
-    for i in todo:
-        img = _as_image(images[i]).to(dev)
-        rec = compute_image_features(img, clip, sam if cfg.use_sam else None, jbu, cfg)
-        rec["config"] = fp
-        atomic_torch_save(rec, cache_dir / f"{all_names[i]}.pt")
-        bar.update(1)
-    bar.close()
+    kept = KeptRecords(dev, memory_budget)
+    saver = BackgroundSaver(dev)
+    try:
+        bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
+        bar.update(len(mine) - len(todo))
+        for i in todo:
+            name = all_names[i]
+            img = _as_image(images[i]).to(dev)
+            kept.start_image()
+            rec = compute_image_features(img, clip, sam if cfg.use_sam else None, jbu, cfg)
+            rec["config"] = fp
+            # the statistics always reach the disk (rank 0 fits the PCA from every rank's images);
+            # the record is written in the background: always when it is not kept in memory,
+            # otherwise only while the disk keeps up (a record lost to a kill is recomputed)
+            atomic_torch_save({"version": CACHE_VERSION, "config": fp, "stats": rec["stats"]},
+                              _stats_path(cache_dir, name), fsync=False)
+            saver.save(rec, cache_dir / f"{name}.pt", fsync=False, optional=kept.offer(name, rec))
+            del rec, img
+            bar.update(1)
+        bar.close()
+        _barrier(use_dist)
+        _fit_pca(out, all_names, cache_dir, fp, full_fp, cfg.pca_dim, kept, rank)
+        _barrier(use_dist)
+        pca = PCABasis.load(out / "pca.pt")
+        _project_all(pca, [all_names[i] for i in mine], cache_dir, feat_dir, fp, cfg, kept, saver, dev)
+        saver.close()
+    except BaseException:
+        saver.close(raise_errors=False)
+        raise
+    if saver.dropped:
+        logger.info("%d stage-1 records were not written (the disk was behind; the maps are written)",
+                    len(saver.dropped))
     _barrier(use_dist)
+    return FeatureSet(out, all_names, pca)
 
+
+def _fit_pca(out: Path, all_names: list[str], cache_dir: Path, fp: str, full_fp: str, pca_dim: int,
+             kept: KeptRecords, rank: int) -> Path:
+    """Rank 0 fits the PCA into ``out/pca.pt`` (unless it was fitted with these settings and images)
+    from the per-image statistics summed in image order: the same bits for any number of ranks."""
     pca_path = out / "pca.pt"
     if rank == 0:
         pca_meta = out / "pca.json"
@@ -281,30 +370,38 @@ def extract_features(
             json.loads(pca_meta.read_text()).get("config") != full_fp or \
             json.loads(pca_meta.read_text()).get("names") != all_names
         if stale:
-            acc = StreamingPCA(int(_load_record(cache_dir / f"{all_names[0]}.pt", fp)["means"].shape[1]), cfg.pca_dim)
+            acc = None
             for name in all_names:
-                rec = _load_record(cache_dir / f"{name}.pt", fp)
-                if rec is None:
-                    raise RuntimeError(f"tiger.extract_features: the cache of image '{name}' is missing after stage 1")
-                acc.add_statistics(rec["stats"])
+                stats = _image_stats(cache_dir, name, fp, kept)
+                if acc is None:
+                    acc = StreamingPCA(int(stats["sum"].shape[0]), pca_dim)
+                acc.add_statistics(stats)
             basis = acc.fit()
             basis.save(pca_path)
             with open(pca_meta.with_suffix(".json.tmp"), "w") as fh:
                 json.dump({"config": full_fp, "names": all_names, "pca": basis.fingerprint()}, fh)
             os.replace(pca_meta.with_suffix(".json.tmp"), pca_meta)
-    _barrier(use_dist)
-    pca = PCABasis.load(pca_path)
+    return pca_path
+
+
+def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Path, fp: str, cfg: FeatureConfig,
+                 kept: KeptRecords, saver: BackgroundSaver, dev: torch.device) -> None:
+    """Stage 2 for this rank's images: each record (from memory, else from its cache file) projected
+    on ``dev``; only the [h, w, k] float16 map and its validity are copied to the host and written
+    (fsync: these are the outputs)."""
     pfp = pca.fingerprint()
-    for i in mine:
-        target = feat_dir / f"{all_names[i]}.pt"
-        if target.is_file():
-            try:
-                if torch.load(str(target), map_location="cpu", weights_only=True).get("pca") == pfp:
-                    continue
-            except Exception:  # noqa: BLE001 - recompute a torn file
-                pass
-        rec = _load_record(cache_dir / f"{all_names[i]}.pt", fp)
+    saver.drop_optional()  # from here on a written map supersedes its stage-1 record
+    for name in names:
+        target = feat_dir / f"{name}.pt"
+        rec = kept.pop(name)
+        if _finished(target, pfp):
+            continue
+        if rec is None:
+            rec = _load_record(cache_dir / f"{name}.pt", fp)
+            if rec is None:
+                raise RuntimeError(f"tiger.extract_features: the stage-1 record of image '{name}' is "
+                                   "missing; run again to recompute it")
+            rec = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in rec.items()}
         feats, valid = project_record(rec, pca, cfg.unmasked)
-        atomic_torch_save({"features": feats, "valid": valid, "pca": pfp}, target)
-    _barrier(use_dist)
-    return FeatureSet(out, all_names, pca)
+        del rec
+        saver.save({"features": feats, "valid": valid, "pca": pfp}, target, fsync=True)

@@ -1,6 +1,9 @@
 """Atomic file writes: a temp file in the destination folder, fsync, then rename.
 
-A crash or interruption leaves either the old file or the new one, never a torn one. Ctrl-C
+A crash or interruption leaves either the old file or the new one, never a torn one. ``fsync=False``
+skips the flush to the disk (a file that a crash may only cost recomputing, such as a cache: the
+rename stays atomic for the running system, but after a power loss the file may be missing or empty,
+which its reader must treat as absent). Ctrl-C
 during a write (in the main thread) is held until the file is in place, then raised: the
 interrupted program ends with a complete file and a plain KeyboardInterrupt, not a serializer's
 internal error. The new file gets the mode ``open()`` would have given it (0666 less the umask,
@@ -55,19 +58,20 @@ def interrupts_deferred() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def atomic_write(path: PathLike, mode: str = "wb") -> Iterator[IO]:
+def atomic_write(path: PathLike, mode: str = "wb", fsync: bool = True) -> Iterator[IO]:
     """Open a temporary file next to ``path``; on clean exit it replaces ``path``.
 
     The file's permissions follow the umask, like a plain ``open(path, "w")``. Ctrl-C inside the
-    block is held until the file is in place (:func:`interrupts_deferred`).
+    block is held until the file is in place (:func:`interrupts_deferred`). ``fsync=False``: no
+    flush to the disk before the rename (see the module's note).
     """
     with interrupts_deferred():
-        with _atomic_write(path, mode) as fh:
+        with _atomic_write(path, mode, fsync) as fh:
             yield fh
 
 
 @contextlib.contextmanager
-def _atomic_write(path: PathLike, mode: str) -> Iterator[IO]:
+def _atomic_write(path: PathLike, mode: str, fsync: bool = True) -> Iterator[IO]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -76,7 +80,8 @@ def _atomic_write(path: PathLike, mode: str) -> Iterator[IO]:
         with os.fdopen(fd, mode) as fh:
             yield fh
             fh.flush()
-            os.fsync(fh.fileno())
+            if fsync:
+                os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -84,9 +89,9 @@ def _atomic_write(path: PathLike, mode: str) -> Iterator[IO]:
         raise
 
 
-def atomic_torch_save(obj: object, path: PathLike) -> None:
-    """``torch.save`` through :func:`atomic_write`."""
-    with atomic_write(path, "wb") as fh:
+def atomic_torch_save(obj: object, path: PathLike, fsync: bool = True) -> None:
+    """``torch.save`` through :func:`atomic_write` (``fsync``: as there)."""
+    with atomic_write(path, "wb", fsync) as fh:
         torch.save(obj, fh)
 
 
