@@ -22,10 +22,13 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
 - ``after+downsample_4x4``: the VAEs' stride-2 convolutions as unpadded-input 4x4 convolutions
   (``ModelKernels.vae_downsample_4x4``; 16/9 of those layers' FLOPs, the floor keeps the 3x3 count);
 - ``after+geglu``: the UNets' one-pass GEGLU (``ModelKernels.fused_geglu``);
-- ``default``: both (the package's default on CUDA);
-- ``default+fp8``: and the UNets' transformer matmuls in FP8 with row-wise scales
+- ``after+fold_norm_bias``: conv1's bias and the time embedding added inside norm2 of every
+  ResNet block (``ModelKernels.fold_norm_bias``);
+- ``after+fp8``: only the UNets' transformer matmuls in FP8 with row-wise scales
   (``ModelKernels(matmul_precision="fp8")``, opt-in);
-- ``default+fp8_fast_accum``: the same with ``torch._scaled_mm``'s fast accumulation.
+- ``default``: the three exact-within-rounding kernels together (the package's default on CUDA);
+- ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
+  ``torch._scaled_mm``'s fast accumulation.
 
 FP8 rows need a GPU with FP8 tensor cores; elsewhere they are skipped with the reason. A variant
 that fails prints its error and the run goes on. "FP8-eligible TFLOP" is the part of each call's
@@ -38,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import tempfile
 import time
@@ -56,24 +60,31 @@ from tiger.edit.guidance.ip2p import InstructPix2PixGuidance
 from tiger.edit.guidance.mvdream import MVDreamGuidance
 from tiger.utils.dtypes import DTYPE_NAMES
 
-PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False)
-DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True)
+PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False)
+DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True)
+
+
+def _plain_and(**fields) -> mk.ModelKernels:
+    return dataclasses.replace(PLAIN, **fields)
+
+
 # name -> (kernels, folded adds, cuDNN autotuning, flash attention first)
 VARIANTS = {
     "before": (PLAIN, False, False, False),
     "after": (PLAIN, True, False, False),
     "after+cudnn_benchmark": (PLAIN, True, True, False),
     "after+flash_sdpa": (PLAIN, True, False, True),
-    "after+downsample_4x4": (mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=True), True, False, False),
-    "after+geglu": (mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=False), True, False, False),
+    "after+downsample_4x4": (_plain_and(vae_downsample_4x4=True), True, False, False),
+    "after+geglu": (_plain_and(fused_geglu=True), True, False, False),
+    "after+fold_norm_bias": (_plain_and(fold_norm_bias=True), True, False, False),
+    "after+fp8": (_plain_and(matmul_precision="fp8"), True, False, False),
     "default": (DEFAULT, True, False, False),
-    "default+fp8": (mk.ModelKernels(matmul_precision="fp8", fused_geglu=True, vae_downsample_4x4=True),
-                    True, False, False),
-    "default+fp8_fast_accum": (mk.ModelKernels(matmul_precision="fp8", fp8_fast_accum=True, fused_geglu=True,
-                                               vae_downsample_4x4=True), True, False, False),
+    "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
+    "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
+                               True, False, False),
 }
-DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "default", "default+fp8",
-                    "default+fp8_fast_accum")
+DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
+                    "default+fp8", "default+fp8_fast_accum")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 
 

@@ -263,6 +263,35 @@ def test_downsample_4x4_vae_equals_padded_3x3_float64(tiny_models, fused_norms):
     assert torch.equal(z2, z0)
 
 
+def test_fold_norm_bias_equals_separate_bias_pass_float64(tiny_models):
+    """conv1's bias and the time embedding added inside norm2 (tiger's GroupNorm input_bias) give
+    the UNet's output and the VAE encoder's values and input gradient of the separate pass."""
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    models = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=True, dtype=torch.float64)
+    unet, vae = models.unet, models.vae
+    x, t, e = _unet_inputs(unet, torch.float64)
+    img = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(10), dtype=torch.float64)
+
+    def run():
+        with torch.no_grad():
+            y = unet(x.contiguous(memory_format=torch.channels_last), t, encoder_hidden_states=e).sample
+        xx = img.contiguous(memory_format=torch.channels_last).requires_grad_(True)
+        z = vae.encode(xx).latent_dist.mean
+        (g,) = torch.autograd.grad((z * z).sum(), xx)
+        return y, z.detach(), g
+
+    plain = run()
+    n_blocks = sum(1 for m in list(unet.modules()) + list(vae.modules()) if type(m).__name__ == "ResnetBlock2D")
+    assert mk.set_fold_norm_bias(unet, True) + mk.set_fold_norm_bias(vae, True) == n_blocks > 0
+    folded = run()
+    mk.set_fold_norm_bias(unet, False)
+    mk.set_fold_norm_bias(vae, False)
+    for a, b in zip(folded, plain):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+    assert torch.equal(run()[0], plain[0])
+
+
 def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
     from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
     from tiger.edit.guidance.mvdream import MVDreamGuidance
@@ -280,7 +309,7 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
         assert any("forward" in m.__dict__ for m in models.unet.modules() if type(m).__name__ == "FeedForward") == on
         assert g.settings()["kernels"] == {"matmul_precision": "model", "fp8_fast_accum": False,
                                            "fused_geglu": True if on else "auto",
-                                           "vae_downsample_4x4": True if on else "auto"}
+                                           "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)

@@ -1,7 +1,9 @@
 """On a GPU: the fp8_rows kernels equal their CPU references (quantisation bit-exact, GEGLU
 within one rounding), the FP8 linear (torch._scaled_mm, row-wise scales) equals its float32
-emulation on the same quantised operands within bfloat16 output rounding, and a graphed
-InstructPix2Pix step with FP8 matmuls + fused GEGLU + 4x4 downsampling equals its eager step."""
+emulation on the same quantised operands within bfloat16 output rounding, the default kernels
+(fused GEGLU, 4x4 downsampling, norm-folded biases) in a graphed float32 step equal diffusers'
+computation eagerly, and a graphed InstructPix2Pix step with FP8 matmuls on top equals its eager
+step."""
 import pytest
 import torch
 
@@ -81,3 +83,22 @@ def test_graphed_ip2p_step_with_all_kernels_equals_eager(tiny_models, ring_camer
         b, _ = graphed.grad(renders, views, **draws)
         assert torch.isfinite(a).all() and float(a.abs().max()) > 0
         assert torch.allclose(a, b, rtol=2e-2, atol=2e-2 * float(a.abs().max())), (seed, float((a - b).abs().max()))
+
+
+def test_graphed_default_kernels_equal_plain_eager_float32(tiny_models, ring_cameras):
+    from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
+
+    ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
+    plain = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False)
+    torch.manual_seed(3)
+    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
+                      object_center=torch.zeros(3))
+    renders = torch.rand(4, 3, 16, 16, device="cuda")
+    draws = dict(t=torch.tensor([30, 80, 130, 190], device="cuda"), noise=torch.randn(4, 4, 8, 8, device="cuda"),
+                 vae_noise=torch.randn(4, 4, 8, 8, device="cuda"))
+    a, _ = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True,
+                                   kernels=plain).grad(renders, views, **draws)
+    graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)  # the defaults
+    assert any("forward" in m.__dict__ for m in ip.unet.modules() if type(m).__name__ == "FeedForward")
+    b, _ = graphed.grad(renders, views, **draws)
+    assert torch.allclose(a, b, rtol=1e-3, atol=1e-3 * float(a.abs().max())), float((a - b).abs().max())
