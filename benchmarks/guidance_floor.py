@@ -10,19 +10,29 @@ backward, matmuls, attention), the floor (FLOPs at the H100's measured 790 TFLOP
 the ratio to it, and the gradient's error on fixed noise and t (cosine similarity and relative
 norm error) against the first variant and against a float32 reference of the same models.
 
-Variants (one call measures all, each with a freshly captured CUDA graph):
+Variants (one call measures all, each with a freshly captured CUDA graph; ``--variants`` picks):
 
-- ``before``: the fused models' forwards before this benchmark's fold (conv1's bias, the time
+- ``before``: the fused models' forwards before the folded adds (conv1's bias, the time
   embedding, conv2's bias and the shortcut as separate passes; the VAE attention's float32
-  softmax upcast), reproduced here as the reference row;
-- ``after``: the loaders' models as they are (:mod:`tiger.edit.guidance.fused_norms`);
-- ``after+cudnn_benchmark``: the same with cuDNN's autotuning on (the edit leaves it off);
-- ``after+flash_sdpa``: the UNets' attention without cuDNN's SDPA kernels (torch's flash kernels
-  first), to see which serves heads of width 40–160 better on the device;
-- ``after+downsample_4x4``: the VAEs' stride-2 downsampling convolutions without their
-  (0, 1, 0, 1) zero pad (a full copy of the map, forward and backward): the 3x3 kernel placed in
-  a zero 4x4 kernel with padding 1 computes the same sums (16/9 of those convolutions' FLOPs;
-  the floor keeps the 3x3 count). A candidate measured here, not in the package.
+  softmax upcast), reproduced here as a reference row (not in the default list);
+- ``after``: the folded adds, diffusers' GEGLU and padded VAE downsampling (the package's
+  default before :mod:`tiger.edit.guidance.model_kernels`);
+- ``after+cudnn_benchmark``, ``after+flash_sdpa``: cuDNN's autotuning on; the UNets' attention
+  without cuDNN's SDPA kernels (not in the default list);
+- ``after+downsample_4x4``: the VAEs' stride-2 convolutions as unpadded-input 4x4 convolutions
+  (``ModelKernels.vae_downsample_4x4``; 16/9 of those layers' FLOPs, the floor keeps the 3x3 count);
+- ``after+geglu``: the UNets' one-pass GEGLU (``ModelKernels.fused_geglu``);
+- ``after+fold_norm_bias``: conv1's bias and the time embedding added inside norm2 of every
+  ResNet block (``ModelKernels.fold_norm_bias``);
+- ``after+fp8``: only the UNets' transformer matmuls in FP8 with row-wise scales
+  (``ModelKernels(matmul_precision="fp8")``, opt-in);
+- ``default``: the three exact-within-rounding kernels together (the package's default on CUDA);
+- ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
+  ``torch._scaled_mm``'s fast accumulation.
+
+FP8 rows need a GPU with FP8 tensor cores; elsewhere they are skipped with the reason. A variant
+that fails prints its error and the run goes on. "FP8-eligible TFLOP" is the part of each call's
+FLOPs in the layers FP8 converts (the ceiling of what FP8's 2x rate can save).
 
     python -m benchmarks.guidance_floor --device cuda              # full size, about 2 minutes
     python -m benchmarks.guidance_floor                            # CPU, tiny models (a smoke run)
@@ -31,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import tempfile
 import time
@@ -44,12 +55,36 @@ from tiger.edit.csd import CSDGuidance
 from tiger.edit.guidance.base import ViewBatch
 from tiger.edit.guidance.diffusers_models import _attention_probs_one_pass, freeze
 from tiger.edit.guidance.fused_norms import _continuous_output_keep_layout, _resnet_forward_folded
+from tiger.edit.guidance import model_kernels as mk
 from tiger.edit.guidance.ip2p import InstructPix2PixGuidance
 from tiger.edit.guidance.mvdream import MVDreamGuidance
-from tiger.ops.channel_bias import channel_bias_add
 from tiger.utils.dtypes import DTYPE_NAMES
 
-VARIANTS = ("before", "after", "after+cudnn_benchmark", "after+flash_sdpa", "after+downsample_4x4")
+PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False)
+DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True)
+
+
+def _plain_and(**fields) -> mk.ModelKernels:
+    return dataclasses.replace(PLAIN, **fields)
+
+
+# name -> (kernels, folded adds, cuDNN autotuning, flash attention first)
+VARIANTS = {
+    "before": (PLAIN, False, False, False),
+    "after": (PLAIN, True, False, False),
+    "after+cudnn_benchmark": (PLAIN, True, True, False),
+    "after+flash_sdpa": (PLAIN, True, False, True),
+    "after+downsample_4x4": (_plain_and(vae_downsample_4x4=True), True, False, False),
+    "after+geglu": (_plain_and(fused_geglu=True), True, False, False),
+    "after+fold_norm_bias": (_plain_and(fold_norm_bias=True), True, False, False),
+    "after+fp8": (_plain_and(matmul_precision="fp8"), True, False, False),
+    "default": (DEFAULT, True, False, False),
+    "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
+    "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
+                               True, False, False),
+}
+DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
+                    "default+fp8", "default+fp8_fast_accum")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 
 
@@ -102,33 +137,6 @@ def set_folded(models, folded: bool) -> int:
     return changed
 
 
-def set_downsample_4x4(models, on: bool) -> int:
-    """The VAE's padded stride-2 convolutions as unpadded-input 4x4 convolutions (``on``) or
-    diffusers' pad + 3x3 (off); returns how many layers changed."""
-    from diffusers.models.downsampling import Downsample2D
-
-    changed = 0
-    for m in models.vae.modules():
-        if type(m) is not Downsample2D or not (m.use_conv and m.padding == 0) or m.norm is not None:
-            continue
-        if not on:
-            m.__dict__.pop("forward", None)
-            changed += 1
-            continue
-        conv = m.conv
-        w4 = conv.weight.new_zeros(conv.weight.shape[0], conv.weight.shape[1], 4, 4)
-        w4[:, :, 1:, 1:] = conv.weight.detach()
-        w4 = w4.contiguous(memory_format=torch.channels_last)
-
-        def forward(hidden_states, *args, _w4=w4, _conv=conv, **kwargs):
-            y = torch.nn.functional.conv2d(hidden_states, _w4, None, stride=_conv.stride, padding=1)
-            return y if _conv.bias is None else channel_bias_add(y, _conv.bias)
-
-        m.forward = forward
-        changed += 1
-    return changed
-
-
 @contextlib.contextmanager
 def attention_backends(flash_first: bool):
     """SDPA without cuDNN's kernels (flash, then memory-efficient, then math) when ``flash_first``."""
@@ -169,11 +177,30 @@ def fixed_draws(ip: InstructPix2PixGuidance, mv: MVDreamGuidance, res: int, devi
                             vae_noise=torch.randn(mv_shape, generator=gen).to(device))}
 
 
-def make_guidances(ip_models, mv_models, graph: bool, size: str):
+def make_guidances(ip_models, mv_models, graph: bool, size: str, kernels: mk.ModelKernels = PLAIN):
     kw = {} if size == "full" else {"short_side": 64}
-    ip = InstructPix2PixGuidance(ip_models, "turn the fox into a red panda", cuda_graph=graph, **kw)
-    mv = MVDreamGuidance(mv_models, "a red panda", cuda_graph=graph, image_size=256 if size == "full" else 32)
+    ip = InstructPix2PixGuidance(ip_models, "turn the fox into a red panda", cuda_graph=graph, kernels=kernels, **kw)
+    mv = MVDreamGuidance(mv_models, "a red panda", cuda_graph=graph, image_size=256 if size == "full" else 32,
+                         kernels=kernels)
     return ip, mv
+
+
+def fp8_eligible_flops(models, fn) -> float:
+    """FLOPs of one ``fn()`` call in the layers FP8 converts (2·M·K·N each, by forward hooks)."""
+    total = [0.0]
+
+    def hook(module, inputs, output):
+        k = module.in_channels if isinstance(module, torch.nn.Conv2d) else module.in_features
+        total[0] += 2.0 * output.numel() * k
+
+    handles = [parent._modules[name].register_forward_hook(hook)
+               for parent, name, _, _ in mk._fp8_targets(models.unet)]
+    try:
+        fn()
+    finally:
+        for h in handles:
+            h.remove()
+    return total[0]
 
 
 def main() -> None:
@@ -183,7 +210,7 @@ def main() -> None:
     ap.add_argument("--render", type=int, default=None, help="render side in pixels (default 512 full, 64 tiny)")
     ap.add_argument("--dtype", default=None, help="bf16 (CUDA default), fp16 or fp32 (CPU default)")
     ap.add_argument("--reps", type=int, default=10)
-    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma list of {', '.join(VARIANTS)}")
+    ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=f"comma list of {', '.join(VARIANTS)}")
     ap.add_argument("--no-reference", action="store_true", help="skip the float32 reference gradients")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the rows")
     args = ap.parse_args()
@@ -221,54 +248,75 @@ def main() -> None:
     flops["csd_fresh"] = flops["ip2p_fresh"] + MV_FRACTION * flops["mvdream"]
     flops["csd_pooled"] = flops["ip2p_pooled"] + MV_FRACTION * flops["mvdream"]
     print("TFLOP per call:", json.dumps({k: round(v / 1e12, 3) for k, v in flops.items()}), flush=True)
+    eligible = {"ip2p": fp8_eligible_flops(ip_models, lambda: ip_e.grad(renders, views(0, True))),
+                "mvdream": fp8_eligible_flops(mv_models, lambda: mv_e.grad(renders, views(0, False)))}
+    eligible["csd"] = eligible["ip2p"] + MV_FRACTION * eligible["mvdream"]
+    print("FP8-eligible TFLOP per call (UNet transformer matmuls):",
+          json.dumps({k: round(v / 1e12, 3) for k, v in eligible.items()}),
+          f"= {eligible['csd'] / (H100_BF16_TFLOPS * 1e12) * 1e3:.2f} ms of the CSD floor", flush=True)
     ip_e = mv_e = None  # free the eager guidances
 
     rows: list[dict] = []
     grads: dict[str, dict[str, torch.Tensor]] = {}
     for variant in variants:
-        with attention_backends(flash_first=variant == "after+flash_sdpa"):
-            set_folded(ip_models, variant != "before")
-            set_folded(mv_models, variant != "before")
-            for models in (ip_models, mv_models):
-                set_downsample_4x4(models, variant == "after+downsample_4x4")
-            torch.backends.cudnn.benchmark = variant == "after+cudnn_benchmark"
-            ip_g, mv_g = make_guidances(ip_models, mv_models, graph=cuda, size=size)
-            csd = CSDGuidance(ip_g, mv_g)
-            row = {"variant": variant}
-            row["ip2p_fresh_ms"] = timer(lambda: ip_g.grad(renders, views(0, False)))
-            row["ip2p_pooled_ms"] = timer(lambda: ip_g.grad(renders, views(0, True)))
-            row["mvdream_ms"] = timer(lambda: mv_g.grad(renders, views(0, False)))
-            both = {p: timer(lambda: csd.grad(renders, views(0, p == "pooled"))) for p in ("fresh", "pooled")}
-            alone = {p: timer(lambda: csd.grad(renders, views(3, p == "pooled"))) for p in ("fresh", "pooled")}
-            for p in ("fresh", "pooled"):
-                ms = MV_FRACTION * both[p] + (1 - MV_FRACTION) * alone[p]
-                floor_ms = flops[f"csd_{p}"] / (H100_BF16_TFLOPS * 1e12) * 1e3
-                row[f"csd_{p}_ms"] = ms
-                row[f"csd_{p}_tflop"] = flops[f"csd_{p}"] / 1e12
-                row[f"csd_{p}_floor_ms"] = floor_ms
-                row[f"csd_{p}_x_floor"] = ms / floor_ms
-            ip_eager, mv_eager = make_guidances(ip_models, mv_models, graph=False, size=size)
-            grads[variant] = {"ip2p": ip_eager.grad(renders, views(0, False), **draws["ip2p"])[0],
-                              "mvdream": mv_eager.grad(renders, views(0, False), **draws["mvdream"])[0]}
-            if variant != variants[0]:
-                for name in ("ip2p", "mvdream"):
-                    cos, rel = cosine_rel(grads[variant][name], grads[variants[0]][name])
-                    row[f"{name}_cos_vs_{variants[0]}"], row[f"{name}_rel_vs_{variants[0]}"] = cos, rel
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-            ip_g = mv_g = csd = ip_eager = mv_eager = None  # the graphs' memory goes back to the pool
+        kernels, folded, cudnn_benchmark, flash_first = VARIANTS[variant]
+        if kernels.matmul_precision == "fp8":
+            ok, why = mk.fp8_supported(args.device)
+            if not ok or dtype != torch.bfloat16:
+                print(f"{variant}: skipped ({why or 'FP8 matmuls need --dtype bf16'})", flush=True)
+                continue
+        try:
+            with attention_backends(flash_first=flash_first):
+                set_folded(ip_models, folded)
+                set_folded(mv_models, folded)
+                torch.backends.cudnn.benchmark = cudnn_benchmark
+                ip_g, mv_g = make_guidances(ip_models, mv_models, graph=cuda, size=size, kernels=kernels)
+                csd = CSDGuidance(ip_g, mv_g)
+                row = {"variant": variant}
+                row["ip2p_fresh_ms"] = timer(lambda: ip_g.grad(renders, views(0, False)))
+                row["ip2p_pooled_ms"] = timer(lambda: ip_g.grad(renders, views(0, True)))
+                row["mvdream_ms"] = timer(lambda: mv_g.grad(renders, views(0, False)))
+                both = {p: timer(lambda: csd.grad(renders, views(0, p == "pooled"))) for p in ("fresh", "pooled")}
+                alone = {p: timer(lambda: csd.grad(renders, views(3, p == "pooled"))) for p in ("fresh", "pooled")}
+                for p in ("fresh", "pooled"):
+                    ms = MV_FRACTION * both[p] + (1 - MV_FRACTION) * alone[p]
+                    floor_ms = flops[f"csd_{p}"] / (H100_BF16_TFLOPS * 1e12) * 1e3
+                    row[f"csd_{p}_ms"] = ms
+                    row[f"csd_{p}_tflop"] = flops[f"csd_{p}"] / 1e12
+                    row[f"csd_{p}_floor_ms"] = floor_ms
+                    row[f"csd_{p}_x_floor"] = ms / floor_ms
+                ip_g = mv_g = csd = None  # the graphs' memory goes back to the pool
+                ip_eager, mv_eager = make_guidances(ip_models, mv_models, graph=False, size=size, kernels=kernels)
+                grads[variant] = {"ip2p": ip_eager.grad(renders, views(0, False), **draws["ip2p"])[0],
+                                  "mvdream": mv_eager.grad(renders, views(0, False), **draws["mvdream"])[0]}
+                ip_eager = mv_eager = None
+        except Exception as exc:  # one failing variant must not lose the others' measurements
+            print(f"{variant}: FAILED ({type(exc).__name__}: {exc})", flush=True)
+            ip_g = mv_g = csd = ip_eager = mv_eager = None
+            grads.pop(variant, None)
             if cuda:
+                torch.cuda.synchronize()
                 torch.cuda.empty_cache()
+            continue
+        first = rows[0]["variant"] if rows else None
+        if first is not None:
+            for name in ("ip2p", "mvdream"):
+                cos, rel = cosine_rel(grads[variant][name], grads[first][name])
+                row[f"{name}_cos_vs_{first}"], row[f"{name}_rel_vs_{first}"] = cos, rel
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+        if cuda:
+            torch.cuda.empty_cache()
     torch.backends.cudnn.benchmark = False
 
     if not args.no_reference and dtype != torch.float32:  # the float32 reference of the same weights
-        for models in (ip_models, mv_models):
+        for models in (ip_models, mv_models):  # diffusers' layers back first: FP8 layers hold no float weights
+            mk.apply_model_kernels(models.unet, models.vae, PLAIN)
             freeze(models.unet, dtype=torch.float32)
             freeze(models.vae, dtype=torch.float32)
         for models in (ip_models, mv_models):
             set_folded(models, True)
-            set_downsample_4x4(models, False)
-        ip_r, mv_r = make_guidances(ip_models, mv_models, graph=False, size=size)
+        ip_r, mv_r = make_guidances(ip_models, mv_models, graph=False, size=size, kernels=PLAIN)
         ref = {"ip2p": ip_r.grad(renders, views(0, False), **draws["ip2p"])[0],
                "mvdream": mv_r.grad(renders, views(0, False), **draws["mvdream"])[0]}
         for row in rows:
@@ -276,8 +324,11 @@ def main() -> None:
                 cos, rel = cosine_rel(grads[row["variant"]][name], ref[name])
                 row[f"{name}_cos_vs_fp32"], row[f"{name}_rel_vs_fp32"] = cos, rel
     meta["wall_s"] = time.perf_counter() - t_start
+    if not rows:
+        raise SystemExit("no variant ran (see the errors above)")
     if args.out is not None:
-        args.out.write_text(json.dumps({"meta": meta, "flops": flops, "rows": rows}, indent=1))
+        args.out.write_text(json.dumps({"meta": meta, "flops": flops, "fp8_eligible_flops": eligible, "rows": rows},
+                                       indent=1))
     timing_cols = ["variant", "ip2p_fresh_ms", "ip2p_pooled_ms", "mvdream_ms", "csd_fresh_ms", "csd_fresh_floor_ms",
                    "csd_fresh_x_floor", "csd_pooled_ms", "csd_pooled_floor_ms", "csd_pooled_x_floor"]
     print_table([{c: r.get(c, "-") for c in timing_cols} for r in rows],

@@ -1,7 +1,9 @@
 #pragma once
 // tiger::group_norm — GroupNorm with an optional fused SiLU (the diffusion models' norm + act).
 //
-//   x [N, C, H, W], G groups of D = C / G channels; per (n, g) over the D·H·W elements:
+//   x [N, C, H, W], G groups of D = C / G channels, optionally shifted per (n, c) first by an
+//   input bias (a preceding convolution's bias, plus a ResNet block's time embedding, folded in:
+//   x ← x + ib[n, c], float32 [N, C]; the sum is never written); per (n, g) over the D·H·W elements:
 //     mean[n, g], rstd[n, g] = 1 / sqrt(var[n, g] + eps)     (biased variance; float32 [N, G])
 //     z = (x − mean)·rstd·w[c] + b[c]                          (w = 1, b = 0 when absent)
 //     y = silu ? z·σ(z) : z                                    (x's dtype and memory format)
@@ -30,10 +32,12 @@ struct Dims {
 int64_t plan_chunks(const Dims& d, int vector_width);
 
 // Affine parameters: dtype of x, or float32 (params_float); null = absent (w = 1, b = 0).
+// input_bias: float32 [N, C] added to x before everything else; null = absent.
 struct Params {
   const void* weight;
   const void* bias;
   bool params_float;
+  const float* input_bias;
 };
 
 // mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x.

@@ -28,16 +28,30 @@ std::vector<double> param_values(const c10::optional<at::Tensor>& p, int64_t C, 
 
 inline double sigmoid(double z) { return 1.0 / (1.0 + std::exp(-z)); }
 
+// [N·C] float64 input biases (zeros when absent).
+std::vector<double> input_bias_values(const c10::optional<at::Tensor>& ib, const at::Tensor& x, const char* op) {
+  std::vector<double> v(x.size(0) * x.size(1), 0.0);
+  const auto t = input_bias_of(ib, x, op);
+  if (t.defined()) {
+    const auto d = t.to(at::kDouble).contiguous();
+    const double* src = d.data_ptr<double>();
+    for (size_t k = 0; k < v.size(); ++k) v[k] = src[k];
+  }
+  return v;
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& x_in,
                                                               const c10::optional<at::Tensor>& weight,
                                                               const c10::optional<at::Tensor>& bias,
-                                                              int64_t num_groups, double eps, bool silu) {
+                                                              int64_t num_groups, double eps, bool silu,
+                                                              const c10::optional<at::Tensor>& input_bias) {
   const Dims d = check_inputs(x_in, weight, bias, num_groups, kOp);
   check_eps(eps, kOp);
   TORCH_CHECK(x_in.device().is_cpu(), kOp, ": x must be on the CPU");
   const auto x = x_in.contiguous();
   const int64_t D = d.C / d.G, M = D * d.HW;
   const auto w = param_values(weight, d.C, 1.0), b = param_values(bias, d.C, 0.0);
+  const auto ib = input_bias_values(input_bias, x_in, kOp);
   auto y = at::empty_like(x);
   auto mean = at::empty({d.N, d.G}, x.options().dtype(at::kDouble));
   auto rstd = at::empty({d.N, d.G}, x.options().dtype(at::kDouble));
@@ -49,12 +63,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& 
     at::parallel_for(0, d.N * d.G, 1, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
         const scalar_t* xs = xp + i * M;  // (n, g) is one contiguous run in NCHW
+        const double* ibs = ib.data() + (i / d.G) * d.C + (i % d.G) * D;  // the group's input biases
         double s = 0.0;
-        for (int64_t k = 0; k < M; ++k) s += static_cast<double>(xs[k]);
+        for (int64_t k = 0; k < M; ++k) s += static_cast<double>(xs[k]) + ibs[k / d.HW];
         const double mu = M > 0 ? s / M : 0.0;
         double ss = 0.0;  // two passes: exact for large-mean inputs
         for (int64_t k = 0; k < M; ++k) {
-          const double e = static_cast<double>(xs[k]) - mu;
+          const double e = static_cast<double>(xs[k]) + ibs[k / d.HW] - mu;
           ss += e * e;
         }
         const double r = 1.0 / std::sqrt((M > 0 ? ss / M : 0.0) + eps);
@@ -66,7 +81,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& 
           const scalar_t* xc = xs + j * d.HW;
           scalar_t* yc = yp + i * M + j * d.HW;
           for (int64_t p = 0; p < d.HW; ++p) {
-            const double z = (static_cast<double>(xc[p]) - mu) * a + bb;
+            const double z = (static_cast<double>(xc[p]) + ibs[j] - mu) * a + bb;
             yc[p] = static_cast<scalar_t>(silu ? z * sigmoid(z) : z);
           }
         }
@@ -80,10 +95,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cpu(
     const at::Tensor& grad_y_in, const at::Tensor& x_in, const c10::optional<at::Tensor>& weight,
     const c10::optional<at::Tensor>& bias, const at::Tensor& mean_in, const at::Tensor& rstd_in, int64_t num_groups,
-    bool silu, bool param_grads) {
+    bool silu, bool param_grads, const c10::optional<at::Tensor>& input_bias) {
   const char* op = "tiger.group_norm_backward (CPU)";
   const Dims d = check_inputs(x_in, weight, bias, num_groups, op);
   check_backward_inputs(grad_y_in, x_in, mean_in, rstd_in, d, op);
+  const auto ib = input_bias_values(input_bias, x_in, op);
   const auto x = x_in.contiguous();
   const auto dy = grad_y_in.contiguous();
   const auto mean = mean_in.to(at::kDouble).contiguous();
@@ -109,7 +125,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cpu(
           double s1 = 0.0, s2 = 0.0;
           for (int64_t p = 0; p < d.HW; ++p) {
             const int64_t k = j * d.HW + p;
-            const double h = (static_cast<double>(xp[i * M + k]) - mu) * r;
+            const double h = (static_cast<double>(xp[i * M + k]) + ib[n * d.C + c0 + j] - mu) * r;
             double g = static_cast<double>(gp[i * M + k]);
             if (silu) {
               const double z = h * w[c0 + j] + b[c0 + j], s = sigmoid(z);

@@ -46,14 +46,16 @@ c10::optional<at::Tensor> contiguous(const c10::optional<at::Tensor>& p) {
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor& x_in,
                                                                const c10::optional<at::Tensor>& weight_in,
                                                                const c10::optional<at::Tensor>& bias_in,
-                                                               int64_t num_groups, double eps, bool silu) {
+                                                               int64_t num_groups, double eps, bool silu,
+                                                               const c10::optional<at::Tensor>& input_bias_in) {
   const Dims d = check_inputs(x_in, weight_in, bias_in, num_groups, kOp);
   check_eps(eps, kOp);
   check_cuda(x_in, kOp);
   const c10::cuda::CUDAGuard guard(x_in.device());
   const auto x = x_in.contiguous(memory_format(d.nhwc));
   const auto weight = contiguous(weight_in), bias = contiguous(bias_in);
-  const Params p = params_of(weight, bias);
+  const auto input_bias = input_bias_of(input_bias_in, x_in, kOp);
+  const Params p = params_of(weight, bias, input_bias);
   auto y = at::empty_like(x, memory_format(d.nhwc));
   const auto fopts = x.options().dtype(at::kFloat);
   auto mean = at::empty({d.N, d.G}, fopts), rstd = at::empty({d.N, d.G}, fopts);
@@ -76,7 +78,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
     const at::Tensor& grad_y_in, const at::Tensor& x_in, const c10::optional<at::Tensor>& weight_in,
     const c10::optional<at::Tensor>& bias_in, const at::Tensor& mean_in, const at::Tensor& rstd_in,
-    int64_t num_groups, bool silu, bool param_grads) {
+    int64_t num_groups, bool silu, bool param_grads, const c10::optional<at::Tensor>& input_bias_in) {
   const char* op = "tiger.group_norm_backward (CUDA)";
   const Dims d = check_inputs(x_in, weight_in, bias_in, num_groups, op);
   check_backward_inputs(grad_y_in, x_in, mean_in, rstd_in, d, op);
@@ -86,7 +88,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
   const auto dy = grad_y_in.contiguous(memory_format(d.nhwc));
   const auto mean = mean_in.contiguous(), rstd = rstd_in.contiguous();
   const auto weight = contiguous(weight_in), bias = contiguous(bias_in);
-  const Params p = params_of(weight, bias);
+  const auto input_bias = input_bias_of(input_bias_in, x_in, op);
+  const Params p = params_of(weight, bias, input_bias);
   auto dx = at::empty_like(x, memory_format(d.nhwc));
   const auto fopts = x.options().dtype(at::kFloat);
   auto sum_dz = at::zeros({d.N, d.C}, fopts), sum_dzx = at::zeros({d.N, d.C}, fopts);

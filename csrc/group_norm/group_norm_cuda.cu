@@ -194,8 +194,15 @@ struct Partials {
   }
 };
 
+// Input bias of (n, c) (0 when absent): added to every element of the channel, shifts included,
+// so the per-channel moments (relative to the shift) need no change.
+__device__ __forceinline__ float input_bias_at(const float* ib, int64_t C, int64_t n, int64_t c) {
+  return ib == nullptr ? 0.f : ib[n * C + c];
+}
+
 template <typename T>
 __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const T* __restrict__ x,
+                                                                       const float* __restrict__ ib,
                                                                        const float* __restrict__ pmean,
                                                                        const float* __restrict__ pm2, float eps,
                                                                        float* __restrict__ mean_out,
@@ -203,14 +210,16 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials 
   __shared__ float s_n[kFinalThreads], s_mean[kFinalThreads], s_m2[kFinalThreads];
   const int64_t ng = blockIdx.x, n = ng / pt.G, g = ng % pt.G;
   // The group's frame: the shift of its first channel; each entry's mean moves into it.
-  const float s0 = load_as<float>(x[pt.shift_index(n, g * (pt.C / pt.G))]);
+  const int64_t c_first = g * (pt.C / pt.G);
+  const float s0 = load_as<float>(x[pt.shift_index(n, c_first)]) + input_bias_at(ib, pt.C, n, c_first);
   float cnt = 0.f, mean = 0.f, m2 = 0.f;
   const int64_t E = pt.entries();
   for (int64_t e = threadIdx.x; e < E; e += blockDim.x) {
     int64_t idx;
     float c;
     pt.at(n, g, e, idx, c);
-    const float to_group = load_as<float>(x[pt.shift_index(n, pt.channel_of_entry(g, e))]) - s0;
+    const int64_t ch = pt.channel_of_entry(g, e);
+    const float to_group = load_as<float>(x[pt.shift_index(n, ch)]) + input_bias_at(ib, pt.C, n, ch) - s0;
     merge(cnt, mean, m2, c, to_group + pmean[idx], pm2[idx]);
   }
   s_n[threadIdx.x] = cnt;
@@ -236,7 +245,7 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials 
 // Per-lane constants of one column: mean, rstd, w, b of its V channels.
 template <typename T, int V>
 struct ColumnConsts {
-  float mean[V], rstd[V], w[V], b[V];
+  float mean[V], rstd[V], w[V], b[V], ib[V];
   __device__ __forceinline__ void load(const Walk& wk, const Tile& t, int64_t v, const Params& p, int64_t G,
                                        const float* mean_g, const float* rstd_g) {
     const int64_t D = wk.C / G;
@@ -244,6 +253,7 @@ struct ColumnConsts {
     for (int j = 0; j < V; ++j) {
       const int64_t c = channel_of<V>(wk, t, v, j);
       const int64_t ng = t.n * G + c / D;
+      ib[j] = input_bias_at(p.input_bias, wk.C, t.n, c);
       mean[j] = mean_g[ng];
       rstd[j] = rstd_g[ng];
       w[j] = param_at<T>(p, p.weight, c, 1.f);
@@ -271,7 +281,7 @@ __global__ void __launch_bounds__(kThreads) apply_kernel(const T* __restrict__ x
       Vec<T, V> out;
 #pragma unroll
       for (int j = 0; j < V; ++j) {
-        float z = (load_as<float>(in.v[j]) - k.mean[j]) * a[j] + k.b[j];
+        float z = (load_as<float>(in.v[j]) + k.ib[j] - k.mean[j]) * a[j] + k.b[j];
         if (SILU) z *= sigmoid(z);
         out.v[j] = store_as<T>(z);
       }
@@ -319,7 +329,8 @@ __global__ void __launch_bounds__(kThreads) backward_reduce_kernel(const T* __re
 #pragma unroll
         for (int j = 0; j < V; ++j) {
           float dz, xh;
-          dz_xhat<SILU>(load_as<float>(xv.v[j]), load_as<float>(gv.v[j]), k.mean[j], k.rstd[j], k.w[j], k.b[j], dz, xh);
+          dz_xhat<SILU>(load_as<float>(xv.v[j]) + k.ib[j], load_as<float>(gv.v[j]), k.mean[j], k.rstd[j], k.w[j],
+                        k.b[j], dz, xh);
           sa[j] += dz;
           sb[j] += dz * xh;
         }
@@ -443,7 +454,8 @@ __global__ void __launch_bounds__(kThreads) dx_kernel(const T* __restrict__ dy, 
 #pragma unroll
       for (int j = 0; j < V; ++j) {
         float dz, xh;
-        dz_xhat<SILU>(load_as<float>(xv.v[j]), load_as<float>(gv.v[j]), k.mean[j], k.rstd[j], k.w[j], k.b[j], dz, xh);
+        dz_xhat<SILU>(load_as<float>(xv.v[j]) + k.ib[j], load_as<float>(gv.v[j]), k.mean[j], k.rstd[j], k.w[j],
+                      k.b[j], dz, xh);
         out.v[j] = store_as<T>(k.rstd[j] * (k.w[j] * dz - k1[j] - xh * k2[j]));
       }
       *reinterpret_cast<Vec<T, V>*>(dx + off) = out;
@@ -479,7 +491,7 @@ void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int
   const dim3 grid = walk_grid(d, chunks);
   stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
   finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
-      make_partials(d, w, V, chunks), x, pmean, pm2, eps, mean, rstd);
+      make_partials(d, w, V, chunks), x, p.input_bias, pmean, pm2, eps, mean, rstd);
   if (silu)
     apply_kernel<T, V, true><<<grid, kThreads, 0, st>>>(x, w, p, d.G, mean, rstd, y);
   else

@@ -57,13 +57,31 @@ inline void check_backward_inputs(const at::Tensor& grad_y, const at::Tensor& x,
   }
 }
 
-inline Params params_of(const c10::optional<at::Tensor>& w, const c10::optional<at::Tensor>& b) {
+// The input bias as float32 [N, C] contiguous (an undefined tensor when absent): [C] or [N, C]
+// of any floating dtype, on x's device.
+inline at::Tensor input_bias_of(const c10::optional<at::Tensor>& ib, const at::Tensor& x, const char* op) {
+  if (!ib.has_value() || !ib->defined()) return at::Tensor();
+  const int64_t N = x.size(0), C = x.size(1);
+  const bool per_channel = ib->dim() == 1 && ib->size(0) == C;
+  const bool per_sample = ib->dim() == 2 && ib->size(0) == N && ib->size(1) == C;
+  TORCH_CHECK(per_channel || per_sample, op, ": input_bias must be [C] = [", C, "] or [N, C] = [", N, ", ", C,
+              "], got ", shape_str(ib->sizes()));
+  TORCH_CHECK(ib->is_floating_point(), op, ": input_bias must be floating point, got ", ib->scalar_type());
+  TORCH_CHECK(ib->device() == x.device(), op, ": input_bias is on ", ib->device(), " but x is on ", x.device());
+  const auto acc = x.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  return ib->to(acc).expand({N, C}).contiguous();
+}
+
+inline Params params_of(const c10::optional<at::Tensor>& w, const c10::optional<at::Tensor>& b,
+                        const at::Tensor& input_bias = at::Tensor()) {
   const bool wf = w.has_value() && w->scalar_type() == at::kFloat;
   const bool bf = b.has_value() && b->scalar_type() == at::kFloat;
   TORCH_CHECK(!(w.has_value() && b.has_value()) || wf == bf,
               "tiger.group_norm: weight and bias must have the same dtype, got ", w->scalar_type(), " and ",
               b->scalar_type());
-  return Params{w.has_value() ? w->data_ptr() : nullptr, b.has_value() ? b->data_ptr() : nullptr, wf || bf};
+  const float* ib = input_bias.defined() && input_bias.scalar_type() == at::kFloat ? input_bias.data_ptr<float>()
+                                                                                    : nullptr;
+  return Params{w.has_value() ? w->data_ptr() : nullptr, b.has_value() ? b->data_ptr() : nullptr, wf || bf, ib};
 }
 
 }  // namespace group_norm

@@ -89,6 +89,36 @@ def test_gradcheck_and_opcheck(layout):
     torch.library.opcheck(torch.ops.tiger.group_norm, (x.float().requires_grad_(), None, None, 3, 1e-5, True))
 
 
+@pytest.mark.parametrize("layout", ["nchw", "cl"])
+@pytest.mark.parametrize("per_sample", [False, True])
+def test_input_bias_equals_norm_of_the_sum(layout, per_sample):
+    """input_bias: the same values and gradients as the norm of x + bias (float64), the bias's
+    gradient included; gradcheck and opcheck with it."""
+    x, w, b = make(n=2, c=8, h=4, w=5, layout=layout, seed=11, mean=3.0)
+    g = torch.Generator().manual_seed(12)
+    ib = torch.randn((2, 8) if per_sample else (8,), generator=g, dtype=F64) * 5
+    ib_map = ib[:, :, None, None] if per_sample else ib[None, :, None, None]
+    gy = torch.randn(x.shape, dtype=F64, generator=g)
+    for silu in (False, True):
+        xa, iba = x.clone().requires_grad_(), ib.clone().requires_grad_()
+        xr, ibr = x.clone().requires_grad_(), ib.clone().requires_grad_()
+        y = group_norm(xa, 4, w, b, 1e-5, silu, input_bias=iba)
+        ref = reference(xr + (ibr[:, :, None, None] if per_sample else ibr[None, :, None, None]), 4, w, b, 1e-5, silu)
+        torch.testing.assert_close(y, ref, atol=1e-12, rtol=1e-12)
+        assert is_cl(y) == (layout == "cl")
+        (y * gy).sum().backward()
+        (ref * gy).sum().backward()
+        torch.testing.assert_close(xa.grad, xr.grad, atol=1e-10, rtol=1e-10)
+        torch.testing.assert_close(iba.grad, ibr.grad, atol=1e-10, rtol=1e-10)
+    assert torch.autograd.gradcheck(lambda a, c: group_norm(a, 4, w, b, 1e-5, True, input_bias=c),
+                                    (x.clone().requires_grad_(), ib.clone().requires_grad_()))
+    torch.library.opcheck(torch.ops.tiger.group_norm, (x, w, b, 4, 1e-5, True, ib))
+    torch.testing.assert_close(group_norm(x.float(), 4, w.float(), b.float(), 1e-5, True, ib.float()).double(),
+                               reference(x + ib_map, 4, w, b, 1e-5, True), atol=2e-5, rtol=2e-5)
+    with pytest.raises(RuntimeError, match=r"input_bias must be \[C\] = \[8\] or \[N, C\]"):
+        group_norm(x, 4, w, b, 1e-5, True, input_bias=torch.zeros(3, dtype=F64))
+
+
 def test_large_mean_input_is_accurate():
     x, w, b = make(mean=1000.0, scale=1e-2, dtype=torch.float32, layout="cl", seed=2)
     y = group_norm(x, 4, w, b, 1e-6, True)
@@ -199,6 +229,32 @@ def test_cuda_large_mean_and_determinism(layout):
     a.grad = None
     group_norm(a, 32, wc, bc, 1e-6, True).sum().backward()
     assert torch.equal(g1, a.grad)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason="needs CUDA and tiger's CUDA kernels")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("layout", ["nchw", "cl"])
+@pytest.mark.parametrize("shape", CUDA_SHAPES)
+def test_cuda_input_bias_matches_cpu(dtype, layout, shape):
+    n, c, h, w_, groups = shape
+    x, w, b = make(n, c, h, w_, dtype=dtype, layout=layout, seed=c + 1, mean=2.0)
+    ib = torch.randn(n, c, generator=torch.Generator().manual_seed(c)) * 3
+    gy = torch.randn(x.shape, generator=torch.Generator().manual_seed(6)).to(dtype)
+    for silu in (False, True):
+        outs = {}
+        for dev in ("cpu", "cuda"):
+            xa, iba = x.to(dev).clone().requires_grad_(), ib.to(dev).clone().requires_grad_()
+            y = group_norm(xa, groups, w.to(dev), b.to(dev), 1e-6, silu, input_bias=iba)
+            (y.float() * gy.to(dev).float()).sum().backward()
+            assert is_cl(y) == (layout == "cl")
+            outs[dev] = [t.detach().cpu().to(F64) for t in (y, xa.grad, iba.grad)]
+        tol = LOW[dtype] if dtype != torch.float32 else 1e-4
+        ref = reference(x.to(F64) + ib.to(F64)[:, :, None, None], groups, w, b, 1e-6, silu)
+        torch.testing.assert_close(outs["cuda"][0], ref, atol=tol, rtol=tol)
+        for a, r in zip(outs["cuda"], outs["cpu"]):
+            scale = r.abs().max().clamp_min(1.0)
+            torch.testing.assert_close(a / scale, r / scale, atol=tol * 2, rtol=tol * 2)
 
 
 @pytest.mark.cuda

@@ -24,45 +24,54 @@ def _stat_dtype(x: torch.Tensor) -> torch.dtype:
 
 
 @torch.library.register_fake("tiger::group_norm")
-def _fake(x, weight, bias, num_groups, eps, silu):
+def _fake(x, weight, bias, num_groups, eps, silu, input_bias=None):
     stats = x.new_empty((x.shape[0], num_groups), dtype=_stat_dtype(x))
     return torch.empty_like(x, memory_format=output_format(x)), stats, stats.new_empty(stats.shape)
 
 
 @torch.library.register_fake("tiger::group_norm_backward")
-def _fake_backward(grad_y, x, weight, bias, mean, rstd, num_groups, silu, param_grads):
+def _fake_backward(grad_y, x, weight, bias, mean, rstd, num_groups, silu, param_grads, input_bias=None):
     c = x.shape[1] if param_grads else 0
     return (torch.empty_like(x, memory_format=output_format(x)), x.new_empty((c,), dtype=_stat_dtype(x)),
             x.new_empty((c,), dtype=_stat_dtype(x)))
 
 
 def _setup_context(ctx, inputs, output):
-    x, weight, bias, num_groups, _eps, silu = inputs
+    x, weight, bias, num_groups, _eps, silu = inputs[:6]
+    input_bias = inputs[6] if len(inputs) > 6 else None
     _, mean, rstd = output
-    ctx.save_for_backward(x, weight, bias, mean, rstd)
+    ctx.save_for_backward(x, weight, bias, mean, rstd, input_bias)
     ctx.num_groups, ctx.silu = num_groups, silu
     ctx.mark_non_differentiable(mean, rstd)
 
 
 def _backward(ctx, grad_y, _grad_mean, _grad_rstd):
-    x, weight, bias, mean, rstd = ctx.saved_tensors
-    need_x, need_w, need_b = ctx.needs_input_grad[:3]
-    if grad_y is None or not (need_x or need_w or need_b):
-        return None, None, None, None, None, None
+    x, weight, bias, mean, rstd, input_bias = ctx.saved_tensors
+    need = tuple(ctx.needs_input_grad) + (False,)
+    need_x, need_w, need_b, need_ib = need[0], need[1], need[2], need[6]
+    n_inputs = len(ctx.needs_input_grad)
+    if grad_y is None or not (need_x or need_w or need_b or need_ib):
+        return (None,) * n_inputs
     param_grads = bool(need_w or need_b)
     gx, gw, gb = torch.ops.tiger.group_norm_backward(grad_y, x, weight, bias, mean, rstd, ctx.num_groups,
-                                                     ctx.silu, param_grads)
+                                                     ctx.silu, param_grads, input_bias)
     gw = gw.to(weight.dtype) if need_w else None
     gb = gb.to(bias.dtype) if need_b else None
-    return (gx if need_x else None), gw, gb, None, None, None
+    gib = None
+    if need_ib:  # x + ib: the input bias's gradient is dx summed over each channel's pixels
+        acc = torch.float64 if gx.dtype == torch.float64 else torch.float32
+        gib = gx.sum(dim=(2, 3), dtype=acc)
+        gib = (gib if input_bias.dim() == 2 else gib.sum(0)).to(input_bias.dtype)
+    return ((gx if need_x else None), gw, gb, None, None, None, gib)[:n_inputs]
 
 
 torch.library.register_autograd("tiger::group_norm", _backward, setup_context=_setup_context)
 
 
 def group_norm(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] = None,
-               bias: Optional[torch.Tensor] = None, eps: float = 1e-5, silu: bool = False) -> torch.Tensor:
-    """GroupNorm of ``x``, optionally followed by SiLU, in one pass.
+               bias: Optional[torch.Tensor] = None, eps: float = 1e-5, silu: bool = False,
+               input_bias: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """GroupNorm of ``x`` (+ ``input_bias``), optionally followed by SiLU, in one pass.
 
     Args:
         x: [N, C, H, W] float32/bfloat16/float16 (float64 on the CPU); channels-last or NCHW.
@@ -70,13 +79,18 @@ def group_norm(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] 
         weight, bias: [C] per-channel affine (x's dtype or float32), or None (1 and 0).
         eps: added to the biased per-group variance.
         silu: apply ``z·sigmoid(z)`` to the normalised, affine-transformed value.
+        input_bias: [C] or [N, C], added to x per (sample,) channel before the norm without being
+            written out: a bias-free convolution's bias (plus a ResNet block's time embedding)
+            folded into the norm that follows it. Computed in float32 (float64 for float64 x).
 
     Returns:
         [N, C, H, W] in x's dtype: ``act((x − mean_ng)·rstd_ng·w_c + b_c)`` with mean and the
         biased variance over each (n, group)'s C/G·H·W elements; channels-last when x is
         channels-last (and not also contiguous), else contiguous.
     """
-    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu))[0]
+    if input_bias is None:
+        return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu))[0]
+    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias)[0]
 
 
 class GroupNormSiLU(torch.nn.Module):
@@ -113,10 +127,12 @@ class GroupNormSiLU(torch.nn.Module):
         m.train(gn.training)
         return m
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, input_bias: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``input_bias`` ([C] or [N, C]): added to x first (:func:`group_norm`)."""
         if x.dim() == 3:
-            return group_norm(x.unsqueeze(-1), self.num_groups, self.weight, self.bias, self.eps, self.silu).squeeze(-1)
-        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps, self.silu)
+            return group_norm(x.unsqueeze(-1), self.num_groups, self.weight, self.bias, self.eps, self.silu,
+                              input_bias).squeeze(-1)
+        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps, self.silu, input_bias)
 
     def extra_repr(self) -> str:
         return (f"{self.num_groups}, {self.num_channels}, eps={self.eps}, affine={self.affine}, "

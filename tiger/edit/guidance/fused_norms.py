@@ -43,7 +43,8 @@ from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SiLUThenLinear", "fuse_group_norms", "bias_after_conv", "apply_fused_norms", "fused_norms_default"]
+__all__ = ["SiLUThenLinear", "fuse_group_norms", "bias_after_conv", "apply_fused_norms", "fused_norms_default",
+           "set_fold_norm_bias"]
 
 
 class SiLUThenLinear(torch.nn.Linear):
@@ -113,12 +114,51 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
     temb_bias = None
     if self.time_emb_proj is not None and temb is not None:
         temb_bias = self.time_emb_proj(temb)  # its SiLU: SiLUThenLinear or skip_time_act
-    h = _conv_then_add(self.conv1, self.norm1(input_tensor), temb_bias)
-    h = self.dropout(self.norm2(h))
+    if self.__dict__.get("_tiger_fold_norm_bias", False):  # conv1's bias and temb added inside norm2
+        h = self.conv1._conv_forward(self.norm1(input_tensor), self.conv1.weight, None)
+        h = self.dropout(self.norm2(h, input_bias=_norm_input_bias(self.conv1.bias, temb_bias, h.shape[0])))
+    else:
+        h = _conv_then_add(self.conv1, self.norm1(input_tensor), temb_bias)
+        h = self.dropout(self.norm2(h))
     if self.conv_shortcut is None:
         return _conv_then_add(self.conv2, h, None, input_tensor)
     shortcut = self.conv_shortcut._conv_forward(input_tensor, self.conv_shortcut.weight, None)
     return _conv_then_add(self.conv2, h, self.conv_shortcut.bias, shortcut)
+
+
+def _norm_input_bias(conv_bias: Optional[torch.Tensor], temb_bias: Optional[torch.Tensor],
+                     n: int) -> Optional[torch.Tensor]:
+    """conv1's bias [C] plus the time embedding [N, C] (or [1, C]) in float32 (float64 for a
+    float64 model), for norm2's ``input_bias``; None when there is neither."""
+    ref = temb_bias if temb_bias is not None else conv_bias
+    if ref is None:
+        return None
+    acc = torch.float64 if ref.dtype == torch.float64 else torch.float32
+    if temb_bias is None:
+        return conv_bias.to(acc)
+    b = temb_bias.to(acc)
+    if b.shape[0] != n:
+        b = b.expand(n, -1)
+    return b if conv_bias is None else b + conv_bias.to(acc)
+
+
+def set_fold_norm_bias(module: torch.nn.Module, on: bool) -> int:
+    """In every folded ``ResnetBlock2D`` of ``module`` (:func:`fuse_group_norms` made its forward
+    :func:`_resnet_forward_folded`), add conv1's bias and the time embedding inside norm2
+    (``GroupNormSiLU``'s ``input_bias``: the biased map is never written, one full read and write
+    fewer per block) when ``on``, or in conv1's bias pass (off). Returns how many blocks fold."""
+    require_diffusers("folding conv biases into GroupNorm")
+    from diffusers.models.resnet import ResnetBlock2D
+
+    count = 0
+    for m in module.modules():
+        if type(m) is not ResnetBlock2D or m.__dict__.get("forward") is None:
+            continue
+        if getattr(m.forward, "__func__", None) is not _resnet_forward_folded or type(m.norm2) is not GroupNormSiLU:
+            continue
+        m.__dict__["_tiger_fold_norm_bias"] = bool(on)
+        count += bool(on)
+    return count
 
 
 def _folds_adds(block) -> bool:

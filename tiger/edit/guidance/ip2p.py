@@ -29,6 +29,7 @@ from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_valu
 from .cuda_graph import GraphedStep
 from .diffusers_models import (PromptEncoder, encode_latents, freeze, latent_shape, matmul_vae_attention,
                                model_device_dtype, render_gradient, resize, resolution_for, vae_downsampling_factor)
+from .model_kernels import ModelKernels, apply_model_kernels
 from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
 
 logger = logging.getLogger(__name__)
@@ -107,6 +108,9 @@ class InstructPix2PixGuidance:
             views without ids) as a CUDA graph (CUDA only).
         generator: RNG for t and the noises (None: the global one).
         collect_stats: put the gradient's norm in ``info.extra['grad_norm']`` (one host sync per call).
+        kernels: how UNet and VAE compute (:class:`.model_kernels.ModelKernels`: FP8 matmuls,
+            opt-in; the fused GEGLU and the 4x4 VAE downsampling, on by default on CUDA), put on
+            ``models`` now.
     """
 
     name = "ip2p"
@@ -115,7 +119,7 @@ class InstructPix2PixGuidance:
                  image_scale: float = IMAGE_SCALE, t_range: tuple[float, float] = (0.02, 0.2),
                  short_side: int = 512, grad_clip: Optional[float] = None, cuda_graph: bool = False,
                  generator: Optional[torch.Generator] = None, collect_stats: bool = False,
-                 keep_text_encoder: bool = False) -> None:
+                 keep_text_encoder: bool = False, kernels: Optional[ModelKernels] = None) -> None:
         if not isinstance(instruction, str) or not instruction.strip():
             raise ValueError("tiger.edit.ip2p: the instruction must be a non-empty string")
         self.models = models
@@ -130,6 +134,8 @@ class InstructPix2PixGuidance:
         self.collect_stats = collect_stats
         self.device, self.dtype = model_device_dtype(models.unet)
         matmul_vae_attention(models.vae)
+        self.kernels = kernels if kernels is not None else ModelKernels()
+        apply_model_kernels(models.unet, models.vae, self.kernels)
         self.text_embeddings = models.prompts([instruction, ""]).to(self.dtype)  # [2, 77, D]
         if not keep_text_encoder:
             models.prompts.release()
@@ -181,10 +187,10 @@ class InstructPix2PixGuidance:
 
     def settings(self) -> dict[str, Any]:
         """What decides the gradients besides the instruction: scales, noise range, resolution,
-        clamp, the models' dtype and whether the step replays as a CUDA graph."""
+        clamp, the models' dtype and kernels, and whether the step replays as a CUDA graph."""
         return {"text_scale": self.text_scale, "image_scale": self.image_scale, "t_range": list(self.t_range),
                 "short_side": self.short_side, "grad_clip": self.grad_clip, "dtype": dtype_name(self.dtype),
-                "cuda_graph": self.cuda_graph}
+                "cuda_graph": self.cuda_graph, "kernels": self.kernels.settings()}
 
     def generators(self) -> list[torch.Generator]:
         """The generator of t and the noises (none when drawing from the global one)."""

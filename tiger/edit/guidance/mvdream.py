@@ -33,6 +33,7 @@ from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_valu
 from .cuda_graph import GraphedStep
 from .diffusers_models import (PromptEncoder, freeze, latent_shape, matmul_vae_attention, model_device_dtype,
                                render_gradient)
+from .model_kernels import ModelKernels, apply_model_kernels
 from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
 from .mvdream_cameras import mvdream_cameras
@@ -161,7 +162,8 @@ class MVDreamGuidance:
         image_size: the square size renders are resized to (256).
         recon: reconstruction-form gradient (official 3D setting); False: plain SDS ``w(t)(ε̂ − ε)``.
         recon_std_rescale: the x0 std rescale factor (0.5).
-        grad_clip, cuda_graph, generator, collect_stats, keep_text_encoder: as for InstructPix2Pix.
+        grad_clip, cuda_graph, generator, collect_stats, keep_text_encoder, kernels: as for
+            InstructPix2Pix (the kernels are put on the models when they are loaded).
         models_dtype: the dtype a loader (``models`` a callable) loads with, recorded by
             :meth:`settings` before the first load (:meth:`from_registry` passes its ``dtype``).
     """
@@ -174,7 +176,7 @@ class MVDreamGuidance:
                  recon_std_rescale: float = RECON_STD_RESCALE, grad_clip: Optional[float] = None,
                  cuda_graph: bool = False, generator: Optional[torch.Generator] = None,
                  collect_stats: bool = False, keep_text_encoder: bool = False,
-                 models_dtype: Optional[torch.dtype] = None) -> None:
+                 models_dtype: Optional[torch.dtype] = None, kernels: Optional[ModelKernels] = None) -> None:
         if not isinstance(prompt, str) or not prompt.strip():
             raise ValueError("tiger.edit.mvdream: the prompt must be a non-empty string")
         if image_size <= 0:
@@ -187,6 +189,7 @@ class MVDreamGuidance:
         self.grad_clip, self.generator, self.collect_stats = grad_clip, generator, collect_stats
         self.keep_text_encoder = keep_text_encoder
         self.cuda_graph = cuda_graph
+        self.kernels = kernels if kernels is not None else ModelKernels()
         self._loader = None if isinstance(models, MVDreamModels) else models
         self.models: Optional[MVDreamModels] = None
         self._graphed: Optional[GraphedStep] = None
@@ -218,6 +221,7 @@ class MVDreamGuidance:
         if self.cuda_graph and self.device.type != "cuda":
             raise ValueError("tiger.edit.mvdream: cuda_graph=True needs the models on a CUDA device")
         matmul_vae_attention(models.vae)
+        apply_model_kernels(models.unet, models.vae, self.kernels)
         self.text_embeddings = models.prompts([self.instruction, self.negative_prompt]).to(self.dtype)  # [2, 77, D]
         if not self.keep_text_encoder:
             models.prompts.release()
@@ -240,11 +244,12 @@ class MVDreamGuidance:
 
     def settings(self) -> dict[str, Any]:
         """What decides the gradients besides the prompt: negative prompt, CFG scale, noise range,
-        resolution, gradient form, clamp, the models' dtype and CUDA-graph use."""
+        resolution, gradient form, clamp, the models' dtype and kernels, and CUDA-graph use."""
         return {"negative_prompt": self.negative_prompt, "guidance_scale": self.guidance_scale,
                 "t_range": list(self.t_range), "image_size": self.image_size, "recon": self.recon,
                 "recon_std_rescale": self.recon_std_rescale, "grad_clip": self.grad_clip,
-                "dtype": dtype_name(self._settings_dtype), "cuda_graph": bool(self.cuda_graph)}
+                "dtype": dtype_name(self._settings_dtype), "cuda_graph": bool(self.cuda_graph),
+                "kernels": self.kernels.settings()}
 
     def generators(self) -> list[torch.Generator]:
         """The generator of t and the noises (none when drawing from the global one)."""

@@ -1,0 +1,388 @@
+"""How the guidances' frozen UNets and VAEs compute, beyond :mod:`.fused_norms`: FP8 matmuls,
+the fused GEGLU and the VAE's 4x4 downsampling convolutions (:class:`ModelKernels`).
+
+- ``matmul_precision="fp8"`` (opt-in): the UNet's transformer-block linear layers (attention
+  q/k/v/out projections, the feed-forward's GEGLU projection and output, the transformers'
+  ``proj_in``/``proj_out``, linear or 1x1 convolution) run as ``torch._scaled_mm`` on
+  float8_e4m3fn operands: weights quantised once per output channel when applied, activations
+  per row (token) on every call by :func:`tiger.ops.fp8_rows.quantize_rows_fp8` (scale on the
+  device: no host sync, CUDA-graph capturable), bfloat16 output with the bias added by the
+  matmul. q, k and v of one attention quantise their shared input once; the feed-forward
+  quantises its GEGLU output as it computes it. The VAEs stay in the model's dtype (the SDS
+  gradient back-propagates through the encoder). Needs bfloat16 models on a GPU with FP8
+  tensor cores (compute capability >= 8.9); elsewhere :func:`set_matmul_precision` refuses,
+  except with ``emulate=True`` (tests: the same quantisation, the product in float32).
+- ``fused_geglu``: diffusers' ``FeedForward`` with a GEGLU computes ``a·gelu(g)`` in one pass
+  (:func:`tiger.ops.fp8_rows.geglu`) instead of chunk + gelu + multiply.
+- ``fold_norm_bias``: in the fused ResNet blocks (:mod:`.fused_norms`), conv1's bias and the
+  time embedding are added inside norm2 (tiger's GroupNorm ``input_bias``) instead of in a pass
+  of their own: the biased map is never written (one full read and write fewer per block,
+  forward; the backward recomputes the sum from conv1's output).
+- ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
+  a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
+  the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
+  are with zero weights) without the padded copy, forward and backward, for 16/9 of those
+  layers' FLOPs.
+
+Each ``set_*`` function is idempotent and reversible (``False``/``"model"`` restores the
+diffusers computation), so one set of models can be measured under every setting.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import types
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import torch
+import torch.nn.functional as F
+
+from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
+
+from .fused_norms import set_fold_norm_bias
+from tiger.utils.lazy import require_diffusers
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
+           "fp8_supported", "set_downsample_4x4", "set_fold_norm_bias", "set_fused_geglu", "set_matmul_precision"]
+
+MATMUL_PRECISIONS = ("model", "fp8")
+
+
+@dataclass(frozen=True)
+class ModelKernels:
+    """The kernels a guidance's UNet and VAE run (module docstring).
+
+    Attributes:
+        matmul_precision: ``"model"`` (the models' dtype) or ``"fp8"`` (opt-in; bfloat16 models
+            on a GPU with FP8 tensor cores).
+        fp8_fast_accum: ``torch._scaled_mm``'s ``use_fast_accum`` (Hopper's faster, less exactly
+            accumulated FP8 products); only with ``"fp8"``.
+        fused_geglu: the one-pass GEGLU; None: on where the UNet is on CUDA with tiger's CUDA
+            kernels built (same values up to one rounding).
+        vae_downsample_4x4: the VAE's unpadded 4x4 downsampling; None: on where the VAE is on
+            CUDA (same sums; measured -1.7 ms per CSD step on an H100).
+        fold_norm_bias: conv1's bias and the time embedding inside norm2 (models with fused norms
+            only); None: on where the models are on CUDA with tiger's CUDA kernels (the sum
+            rounded once less).
+    """
+
+    matmul_precision: str = "model"
+    fp8_fast_accum: bool = False
+    fused_geglu: Optional[bool] = None
+    vae_downsample_4x4: Optional[bool] = None
+    fold_norm_bias: Optional[bool] = None
+
+    def __post_init__(self) -> None:
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"tiger.edit: matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}, "
+                             f"got {self.matmul_precision!r}")
+        if self.fp8_fast_accum and self.matmul_precision != "fp8":
+            raise ValueError("tiger.edit: fp8_fast_accum=True needs matmul_precision='fp8'")
+
+    def settings(self) -> dict[str, Any]:
+        """JSON record (None recorded as ``"auto"``)."""
+        return {k: ("auto" if v is None else v) for k, v in dataclasses.asdict(self).items()}
+
+
+def _on_cuda_with_kernels(module: torch.nn.Module) -> bool:
+    from tiger.ops import cuda_enabled
+
+    p = next(module.parameters(), None)
+    return p is not None and p.device.type == "cuda" and cuda_enabled()
+
+
+def fp8_supported(device: torch.device | str) -> tuple[bool, str]:
+    """(whether ``torch._scaled_mm`` runs FP8 on ``device``, the reason when not)."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return False, f"FP8 matmuls need a CUDA GPU with FP8 tensor cores; the models are on {device}"
+    cap = torch.cuda.get_device_capability(device)
+    if cap < (8, 9):
+        return False, (f"FP8 matmuls need compute capability >= 8.9 (Ada, Hopper); "
+                       f"{torch.cuda.get_device_name(device)} has {cap[0]}.{cap[1]}")
+    return True, ""
+
+
+# -- FP8 linear layers ----------------------------------------------------------------------------
+class _RowsCache:
+    """The last quantised input of an attention's q/k/v projections: they share one input (self-
+    attention, or k and v of cross-attention), quantised once. Holds the input tensor itself, so
+    identity (not an address that could be reused) decides a hit."""
+
+    def __init__(self) -> None:
+        self.key: Optional[torch.Tensor] = None
+        self.rows: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+
+    def get(self, x: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+        return self.rows if self.key is x else None
+
+    def put(self, x: torch.Tensor, rows: tuple[torch.Tensor, torch.Tensor]) -> None:
+        self.key, self.rows = x, rows
+
+    def clear(self) -> None:
+        self.key = self.rows = None
+
+
+def fp8_matmul(q: torch.Tensor, q_scale: torch.Tensor, weight: torch.Tensor, weight_scale: torch.Tensor,
+               bias: Optional[torch.Tensor], out_dtype: torch.dtype, fast_accum: bool = False,
+               emulate: bool = False) -> torch.Tensor:
+    """``(q·q_scale) @ (weight·weight_scale)ᵀ + bias`` in ``out_dtype``.
+
+    q [M, K], weight [N, K] float8_e4m3fn; q_scale [M, 1], weight_scale [1, N] float32; bias [N]
+    (``out_dtype``) or None. On CUDA ``torch._scaled_mm`` (float32 accumulation, one rounding to
+    ``out_dtype``); ``emulate``: the same operands dequantised and multiplied in float32 (the
+    reference the CUDA test compares with)."""
+    if emulate:
+        y = dequantize_rows(q, q_scale) @ dequantize_rows(weight, weight_scale.t()).t()
+        if bias is not None:
+            y = y + bias.float()
+        return y.to(out_dtype)
+    return torch._scaled_mm(q, weight.t(), scale_a=q_scale, scale_b=weight_scale, bias=bias, out_dtype=out_dtype,
+                            use_fast_accum=fast_accum)
+
+
+class Fp8Linear(torch.nn.Module):
+    """A frozen ``torch.nn.Linear`` (or a 1x1 ``Conv2d`` on channels-last maps) as an FP8 matmul.
+
+    The weight [N, K] is quantised once per output channel (``weight_fp8`` float8_e4m3fn,
+    ``weight_scale`` [1, N] float32); each call quantises its input per row
+    (:func:`quantize_rows_fp8`) unless a shared cache already holds it. Output in the input's
+    dtype. Forward only: the guidances' UNets run without gradients. The source layer is kept
+    (not as a submodule) so :func:`set_matmul_precision` can put it back.
+    """
+
+    def __init__(self, source: torch.nn.Module, fast_accum: bool = False, emulate: bool = False) -> None:
+        super().__init__()
+        if isinstance(source, torch.nn.Conv2d):
+            if source.kernel_size != (1, 1) or source.stride != (1, 1) or source.groups != 1 or source.padding != (0, 0):
+                raise ValueError(f"tiger.edit: Fp8Linear takes a 1x1 convolution (stride 1, no padding, one group), "
+                                 f"got {source}")
+            weight = source.weight.detach().reshape(source.out_channels, source.in_channels)
+        elif isinstance(source, torch.nn.Linear):
+            weight = source.weight.detach()
+        else:
+            raise TypeError(f"tiger.edit: Fp8Linear takes a Linear or 1x1 Conv2d, got {type(source).__name__}")
+        self.out_features, self.in_features = weight.shape
+        if self.in_features % 16 or self.out_features % 16:
+            raise ValueError(f"tiger.edit: FP8 matmuls need K and N divisible by 16, got a {self.in_features} -> "
+                             f"{self.out_features} layer")
+        self.conv = isinstance(source, torch.nn.Conv2d)
+        wq, ws = quantize_rows_fp8(weight.contiguous())
+        self.register_buffer("weight_fp8", wq, persistent=False)
+        self.register_buffer("weight_scale", ws.t().contiguous(), persistent=False)  # [1, N]
+        self.register_buffer("bias", None if source.bias is None else source.bias.detach(), persistent=False)
+        self.fast_accum, self.emulate = bool(fast_accum), bool(emulate)
+        self.rows_cache: Optional[_RowsCache] = None  # shared with the attention's other projections
+        self.last_user = False  # drops the cache after use (v of q/k/v)
+        self.__dict__["source"] = source  # not a submodule: no duplicate parameters
+
+    def matmul_rows(self, q: torch.Tensor, scale: torch.Tensor, out_dtype: torch.dtype) -> torch.Tensor:
+        """[M, N] from already quantised rows q [M, K], scale [M, 1]."""
+        bias = None if self.bias is None else self.bias.to(out_dtype)
+        return fp8_matmul(q, scale, self.weight_fp8, self.weight_scale, bias, out_dtype, self.fast_accum,
+                          self.emulate)
+
+    def _rows(self, x2: torch.Tensor, key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        cache = self.rows_cache
+        rows = None if cache is None else cache.get(key)
+        if rows is None:
+            rows = quantize_rows_fp8(x2)
+            if cache is not None:
+                cache.put(key, rows)
+        if cache is not None and self.last_user:
+            cache.clear()
+        return rows
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if torch.is_grad_enabled() and x.requires_grad:
+            raise RuntimeError("tiger.edit: FP8 matmuls are forward-only (the guidances' UNets run without "
+                               "gradients); use matmul_precision='model' to differentiate through the UNet")
+        if self.conv:  # [N, C, H, W] channels-last: the pixels are rows of C channels
+            n, c, h, w = x.shape
+            rows = x.permute(0, 2, 3, 1).reshape(-1, c)
+            y = self.matmul_rows(*self._rows(rows, x), x.dtype)
+            return y.view(n, h, w, self.out_features).permute(0, 3, 1, 2)
+        y = self.matmul_rows(*self._rows(x.reshape(-1, self.in_features), x), x.dtype)
+        return y.view(*x.shape[:-1], self.out_features)
+
+    def extra_repr(self) -> str:
+        kind = "conv1x1" if self.conv else "linear"
+        return f"{kind} {self.in_features} -> {self.out_features}, fast_accum={self.fast_accum}, emulate={self.emulate}"
+
+
+def _fp8_targets(unet: torch.nn.Module) -> list[tuple[torch.nn.Module, str, Optional[_RowsCache], bool]]:
+    """(parent, attribute, shared cache, last user) of every layer :func:`set_matmul_precision`
+    converts: inside ``Transformer2DModel``s, the attention projections, the feed-forwards'
+    linears and ``proj_in``/``proj_out``."""
+    require_diffusers("FP8 matmuls")
+    from diffusers.models.attention import FeedForward
+    from diffusers.models.attention_processor import Attention
+    from diffusers.models.transformers.transformer_2d import Transformer2DModel
+
+    def convertible(layer: object) -> bool:
+        src = layer.__dict__["source"] if isinstance(layer, Fp8Linear) else layer
+        if type(src) is torch.nn.Linear:
+            return True
+        return type(src) is torch.nn.Conv2d and src.kernel_size == (1, 1) and src.stride == (1, 1) \
+            and src.padding == (0, 0) and src.groups == 1
+
+    targets = []
+    for tr in unet.modules():
+        if type(tr) is not Transformer2DModel:
+            continue
+        for name in ("proj_in", "proj_out"):
+            if convertible(getattr(tr, name, None)):
+                targets.append((tr, name, None, False))
+        for m in tr.modules():
+            if isinstance(m, Attention):
+                cache = getattr(m, "_tiger_rows_cache", None) or _RowsCache()
+                m._tiger_rows_cache = cache
+                for name, last in (("to_q", False), ("to_k", False), ("to_v", True)):
+                    if convertible(getattr(m, name, None)):
+                        targets.append((m, name, cache, last))
+                if convertible(m.to_out[0]):
+                    targets.append((m.to_out, "0", None, False))
+            elif type(m) is FeedForward and len(m.net) >= 3:
+                # net: [GEGLU (or GELU) holding .proj, Dropout, Linear(, Dropout)]
+                for layer_parent, name in ((m.net[0], "proj"), (m.net, "2")):
+                    if convertible(getattr(layer_parent, name, None)):
+                        targets.append((layer_parent, name, None, False))
+    return targets
+
+
+def set_matmul_precision(unet: torch.nn.Module, precision: str, *, fast_accum: bool = False,
+                         emulate: bool = False) -> int:
+    """Run the UNet's transformer-block matmuls in ``precision`` (``"model"`` or ``"fp8"``);
+    returns how many layers are FP8 afterwards. ``"fp8"`` needs bfloat16 weights on a GPU with
+    FP8 tensor cores (a clear ValueError otherwise) unless ``emulate`` (float32 emulation of the
+    same quantisation: tests and CPU reference runs)."""
+    if precision not in MATMUL_PRECISIONS:
+        raise ValueError(f"tiger.edit: matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}, got {precision!r}")
+    p = next(unet.parameters())
+    if precision == "fp8" and not emulate:
+        ok, why = fp8_supported(p.device)
+        if not ok:
+            raise ValueError(f"tiger.edit: matmul_precision='fp8' is not available: {why}; use 'model'")
+        if p.dtype != torch.bfloat16:
+            raise ValueError(f"tiger.edit: matmul_precision='fp8' needs bfloat16 models (row-scaled FP8 matmuls "
+                             f"return bfloat16), got {p.dtype}")
+    count = 0
+    for parent, name, cache, last in _fp8_targets(unet):
+        layer = parent._modules[name]
+        source = layer.__dict__["source"] if isinstance(layer, Fp8Linear) else layer
+        if precision == "model":
+            parent._modules[name] = source
+            continue
+        if not (isinstance(layer, Fp8Linear) and layer.fast_accum == fast_accum and layer.emulate == emulate):
+            layer = Fp8Linear(source, fast_accum=fast_accum, emulate=emulate)
+        layer.rows_cache, layer.last_user = cache, last
+        parent._modules[name] = layer
+        count += 1
+    if count:
+        logger.info("%d UNet matmuls in FP8 (row-wise scales%s)", count, ", emulated" if emulate else "")
+    return count
+
+
+# -- fused GEGLU ----------------------------------------------------------------------------------
+def _feed_forward_fused(self, hidden_states: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
+    """diffusers 0.42's ``FeedForward`` (GEGLU, dropout, linear[, dropout]) with the GEGLU in one
+    pass; an FP8 output layer gets the GEGLU's output quantised as it is computed."""
+    proj, out = self.net[0].proj, self.net[2]
+    y = proj(hidden_states)
+    if isinstance(out, Fp8Linear):
+        q, scale = quantize_rows_fp8(y.reshape(-1, y.shape[-1]), geglu=True)
+        h = out.matmul_rows(q, scale, y.dtype).view(*y.shape[:-1], out.out_features)
+    else:
+        h = out(self.net[1](geglu(y)))
+    for m in self.net[3:]:
+        h = m(h)
+    return h
+
+
+def _fusable_feed_forward(ff: torch.nn.Module) -> bool:
+    from diffusers.models.activations import GEGLU
+
+    return (len(ff.net) in (3, 4) and type(ff.net[0]) is GEGLU and isinstance(ff.net[1], torch.nn.Dropout)
+            and all(isinstance(m, torch.nn.Dropout) for m in ff.net[3:]))
+
+
+def set_fused_geglu(unet: torch.nn.Module, on: bool) -> int:
+    """Switch the UNet's GEGLU feed-forwards to the one-pass GEGLU (``on``) or diffusers' own;
+    returns how many feed-forwards run fused afterwards."""
+    require_diffusers("the fused GEGLU")
+    from diffusers.models.attention import FeedForward
+
+    count = 0
+    for m in unet.modules():
+        if type(m) is not FeedForward or not _fusable_feed_forward(m):
+            continue
+        if on:
+            m.forward = types.MethodType(_feed_forward_fused, m)
+            count += 1
+        else:
+            m.__dict__.pop("forward", None)
+    return count
+
+
+# -- VAE downsampling -----------------------------------------------------------------------------
+def _downsample_4x4_forward(self, hidden_states: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
+    conv = self.conv
+    if "forward" in conv.__dict__:  # bias_after_conv (fused_norms): the bias by tiger's channel pass
+        from tiger.ops.channel_bias import channel_bias_add
+
+        y = F.conv2d(hidden_states, self._tiger_weight_4x4, None, stride=conv.stride, padding=1)
+        return y if conv.bias is None else channel_bias_add(y, conv.bias)
+    return F.conv2d(hidden_states, self._tiger_weight_4x4, conv.bias, stride=conv.stride, padding=1)
+
+
+def set_downsample_4x4(vae: torch.nn.Module, on: bool) -> int:
+    """The VAE's padded stride-2 downsampling convolutions as unpadded-input 4x4 convolutions
+    (``on``) or diffusers' pad + 3x3 (off); returns how many layers run 4x4 afterwards. Only
+    ``Downsample2D`` with a 3x3, stride-2, padding-0 convolution and no norm qualifies (diffusers
+    pads those (0, 1, 0, 1))."""
+    require_diffusers("the 4x4 VAE downsampling")
+    from diffusers.models.downsampling import Downsample2D
+
+    count = 0
+    for m in vae.modules():
+        if type(m) is not Downsample2D or not m.use_conv or m.padding != 0 or m.norm is not None:
+            continue
+        conv = m.conv
+        if type(conv) is not torch.nn.Conv2d or conv.kernel_size != (3, 3) or conv.stride != (2, 2) \
+                or conv.padding != (0, 0) or conv.groups != 1 or conv.dilation != (1, 1):
+            continue
+        if not on:
+            m.__dict__.pop("forward", None)
+            m.__dict__.pop("_tiger_weight_4x4", None)
+            continue
+        w4 = conv.weight.new_zeros(conv.out_channels, conv.in_channels, 4, 4)
+        w4[:, :, 1:, 1:] = conv.weight.detach()
+        if not conv.weight.is_contiguous():  # channels-last models keep their layout
+            w4 = w4.contiguous(memory_format=torch.channels_last)
+        m.__dict__["_tiger_weight_4x4"] = w4
+        m.forward = types.MethodType(_downsample_4x4_forward, m)
+        count += 1
+    return count
+
+
+# -- all of it ------------------------------------------------------------------------------------
+def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: ModelKernels, *,
+                        emulate_fp8: bool = False) -> dict[str, Any]:
+    """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
+    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "vae_downsample_4x4",
+    "fold_norm_bias_blocks"}``."""
+    geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
+    p = next(vae.parameters(), None)
+    ds_on = (p is not None and p.device.type == "cuda") if kernels.vae_downsample_4x4 is None \
+        else bool(kernels.vae_downsample_4x4)
+    fold_on = _on_cuda_with_kernels(unet) if kernels.fold_norm_bias is None else bool(kernels.fold_norm_bias)
+    fp8_layers = set_matmul_precision(unet, kernels.matmul_precision, fast_accum=kernels.fp8_fast_accum,
+                                      emulate=emulate_fp8)
+    set_fused_geglu(unet, geglu_on)
+    set_downsample_4x4(vae, ds_on)
+    folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
+    return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
+            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded}
