@@ -30,12 +30,14 @@ def test_quantize_rows_cuda_equals_cpu(dtype, cols, use_geglu):
     x[5] = 0
     q_cpu, s_cpu = quantize_rows_fp8(x, geglu=use_geglu)
     q, s = quantize_rows_fp8(x.cuda(), geglu=use_geglu)
-    assert torch.equal(s.cpu(), s_cpu)
     same = q.cpu().view(torch.uint8) == q_cpu.view(torch.uint8)
-    if use_geglu:  # CUDA's erff and the CPU's erf may differ in the last float bit: rare one-code ties
+    if use_geglu:  # CUDA's erff and the CPU's erf may differ in the last float bit: so may a row's
+        # amax (its scale, by a float ulp: seen on the H100) and, rarely, a code at a rounding tie
+        assert torch.allclose(s.cpu(), s_cpu, rtol=4 * torch.finfo(torch.float32).eps, atol=0)
         assert float(same.float().mean()) > 0.999
         assert float((q.cpu().float() - q_cpu.float()).abs().max()) <= 2.0 ** -3 * 448
     else:
+        assert torch.equal(s.cpu(), s_cpu)
         assert bool(same.all())
 
 
