@@ -162,6 +162,9 @@ def print_spread(results: list) -> None:
     """Per variant: held-out PSNR mean / min / max / standard deviation over its seeds."""
     import statistics
 
+    print("\nheld-out PSNR per view (where the spread sits):")
+    for r in results:
+        print(f"  {r['run']} seed {r['seed']}: " + " ".join(f"{p:.2f}" for p in r["per_view_psnr"]))
     print("\n| variant | runs | mean PSNR | min | max | std | mean colour-corrected | mean Gaussians |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for name in dict.fromkeys(r["run"] for r in results):
