@@ -6,7 +6,11 @@
 
 Every run starts from the settings ``tiger reconstruct`` uses at its defaults (INRIA's schedule
 compressed to ``--iterations`` by :meth:`ReconConfig.scaled`, random initial points coloured
-from the views, the undistortion border out of the loss and the metric) and changes one thing.
+from the views, the undistortion border out of the loss and the metric, the training background
+its images call for: random for opaque photographs) and changes one thing. ``--seeds`` repeats
+each variant with other seeds (initial points, view order, background colours, splits), which
+stands in for the run-to-run spread of the GPU, where float sums in another order make every
+run different: a mean / min / max table per variant closes the output.
 ``--init-points`` defaults to the command's 100,000 scaled by the pixel count
 (``100000 / downscale**2 * 4``: the same points per pixel as the command at ``--downscale 2``).
 Per run it reports the held-out PSNR over the pixels inside the undistorted image (the
@@ -29,6 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 VARIANTS: dict[str, dict] = {
     "base": {},
     "appearance": {"appearance": True},
+    "black_bg": {"random_background": False},   # the command's default before random backgrounds
     "random_bg": {"random_background": True},
     "no_reset": {"opacity_reset_interval": 0},
     "grad1e-4": {"densify_grad_threshold": 1e-4},
@@ -83,6 +88,9 @@ def main(argv: list | None = None) -> int:
                     help="random initial points (default: the command's 100,000 per the pixels at downscale 2)")
     ap.add_argument("--variants", default="base", help="comma list, or 'all': " + ", ".join(VARIANTS))
     ap.add_argument("--set", default="", help="extra overrides for every run, e.g. 'appearance=true'")
+    ap.add_argument("--seeds", default="0",
+                    help="comma list of ReconConfig seeds (initial points, view order, background colours, "
+                         "splits); each variant runs once per seed and a mean / min / max table follows")
     ap.add_argument("--eval-every", type=int, default=0)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--cache", type=Path, default=None)
@@ -100,7 +108,7 @@ def main(argv: list | None = None) -> int:
         return 0
 
     from tiger.recon import ReconConfig, Trainer, load_views
-    from tiger.recon.data import valid_pixel_masks
+    from tiger.recon.data import training_background, transparent_images, valid_pixel_masks
     from tiger.scene.dataset import load_dataset
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -113,15 +121,18 @@ def main(argv: list | None = None) -> int:
     dev = torch.device(args.device)
     points = args.init_points or max(1000, int(round(100_000 * 4 / args.downscale ** 2)))
     H, W = train_i[0].shape[:2]
-    common = parse_overrides(args.set)
+    random_background, background_note = training_background(transparent_images([*train_raw, *test_raw]))
+    common = {"random_background": random_background, **parse_overrides(args.set)}
     print(f"fox study: {len(train_c)} train / {len(test_c)} test views at {W}x{H}, device {args.device}, "
-          f"{torch.get_num_threads()} threads, {args.iterations} steps, {points} initial points, extra {common}")
+          f"{torch.get_num_threads()} threads, {args.iterations} steps, {points} initial points, extra {common}; "
+          f"command's training background: {background_note}")
     probe = list(range(0, len(train_c), max(1, len(train_c) // 6)))[:6]
+    seeds = [int(v) for v in args.seeds.split(",")]
     results = []
-    print("\n| run | steps | train s | held-out PSNR | colour-corrected | train PSNR | SSIM | Gaussians |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
-    for name in names:
-        over = {**common, **VARIANTS[name]}
+    print("\n| run | seed | steps | train s | held-out PSNR | colour-corrected | train PSNR | SSIM | Gaussians |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, seed in [(n, sd) for n in names for sd in seeds]:
+        over = {**common, "seed": seed, **VARIANTS[name]}
         cfg = ReconConfig.scaled(args.iterations, **{**dict(init_random_points=points, progress=False,
                                                             eval_every=args.eval_every), **over})
         tr = Trainer(train_c, [im.to(dev) for im in train_i], cfg, device=dev, test_cameras=test_c,
@@ -133,17 +144,36 @@ def main(argv: list | None = None) -> int:
         cc = colour_corrected(tr, tr.test_cameras, tr.test_images, tr.test_masks)
         tm = tr.evaluate([train_c[i] for i in probe], [train_i[i] for i in probe],
                          [train_m[i] for i in probe] if train_m is not None else None)
-        row = {"run": name, "steps": tr.step, "train_s": round(tr.elapsed, 1), "wall_s": round(wall, 1),
+        row = {"run": name, "seed": seed, "steps": tr.step, "train_s": round(tr.elapsed, 1), "wall_s": round(wall, 1),
                "overrides": over, "psnr": ev["psnr"], "psnr_cc": cc, "ssim": ev["ssim"],
-               "train_psnr": tm["psnr"], "gaussians": len(tr.scene),
+               "per_view_psnr": [p for p, _ in ev["per_view"]], "train_psnr": tm["psnr"], "gaussians": len(tr.scene),
                "history": [{k: h[k] for k in ("step", "psnr", "gaussians")} for h in tr.history]}
         results.append(row)
-        print(f"| {name} | {tr.step} | {tr.elapsed:.0f} | {ev['psnr']:.2f} | {cc:.2f} | {tm['psnr']:.2f} | "
+        print(f"| {name} | {seed} | {tr.step} | {tr.elapsed:.0f} | {ev['psnr']:.2f} | {cc:.2f} | {tm['psnr']:.2f} | "
               f"{ev['ssim']:.4f} | {len(tr.scene)} |", flush=True)
         (args.out / "fox_study.json").write_text(json.dumps(
             {"resolution": [W, H], "device": args.device, "downscale": args.downscale,
              "iterations": args.iterations, "init_points": points, "runs": results}, indent=1))
+    print_spread(results)
     return 0
+
+
+def print_spread(results: list) -> None:
+    """Per variant: held-out PSNR mean / min / max / standard deviation over its seeds."""
+    import statistics
+
+    print("\nheld-out PSNR per view (where the spread sits):")
+    for r in results:
+        print(f"  {r['run']} seed {r['seed']}: " + " ".join(f"{p:.2f}" for p in r["per_view_psnr"]))
+    print("\n| variant | runs | mean PSNR | min | max | std | mean colour-corrected | mean Gaussians |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for name in dict.fromkeys(r["run"] for r in results):
+        rows = [r for r in results if r["run"] == name]
+        p = [r["psnr"] for r in rows]
+        std = statistics.stdev(p) if len(p) > 1 else 0.0
+        print(f"| {name} | {len(p)} | {statistics.fmean(p):.2f} | {min(p):.2f} | {max(p):.2f} | {std:.2f} | "
+              f"{statistics.fmean(r['psnr_cc'] for r in rows):.2f} | "
+              f"{statistics.fmean(r['gaussians'] for r in rows):.0f} |")
 
 
 if __name__ == "__main__":

@@ -78,6 +78,17 @@ def test_appearance_run_reports_the_saved_scene(tmp_path):
     assert abs(metrics["psnr"] - sum(per_view) / len(per_view)) < 1e-3
 
 
+def _add_transparency(image_file) -> None:
+    """Rewrite a dataset image as RGBA with its left column see-through."""
+    import numpy as np
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(image_file).convert("RGB"))
+    alpha = np.full(rgb.shape[:2], 255, np.uint8)
+    alpha[:, 0] = 0
+    Image.fromarray(np.dstack([rgb, alpha]), "RGBA").save(image_file)
+
+
 def test_colour_options_reach_the_training(tmp_path, monkeypatch):
     from tiger.recon import trainer as trainer_module
 
@@ -89,8 +100,19 @@ def test_colour_options_reach_the_training(tmp_path, monkeypatch):
         seen.append((self.cfg.appearance, self.cfg.random_background))
 
     monkeypatch.setattr(trainer_module.Trainer, "__init__", spy)
-    data = _dataset(tmp_path / "data", n_views=3, w=24, h=16)
-    for flags, want in (([], (False, False)), (["--appearance", "--random-background"], (True, True))):
-        assert main(["reconstruct", str(data), "--out", str(tmp_path / f"o{len(seen)}"), "--steps", "3",
+    opaque = _dataset(tmp_path / "opaque", n_views=3, w=24, h=16)
+    seethrough = _dataset(tmp_path / "seethrough", n_views=3, w=24, h=16)
+    _add_transparency(seethrough / "images" / "001.png")
+    # (data, flags) -> (appearance, random background) the trainer got, and what metrics.json says
+    cases = [(opaque, [], (False, True), "random colour each training step (no image has transparent"),
+             (opaque, ["--no-random-background"], (False, False), "black (asked for)"),
+             (opaque, ["--appearance", "--random-background"], (True, True),
+              "random colour each training step (asked for)"),
+             (seethrough, [], (False, False), "black (1 image with transparent pixels, e.g. images/001.png"),
+             (seethrough, ["--random-background"], (False, True), "asked for; 1 image with transparent pixels")]
+    for data, flags, want, note in cases:
+        out = tmp_path / f"o{len(seen)}"
+        assert main(["reconstruct", str(data), "--out", str(out), "--steps", "3",
                      "--init-points", "50", "--test-every", "0", "--device", "cpu", *flags]) == 0
-        assert seen[-1] == want
+        assert seen[-1] == want, flags
+        assert note in json.loads((out / "metrics.json").read_text())["training_background"], flags

@@ -9,7 +9,8 @@ from PIL import Image
 from tiger.render import Camera, Distortion
 from tiger.scene import SceneFormatError
 from tiger.scene.cameras import intrinsics
-from tiger.scene.images import distort_points, load_image, undistort_image, undistort_points
+from tiger.scene.images import (distort_points, image_has_transparency, load_image, undistort_image,
+                               undistort_points)
 
 LENS = Distortion(k1=0.08, k2=-0.05, p1=-1e-3, p2=5e-4)
 
@@ -112,6 +113,37 @@ def test_load_image_rgba_and_errors(tmp_path):
     gone = Camera(torch.eye(4), intrinsics(5, 5, 3, 2), 6, 4, image_path=tmp_path / "gone.png", image_name="g")
     with pytest.raises(SceneFormatError, match="gone.png.*not found"):
         load_image(gone)
+
+
+def _write(path, arr: np.ndarray, mode: str, **save) -> None:
+    Image.fromarray(arr, mode).save(path, **save)
+
+
+def test_image_has_transparency_known_files(tmp_path):
+    """Alpha below 255 somewhere -> True; no alpha channel, or one opaque everywhere -> False."""
+    rgb = np.full((4, 6, 3), 200, np.uint8)
+    rgba = np.dstack([rgb, np.full((4, 6), 255, np.uint8)])
+    _write(tmp_path / "photo.jpg", rgb, "RGB")
+    _write(tmp_path / "rgb.png", rgb, "RGB")
+    _write(tmp_path / "opaque_rgba.png", rgba, "RGBA")
+    one_pixel = rgba.copy()
+    one_pixel[3, 5, 3] = 254
+    _write(tmp_path / "one_pixel.png", one_pixel, "RGBA")
+    grey_alpha = np.dstack([rgb[..., 0], np.zeros((4, 6), np.uint8)])
+    _write(tmp_path / "la.png", grey_alpha, "LA")
+    palette = Image.fromarray(np.arange(24, dtype=np.uint8).reshape(4, 6), "P")
+    palette.putpalette([v for i in range(256) for v in (i, 255 - i, 7)])
+    palette.save(tmp_path / "p_opaque.png")
+    palette.save(tmp_path / "p_transparent.png", transparency=5)  # palette entry 5 is see-through
+    palette.save(tmp_path / "p_unused.png", transparency=200)     # no pixel uses entry 200
+    want = {"photo.jpg": False, "rgb.png": False, "opaque_rgba.png": False, "one_pixel.png": True,
+            "la.png": True, "p_opaque.png": False, "p_transparent.png": True, "p_unused.png": False}
+    assert {name: image_has_transparency(tmp_path / name) for name in want} == want
+    with pytest.raises(SceneFormatError, match="gone.png.*not found"):
+        image_has_transparency(tmp_path / "gone.png")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(SceneFormatError, match="bad.png.*cannot decode"):
+        image_has_transparency(tmp_path / "bad.png")
 
 
 @pytest.mark.parametrize("downscale", [1.0, 2.0, 3.0])

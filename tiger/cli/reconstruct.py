@@ -3,10 +3,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 from .common import (CliError, Summary, add_common, add_skip_missing, claim_output, device_of, existing,
                      finish_output, open_dataset, run_settings)
+
+log = logging.getLogger(__name__)
 
 
 def add_parser(sub) -> None:
@@ -22,7 +25,9 @@ def add_parser(sub) -> None:
                     "With lens distortion the black border of "
                     "undistortion is left out of the loss and of the metric (metrics.json: psnr_pixels, "
                     "psnr_definition); "
-                    "random initial points take their colour from the views. Checkpoints allow --resume. Writes "
+                    "random initial points take their colour from the views; training renders over a "
+                    "random background colour unless images have transparency (--random-background). "
+                    "Checkpoints allow --resume. Writes "
                     "OUT/scene.ply (INRIA's PLY), OUT/cameras.json (the capture's cameras, INRIA's "
                     "format; `tiger render` renders along them), OUT/metrics.json, OUT/tiger_run.json "
                     "(the settings; --resume must match them). The undistorted-image cache and the "
@@ -48,11 +53,13 @@ def add_parser(sub) -> None:
                         "loss; its mean over the images is moved into the scene's colours at the end, so "
                         "the saved scene and the held-out PSNR show the average appearance "
                         "(default: %(default)s)")
-    p.add_argument("--random-background", action=argparse.BooleanOptionalAction, default=False,
+    p.add_argument("--random-background", action=argparse.BooleanOptionalAction, default=None,
                    help="render each training step over a random background colour, so that no "
-                        "Gaussian can leave a see-through gap to the background (for captures of opaque "
-                        "photographs; images with transparency are composited over black and should "
-                        "not use it); held-out views are rendered over black (default: %(default)s)")
+                        "Gaussian can leave a see-through gap that the background fills in. Default: on "
+                        "when no image has transparent pixels (opaque photographs), off (black) when "
+                        "some do (their transparent pixels are composited over black, a colour the "
+                        "renders must then learn); held-out views are always rendered over black. "
+                        "metrics.json: training_background")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="stop training once it took this long (a resumed run counts its earlier "
                         "time), then evaluate and write the scene as usual (default: no budget)")
@@ -108,7 +115,7 @@ def _clean_up(out: Path, keep: bool) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from tiger.recon import ReconConfig, Trainer, load_views
-    from tiger.recon.data import masked_fraction, valid_pixel_masks
+    from tiger.recon.data import masked_fraction, training_background, transparent_images, valid_pixel_masks
     from tiger.scene import GaussianScene
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
     from tiger.train import CheckpointMismatch
@@ -132,10 +139,15 @@ def run(args: argparse.Namespace) -> int:
     cache = out / CACHE
     train_cams, train_imgs = load_views(train, args.downscale, cache_dir=cache, progress=True)
     test_cams, test_imgs = load_views(test, args.downscale, cache_dir=cache, progress=True)
+    transparent = transparent_images([*train, *test])
+    random_background, background_note = training_background(transparent, args.random_background)
+    if random_background and transparent:
+        log.warning("--random-background with transparent images: %s", background_note)
+    summary.add(f"training background: {background_note}")
     # INRIA's 30k schedule compressed to --steps (identical at 30000).
     cfg = ReconConfig.scaled(args.steps, sh_degree=args.sh_degree,
                              init_random_points=args.init_points, max_gaussians=args.max_gaussians,
-                             appearance=args.appearance, random_background=args.random_background,
+                             appearance=args.appearance, random_background=random_background,
                              time_budget_s=args.time_budget, checkpoint_every=args.checkpoint_every)
     scene = GaussianScene.load_ply(existing(args.finetune, "scene")) if args.finetune else None
     # the black border that undistortion leaves counts neither in the loss nor in the metric
@@ -164,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
     write_cameras_json(cameras_json_path(out / "scene.ply"), ds.cameras)
     summary.add(f"scene: {len(scene)} Gaussians -> {out / 'scene.ply'} (cameras: {out / 'cameras.json'})")
     metrics = {"gaussians": len(scene), "steps": trainer.step, "seconds": trainer.elapsed,
-               "stopped": trainer.outcome.stopped if trainer.outcome is not None else "done"}
+               "stopped": trainer.outcome.stopped if trainer.outcome is not None else "done",
+               "training_background": background_note}
     if test_cams:
         ev = trainer.evaluate()
         metrics.update({k: v for k, v in ev.items() if isinstance(v, (int, float))})

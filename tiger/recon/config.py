@@ -45,6 +45,8 @@ class ReconConfig:
     appearance: bool = False               # per-training-image affine colour correction
     lr_appearance: float = 1e-3
     background: tuple = (0.0, 0.0, 0.0)
+    # a random colour behind every training render (the held-out evaluation stays on `background`);
+    # `tiger reconstruct` turns it on for opaque images (tiger.recon.data.training_background)
     random_background: bool = False
     init_random_points: int = 100_000
     init_min_view_fraction: float = 0.5

@@ -46,3 +46,43 @@ def masked_fraction(masks: Optional[Sequence[torch.Tensor]]) -> float:
         return 0.0
     total = sum(m.numel() for m in masks)
     return float(sum(int((~m).sum()) for m in masks)) / max(total, 1)
+
+
+def transparent_images(cameras: Sequence[Camera]) -> list[str]:
+    """Names of the cameras whose image file has transparent pixels (an alpha channel not
+    opaque everywhere; :func:`tiger.scene.images.image_has_transparency`). Those pixels are
+    composited over a fixed background when the images load; opaque photographs give []."""
+    from tiger.scene.images import image_has_transparency
+
+    return [c.image_name for c in cameras if c.image_path is not None and image_has_transparency(c.image_path)]
+
+
+def training_background(transparent: Sequence[str], requested: Optional[bool] = None) -> tuple[bool, str]:
+    """Whether training renders over a random colour each step, and why (one line).
+
+    The rule: a random background when no image has transparent pixels (opaque photographs:
+    every pixel shows a surface, so a Gaussian that leaves a see-through gap is always wrong,
+    whatever the background colour; a fixed black one would let dark surfaces be learned as
+    gaps). Images with transparency were composited over black when loaded, so their black
+    is a target the renders must match over black: they train over black. ``requested``
+    (True / False) overrides the rule.
+
+    Args:
+        transparent: names of the images with transparent pixels (:func:`transparent_images`).
+        requested: None for the rule, else the user's choice.
+    Returns:
+        (random_background, description for the run's printout and metrics.json).
+    """
+    n = len(transparent)
+    if requested is None:
+        if n == 0:
+            return True, "random colour each training step (no image has transparent pixels)"
+        return False, (f"black ({n} image{'s' if n != 1 else ''} with transparent pixels, e.g. "
+                       f"{transparent[0]}, composited over black)")
+    if requested:
+        if n:
+            return True, (f"random colour each training step (asked for; {n} image{'s' if n != 1 else ''} "
+                          "with transparent pixels were composited over black, which the renders now "
+                          "learn as colour)")
+        return True, "random colour each training step (asked for)"
+    return False, "black (asked for)"

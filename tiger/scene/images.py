@@ -136,8 +136,7 @@ def read_image_file(path: Path, background: Optional[tuple] = None) -> torch.Ten
                 arr = arr / (65535.0 if mode.startswith("I;16") else max(float(arr.max()), 1.0))
                 arr = np.repeat(arr[..., None], 3, -1)
             else:
-                rgba = "A" in im.getbands() or (mode == "P" and "transparency" in im.info)
-                arr = np.asarray(im.convert("RGBA" if rgba else "RGB"), dtype=np.float32) / 255.0
+                arr = np.asarray(im.convert("RGBA" if _has_alpha(im) else "RGB"), dtype=np.float32) / 255.0
     except FileNotFoundError:
         raise SceneFormatError(path, "image file not found") from None
     except Exception as exc:  # PIL raises many types for corrupt files
@@ -148,6 +147,35 @@ def read_image_file(path: Path, background: Optional[tuple] = None) -> torch.Ten
         a = img[..., 3:]
         img = img[..., :3] * a + bg * (1 - a)
     return img
+
+
+def _has_alpha(im) -> bool:
+    """Whether a PIL image carries an alpha channel (an alpha band, or a palette with a
+    transparent entry)."""
+    return "A" in im.getbands() or (im.mode == "P" and "transparency" in im.info)
+
+
+def image_has_transparency(path: PathLike) -> bool:
+    """True when the image file has an alpha channel and at least one pixel of it is below
+    fully opaque: the pixels :func:`read_image_file` composites over a background.
+
+    Files without an alpha channel (JPEG, RGB PNG) are decided from the header alone; an
+    alpha channel that is opaque everywhere counts as no transparency.
+    Raises SceneFormatError for a missing or undecodable file.
+    """
+    from PIL import Image
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            if not _has_alpha(im):
+                return False
+            alpha = (im.convert("RGBA") if im.mode == "P" else im).getchannel("A")
+            return alpha.getextrema()[0] < 255
+    except FileNotFoundError:
+        raise SceneFormatError(path, "image file not found") from None
+    except Exception as exc:  # PIL raises many types for corrupt files
+        raise SceneFormatError(path, f"cannot decode image ({type(exc).__name__}: {exc})") from None
 
 
 def default_cache_dir() -> Path:
