@@ -307,3 +307,29 @@ def test_models_loaded_from_a_config_with_jbu(tiny_models, tmp_path):
                           device="cpu", progress=False)
     feats, valid = fs.load(fs.names[0])
     assert feats.shape == (23, 32, 4) and torch.isfinite(feats.float()).all() and valid.all()
+
+
+def test_records_that_fit_neither_memory_nor_disk_are_recomputed(models, tmp_path, monkeypatch):
+    """With no memory budget and a disk too full for a stage-1 record, the projection pass
+    recomputes each image's record: the same maps and basis as records read back from the disk,
+    and no record file written (the per-image statistics still are)."""
+    clip, sam = models
+    imgs = images()
+    ref = extract_features(imgs, tmp_path / "disk", clip=clip, sam=sam, config=config(), progress=False,
+                           memory_budget=0)
+    monkeypatch.setattr(extract_mod, "disk_has_room", lambda folder, nbytes: False)
+    full = extract_features(imgs, tmp_path / "full", clip=clip, sam=sam, config=config(), progress=False,
+                            memory_budget=0)
+    assert torch.equal(full.pca.components, ref.pca.components)
+    for name in ref.names:
+        assert not (tmp_path / "full" / "cache" / f"{name}.pt").exists()
+        assert (tmp_path / "full" / "cache" / f"{name}.stats.pt").is_file()
+        for x, y in zip(full.load(name), ref.load(name)):
+            assert torch.equal(x, y), name
+
+
+def test_disk_room_rule(tmp_path):
+    from tiger.language.extract_io import disk_has_room
+
+    assert disk_has_room(tmp_path / "not" / "made" / "yet", 1)
+    assert not disk_has_room(tmp_path, 1 << 62)

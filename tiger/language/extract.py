@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from tiger.ops.masked_average import masked_average
 from tiger.utils.io import atomic_torch_save
 
-from .extract_io import BackgroundSaver, KeptRecords, load_mapped
+from .extract_io import BackgroundSaver, KeptRecords, disk_has_room, load_mapped, record_bytes
 from .featup import UPSAMPLERS, ImplicitConfig, JBUStack, upsample_features
 from .maskclip import MaskCLIP, normalize_images, resize_for_patches
 from .pca import PCABasis, StreamingPCA
@@ -325,6 +325,12 @@ def extract_features(
             jbu = JBUStack.from_checkpoint(config=models).to(dev)
     kept = KeptRecords(dev, memory_budget)
     saver = BackgroundSaver(dev)
+    recompute: set[str] = set()
+
+    def recomputed(name: str) -> dict[str, Any]:
+        img = _as_image(images[all_names.index(name)]).to(dev)
+        return compute_image_features(img, clip, sam if cfg.use_sam else None, jbu, cfg)
+
     try:
         bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
         bar.update(len(mine) - len(todo))
@@ -339,7 +345,11 @@ def extract_features(
             # otherwise only while the disk keeps up (a record lost to a kill is recomputed)
             atomic_torch_save({"version": CACHE_VERSION, "config": fp, "stats": rec["stats"]},
                               _stats_path(cache_dir, name), fsync=False)
-            saver.save(rec, cache_dir / f"{name}.pt", fsync=False, optional=kept.offer(name, rec))
+            in_memory = kept.offer(name, rec)
+            if disk_has_room(cache_dir, record_bytes(rec)):
+                saver.save(rec, cache_dir / f"{name}.pt", fsync=False, optional=in_memory)
+            elif not in_memory:  # neither memory nor disk holds it: the projection pass recomputes it
+                recompute.add(name)
             del rec, img
             bar.update(1)
         bar.close()
@@ -347,7 +357,11 @@ def extract_features(
         _fit_pca(out, all_names, cache_dir, fp, full_fp, cfg.pca_dim, kept, rank)
         _barrier(use_dist)
         pca = PCABasis.load(out / "pca.pt")
-        _project_all(pca, [all_names[i] for i in mine], cache_dir, feat_dir, fp, cfg, kept, saver, dev)
+        _project_all(pca, [all_names[i] for i in mine], cache_dir, feat_dir, fp, cfg, kept, saver, dev,
+                     {name: recomputed for name in recompute})
+        if recompute:
+            logger.info("%d images' stage-1 records fitted neither in memory nor on the disk; recomputed for "
+                        "the projection", len(recompute))
         saver.close()
     except BaseException:
         saver.close(raise_errors=False)
@@ -385,10 +399,13 @@ def _fit_pca(out: Path, all_names: list[str], cache_dir: Path, fp: str, full_fp:
 
 
 def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Path, fp: str, cfg: FeatureConfig,
-                 kept: KeptRecords, saver: BackgroundSaver, dev: torch.device) -> None:
-    """Stage 2 for this rank's images: each record (from memory, else from its cache file) projected
-    on ``dev``; only the [h, w, k] float16 map and its validity are copied to the host and written
-    (fsync: these are the outputs)."""
+                 kept: KeptRecords, saver: BackgroundSaver, dev: torch.device,
+                 recompute: dict[str, Any] | None = None) -> None:
+    """Stage 2 for this rank's images: each record (from memory, else from its cache file, else
+    recomputed by ``recompute[name](name)`` when neither could hold it) projected on ``dev``; only the
+    [h, w, k] float16 map and its validity are copied to the host and written (fsync: these are
+    the outputs)."""
+    recompute = recompute or {}
     pfp = pca.fingerprint()
     saver.drop_optional()  # from here on a written map supersedes its stage-1 record
     for name in names:
@@ -396,7 +413,9 @@ def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Pat
         rec = kept.pop(name)
         if _finished(target, pfp):
             continue
-        if rec is None:
+        if rec is None and name in recompute:
+            rec = recompute[name](name)
+        elif rec is None:
             rec = _load_record(cache_dir / f"{name}.pt", fp)
             if rec is None:
                 raise RuntimeError(f"tiger.extract_features: the stage-1 record of image '{name}' is "

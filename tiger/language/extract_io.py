@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import threading
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -129,7 +130,9 @@ class KeptRecords:
     """Stage-1 records held in memory until the projection pass, as many as fit.
 
     On CUDA a record is kept while the device's free memory (the caching allocator's spare blocks
-    included) stays above the largest per-image working set seen plus 5 % of the device; on the CPU
+    included) stays above the largest per-image working set seen plus 5 % of the device, and the
+    kept records stay under a quarter of the device (another process on the GPU, say the
+    reconstruction that `tiger prepare` runs alongside, grows after this check); on the CPU
     while the kept records stay under ``budget`` bytes (default a quarter of the physical memory).
     ``budget=0`` keeps nothing (every record goes through the disk); a positive ``budget`` caps the
     kept bytes on any device.
@@ -142,7 +145,9 @@ class KeptRecords:
         self.kept_bytes = 0
         self._working = 0
         self._base = 0
-        if budget is None and device.type != "cuda":
+        if budget is None and device.type == "cuda":
+            self.budget = torch.cuda.get_device_properties(device).total_memory // 4
+        elif budget is None:
             try:
                 self.budget = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 4
             except (ValueError, OSError, AttributeError):
@@ -176,3 +181,13 @@ class KeptRecords:
         if record is not None:
             self.kept_bytes -= record_bytes(record)
         return record
+
+
+def disk_has_room(folder: Path, nbytes: int) -> bool:
+    """Whether writing ``nbytes`` under ``folder`` leaves at least 1 GiB and 5 % of its disk free
+    (a stage-1 record that would fill the disk is recomputed instead of written)."""
+    probe = Path(folder)
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    usage = shutil.disk_usage(probe)
+    return usage.free - nbytes >= max(1 << 30, usage.total // 20)
