@@ -334,7 +334,7 @@ def extract_features(
     try:
         bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
         bar.update(len(mine) - len(todo))
-        for i in todo:
+        for k, i in enumerate(todo):
             name = all_names[i]
             img = _as_image(images[i]).to(dev)
             kept.start_image()
@@ -346,7 +346,10 @@ def extract_features(
             atomic_torch_save({"version": CACHE_VERSION, "config": fp, "stats": rec["stats"]},
                               _stats_path(cache_dir, name), fsync=False)
             in_memory = kept.offer(name, rec)
-            if disk_has_room(cache_dir, record_bytes(rec)):
+            # room for the record and for every map this rank still writes (the outputs come first)
+            h, w = cfg.out_size(*img.shape[-2:])
+            maps_left = (len(mine) - k) * h * w * (2 * cfg.pca_dim + 1)  # an upper bound
+            if disk_has_room(cache_dir, record_bytes(rec) + maps_left):
                 saver.save(rec, cache_dir / f"{name}.pt", fsync=False, optional=in_memory)
             elif not in_memory:  # neither memory nor disk holds it: the projection pass recomputes it
                 recompute.add(name)
