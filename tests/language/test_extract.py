@@ -317,7 +317,7 @@ def test_records_that_fit_neither_memory_nor_disk_are_recomputed(models, tmp_pat
     imgs = images()
     ref = extract_features(imgs, tmp_path / "disk", clip=clip, sam=sam, config=config(), progress=False,
                            memory_budget=0)
-    monkeypatch.setattr(extract_mod, "disk_has_room", lambda folder, nbytes: False)
+    monkeypatch.setattr(extract_mod.DiskBudget, "room", lambda self, nbytes, reserve=0: False)
     full = extract_features(imgs, tmp_path / "full", clip=clip, sam=sam, config=config(), progress=False,
                             memory_budget=0)
     assert torch.equal(full.pca.components, ref.pca.components)
@@ -328,8 +328,11 @@ def test_records_that_fit_neither_memory_nor_disk_are_recomputed(models, tmp_pat
             assert torch.equal(x, y), name
 
 
-def test_disk_room_rule(tmp_path):
-    from tiger.language.extract_io import disk_has_room
+def test_disk_budget_rule(tmp_path):
+    from tiger.language.extract_io import DiskBudget
 
-    assert disk_has_room(tmp_path / "not" / "made" / "yet", 1)
-    assert not disk_has_room(tmp_path, 1 << 62)
+    budget = DiskBudget(tmp_path / "not" / "made" / "yet")
+    assert budget.room(1)
+    assert not budget.room(1 << 62) and not budget.room(1, reserve=1 << 62)
+    budget.add(1 << 62)  # this run's records are capped at a tenth of the disk
+    assert not budget.room(1)

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from tiger.ops.masked_average import masked_average
 from tiger.utils.io import atomic_torch_save
 
-from .extract_io import BackgroundSaver, KeptRecords, disk_has_room, load_mapped, record_bytes
+from .extract_io import BackgroundSaver, DiskBudget, KeptRecords, load_mapped, record_bytes
 from .featup import UPSAMPLERS, ImplicitConfig, JBUStack, upsample_features
 from .maskclip import MaskCLIP, normalize_images, resize_for_patches
 from .pca import PCABasis, StreamingPCA
@@ -326,6 +326,7 @@ def extract_features(
     kept = KeptRecords(dev, memory_budget)
     saver = BackgroundSaver(dev)
     recompute: set[str] = set()
+    disk = DiskBudget(cache_dir)
 
     def recomputed(name: str) -> dict[str, Any]:
         img = _as_image(images[all_names.index(name)]).to(dev)
@@ -349,7 +350,8 @@ def extract_features(
             # room for the record and for every map this rank still writes (the outputs come first)
             h, w = cfg.out_size(*img.shape[-2:])
             maps_left = (len(mine) - k) * h * w * (2 * cfg.pca_dim + 1)  # an upper bound
-            if disk_has_room(cache_dir, record_bytes(rec) + maps_left):
+            if disk.room(record_bytes(rec), reserve=maps_left):
+                disk.add(record_bytes(rec))
                 saver.save(rec, cache_dir / f"{name}.pt", fsync=False, optional=in_memory)
             elif not in_memory:  # neither memory nor disk holds it: the projection pass recomputes it
                 recompute.add(name)

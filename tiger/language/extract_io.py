@@ -183,11 +183,24 @@ class KeptRecords:
         return record
 
 
-def disk_has_room(folder: Path, nbytes: int) -> bool:
-    """Whether writing ``nbytes`` under ``folder`` leaves at least 1 GiB and 5 % of its disk free
-    (a stage-1 record that would fill the disk is recomputed instead of written)."""
-    probe = Path(folder)
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    usage = shutil.disk_usage(probe)
-    return usage.free - nbytes >= max(1 << 30, usage.total // 20)
+class DiskBudget:
+    """Where stage-1 records may go on the disk: a write must leave 1 GiB and 5 % of the disk free
+    beyond ``reserve`` bytes (the maps still to come), and the records written by this run stay
+    under a tenth of the disk (a thin-provisioned disk may report more free space than it can
+    hold). A record refused here is recomputed for the projection instead (at most a few seconds
+    an image; reading 2 GB back costs as much)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self.written = 0
+
+    def room(self, nbytes: int, reserve: int = 0) -> bool:
+        probe = self.folder
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        usage = shutil.disk_usage(probe)
+        return (usage.free - nbytes - reserve >= max(1 << 30, usage.total // 20)
+                and self.written + nbytes <= usage.total // 10)
+
+    def add(self, nbytes: int) -> None:
+        self.written += nbytes
