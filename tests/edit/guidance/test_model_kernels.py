@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from tiger.edit.guidance import ViewBatch
 from tiger.edit.guidance import model_kernels as mk
+from tiger.edit.guidance import fused_norms
 from tiger.ops.fp8_rows import E4M3_MAX, dequantize_rows, geglu, quantize_rows_fp8
 
 diffusers = pytest.importorskip("diffusers")
@@ -283,10 +284,10 @@ def test_fold_norm_bias_equals_separate_bias_pass_float64(tiny_models):
 
     plain = run()
     n_blocks = sum(1 for m in list(unet.modules()) + list(vae.modules()) if type(m).__name__ == "ResnetBlock2D")
-    assert mk.set_fold_norm_bias(unet, True) + mk.set_fold_norm_bias(vae, True) == n_blocks > 0
+    assert fused_norms.set_fold_norm_bias(unet, True) + fused_norms.set_fold_norm_bias(vae, True) == n_blocks > 0
     folded = run()
-    mk.set_fold_norm_bias(unet, False)
-    mk.set_fold_norm_bias(vae, False)
+    fused_norms.set_fold_norm_bias(unet, False)
+    fused_norms.set_fold_norm_bias(vae, False)
     for a, b in zip(folded, plain):
         assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
     assert torch.equal(run()[0], plain[0])

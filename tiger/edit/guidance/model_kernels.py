@@ -46,7 +46,7 @@ from tiger.utils.lazy import require_diffusers
 logger = logging.getLogger(__name__)
 
 __all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
-           "fp8_supported", "set_downsample_4x4", "set_fold_norm_bias", "set_fused_geglu", "set_matmul_precision"]
+           "fp8_supported", "set_downsample_4x4", "set_fused_geglu", "set_matmul_precision"]
 
 MATMUL_PRECISIONS = ("model", "fp8")
 
