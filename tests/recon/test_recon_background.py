@@ -42,3 +42,19 @@ def test_background_rule(transparent, requested, want, words):
     random_background, note = training_background(transparent, requested)
     assert random_background is want and words in note
     assert note.startswith("random colour" if want else "black")
+
+
+def test_load_views_keeps_the_cameras_order_on_threads(tmp_path):
+    """load_views decodes on a thread pool: each image still comes back beside its own camera
+    (known answer: every image file is one flat colour that names its index)."""
+    from tiger.recon.data import load_views
+
+    cams = []
+    for i in range(11):
+        path = tmp_path / f"view_{i:02d}.png"
+        Image.fromarray(np.full((6, 8, 3), 20 * i, dtype=np.uint8)).save(path)
+        cams.append(Camera(torch.eye(4), intrinsics(8, 8, 4, 3), 8, 6, image_path=str(path), image_name=path.name))
+    out_cams, imgs = load_views(cams)
+    assert [c.image_name for c in out_cams] == [c.image_name for c in cams]
+    for i, img in enumerate(imgs):
+        assert torch.allclose(img, torch.full_like(img, 20 * i / 255.0), atol=1e-6), i
