@@ -42,6 +42,8 @@ def add_parser(sub) -> None:
                     "and DIR/prepare.json (each stage's inputs, seconds and quality: held-out PSNR, "
                     "Gaussians, field loss). Re-running continues an interrupted stage and skips finished "
                     "ones whose inputs match. Options left out take the stage command's default. "
+                    "On one GPU the feature stage runs in a second process alongside the reconstruction "
+                    "(log: DIR/features.log; --sequential runs one after the other). "
                     "Under torchrun the feature stage is sharded over the ranks. "
                     "`tiger query DIR ...` (and edit, delete, render, view) use DIR's scene.",
         epilog="example: tiger prepare ../shared/data/fox --out outputs/fox --downscale 2 "
