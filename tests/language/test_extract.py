@@ -336,3 +336,34 @@ def test_disk_budget_rule(tmp_path):
     assert not budget.room(1 << 62) and not budget.room(1, reserve=1 << 62)
     budget.add(1 << 62)  # this run's records are capped at a tenth of the disk
     assert not budget.room(1)
+
+
+@pytest.mark.parametrize("upsampler", ["bilinear", "jbu", "implicit"])
+def test_unmasked_rows_regenerate_the_upsampled_features(models, upsampler):
+    """A stage-1 record keeps, instead of the 512-d features of its pixels in no mask, what
+    regenerates them (the fitted implicit network, or the low-res CLIP map for JBU / bilinear):
+    regenerated, they equal the rows of the upsampled map computed directly by
+    ``upsample_features`` (the path before records were compact), bit for bit on the CPU."""
+    import torch.nn.functional as F
+
+    from tiger.language.featup import JBUStack, upsample_features
+    from tiger.language.maskclip import normalize_images, resize_for_patches
+
+    clip, sam = models
+    torch.manual_seed(0)
+    jbu = JBUStack(24).eval() if upsampler == "jbu" else None  # as from_checkpoint loads it
+    cfg = config(upsampler=upsampler,
+                 implicit=ImplicitConfig(steps=3, n_views=4, pca_batch=4, kernel_size=3, jitters_per_step=2))
+    img = images(1)[0]
+    rec = extract_mod.compute_image_features(img, clip, sam, jbu, cfg)
+    ids = rec["ids"].reshape(-1)
+    assert (ids < 0).any() and "regen" in rec
+    if upsampler != "implicit":  # (the fitted network outweighs a map this small; not a 1080p one)
+        assert extract_mod.record_bytes(rec) < 2 * int((ids < 0).sum()) * 24  # less than the rows it replaces
+    clip_in = resize_for_patches(img[None], cfg.clip_long_side, clip.patch_size)[0]
+    with torch.enable_grad():
+        hr = upsample_features(clip_in, clip, tuple(rec["size"]), upsampler, jbu=jbu, implicit=cfg.implicit,
+                               guidance_normalizer=lambda x: normalize_images(x, "imagenet"))
+    direct = F.normalize(hr.detach().float(), dim=0).permute(1, 2, 0).reshape(-1, hr.shape[0])[ids < 0].half()
+    rows = extract_mod.unmasked_rows(rec, img, clip, jbu, cfg)
+    assert rows.shape == direct.shape and torch.equal(rows, direct)

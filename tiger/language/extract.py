@@ -36,7 +36,7 @@ from tiger.ops.masked_average import masked_average
 from tiger.utils.io import atomic_torch_save
 
 from .extract_io import BackgroundSaver, DiskBudget, KeptRecords, load_mapped, record_bytes
-from .featup import UPSAMPLERS, ImplicitConfig, JBUStack, upsample_features
+from .featup import UPSAMPLERS, ImplicitConfig, ImplicitNet, ImplicitUpsampler, JBUStack, upsample_features
 from .maskclip import MaskCLIP, normalize_images, resize_for_patches
 from .pca import PCABasis, StreamingPCA
 from .sam_masks import SamMaskConfig, SamMaskGenerator
@@ -44,7 +44,7 @@ from .sam_masks import SamMaskConfig, SamMaskGenerator
 logger = logging.getLogger(__name__)
 
 ImageLike = Union[str, os.PathLike, torch.Tensor]
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: the unmasked rows are regenerated from the record's upsampler state
 
 
 @dataclass
@@ -142,20 +142,65 @@ def _names(images: Sequence[ImageLike], names: Sequence[str] | None) -> list[str
     return out
 
 
+def _upsampled(image: torch.Tensor, clip: MaskCLIP, jbu: JBUStack | None, cfg: FeatureConfig,
+               size: tuple[int, int]) -> tuple[torch.Tensor, dict[str, Any]]:
+    """The upsampled features [D, *size] of ``image`` and what regenerates them exactly
+    (:func:`regenerate_features`): the fitted implicit network's state, or the backbone's low-res
+    map (JBU and bilinear re-run on the image). A few MB against the full map's GBs."""
+    clip_in = resize_for_patches(image[None], cfg.clip_long_side, clip.patch_size)[0]
+    if cfg.upsampler == "implicit":
+        with torch.enable_grad():
+            up = ImplicitUpsampler.fit(clip_in, clip, cfg.implicit)
+        regen = {"kind": "implicit", "fit_image": up.image, "mean": up.mean, "basis": up.basis}
+        regen.update({f"net.{k}": v.detach() for k, v in up.net.state_dict().items()})
+        return up(size), regen
+    lowres = clip(clip_in[None])[0].float()
+    return _upsample_lowres(clip_in, clip, jbu, cfg, size, lowres), {"kind": cfg.upsampler, "lowres": lowres}
+
+
+def _upsample_lowres(clip_in: torch.Tensor, clip: MaskCLIP, jbu: JBUStack | None, cfg: FeatureConfig,
+                     size: tuple[int, int], lowres: torch.Tensor) -> torch.Tensor:
+    return upsample_features(clip_in, clip, size, cfg.upsampler, jbu=jbu, lowres=lowres,
+                             guidance_normalizer=lambda x: normalize_images(x, "imagenet"))
+
+
+@torch.no_grad()
+def regenerate_features(regen: dict[str, Any], image: torch.Tensor | None, clip: MaskCLIP | None,
+                        jbu: JBUStack | None, cfg: FeatureConfig, size: tuple[int, int]) -> torch.Tensor:
+    """The upsampled features [D, *size] that :func:`_upsampled` returned with ``regen``, computed
+    again on ``regen``'s device: the implicit network evaluated from its saved state (no fit), or
+    JBU / bilinear from the saved low-res map (``image`` [3, H, W] and ``clip`` needed)."""
+    dev = regen["fit_image" if regen["kind"] == "implicit" else "lowres"].device
+    if regen["kind"] == "implicit":
+        icfg = cfg.implicit or ImplicitConfig()
+        state = {k[4:]: v for k, v in regen.items() if k.startswith("net.")}
+        net = ImplicitNet(regen["basis"].shape[1], icfg.n_freqs, None, icfg.dropout).to(dev)
+        net.load_state_dict(state)
+        net.eval()
+        return ImplicitUpsampler(net, regen["fit_image"], regen["mean"], regen["basis"], [])(size)
+    if image is None or clip is None:
+        raise ValueError("tiger.regenerate_features: JBU / bilinear features need the image and the CLIP model")
+    clip_in = resize_for_patches(image.to(dev)[None], cfg.clip_long_side, clip.patch_size)[0]
+    return _upsample_lowres(clip_in, clip, jbu, cfg, size, regen["lowres"])
+
+
+def _unit_rows(hr: torch.Tensor) -> torch.Tensor:
+    """[D, h, w] features -> [h * w, D] unit rows (float32)."""
+    return F.normalize(hr.detach().float(), dim=0).permute(1, 2, 0).reshape(-1, hr.shape[0])
+
+
 @torch.no_grad()
 def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGenerator | None,
                            jbu: JBUStack | None, cfg: FeatureConfig) -> dict[str, Any]:
     """Stage 1 for one image [3, H, W] in [0, 1] (on the models' device): the compact record (ids
-    [h, w] int32, means [M, D] and unmasked [U, D] float16, on the image's device) and its PCA
-    statistics (float64, on the CPU)."""
+    [h, w] int32 and means [M, D] float16 on the image's device; ``regen``, the upsampler state
+    that gives back the features of the pixels in no mask, :func:`regenerate_features`) and its
+    PCA statistics (float64, on the CPU), which count those pixels' features too."""
     h, w = image.shape[-2:]
     size = cfg.out_size(h, w)
-    clip_in = resize_for_patches(image[None], cfg.clip_long_side, clip.patch_size)[0]
-    with torch.enable_grad():
-        hr = upsample_features(clip_in, clip, size, cfg.upsampler, jbu=jbu, implicit=cfg.implicit,
-                               guidance_normalizer=lambda x: normalize_images(x, "imagenet"))
+    hr, regen = _upsampled(image, clip, jbu, cfg, size)
     d = hr.shape[0]
-    feats = F.normalize(hr.detach().float(), dim=0).permute(1, 2, 0).reshape(-1, d)
+    feats = _unit_rows(hr)
     del hr
     if sam is not None:
         ids = sam(image, size).id_map().reshape(-1)
@@ -166,10 +211,22 @@ def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGene
     means = F.normalize(means, dim=1).half()
     unmasked = feats[ids < 0].half() if cfg.unmasked == "keep" else feats.new_zeros(0, d).half()
     del feats
-    return {
-        "version": CACHE_VERSION, "size": size, "ids": ids.reshape(size).int(), "means": means,
-        "unmasked": unmasked, "stats": image_statistics(means, counts, unmasked),
-    }
+    stats = image_statistics(means, counts, unmasked)
+    rec = {"version": CACHE_VERSION, "size": size, "ids": ids.reshape(size).int(), "means": means, "stats": stats}
+    if cfg.unmasked == "keep" and unmasked.shape[0]:
+        rec["regen"] = regen
+    return rec
+
+
+def unmasked_rows(rec: dict[str, Any], image: torch.Tensor | None, clip: MaskCLIP | None, jbu: JBUStack | None,
+                  cfg: FeatureConfig) -> torch.Tensor:
+    """[U, D] float16: the features of the record's pixels in no mask, regenerated from its
+    ``regen`` (the bits stage 1 computed them with); empty when every pixel is in a mask."""
+    if "regen" not in rec:
+        d = rec["means"].shape[1] if rec["means"].numel() else 0
+        return rec["means"].new_zeros(0, d)
+    feats = _unit_rows(regenerate_features(rec["regen"], image, clip, jbu, cfg, tuple(rec["size"])))
+    return feats[rec["ids"].reshape(-1).to(feats.device) < 0].half()
 
 
 def image_statistics(means: torch.Tensor, counts: torch.Tensor, unmasked: torch.Tensor,
@@ -316,13 +373,15 @@ def extract_features(
     todo = [i for i in mine if _load_record(cache_dir / f"{all_names[i]}.pt", fp) is None
             and not (pfp is not None and _finished(feat_dir / f"{all_names[i]}.pt", pfp)
                      and _load_record(_stats_path(cache_dir, all_names[i]), fp) is not None)]
-    if todo:
+    # the projection regenerates JBU / bilinear features of pixels in no mask with CLIP (and JBU)
+    unfinished = [i for i in mine if not (pfp is not None and _finished(feat_dir / f"{all_names[i]}.pt", pfp))]
+    if todo or (unfinished and cfg.upsampler != "implicit" and cfg.unmasked == "keep"):
         if clip is None:
             clip = MaskCLIP.from_pretrained(device=dev, config=models)
-        if cfg.use_sam and sam is None:
-            sam = SamMaskGenerator.from_pretrained(device=dev, config=models, mask_config=cfg.sam)
         if cfg.upsampler == "jbu" and jbu is None:
             jbu = JBUStack.from_checkpoint(config=models).to(dev)
+    if todo and cfg.use_sam and sam is None:
+        sam = SamMaskGenerator.from_pretrained(device=dev, config=models, mask_config=cfg.sam)
     kept = KeptRecords(dev, memory_budget)
     saver = BackgroundSaver(dev)
     recompute: set[str] = set()
@@ -331,6 +390,11 @@ def extract_features(
     def recomputed(name: str) -> dict[str, Any]:
         img = _as_image(images[all_names.index(name)]).to(dev)
         return compute_image_features(img, clip, sam if cfg.use_sam else None, jbu, cfg)
+
+    def rows(name: str, rec: dict[str, Any]) -> torch.Tensor:
+        needs_image = "regen" in rec and rec["regen"]["kind"] != "implicit"
+        img = _as_image(images[all_names.index(name)]).to(dev) if needs_image else None
+        return unmasked_rows(rec, img, clip, jbu, cfg)
 
     try:
         bar = progress_lines(len(mine), f"language features (rank {rank})", disable=not progress or rank != 0)
@@ -363,7 +427,7 @@ def extract_features(
         _barrier(use_dist)
         pca = PCABasis.load(out / "pca.pt")
         _project_all(pca, [all_names[i] for i in mine], cache_dir, feat_dir, fp, cfg, kept, saver, dev,
-                     {name: recomputed for name in recompute})
+                     {name: recomputed for name in recompute}, rows)
         if recompute:
             logger.info("%d images' stage-1 records fitted neither in memory nor on the disk; recomputed for "
                         "the projection", len(recompute))
@@ -405,11 +469,12 @@ def _fit_pca(out: Path, all_names: list[str], cache_dir: Path, fp: str, full_fp:
 
 def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Path, fp: str, cfg: FeatureConfig,
                  kept: KeptRecords, saver: BackgroundSaver, dev: torch.device,
-                 recompute: dict[str, Any] | None = None) -> None:
+                 recompute: dict[str, Any] | None = None, rows: Any = None) -> None:
     """Stage 2 for this rank's images: each record (from memory, else from its cache file, else
     recomputed by ``recompute[name](name)`` when neither could hold it) projected on ``dev``; only the
     [h, w, k] float16 map and its validity are copied to the host and written (fsync: these are
-    the outputs)."""
+    the outputs). ``rows(name, rec)`` gives the features of the record's pixels in no mask
+    (:func:`unmasked_rows`)."""
     recompute = recompute or {}
     pfp = pca.fingerprint()
     saver.drop_optional()  # from here on a written map supersedes its stage-1 record
@@ -426,6 +491,10 @@ def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Pat
                 raise RuntimeError(f"tiger.extract_features: the stage-1 record of image '{name}' is "
                                    "missing; run again to recompute it")
             rec = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in rec.items()}
+            if "regen" in rec:
+                rec["regen"] = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in rec["regen"].items()}
+        if cfg.unmasked == "keep":
+            rec = dict(rec, unmasked=rows(name, rec) if rows is not None else unmasked_rows(rec, None, None, None, cfg))
         feats, valid = project_record(rec, pca, cfg.unmasked)
         del rec
         saver.save({"features": feats, "valid": valid, "pca": pfp}, target, fsync=True)
