@@ -100,15 +100,7 @@ def input_layer_rows(net: ImplicitNet, image: torch.Tensor, precision: str, time
     # the fused op's HBM traffic: the output written and its gradient read (C channels), the
     # inputs read twice, mean/rstd written and read; the parameters' partial sums
     nbytes = px * (2 * c * grad.element_size() + 2 * 5 * 4 + 4 * 4)
-    rows = []
-    for name, fn in (("input layers, composition", composed), ("input layers, fused", fused)):
-        ms = timer(fn)
-        row = {"what": name, "ms": ms}
-        if name.endswith("fused") and dev.type == "cuda":
-            row["GB/s"] = nbytes / ms / 1e6
-            row["floor ms"] = nbytes / (H100_HBM_TBPS * 1e12) * 1e3
-        rows.append(row)
-    return rows
+    return _timed_pair("input layers", composed, fused, nbytes, dev, timer)
 
 
 def hidden_layer_rows(net: ImplicitNet, image: torch.Tensor, precision: str, timer) -> list[dict]:
@@ -134,11 +126,17 @@ def hidden_layer_rows(net: ImplicitNet, image: torch.Tensor, precision: str, tim
 
     # the fused op's HBM traffic: x read twice, the output written, its gradient read, x's written
     nbytes = b * h * w * (5 * d * x.element_size() + 4 * 4)
+    return _timed_pair("hidden layers", composed, fused, nbytes, dev, timer)
+
+
+def _timed_pair(what: str, composed, fused, nbytes: int, dev: torch.device, timer) -> list[dict]:
+    """Rows for the composition and the fused op; on CUDA the fused op's bandwidth against the
+    HBM floor of its ``nbytes``."""
     rows = []
-    for name, fn in (("hidden layers, composition", composed), ("hidden layers, fused", fused)):
+    for name, fn in ((f"{what}, composition", composed), (f"{what}, fused", fused)):
         ms = timer(fn)
         row = {"what": name, "ms": ms}
-        if name.endswith("fused") and dev.type == "cuda":
+        if fn is fused and dev.type == "cuda":
             row["GB/s"] = nbytes / ms / 1e6
             row["floor ms"] = nbytes / (H100_HBM_TBPS * 1e12) * 1e3
         rows.append(row)

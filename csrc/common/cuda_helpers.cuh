@@ -6,6 +6,8 @@
 #include <cuda_runtime.h>
 #include <stdint.h>
 
+#include <type_traits>
+
 namespace tiger {
 namespace cuda {
 
@@ -32,6 +34,34 @@ template <>
 __device__ __forceinline__ __half store_as<__half>(float v) { return __float2half(v); }
 template <>
 __device__ __forceinline__ __nv_bfloat16 store_as<__nv_bfloat16>(float v) { return __float2bfloat16(v); }
+
+// An accumulation value (float or double) -> storage type O: itself when O is T or both are
+// float / double, else through float (half, bf16).
+template <typename O, typename T>
+__device__ __forceinline__ O convert_to(T v) {
+  if constexpr (std::is_same_v<O, T> || (std::is_floating_point_v<O> && std::is_floating_point_v<T>)) {
+    return static_cast<O>(v);
+  } else {
+    return store_as<O>(static_cast<float>(v));
+  }
+}
+
+// Sum over the 32 lanes of a warp, returned to every lane.
+template <typename T>
+__device__ __forceinline__ T warp_sum(T v) {
+  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(kFullMask, v, o);
+  return v;
+}
+
+// 1 / sqrt(v), correctly rounded in float (fast-math builds would approximate 1 / sqrtf).
+template <typename T>
+__device__ __forceinline__ T reciprocal_sqrt(T v) {
+  if constexpr (sizeof(T) == 4) {
+    return 1.0f / __fsqrt_rn(v);
+  } else {
+    return 1.0 / sqrt(v);
+  }
+}
 
 // V elements moved as one aligned vector (16 bytes for V = 16 / sizeof(T)).
 template <typename T, int V>

@@ -33,12 +33,6 @@ struct CellShared {
 };
 
 template <typename T>
-__device__ __forceinline__ T warp_sum(T v) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(cuda::kFullMask, v, o);
-  return v;
-}
-
-template <typename T>
 __device__ __forceinline__ T warp_max(T v) {
   for (int o = 16; o > 0; o >>= 1) {
     const T other = __shfl_xor_sync(cuda::kFullMask, v, o);
@@ -51,12 +45,12 @@ __device__ __forceinline__ T warp_max(T v) {
 template <typename T, bool kMax>
 __device__ T block_reduce(T v, T* red) {
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
-  v = kMax ? warp_max(v) : warp_sum(v);
+  v = kMax ? warp_max(v) : cuda::warp_sum(v);
   if (lane == 0) red[warp] = v;
   __syncthreads();
   if (warp == 0) {
     T r = lane < warps ? red[lane] : (kMax ? T(-INFINITY) : T(0));
-    r = kMax ? warp_max(r) : warp_sum(r);
+    r = kMax ? warp_max(r) : cuda::warp_sum(r);
     if (lane == 0) red[0] = r;
   }
   __syncthreads();
@@ -192,7 +186,7 @@ __global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
       const T* f = F + ((s.r0 + r) * d.W + s.c0 + q) * d.C;
       T acc = 0;
       for (int64_t c = lane; c < d.C; c += 32) acc += gc[c] * f[c];
-      acc = warp_sum(acc);
+      acc = cuda::warp_sum(acc);
       if (lane == 0) s.tile[r * side + q] = acc;
     }
   __syncthreads();

@@ -27,30 +27,6 @@ constexpr int kForwardBlocksPerSm = 8;
 constexpr int kMaxBackwardBlocks = 1024;  // partial rows of the backward
 constexpr int kBackwardPixelsPerWarp = 4; // at least, before the block count grows
 
-template <typename T>
-__device__ __forceinline__ T warp_sum(T v) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(cuda::kFullMask, v, o);
-  return v;
-}
-
-template <typename O, typename T>
-__device__ __forceinline__ O to_out(T v) {
-  if constexpr (std::is_same_v<O, T>) {
-    return v;
-  } else {
-    return cuda::store_as<O>(static_cast<float>(v));
-  }
-}
-
-template <typename T>
-__device__ __forceinline__ T reciprocal_sqrt(T v) {
-  if constexpr (sizeof(T) == 4) {
-    return 1.0f / __fsqrt_rn(v);
-  } else {
-    return 1.0 / sqrt(v);
-  }
-}
-
 // The channel parameters every warp of a block reads, staged once per block in shared memory.
 template <typename T>
 struct SharedParams {
@@ -114,12 +90,12 @@ __global__ void __launch_bounds__(kThreads) fourier_forward_kernel(const T* __re
         sum += x[k];
       }
     }
-    const T m = warp_sum(sum) / T(C);
+    const T m = cuda::warp_sum(sum) / T(C);
     T var = 0;
 #pragma unroll
     for (int k = 0; k < K; ++k)
       if (lane + 32 * k < C) var += (x[k] - m) * (x[k] - m);
-    const T r = reciprocal_sqrt(warp_sum(var) / T(C) + eps);
+    const T r = cuda::reciprocal_sqrt(cuda::warp_sum(var) / T(C) + eps);
     const T* sc = scale ? scale + (p / d.N) * C : nullptr;
     O* o = out + p * C;
 #pragma unroll
@@ -128,7 +104,7 @@ __global__ void __launch_bounds__(kThreads) fourier_forward_kernel(const T* __re
       if (c < C) {
         T y = (x[k] - m) * r * s.weight[c] + s.bias[c];
         if (sc) y *= sc[c];
-        o[c] = to_out<O>(y);
+        o[c] = cuda::convert_to<O>(y);
       }
     }
     if (lane == 0) {
@@ -181,7 +157,7 @@ __global__ void __launch_bounds__(kThreads, 2) fourier_backward_kernel(
         sum_gwxh += gw[k] * xh[k];
       }
     }
-    const T mg = warp_sum(sum_gw) / T(C), mgxh = warp_sum(sum_gwxh) / T(C);
+    const T mg = cuda::warp_sum(sum_gw) / T(C), mgxh = cuda::warp_sum(sum_gwxh) / T(C);
     T gi[kFourierInputs] = {T(0), T(0), T(0), T(0), T(0)};
 #pragma unroll
     for (int k = 0; k < K; ++k) {
@@ -202,7 +178,7 @@ __global__ void __launch_bounds__(kThreads, 2) fourier_backward_kernel(
     if (grad_in) {
 #pragma unroll
       for (int i = 0; i < kFourierInputs; ++i) {
-        const T total = warp_sum(gi[i]);
+        const T total = cuda::warp_sum(gi[i]);
         if (lane == 0) grad_in[p * kFourierInputs + i] = total;
       }
     }

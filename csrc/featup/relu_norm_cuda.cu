@@ -22,30 +22,6 @@ constexpr int kForwardBlocksPerSm = 8;
 constexpr int kMaxBackwardBlocks = 1024;
 constexpr int kBackwardPixelsPerWarp = 4;
 
-template <typename T>
-__device__ __forceinline__ T warp_sum(T v) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(cuda::kFullMask, v, o);
-  return v;
-}
-
-template <typename X, typename T>
-__device__ __forceinline__ X to_storage(T v) {
-  if constexpr (sizeof(X) == sizeof(T)) {
-    return static_cast<X>(v);  // float -> float, double -> double
-  } else {
-    return cuda::store_as<X>(static_cast<float>(v));
-  }
-}
-
-template <typename T>
-__device__ __forceinline__ T reciprocal_sqrt(T v) {
-  if constexpr (sizeof(T) == 4) {
-    return 1.0f / __fsqrt_rn(v);
-  } else {
-    return 1.0 / sqrt(v);
-  }
-}
-
 template <typename X, typename T, int K>
 __global__ void __launch_bounds__(kThreads) relu_norm_forward_kernel(const X* __restrict__ x, const T* __restrict__ scale,
                                                                     const T* __restrict__ weight,
@@ -67,16 +43,16 @@ __global__ void __launch_bounds__(kThreads) relu_norm_forward_kernel(const X* __
         sum += z[k];
       }
     }
-    const T m = warp_sum(sum) / T(D);
+    const T m = cuda::warp_sum(sum) / T(D);
     T var = 0;
 #pragma unroll
     for (int k = 0; k < K; ++k)
       if (lane + 32 * k < D) var += (z[k] - m) * (z[k] - m);
-    const T r = reciprocal_sqrt(warp_sum(var) / T(D) + eps);
+    const T r = cuda::reciprocal_sqrt(cuda::warp_sum(var) / T(D) + eps);
 #pragma unroll
     for (int k = 0; k < K; ++k) {
       const int c = lane + 32 * k;
-      if (c < D) out[p * D + c] = to_storage<X>((z[k] - m) * r * weight[c] + bias[c]);
+      if (c < D) out[p * D + c] = cuda::convert_to<X>((z[k] - m) * r * weight[c] + bias[c]);
     }
     if (lane == 0) {
       mean[p] = m;
@@ -120,13 +96,13 @@ __global__ void __launch_bounds__(kThreads) relu_norm_backward_kernel(
         sum_gwzh += gw[k] * zh[k];
       }
     }
-    const T mg = warp_sum(sum_gw) / T(D), mgzh = warp_sum(sum_gwzh) / T(D);
+    const T mg = cuda::warp_sum(sum_gw) / T(D), mgzh = cuda::warp_sum(sum_gwzh) / T(D);
 #pragma unroll
     for (int k = 0; k < K; ++k) {
       const int c = lane + 32 * k;
       if (c < D) {
         const T dz = r * (gw[k] - mg - zh[k] * mgzh);
-        grad_x[p * D + c] = to_storage<X>(positive[k] ? dz * (sc ? sc[c] : T(1)) : T(0));
+        grad_x[p * D + c] = cuda::convert_to<X>(positive[k] ? dz * (sc ? sc[c] : T(1)) : T(0));
       }
     }
   }
