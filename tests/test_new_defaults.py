@@ -63,3 +63,55 @@ def test_reconstruct_background_follows_the_images_and_appearance_stays_opt_in()
     assert training_background([], None)[0] and not training_background(["a.png"], None)[0]
     # the library's trainer (also used to refit edited renders) keeps a fixed background unless told
     assert (ReconConfig().appearance, ReconConfig().random_background) == (False, False)
+
+
+def test_implicit_featup_stopping_and_fusion_defaults():
+    # the fit stops once 100 more steps change its map by less than two seeds' fits differ
+    # (1 - cosine 5e-3; calibrated on the H100 against the 1200-step reference: docs/LANGUAGE_FEATURES.md,
+    # benchmarks/gpu/results/featup_implicit_steps_h100.txt); the fused network ops are on; the
+    # backbone featurises 256 views a batch (0.69 s against 0.77 s at 64 for 2048 views on the H100)
+    from tiger.language.featup import STOP_CHANGE
+
+    cfg = ImplicitConfig()
+    assert STOP_CHANGE == 5e-3 and cfg.stop_change == STOP_CHANGE
+    assert (cfg.steps, cfg.check_every, cfg.min_steps) == (1200, 100, 300)
+    assert (cfg.fused_network, cfg.featurize_batch) == (True, 256)
+
+
+def test_guidance_model_kernels_defaults():
+    # GEGLU fusion, 4x4 VAE downsampling and the GroupNorm bias fold follow the device (on with
+    # tiger's CUDA kernels); FP8 stays opt-in: no faster and 4x bf16's SDS error on the H100
+    # (benchmarks/gpu/results/guidance_floor_model_kernels_h100.txt)
+    from tiger.edit.guidance.model_kernels import ModelKernels
+
+    k = ModelKernels()
+    assert (k.matmul_precision, k.fp8_fast_accum) == ("model", False)
+    assert (k.fused_geglu, k.vae_downsample_4x4, k.fold_norm_bias) == (None, None, None)
+
+
+def test_prepare_runs_features_alongside_by_device_and_sam_precision_follows_it():
+    # None: alongside the reconstruction on one GPU, one after the other on the CPU (tiger/cli/prepare.py)
+    assert _defaults("prepare")["alongside"] is None
+    # SAM: bf16 on CUDA, float32 on the CPU (SamMaskConfig.precision "auto"); prepare passes it on
+    assert _defaults("features")["sam_precision"] == "auto" and _defaults("prepare")["sam_precision"] is None
+
+
+def test_feature_stage_memory_and_disk_shares(monkeypatch, tmp_path):
+    # stage-1 records: at most a quarter of the host memory (CPU) kept between the passes, at most
+    # a tenth of the disk written by a run, 1 GiB and 5 % of the disk kept free (extract_io)
+    import os
+    import shutil
+    from collections import namedtuple
+
+    import torch
+
+    from tiger.language import extract_io
+
+    kept = extract_io.KeptRecords(torch.device("cpu"))
+    assert kept.budget == os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 4
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1000 << 30, 0, 1000 << 30))
+    budget = extract_io.DiskBudget(tmp_path)
+    assert budget.room(100 << 30) and not budget.room((100 << 30) + 1)  # a tenth of the disk
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1000 << 30, 0, (50 << 30) + (1 << 20)))
+    assert budget.room(1 << 20) and not budget.room((1 << 20) + 1)  # 5 % kept free
