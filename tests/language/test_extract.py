@@ -261,13 +261,14 @@ def test_two_ranks_share_the_images(tiny_models, tmp_path):
     assert torch.equal(one.pca.components, fs.pca.components)
 
 
-def _pixel_features(record):
-    """Per-pixel 512-d features [h*w, D] rebuilt from a stage-1 cache record."""
+def _pixel_features(record, image, clip, cfg):
+    """Per-pixel 512-d features [h*w, D] rebuilt from a stage-1 cache record (the pixels in no
+    mask regenerated from the record's ``regen``, as the projection does)."""
     ids = record["ids"].reshape(-1).long()
     out = torch.zeros(ids.numel(), record["means"].shape[1])
     valid = ids >= 0
-    out[valid] = record["means"].float()[ids[valid]]
-    out[~valid] = record["unmasked"].float()
+    out[valid] = record["means"].float().cpu()[ids[valid].cpu()]
+    out[~valid] = extract_mod.unmasked_rows(record, image, clip, None, cfg).float().cpu()
     return out
 
 
@@ -285,8 +286,10 @@ def test_pipeline_on_cuda_matches_cpu(tiny_models, tmp_path):
         sam = SamMaskGenerator.from_pretrained(tiny_models / "sam-vit-huge", device=dev, mask_config=fp32)
         fs = extract_features(images(2), tmp_path / dev, clip=clip, sam=sam, config=config(sam=fp32), device=dev,
                               progress=False, memory_budget=0)
-        outs[dev] = [_pixel_features(torch.load(tmp_path / dev / "cache" / f"{n}.pt", weights_only=True))
-                     for n in fs.names]
+        cfg = config(sam=fp32)
+        outs[dev] = [_pixel_features(torch.load(tmp_path / dev / "cache" / f"{n}.pt", weights_only=True,
+                                                map_location=dev), img, clip, cfg)
+                     for n, img in zip(fs.names, images(2))]
         assert fs.load(fs.names[0])[0].shape[-1] == 4
     for a, b in zip(outs["cpu"], outs["cuda"]):
         # masks may differ at a few boundary pixels (float32 upsampling on two devices)
