@@ -104,6 +104,22 @@ def cosine_stats(a: torch.Tensor, b: torch.Tensor) -> dict:
             "p5": q[2].item(), "median": q[3].item(), "frac>=0.99": (cos >= 0.99).float().mean().item()}
 
 
+def parse_variant(spec: str) -> dict:
+    """``"n_views=1500,stop_change=0.01"`` -> ImplicitConfig fields, each converted to the field's type."""
+    types = {f.name: f.type for f in dataclasses.fields(ImplicitConfig)}
+    fields = {}
+    for part in spec.split(","):
+        name, sep, value = part.partition("=")
+        name = name.strip()
+        if not sep or name not in types:
+            raise SystemExit(f"--variants: {part!r} is not FIELD=VALUE with an ImplicitConfig field "
+                             f"({', '.join(types)})")
+        kind = types[name] if isinstance(types[name], str) else types[name].__name__
+        conv = {"int": int, "float": float, "bool": lambda v: v.lower() in ("1", "true", "yes")}.get(kind, str)
+        fields[name] = conv(value.strip())
+    return fields
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -120,6 +136,10 @@ def main() -> None:
     ap.add_argument("--fast-steps", default="",
                     help="comma-separated step counts: fast fits of as many steps, each compared with the "
                          "reference fit of --reference-steps (how many steps the fast fit needs)")
+    ap.add_argument("--variants", nargs="*", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
+                    help="fast fits with these ImplicitConfig fields changed (e.g. n_views=1500 or "
+                         "stop_change=0.01,check_every=50), each at seeds 0 and 1 and compared with the "
+                         "reference fit: whether a setting keeps the result")
     ap.add_argument("--eager", action="store_true", help="also time the fast fit without its CUDA graph")
     ap.add_argument("--compile", action="store_true",
                     help="also time the fast fit with the network through torch.compile (compiled in the warm-up)")
@@ -175,6 +195,11 @@ def main() -> None:
         if ref_steps != steps:
             runs.append((f"fast bf16 {ref_steps} steps vs ref", dataclasses.replace(base, steps=ref_steps, stop_change=0.0)))
         runs.append((ref_name, dataclasses.replace(base, method="reference", steps=ref_steps)))
+    for spec in args.variants:
+        fields = parse_variant(spec)
+        for seed in (0, 1):
+            runs.append((f"fast bf16 {spec} seed {seed} vs ref",
+                         dataclasses.replace(base, method="fast", precision="bf16", seed=seed, **fields)))
     fast_counts = [int(n) for n in args.fast_steps.split(",") if n.strip()]
     runs += [(f"fast bf16 {n} steps vs ref", dataclasses.replace(base, steps=n, stop_change=0.0)) for n in fast_counts]
     bb = backbone_flops_per_view(clip, clip_in)
