@@ -103,3 +103,28 @@ def test_encode_text_averages_normalised_templates(maskclip):
         torch.testing.assert_close(got[q], ref, atol=1e-5, rtol=1e-4)
     raw = maskclip.encode_text(texts, templates=None)
     assert (raw - got).abs().max() > 1e-4
+
+
+def test_vision_in_bf16_is_a_cached_copy_of_the_vision_tower(maskclip):
+    img = torch.rand(2, 3, 32, 48, generator=torch.Generator().manual_seed(3))
+    ref = maskclip(img)
+    twin = maskclip.vision_in(torch.bfloat16)
+    assert twin.dtype == torch.bfloat16 and maskclip.dtype == torch.float32  # the original is untouched
+    assert twin is maskclip.vision_in(torch.bfloat16)  # cast once
+    assert maskclip.vision_in(torch.float32) is maskclip
+    assert "_vision_copy" not in dict(maskclip.named_modules()) and not any(
+        k.startswith("_vision") for k in maskclip.state_dict())
+    out = twin(img)
+    cos = torch.nn.functional.cosine_similarity(out, ref, dim=1)
+    assert out.dtype == torch.float32 and out.shape == ref.shape and cos.min() > 0.98
+    # a changed weight makes a new copy
+    with torch.no_grad():
+        maskclip.clip.visual_projection.weight.mul_(2.0)
+    try:
+        again = maskclip.vision_in(torch.bfloat16)
+        assert again is not twin
+        assert torch.allclose(again.clip.visual_projection.weight.float(),
+                              maskclip.clip.visual_projection.weight.bfloat16().float())
+    finally:
+        with torch.no_grad():
+            maskclip.clip.visual_projection.weight.div_(2.0)

@@ -118,6 +118,9 @@ def run(args: argparse.Namespace) -> int:
     finish_output(out, "features")
     summary.add(f"{len(fs.names)} feature maps in {fs.out_dir / 'features'}; PCA in {fs.out_dir / 'pca.pt'}"
                 + (f" ({world} ranks)" if world > 1 else ""))
+    if fs.timings:
+        summary.add("seconds by stage" + (" (rank 0's images)" if world > 1 else "") + ": "
+                    + ", ".join(f"{k} {v:.1f}" for k, v in fs.timings.items()))
     summary.print()
     return 0
 

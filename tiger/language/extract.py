@@ -33,7 +33,9 @@ import torch
 import torch.nn.functional as F
 
 from tiger.ops.masked_average import masked_average
+from tiger.train.timing import StageTimer
 from tiger.utils.io import atomic_torch_save
+from tiger.utils.streams import run_beside
 
 from .extract_io import BackgroundSaver, DiskBudget, KeptRecords, load_mapped, record_bytes
 from .featup import UPSAMPLERS, ImplicitConfig, ImplicitNet, ImplicitUpsampler, JBUStack, upsample_features
@@ -102,6 +104,8 @@ class FeatureSet:
     out_dir: Path
     names: list[str]
     pca: PCABasis
+    #: seconds per stage of this process's images in this run (empty when nothing was computed)
+    timings: dict[str, float] = field(default_factory=dict)
 
     def path(self, name: str) -> Path:
         return self.out_dir / "features" / f"{name}.pt"
@@ -191,27 +195,34 @@ def _unit_rows(hr: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGenerator | None,
-                           jbu: JBUStack | None, cfg: FeatureConfig) -> dict[str, Any]:
+                           jbu: JBUStack | None, cfg: FeatureConfig, timer: StageTimer | None = None) -> dict[str, Any]:
     """Stage 1 for one image [3, H, W] in [0, 1] (on the models' device): the compact record (ids
     [h, w] int32 and means [M, D] float16 on the image's device; ``regen``, the upsampler state
     that gives back the features of the pixels in no mask, :func:`regenerate_features`) and its
-    PCA statistics (float64, on the CPU), which count those pixels' features too."""
+    PCA statistics (float64, on the CPU), which count those pixels' features too. ``timer``
+    adds the seconds of the upsampling, of the masks beyond it and of the averages."""
     h, w = image.shape[-2:]
     size = cfg.out_size(h, w)
-    hr, regen = _upsampled(image, clip, jbu, cfg, size)
+    timer = timer or StageTimer(image.device)
+    # SAM does not depend on the features: on CUDA it runs on a side stream while the upsampler
+    # (the implicit fit: ~400 small graphed steps) leaves most of the GPU idle
+    masks = run_beside(lambda: sam(image, size).id_map().reshape(-1), image.device, (image,)) \
+        if sam is not None else None
+    with timer("upsample"):
+        hr, regen = _upsampled(image, clip, jbu, cfg, size)
     d = hr.shape[0]
     feats = _unit_rows(hr)
     del hr
-    if sam is not None:
-        ids = sam(image, size).id_map().reshape(-1)
-    else:
-        ids = torch.full((feats.shape[0],), -1, dtype=torch.int64, device=feats.device)
-    n_masks = int(ids.max().item()) + 1 if ids.numel() else 0
-    _, means, counts = masked_average(feats, ids, n_masks)
-    means = F.normalize(means, dim=1).half()
-    unmasked = feats[ids < 0].half() if cfg.unmasked == "keep" else feats.new_zeros(0, d).half()
-    del feats
-    stats = image_statistics(means, counts, unmasked)
+    with timer("masks beyond the upsampling"):
+        ids = masks() if masks is not None else \
+            torch.full((feats.shape[0],), -1, dtype=torch.int64, device=feats.device)
+    with timer("mask averages, statistics"):
+        n_masks = int(ids.max().item()) + 1 if ids.numel() else 0
+        _, means, counts = masked_average(feats, ids, n_masks)
+        means = F.normalize(means, dim=1).half()
+        unmasked = feats[ids < 0].half() if cfg.unmasked == "keep" else feats.new_zeros(0, d).half()
+        del feats
+        stats = image_statistics(means, counts, unmasked)
     rec = {"version": CACHE_VERSION, "size": size, "ids": ids.reshape(size).int(), "means": means, "stats": stats}
     if cfg.unmasked == "keep" and unmasked.shape[0]:
         rec["regen"] = regen
@@ -384,6 +395,7 @@ def extract_features(
         sam = SamMaskGenerator.from_pretrained(device=dev, config=models, mask_config=cfg.sam)
     kept = KeptRecords(dev, memory_budget)
     saver = BackgroundSaver(dev)
+    timer = StageTimer(dev)
     recompute: set[str] = set()
     disk = DiskBudget(cache_dir)
 
@@ -403,7 +415,7 @@ def extract_features(
             name = all_names[i]
             img = _as_image(images[i]).to(dev)
             kept.start_image()
-            rec = compute_image_features(img, clip, sam if cfg.use_sam else None, jbu, cfg)
+            rec = compute_image_features(img, clip, sam if cfg.use_sam else None, jbu, cfg, timer)
             rec["config"] = fp
             # the statistics always reach the disk (rank 0 fits the PCA from every rank's images);
             # the record is written in the background: always when it is not kept in memory,
@@ -426,8 +438,9 @@ def extract_features(
         _fit_pca(out, all_names, cache_dir, fp, full_fp, cfg.pca_dim, kept, rank)
         _barrier(use_dist)
         pca = PCABasis.load(out / "pca.pt")
-        _project_all(pca, [all_names[i] for i in mine], cache_dir, feat_dir, fp, cfg, kept, saver, dev,
-                     {name: recomputed for name in recompute}, rows)
+        with timer("PCA projection, maps written"):
+            _project_all(pca, [all_names[i] for i in mine], cache_dir, feat_dir, fp, cfg, kept, saver, dev,
+                         {name: recomputed for name in recompute}, rows)
         if recompute:
             logger.info("%d images' stage-1 records fitted neither in memory nor on the disk; recomputed for "
                         "the projection", len(recompute))
@@ -439,7 +452,10 @@ def extract_features(
         logger.info("%d stage-1 records were not written (the disk was behind; the maps are written)",
                     len(saver.dropped))
     _barrier(use_dist)
-    return FeatureSet(out, all_names, pca)
+    timings = {k: v for k, v in timer.summary().items() if v > 0}
+    if todo:
+        logger.info("language features (rank %d): %s", rank, ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()))
+    return FeatureSet(out, all_names, pca, timings)
 
 
 def _fit_pca(out: Path, all_names: list[str], cache_dir: Path, fp: str, full_fp: str, pca_dim: int,

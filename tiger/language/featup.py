@@ -350,13 +350,15 @@ def sample_jitter(h: int, w: int, max_pad: int, max_zoom: float, use_flips: bool
     return Jitter(max_pad, zoom, y, x, flip)
 
 
-# The fast fit's default stopping tolerance (ImplicitConfig.stop_change): the fit stops once 100
-# more steps move its map by less than two fits with different seeds differ (mean 1 - cosine 5e-3
-# on the H100 at 1080p: cosine 0.995): later steps change it by less than the fit's own randomness.
-# Measured there: the change per 100 steps falls 1.2e-2 (300) -> 3.6e-3 (500), then stays at
-# 2-4e-3; the fit stopped at 400-500 steps lies at cosine 0.994-0.995 from the 1200-step
-# reference fit (docs/BENCHMARKS.md, "implicit FeatUp per 1080p image").
-STOP_CHANGE = 5e-3
+# The fast fit's default stopping rule (ImplicitConfig.stop_change, min_steps): the fit stops once
+# 100 more steps move its map by less than 1 - cosine 1e-2, about what two stopped fits that differ
+# only in their seed differ by (cosine 0.991 on the H100 at 1080p), and never before 400 steps, where
+# the calibration's fits lie at cosine 0.993-0.994 from the 1200-step reference fit (0.990 at 300).
+# Measured there: the change per 100 steps falls 1.2e-2 (300) -> 3.8e-3 / 7.6e-3 (400, two seeds)
+# -> 3.6e-3 (500), then stays at 2-4e-3; stopping at 500 instead of 400 gains 0.001-0.002 of
+# cosine for 25 % more time (docs/BENCHMARKS.md, "implicit FeatUp per 1080p image").
+STOP_CHANGE = 1e-2
+STOP_MIN_STEPS = 400
 
 
 @dataclass
@@ -398,7 +400,7 @@ class ImplicitConfig:
     steps: int = 1200
     stop_change: float = STOP_CHANGE
     check_every: int = 100
-    min_steps: int = 300
+    min_steps: int = STOP_MIN_STEPS
     n_views: int = 3000
     jitters_per_step: int = 10
     proj_dim: int = 128

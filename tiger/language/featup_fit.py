@@ -186,9 +186,15 @@ def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor
 
 def featurize_jitters(img: torch.Tensor, featurizer: "Featurizer", params: torch.Tensor, batch: int,
                       precision: str, norm) -> torch.Tensor:
-    """Backbone features [N, D, fh, fw] (float32) of the N jittered copies of ``img`` [1, 3, h, w]."""
+    """Backbone features [N, D, fh, fw] (float32) of the N jittered copies of ``img`` [1, 3, h, w].
+    For ``precision="bf16"`` on CUDA a featurizer that can run its weights in bf16
+    (``vision_in``, e.g. :class:`~tiger.language.maskclip.MaskCLIP`) does so; others run under
+    bf16 autocast."""
     h, w = img.shape[-2:]
     feats = []
+    bf16 = precision == "bf16" and img.device.type == "cuda"
+    if bf16 and hasattr(featurizer, "vision_in"):
+        featurizer, precision = featurizer.vision_in(torch.bfloat16), "fp32"  # no autocast casts
     with torch.no_grad(), _autocast(img.device, precision):
         for i in range(0, params.shape[0], batch):
             views = apply_jitters(img, jitter_grid(params[i : i + batch], h, w))
@@ -310,7 +316,9 @@ def fit_loop(img: torch.Tensor, targets: JitterTargets, params: torch.Tensor, ne
             try:
                 cuda_graph = torch.cuda.CUDAGraph()
                 opt.zero_grad(set_to_none=True)
-                with torch.cuda.graph(cuda_graph):
+                # thread_local: another thread may drive its own stream meanwhile (the features
+                # stage runs SAM beside the fit, tiger.utils.streams.run_beside)
+                with torch.cuda.graph(cuda_graph, capture_error_mode="thread_local"):
                     static_loss = step()
             except RuntimeError as exc:  # capture is best effort: the eager loop is the same step
                 logger.warning("FeatUp fit: CUDA graph capture failed (%s); running the steps eagerly", exc)

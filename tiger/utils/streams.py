@@ -1,0 +1,83 @@
+"""Work that runs beside the caller's: a side CUDA stream driven by a worker thread."""
+from __future__ import annotations
+
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Callable, TypeVar
+
+import torch
+
+T = TypeVar("T")
+
+_lock = threading.Lock()
+_pool: ThreadPoolExecutor | None = None
+_streams: dict[torch.device, torch.cuda.Stream] = {}
+
+
+def _worker() -> ThreadPoolExecutor:
+    global _pool
+    with _lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tiger-beside")
+        return _pool
+
+
+def _side_stream(device: torch.device) -> torch.cuda.Stream:
+    with _lock:
+        if device not in _streams:
+            _streams[device] = torch.cuda.Stream(device)
+        return _streams[device]
+
+
+def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[torch.Tensor, ...] = ()) -> Callable[[], T]:
+    """Start ``fn()`` beside the caller's work and return a function that waits for its result.
+
+    On CUDA ``fn`` runs in a worker thread on a side stream of ``device`` (after everything queued
+    on the caller's stream so far, so it may read ``inputs`` and anything else already computed),
+    so the GPU can overlap it with kernels that the caller launches meanwhile, e.g. SAM's masks
+    while the implicit FeatUp fit replays its small steps. The returned function joins the thread
+    and makes the caller's stream wait for the side stream; tensors in the result may then be used
+    on the caller's stream. ``fn`` must not draw random numbers (the caller's generator state is
+    not its own) and its tensors must not be captured by a CUDA graph of the caller (a graph
+    captured meanwhile must use ``capture_error_mode="thread_local"``). Anywhere else (CPU) ``fn``
+    runs when the result is asked for, in the caller's thread, as a plain call would.
+    Grad mode is off inside ``fn``.
+    """
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        def later() -> T:
+            with torch.no_grad():
+                return fn()
+        return later
+    if dev.index is None:
+        dev = torch.device("cuda", torch.cuda.current_device())
+    main = torch.cuda.current_stream(dev)
+    side = _side_stream(dev)
+    side.wait_stream(main)
+    for t in inputs:  # their memory must not be reused before the side stream is done with them
+        t.record_stream(side)
+
+    def work() -> T:
+        with torch.no_grad(), torch.cuda.device(dev), torch.cuda.stream(side):
+            return fn()
+
+    future: Future = _worker().submit(work)
+
+    def result() -> T:
+        out = future.result()
+        main.wait_stream(side)
+        for t in _tensors(out):
+            t.record_stream(main)
+        return out
+
+    return result
+
+
+def _tensors(obj) -> list[torch.Tensor]:
+    if torch.is_tensor(obj):
+        return [obj]
+    if isinstance(obj, (list, tuple)):
+        return [t for o in obj for t in _tensors(o)]
+    if isinstance(obj, dict):
+        return [t for o in obj.values() for t in _tensors(o)]
+    return []
