@@ -5,7 +5,8 @@
 // weights onto the (at most (K+3)^2) source pixels that the window reads. The output is then a
 // dot product of the tile with the features (channels last, so the threads of a block read
 // neighbouring channels). The features' gradient is gathered per source pixel from the tiles of
-// the cells that cover it (no atomics); the logit map's gradient uses atomics (K*K*4 per cell).
+// the cells that cover it (no atomics; the covering cells found per window row and column, summed
+// in index order); the logit map's gradient uses atomics (K*K*4 per cell).
 #include <cuda_runtime.h>
 #include <math.h>
 
@@ -230,16 +231,37 @@ __global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
   }
 }
 
+// Appends, in thread order, the values of the threads whose pred is true to list[count ...];
+// returns the new count (all threads call it; blockDim.x a multiple of 32; ends synchronised).
+// A ballot and the warps' counts give each entry its place: the order does not depend on timing.
+__device__ int ordered_append(bool pred, int value, int* list, int count, int* warp_counts) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
+  const unsigned ballot = __ballot_sync(cuda::kFullMask, pred);
+  if (lane == 0) warp_counts[warp] = __popc(ballot);
+  __syncthreads();
+  int offset = count, total = count;
+  for (int k = 0; k < warps; ++k) {
+    if (k < warp) offset += warp_counts[k];
+    total += warp_counts[k];
+  }
+  if (pred) list[offset + __popc(ballot & ((1u << lane) - 1u))] = value;
+  __syncthreads();
+  return total;
+}
+
 // grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c].
-// A block: one source row u, kPixelsPerBlock columns, threads over channels; the covering cells
-// of each jitter are listed in shared memory first (rows and columns tested from the origins).
+// A block: one source row u, kPixelsPerBlock columns, threads over channels. A cell's tile origin
+// row depends on its jitter and window row only, its origin column on its jitter and window
+// column only: per jitter the block lists the window rows whose tiles cover row u and the window
+// columns whose tiles reach its columns (FH + FW tests instead of FH * FW), in index order, and
+// sums over their pairs in that order (no atomics: the same result on every run).
 template <typename T>
 __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __restrict__ g,
                                                                     const T* __restrict__ tiles,
                                                                     const int32_t* __restrict__ origins,
                                                                     WindowDims d, T* __restrict__ gF) {
-  __shared__ int list[kMaxThreads];
-  __shared__ int count;
+  __shared__ int rows[kMaxThreads], row_origin[kMaxThreads], cols[kMaxThreads], col_origin[kMaxThreads];
+  __shared__ int warp_counts[kMaxThreads / 32];
   const int u = blockIdx.y, v0 = blockIdx.x * kPixelsPerBlock;
   const int side = static_cast<int>(d.K) + 3, area = side * side;
   const int64_t cells_per_jitter = d.FH * d.FW;
@@ -248,33 +270,52 @@ __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __r
     T acc[kPixelsPerBlock];
 #pragma unroll
     for (int q = 0; q < kPixelsPerBlock; ++q) acc[q] = T(0);
-    for (int64_t j = 0; j < d.J; ++j)
-      for (int64_t chunk = 0; chunk < cells_per_jitter; chunk += blockDim.x) {
-        if (threadIdx.x == 0) count = 0;
-        __syncthreads();
-        const int64_t local = chunk + threadIdx.x;
-        if (local < cells_per_jitter) {
-          const int64_t cell = j * cells_per_jitter + local;
-          const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
-          if (u >= r0 && u < r0 + side && c0 < v0 + kPixelsPerBlock && c0 + side > v0)
-            list[atomicAdd(&count, 1)] = static_cast<int>(cell);
+    for (int64_t j = 0; j < d.J; ++j) {
+      const int32_t* first = origins + j * cells_per_jitter * 2;  // cell (j, 0, 0)
+      for (int64_t ibase = 0; ibase < d.FH; ibase += blockDim.x) {
+        const int64_t i = ibase + threadIdx.x;
+        int r0 = 0;
+        bool covers = false;
+        if (i < d.FH) {
+          r0 = first[i * d.FW * 2];
+          covers = u >= r0 && u < r0 + side;
         }
+        const int n_rows = ordered_append(covers, static_cast<int>(i), rows, 0, warp_counts);
+        if (covers) row_origin[threadIdx.x] = r0;  // slot i - ibase
         __syncthreads();
-        const int n = count;
-        if (c < d.C)
-          for (int e = 0; e < n; ++e) {
-            const int64_t cell = list[e];
-            const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
-            const T gval = g[cell * d.C + c];
-            const T* trow = tiles + cell * area + (u - r0) * side;
-#pragma unroll
-            for (int q = 0; q < kPixelsPerBlock; ++q) {
-              const int dv = v0 + q - c0;
-              if (dv >= 0 && dv < side) acc[q] += trow[dv] * gval;
-            }
+        if (n_rows == 0) continue;  // the same count in every thread
+        for (int64_t lbase = 0; lbase < d.FW; lbase += blockDim.x) {
+          const int64_t l = lbase + threadIdx.x;
+          int c0 = 0;
+          bool reaches = false;
+          if (l < d.FW) {
+            c0 = first[l * 2 + 1];
+            reaches = c0 < v0 + kPixelsPerBlock && c0 + side > v0;
           }
-        __syncthreads();
+          const int n_cols = ordered_append(reaches, static_cast<int>(l), cols, 0, warp_counts);
+          if (reaches) col_origin[threadIdx.x] = c0;  // slot l - lbase
+          __syncthreads();
+          if (c < d.C)
+            for (int a = 0; a < n_rows; ++a) {
+              const int64_t i_cell = rows[a];
+              const int dr = u - row_origin[i_cell - ibase];
+              for (int e = 0; e < n_cols; ++e) {
+                const int64_t l_cell = cols[e];
+                const int c0e = col_origin[l_cell - lbase];
+                const int64_t cell = j * cells_per_jitter + i_cell * d.FW + l_cell;
+                const T gval = g[cell * d.C + c];
+                const T* trow = tiles + cell * area + dr * side;
+#pragma unroll
+                for (int q = 0; q < kPixelsPerBlock; ++q) {
+                  const int dv = v0 + q - c0e;
+                  if (dv >= 0 && dv < side) acc[q] += trow[dv] * gval;
+                }
+              }
+            }
+          __syncthreads();
+        }
       }
+    }
     if (c < d.C)
 #pragma unroll
       for (int q = 0; q < kPixelsPerBlock; ++q)

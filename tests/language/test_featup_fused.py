@@ -141,7 +141,9 @@ def _both(args, device):
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("shape", [dict(), dict(h=13, w=17, c=37, j=3, size=(3, 4), k=5, stride=(4, 4)),
-                                   dict(h=40, w=64, c=129, j=4, size=(3, 5), k=11, stride=(9, 11))])
+                                   dict(h=40, w=64, c=129, j=4, size=(3, 5), k=11, stride=(9, 11)),
+                                   # more window columns than threads: the covering cells in chunks
+                                   dict(h=12, w=400, c=5, j=2, size=(2, 130), k=3, stride=(4, 3))])
 def test_cuda_equals_cpu(dtype, shape):
     args = op_args(dtype=dtype, **shape)
     cpu, gpu = _both(args, "cpu"), _both(args, "cuda")
@@ -198,3 +200,24 @@ def test_cuda_graph_fit_equals_the_eager_fit():
         assert cos.mean() >= 0.999 and cos.min() > 0.99, (cos.mean(), cos.min())
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+@needs_cuda
+def test_cuda_features_gradient_is_the_same_on_every_run():
+    """The features' gradient is gathered in a fixed order (no atomics): bitwise the same twice,
+    at FeatUp's geometry (129 channels, kernel 29, overlapping windows of several jitters)."""
+    hw, size, kernel = (128, 224), (8, 14), 29
+    x, logit_map, params, down, mask = case(*hw, size, kernel, jitters=6, channels=129, max_pad=17)
+    h, w = hw
+    sy, sx = jitter_coords(params, h, w)
+    k, sh, sw, _, _ = window_geometry(h, w, size, kernel)
+    args = [t.float().cuda() for t in (x[0].permute(1, 2, 0).contiguous(), logit_map[0, 0], reflect_coords(sy, h),
+                                       reflect_coords(sx, w), down.w[:k, :k].detach(), down.b[:k, :k].detach(), mask)]
+    features = args[0].requires_grad_()
+    out, _ = jittered_window_attention(*args, (sh, sw))
+    g = torch.randn(out.shape, generator=torch.Generator().manual_seed(3)).cuda()
+    first, = torch.autograd.grad((out * g).sum(), features)
+    for _ in range(3):
+        out, _ = jittered_window_attention(*args, (sh, sw))
+        again, = torch.autograd.grad((out * g).sum(), features)
+        assert torch.equal(again, first)
