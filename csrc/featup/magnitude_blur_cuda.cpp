@@ -16,6 +16,13 @@ namespace tiger {
 namespace featup {
 namespace {
 
+// The kernels' grids: one row of blocks per image row, 32-bit indices within a row.
+void check_cuda_extent(const BlurDims& d, const char* op) {
+  TORCH_CHECK(d.H <= 65535, op, "(CUDA): at most 65535 rows, got ", d.H);
+  TORCH_CHECK(d.W * (d.C + 1) < (int64_t(1) << 31), op, "(CUDA): a row of W (C + 1) = ", d.W * (d.C + 1),
+              " elements must stay below 2^31");
+}
+
 // Calls f(X{}, T{}) with the CUDA types the kernels are instantiated for.
 template <typename Fn>
 void dispatch_cuda_types(at::ScalarType dt, Fn&& f) {
@@ -31,6 +38,7 @@ void dispatch_cuda_types(at::ScalarType dt, Fn&& f) {
 std::tuple<at::Tensor, at::Tensor> magnitude_blur_cuda(const at::Tensor& x, int64_t radius, double sigma) {
   const BlurDims d = check_magnitude_blur(x, radius, sigma);
   TORCH_CHECK(x.is_cuda(), kMagnitudeBlurOp, "x must be on a CUDA device here, got ", x.device());
+  check_cuda_extent(d, kMagnitudeBlurOp);
   const c10::cuda::CUDAGuard guard(x.device());
   const auto xc = x.contiguous();
   const auto opts = xc.options().dtype(blur_out_dtype(xc.scalar_type()));
@@ -52,6 +60,7 @@ at::Tensor magnitude_blur_backward_cuda(const at::Tensor& grad_blurred, const st
   const BlurDims d = check_magnitude_blur(x, radius, sigma);
   check_magnitude_blur_backward(grad_blurred, grad_magnitude, x, magnitude, d);
   TORCH_CHECK(x.is_cuda(), "tiger.magnitude_blur_backward: x must be on a CUDA device here, got ", x.device());
+  check_cuda_extent(d, "tiger.magnitude_blur_backward: ");
   const c10::cuda::CUDAGuard guard(x.device());
   const auto g = grad_blurred.contiguous(), xc = x.contiguous(), m = magnitude.contiguous();
   const std::optional<at::Tensor> gm =
