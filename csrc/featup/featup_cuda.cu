@@ -2,11 +2,17 @@
 //
 // One block per cell (jitter j, window row i, window column l) computes the window's bilinear
 // taps, its softmax, and the cell's source tile: the attention pushed through the bilinear
-// weights onto the (at most (K+3)^2) source pixels that the window reads. The output is then a
-// dot product of the tile with the features (channels last, so the threads of a block read
-// neighbouring channels). The features' gradient is gathered per source pixel from the tiles of
-// the cells that cover it (no atomics; the covering cells found per window row and column, summed
-// in index order); the logit map's gradient uses atomics (K*K*4 per cell).
+// weights onto the (at most (K+3)^2) source pixels that the window reads (built separably in a
+// fixed order). The output is then a dot product of the tile with the features (channels last,
+// so the threads of a block read neighbouring channels).
+//
+// Backward: the cells' tiles and origins first (no features read); then, per source pixel,
+// D = grad_out[cell] . features[pixel] for every cell whose tile covers the pixel (each pixel's
+// features read once, not once per covering cell); then per cell the softmax backward from D.
+// The features' gradient is gathered per source pixel from the tiles of the cells that cover it
+// (the covering cells found per window row and column, summed in index order): no atomics, the
+// same result on every run. The logit map's gradient uses atomics (K*K*4 per cell), so its
+// rounding may differ between runs.
 #include <cuda_runtime.h>
 #include <math.h>
 

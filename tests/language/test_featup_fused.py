@@ -203,8 +203,8 @@ def test_cuda_graph_fit_equals_the_eager_fit():
 
 
 @needs_cuda
-def test_cuda_features_gradient_is_the_same_on_every_run():
-    """The features' gradient is gathered in a fixed order (no atomics): bitwise the same twice,
+def test_cuda_output_and_features_gradient_are_the_same_on_every_run():
+    """The output and the features' gradient are summed in a fixed order (no atomics): bitwise the same,
     at FeatUp's geometry (129 channels, kernel 29, overlapping windows of several jitters)."""
     hw, size, kernel = (128, 224), (8, 14), 29
     x, logit_map, params, down, mask = case(*hw, size, kernel, jitters=6, channels=129, max_pad=17)
@@ -216,8 +216,10 @@ def test_cuda_features_gradient_is_the_same_on_every_run():
     features = args[0].requires_grad_()
     out, _ = jittered_window_attention(*args, (sh, sw))
     g = torch.randn(out.shape, generator=torch.Generator().manual_seed(3)).cuda()
+    first_out = out.detach().clone()
     first, = torch.autograd.grad((out * g).sum(), features)
     for _ in range(3):
         out, _ = jittered_window_attention(*args, (sh, sw))
+        assert torch.equal(out, first_out)
         again, = torch.autograd.grad((out * g).sum(), features)
         assert torch.equal(again, first)
