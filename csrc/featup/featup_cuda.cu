@@ -10,9 +10,8 @@
 // D = grad_out[cell] . features[pixel] for every cell whose tile covers the pixel (each pixel's
 // features read once, not once per covering cell); then per cell the softmax backward from D.
 // The features' gradient is gathered per source pixel from the tiles of the cells that cover it
-// (the covering cells found per window row and column, summed in index order): no atomics, the
-// same result on every run. The logit map's gradient uses atomics (K*K*4 per cell), so its
-// rounding may differ between runs.
+// (the covering cells found per window row and column, summed in index order), and so is the
+// logit map's, from per-cell tiles of its coefficients: no atomics, the same result on every run.
 #include <cuda_runtime.h>
 #include <math.h>
 
@@ -132,12 +131,14 @@ __device__ __forceinline__ void for_tile_taps(const CellShared<T>& s, int py, in
   }
 }
 
-// s.tile = the attention pushed through the bilinear weights (ends synchronised), separably and
+// s.tile = values [K*K] per window pixel (the attention, or the logit gradient's coefficients)
+// pushed through the bilinear weights (ends synchronised; values may live in shared memory,
+// written before the call by any thread), separably and
 // in a fixed order: first along columns (one thread per window row walks its pixels in order),
 // then along rows (one thread per tile column walks the window rows in order). No two threads
 // add to one entry: the same tile on every run (shared-memory atomics would add in any order).
 template <typename T>
-__device__ void build_tile(const WindowDims& d, CellShared<T>& s) {
+__device__ void build_tile(const WindowDims& d, CellShared<T>& s, const T* values) {
   const int K = static_cast<int>(d.K), side = K + 3;
   for (int t = threadIdx.x; t < side * side; t += blockDim.x) s.tile[t] = T(0);
   for (int t = threadIdx.x; t < K * side; t += blockDim.x) s.cols[t] = T(0);
@@ -147,7 +148,7 @@ __device__ void build_tile(const WindowDims& d, CellShared<T>& s) {
       T* row = s.cols + py * side;
       for (int px = 0; px < K; ++px) {
         const Tap<T>& tx = s.tx[px];
-        const T a = s.attn[py * K + px];
+        const T a = values[py * K + px];
         const int q = tx.index - s.c0;
         row[q] += (T(1) - tx.frac) * a;
         if (tx.second) row[q + 1] += tx.frac * a;
@@ -178,7 +179,7 @@ __global__ void __launch_bounds__(kMaxThreads) forward_kernel(const T* __restric
   load_cell(cy, cx, d, cell, s);
   cell_softmax(logit_map, w, b, mask[cell], d, s);
   for (int p = threadIdx.x; p < KK; p += blockDim.x) attn[cell * KK + p] = s.attn[p];
-  build_tile(d, s);
+  build_tile(d, s, s.attn);
   for (int64_t c = threadIdx.x; c < d.C; c += blockDim.x) {
     T acc = 0;
     if (s.overflow) {
@@ -205,7 +206,7 @@ __global__ void __launch_bounds__(kMaxThreads) cell_tiles_kernel(const T* __rest
   const int KK = static_cast<int>(d.K * d.K), side = static_cast<int>(d.K) + 3;
   load_cell(cy, cx, d, cell, s);
   for (int p = threadIdx.x; p < KK; p += blockDim.x) s.attn[p] = attn[cell * KK + p];
-  build_tile(d, s);  // (synchronises before reading s.attn)
+  build_tile(d, s, s.attn);  // (synchronises before reading s.attn)
   for (int t = threadIdx.x; t < side * side; t += blockDim.x) tiles[cell * side * side + t] = s.tile[t];
   if (threadIdx.x == 0) {
     origins[cell * 2] = s.r0;
@@ -217,7 +218,7 @@ template <typename T>
 __global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
     const T* __restrict__ dots, const T* __restrict__ logit_map, const T* __restrict__ cy, const T* __restrict__ cx,
     const T* __restrict__ w, const T* __restrict__ mask, const T* __restrict__ attn, WindowDims d,
-    T* __restrict__ gz_out, T* __restrict__ gzl_out, T* __restrict__ grad_logit) {
+    T* __restrict__ gz_out, T* __restrict__ gzl_out, T* __restrict__ logit_tiles) {
   __shared__ CellShared<T> s;
   const int64_t cell = blockIdx.x;
   const int K = static_cast<int>(d.K), KK = K * K, side = K + 3;
@@ -244,22 +245,14 @@ __global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
   dot = block_reduce<T, false>(dot, s.red);
   const T m = mask[cell];
   for (int p = threadIdx.x; p < KK; p += blockDim.x) {
-    const int py = p / K, px = p % K;
     const T gz = s.attn[p] * (s.buf[p] - dot);
     gz_out[cell * KK + p] = gz;
-    gzl_out[cell * KK + p] = gz * m * bilinear(logit_map, d.W, s.ty[py], s.tx[px]);
-    const T coef = gz * m * w[p];
-    const Tap<T>& ty = s.ty[py];
-    const Tap<T>& tx = s.tx[px];
-    T* base = grad_logit + static_cast<int64_t>(ty.index) * d.W + tx.index;
-    const T wy0 = T(1) - ty.frac, wx0 = T(1) - tx.frac;
-    atomicAdd(base, coef * wy0 * wx0);
-    if (tx.second) atomicAdd(base + 1, coef * wy0 * tx.frac);
-    if (ty.second) {
-      atomicAdd(base + d.W, coef * ty.frac * wx0);
-      if (tx.second) atomicAdd(base + d.W + 1, coef * ty.frac * tx.frac);
-    }
+    gzl_out[cell * KK + p] = gz * m * bilinear(logit_map, d.W, s.ty[p / K], s.tx[p % K]);
+    s.buf[p] = gz * m * w[p];  // the logit map's gradient at window pixel p (this thread's entry)
   }
+  // pushed through the bilinear weights onto the cell's tile, gathered per source pixel later
+  build_tile(d, s, s.buf);
+  for (int t = threadIdx.x; t < side * side; t += blockDim.x) logit_tiles[cell * side * side + t] = s.tile[t];
 }
 
 // Appends, in thread order, the values of the threads whose pred is true to list[count ...];
@@ -341,7 +334,8 @@ __global__ void __launch_bounds__(kMaxThreads) pixel_dots_kernel(const T* __rest
   }
 }
 
-// grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c].
+// grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c],
+// and grad_logit_map[u, v0 + q] = the same sum over the cells' logit tiles (as channel C).
 // A block: one source row u, kPixelsPerBlock columns, threads over channels. A cell's tile origin
 // row depends on its jitter and window row only, its origin column on its jitter and window
 // column only: per jitter the block lists the window rows whose tiles cover row u and the window
@@ -350,14 +344,16 @@ __global__ void __launch_bounds__(kMaxThreads) pixel_dots_kernel(const T* __rest
 template <typename T>
 __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __restrict__ g,
                                                                     const T* __restrict__ tiles,
+                                                                    const T* __restrict__ logit_tiles,
                                                                     const int32_t* __restrict__ origins,
-                                                                    WindowDims d, T* __restrict__ gF) {
+                                                                    WindowDims d, T* __restrict__ gF,
+                                                                    T* __restrict__ gL) {
   __shared__ int rows[kMaxThreads], row_origin[kMaxThreads], cols[kMaxThreads], col_origin[kMaxThreads];
   __shared__ int warp_counts[kMaxThreads / 32];
   const int u = blockIdx.y, v0 = blockIdx.x * kPixelsPerBlock;
   const int side = static_cast<int>(d.K) + 3, area = side * side;
   const int64_t cells_per_jitter = d.FH * d.FW;
-  for (int64_t cbase = 0; cbase < d.C; cbase += blockDim.x) {
+  for (int64_t cbase = 0; cbase <= d.C; cbase += blockDim.x) {  // channels, then the logit (c = C)
     const int64_t c = cbase + threadIdx.x;
     T acc[kPixelsPerBlock];
 #pragma unroll
@@ -387,7 +383,7 @@ __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __r
           const int n_cols = ordered_append(reaches, static_cast<int>(l), cols, 0, warp_counts);
           if (reaches) col_origin[threadIdx.x] = c0;  // slot l - lbase
           __syncthreads();
-          if (c < d.C)
+          if (c <= d.C)
             for (int a = 0; a < n_rows; ++a) {
               const int64_t i_cell = rows[a];
               const int dr = u - row_origin[i_cell - ibase];
@@ -395,8 +391,9 @@ __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __r
                 const int64_t l_cell = cols[e];
                 const int c0e = col_origin[l_cell - lbase];
                 const int64_t cell = j * cells_per_jitter + i_cell * d.FW + l_cell;
-                const T gval = g[cell * d.C + c];
-                const T* trow = tiles + cell * area + dr * side;
+                const bool logit = c == d.C;
+                const T gval = logit ? T(1) : g[cell * d.C + c];
+                const T* trow = (logit ? logit_tiles : tiles) + cell * area + dr * side;
 #pragma unroll
                 for (int q = 0; q < kPixelsPerBlock; ++q) {
                   const int dv = v0 + q - c0e;
@@ -408,10 +405,15 @@ __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __r
         }
       }
     }
-    if (c < d.C)
+    if (c < d.C) {
 #pragma unroll
       for (int q = 0; q < kPixelsPerBlock; ++q)
         if (v0 + q < d.W) gF[(static_cast<int64_t>(u) * d.W + v0 + q) * d.C + c] = acc[q];
+    } else if (c == d.C) {
+#pragma unroll
+      for (int q = 0; q < kPixelsPerBlock; ++q)
+        if (v0 + q < d.W) gL[static_cast<int64_t>(u) * d.W + v0 + q] = acc[q];
+    }
   }
 }
 
@@ -437,7 +439,7 @@ template <typename scalar_t>
 void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
                                   const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
                                   const scalar_t* mask, const scalar_t* attn, WindowDims d, scalar_t* gz,
-                                  scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* dots, scalar_t* tiles,
+                                  scalar_t* gz_logit, scalar_t* logit_tiles, scalar_t* dots, scalar_t* tiles,
                                   int32_t* origins, void* stream) {
   const int64_t cells = d.J * d.FH * d.FW;
   if (cells == 0) return;
@@ -447,16 +449,17 @@ void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* feat
   const dim3 rows(static_cast<unsigned>((d.W + kPixelsPerBlock - 1) / kPixelsPerBlock), static_cast<unsigned>(d.H));
   pixel_dots_kernel<scalar_t><<<rows, kMaxThreads, 0, st>>>(grad_out, features, origins, d, dots);
   backward_cells_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, st>>>(
-      dots, logit_map, coord_y, coord_x, w, mask, attn, d, gz, gz_logit, grad_logit_map);
+      dots, logit_map, coord_y, coord_x, w, mask, attn, d, gz, gz_logit, logit_tiles);
 }
 
 template <typename scalar_t>
-void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const int32_t* origins,
-                                 WindowDims d, scalar_t* grad_features, void* stream) {
-  if (d.H * d.W * d.C == 0) return;
+void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const scalar_t* logit_tiles,
+                                 const int32_t* origins, WindowDims d, scalar_t* grad_features,
+                                 scalar_t* grad_logit_map, void* stream) {
+  if (d.H * d.W == 0) return;
   const dim3 grid(static_cast<unsigned>((d.W + kPixelsPerBlock - 1) / kPixelsPerBlock), static_cast<unsigned>(d.H));
-  grad_features_kernel<scalar_t><<<grid, threads_for(d.C), 0, static_cast<cudaStream_t>(stream)>>>(
-      grad_out, tiles, origins, d, grad_features);
+  grad_features_kernel<scalar_t><<<grid, threads_for(d.C + 1), 0, static_cast<cudaStream_t>(stream)>>>(
+      grad_out, tiles, logit_tiles, origins, d, grad_features, grad_logit_map);
 }
 
 #define TIGER_INSTANTIATE(T)                                                                                    \
@@ -465,7 +468,8 @@ void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles
   template void launch_window_backward_cells<T>(const T*, const T*, const T*, const T*, const T*, const T*,     \
                                                 const T*, const T*, WindowDims, T*, T*, T*, T*, T*, int32_t*,     \
                                                 void*);                                                           \
-  template void launch_window_grad_features<T>(const T*, const T*, const int32_t*, WindowDims, T*, void*);
+  template void launch_window_grad_features<T>(const T*, const T*, const T*, const int32_t*, WindowDims, T*, T*, \
+                                               void*);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
 #undef TIGER_INSTANTIATE
