@@ -7,11 +7,14 @@ composition it replaces, with the HBM bandwidth its bytes reach. Then the step's
 the network and the attention op (magnitude, 5-tap reflect blur, logit dropout, the logit map's
 1x1 map, the channels-last map the attention op reads): ``tiger::magnitude_blur`` channels last
 against the channels-first composition it replaced, and the op alone, with errors against float64.
+Then ``tiger::jittered_window_attention`` at the fit's geometry (10 jittered copies, kernel 29,
+129 channels), forward and forward + backward, with its error against float64.
 
     python -m benchmarks.featup_ops                          # CPU, 64 x 112 pixels
     python -m benchmarks.featup_ops --device cuda            # the fit's 256 x 448, bf16 autocast
     python -m benchmarks.featup_ops --device cuda --compile  # also torch.compile'd networks
-    python -m benchmarks.featup_ops --device cuda --only blur  # only the magnitude + blur block
+    python -m benchmarks.featup_ops --device cuda --only blur       # only the magnitude + blur block
+    python -m benchmarks.featup_ops --device cuda --only attention  # only the attention op
 """
 from __future__ import annotations
 
@@ -220,6 +223,57 @@ def blur_rows(dim: int, h: int, w: int, precision: str, dev: torch.device, timer
     return rows
 
 
+def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: int = 10,
+                   patch: int = 16, kernel: int = 29) -> list[dict]:
+    """tiger::jittered_window_attention as the fit calls it: ``jitters`` copies of the blurred
+    [h, w, dim + 1] map (FeatUp's jitters: reflect pad, zoom up to 1.8, flips) onto the
+    backbone's (h / patch) x (w / patch) cells; forward, and forward + backward of <out, g>."""
+    from tiger.language.featup import sample_jitter
+    from tiger.language.featup_fit import jitter_coords, jitter_params, reflect_coords, window_geometry
+    from tiger.ops.featup import jittered_window_attention
+
+    gen = torch.Generator().manual_seed(2)
+    size = (h // patch, w // patch)
+    k, sh, sw, _, _ = window_geometry(h, w, size, kernel)
+    max_pad = min(int(round(16 * min(h, w) / 224)), min(h, w) - 1)
+    params = jitter_params([sample_jitter(h, w, max_pad, 1.8, True, gen) for _ in range(jitters)], h, w, "cpu")
+    sy, sx = jitter_coords(params.double(), h, w)
+    coords = reflect_coords(sy, h), reflect_coords(sx, w)
+    features = torch.randn(h, w, dim + 1, generator=gen, dtype=torch.float64)
+    logit_map = torch.randn(h, w, generator=gen, dtype=torch.float64)
+    wk = 1 + 0.01 * torch.randn(k, k, generator=gen, dtype=torch.float64)
+    bk = 0.01 * torch.randn(k, k, generator=gen, dtype=torch.float64)
+    mask = (torch.rand(jitters, *size, generator=gen) > 0.2).double()
+    g = torch.randn(jitters, *size, dim + 1, generator=gen, dtype=torch.float64)
+
+    def inputs(dtype, device):
+        return [t.to(device, dtype) for t in (features, logit_map, *coords, wk, bk, mask)]
+
+    args = inputs(torch.float32, dev)
+    leaves = [args[0].requires_grad_(), args[1].requires_grad_()]
+    g32 = g.to(dev, torch.float32)
+
+    def forward() -> None:
+        with torch.no_grad():
+            jittered_window_attention(*[a.detach() for a in args], (sh, sw))
+
+    def both() -> None:
+        out, _ = jittered_window_attention(*args, (sh, sw))
+        torch.autograd.grad(out, leaves, g32)
+
+    ref_args = inputs(torch.float64, "cpu")
+    ref_leaves = [ref_args[0].requires_grad_(), ref_args[1].requires_grad_()]
+    ref_out, _ = jittered_window_attention(*ref_args, (sh, sw))
+    ref_grads = torch.autograd.grad(ref_out, ref_leaves, g)
+    out, _ = jittered_window_attention(*args, (sh, sw))
+    grads = torch.autograd.grad(out, leaves, g32)
+    errs = {"err out": rel_err(out, ref_out), "err grad features": rel_err(grads[0], ref_grads[0]),
+            "err grad logit": rel_err(grads[1], ref_grads[1])}
+    what = f"{jitters} copies, {size[0]} x {size[1]} cells, kernel {k}"
+    return [{"what": f"{what}, forward", "ms": timer(forward), **errs},
+            {"what": f"{what}, forward + backward", "ms": timer(both)}]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -230,8 +284,8 @@ def main() -> None:
     ap.add_argument("--dim", type=int, default=128, help="the network's output channels (proj_dim)")
     ap.add_argument("--iters", type=int, default=None, help="timed repetitions (default 50 CUDA, 3 CPU)")
     ap.add_argument("--compile", action="store_true", help="also time torch.compile'd networks")
-    ap.add_argument("--only", choices=("network", "blur"), default=None,
-                    help="time only the network tables or only the magnitude + blur block")
+    ap.add_argument("--only", choices=("network", "blur", "attention"), default=None,
+                    help="time only the network tables, the magnitude + blur block or the attention op")
     args = ap.parse_args()
     dev = torch.device(args.device)
     cuda = dev.type == "cuda"
@@ -247,7 +301,7 @@ def main() -> None:
     print(f"FeatUp implicit network, {h} x {w} = {h * w} pixels, {base.fourier.out_dim} input channels, "
           f"{args.dim} outputs, {args.precision if cuda else 'fp32'} on {dev}"
           + (f" ({torch.cuda.get_device_name(dev)})" if cuda else ""))
-    if args.only != "blur":
+    if args.only in (None, "network"):
         rows = []
         for fused in (False, True):
             for compile_ in ((False, True) if args.compile else (False,)):
@@ -264,7 +318,10 @@ def main() -> None:
         print_table(rows, "per step: forward + backward (dropout on); errors against the float64 composition")
         print_table(input_layer_rows(base, image, args.precision, timer) + hidden_layer_rows(base, image, args.precision, timer),
                     "each fused op alone against the composition it replaces, forward + backward")
-    if args.only != "network":
+    if args.only in (None, "attention"):
+        print_table(attention_rows(h, w, args.dim, dev, timer),
+                    "jittered_window_attention at the fit's geometry (float32); error against float64")
+    if args.only in (None, "blur"):
         print_table(blur_rows(args.dim, h, w, args.precision, dev, timer),
                     f"network output ({'bf16' if cuda and args.precision == 'bf16' else 'fp32'}, channels last) to "
                     "the attention op's inputs, forward + backward; errors against the float64 composition")

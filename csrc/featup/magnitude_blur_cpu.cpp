@@ -31,8 +31,6 @@ void forward_cpu(const X* x, const BlurDims& d, const BlurTaps<T>& taps, T* blur
       magnitude[p] = std::sqrt(sum);
     }
   });
-  // u[q, k] of source pixel q: the magnitude (k = 0) or the features
-  auto u = [&](int64_t q, int64_t k) { return k == 0 ? magnitude[q] : static_cast<T>(x[q * C + k - 1]); };
   at::parallel_for(0, H, 1, [&](int64_t y0, int64_t y1) {
     std::vector<T> acc(U), row(U);
     for (int64_t y = y0; y < y1; ++y) {
@@ -44,7 +42,9 @@ void forward_cpu(const X* x, const BlurDims& d, const BlurTaps<T>& taps, T* blur
           for (int64_t b = -R; b <= R; ++b) {
             const int64_t q = sy * W + reflect_index(xo + b, W);
             const T gb = taps.g[b + R];
-            for (int64_t k = 0; k < U; ++k) row[k] += gb * u(q, k);
+            const X* src = x + q * C;
+            row[0] += gb * magnitude[q];  // channel 0: the magnitude; then the features
+            for (int64_t c = 0; c < C; ++c) row[1 + c] += gb * static_cast<T>(src[c]);
           }
           const T ga = taps.g[a + R];
           for (int64_t k = 0; k < U; ++k) acc[k] += ga * row[k];
