@@ -26,6 +26,8 @@ namespace {
 constexpr int kMaxTile = kMaxKernel + 3;  // a window of K rows reads at most K + 2 source rows
 constexpr int kMaxThreads = 256;
 constexpr int kPixelsPerBlock = 16;       // grad_features: source pixels of one row per block
+constexpr int kDotPixels = 32;            // pixel_dots: source pixels of one row per block (about
+                                          // 2 x 3 covering cells per jitter: ~200 dot products)
 
 template <typename T>
 struct CellShared {
@@ -274,7 +276,7 @@ __device__ int ordered_append(bool pred, int value, int* list, int count, int* w
 }
 
 // D[cell, tile pixel] = grad_out[cell, :] . features[pixel, :] for every cell whose tile covers the
-// pixel. A block: one source row u, kPixelsPerBlock columns (the covering cells listed as in
+// pixel. A block: one source row u, kDotPixels columns (the covering cells listed as in
 // grad_features_kernel); a thread per (covering cell, column), consecutive threads on cells of
 // one column (its features read once per warp, broadcast). Every source pixel's features are read
 // from memory by one block, instead of by every cell whose window reads it (about 4 per jitter).
@@ -285,7 +287,7 @@ __global__ void __launch_bounds__(kMaxThreads) pixel_dots_kernel(const T* __rest
                                                                  T* __restrict__ dots) {
   __shared__ int rows[kMaxThreads], row_origin[kMaxThreads], cols[kMaxThreads], col_origin[kMaxThreads];
   __shared__ int warp_counts[kMaxThreads / 32];
-  const int u = blockIdx.y, v0 = blockIdx.x * kPixelsPerBlock;
+  const int u = blockIdx.y, v0 = blockIdx.x * kDotPixels;
   const int side = static_cast<int>(d.K) + 3, area = side * side;
   const int64_t cells_per_jitter = d.FH * d.FW, C = d.C;
   for (int64_t j = 0; j < d.J; ++j) {
@@ -308,13 +310,13 @@ __global__ void __launch_bounds__(kMaxThreads) pixel_dots_kernel(const T* __rest
         bool reaches = false;
         if (l < d.FW) {
           c0 = first[l * 2 + 1];
-          reaches = c0 < v0 + kPixelsPerBlock && c0 + side > v0;
+          reaches = c0 < v0 + kDotPixels && c0 + side > v0;
         }
         const int n_cols = ordered_append(reaches, static_cast<int>(l), cols, 0, warp_counts);
         if (reaches) col_origin[threadIdx.x] = c0;  // slot l - lbase
         __syncthreads();
         const int pairs = n_rows * n_cols;
-        for (int item = threadIdx.x; item < pairs * kPixelsPerBlock; item += blockDim.x) {
+        for (int item = threadIdx.x; item < pairs * kDotPixels; item += blockDim.x) {
           const int q = item / pairs, pair = item - q * pairs;
           const int a = pair / n_cols, e = pair - a * n_cols;
           const int64_t i_cell = rows[a], l_cell = cols[e];
@@ -446,7 +448,7 @@ void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* feat
   auto st = static_cast<cudaStream_t>(stream);
   cell_tiles_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, st>>>(coord_y, coord_x, attn, d, tiles,
                                                                                    origins);
-  const dim3 rows(static_cast<unsigned>((d.W + kPixelsPerBlock - 1) / kPixelsPerBlock), static_cast<unsigned>(d.H));
+  const dim3 rows(static_cast<unsigned>((d.W + kDotPixels - 1) / kDotPixels), static_cast<unsigned>(d.H));
   pixel_dots_kernel<scalar_t><<<rows, kMaxThreads, 0, st>>>(grad_out, features, origins, d, dots);
   backward_cells_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, st>>>(
       dots, logit_map, coord_y, coord_x, w, mask, attn, d, gz, gz_logit, logit_tiles);
