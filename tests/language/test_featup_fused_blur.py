@@ -1,8 +1,8 @@
-"""``tiger::magnitude_blur`` (csrc/featup) against the PyTorch composition it replaces in the fast
-FeatUp fit's step (``x.norm(dim=1)``, ``cat`` and ``gaussian_blur(..., padding="reflect")`` in
-channels-first float64), values and gradients; gradcheck and opcheck; the CUDA kernels against
-the CPU kernels; and the fit's step (``_step_loss``) against the channels-first composition it
-replaced."""
+"""``tiger::magnitude_blur`` and ``tiger::masked_logit`` (csrc/featup) against the PyTorch
+compositions they replace in the fast FeatUp fit's step (``x.norm(dim=1)``, ``cat`` and
+``gaussian_blur(..., padding="reflect")``; ``F.dropout`` and the 1x1 ``conv2d``; channels first, in
+float64), values and gradients; gradcheck and opcheck; the CUDA kernels against the CPU kernels;
+and the fit's step (``_step_loss``) against the channels-first composition it replaced."""
 import pytest
 import torch
 import torch.nn.functional as F
@@ -12,7 +12,7 @@ import tiger.ops
 from tiger.language.featup import AttentionDownsampler, ImplicitConfig, ImplicitNet, _fit_loss, sample_jitter
 from tiger.language.featup_fit import (_step_loss, fused_window_attention, jitter_coords, jitter_params,
                                        reflect_coords)
-from tiger.ops.featup import magnitude_blur
+from tiger.ops.featup import magnitude_blur, masked_logit
 from tiger.utils.filters import gaussian_blur
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
@@ -91,6 +91,60 @@ def test_bad_input_names_the_problem():
         magnitude_blur(torch.zeros(6, 8, 3), 2, 0.0)
     with pytest.raises(RuntimeError, match="float32, float64"):
         magnitude_blur(torch.zeros(6, 8, 3, dtype=torch.int32))
+
+
+# ------------------------------------------------------------------------------------ masked_logit
+def logit_case(h, w, u, seed=0, dtype=F64, dropout=0.2):
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(h, w, u, generator=gen, dtype=dtype)
+    keep = (torch.rand(u, h, w, generator=gen) > dropout).to(dtype) / (1 - dropout)
+    weight, bias = torch.randn(u, generator=gen, dtype=dtype), torch.randn(1, generator=gen, dtype=dtype)
+    return x, keep, weight, bias
+
+
+def logit_reference(x, keep, weight, bias):
+    """The channels-first composition: the dropped-out map's 1x1 convolution."""
+    chw = x.permute(2, 0, 1)[None]
+    if keep is not None:
+        chw = chw * keep[None]
+    return F.conv2d(chw, weight.view(1, -1, 1, 1), bias)[0, 0]
+
+
+@pytest.mark.parametrize("h,w,u", [(5, 7, 4), (16, 33, 37), (1, 3, 1), (40, 20, 130)])
+@pytest.mark.parametrize("with_keep", [True, False])
+def test_masked_logit_equals_the_channels_first_composition(h, w, u, with_keep):
+    x, keep, weight, bias = logit_case(h, w, u)
+    keep = keep if with_keep else None
+    leaves = [t.requires_grad_() for t in (x, weight, bias)]
+    out, ref = masked_logit(x, keep, weight, bias), logit_reference(x, keep, weight, bias)
+    assert out.shape == (h, w)
+    torch.testing.assert_close(out, ref, atol=1e-12, rtol=1e-12)
+    g = torch.randn(h, w, generator=torch.Generator().manual_seed(3), dtype=F64)
+    for a, r in zip(torch.autograd.grad((out * g).sum(), leaves), torch.autograd.grad((ref * g).sum(), leaves)):
+        torch.testing.assert_close(a, r, atol=1e-11, rtol=1e-11)
+
+
+def test_masked_logit_gradcheck_and_opcheck():
+    x, keep, weight, bias = logit_case(4, 6, 5, seed=1)
+    leaves = [t.requires_grad_() for t in (x, weight, bias)]
+    assert torch.autograd.gradcheck(lambda x, w, b: masked_logit(x, keep, w, b), leaves)
+    torch.library.opcheck(torch.ops.tiger.masked_logit, (x, keep, weight, bias))
+    torch.library.opcheck(torch.ops.tiger.masked_logit, (x, None, weight, bias))
+    g = torch.randn(4, 6, dtype=F64)
+    torch.library.opcheck(torch.ops.tiger.masked_logit_backward, (g, x.detach(), keep, weight.detach(), True))
+    torch.library.opcheck(torch.ops.tiger.masked_logit_backward, (g, x.detach(), None, weight.detach(), False))
+
+
+def test_masked_logit_bad_input_names_the_tensor():
+    x, keep, weight, bias = logit_case(4, 6, 5)
+    with pytest.raises(RuntimeError, match="keep must have shape"):
+        masked_logit(x, keep.permute(1, 2, 0), weight, bias)
+    with pytest.raises(RuntimeError, match="weight must have shape"):
+        masked_logit(x, keep, weight[:4], bias)
+    with pytest.raises(RuntimeError, match="must have the dtype of x"):
+        masked_logit(x, keep.float(), weight, bias)
+    with pytest.raises(ValueError, match="keep is not differentiable"):
+        masked_logit(x, keep.requires_grad_(), weight, bias)
 
 
 # ------------------------------------------------------------------------------------ the fit's step
@@ -190,3 +244,25 @@ def test_cuda_is_deterministic_and_graph_capturable():
     graph.replay()
     torch.cuda.synchronize()
     assert torch.equal(static, first)
+
+
+@needs_cuda
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("h,w,u", [(37, 53, 129), (3, 5, 2), (256, 448, 129)])
+@pytest.mark.parametrize("with_keep", [True, False])
+def test_masked_logit_cuda_equals_cpu(dtype, h, w, u, with_keep):
+    x, keep, weight, bias = logit_case(h, w, u, dtype=dtype)
+    keep = keep if with_keep else None
+    g = torch.randn(h, w, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    cuda = [t.cuda() if t is not None else None for t in (x, keep, weight, bias, g)]
+    tol = dict(atol=1e-11, rtol=1e-11) if dtype == F64 else dict(atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(masked_logit(*cuda[:4]).cpu(), masked_logit(x, keep, weight, bias), **tol)
+    ref = torch.ops.tiger.masked_logit_backward(g, x, keep, weight, True)
+    out = torch.ops.tiger.masked_logit_backward(cuda[4], cuda[0], cuda[1], cuda[2], True)
+    for name, a, b in zip(("grad x", "grad weight", "grad bias"), out, ref):
+        # the weight's gradient sums h * w products: compare relative to its scale
+        scale = dict(atol=tol["atol"] * max(1.0, float(b.abs().max())), rtol=tol["rtol"])
+        torch.testing.assert_close(a.cpu(), b, **scale, msg=lambda m, n=name: f"{n}: {m}")
+    again = torch.ops.tiger.masked_logit_backward(cuda[4], cuda[0], cuda[1], cuda[2], True)
+    assert all(torch.equal(a, b) for a, b in zip(out, again))  # fixed summation order
+    torch.library.opcheck(torch.ops.tiger.masked_logit, tuple(cuda[:4]))

@@ -20,7 +20,9 @@ Same model, parameters, initial weights, jitters and view picks as the reference
 * **Blur once, before the jitters** (the reference blurs each jittered copy): the blurred output
   is also the blur-pin regulariser's, so one blur serves both. The network's output stays
   channels last (its native layout) up to the attention op: ``tiger::magnitude_blur`` takes each
-  pixel's magnitude and blurs (magnitude, features) in one op, with no channels-first copy.
+  pixel's magnitude and blurs (magnitude, features) in one op, and ``tiger::masked_logit`` takes
+  the attention logit of the dropped-out blurred map (the mask drawn channels first, as before),
+  with no channels-first copy.
 * **No host sync per step, one CUDA graph** (``ImplicitConfig.cuda_graph``): every step's view
   picks are drawn up front from the CPU generator in the reference's order, losses stay on the
   device, and on CUDA the step (forward, backward, NAdam with ``capturable=True``) is captured
@@ -360,7 +362,7 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
                cfg: "ImplicitConfig") -> torch.Tensor:
     """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor);
     ``network`` is the implicit network's ``forward_pixels`` (or its compiled form)."""
-    from tiger.ops.featup import magnitude_blur
+    from tiger.ops.featup import magnitude_blur, masked_logit
 
     from .featup import _fit_loss
 
@@ -371,14 +373,15 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
     # channels last from here to the attention op: the network's layout, no permuted copies
     hr_hwc = hr[0].permute(1, 2, 0)  # [h, w, C]
     blurred, hr_mag = magnitude_blur(hr_hwc, 2, 1.0)  # [h, w, 1 + C] (magnitude first), [h, w]; float32
-    logit_in = blurred
+    keep = None
     if down.dropout > 0:
-        # F.dropout's mask of the channels-first [1 + C, h, w] map, drawn as it draws it
-        # (bernoulli, then divided by the keep rate); read through a channels-last view
+        # the attention input's dropout mask, drawn as F.dropout draws it for the channels-first
+        # [1, 1 + C, h, w] map (bernoulli, then divided by the keep rate); masked_logit reads it
+        # channels first and the map channels last
         keep = blurred.new_empty(blurred.shape[-1], *blurred.shape[:2]).bernoulli_(1 - down.dropout)
-        logit_in = blurred * keep.div_(1 - down.dropout).permute(1, 2, 0)
+        keep.div_(1 - down.dropout)
     lin = down.attention[1]
-    logit_map = F.linear(logit_in, lin.weight.view(1, -1), lin.bias)[..., 0]  # [h, w]
+    logit_map = masked_logit(blurred, keep, lin.weight.view(-1), lin.bias)  # [h, w]
     n = idx.shape[0]
     if down.dropout > 0:
         mask = (torch.rand(n, fh, fw, device=dev) > down.dropout).float()

@@ -2,9 +2,11 @@
 over jittered copies of one feature map, without materialising the copies),
 ``tiger::fourier_layer_norm`` (the implicit network's Fourier features, LayerNorm and channel
 dropout in one pass), ``tiger::relu_scale_layer_norm`` (its hidden ReLU, channel dropout and
-LayerNorm in one pass) and ``tiger::magnitude_blur`` (the fit's per-pixel magnitude and reflect
-Gaussian blur, channels last): fake kernels, autograd and the Python entry points. Formulas in
-``csrc/featup/featup.h``, ``fourier.h``, ``relu_norm.h`` and ``magnitude_blur.h``."""
+LayerNorm in one pass), ``tiger::magnitude_blur`` (the fit's per-pixel magnitude and reflect
+Gaussian blur, channels last) and ``tiger::masked_logit`` (the attention logit of every pixel
+after the input dropout, channels last): fake kernels, autograd and the Python entry points.
+Formulas in ``csrc/featup/featup.h``, ``fourier.h``, ``relu_norm.h``, ``magnitude_blur.h`` and
+``masked_logit.h``."""
 from __future__ import annotations
 
 from typing import Optional
@@ -13,7 +15,8 @@ import torch
 
 from ._eager_autograd import eager_autograd
 
-__all__ = ["jittered_window_attention", "fourier_layer_norm", "relu_scale_layer_norm", "magnitude_blur"]
+__all__ = ["jittered_window_attention", "fourier_layer_norm", "relu_scale_layer_norm", "magnitude_blur",
+           "masked_logit"]
 
 
 @torch.library.register_fake("tiger::jittered_window_attention")
@@ -266,3 +269,60 @@ def magnitude_blur(x: torch.Tensor, radius: int = 2, sigma: float = 1.0) -> tupl
         ``blurred`` is the blurred magnitude. Both differentiable in x.
     """
     return _magnitude_blur_eager(x, int(radius), float(sigma))
+
+
+# ----------------------------------------------------------------------------- masked_logit
+@torch.library.register_fake("tiger::masked_logit")
+def _masked_logit_fake(x, keep, weight, bias):
+    torch._check(x.dim() == 3, lambda: f"x must be [H, W, U], got {tuple(x.shape)}")
+    torch._check(weight.shape == (x.shape[2],), lambda: f"weight must be [U] = [{x.shape[2]}], got {tuple(weight.shape)}")
+    torch._check(keep is None or keep.shape == (x.shape[2], *x.shape[:2]),
+                 lambda: f"keep must be [U, H, W], got {None if keep is None else tuple(keep.shape)}")
+    return x.new_empty(x.shape[:2])
+
+
+@torch.library.register_fake("tiger::masked_logit_backward")
+def _masked_logit_fake_backward(grad, x, keep, weight, x_grad):
+    torch._check(grad.shape == x.shape[:2], lambda: f"grad must be [H, W], got {tuple(grad.shape)}")
+    return (torch.empty_like(x) if x_grad else x.new_empty((0,))), weight.new_empty(weight.shape), weight.new_empty((1,))
+
+
+def _masked_logit_setup_context(ctx, inputs, output):
+    x, keep, weight, _bias = inputs
+    ctx.save_for_backward(x, keep, weight)
+
+
+def _masked_logit_backward(ctx, grad):
+    x, keep, weight = ctx.saved_tensors
+    needs = ctx.needs_input_grad
+    if grad is None or not (needs[0] or needs[2] or needs[3]):
+        return None, None, None, None
+    gx, gw, gb = torch.ops.tiger.masked_logit_backward(grad.contiguous(), x, keep, weight, bool(needs[0]))
+    return gx if needs[0] else None, None, gw if needs[2] else None, gb if needs[3] else None
+
+
+torch.library.register_autograd("tiger::masked_logit", _masked_logit_backward,
+                                setup_context=_masked_logit_setup_context)
+_masked_logit_eager = eager_autograd(torch.ops.tiger.masked_logit, _masked_logit_setup_context,
+                                     _masked_logit_backward)
+
+
+def masked_logit(x: torch.Tensor, keep: Optional[torch.Tensor], weight: torch.Tensor,
+                 bias: torch.Tensor) -> torch.Tensor:
+    """The attention logit of every pixel, ``bias + sum_k weight[k] x[..., k] keep[k]``
+    (``tiger::masked_logit``; formula in ``csrc/featup/masked_logit.h``): the 1x1 convolution of
+    the dropped-out channels-first map ``x.permute(2, 0, 1) * keep``, read channels last.
+
+    Args:
+        x: [H, W, U] float32/float64, channels last.
+        keep: [U, H, W] the input dropout's multiplier (its 0/1 mask divided by the keep rate),
+            drawn channels first as ``F.dropout`` draws it for a [1, U, H, W] map, or None (no
+            dropout); x's dtype; not differentiable.
+        weight: [U], bias: [1] the attention's Linear (x's dtype).
+
+    Returns:
+        [H, W], differentiable in x, weight and bias.
+    """
+    if keep is not None and keep.requires_grad:
+        raise ValueError("tiger.masked_logit: keep is not differentiable; pass it detached")
+    return _masked_logit_eager(x, keep, weight, bias)
