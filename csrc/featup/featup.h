@@ -45,25 +45,21 @@ void launch_window_forward(const scalar_t* features, const scalar_t* logit_map, 
                            const scalar_t* coord_x, const scalar_t* w, const scalar_t* b, const scalar_t* mask,
                            WindowDims d, scalar_t* out, scalar_t* attn, void* stream);
 
-// Per-cell part of the backward: the cells' source tiles (attention pushed through the bilinear
-// weights, [J*FH*FW, T*T] with T = K + 3) and tile origins ([J*FH*FW, 2] row, column); D =
-// grad_out . features at every tile pixel (dots, [J*FH*FW, T*T] scratch, gathered per source
-// pixel); then gz and gz * mask * logit per cell and window pixel ([J*FH*FW, K*K] each, summed
-// over cells by the caller) and the logit map's gradient coefficients gz * mask * w pushed onto
-// each cell's tile (logit_tiles, [J*FH*FW, T*T]), all for launch_window_grad_features.
+// Per-cell part of the backward: gz and gz * mask * logit per cell and window pixel ([J*FH*FW, K*K]
+// each, summed over cells by the caller), grad_logit_map (accumulated: zeroed by the caller), and
+// the cells' source tiles (attention pushed through the bilinear weights, [J*FH*FW, T*T] with
+// T = K + 3) and tile origins ([J*FH*FW, 2] row, column) for launch_window_grad_features.
 template <typename scalar_t>
 void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
                                   const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
                                   const scalar_t* mask, const scalar_t* attn, WindowDims d, scalar_t* gz,
-                                  scalar_t* gz_logit, scalar_t* logit_tiles, scalar_t* dots, scalar_t* tiles,
+                                  scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* tiles,
                                   int32_t* origins, void* stream);
 
-// grad_features [H, W, C] and grad_logit_map [H, W] gathered per source pixel from the cells'
-// tiles (no atomics).
+// grad_features [H, W, C] gathered from the cells' tiles (no atomics).
 template <typename scalar_t>
-void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const scalar_t* logit_tiles,
-                                 const int32_t* origins, WindowDims d, scalar_t* grad_features,
-                                 scalar_t* grad_logit_map, void* stream);
+void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const int32_t* origins,
+                                 WindowDims d, scalar_t* grad_features, void* stream);
 
 }  // namespace featup
 }  // namespace tiger

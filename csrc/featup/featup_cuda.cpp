@@ -63,9 +63,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
              mc = mask.contiguous(), a = attn.contiguous();
   const int64_t cells = d.J * d.FH * d.FW, KK = d.K * d.K, side = d.K + 3;
   auto gz = at::empty({cells, KK}, F.options()), gzl = at::empty({cells, KK}, F.options());
-  auto gL = at::empty_like(L), gF = at::empty_like(F);
-  auto tiles = at::empty({cells, side * side}, F.options()), dots = at::empty({cells, side * side}, F.options()),
-       logit_tiles = at::empty({cells, side * side}, F.options());
+  auto gL = at::zeros_like(L), gF = at::empty_like(F);
+  auto tiles = at::empty({cells, side * side}, F.options());
   auto origins = at::empty({cells, 2}, F.options().dtype(at::kInt));
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(F.scalar_type(), "tiger.jittered_window_attention_backward", [&] {
@@ -73,13 +72,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
                                            cy.data_ptr<scalar_t>(), cx.data_ptr<scalar_t>(), wc.data_ptr<scalar_t>(),
                                            mc.data_ptr<scalar_t>(), a.data_ptr<scalar_t>(), d,
                                            gz.data_ptr<scalar_t>(), gzl.data_ptr<scalar_t>(),
-                                           logit_tiles.data_ptr<scalar_t>(), dots.data_ptr<scalar_t>(),
-                                           tiles.data_ptr<scalar_t>(),
+                                           gL.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),
                                            origins.data_ptr<int32_t>(), stream);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     launch_window_grad_features<scalar_t>(g.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),
-                                          logit_tiles.data_ptr<scalar_t>(), origins.data_ptr<int32_t>(), d,
-                                          gF.data_ptr<scalar_t>(), gL.data_ptr<scalar_t>(), stream);
+                                          origins.data_ptr<int32_t>(), d, gF.data_ptr<scalar_t>(), stream);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
   return {gF, gL, gzl.sum(0).view({d.K, d.K}), gz.sum(0).view({d.K, d.K})};

@@ -2,16 +2,10 @@
 //
 // One block per cell (jitter j, window row i, window column l) computes the window's bilinear
 // taps, its softmax, and the cell's source tile: the attention pushed through the bilinear
-// weights onto the (at most (K+3)^2) source pixels that the window reads (built separably in a
-// fixed order). The output is then a dot product of the tile with the features (channels last,
-// so the threads of a block read neighbouring channels).
-//
-// Backward: the cells' tiles and origins first (no features read); then, per source pixel,
-// D = grad_out[cell] . features[pixel] for every cell whose tile covers the pixel (each pixel's
-// features read once, not once per covering cell); then per cell the softmax backward from D.
-// The features' gradient is gathered per source pixel from the tiles of the cells that cover it
-// (the covering cells found per window row and column, summed in index order), and so is the
-// logit map's, from per-cell tiles of its coefficients: no atomics, the same result on every run.
+// weights onto the (at most (K+3)^2) source pixels that the window reads. The output is then a
+// dot product of the tile with the features (channels last, so the threads of a block read
+// neighbouring channels). The features' gradient is gathered per source pixel from the tiles of
+// the cells that cover it (no atomics); the logit map's gradient uses atomics (K*K*4 per cell).
 #include <cuda_runtime.h>
 #include <math.h>
 
@@ -26,8 +20,6 @@ namespace {
 constexpr int kMaxTile = kMaxKernel + 3;  // a window of K rows reads at most K + 2 source rows
 constexpr int kMaxThreads = 256;
 constexpr int kPixelsPerBlock = 16;       // grad_features: source pixels of one row per block
-constexpr int kDotPixels = 32;            // pixel_dots: source pixels of one row per block (about
-                                          // 2 x 3 covering cells per jitter: ~200 dot products)
 
 template <typename T>
 struct CellShared {
@@ -35,7 +27,6 @@ struct CellShared {
   T attn[kMaxKernel * kMaxKernel];
   T buf[kMaxKernel * kMaxKernel];
   T tile[kMaxTile * kMaxTile];
-  T cols[kMaxKernel * kMaxTile];  // build_tile's first stage: [window row][tile column]
   T red[kMaxThreads / 32];
   int r0, c0, tr, tc;
   bool overflow;
@@ -133,39 +124,17 @@ __device__ __forceinline__ void for_tile_taps(const CellShared<T>& s, int py, in
   }
 }
 
-// s.tile = values [K*K] per window pixel (the attention, or the logit gradient's coefficients)
-// pushed through the bilinear weights (ends synchronised; values may live in shared memory,
-// written before the call by any thread), separably and
-// in a fixed order: first along columns (one thread per window row walks its pixels in order),
-// then along rows (one thread per tile column walks the window rows in order). No two threads
-// add to one entry: the same tile on every run (shared-memory atomics would add in any order).
+// s.tile = the attention pushed through the bilinear weights (ends synchronised).
 template <typename T>
-__device__ void build_tile(const WindowDims& d, CellShared<T>& s, const T* values) {
+__device__ void build_tile(const WindowDims& d, CellShared<T>& s) {
   const int K = static_cast<int>(d.K), side = K + 3;
   for (int t = threadIdx.x; t < side * side; t += blockDim.x) s.tile[t] = T(0);
-  for (int t = threadIdx.x; t < K * side; t += blockDim.x) s.cols[t] = T(0);
   __syncthreads();
-  if (!s.overflow) {  // the same in every thread
-    for (int py = threadIdx.x; py < K; py += blockDim.x) {
-      T* row = s.cols + py * side;
-      for (int px = 0; px < K; ++px) {
-        const Tap<T>& tx = s.tx[px];
-        const T a = values[py * K + px];
-        const int q = tx.index - s.c0;
-        row[q] += (T(1) - tx.frac) * a;
-        if (tx.second) row[q + 1] += tx.frac * a;
-      }
+  if (!s.overflow)
+    for (int p = threadIdx.x; p < K * K; p += blockDim.x) {
+      const T a = s.attn[p];
+      for_tile_taps(s, p / K, p % K, side, [&](int t, T wt) { atomicAdd(&s.tile[t], a * wt); });
     }
-    __syncthreads();
-    for (int q = threadIdx.x; q < side; q += blockDim.x)
-      for (int py = 0; py < K; ++py) {
-        const Tap<T>& ty = s.ty[py];
-        const T v = s.cols[py * side + q];
-        const int r = ty.index - s.r0;
-        s.tile[r * side + q] += (T(1) - ty.frac) * v;
-        if (ty.second) s.tile[(r + 1) * side + q] += ty.frac * v;
-      }
-  }
   __syncthreads();
 }
 
@@ -181,7 +150,7 @@ __global__ void __launch_bounds__(kMaxThreads) forward_kernel(const T* __restric
   load_cell(cy, cx, d, cell, s);
   cell_softmax(logit_map, w, b, mask[cell], d, s);
   for (int p = threadIdx.x; p < KK; p += blockDim.x) attn[cell * KK + p] = s.attn[p];
-  build_tile(d, s, s.attn);
+  build_tile(d, s);
   for (int64_t c = threadIdx.x; c < d.C; c += blockDim.x) {
     T acc = 0;
     if (s.overflow) {
@@ -197,40 +166,28 @@ __global__ void __launch_bounds__(kMaxThreads) forward_kernel(const T* __restric
   }
 }
 
-// The cell's source tile (the attention pushed through the bilinear weights, for the features'
-// gradient) and its origin (for every kernel below). Reads no features.
-template <typename T>
-__global__ void __launch_bounds__(kMaxThreads) cell_tiles_kernel(const T* __restrict__ cy, const T* __restrict__ cx,
-                                                                 const T* __restrict__ attn, WindowDims d,
-                                                                 T* __restrict__ tiles, int32_t* __restrict__ origins) {
-  __shared__ CellShared<T> s;
-  const int64_t cell = blockIdx.x;
-  const int KK = static_cast<int>(d.K * d.K), side = static_cast<int>(d.K) + 3;
-  load_cell(cy, cx, d, cell, s);
-  for (int p = threadIdx.x; p < KK; p += blockDim.x) s.attn[p] = attn[cell * KK + p];
-  build_tile(d, s, s.attn);  // (synchronises before reading s.attn)
-  for (int t = threadIdx.x; t < side * side; t += blockDim.x) tiles[cell * side * side + t] = s.tile[t];
-  if (threadIdx.x == 0) {
-    origins[cell * 2] = s.r0;
-    origins[cell * 2 + 1] = s.c0;
-  }
-}
-
 template <typename T>
 __global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
-    const T* __restrict__ dots, const T* __restrict__ logit_map, const T* __restrict__ cy, const T* __restrict__ cx,
-    const T* __restrict__ w, const T* __restrict__ mask, const T* __restrict__ attn, WindowDims d,
-    T* __restrict__ gz_out, T* __restrict__ gzl_out, T* __restrict__ logit_tiles) {
+    const T* __restrict__ g, const T* __restrict__ F, const T* __restrict__ logit_map, const T* __restrict__ cy,
+    const T* __restrict__ cx, const T* __restrict__ w, const T* __restrict__ mask, const T* __restrict__ attn,
+    WindowDims d, T* __restrict__ gz_out, T* __restrict__ gzl_out, T* __restrict__ grad_logit,
+    T* __restrict__ tiles, int32_t* __restrict__ origins) {
   __shared__ CellShared<T> s;
   const int64_t cell = blockIdx.x;
   const int K = static_cast<int>(d.K), KK = K * K, side = K + 3;
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
   load_cell(cy, cx, d, cell, s);
   for (int p = threadIdx.x; p < KK; p += blockDim.x) s.attn[p] = attn[cell * KK + p];
-  // s.tile = D: the output gradient dotted with the features at every tile pixel (pixel_dots_kernel)
+  // s.tile = D: the output gradient dotted with the features at every tile pixel (a warp per pixel)
+  const T* gc = g + cell * d.C;
   if (!s.overflow)
-    for (int t = threadIdx.x; t < s.tr * s.tc; t += blockDim.x) {
-      const int r = t / s.tc, q = t - r * s.tc;
-      s.tile[r * side + q] = dots[cell * side * side + r * side + q];
+    for (int t = warp; t < s.tr * s.tc; t += warps) {
+      const int r = t / s.tc, q = t % s.tc;
+      const T* f = F + ((s.r0 + r) * d.W + s.c0 + q) * d.C;
+      T acc = 0;
+      for (int64_t c = lane; c < d.C; c += 32) acc += gc[c] * f[c];
+      acc = cuda::warp_sum(acc);
+      if (lane == 0) s.tile[r * side + q] = acc;
     }
   __syncthreads();
   // ga[p] = sum over taps of weight * D; the softmax backward
@@ -247,175 +204,81 @@ __global__ void __launch_bounds__(kMaxThreads) backward_cells_kernel(
   dot = block_reduce<T, false>(dot, s.red);
   const T m = mask[cell];
   for (int p = threadIdx.x; p < KK; p += blockDim.x) {
+    const int py = p / K, px = p % K;
     const T gz = s.attn[p] * (s.buf[p] - dot);
     gz_out[cell * KK + p] = gz;
-    gzl_out[cell * KK + p] = gz * m * bilinear(logit_map, d.W, s.ty[p / K], s.tx[p % K]);
-    s.buf[p] = gz * m * w[p];  // the logit map's gradient at window pixel p (this thread's entry)
-  }
-  // pushed through the bilinear weights onto the cell's tile, gathered per source pixel later
-  build_tile(d, s, s.buf);
-  for (int t = threadIdx.x; t < side * side; t += blockDim.x) logit_tiles[cell * side * side + t] = s.tile[t];
-}
-
-// Appends, in thread order, the values of the threads whose pred is true to list[count ...];
-// returns the new count (all threads call it; blockDim.x a multiple of 32; ends synchronised).
-// A ballot and the warps' counts give each entry its place: the order does not depend on timing.
-__device__ int ordered_append(bool pred, int value, int* list, int count, int* warp_counts) {
-  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
-  const unsigned ballot = __ballot_sync(cuda::kFullMask, pred);
-  if (lane == 0) warp_counts[warp] = __popc(ballot);
-  __syncthreads();
-  int offset = count, total = count;
-  for (int k = 0; k < warps; ++k) {
-    if (k < warp) offset += warp_counts[k];
-    total += warp_counts[k];
-  }
-  if (pred) list[offset + __popc(ballot & ((1u << lane) - 1u))] = value;
-  __syncthreads();
-  return total;
-}
-
-// D[cell, tile pixel] = grad_out[cell, :] . features[pixel, :] for every cell whose tile covers the
-// pixel. A block: one source row u, kDotPixels columns (the covering cells listed as in
-// grad_features_kernel); a thread per (covering cell, column), consecutive threads on cells of
-// one column (its features read once per warp, broadcast). Every source pixel's features are read
-// from memory by one block, instead of by every cell whose window reads it (about 4 per jitter).
-// Each D entry is written by one thread, summed over the channels in order.
-template <typename T>
-__global__ void __launch_bounds__(kMaxThreads) pixel_dots_kernel(const T* __restrict__ g, const T* __restrict__ F,
-                                                                 const int32_t* __restrict__ origins, WindowDims d,
-                                                                 T* __restrict__ dots) {
-  __shared__ int rows[kMaxThreads], row_origin[kMaxThreads], cols[kMaxThreads], col_origin[kMaxThreads];
-  __shared__ int warp_counts[kMaxThreads / 32];
-  const int u = blockIdx.y, v0 = blockIdx.x * kDotPixels;
-  const int side = static_cast<int>(d.K) + 3, area = side * side;
-  const int64_t cells_per_jitter = d.FH * d.FW, C = d.C;
-  for (int64_t j = 0; j < d.J; ++j) {
-    const int32_t* first = origins + j * cells_per_jitter * 2;  // cell (j, 0, 0)
-    for (int64_t ibase = 0; ibase < d.FH; ibase += blockDim.x) {
-      const int64_t i = ibase + threadIdx.x;
-      int r0 = 0;
-      bool covers = false;
-      if (i < d.FH) {
-        r0 = first[i * d.FW * 2];
-        covers = u >= r0 && u < r0 + side;
-      }
-      const int n_rows = ordered_append(covers, static_cast<int>(i), rows, 0, warp_counts);
-      if (covers) row_origin[threadIdx.x] = r0;  // slot i - ibase
-      __syncthreads();
-      if (n_rows == 0) continue;  // the same count in every thread
-      for (int64_t lbase = 0; lbase < d.FW; lbase += blockDim.x) {
-        const int64_t l = lbase + threadIdx.x;
-        int c0 = 0;
-        bool reaches = false;
-        if (l < d.FW) {
-          c0 = first[l * 2 + 1];
-          reaches = c0 < v0 + kDotPixels && c0 + side > v0;
-        }
-        const int n_cols = ordered_append(reaches, static_cast<int>(l), cols, 0, warp_counts);
-        if (reaches) col_origin[threadIdx.x] = c0;  // slot l - lbase
-        __syncthreads();
-        const int pairs = n_rows * n_cols;
-        for (int item = threadIdx.x; item < pairs * kDotPixels; item += blockDim.x) {
-          const int q = item / pairs, pair = item - q * pairs;
-          const int a = pair / n_cols, e = pair - a * n_cols;
-          const int64_t i_cell = rows[a], l_cell = cols[e];
-          const int dv = v0 + q - col_origin[l_cell - lbase];
-          if (v0 + q >= d.W || dv < 0 || dv >= side) continue;
-          const int dr = u - row_origin[i_cell - ibase];
-          const int64_t cell = j * cells_per_jitter + i_cell * d.FW + l_cell;
-          const T* gc = g + cell * C;
-          const T* f = F + (static_cast<int64_t>(u) * d.W + v0 + q) * C;
-          T acc = 0;
-          for (int64_t c = 0; c < C; ++c) acc += gc[c] * f[c];
-          dots[cell * area + dr * side + dv] = acc;
-        }
-        __syncthreads();
-      }
+    gzl_out[cell * KK + p] = gz * m * bilinear(logit_map, d.W, s.ty[py], s.tx[px]);
+    const T coef = gz * m * w[p];
+    const Tap<T>& ty = s.ty[py];
+    const Tap<T>& tx = s.tx[px];
+    T* base = grad_logit + static_cast<int64_t>(ty.index) * d.W + tx.index;
+    const T wy0 = T(1) - ty.frac, wx0 = T(1) - tx.frac;
+    atomicAdd(base, coef * wy0 * wx0);
+    if (tx.second) atomicAdd(base + 1, coef * wy0 * tx.frac);
+    if (ty.second) {
+      atomicAdd(base + d.W, coef * ty.frac * wx0);
+      if (tx.second) atomicAdd(base + d.W + 1, coef * ty.frac * tx.frac);
     }
   }
+  __syncthreads();
+  // the cell's source tile, for the features' gradient
+  build_tile(d, s);
+  for (int t = threadIdx.x; t < side * side; t += blockDim.x) tiles[cell * side * side + t] = s.tile[t];
+  if (threadIdx.x == 0) {
+    origins[cell * 2] = s.r0;
+    origins[cell * 2 + 1] = s.c0;
+  }
 }
 
-// grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c],
-// and grad_logit_map[u, v0 + q] = the same sum over the cells' logit tiles (as channel C).
-// A block: one source row u, kPixelsPerBlock columns, threads over channels. A cell's tile origin
-// row depends on its jitter and window row only, its origin column on its jitter and window
-// column only: per jitter the block lists the window rows whose tiles cover row u and the window
-// columns whose tiles reach its columns (FH + FW tests instead of FH * FW), in index order, and
-// sums over their pairs in that order (no atomics: the same result on every run).
+// grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c].
+// A block: one source row u, kPixelsPerBlock columns, threads over channels; the covering cells
+// of each jitter are listed in shared memory first (rows and columns tested from the origins).
 template <typename T>
 __global__ void __launch_bounds__(kMaxThreads) grad_features_kernel(const T* __restrict__ g,
                                                                     const T* __restrict__ tiles,
-                                                                    const T* __restrict__ logit_tiles,
                                                                     const int32_t* __restrict__ origins,
-                                                                    WindowDims d, T* __restrict__ gF,
-                                                                    T* __restrict__ gL) {
-  __shared__ int rows[kMaxThreads], row_origin[kMaxThreads], cols[kMaxThreads], col_origin[kMaxThreads];
-  __shared__ int warp_counts[kMaxThreads / 32];
+                                                                    WindowDims d, T* __restrict__ gF) {
+  __shared__ int list[kMaxThreads];
+  __shared__ int count;
   const int u = blockIdx.y, v0 = blockIdx.x * kPixelsPerBlock;
   const int side = static_cast<int>(d.K) + 3, area = side * side;
   const int64_t cells_per_jitter = d.FH * d.FW;
-  for (int64_t cbase = 0; cbase <= d.C; cbase += blockDim.x) {  // channels, then the logit (c = C)
+  for (int64_t cbase = 0; cbase < d.C; cbase += blockDim.x) {
     const int64_t c = cbase + threadIdx.x;
     T acc[kPixelsPerBlock];
 #pragma unroll
     for (int q = 0; q < kPixelsPerBlock; ++q) acc[q] = T(0);
-    for (int64_t j = 0; j < d.J; ++j) {
-      const int32_t* first = origins + j * cells_per_jitter * 2;  // cell (j, 0, 0)
-      for (int64_t ibase = 0; ibase < d.FH; ibase += blockDim.x) {
-        const int64_t i = ibase + threadIdx.x;
-        int r0 = 0;
-        bool covers = false;
-        if (i < d.FH) {
-          r0 = first[i * d.FW * 2];
-          covers = u >= r0 && u < r0 + side;
-        }
-        const int n_rows = ordered_append(covers, static_cast<int>(i), rows, 0, warp_counts);
-        if (covers) row_origin[threadIdx.x] = r0;  // slot i - ibase
+    for (int64_t j = 0; j < d.J; ++j)
+      for (int64_t chunk = 0; chunk < cells_per_jitter; chunk += blockDim.x) {
+        if (threadIdx.x == 0) count = 0;
         __syncthreads();
-        if (n_rows == 0) continue;  // the same count in every thread
-        for (int64_t lbase = 0; lbase < d.FW; lbase += blockDim.x) {
-          const int64_t l = lbase + threadIdx.x;
-          int c0 = 0;
-          bool reaches = false;
-          if (l < d.FW) {
-            c0 = first[l * 2 + 1];
-            reaches = c0 < v0 + kPixelsPerBlock && c0 + side > v0;
-          }
-          const int n_cols = ordered_append(reaches, static_cast<int>(l), cols, 0, warp_counts);
-          if (reaches) col_origin[threadIdx.x] = c0;  // slot l - lbase
-          __syncthreads();
-          if (c <= d.C)
-            for (int a = 0; a < n_rows; ++a) {
-              const int64_t i_cell = rows[a];
-              const int dr = u - row_origin[i_cell - ibase];
-              for (int e = 0; e < n_cols; ++e) {
-                const int64_t l_cell = cols[e];
-                const int c0e = col_origin[l_cell - lbase];
-                const int64_t cell = j * cells_per_jitter + i_cell * d.FW + l_cell;
-                const bool logit = c == d.C;
-                const T gval = logit ? T(1) : g[cell * d.C + c];
-                const T* trow = (logit ? logit_tiles : tiles) + cell * area + dr * side;
-#pragma unroll
-                for (int q = 0; q < kPixelsPerBlock; ++q) {
-                  const int dv = v0 + q - c0e;
-                  if (dv >= 0 && dv < side) acc[q] += trow[dv] * gval;
-                }
-              }
-            }
-          __syncthreads();
+        const int64_t local = chunk + threadIdx.x;
+        if (local < cells_per_jitter) {
+          const int64_t cell = j * cells_per_jitter + local;
+          const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
+          if (u >= r0 && u < r0 + side && c0 < v0 + kPixelsPerBlock && c0 + side > v0)
+            list[atomicAdd(&count, 1)] = static_cast<int>(cell);
         }
+        __syncthreads();
+        const int n = count;
+        if (c < d.C)
+          for (int e = 0; e < n; ++e) {
+            const int64_t cell = list[e];
+            const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
+            const T gval = g[cell * d.C + c];
+            const T* trow = tiles + cell * area + (u - r0) * side;
+#pragma unroll
+            for (int q = 0; q < kPixelsPerBlock; ++q) {
+              const int dv = v0 + q - c0;
+              if (dv >= 0 && dv < side) acc[q] += trow[dv] * gval;
+            }
+          }
+        __syncthreads();
       }
-    }
-    if (c < d.C) {
+    if (c < d.C)
 #pragma unroll
       for (int q = 0; q < kPixelsPerBlock; ++q)
         if (v0 + q < d.W) gF[(static_cast<int64_t>(u) * d.W + v0 + q) * d.C + c] = acc[q];
-    } else if (c == d.C) {
-#pragma unroll
-      for (int q = 0; q < kPixelsPerBlock; ++q)
-        if (v0 + q < d.W) gL[static_cast<int64_t>(u) * d.W + v0 + q] = acc[q];
-    }
   }
 }
 
@@ -441,37 +304,29 @@ template <typename scalar_t>
 void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
                                   const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
                                   const scalar_t* mask, const scalar_t* attn, WindowDims d, scalar_t* gz,
-                                  scalar_t* gz_logit, scalar_t* logit_tiles, scalar_t* dots, scalar_t* tiles,
+                                  scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* tiles,
                                   int32_t* origins, void* stream) {
   const int64_t cells = d.J * d.FH * d.FW;
   if (cells == 0) return;
-  auto st = static_cast<cudaStream_t>(stream);
-  cell_tiles_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, st>>>(coord_y, coord_x, attn, d, tiles,
-                                                                                   origins);
-  const dim3 rows(static_cast<unsigned>((d.W + kDotPixels - 1) / kDotPixels), static_cast<unsigned>(d.H));
-  pixel_dots_kernel<scalar_t><<<rows, kMaxThreads, 0, st>>>(grad_out, features, origins, d, dots);
-  backward_cells_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, st>>>(
-      dots, logit_map, coord_y, coord_x, w, mask, attn, d, gz, gz_logit, logit_tiles);
+  backward_cells_kernel<scalar_t><<<static_cast<unsigned>(cells), kMaxThreads, 0, static_cast<cudaStream_t>(stream)>>>(
+      grad_out, features, logit_map, coord_y, coord_x, w, mask, attn, d, gz, gz_logit, grad_logit_map, tiles, origins);
 }
 
 template <typename scalar_t>
-void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const scalar_t* logit_tiles,
-                                 const int32_t* origins, WindowDims d, scalar_t* grad_features,
-                                 scalar_t* grad_logit_map, void* stream) {
-  if (d.H * d.W == 0) return;
+void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const int32_t* origins,
+                                 WindowDims d, scalar_t* grad_features, void* stream) {
+  if (d.H * d.W * d.C == 0) return;
   const dim3 grid(static_cast<unsigned>((d.W + kPixelsPerBlock - 1) / kPixelsPerBlock), static_cast<unsigned>(d.H));
-  grad_features_kernel<scalar_t><<<grid, threads_for(d.C + 1), 0, static_cast<cudaStream_t>(stream)>>>(
-      grad_out, tiles, logit_tiles, origins, d, grad_features, grad_logit_map);
+  grad_features_kernel<scalar_t><<<grid, threads_for(d.C), 0, static_cast<cudaStream_t>(stream)>>>(
+      grad_out, tiles, origins, d, grad_features);
 }
 
 #define TIGER_INSTANTIATE(T)                                                                                    \
   template void launch_window_forward<T>(const T*, const T*, const T*, const T*, const T*, const T*, const T*,  \
                                          WindowDims, T*, T*, void*);                                            \
   template void launch_window_backward_cells<T>(const T*, const T*, const T*, const T*, const T*, const T*,     \
-                                                const T*, const T*, WindowDims, T*, T*, T*, T*, T*, int32_t*,     \
-                                                void*);                                                           \
-  template void launch_window_grad_features<T>(const T*, const T*, const T*, const int32_t*, WindowDims, T*, T*, \
-                                               void*);
+                                                const T*, const T*, WindowDims, T*, T*, T*, T*, int32_t*, void*); \
+  template void launch_window_grad_features<T>(const T*, const T*, const int32_t*, WindowDims, T*, void*);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
 #undef TIGER_INSTANTIATE

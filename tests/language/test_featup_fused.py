@@ -38,8 +38,7 @@ def reference(x, logit_map, params, down, mask, size):
 def fused(x, logit_map, params, down, mask, size):
     h, w = x.shape[-2:]
     sy, sx = jitter_coords(params, h, w)
-    return fused_window_attention(down, logit_map[0, 0], x[0].permute(1, 2, 0), reflect_coords(sy, h),
-                                  reflect_coords(sx, w), size, mask)
+    return fused_window_attention(down, logit_map, x, reflect_coords(sy, h), reflect_coords(sx, w), size, mask)
 
 
 GEOMETRIES = [((40, 72), (5, 9), 11), ((33, 47), (8, 14), 7), ((64, 112), (4, 7), 29), ((24, 30), (3, 4), 9)]
@@ -141,9 +140,7 @@ def _both(args, device):
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("shape", [dict(), dict(h=13, w=17, c=37, j=3, size=(3, 4), k=5, stride=(4, 4)),
-                                   dict(h=40, w=64, c=129, j=4, size=(3, 5), k=11, stride=(9, 11)),
-                                   # more window columns than threads: the covering cells in chunks
-                                   dict(h=12, w=400, c=5, j=2, size=(2, 130), k=3, stride=(4, 3))])
+                                   dict(h=40, w=64, c=129, j=4, size=(3, 5), k=11, stride=(9, 11))])
 def test_cuda_equals_cpu(dtype, shape):
     args = op_args(dtype=dtype, **shape)
     cpu, gpu = _both(args, "cpu"), _both(args, "cuda")
@@ -193,34 +190,10 @@ def test_cuda_graph_fit_equals_the_eager_fit():
                              n_freqs=6, dropout=0.0, precision="fp32")
         graphed = ImplicitUpsampler.fit(img, backbone, cfg)
         eager = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(cfg, cuda_graph=False))
-        # NAdam's first steps can amplify rounding differences where gradients are near zero:
-        # losses to rounding, maps in direction
+        # the logit map's gradient is summed with atomics (order-dependent rounding), which NAdam's
+        # first steps can amplify where gradients are near zero: losses to rounding, maps in direction
         torch.testing.assert_close(torch.tensor(graphed.history), torch.tensor(eager.history), rtol=2e-3, atol=1e-5)
         cos = F.cosine_similarity(graphed(), eager(), dim=0)
         assert cos.mean() >= 0.999 and cos.min() > 0.99, (cos.mean(), cos.min())
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
-
-
-@needs_cuda
-def test_cuda_output_and_gradients_are_the_same_on_every_run():
-    """The output and the features' and logit map's gradients are summed in a fixed order (no
-    atomics): bitwise the same on every run, at FeatUp's geometry (129 channels, kernel 29,
-    overlapping windows of several jitters)."""
-    hw, size, kernel = (128, 224), (8, 14), 29
-    x, logit_map, params, down, mask = case(*hw, size, kernel, jitters=6, channels=129, max_pad=17)
-    h, w = hw
-    sy, sx = jitter_coords(params, h, w)
-    k, sh, sw, _, _ = window_geometry(h, w, size, kernel)
-    args = [t.float().cuda() for t in (x[0].permute(1, 2, 0).contiguous(), logit_map[0, 0], reflect_coords(sy, h),
-                                       reflect_coords(sx, w), down.w[:k, :k].detach(), down.b[:k, :k].detach(), mask)]
-    leaves = (args[0].requires_grad_(), args[1].requires_grad_())
-    out, _ = jittered_window_attention(*args, (sh, sw))
-    g = torch.randn(out.shape, generator=torch.Generator().manual_seed(3)).cuda()
-    first_out = out.detach().clone()
-    first = torch.autograd.grad((out * g).sum(), leaves)
-    for _ in range(3):
-        out, _ = jittered_window_attention(*args, (sh, sw))
-        assert torch.equal(out, first_out)
-        again = torch.autograd.grad((out * g).sum(), leaves)
-        assert torch.equal(again[0], first[0]) and torch.equal(again[1], first[1])

@@ -18,11 +18,7 @@ Same model, parameters, initial weights, jitters and view picks as the reference
   :func:`apply_jitters` then :func:`window_attention`, is kept as the reference it is tested
   against (tests/language/test_featup_fused.py).
 * **Blur once, before the jitters** (the reference blurs each jittered copy): the blurred output
-  is also the blur-pin regulariser's, so one blur serves both. The network's output stays
-  channels last (its native layout) up to the attention op: ``tiger::magnitude_blur`` takes each
-  pixel's magnitude and blurs (magnitude, features) in one op, and ``tiger::masked_logit`` takes
-  the attention logit of the dropped-out blurred map (the mask drawn channels first, as before),
-  with no channels-first copy.
+  is also the blur-pin regulariser's, so one blur serves both.
 * **No host sync per step, one CUDA graph** (``ImplicitConfig.cuda_graph``): every step's view
   picks are drawn up front from the CPU generator in the reference's order, losses stay on the
   device, and on CUDA the step (forward, backward, NAdam with ``capturable=True``) is captured
@@ -167,25 +163,24 @@ def _autocast(device: torch.device, precision: str):
     return contextlib.nullcontext()
 
 
-def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, features: torch.Tensor,
+def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, x: torch.Tensor,
                            coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int, int],
                            mask: torch.Tensor) -> torch.Tensor:
     """``window_attention(down, *apply_jitters(cat([logit_map, x]), grid).split([1, C], 1), size, mask)``
-    in one op (``tiger::jittered_window_attention``), without the jittered copies; x is
-    ``features`` channels first.
+    in one op (``tiger::jittered_window_attention``), without the jittered copies.
 
-    ``logit_map`` [H, W], ``features`` [H, W, C] channels last (float32/float64; read in place
-    when contiguous); ``coord_y`` [J, H] and ``coord_x`` [J, W] the jitters' reflected source
-    coordinates (:func:`jitter_coords`, :func:`reflect_coords`); ``mask`` [J, fh, fw] the logit
-    mask. Returns [J, C, fh, fw] (a view of the op's channels-last output).
+    ``logit_map`` [1, 1, H, W], ``x`` [1, C, H, W] (float32/float64); ``coord_y`` [J, H] and
+    ``coord_x`` [J, W] the jitters' reflected source coordinates (:func:`jitter_coords`,
+    :func:`reflect_coords`); ``mask`` [J, fh, fw] the logit mask. Returns [J, C, fh, fw].
     """
     from tiger.ops.featup import jittered_window_attention
 
-    h, w = features.shape[:2]
+    h, w = x.shape[-2:]
     k, sh, sw, _, _ = window_geometry(h, w, size, down.kernel)
-    dt = features.dtype
-    out, _ = jittered_window_attention(features.contiguous(), logit_map.to(dt), coord_y.to(dt), coord_x.to(dt),
-                                       down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt), (sh, sw))
+    dt = x.dtype
+    out, _ = jittered_window_attention(x[0].permute(1, 2, 0).contiguous(), logit_map[0, 0].to(dt), coord_y.to(dt),
+                                       coord_x.to(dt), down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt),
+                                       (sh, sw))
     return out.permute(0, 3, 1, 2)
 
 
@@ -370,30 +365,22 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
                cfg: "ImplicitConfig") -> torch.Tensor:
     """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor);
     ``network`` is the implicit network's ``forward_pixels`` (or its compiled form)."""
-    from tiger.ops.featup import magnitude_blur, masked_logit
-
     from .featup import _fit_loss
 
     dev = img.device
     fh, fw = targets.shape[-2:]
     with _autocast(dev, cfg.precision):
-        hr = network(img)  # [1, C, h, w], a view of the network's channels-last [1, h, w, C]
-    # channels last from here to the attention op: the network's layout, no permuted copies
-    hr_hwc = hr[0].permute(1, 2, 0)  # [h, w, C]
-    blurred, hr_mag = magnitude_blur(hr_hwc, 2, 1.0)  # [h, w, 1 + C] (magnitude first), [h, w]; float32
-    keep = None
-    if down.dropout > 0:
-        # the attention input's dropout mask, drawn as F.dropout draws it for the channels-first
-        # [1, 1 + C, h, w] map (bernoulli, then divided by the keep rate); masked_logit reads it
-        # channels first and the map channels last
-        keep = blurred.new_empty(blurred.shape[-1], *blurred.shape[:2]).bernoulli_(1 - down.dropout)
-        keep.div_(1 - down.dropout)
+        hr = network(img)
+    hr = hr.float().contiguous()
+    hr_mag = hr.norm(dim=1, keepdim=True)
+    blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
+    logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
     lin = down.attention[1]
-    logit_map = masked_logit(blurred, keep, lin.weight.view(-1), lin.bias)  # [h, w]
+    logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
     n = idx.shape[0]
     if down.dropout > 0:
         mask = (torch.rand(n, fh, fw, device=dev) > down.dropout).float()
     else:
         mask = torch.ones(n, fh, fw, device=dev)
     out = fused_window_attention(down, logit_map, blurred, coord_y[idx], coord_x[idx], (fh, fw), mask)
-    return _fit_loss(cfg, out, targets[idx], outlier, hr_hwc, hr_mag, lambda: blurred[..., 1:])
+    return _fit_loss(cfg, out, targets[idx], outlier, hr, hr_mag, lambda: blurred[:, 1:])
