@@ -76,32 +76,12 @@ def map_loader(feature_maps: FeatureSource, cameras: Sequence[Camera]) -> Callab
                 chosen.append(names[i])
             else:
                 chosen.append(by_name[key])
-        def from_disk(i: int) -> FeatureMap:
-            return feature_maps.load(chosen[i])
-
-        from_disk.reads_files = True  # type: ignore[attr-defined]  (ResidentMaps reads these on threads)
-        return from_disk
+        return lambda i: feature_maps.load(chosen[i])
     if callable(feature_maps):
         return feature_maps
     if len(feature_maps) != n:
         raise ValueError(f"tiger.train_field: {len(feature_maps)} feature maps for {n} cameras")
     return lambda i: feature_maps[i]
-
-
-#: Threads that read map files at once: a 1080p 64-d float16 map is 265 MB, and one thread
-#: decoding them one by one kept the fox's 50 maps ~10 s from the first training step.
-READ_THREADS = 8
-
-
-def _read_all(load: Callable[[int], FeatureMap], count: int) -> list[FeatureMap]:
-    """``[load(i) for i in range(count)]``; read on up to :data:`READ_THREADS` threads when ``load``
-    reads files (:func:`map_loader` of a store), in order either way."""
-    if not getattr(load, "reads_files", False) or count < 2:
-        return [load(i) for i in range(count)]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=min(READ_THREADS, count)) as pool:
-        return list(pool.map(load, range(count)))
 
 
 @dataclass
@@ -152,8 +132,8 @@ class ResidentMaps:
         self._host: list[tuple[torch.Tensor, Optional[torch.Tensor]]] = []
         self.n_valid: list[int] = []
         self._valid_rows: list[torch.Tensor] = []
-        for i, item in enumerate(_read_all(load, count)):
-            feats, valid = as_map(item, i)
+        for i in range(count):
+            feats, valid = as_map(load(i), i)
             dim = dim or int(feats.shape[2])
             if feats.shape[2] != dim:
                 raise ValueError(f"tiger.train_field: feature map {i} has {feats.shape[2]} channels, L has {dim}")
