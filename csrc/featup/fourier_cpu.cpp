@@ -11,6 +11,7 @@
 #include <tuple>
 #include <vector>
 
+#include "common/optional_tensor.h"
 #include "featup/fourier.h"
 #include "featup/fourier_glue.h"
 #include "featup/fourier_math.h"
@@ -143,11 +144,6 @@ void dispatch_types(at::ScalarType in_dt, at::ScalarType out_dt, Fn&& f) {
   }
 }
 
-template <typename T>
-const T* optional_ptr(const std::optional<at::Tensor>& t) {
-  return t.has_value() ? t->data_ptr<T>() : nullptr;
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor> fourier_cpu(const at::Tensor& inputs, const at::Tensor& freqs,
                                                            const at::Tensor& phase, const at::Tensor& weight,
                                                            const at::Tensor& bias,
@@ -158,7 +154,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fourier_cpu(const at::Tensor& inp
   TORCH_CHECK(inputs.device().is_cpu(), kFourierOp, "inputs must be on the CPU here, got ", inputs.device());
   const auto in = inputs.contiguous(), fr = freqs.contiguous(), ph = phase.contiguous(), w = weight.contiguous(),
              b = bias.contiguous();
-  const std::optional<at::Tensor> s = scale.has_value() ? std::optional<at::Tensor>(scale->contiguous()) : std::nullopt;
+  const auto s = contiguous(scale);
   auto out = at::empty({d.B, d.N, d.C}, in.options().dtype(odt));
   auto mean = at::empty({d.B, d.N}, in.options()), rstd = at::empty({d.B, d.N}, in.options());
   dispatch_types(in.scalar_type(), odt, [&](auto t, auto o) {
@@ -180,7 +176,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> fourier_backward_cpu(
   TORCH_CHECK(inputs.device().is_cpu(), "tiger.fourier_layer_norm_backward: inputs must be on the CPU here");
   const auto g = grad_out.contiguous(), in = inputs.contiguous(), fr = freqs.contiguous(), ph = phase.contiguous(),
              w = weight.contiguous(), mu = mean.contiguous(), rs = rstd.contiguous();
-  const std::optional<at::Tensor> s = scale.has_value() ? std::optional<at::Tensor>(scale->contiguous()) : std::nullopt;
+  const auto s = contiguous(scale);
   const int64_t blocks = (d.B * d.N + kPixelBlock - 1) / kPixelBlock;
   auto grad_in = input_grad ? at::empty({d.B, d.N, kFourierInputs}, in.options()) : at::empty({0}, in.options());
   auto partials = at::empty({blocks, 3 * d.C}, in.options());

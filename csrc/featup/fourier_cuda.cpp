@@ -9,6 +9,7 @@
 #include <optional>
 #include <tuple>
 
+#include "common/optional_tensor.h"
 #include "featup/fourier.h"
 #include "featup/fourier_glue.h"
 
@@ -41,15 +42,6 @@ void check_cuda(const at::Tensor& inputs, const FourierDims& d, const char* op) 
   TORCH_CHECK(inputs.is_cuda(), op, " (CUDA): inputs must be on a CUDA device");
   TORCH_CHECK(d.C <= kMaxFourierChannels, op, " (CUDA): at most ", kMaxFourierChannels, " channels (",
               (kMaxFourierChannels - 3) / 10, " frequencies), got ", d.C);
-}
-
-template <typename T>
-const T* optional_ptr(const std::optional<at::Tensor>& t) {
-  return t.has_value() ? t->data_ptr<T>() : nullptr;
-}
-
-std::optional<at::Tensor> contiguous(const std::optional<at::Tensor>& t) {
-  return t.has_value() ? std::optional<at::Tensor>(t->contiguous()) : std::nullopt;
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> fourier_cuda(const at::Tensor& inputs, const at::Tensor& freqs,

@@ -12,6 +12,7 @@
 #include <tuple>
 #include <vector>
 
+#include "common/optional_tensor.h"
 #include "featup/relu_norm.h"
 #include "featup/relu_norm_glue.h"
 
@@ -101,18 +102,13 @@ void dispatch_types(at::ScalarType dt, Fn&& f) {
   }
 }
 
-template <typename T>
-const T* optional_ptr(const std::optional<at::Tensor>& t) {
-  return t.has_value() ? t->data_ptr<T>() : nullptr;
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_cpu(const at::Tensor& x, const std::optional<at::Tensor>& scale,
                                                              const at::Tensor& weight, const at::Tensor& bias,
                                                              double eps) {
   const NormDims d = check_relu_norm(x, scale, weight, bias);
   TORCH_CHECK(x.device().is_cpu(), kReluNormOp, "x must be on the CPU here, got ", x.device());
   const auto xc = x.contiguous(), w = weight.contiguous(), b = bias.contiguous();
-  const std::optional<at::Tensor> s = scale.has_value() ? std::optional<at::Tensor>(scale->contiguous()) : std::nullopt;
+  const auto s = contiguous(scale);
   auto out = at::empty_like(xc);
   auto mean = at::empty({d.B, d.N}, w.options()), rstd = at::empty({d.B, d.N}, w.options());
   dispatch_types(xc.scalar_type(), [&](auto xt, auto t) {
@@ -134,7 +130,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_backward_cpu(const at::
   TORCH_CHECK(x.device().is_cpu(), "tiger.relu_scale_layer_norm_backward: x must be on the CPU here");
   const auto g = grad_out.contiguous(), xc = x.contiguous(), w = weight.contiguous(), mu = mean.contiguous(),
              rs = rstd.contiguous();
-  const std::optional<at::Tensor> s = scale.has_value() ? std::optional<at::Tensor>(scale->contiguous()) : std::nullopt;
+  const auto s = contiguous(scale);
   const int64_t blocks = (d.B * d.N + kPixelBlock - 1) / kPixelBlock;
   auto grad_x = at::empty_like(xc);
   auto partials = at::empty({blocks, 2 * d.D}, w.options());

@@ -9,6 +9,7 @@
 #include <optional>
 #include <tuple>
 
+#include "common/optional_tensor.h"
 #include "featup/relu_norm.h"
 #include "featup/relu_norm_glue.h"
 
@@ -31,15 +32,6 @@ void dispatch_cuda_types(at::ScalarType dt, Fn&& f) {
 void check_cuda(const at::Tensor& x, const NormDims& d, const char* op) {
   TORCH_CHECK(x.is_cuda(), op, " (CUDA): x must be on a CUDA device");
   TORCH_CHECK(d.D <= kMaxNormChannels, op, " (CUDA): at most ", kMaxNormChannels, " channels, got ", d.D);
-}
-
-template <typename T>
-const T* optional_ptr(const std::optional<at::Tensor>& t) {
-  return t.has_value() ? t->data_ptr<T>() : nullptr;
-}
-
-std::optional<at::Tensor> contiguous(const std::optional<at::Tensor>& t) {
-  return t.has_value() ? std::optional<at::Tensor>(t->contiguous()) : std::nullopt;
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_cuda(const at::Tensor& x,

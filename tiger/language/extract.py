@@ -20,6 +20,7 @@ writes the same bits.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -203,20 +204,20 @@ def compute_image_features(image: torch.Tensor, clip: MaskCLIP, sam: SamMaskGene
     adds the seconds of the upsampling, of the masks beyond it and of the averages."""
     h, w = image.shape[-2:]
     size = cfg.out_size(h, w)
-    timer = timer or StageTimer(image.device)
+    stage = timer if timer is not None else (lambda name: contextlib.nullcontext())
     # SAM does not depend on the features: on CUDA it runs on a side stream while the upsampler
     # (the implicit fit: ~400 small graphed steps) leaves most of the GPU idle
     masks = run_beside(lambda: sam(image, size).id_map().reshape(-1), image.device, (image,)) \
         if sam is not None else None
-    with timer("upsample"):
+    with stage("upsample"):
         hr, regen = _upsampled(image, clip, jbu, cfg, size)
     d = hr.shape[0]
     feats = _unit_rows(hr)
     del hr
-    with timer("masks beyond the upsampling"):
+    with stage("masks beyond the upsampling"):
         ids = masks() if masks is not None else \
             torch.full((feats.shape[0],), -1, dtype=torch.int64, device=feats.device)
-    with timer("mask averages, statistics"):
+    with stage("mask averages, statistics"):
         n_masks = int(ids.max().item()) + 1 if ids.numel() else 0
         _, means, counts = masked_average(feats, ids, n_masks)
         means = F.normalize(means, dim=1).half()

@@ -5,23 +5,18 @@ adds, channels-last)."""
 import pytest
 import torch
 
-from tiger.edit.guidance import ViewBatch
 from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
 
 pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
 
-def test_fresh_graph_equals_eager(tiny_models, ring_cameras):
+def test_fresh_graph_equals_eager(tiny_models, ip2p_step_inputs):
     ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
     eager = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True)
     graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)
     for seed in (0, 1):
         torch.manual_seed(seed)
-        views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
-                          object_center=torch.zeros(3))
-        renders = torch.rand(4, 3, 16, 16, device="cuda")
-        draws = dict(t=torch.randint(20, 201, (4,), device="cuda"), noise=torch.randn(4, 4, 8, 8, device="cuda"),
-                     vae_noise=torch.randn(4, 4, 8, 8, device="cuda"))
+        renders, views, draws = ip2p_step_inputs()
         a, _ = eager.grad(renders, views, **draws)
         b, _ = graphed.grad(renders, views, **draws)
         assert not graphed._cond_cache and len(graphed._graphed_fresh._graphs) == 1

@@ -7,7 +7,6 @@ step."""
 import pytest
 import torch
 
-from tiger.edit.guidance import ViewBatch
 from tiger.edit.guidance import model_kernels as mk
 from tiger.ops.fp8_rows import geglu, quantize_rows_fp8
 
@@ -65,7 +64,7 @@ def test_fp8_linear_scaled_mm_equals_emulation():
     assert cos > 0.998
 
 
-def test_graphed_ip2p_step_with_all_kernels_equals_eager(tiny_models, ring_cameras):
+def test_graphed_ip2p_step_with_all_kernels_equals_eager(tiny_models, ip2p_step_inputs):
     _needs_fp8()
     from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
 
@@ -76,11 +75,7 @@ def test_graphed_ip2p_step_with_all_kernels_equals_eager(tiny_models, ring_camer
     assert any(isinstance(m, mk.Fp8Linear) for m in ip.unet.modules())
     for seed in (0, 1):
         torch.manual_seed(seed)
-        views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
-                          object_center=torch.zeros(3))
-        renders = torch.rand(4, 3, 16, 16, device="cuda")
-        draws = dict(t=torch.randint(20, 201, (4,), device="cuda"), noise=torch.randn(4, 4, 8, 8, device="cuda"),
-                     vae_noise=torch.randn(4, 4, 8, 8, device="cuda"))
+        renders, views, draws = ip2p_step_inputs()
         a, _ = eager.grad(renders, views, **draws)
         b, _ = graphed.grad(renders, views, **draws)
         assert torch.isfinite(a).all() and float(a.abs().max()) > 0
@@ -97,17 +92,13 @@ def no_tf32():
     torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = conv, mm
 
 
-def test_graphed_default_kernels_equal_plain_eager_float32(tiny_models, ring_cameras, no_tf32):
+def test_graphed_default_kernels_equal_plain_eager_float32(tiny_models, ip2p_step_inputs, no_tf32):
     from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
 
     ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
     plain = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False)
     torch.manual_seed(3)
-    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
-                      object_center=torch.zeros(3))
-    renders = torch.rand(4, 3, 16, 16, device="cuda")
-    draws = dict(t=torch.tensor([30, 80, 130, 190], device="cuda"), noise=torch.randn(4, 4, 8, 8, device="cuda"),
-                 vae_noise=torch.randn(4, 4, 8, 8, device="cuda"))
+    renders, views, draws = ip2p_step_inputs(t=[30, 80, 130, 190])
     a, _ = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True,
                                    kernels=plain).grad(renders, views, **draws)
     graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)  # the defaults

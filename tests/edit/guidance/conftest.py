@@ -1,0 +1,23 @@
+import pytest
+import torch
+
+from tiger.edit.guidance import ViewBatch
+
+
+@pytest.fixture
+def ip2p_step_inputs(ring_cameras):
+    """A builder ``(device, t=None) -> (renders, views, draws)`` of one 16-px InstructPix2Pix
+    guidance step's inputs: 4 renders [4, 3, 16, 16] and originals in [0, 1] on the camera ring,
+    and ``draws`` (t [4], noise and vae_noise [4, 4, 8, 8]) for ``guidance.grad``. Drawn from
+    torch's global generator in this order: originals, renders, t (unless given), noise, vae_noise."""
+
+    def make(device: str = "cuda", t=None):
+        views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device=device),
+                          object_center=torch.zeros(3))
+        renders = torch.rand(4, 3, 16, 16, device=device)
+        t = torch.randint(20, 201, (4,), device=device) if t is None else torch.tensor(t, device=device)
+        draws = dict(t=t, noise=torch.randn(4, 4, 8, 8, device=device),
+                     vae_noise=torch.randn(4, 4, 8, 8, device=device))
+        return renders, views, draws
+
+    return make
