@@ -242,29 +242,3 @@ def test_fit_stops_once_the_map_settles_and_featurises_only_picked_views():
     assert 8 < loose.views_featurised <= 8 + STOP.min_steps * STOP.jitters_per_step
     with pytest.raises(ValueError, match="stop_change"):
         ImplicitConfig(stop_change=1.0)
-
-
-def test_view_block_and_overlap_do_not_change_the_cpu_fit():
-    """How many steps' views one backbone call featurises (and the overlap flag, a no-op on the
-    CPU) leaves the fit unchanged: the backbone featurises each view on its own."""
-    img, backbone = _photo(48, 80), PatchBackbone()
-    cfg = dataclasses.replace(FIT, steps=12, dropout=0.0)
-    a = ImplicitUpsampler.fit(img, backbone, cfg)
-    b = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(cfg, view_block=5, overlap_views=False))
-    assert a.history == b.history and a.views_featurised == b.views_featurised
-    torch.testing.assert_close(a(), b(), atol=0, rtol=0)
-    with pytest.raises(ValueError, match="view_block"):
-        ImplicitConfig(view_block=0)
-
-
-@needs_cuda
-def test_views_featurised_beside_the_steps_give_the_same_fit():
-    """On CUDA the next block's views are featurised on a side stream beside the graphed steps:
-    the same fit as featurising them on the steps' stream (same groups, same seed)."""
-    img, backbone = _photo(48, 80).cuda(), PatchBackbone().cuda()
-    cfg = dataclasses.replace(FIT, steps=40, view_block=4, n_views=400, pca_batch=16)
-    beside = ImplicitUpsampler.fit(img, backbone, cfg)
-    inline = ImplicitUpsampler.fit(img, backbone, dataclasses.replace(cfg, overlap_views=False))
-    assert beside.views_featurised == inline.views_featurised
-    torch.testing.assert_close(torch.tensor(beside.history), torch.tensor(inline.history), atol=1e-6, rtol=1e-5)
-    torch.testing.assert_close(beside(), inline(), atol=1e-5, rtol=1e-4)

@@ -395,12 +395,6 @@ class ImplicitConfig:
     ``1 - stop_change`` (``stop_change=0`` runs every step). The loss is no stopping signal: its
     outlier term keeps falling after the map has settled. Views are featurised when a step
     first picks them, so the views that a stopped fit never picks cost nothing.
-
-    The fast fit featurises the new views of each block of ``view_block`` steps together.
-    ``overlap_views``: on CUDA it does so for the next block on a side stream while the current
-    block's steps run (the steps are small and leave the GPU mostly idle; the backbone is
-    compute-bound), so only the first block's views wait. The groups are the same either way, so
-    the fit is the same (a stopped fit has featurised one block more).
     """
 
     steps: int = 1200
@@ -429,8 +423,6 @@ class ImplicitConfig:
     precision: str = "bf16"
     cuda_graph: bool = True
     compile_network: bool = False
-    overlap_views: bool = True
-    view_block: int = 25
 
     def __post_init__(self) -> None:
         if self.method not in ("fast", "reference"):
@@ -441,8 +433,6 @@ class ImplicitConfig:
             raise ValueError(f"tiger.ImplicitConfig: stop_change must be in [0, 1), got {self.stop_change}")
         if self.check_every < 1:
             raise ValueError(f"tiger.ImplicitConfig: check_every must be >= 1, got {self.check_every}")
-        if self.view_block < 1:
-            raise ValueError(f"tiger.ImplicitConfig: view_block must be >= 1, got {self.view_block}")
 
 
 def _tv(x: torch.Tensor) -> torch.Tensor:

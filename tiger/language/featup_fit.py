@@ -229,22 +229,16 @@ class JitterTargets:
         return int(self.ready.sum())
 
     @torch.no_grad()
-    def ensure(self, picks: torch.Tensor, stream: "torch.cuda.Stream | None" = None) -> None:
-        """Featurise the views among ``picks`` (CPU long tensor, any shape) not featurised yet.
-
-        With ``stream`` (a side CUDA stream that has waited for the buffer's creation) the work is
-        only queued there: the rows may be read once the reading stream has waited for ``stream``.
-        No other queued work reads them (their views were not featurised, so no step picked them
-        yet), so the side stream may run beside the fit's steps."""
+    def ensure(self, picks: torch.Tensor) -> None:
+        """Featurise the views among ``picks`` (CPU long tensor, any shape) not featurised yet."""
         need = picks.flatten().unique()
         need = need[~self.ready[need]]
         if need.numel() == 0:
             return
-        with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
-            rows = need.to(self.params.device)
-            feats = featurize_jitters(self.img, self.featurizer, self.params[rows], self.cfg.featurize_batch,
-                                      self.cfg.precision, self.norm)
-            self.buffer[rows] = self._project(feats, self.mean, self.basis)
+        rows = need.to(self.params.device)
+        feats = featurize_jitters(self.img, self.featurizer, self.params[rows], self.cfg.featurize_batch,
+                                  self.cfg.precision, self.norm)
+        self.buffer[rows] = self._project(feats, self.mean, self.basis)
         self.ready[need] = True
 
 
@@ -311,14 +305,14 @@ def fit_loop(img: torch.Tensor, targets: JitterTargets, params: torch.Tensor, ne
         if graph and not captured:
             captured = True  # one try
             warm = min(3, end - i)  # real steps, run on a side stream as graph capture requires
-            warm_stream = torch.cuda.Stream(dev)
-            warm_stream.wait_stream(torch.cuda.current_stream(dev))
-            with torch.cuda.stream(warm_stream):
+            side = torch.cuda.Stream(dev)
+            side.wait_stream(torch.cuda.current_stream(dev))
+            with torch.cuda.stream(side):
                 for _ in range(warm):
                     next(steps)
                     eager(i)
                     i += 1
-            torch.cuda.current_stream(dev).wait_stream(warm_stream)
+            torch.cuda.current_stream(dev).wait_stream(side)
             try:
                 cuda_graph = torch.cuda.CUDAGraph()
                 opt.zero_grad(set_to_none=True)
@@ -340,33 +334,13 @@ def fit_loop(img: torch.Tensor, targets: JitterTargets, params: torch.Tensor, ne
 
     stopping = cfg.stop_change > 0
     chunk = cfg.check_every if stopping else max(cfg.steps, 1)
-    # on CUDA the backbone passes of the next block's views run on a side stream beside this
-    # block's steps: the steps leave most of the GPU idle, the backbone is compute-bound
-    main = torch.cuda.current_stream(dev) if dev.type == "cuda" else None
-    side = torch.cuda.Stream(dev) if main is not None and cfg.overlap_views else None
-    if side is not None:
-        side.wait_stream(main)  # the buffer, the image and the jitters
-    block = min(cfg.view_block, chunk)  # steps whose new views one backbone call featurises
-    queued = 0  # the views of the steps before this one are featurised (or queued on the side stream)
-
-    def views_through(end: int, stream: "torch.cuda.Stream | None") -> None:
-        nonlocal queued
-        if end > queued:
-            targets.ensure(picks_host[queued:end], stream)
-            queued = end
-
     checks: list[tuple[int, float]] = []
     previous = None
     done = 0
     while done < cfg.steps:
         end = min(done + chunk, cfg.steps)
-        for start in range(done, end, block):
-            stop = min(start + block, end)
-            views_through(stop, None)
-            if side is not None:
-                main.wait_stream(side)
-                views_through(min(stop + block, cfg.steps), side)
-            run(start, stop)
+        targets.ensure(picks_host[done:end])
+        run(done, end)
         done = end
         if stopping and done < cfg.steps and done + chunk >= cfg.min_steps:
             current = fitted_directions(net, img, targets, cfg.precision)
@@ -377,8 +351,6 @@ def fit_loop(img: torch.Tensor, targets: JitterTargets, params: torch.Tensor, ne
                     logger.debug("FeatUp fit: map settled after %d steps (change %.2e)", done, change)
                     break
             previous = current
-    if side is not None:  # the buffer may be freed after the fit: no side work may still write it
-        main.wait_stream(side)
     if hasattr(steps, "close"):
         steps.close()
     else:
