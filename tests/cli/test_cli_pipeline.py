@@ -51,6 +51,8 @@ def test_reconstruct_features_embed_query(tmp_path):
     r = _run("embed", str(out / "scene.ply"), str(data), "--features", str(feats), "--out",
              str(lang), "--steps", "20")
     assert r.returncode == 0, r.stderr[-2000:]
+    stages = r.stdout.split("seconds by stage: ")[1].splitlines()[0]  # where the embed's time went
+    assert [part.rsplit(" ", 1)[0] for part in stages.split(", ")][:2] == ["read maps", "project and bin"]
     r = _run("info", str(lang))
     assert r.returncode == 0 and "with PCA basis" in r.stdout, r.stdout + r.stderr
 

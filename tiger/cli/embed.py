@@ -101,13 +101,16 @@ def run(args: argparse.Namespace) -> int:
         summary.add(f"lifted in {res.lift_seconds:.1f} s")
     scene.save_ply(out)
     write_record(record, "embed", settings, finished=True,
-                 results={"steps": res.steps, "full_loss": res.full_loss, "seconds": res.seconds})
+                 results={"steps": res.steps, "full_loss": res.full_loss, "seconds": res.seconds,
+                          "seconds_by_stage": res.stages})
     from tiger.scene.cameras_json import cameras_json_path, write_cameras_json
 
     if not cameras_json_path(out).is_file():  # `tiger render` renders along the capture's cameras
         write_cameras_json(cameras_json_path(out), capture)
     summary.add(f"{len(keep)} views, {res.steps} steps, {res.seconds:.1f} s"
                 + (f"; loss over every pixel of every view {res.full_loss:.4f}" if res.full_loss is not None else ""))
+    if res.stages:
+        summary.add("seconds by stage: " + ", ".join(f"{k} {v:.1f}" for k, v in res.stages.items()))
     summary.add(res.coverage())
     summary.add(f"scene with language features -> {out}")
     summary.print()
