@@ -43,3 +43,20 @@ def test_bad_inputs():
         principal_axes(m["count"], m["sum"], m["outer"], 2)
     with pytest.raises(ValueError, match=r"weights must be \[N\]"):
         moments(torch.randn(5, 3), torch.ones(4))
+
+
+def test_principal_axes_same_bits_for_any_thread_count():
+    """The basis a single process fits equals the one a torchrun rank (one thread) fits, bit for bit."""
+    g = torch.Generator().manual_seed(0)
+    m = moments(torch.randn(3000, 256, generator=g, dtype=torch.float64) @ torch.randn(256, 256, generator=g,
+                                                                                     dtype=torch.float64))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = principal_axes(m["count"], m["sum"], m["outer"], 32)
+        torch.set_num_threads(max(2, threads))
+        many = principal_axes(m["count"], m["sum"], m["outer"], 32)
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(one, many))
+    assert torch.get_num_threads() == threads

@@ -38,7 +38,7 @@ def principal_axes(count: Tensor, total: Tensor, outer: Tensor, k: int) -> tuple
     Returns:
         mean [D], components [D, k] (orthonormal columns by decreasing variance, each column's
         largest-magnitude entry positive, so the basis is deterministic), variances [k] (the
-        unbiased covariance's eigenvalues, clamped at 0).
+        unbiased covariance's eigenvalues, clamped at 0). The same bits for any thread count.
     """
     d = total.shape[0]
     if not 0 < k <= d:
@@ -47,7 +47,14 @@ def principal_axes(count: Tensor, total: Tensor, outer: Tensor, k: int) -> tuple
         raise ValueError("tiger.pca: a PCA needs more than one (weighted) sample")
     mean = total / count
     cov = (outer - count * torch.outer(mean, mean)) / (count - 1)
-    evals, evecs = torch.linalg.eigh(0.5 * (cov + cov.T))
+    # one thread: LAPACK's result depends on its thread count in the last bits, and the basis
+    # must be the same in a single process and in each torchrun rank (OMP_NUM_THREADS=1 there)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        evals, evecs = torch.linalg.eigh(0.5 * (cov + cov.T).cpu())
+    finally:
+        torch.set_num_threads(threads)
     comps = evecs[:, -k:].flip(1)
     var = evals[-k:].flip(0).clamp_min(0)
     sign = torch.sign(comps.gather(0, comps.abs().argmax(0, keepdim=True)))
