@@ -132,7 +132,7 @@ def main(argv: list | None = None) -> int:
         if not (folder / "featup" / "maskclip_jbu_stack_cocostuff.ckpt").is_file():
             t0 = time.perf_counter()
             subprocess.run([sys.executable, "-m", "benchmarks.gpu.write_random_models", str(folder),
-                            "--size", models], check=True, cwd=REPO)
+                            "--size", models, "--only", "clip", "sam", "featup_jbu"], check=True, cwd=REPO)
             print(f"random {models} models written in {time.perf_counter() - t0:.1f} s")
         models = None
         os.environ["TIGER_MODELS"] = str(folder)  # found as a user's $TIGER_MODELS folder
