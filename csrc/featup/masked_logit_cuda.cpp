@@ -16,9 +16,9 @@ namespace tiger {
 namespace featup {
 namespace {
 
-at::Tensor masked_logit_cuda(const at::Tensor& x, const std::optional<at::Tensor>& keep, const at::Tensor& weight,
-                             const at::Tensor& bias) {
-  const LogitDims d = check_masked_logit(x, keep, weight, &bias);
+at::Tensor masked_logit_cuda(const at::Tensor& x, const std::optional<at::Tensor>& keep, double keep_scale,
+                             const at::Tensor& weight, const at::Tensor& bias) {
+  const LogitDims d = check_masked_logit(x, keep, keep_scale, weight, &bias);
   TORCH_CHECK(x.is_cuda(), kMaskedLogitOp, "x must be on a CUDA device here, got ", x.device());
   const c10::cuda::CUDAGuard guard(x.device());
   const auto xc = x.contiguous(), w = weight.contiguous(), b = bias.contiguous();
@@ -26,7 +26,8 @@ at::Tensor masked_logit_cuda(const at::Tensor& x, const std::optional<at::Tensor
   auto logit = at::empty({x.size(0), x.size(1)}, xc.options());
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(xc.scalar_type(), "tiger.masked_logit", [&] {
-    launch_masked_logit_forward<scalar_t>(xc.data_ptr<scalar_t>(), optional_ptr<scalar_t>(kc),
+    launch_masked_logit_forward<scalar_t>(xc.data_ptr<scalar_t>(), optional_ptr<bool>(kc),
+                                          static_cast<scalar_t>(keep_scale),
                                           w.data_ptr<scalar_t>(), b.data_ptr<scalar_t>(), d,
                                           logit.data_ptr<scalar_t>(), stream);
   });
@@ -36,8 +37,9 @@ at::Tensor masked_logit_cuda(const at::Tensor& x, const std::optional<at::Tensor
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> masked_logit_backward_cuda(const at::Tensor& grad, const at::Tensor& x,
                                                                           const std::optional<at::Tensor>& keep,
-                                                                          const at::Tensor& weight, bool x_grad) {
-  const LogitDims d = check_masked_logit(x, keep, weight, nullptr);
+                                                                          double keep_scale, const at::Tensor& weight,
+                                                                          bool x_grad) {
+  const LogitDims d = check_masked_logit(x, keep, keep_scale, weight, nullptr);
   check_masked_logit_grad(grad, x);
   TORCH_CHECK(x.is_cuda(), "tiger.masked_logit_backward: x must be on a CUDA device here, got ", x.device());
   const c10::cuda::CUDAGuard guard(x.device());
@@ -55,7 +57,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> masked_logit_backward_cuda(const 
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   AT_DISPATCH_FLOATING_TYPES(xc.scalar_type(), "tiger.masked_logit_backward", [&] {
     launch_masked_logit_backward<scalar_t>(g.data_ptr<scalar_t>(), xc.data_ptr<scalar_t>(),
-                                           optional_ptr<scalar_t>(kc), w.data_ptr<scalar_t>(), d,
+                                           optional_ptr<bool>(kc), static_cast<scalar_t>(keep_scale),
+                                           w.data_ptr<scalar_t>(), d,
                                            x_grad ? grad_x.data_ptr<scalar_t>() : nullptr,
                                            partials.data_ptr<scalar_t>(), blocks, grad_w.data_ptr<scalar_t>(),
                                            grad_b.data_ptr<scalar_t>(), stream);

@@ -21,19 +21,20 @@ constexpr int kPixels = 32;                     // pixels per block step
 constexpr int kPixelsPerWarp = kPixels / kWarps;
 constexpr int kMaxLogitBlocks = 1024;
 
-// keep[kc + r, p0 + c] for r, c < 32 into tile[r][c] (1 where there is no mask, 0 past the ends).
+// The multipliers m[kc + r, p0 + c] for r, c < 32 into tile[r][c] (0 past the ends).
 template <typename T>
-__device__ void stage_keep(const T* keep, const LogitDims& d, int64_t kc, int64_t p0, T (*tile)[kPixels + 1]) {
+__device__ void stage_keep(const bool* keep, T keep_scale, const LogitDims& d, int64_t kc, int64_t p0,
+                           T (*tile)[kPixels + 1]) {
   for (int e = threadIdx.x; e < 32 * kPixels; e += kThreads) {
     const int r = e / kPixels, c = e % kPixels;
     const int64_t k = kc + r, p = p0 + c;
-    tile[r][c] = (k < d.U && p < d.P) ? (keep ? keep[k * d.P + p] : T(1)) : T(0);
+    tile[r][c] = (k < d.U && p < d.P) ? keep_multiplier(keep, keep_scale, k * d.P + p) : T(0);
   }
 }
 
 template <typename T>
 __global__ void __launch_bounds__(kThreads) masked_logit_forward_kernel(const T* __restrict__ x,
-                                                                        const T* __restrict__ keep,
+                                                                        const bool* __restrict__ keep, T keep_scale,
                                                                         const T* __restrict__ weight,
                                                                         const T* __restrict__ bias, LogitDims d,
                                                                         T* __restrict__ logit) {
@@ -44,7 +45,7 @@ __global__ void __launch_bounds__(kThreads) masked_logit_forward_kernel(const T*
 #pragma unroll
     for (int i = 0; i < kPixelsPerWarp; ++i) acc[i] = T(0);
     for (int64_t kc = 0; kc < d.U; kc += 32) {
-      stage_keep(keep, d, kc, p0, tile);
+      stage_keep(keep, keep_scale, d, kc, p0, tile);
       __syncthreads();
       const int64_t k = kc + lane;
       if (k < d.U) {
@@ -67,12 +68,12 @@ __global__ void __launch_bounds__(kThreads) masked_logit_forward_kernel(const T*
   }
 }
 
-// grad_x per (pixel, channel); per block and channel the partial sums of g x keep (and of g,
+// grad_x per (pixel, channel); per block and channel the partial sums of g x m (and of g,
 // column U) over the block's pixels, in warp order.
 template <typename T>
 __global__ void __launch_bounds__(kThreads) masked_logit_backward_kernel(
-    const T* __restrict__ grad, const T* __restrict__ x, const T* __restrict__ keep, const T* __restrict__ weight,
-    LogitDims d, T* __restrict__ grad_x, T* __restrict__ partials) {
+    const T* __restrict__ grad, const T* __restrict__ x, const bool* __restrict__ keep, T keep_scale,
+    const T* __restrict__ weight, LogitDims d, T* __restrict__ grad_x, T* __restrict__ partials) {
   __shared__ T tile[32][kPixels + 1];
   __shared__ T red[kWarps][33];
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
@@ -82,7 +83,7 @@ __global__ void __launch_bounds__(kThreads) masked_logit_backward_kernel(
     const T wk = k < d.U ? weight[k] : T(0);
     T acc_w = 0, acc_b = 0;
     for (int64_t p0 = int64_t(blockIdx.x) * kPixels; p0 < d.P; p0 += int64_t(gridDim.x) * kPixels) {
-      stage_keep(keep, d, kc, p0, tile);
+      stage_keep(keep, keep_scale, d, kc, p0, tile);
       __syncthreads();
 #pragma unroll
       for (int i = 0; i < kPixelsPerWarp; ++i) {
@@ -137,26 +138,28 @@ int masked_logit_blocks(int64_t pixels) {
 }
 
 template <typename T>
-void launch_masked_logit_forward(const T* x, const T* keep, const T* weight, const T* bias, LogitDims d, T* logit,
-                                 void* stream) {
+void launch_masked_logit_forward(const T* x, const bool* keep, T keep_scale, const T* weight, const T* bias,
+                                 LogitDims d, T* logit, void* stream) {
   if (d.P == 0) return;
   masked_logit_forward_kernel<T><<<masked_logit_blocks(d.P), kThreads, 0, static_cast<cudaStream_t>(stream)>>>(
-      x, keep, weight, bias, d, logit);
+      x, keep, keep_scale, weight, bias, d, logit);
 }
 
 template <typename T>
-void launch_masked_logit_backward(const T* grad, const T* x, const T* keep, const T* weight, LogitDims d, T* grad_x,
-                                  T* partials, int blocks, T* grad_weight, T* grad_bias, void* stream) {
+void launch_masked_logit_backward(const T* grad, const T* x, const bool* keep, T keep_scale, const T* weight,
+                                  LogitDims d, T* grad_x, T* partials, int blocks, T* grad_weight, T* grad_bias,
+                                  void* stream) {
   auto st = static_cast<cudaStream_t>(stream);
-  masked_logit_backward_kernel<T><<<blocks, kThreads, 0, st>>>(grad, x, keep, weight, d, grad_x, partials);
+  masked_logit_backward_kernel<T><<<blocks, kThreads, 0, st>>>(grad, x, keep, keep_scale, weight, d, grad_x,
+                                                               partials);
   masked_logit_param_sum_kernel<T><<<cuda::ceil_div(d.U + 1, 256), 256, 0, st>>>(partials, blocks, d.U, grad_weight,
                                                                                   grad_bias);
 }
 
 #define TIGER_MASKED_LOGIT_INSTANTIATE(T)                                                                         \
-  template void launch_masked_logit_forward<T>(const T*, const T*, const T*, const T*, LogitDims, T*, void*);     \
-  template void launch_masked_logit_backward<T>(const T*, const T*, const T*, const T*, LogitDims, T*, T*, int, T*, \
-                                                T*, void*);
+  template void launch_masked_logit_forward<T>(const T*, const bool*, T, const T*, const T*, LogitDims, T*, void*); \
+  template void launch_masked_logit_backward<T>(const T*, const T*, const bool*, T, const T*, LogitDims, T*, T*, int, \
+                                                T*, T*, void*);
 TIGER_MASKED_LOGIT_INSTANTIATE(float)
 TIGER_MASKED_LOGIT_INSTANTIATE(double)
 #undef TIGER_MASKED_LOGIT_INSTANTIATE

@@ -27,8 +27,8 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
   m.def(
       "magnitude_blur_backward(Tensor grad_blurred, Tensor? grad_magnitude, Tensor x, Tensor magnitude, "
       "int radius, float sigma) -> Tensor");
-  m.def("masked_logit(Tensor x, Tensor? keep, Tensor weight, Tensor bias) -> Tensor");
+  m.def("masked_logit(Tensor x, Tensor? keep, float keep_scale, Tensor weight, Tensor bias) -> Tensor");
   m.def(
-      "masked_logit_backward(Tensor grad, Tensor x, Tensor? keep, Tensor weight, bool x_grad) "
+      "masked_logit_backward(Tensor grad, Tensor x, Tensor? keep, float keep_scale, Tensor weight, bool x_grad) "
       "-> (Tensor, Tensor, Tensor)");
 }

@@ -4,6 +4,7 @@ compositions they replace in the fast FeatUp fit's step (``x.norm(dim=1)``, ``ca
 float64), values and gradients; gradcheck and opcheck; the CUDA kernels against the CPU kernels;
 and the fit's step (``_step_loss``) in its two layouts (``ImplicitConfig.step_layout``)."""
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -98,26 +99,26 @@ def test_bad_input_names_the_problem():
 def logit_case(h, w, u, seed=0, dtype=F64, dropout=0.2):
     gen = torch.Generator().manual_seed(seed)
     x = torch.randn(h, w, u, generator=gen, dtype=dtype)
-    keep = (torch.rand(u, h, w, generator=gen) > dropout).to(dtype) / (1 - dropout)
+    keep = torch.rand(u, h, w, generator=gen) > dropout
     weight, bias = torch.randn(u, generator=gen, dtype=dtype), torch.randn(1, generator=gen, dtype=dtype)
-    return x, keep, weight, bias
+    return x, keep, 1 / (1 - dropout), weight, bias
 
 
-def logit_reference(x, keep, weight, bias):
+def logit_reference(x, keep, scale, weight, bias):
     """The channels-first composition: the dropped-out map's 1x1 convolution."""
     chw = x.permute(2, 0, 1)[None]
     if keep is not None:
-        chw = chw * keep[None]
+        chw = chw * (keep.to(x.dtype) * scale)[None]
     return F.conv2d(chw, weight.view(1, -1, 1, 1), bias)[0, 0]
 
 
 @pytest.mark.parametrize("h,w,u", [(5, 7, 4), (16, 33, 37), (1, 3, 1), (40, 20, 130)])
 @pytest.mark.parametrize("with_keep", [True, False])
 def test_masked_logit_equals_the_channels_first_composition(h, w, u, with_keep):
-    x, keep, weight, bias = logit_case(h, w, u)
+    x, keep, scale, weight, bias = logit_case(h, w, u)
     keep = keep if with_keep else None
     leaves = [t.requires_grad_() for t in (x, weight, bias)]
-    out, ref = masked_logit(x, keep, weight, bias), logit_reference(x, keep, weight, bias)
+    out, ref = masked_logit(x, weight, bias, keep, scale), logit_reference(x, keep, scale, weight, bias)
     assert out.shape == (h, w)
     torch.testing.assert_close(out, ref, atol=1e-12, rtol=1e-12)
     g = torch.randn(h, w, generator=torch.Generator().manual_seed(3), dtype=F64)
@@ -126,26 +127,30 @@ def test_masked_logit_equals_the_channels_first_composition(h, w, u, with_keep):
 
 
 def test_masked_logit_gradcheck_and_opcheck():
-    x, keep, weight, bias = logit_case(4, 6, 5, seed=1)
+    x, keep, scale, weight, bias = logit_case(4, 6, 5, seed=1)
     leaves = [t.requires_grad_() for t in (x, weight, bias)]
-    assert torch.autograd.gradcheck(lambda x, w, b: masked_logit(x, keep, w, b), leaves)
-    torch.library.opcheck(torch.ops.tiger.masked_logit, (x, keep, weight, bias))
-    torch.library.opcheck(torch.ops.tiger.masked_logit, (x, None, weight, bias))
+    assert torch.autograd.gradcheck(lambda x, w, b: masked_logit(x, w, b, keep, scale), leaves)
+    torch.library.opcheck(torch.ops.tiger.masked_logit, (x, keep, scale, weight, bias))
+    torch.library.opcheck(torch.ops.tiger.masked_logit, (x, None, 1.0, weight, bias))
     g = torch.randn(4, 6, dtype=F64)
-    torch.library.opcheck(torch.ops.tiger.masked_logit_backward, (g, x.detach(), keep, weight.detach(), True))
-    torch.library.opcheck(torch.ops.tiger.masked_logit_backward, (g, x.detach(), None, weight.detach(), False))
+    torch.library.opcheck(torch.ops.tiger.masked_logit_backward, (g, x.detach(), keep, scale, weight.detach(), True))
+    torch.library.opcheck(torch.ops.tiger.masked_logit_backward, (g, x.detach(), None, 1.0, weight.detach(), False))
 
 
 def test_masked_logit_bad_input_names_the_tensor():
-    x, keep, weight, bias = logit_case(4, 6, 5)
+    x, keep, scale, weight, bias = logit_case(4, 6, 5)
     with pytest.raises(RuntimeError, match="keep must have shape"):
-        masked_logit(x, keep.permute(1, 2, 0), weight, bias)
+        masked_logit(x, weight, bias, keep.permute(1, 2, 0), scale)
     with pytest.raises(RuntimeError, match="weight must have shape"):
-        masked_logit(x, keep, weight[:4], bias)
-    with pytest.raises(RuntimeError, match="must have the dtype of x"):
-        masked_logit(x, keep.float(), weight, bias)
-    with pytest.raises(ValueError, match="keep is not differentiable"):
-        masked_logit(x, keep.requires_grad_(), weight, bias)
+        masked_logit(x, weight[:4], bias, keep, scale)
+    with pytest.raises(RuntimeError, match="keep must be Bool"):
+        masked_logit(x, weight, bias, keep.to(x.dtype), scale)
+    with pytest.raises(RuntimeError, match="weight must be Double"):
+        masked_logit(x, weight.float(), bias, keep, scale)
+    with pytest.raises(RuntimeError, match="keep_scale must be finite"):
+        masked_logit(x, weight, bias, keep, float("inf"))
+    with pytest.raises(RuntimeError, match="grad must be \\[H, W\\]"):
+        torch.ops.tiger.masked_logit_backward(torch.zeros(4, 5, dtype=F64), x, keep, scale, weight, True)
 
 
 # ------------------------------------------------------------------------------------ the fit's step
@@ -265,18 +270,73 @@ def test_cuda_is_deterministic_and_graph_capturable():
 @pytest.mark.parametrize("h,w,u", [(37, 53, 129), (3, 5, 2), (256, 448, 129)])
 @pytest.mark.parametrize("with_keep", [True, False])
 def test_masked_logit_cuda_equals_cpu(dtype, h, w, u, with_keep):
-    x, keep, weight, bias = logit_case(h, w, u, dtype=dtype)
+    x, keep, scale, weight, bias = logit_case(h, w, u, dtype=dtype)
     keep = keep if with_keep else None
     g = torch.randn(h, w, generator=torch.Generator().manual_seed(4), dtype=dtype)
-    cuda = [t.cuda() if t is not None else None for t in (x, keep, weight, bias, g)]
+    cx, ckeep, cw, cb, cg = [t.cuda() if t is not None else None for t in (x, keep, weight, bias, g)]
     tol = dict(atol=1e-11, rtol=1e-11) if dtype == F64 else dict(atol=1e-4, rtol=1e-4)
-    torch.testing.assert_close(masked_logit(*cuda[:4]).cpu(), masked_logit(x, keep, weight, bias), **tol)
-    ref = torch.ops.tiger.masked_logit_backward(g, x, keep, weight, True)
-    out = torch.ops.tiger.masked_logit_backward(cuda[4], cuda[0], cuda[1], cuda[2], True)
+    torch.testing.assert_close(masked_logit(cx, cw, cb, ckeep, scale).cpu(), masked_logit(x, weight, bias, keep, scale),
+                               **tol)
+    ref = torch.ops.tiger.masked_logit_backward(g, x, keep, scale, weight, True)
+    out = torch.ops.tiger.masked_logit_backward(cg, cx, ckeep, scale, cw, True)
     for name, a, b in zip(("grad x", "grad weight", "grad bias"), out, ref):
         # the weight's gradient sums h * w products: compare relative to its scale
-        scale = dict(atol=tol["atol"] * max(1.0, float(b.abs().max())), rtol=tol["rtol"])
-        torch.testing.assert_close(a.cpu(), b, **scale, msg=lambda m, n=name: f"{n}: {m}")
-    again = torch.ops.tiger.masked_logit_backward(cuda[4], cuda[0], cuda[1], cuda[2], True)
+        scaled = dict(atol=tol["atol"] * max(1.0, float(b.abs().max())), rtol=tol["rtol"])
+        torch.testing.assert_close(a.cpu(), b, **scaled, msg=lambda m, n=name: f"{n}: {m}")
+    again = torch.ops.tiger.masked_logit_backward(cg, cx, ckeep, scale, cw, True)
     assert all(torch.equal(a, b) for a, b in zip(out, again))  # fixed summation order
-    torch.library.opcheck(torch.ops.tiger.masked_logit, tuple(cuda[:4]))
+    torch.library.opcheck(torch.ops.tiger.masked_logit, (cx, ckeep, scale, cw, cb))
+
+
+def _cuda_case(case):
+    cfg, args, leaves = case
+    img, targets, idx, coord_y, coord_x, network, down, outlier = args
+    net = network.__self__
+    for module in (net, down, outlier):
+        module.cuda()
+    return cfg, (img.cuda(), targets.cuda(), idx.cuda(), coord_y.cuda(), coord_x.cuda(), net.forward_pixels, down,
+                 outlier), leaves
+
+
+@needs_cuda
+def test_cuda_step_layouts_agree_and_equal_the_cpu_step():
+    """Without dropout, the CUDA step gives the CPU step's loss and gradients in both layouts."""
+    cfg, args, leaves = _step_case(0.0, torch.float32)
+    cpu_loss = _step_loss(*args, cfg)
+    cpu_grads = torch.autograd.grad(cpu_loss, leaves, allow_unused=True)
+    cfg, args, leaves = _cuda_case((cfg, args, leaves))
+    for layout in ("channels_last", "channels_first"):
+        loss = _step_loss(*args, dataclasses.replace(cfg, step_layout=layout))
+        grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+        torch.testing.assert_close(loss.cpu(), cpu_loss, atol=1e-5, rtol=1e-5)
+        for i, (g, r) in enumerate(zip(grads, cpu_grads)):
+            if r is not None:
+                torch.testing.assert_close(g.cpu(), r, atol=1e-5, rtol=1e-4, msg=lambda m, i=i, l=layout: f"{l} {i}: {m}")
+
+
+@needs_cuda
+def test_cuda_channels_last_step_with_dropout_replays_from_a_graph():
+    """With dropout the channels-last step (bool mask drawn on the device) is captured in a CUDA
+    graph; every replay draws fresh masks: finite losses that differ between replays, and finite
+    gradients."""
+    cfg, args, leaves = _cuda_case(_step_case(0.2, torch.float32))
+
+    def step():
+        loss = _step_loss(*args, cfg)
+        return loss.detach(), torch.autograd.grad(loss, leaves, allow_unused=True)
+
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(2):
+            step()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        static_loss, static_grads = step()
+    losses = []
+    for _ in range(3):
+        graph.replay()
+        losses.append(float(static_loss))
+        assert all(g is None or bool(torch.isfinite(g).all()) for g in static_grads)
+    assert all(math.isfinite(v) for v in losses) and len(set(losses)) == 3, losses

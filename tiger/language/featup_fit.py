@@ -225,9 +225,10 @@ def pre_attention(hr: torch.Tensor, down: "AttentionDownsampler", layout: str) -
         hr_hwc = hr[0].permute(1, 2, 0)  # [h, w, C]: no copy when hr is a channels-last view
         blurred, hr_mag = magnitude_blur(hr_hwc, BLUR_RADIUS, BLUR_SIGMA)  # [h, w, 1 + C], [h, w]
         keep = None
-        if p > 0:  # F.dropout's multiplier for the channels-first map: bernoulli, then / keep rate
-            keep = blurred.new_empty(blurred.shape[-1], *blurred.shape[:2]).bernoulli_(1 - p).div_(1 - p)
-        logit_map = masked_logit(blurred, keep, lin.weight.view(-1), lin.bias)
+        if p > 0:  # F.dropout's draws for the channels-first map (bernoulli in its element order)
+            keep = torch.empty(blurred.shape[-1], *blurred.shape[:2], dtype=torch.bool,
+                               device=blurred.device).bernoulli_(1 - p)
+        logit_map = masked_logit(blurred, lin.weight.view(-1), lin.bias, keep, 1.0 / (1.0 - p))
         return PreAttention(blurred, logit_map, hr_hwc, hr_mag, lambda: blurred[..., 1:])
     if layout != "channels_first":
         raise ValueError(f"tiger: pre_attention layout must be 'channels_last' or 'channels_first', got {layout!r}")

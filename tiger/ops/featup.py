@@ -273,7 +273,7 @@ def magnitude_blur(x: torch.Tensor, radius: int = 2, sigma: float = 1.0) -> tupl
 
 # ----------------------------------------------------------------------------- masked_logit
 @torch.library.register_fake("tiger::masked_logit")
-def _masked_logit_fake(x, keep, weight, bias):
+def _masked_logit_fake(x, keep, keep_scale, weight, bias):
     torch._check(x.dim() == 3, lambda: f"x must be [H, W, U], got {tuple(x.shape)}")
     torch._check(weight.shape == (x.shape[2],), lambda: f"weight must be [U] = [{x.shape[2]}], got {tuple(weight.shape)}")
     torch._check(keep is None or keep.shape == (x.shape[2], *x.shape[:2]),
@@ -282,23 +282,25 @@ def _masked_logit_fake(x, keep, weight, bias):
 
 
 @torch.library.register_fake("tiger::masked_logit_backward")
-def _masked_logit_fake_backward(grad, x, keep, weight, x_grad):
+def _masked_logit_fake_backward(grad, x, keep, keep_scale, weight, x_grad):
     torch._check(grad.shape == x.shape[:2], lambda: f"grad must be [H, W], got {tuple(grad.shape)}")
     return (torch.empty_like(x) if x_grad else x.new_empty((0,))), weight.new_empty(weight.shape), weight.new_empty((1,))
 
 
 def _masked_logit_setup_context(ctx, inputs, output):
-    x, keep, weight, _bias = inputs
+    x, keep, keep_scale, weight, _bias = inputs
     ctx.save_for_backward(x, keep, weight)
+    ctx.keep_scale = keep_scale
 
 
 def _masked_logit_backward(ctx, grad):
     x, keep, weight = ctx.saved_tensors
     needs = ctx.needs_input_grad
-    if grad is None or not (needs[0] or needs[2] or needs[3]):
-        return None, None, None, None
-    gx, gw, gb = torch.ops.tiger.masked_logit_backward(grad.contiguous(), x, keep, weight, bool(needs[0]))
-    return gx if needs[0] else None, None, gw if needs[2] else None, gb if needs[3] else None
+    if grad is None or not (needs[0] or needs[3] or needs[4]):
+        return (None,) * 5
+    gx, gw, gb = torch.ops.tiger.masked_logit_backward(grad.contiguous(), x, keep, ctx.keep_scale, weight,
+                                                       bool(needs[0]))
+    return gx if needs[0] else None, None, None, gw if needs[3] else None, gb if needs[4] else None
 
 
 torch.library.register_autograd("tiger::masked_logit", _masked_logit_backward,
@@ -307,22 +309,23 @@ _masked_logit_eager = eager_autograd(torch.ops.tiger.masked_logit, _masked_logit
                                      _masked_logit_backward)
 
 
-def masked_logit(x: torch.Tensor, keep: Optional[torch.Tensor], weight: torch.Tensor,
-                 bias: torch.Tensor) -> torch.Tensor:
-    """The attention logit of every pixel, ``bias + sum_k weight[k] x[..., k] keep[k]``
+def masked_logit(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, keep: Optional[torch.Tensor] = None,
+                 keep_scale: float = 1.0) -> torch.Tensor:
+    """The attention logit of every pixel after the input dropout,
+    ``bias + sum_k weight[k] x[..., k] m[k]`` with ``m = keep * keep_scale``
     (``tiger::masked_logit``; formula in ``csrc/featup/masked_logit.h``): the 1x1 convolution of
-    the dropped-out channels-first map ``x.permute(2, 0, 1) * keep``, read channels last.
+    the dropped-out channels-first map ``x.permute(2, 0, 1) * keep * keep_scale``, read channels
+    last, with a 1-byte mask.
 
     Args:
         x: [H, W, U] float32/float64, channels last.
-        keep: [U, H, W] the input dropout's multiplier (its 0/1 mask divided by the keep rate),
-            drawn channels first as ``F.dropout`` draws it for a [1, U, H, W] map, or None (no
-            dropout); x's dtype; not differentiable.
         weight: [U], bias: [1] the attention's Linear (x's dtype).
+        keep: [U, H, W] bool, the input dropout's kept elements drawn channels first (as
+            ``F.dropout`` draws them for a [1, U, H, W] map: ``bernoulli_(1 - p)``), or None (no
+            dropout).
+        keep_scale: the kept elements' multiplier, ``1 / (1 - p)``.
 
     Returns:
-        [H, W], differentiable in x, weight and bias.
+        [H, W] in x's dtype, differentiable in x, weight and bias.
     """
-    if keep is not None and keep.requires_grad:
-        raise ValueError("tiger.masked_logit: keep is not differentiable; pass it detached")
-    return _masked_logit_eager(x, keep, weight, bias)
+    return _masked_logit_eager(x, keep, float(keep_scale), weight, bias)
