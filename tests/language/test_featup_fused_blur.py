@@ -35,7 +35,8 @@ def features(h, w, c, seed=0, dtype=F64):
 
 
 @pytest.mark.parametrize("h,w,c,radius,sigma", [(7, 9, 5, 2, 1.0), (3, 4, 2, 2, 1.0), (20, 13, 6, 2, 1.0),
-                                                (11, 6, 3, 1, 0.7), (16, 12, 4, 4, 2.5), (5, 5, 1, 0, 1.0)])
+                                                (11, 6, 3, 1, 0.7), (16, 12, 4, 4, 2.5), (5, 5, 1, 0, 1.0),
+                                                (9, 17, 5, 8, 3.0)])
 def test_equals_the_channels_first_composition(h, w, c, radius, sigma):
     x = features(h, w, c).requires_grad_()
     x.data[1, 2] = 0  # a zero pixel: the magnitude's gradient is 0 there, as torch.norm's
@@ -220,12 +221,14 @@ def test_step_layout_is_validated():
 # ------------------------------------------------------------------------------------ CUDA
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, F64, torch.bfloat16])
-@pytest.mark.parametrize("h,w,c", [(37, 53, 129), (5, 6, 3), (64, 112, 128)])
-def test_cuda_equals_cpu(dtype, h, w, c):
+@pytest.mark.parametrize("h,w,c,radius,sigma", [(37, 53, 129, 2, 1.0), (5, 6, 3, 2, 1.0), (64, 112, 128, 2, 1.0),
+                                                # other radii: the kernels with the radius at run time
+                                                (19, 23, 7, 1, 0.7), (21, 40, 9, 4, 2.5), (9, 17, 5, 8, 3.0)])
+def test_cuda_equals_cpu(dtype, h, w, c, radius, sigma):
     x = features(h, w, c, seed=8).to(dtype)
     x[2, 3] = 0
-    cpu_blurred, cpu_mag = magnitude_blur(x)
-    blurred, mag = magnitude_blur(x.cuda())
+    cpu_blurred, cpu_mag = magnitude_blur(x, radius, sigma)
+    blurred, mag = magnitude_blur(x.cuda(), radius, sigma)
     tol = dict(atol=1e-12, rtol=1e-12) if dtype == F64 else dict(atol=2e-5, rtol=2e-5)
     torch.testing.assert_close(blurred.cpu(), cpu_blurred, **tol)
     torch.testing.assert_close(mag.cpu(), cpu_mag, **tol)
@@ -233,9 +236,9 @@ def test_cuda_equals_cpu(dtype, h, w, c):
     gb = torch.randn(cpu_blurred.shape, generator=gen, dtype=cpu_blurred.dtype)
     gm = torch.randn(cpu_mag.shape, generator=gen, dtype=cpu_mag.dtype)
     for grad_m in (gm, None):
-        ref = torch.ops.tiger.magnitude_blur_backward(gb, grad_m, x, cpu_mag, 2, 1.0)
+        ref = torch.ops.tiger.magnitude_blur_backward(gb, grad_m, x, cpu_mag, radius, sigma)
         out = torch.ops.tiger.magnitude_blur_backward(gb.cuda(), None if grad_m is None else grad_m.cuda(), x.cuda(),
-                                                      mag, 2, 1.0)
+                                                      mag, radius, sigma)
         gtol = tol if dtype != torch.bfloat16 else dict(atol=1e-2, rtol=1e-2)
         torch.testing.assert_close(out.cpu(), ref, **gtol)
 
