@@ -228,7 +228,8 @@ def pre_attention(hr: torch.Tensor, down: "AttentionDownsampler", layout: str) -
         if p > 0:  # F.dropout's draws for the channels-first map (bernoulli in its element order)
             keep = torch.empty(blurred.shape[-1], *blurred.shape[:2], dtype=torch.bool,
                                device=blurred.device).bernoulli_(1 - p)
-        logit_map = masked_logit(blurred, lin.weight.view(-1), lin.bias, keep, 1.0 / (1.0 - p))
+        keep_scale = 1.0 / (1.0 - p) if p < 1 else 0.0  # F.dropout(p=1) zeroes everything
+        logit_map = masked_logit(blurred, lin.weight.view(-1), lin.bias, keep, keep_scale)
         return PreAttention(blurred, logit_map, hr_hwc, hr_mag, lambda: blurred[..., 1:])
     if layout != "channels_first":
         raise ValueError(f"tiger: pre_attention layout must be 'channels_last' or 'channels_first', got {layout!r}")
