@@ -244,8 +244,8 @@ def pre_attention_op_rows(dim: int, h: int, w: int, precision: str, dev: torch.d
     # masked_logit's: the map read twice and its gradient written, the 1-byte keep mask drawn and
     # read twice, the logit written and its gradient read
     logit_bytes = h * w * (3 * u * 4 + 3 * u + 2 * 4)
-    return (_timed_pair("magnitude + blur", blur_composed, blur_fused, blur_bytes, dev, timer)
-            + _timed_pair("dropout + logit", logit_composed, logit_fused, logit_bytes, dev, timer))
+    return (_timed_pair("magnitude + blur (magnitude_blur)", blur_composed, blur_fused, blur_bytes, dev, timer)
+            + _timed_pair("dropout + logit (masked_logit)", logit_composed, logit_fused, logit_bytes, dev, timer))
 
 
 def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: int = 10,
