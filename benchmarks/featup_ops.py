@@ -3,11 +3,20 @@
 ``tiger::relu_scale_layer_norm``: the hidden ReLU, dropout and LayerNorm in another) against the
 PyTorch composition, eager and replayed from a CUDA graph (as the fast fit runs its step), with
 each one's error against the float64 composition; and each fused op alone against the
-composition it replaces, with the HBM bandwidth its bytes reach.
+composition it replaces, with the HBM bandwidth its bytes reach. Then the step's block between
+the network and the attention op (``tiger.language.featup_fit.pre_attention``: magnitude, 5-tap
+reflect blur, the attention's input dropout and logit, the channels-last map the attention op
+reads) in both ``ImplicitConfig.step_layout`` values, forward + backward, eager and replayed
+from a CUDA graph, with errors against float64; and its two custom ops alone
+(``tiger::magnitude_blur``, ``tiger::masked_logit``) against the compositions they replace.
+Then ``tiger::jittered_window_attention`` at the fit's geometry (10 jittered copies, kernel 29),
+forward and forward + backward, with its error against float64.
 
     python -m benchmarks.featup_ops                          # CPU, 64 x 112 pixels
     python -m benchmarks.featup_ops --device cuda            # the fit's 256 x 448, bf16 autocast
     python -m benchmarks.featup_ops --device cuda --compile  # also torch.compile'd networks
+    python -m benchmarks.featup_ops --device cuda --only pre_attention  # the two step layouts
+    python -m benchmarks.featup_ops --device cuda --only attention      # the attention op
 """
 from __future__ import annotations
 
@@ -18,8 +27,10 @@ import copy
 import torch
 
 from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err
-from tiger.language.featup import ImplicitNet, _min_max
-from tiger.ops.featup import fourier_layer_norm, relu_scale_layer_norm
+from tiger.language.featup import AttentionDownsampler, ImplicitNet, _min_max
+from tiger.language.featup_fit import BLUR_RADIUS, BLUR_SIGMA, pre_attention
+from tiger.ops.featup import fourier_layer_norm, magnitude_blur, masked_logit, relu_scale_layer_norm
+from tiger.utils.filters import gaussian_blur
 
 H100_HBM_TBPS = 3.35
 
@@ -143,6 +154,151 @@ def _timed_pair(what: str, composed, fused, nbytes: int, dev: torch.device, time
     return rows
 
 
+LAYOUTS = ("channels_first", "channels_last")
+
+
+def _pre_attention_grads(hr: torch.Tensor, down: AttentionDownsampler, layout: str, grads: list[torch.Tensor],
+                         blur_pin: float = 0.1) -> tuple:
+    """``pre_attention`` of the channels-last network output ``hr`` [1, h, w, C] and its backward
+    for the incoming gradients of (attention features, logit map, magnitude) and the fit's blur
+    pin term; returns (features, logit map, grad hr, grad of the logit's weight)."""
+    lin = down.attention[1]
+    pre = pre_attention(hr.permute(0, 3, 1, 2), down, layout)
+    g_features, g_logit, g_mag = grads
+    pin = blur_pin * (pre.hr_blurred() - pre.hr).square().mean()
+    grad_hr, grad_w = torch.autograd.grad([pre.features, pre.logit_map, pre.hr_mag, pin], [hr, lin.weight],
+                                          [g_features, g_logit, g_mag.view(pre.hr_mag.shape), torch.ones_like(pin)])
+    return pre.features, pre.logit_map, grad_hr, grad_w
+
+
+def pre_attention_rows(dim: int, h: int, w: int, precision: str, dev: torch.device, timer,
+                       dropout: float = 0.2) -> list[dict]:
+    """The fit step's block from the network's output (channels last, bf16 on CUDA as under the
+    fit's autocast) to the attention op's inputs, in both step layouts, forward + backward with
+    the dropout on; errors (dropout off) against the float64 channels-first composition."""
+    act = torch.bfloat16 if dev.type == "cuda" and precision == "bf16" else torch.float32
+    gen = torch.Generator().manual_seed(1)
+    hr = torch.randn(1, h, w, dim, generator=gen).to(dev, act).requires_grad_()  # the network's layout
+    grads = [torch.randn(h, w, dim + 1, generator=gen).to(dev), torch.randn(h, w, generator=gen).to(dev),
+             torch.randn(h, w, generator=gen).to(dev)]
+    torch.manual_seed(0)
+    down = AttentionDownsampler(dim + 1, 29, gen, dropout).to(dev).train()
+    still = copy.deepcopy(down)
+    still.dropout = 0.0
+    ref_down = copy.deepcopy(still).double()
+    hr64 = hr.detach().double().requires_grad_()
+    ref = _pre_attention_grads(hr64, ref_down, "channels_first", [g.double() for g in grads])
+    rows = []
+    for layout in LAYOUTS:
+        def step(layout=layout) -> None:
+            _pre_attention_grads(hr, down, layout, grads)
+
+        row = {"what": f"pre-attention block, {layout}", "eager ms": timer(step)}
+        if dev.type == "cuda":
+            row["graph ms"] = timer(graphed(step, dev))
+        out = _pre_attention_grads(hr, still, layout, grads)
+        row.update({f"err {name}": rel_err(a, b)
+                    for name, a, b in zip(("features", "logit", "grad hr", "grad w"), out, ref)})
+        rows.append(row)
+    return rows
+
+
+def pre_attention_op_rows(dim: int, h: int, w: int, precision: str, dev: torch.device, timer,
+                          dropout: float = 0.2) -> list[dict]:
+    """tiger::magnitude_blur and tiger::masked_logit alone against the compositions they replace
+    (from the network's channels-last output / the blurred map), forward + backward."""
+    act = torch.bfloat16 if dev.type == "cuda" and precision == "bf16" else torch.float32
+    gen = torch.Generator().manual_seed(2)
+    u = dim + 1
+    hr = torch.randn(1, h, w, dim, generator=gen).to(dev, act).requires_grad_()
+    g_blur, g_mag = torch.randn(h, w, u, generator=gen).to(dev), torch.randn(h, w, generator=gen).to(dev)
+    blurred = torch.randn(h, w, u, generator=gen).to(dev).requires_grad_()
+    blurred_cf = blurred.detach().permute(2, 0, 1)[None].contiguous().requires_grad_()
+    weight = torch.randn(u, generator=gen).to(dev).requires_grad_()
+    bias = torch.zeros(1, device=dev).requires_grad_()
+    g_logit = torch.randn(h, w, generator=gen).to(dev)
+
+    def blur_composed() -> None:
+        x = hr.permute(0, 3, 1, 2).float().contiguous()
+        mag = x.norm(dim=1, keepdim=True)
+        out = gaussian_blur(torch.cat([mag, x], dim=1), 2 * BLUR_RADIUS + 1, BLUR_SIGMA, padding="reflect")
+        torch.autograd.grad([out[0].permute(1, 2, 0).contiguous(), mag[0, 0]], hr, [g_blur, g_mag])
+
+    def blur_fused() -> None:
+        torch.autograd.grad(list(magnitude_blur(hr[0], BLUR_RADIUS, BLUR_SIGMA)), hr, [g_blur, g_mag])
+
+    def logit_composed() -> None:
+        out = torch.nn.functional.conv2d(torch.nn.functional.dropout(blurred_cf, dropout, training=True),
+                                         weight.view(1, -1, 1, 1), bias)
+        torch.autograd.grad(out[0, 0], [blurred_cf, weight, bias], g_logit)
+
+    def logit_fused() -> None:
+        keep = torch.empty(u, h, w, dtype=torch.bool, device=dev).bernoulli_(1 - dropout)
+        torch.autograd.grad(masked_logit(blurred, weight, bias, keep, 1 / (1 - dropout)), [blurred, weight, bias],
+                            g_logit)
+
+    es = hr.element_size()
+    # magnitude_blur's HBM traffic: x read twice (magnitude, blur) and once in the backward, the
+    # blurred map written and its gradient read, the magnitude and the backward's scale, grad x
+    blur_bytes = h * w * (4 * dim * es + 2 * u * 4 + 5 * 4)
+    # masked_logit's: the map read twice and its gradient written, the 1-byte keep mask drawn and
+    # read twice, the logit written and its gradient read
+    logit_bytes = h * w * (3 * u * 4 + 3 * u + 2 * 4)
+    return (_timed_pair("magnitude + blur (magnitude_blur)", blur_composed, blur_fused, blur_bytes, dev, timer)
+            + _timed_pair("dropout + logit (masked_logit)", logit_composed, logit_fused, logit_bytes, dev, timer))
+
+
+def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: int = 10,
+                   patch: int = 16, kernel: int = 29) -> list[dict]:
+    """tiger::jittered_window_attention as the fit calls it: ``jitters`` copies of the blurred
+    [h, w, dim + 1] map (FeatUp's jitters: reflect pad, zoom up to 1.8, flips) onto the
+    backbone's (h / patch) x (w / patch) cells; forward, and forward + backward of <out, g>."""
+    from tiger.language.featup import sample_jitter
+    from tiger.language.featup_fit import jitter_coords, jitter_params, reflect_coords, window_geometry
+    from tiger.ops.featup import jittered_window_attention
+
+    gen = torch.Generator().manual_seed(3)
+    size = (h // patch, w // patch)
+    k, sh, sw, _, _ = window_geometry(h, w, size, kernel)
+    max_pad = min(int(round(30 * min(h, w) / 224)), min(h, w) - 1)  # ImplicitConfig.max_pad, scaled
+    params = jitter_params([sample_jitter(h, w, max_pad, 1.8, True, gen) for _ in range(jitters)], h, w, "cpu")
+    sy, sx = jitter_coords(params.double(), h, w)
+    coords = reflect_coords(sy, h), reflect_coords(sx, w)
+    features = torch.randn(h, w, dim + 1, generator=gen, dtype=torch.float64)
+    logit_map = torch.randn(h, w, generator=gen, dtype=torch.float64)
+    wk = 1 + 0.01 * torch.randn(k, k, generator=gen, dtype=torch.float64)
+    bk = 0.01 * torch.randn(k, k, generator=gen, dtype=torch.float64)
+    mask = (torch.rand(jitters, *size, generator=gen) > 0.2).double()
+    g = torch.randn(jitters, *size, dim + 1, generator=gen, dtype=torch.float64)
+
+    def inputs(dtype, device):
+        return [t.to(device, dtype) for t in (features, logit_map, *coords, wk, bk, mask)]
+
+    args = inputs(torch.float32, dev)
+    leaves = [args[0].requires_grad_(), args[1].requires_grad_()]
+    g32 = g.to(dev, torch.float32)
+
+    def forward() -> None:
+        with torch.no_grad():
+            jittered_window_attention(*[a.detach() for a in args], (sh, sw))
+
+    def both() -> None:
+        out, _ = jittered_window_attention(*args, (sh, sw))
+        torch.autograd.grad(out, leaves, g32)
+
+    ref_args = inputs(torch.float64, "cpu")
+    ref_leaves = [ref_args[0].requires_grad_(), ref_args[1].requires_grad_()]
+    ref_out, _ = jittered_window_attention(*ref_args, (sh, sw))
+    ref_grads = torch.autograd.grad(ref_out, ref_leaves, g)
+    out, _ = jittered_window_attention(*args, (sh, sw))
+    grads = torch.autograd.grad(out, leaves, g32)
+    errs = {"err out": rel_err(out, ref_out), "err grad features": rel_err(grads[0], ref_grads[0]),
+            "err grad logit": rel_err(grads[1], ref_grads[1])}
+    what = f"{jitters} copies, {size[0]} x {size[1]} cells, kernel {k}"
+    return [{"what": f"{what}, forward", "ms": timer(forward), **errs},
+            {"what": f"{what}, forward + backward", "ms": timer(both)}]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -153,6 +309,9 @@ def main() -> None:
     ap.add_argument("--dim", type=int, default=128, help="the network's output channels (proj_dim)")
     ap.add_argument("--iters", type=int, default=None, help="timed repetitions (default 50 CUDA, 3 CPU)")
     ap.add_argument("--compile", action="store_true", help="also time torch.compile'd networks")
+    ap.add_argument("--only", choices=("network", "pre_attention", "attention"), default=None,
+                    help="time only the network tables, the pre-attention block (both step layouts) or the "
+                         "attention op")
     args = ap.parse_args()
     dev = torch.device(args.device)
     cuda = dev.type == "cuda"
@@ -168,22 +327,33 @@ def main() -> None:
     print(f"FeatUp implicit network, {h} x {w} = {h * w} pixels, {base.fourier.out_dim} input channels, "
           f"{args.dim} outputs, {args.precision if cuda else 'fp32'} on {dev}"
           + (f" ({torch.cuda.get_device_name(dev)})" if cuda else ""))
-    rows = []
-    for fused in (False, True):
-        for compile_ in ((False, True) if args.compile else (False,)):
-            net = copy.deepcopy(base)
-            net.fused = fused
-            compiled = torch.compile(net.forward_pixels, dynamic=False) if compile_ else None
-            step = network_step(net, image, grad, args.precision, compiled)
-            name = ("fused" if fused else "composition") + (" + compile" if compile_ else "")
-            row = {"network": name, "eager ms": timer(step)}
-            if cuda:
-                row["graph ms"] = timer(graphed(step, dev))
-            row.update(errors(net, image, grad, args.precision))
-            rows.append(row)
-    print_table(rows, "per step: forward + backward (dropout on); errors against the float64 composition")
-    print_table(input_layer_rows(base, image, args.precision, timer) + hidden_layer_rows(base, image, args.precision, timer),
-                "each fused op alone against the composition it replaces, forward + backward")
+    if args.only in (None, "network"):
+        rows = []
+        for fused in (False, True):
+            for compile_ in ((False, True) if args.compile else (False,)):
+                net = copy.deepcopy(base)
+                net.fused = fused
+                compiled = torch.compile(net.forward_pixels, dynamic=False) if compile_ else None
+                step = network_step(net, image, grad, args.precision, compiled)
+                name = ("fused" if fused else "composition") + (" + compile" if compile_ else "")
+                row = {"network": name, "eager ms": timer(step)}
+                if cuda:
+                    row["graph ms"] = timer(graphed(step, dev))
+                row.update(errors(net, image, grad, args.precision))
+                rows.append(row)
+        print_table(rows, "per step: forward + backward (dropout on); errors against the float64 composition")
+        print_table(input_layer_rows(base, image, args.precision, timer) + hidden_layer_rows(base, image, args.precision, timer),
+                    "each fused op alone against the composition it replaces, forward + backward")
+    act = "bf16" if cuda and args.precision == "bf16" else "fp32"
+    if args.only in (None, "pre_attention"):
+        print_table(pre_attention_rows(args.dim, h, w, args.precision, dev, timer),
+                    f"network output ({act}, channels last) to the attention op's inputs, per step layout, "
+                    "forward + backward (dropout 0.2); errors (dropout off) against the float64 channels-first block")
+        print_table(pre_attention_op_rows(args.dim, h, w, args.precision, dev, timer),
+                    "the channels-last block's ops alone against the compositions they replace, forward + backward")
+    if args.only in (None, "attention"):
+        print_table(attention_rows(h, w, args.dim, dev, timer),
+                    "jittered_window_attention at the fit's geometry (float32); errors against float64")
 
 
 if __name__ == "__main__":

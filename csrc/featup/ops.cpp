@@ -1,4 +1,5 @@
-// Schemas of the featup family (formulas in featup.h, fourier.h and relu_norm.h).
+// Schemas of the featup family (formulas in featup.h, fourier.h, relu_norm.h, magnitude_blur.h and
+// masked_logit.h).
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
@@ -22,4 +23,12 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
   m.def(
       "relu_scale_layer_norm_backward(Tensor grad_out, Tensor x, Tensor? scale, Tensor weight, Tensor mean, "
       "Tensor rstd) -> (Tensor, Tensor, Tensor)");
+  m.def("magnitude_blur(Tensor x, int radius, float sigma) -> (Tensor, Tensor)");
+  m.def(
+      "magnitude_blur_backward(Tensor grad_blurred, Tensor? grad_magnitude, Tensor x, Tensor magnitude, "
+      "int radius, float sigma) -> Tensor");
+  m.def("masked_logit(Tensor x, Tensor? keep, float keep_scale, Tensor weight, Tensor bias) -> Tensor");
+  m.def(
+      "masked_logit_backward(Tensor grad, Tensor x, Tensor? keep, float keep_scale, Tensor weight, bool x_grad) "
+      "-> (Tensor, Tensor, Tensor)");
 }

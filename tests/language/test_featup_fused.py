@@ -38,7 +38,8 @@ def reference(x, logit_map, params, down, mask, size):
 def fused(x, logit_map, params, down, mask, size):
     h, w = x.shape[-2:]
     sy, sx = jitter_coords(params, h, w)
-    return fused_window_attention(down, logit_map, x, reflect_coords(sy, h), reflect_coords(sx, w), size, mask)
+    return fused_window_attention(down, logit_map[0, 0], x[0].permute(1, 2, 0), reflect_coords(sy, h),
+                                  reflect_coords(sx, w), size, mask)
 
 
 GEOMETRIES = [((40, 72), (5, 9), 11), ((33, 47), (8, 14), 7), ((64, 112), (4, 7), 29), ((24, 30), (3, 4), 9)]

@@ -387,6 +387,15 @@ class ImplicitConfig:
     activation once in the autocast dtype and recomputing it in the backward, and its hidden
     ReLU, dropout and LayerNorm in another (where the device has the kernels; see
     :class:`ImplicitNet`).
+    ``step_layout``: the fast fit's layout between the network and the attention op.
+    ``"channels_last"`` (default) keeps the network's own layout: ``tiger::magnitude_blur`` takes
+    each pixel's magnitude and blurs (magnitude, features) in one op, ``tiger::masked_logit``
+    takes the attention logit of the dropped-out blurred map, and the attention op reads the
+    blurred map in place. ``"channels_first"`` is the PyTorch composition (a float32
+    channels-first copy, ``norm``, ``cat``, the depthwise reflect blur, ``F.dropout`` and a 1x1
+    convolution, then a channels-last copy for the attention op). Both compute the same loss
+    and gradients up to rounding; on the CPU they draw the same dropout masks (on CUDA
+    ``F.dropout`` draws its mask with its own kernel, so the masks differ there).
 
     ``steps`` is the most the fit runs (FeatUp's 1200). The fast fit stops earlier once the
     fitted map stops changing: every ``check_every`` steps (from ``min_steps`` on) it evaluates
@@ -423,6 +432,7 @@ class ImplicitConfig:
     precision: str = "bf16"
     cuda_graph: bool = True
     compile_network: bool = False
+    step_layout: str = "channels_last"
 
     def __post_init__(self) -> None:
         if self.method not in ("fast", "reference"):
@@ -433,6 +443,9 @@ class ImplicitConfig:
             raise ValueError(f"tiger.ImplicitConfig: stop_change must be in [0, 1), got {self.stop_change}")
         if self.check_every < 1:
             raise ValueError(f"tiger.ImplicitConfig: check_every must be >= 1, got {self.check_every}")
+        if self.step_layout not in ("channels_last", "channels_first"):
+            raise ValueError("tiger.ImplicitConfig: step_layout must be 'channels_last' or 'channels_first', "
+                             f"got {self.step_layout!r}")
 
 
 def _tv(x: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,12 @@ Same model, parameters, initial weights, jitters and view picks as the reference
   :func:`apply_jitters` then :func:`window_attention`, is kept as the reference it is tested
   against (tests/language/test_featup_fused.py).
 * **Blur once, before the jitters** (the reference blurs each jittered copy): the blurred output
-  is also the blur-pin regulariser's, so one blur serves both.
+  is also the blur-pin regulariser's, so one blur serves both. With
+  ``ImplicitConfig.step_layout="channels_last"`` (default) the network's output stays in its own
+  layout up to the attention op (:func:`pre_attention`): ``tiger::magnitude_blur`` takes each
+  pixel's magnitude and blurs (magnitude, features) in one op, ``tiger::masked_logit`` takes the
+  attention logit of the dropped-out blurred map (the mask drawn channels first, as ``F.dropout``
+  draws it), with no channels-first copy; ``"channels_first"`` is the PyTorch composition.
 * **No host sync per step, one CUDA graph** (``ImplicitConfig.cuda_graph``): every step's view
   picks are drawn up front from the CPU generator in the reference's order, losses stay on the
   device, and on CUDA the step (forward, backward, NAdam with ``capturable=True``) is captured
@@ -36,7 +41,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -163,25 +168,78 @@ def _autocast(device: torch.device, precision: str):
     return contextlib.nullcontext()
 
 
-def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, x: torch.Tensor,
+def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, features: torch.Tensor,
                            coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int, int],
                            mask: torch.Tensor) -> torch.Tensor:
     """``window_attention(down, *apply_jitters(cat([logit_map, x]), grid).split([1, C], 1), size, mask)``
-    in one op (``tiger::jittered_window_attention``), without the jittered copies.
+    in one op (``tiger::jittered_window_attention``), without the jittered copies; x is
+    ``features`` channels first.
 
-    ``logit_map`` [1, 1, H, W], ``x`` [1, C, H, W] (float32/float64); ``coord_y`` [J, H] and
-    ``coord_x`` [J, W] the jitters' reflected source coordinates (:func:`jitter_coords`,
-    :func:`reflect_coords`); ``mask`` [J, fh, fw] the logit mask. Returns [J, C, fh, fw].
+    ``logit_map`` [H, W], ``features`` [H, W, C] channels last (float32/float64; read in place
+    when contiguous); ``coord_y`` [J, H] and ``coord_x`` [J, W] the jitters' reflected source
+    coordinates (:func:`jitter_coords`, :func:`reflect_coords`); ``mask`` [J, fh, fw] the logit
+    mask. Returns [J, C, fh, fw] (a view of the op's channels-last output).
     """
     from tiger.ops.featup import jittered_window_attention
 
-    h, w = x.shape[-2:]
+    h, w = features.shape[:2]
     k, sh, sw, _, _ = window_geometry(h, w, size, down.kernel)
-    dt = x.dtype
-    out, _ = jittered_window_attention(x[0].permute(1, 2, 0).contiguous(), logit_map[0, 0].to(dt), coord_y.to(dt),
-                                       coord_x.to(dt), down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt),
-                                       (sh, sw))
+    dt = features.dtype
+    out, _ = jittered_window_attention(features.contiguous(), logit_map.to(dt), coord_y.to(dt), coord_x.to(dt),
+                                       down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt), (sh, sw))
     return out.permute(0, 3, 1, 2)
+
+
+# FeatUp blurs the attention's input with 5 taps (radius 2) of a sigma-1 Gaussian, reflect padded
+BLUR_RADIUS, BLUR_SIGMA = 2, 1.0
+
+
+class PreAttention(NamedTuple):
+    """The step's tensors between the network and the attention op (:func:`pre_attention`)."""
+
+    features: torch.Tensor  # [h, w, 1 + C] blurred (magnitude, features), channels last, float32/64
+    logit_map: torch.Tensor  # [h, w] the attention logit of the dropped-out blurred map
+    hr: torch.Tensor  # the network's output as the blur pin reads it ([h, w, C] or [1, C, h, w])
+    hr_mag: torch.Tensor  # its per-pixel magnitude ([h, w] or [1, 1, h, w])
+    hr_blurred: Callable[[], torch.Tensor]  # hr's blur, in hr's layout
+
+
+def pre_attention(hr: torch.Tensor, down: "AttentionDownsampler", layout: str) -> PreAttention:
+    """The step's block from the network's output ``hr`` [1, C, h, w] (any dtype; in the fit a
+    view of the network's channels-last [1, h, w, C]) to the attention op's inputs: each pixel's
+    magnitude, the reflect blur of (magnitude, features), the attention's input dropout and its
+    per-pixel logit (``down.attention[1]``, a linear map of the 1 + C channels).
+
+    ``layout="channels_last"``: ``tiger::magnitude_blur`` on the network's layout (read in its
+    dtype, accumulated in float32) and ``tiger::masked_logit`` with the dropout mask drawn
+    channels first, as ``F.dropout`` draws it for [1, 1 + C, h, w]. ``"channels_first"``: the
+    PyTorch composition (float32 copy, norm, cat, depthwise blur, ``F.dropout``, 1x1 conv, and
+    the channels-last copy the attention op reads). The blurred map and the logit map are
+    float32 (float64 for a float64 ``hr``).
+    """
+    lin = down.attention[1]
+    p = down.dropout
+    if layout == "channels_last":
+        from tiger.ops.featup import magnitude_blur, masked_logit
+
+        hr_hwc = hr[0].permute(1, 2, 0)  # [h, w, C]: no copy when hr is a channels-last view
+        blurred, hr_mag = magnitude_blur(hr_hwc, BLUR_RADIUS, BLUR_SIGMA)  # [h, w, 1 + C], [h, w]
+        keep = None
+        if p > 0:  # F.dropout's draws for the channels-first map (bernoulli in its element order)
+            keep = torch.empty(blurred.shape[-1], *blurred.shape[:2], dtype=torch.bool,
+                               device=blurred.device).bernoulli_(1 - p)
+        keep_scale = 1.0 / (1.0 - p) if p < 1 else 0.0  # F.dropout(p=1) zeroes everything
+        logit_map = masked_logit(blurred, lin.weight.view(-1), lin.bias, keep, keep_scale)
+        return PreAttention(blurred, logit_map, hr_hwc, hr_mag, lambda: blurred[..., 1:])
+    if layout != "channels_first":
+        raise ValueError(f"tiger: pre_attention layout must be 'channels_last' or 'channels_first', got {layout!r}")
+    hr = hr.to(torch.promote_types(hr.dtype, torch.float32)).contiguous()
+    hr_mag = hr.norm(dim=1, keepdim=True)
+    blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 2 * BLUR_RADIUS + 1, BLUR_SIGMA, padding="reflect")
+    logit_in = F.dropout(blurred, p, training=True) if p > 0 else blurred
+    logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
+    features = blurred[0].permute(1, 2, 0).contiguous()
+    return PreAttention(features, logit_map[0, 0], hr, hr_mag, lambda: blurred[:, 1:])
 
 
 def featurize_jitters(img: torch.Tensor, featurizer: "Featurizer", params: torch.Tensor, batch: int,
@@ -364,23 +422,19 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
                coord_x: torch.Tensor, network, down: "AttentionDownsampler", outlier: nn.Conv2d,
                cfg: "ImplicitConfig") -> torch.Tensor:
     """One step's loss (the reference loop's terms) on the views ``idx`` [J] (device tensor);
-    ``network`` is the implicit network's ``forward_pixels`` (or its compiled form)."""
+    ``network`` is the implicit network's ``forward_pixels`` (or its compiled form); the block
+    before the attention op in ``cfg.step_layout`` (:func:`pre_attention`)."""
     from .featup import _fit_loss
 
     dev = img.device
     fh, fw = targets.shape[-2:]
     with _autocast(dev, cfg.precision):
         hr = network(img)
-    hr = hr.float().contiguous()
-    hr_mag = hr.norm(dim=1, keepdim=True)
-    blurred = gaussian_blur(torch.cat([hr_mag, hr], dim=1), 5, 1.0, padding="reflect")
-    logit_in = F.dropout(blurred, down.dropout, training=True) if down.dropout > 0 else blurred
-    lin = down.attention[1]
-    logit_map = F.conv2d(logit_in, lin.weight.view(1, -1, 1, 1), lin.bias)  # [1, 1, h, w]
+    pre = pre_attention(hr, down, cfg.step_layout)
     n = idx.shape[0]
     if down.dropout > 0:
         mask = (torch.rand(n, fh, fw, device=dev) > down.dropout).float()
     else:
         mask = torch.ones(n, fh, fw, device=dev)
-    out = fused_window_attention(down, logit_map, blurred, coord_y[idx], coord_x[idx], (fh, fw), mask)
-    return _fit_loss(cfg, out, targets[idx], outlier, hr, hr_mag, lambda: blurred[:, 1:])
+    out = fused_window_attention(down, pre.logit_map, pre.features, coord_y[idx], coord_x[idx], (fh, fw), mask)
+    return _fit_loss(cfg, out, targets[idx], outlier, pre.hr, pre.hr_mag, pre.hr_blurred)

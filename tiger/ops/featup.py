@@ -1,9 +1,12 @@
 """The featup op family: ``tiger::jittered_window_attention`` (FeatUp's attention downsampler
 over jittered copies of one feature map, without materialising the copies),
 ``tiger::fourier_layer_norm`` (the implicit network's Fourier features, LayerNorm and channel
-dropout in one pass) and ``tiger::relu_scale_layer_norm`` (its hidden ReLU, channel dropout and
-LayerNorm in one pass): fake kernels, autograd and the Python entry points. Formulas in
-``csrc/featup/featup.h``, ``fourier.h`` and ``relu_norm.h``."""
+dropout in one pass), ``tiger::relu_scale_layer_norm`` (its hidden ReLU, channel dropout and
+LayerNorm in one pass), ``tiger::magnitude_blur`` (the fit's per-pixel magnitude and reflect
+Gaussian blur, channels last) and ``tiger::masked_logit`` (the attention logit of every pixel
+after the input dropout, channels last): fake kernels, autograd and the Python entry points.
+Formulas in ``csrc/featup/featup.h``, ``fourier.h``, ``relu_norm.h``, ``magnitude_blur.h`` and
+``masked_logit.h``."""
 from __future__ import annotations
 
 from typing import Optional
@@ -12,7 +15,8 @@ import torch
 
 from ._eager_autograd import eager_autograd
 
-__all__ = ["jittered_window_attention", "fourier_layer_norm", "relu_scale_layer_norm"]
+__all__ = ["jittered_window_attention", "fourier_layer_norm", "relu_scale_layer_norm", "magnitude_blur",
+           "masked_logit"]
 
 
 @torch.library.register_fake("tiger::jittered_window_attention")
@@ -200,3 +204,128 @@ def relu_scale_layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Ten
     if scale is not None and scale.requires_grad:
         raise ValueError("tiger.relu_scale_layer_norm: scale is not differentiable; pass it detached")
     return _relu_norm_eager(x, scale, weight, bias, float(eps))[0]
+
+
+# ----------------------------------------------------------------------------- magnitude_blur
+def _blur_out_dtype(x: torch.Tensor) -> torch.dtype:
+    return torch.float64 if x.dtype == torch.float64 else torch.float32
+
+
+@torch.library.register_fake("tiger::magnitude_blur")
+def _magnitude_blur_fake(x, radius, sigma):
+    torch._check(x.dim() == 3, lambda: f"x must be [H, W, C], got {tuple(x.shape)}")
+    torch._check(0 <= radius < x.shape[0] and radius < x.shape[1],
+                 lambda: f"reflect padding by radius {radius} needs H and W > radius, got x {tuple(x.shape)}")
+    h, w, c = x.shape
+    dt = _blur_out_dtype(x)
+    return x.new_empty((h, w, c + 1), dtype=dt), x.new_empty((h, w), dtype=dt)
+
+
+@torch.library.register_fake("tiger::magnitude_blur_backward")
+def _magnitude_blur_fake_backward(grad_blurred, grad_magnitude, x, magnitude, radius, sigma):
+    torch._check(grad_blurred.shape == (*x.shape[:2], x.shape[2] + 1),
+                 lambda: f"grad_blurred must be [H, W, C + 1], got {tuple(grad_blurred.shape)}")
+    return torch.empty_like(x)
+
+
+def _magnitude_blur_setup_context(ctx, inputs, output):
+    x, radius, sigma = inputs
+    ctx.save_for_backward(x, output[1])
+    ctx.blur = (radius, sigma)
+
+
+def _magnitude_blur_backward(ctx, grad_blurred, grad_magnitude):
+    x, magnitude = ctx.saved_tensors
+    if not ctx.needs_input_grad[0] or (grad_blurred is None and grad_magnitude is None):
+        return None, None, None
+    if grad_blurred is None:
+        grad_blurred = magnitude.new_zeros((*x.shape[:2], x.shape[2] + 1))
+    grad_x = torch.ops.tiger.magnitude_blur_backward(
+        grad_blurred.contiguous(), None if grad_magnitude is None else grad_magnitude.contiguous(), x, magnitude,
+        *ctx.blur)
+    return grad_x, None, None
+
+
+torch.library.register_autograd("tiger::magnitude_blur", _magnitude_blur_backward,
+                                setup_context=_magnitude_blur_setup_context)
+_magnitude_blur_eager = eager_autograd(torch.ops.tiger.magnitude_blur, _magnitude_blur_setup_context,
+                                       _magnitude_blur_backward)
+
+
+def magnitude_blur(x: torch.Tensor, radius: int = 2, sigma: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each pixel's feature magnitude, and the reflect-padded Gaussian blur of (magnitude,
+    features), channels last in one op (``tiger::magnitude_blur``; formula in
+    ``csrc/featup/magnitude_blur.h``): ``gaussian_blur(cat([x.norm(dim=1), x], 1), 2 * radius + 1,
+    sigma, padding="reflect")`` for a channels-first x, without the channels-first copies.
+
+    Args:
+        x: [H, W, C] float32/float64 (bfloat16/float16 too, read as is and accumulated in
+            float32), e.g. the implicit network's channels-last output; H, W > radius.
+        radius: taps on each side (<= 8); FeatUp's fit blurs with 5 taps (radius 2), sigma 1.
+        sigma: the Gaussian's standard deviation, pixels.
+
+    Returns:
+        (blurred [H, W, C + 1], magnitude [H, W]), float32 (float64 for float64 x); channel 0 of
+        ``blurred`` is the blurred magnitude. Both differentiable in x.
+    """
+    return _magnitude_blur_eager(x, int(radius), float(sigma))
+
+
+# ----------------------------------------------------------------------------- masked_logit
+@torch.library.register_fake("tiger::masked_logit")
+def _masked_logit_fake(x, keep, keep_scale, weight, bias):
+    torch._check(x.dim() == 3, lambda: f"x must be [H, W, U], got {tuple(x.shape)}")
+    torch._check(weight.shape == (x.shape[2],), lambda: f"weight must be [U] = [{x.shape[2]}], got {tuple(weight.shape)}")
+    torch._check(keep is None or keep.shape == (x.shape[2], *x.shape[:2]),
+                 lambda: f"keep must be [U, H, W], got {None if keep is None else tuple(keep.shape)}")
+    return x.new_empty(x.shape[:2])
+
+
+@torch.library.register_fake("tiger::masked_logit_backward")
+def _masked_logit_fake_backward(grad, x, keep, keep_scale, weight, x_grad):
+    torch._check(grad.shape == x.shape[:2], lambda: f"grad must be [H, W], got {tuple(grad.shape)}")
+    return (torch.empty_like(x) if x_grad else x.new_empty((0,))), weight.new_empty(weight.shape), weight.new_empty((1,))
+
+
+def _masked_logit_setup_context(ctx, inputs, output):
+    x, keep, keep_scale, weight, _bias = inputs
+    ctx.save_for_backward(x, keep, weight)
+    ctx.keep_scale = keep_scale
+
+
+def _masked_logit_backward(ctx, grad):
+    x, keep, weight = ctx.saved_tensors
+    needs = ctx.needs_input_grad
+    if grad is None or not (needs[0] or needs[3] or needs[4]):
+        return (None,) * 5
+    gx, gw, gb = torch.ops.tiger.masked_logit_backward(grad.contiguous(), x, keep, ctx.keep_scale, weight,
+                                                       bool(needs[0]))
+    return gx if needs[0] else None, None, None, gw if needs[3] else None, gb if needs[4] else None
+
+
+torch.library.register_autograd("tiger::masked_logit", _masked_logit_backward,
+                                setup_context=_masked_logit_setup_context)
+_masked_logit_eager = eager_autograd(torch.ops.tiger.masked_logit, _masked_logit_setup_context,
+                                     _masked_logit_backward)
+
+
+def masked_logit(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, keep: Optional[torch.Tensor] = None,
+                 keep_scale: float = 1.0) -> torch.Tensor:
+    """The attention logit of every pixel after the input dropout,
+    ``bias + sum_k weight[k] x[..., k] m[k]`` with ``m = keep * keep_scale``
+    (``tiger::masked_logit``; formula in ``csrc/featup/masked_logit.h``): the 1x1 convolution of
+    the dropped-out channels-first map ``x.permute(2, 0, 1) * keep * keep_scale``, read channels
+    last, with a 1-byte mask.
+
+    Args:
+        x: [H, W, U] float32/float64, channels last.
+        weight: [U], bias: [1] the attention's Linear (x's dtype).
+        keep: [U, H, W] bool, the input dropout's kept elements drawn channels first (as
+            ``F.dropout`` draws them for a [1, U, H, W] map: ``bernoulli_(1 - p)``), or None (no
+            dropout).
+        keep_scale: the kept elements' multiplier, ``1 / (1 - p)``.
+
+    Returns:
+        [H, W] in x's dtype, differentiable in x, weight and bias.
+    """
+    return _masked_logit_eager(x, keep, float(keep_scale), weight, bias)
