@@ -47,8 +47,9 @@ from .sam_masks import SamMaskConfig, SamMaskGenerator
 logger = logging.getLogger(__name__)
 
 ImageLike = Union[str, os.PathLike, torch.Tensor]
-# maps written at once by the projection pass (fsync'd 265 MB files at 1080p: one writer keeps a
-# disk at a fraction of its rate; serialisation and the copies release the GIL)
+# maps written at once by the projection pass (fsync'd 265 MB files at 1080p). Where the disk is
+# the bound (the H100 machine: ~0.9 GB/s, 13.7-15.0 s for the fox's 50 maps with two or four) it
+# changes nothing; where serialisation is (it releases the GIL), four overlap it
 MAP_WRITERS = 4
 CACHE_VERSION = 2  # 2: the unmasked rows are regenerated from the record's upsampler state
 
