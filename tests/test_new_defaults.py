@@ -78,6 +78,10 @@ def test_implicit_featup_stopping_and_fusion_defaults():
     assert (cfg.stop_change, cfg.min_steps) == (STOP_CHANGE, STOP_MIN_STEPS)
     assert (cfg.steps, cfg.check_every) == (1200, 100)
     assert (cfg.fused_network, cfg.featurize_batch) == (True, 256)
+    # the step channels last (tiger::magnitude_blur, tiger::masked_logit): 3.13 / 3.05 s per 1080p
+    # image against 3.33 / 3.23 s channels first, same H100 call
+    # (benchmarks/gpu/results/featup_implicit_h100.txt)
+    assert cfg.step_layout == "channels_last"
 
 
 def test_guidance_model_kernels_defaults():
