@@ -370,3 +370,22 @@ def test_unmasked_rows_regenerate_the_upsampled_features(models, upsampler):
     direct = F.normalize(hr.detach().float(), dim=0).permute(1, 2, 0).reshape(-1, hr.shape[0])[ids < 0].half()
     rows = extract_mod.unmasked_rows(rec, img, clip, jbu, cfg)
     assert rows.shape == direct.shape and torch.equal(rows, direct)
+
+
+def test_feature_set_load_is_memory_mapped_and_survives_a_rewrite(tmp_path):
+    """Maps come back memory-mapped (read when touched) with the written bits; replacing a file
+    atomically (a rerun with --force) leaves maps already loaded as they were."""
+    from tiger.language.pca import PCABasis
+    from tiger.utils.io import atomic_torch_save
+
+    g = torch.Generator().manual_seed(0)
+    feats, valid = torch.randn(6, 9, 4, generator=g).half(), torch.rand(6, 9, generator=g) > 0.5
+    (tmp_path / "features").mkdir()
+    atomic_torch_save({"features": feats, "valid": valid, "pca": "x"}, tmp_path / "features" / "a.pt", fsync=False)
+    fs = FeatureSet(tmp_path, ["a"], PCABasis(torch.zeros(4), torch.eye(4), torch.ones(4)))
+    f, v = fs.load("a")
+    assert torch.equal(f, feats) and torch.equal(v, valid)
+    atomic_torch_save({"features": feats + 1, "valid": ~valid, "pca": "y"}, tmp_path / "features" / "a.pt",
+                      fsync=False)
+    assert torch.equal(f, feats) and torch.equal(v, valid)
+    assert torch.equal(fs.load("a")[0], feats + 1)

@@ -114,9 +114,9 @@ def pooled(m: ViewMap, factor: int) -> ViewMap:
 
 
 #: Threads that copy the maps to the GPU at once, each through its own pinned buffer (a 1080p
-#: 64-d float16 map is 265 MB); a memory-mapped source is read by these threads too. Maps from a
-#: ``FeatureSet`` are read before, one file at a time (``torch.load``): 12.3 s of the fox's 50
-#: maps inside ``tiger prepare`` on the H100 machine, the embed stage's largest part.
+#: 64-d float16 map is 265 MB); a memory-mapped source (``FeatureSet.load``) is read by these
+#: threads. Eager loads one file after another took 12.3 s of the fox's 50 maps inside
+#: ``tiger prepare`` on the H100 machine, the embed stage's largest part.
 READ_THREADS = 8
 
 
