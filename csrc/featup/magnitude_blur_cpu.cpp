@@ -14,6 +14,7 @@
 #include "featup/blur_math.h"
 #include "featup/magnitude_blur.h"
 #include "featup/magnitude_blur_glue.h"
+#include "featup/stored_types.h"
 
 namespace tiger {
 namespace featup {
@@ -87,17 +88,6 @@ void backward_cpu(const T* grad_blurred, const T* grad_magnitude, const X* x, co
   });
 }
 
-// Calls f(X{}, T{}) for the features' type X and the outputs' T.
-template <typename Fn>
-void dispatch_types(at::ScalarType dt, Fn&& f) {
-  switch (dt) {
-    case at::kDouble: f(double{}, double{}); break;
-    case at::kFloat: f(float{}, float{}); break;
-    case at::kBFloat16: f(c10::BFloat16{}, float{}); break;
-    case at::kHalf: f(c10::Half{}, float{}); break;
-    default: TORCH_CHECK(false, kMagnitudeBlurOp, "unsupported dtype ", dt);
-  }
-}
 
 std::tuple<at::Tensor, at::Tensor> magnitude_blur_cpu(const at::Tensor& x, int64_t radius, double sigma) {
   const BlurDims d = check_magnitude_blur(x, radius, sigma);
@@ -105,7 +95,7 @@ std::tuple<at::Tensor, at::Tensor> magnitude_blur_cpu(const at::Tensor& x, int64
   const auto xc = x.contiguous();
   const auto opts = xc.options().dtype(blur_out_dtype(xc.scalar_type()));
   auto blurred = at::empty({d.H, d.W, d.C + 1}, opts), magnitude = at::empty({d.H, d.W}, opts);
-  dispatch_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_stored_types(xc.scalar_type(), kMagnitudeBlurOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     forward_cpu<X, T>(reinterpret_cast<const X*>(xc.data_ptr()), d, blur_taps<T>(d.radius, sigma),
@@ -122,7 +112,7 @@ at::Tensor magnitude_blur_backward_cpu(const at::Tensor& grad_blurred, const std
   const auto g = grad_blurred.contiguous(), xc = x.contiguous(), m = magnitude.contiguous();
   const auto gm = contiguous(grad_magnitude);
   auto grad_x = at::empty_like(xc);
-  dispatch_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_stored_types(xc.scalar_type(), kMagnitudeBlurOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     backward_cpu<X, T>(g.data_ptr<T>(), optional_ptr<T>(gm),

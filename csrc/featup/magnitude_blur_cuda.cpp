@@ -12,6 +12,7 @@
 #include "common/optional_tensor.h"
 #include "featup/magnitude_blur.h"
 #include "featup/magnitude_blur_glue.h"
+#include "featup/stored_types_cuda.h"
 
 namespace tiger {
 namespace featup {
@@ -24,17 +25,6 @@ void check_cuda_extent(const BlurDims& d, const char* op) {
               " elements must stay below 2^31");
 }
 
-// Calls f(X{}, T{}) with the CUDA types the kernels are instantiated for.
-template <typename Fn>
-void dispatch_cuda_types(at::ScalarType dt, Fn&& f) {
-  switch (dt) {
-    case at::kDouble: f(double{}, double{}); break;
-    case at::kFloat: f(float{}, float{}); break;
-    case at::kBFloat16: f(__nv_bfloat16{}, float{}); break;
-    case at::kHalf: f(__half{}, float{}); break;
-    default: TORCH_CHECK(false, kMagnitudeBlurOp, "unsupported dtype ", dt);
-  }
-}
 
 std::tuple<at::Tensor, at::Tensor> magnitude_blur_cuda(const at::Tensor& x, int64_t radius, double sigma) {
   const BlurDims d = check_magnitude_blur(x, radius, sigma);
@@ -45,7 +35,7 @@ std::tuple<at::Tensor, at::Tensor> magnitude_blur_cuda(const at::Tensor& x, int6
   const auto opts = xc.options().dtype(blur_out_dtype(xc.scalar_type()));
   auto blurred = at::empty({d.H, d.W, d.C + 1}, opts), magnitude = at::empty({d.H, d.W}, opts);
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  dispatch_cuda_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_cuda_stored_types(xc.scalar_type(), kMagnitudeBlurOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     launch_magnitude_blur_forward<X, T>(reinterpret_cast<const X*>(xc.data_ptr()), d, blur_taps<T>(d.radius, sigma),
@@ -68,7 +58,7 @@ at::Tensor magnitude_blur_backward_cuda(const at::Tensor& grad_blurred, const st
   auto grad_x = at::empty_like(xc);
   auto scale = at::empty({d.H, d.W}, m.options());
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  dispatch_cuda_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_cuda_stored_types(xc.scalar_type(), kMagnitudeBlurOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     launch_magnitude_blur_backward<X, T>(g.data_ptr<T>(), optional_ptr<T>(gm),

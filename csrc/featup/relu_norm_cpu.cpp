@@ -15,6 +15,7 @@
 #include "common/optional_tensor.h"
 #include "featup/relu_norm.h"
 #include "featup/relu_norm_glue.h"
+#include "featup/stored_types.h"
 
 namespace tiger {
 namespace featup {
@@ -90,17 +91,6 @@ void backward_cpu(const X* grad, const X* x, const T* scale, const T* w, const T
   }
 }
 
-// Calls f(X{}, T{}) for the activations' type X and the affine's T.
-template <typename Fn>
-void dispatch_types(at::ScalarType dt, Fn&& f) {
-  switch (dt) {
-    case at::kDouble: f(double{}, double{}); break;
-    case at::kFloat: f(float{}, float{}); break;
-    case at::kBFloat16: f(c10::BFloat16{}, float{}); break;
-    case at::kHalf: f(c10::Half{}, float{}); break;
-    default: TORCH_CHECK(false, kReluNormOp, "unsupported dtype ", dt);
-  }
-}
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_cpu(const at::Tensor& x, const std::optional<at::Tensor>& scale,
                                                              const at::Tensor& weight, const at::Tensor& bias,
@@ -111,7 +101,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_cpu(const at::Tensor& x
   const auto s = contiguous(scale);
   auto out = at::empty_like(xc);
   auto mean = at::empty({d.B, d.N}, w.options()), rstd = at::empty({d.B, d.N}, w.options());
-  dispatch_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_stored_types(xc.scalar_type(), kReluNormOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     forward_cpu<X, T>(reinterpret_cast<const X*>(xc.data_ptr()), optional_ptr<T>(s), w.data_ptr<T>(),
@@ -135,7 +125,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_backward_cpu(const at::
   auto grad_x = at::empty_like(xc);
   auto partials = at::empty({blocks, 2 * d.D}, w.options());
   auto grad_w = at::empty({d.D}, w.options()), grad_b = at::empty({d.D}, w.options());
-  dispatch_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_stored_types(xc.scalar_type(), kReluNormOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     backward_cpu<X, T>(reinterpret_cast<const X*>(g.data_ptr()), reinterpret_cast<const X*>(xc.data_ptr()),

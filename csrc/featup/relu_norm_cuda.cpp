@@ -12,22 +12,12 @@
 #include "common/optional_tensor.h"
 #include "featup/relu_norm.h"
 #include "featup/relu_norm_glue.h"
+#include "featup/stored_types_cuda.h"
 
 namespace tiger {
 namespace featup {
 namespace {
 
-// Calls f(X{}, T{}) with the CUDA types the kernels are instantiated for.
-template <typename Fn>
-void dispatch_cuda_types(at::ScalarType dt, Fn&& f) {
-  switch (dt) {
-    case at::kDouble: f(double{}, double{}); break;
-    case at::kFloat: f(float{}, float{}); break;
-    case at::kBFloat16: f(__nv_bfloat16{}, float{}); break;
-    case at::kHalf: f(__half{}, float{}); break;
-    default: TORCH_CHECK(false, kReluNormOp, "unsupported dtype ", dt);
-  }
-}
 
 void check_cuda(const at::Tensor& x, const NormDims& d, const char* op) {
   TORCH_CHECK(x.is_cuda(), op, " (CUDA): x must be on a CUDA device");
@@ -46,7 +36,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_cuda(const at::Tensor& 
   auto out = at::empty_like(xc);
   auto mean = at::empty({d.B, d.N}, w.options()), rstd = at::empty({d.B, d.N}, w.options());
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  dispatch_cuda_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_cuda_stored_types(xc.scalar_type(), kReluNormOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     launch_relu_norm_forward<X, T>(reinterpret_cast<const X*>(xc.data_ptr()), optional_ptr<T>(s), w.data_ptr<T>(),
@@ -79,7 +69,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> relu_norm_backward_cuda(const at:
   const int blocks = relu_norm_backward_blocks(pixels);
   auto partials = at::empty({blocks, 2 * d.D}, w.options());
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  dispatch_cuda_types(xc.scalar_type(), [&](auto xt, auto t) {
+  dispatch_cuda_stored_types(xc.scalar_type(), kReluNormOp, [&](auto xt, auto t) {
     using X = decltype(xt);
     using T = decltype(t);
     launch_relu_norm_backward<X, T>(reinterpret_cast<const X*>(g.data_ptr()), reinterpret_cast<const X*>(xc.data_ptr()),
