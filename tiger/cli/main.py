@@ -99,7 +99,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_BAD_INPUT
-    return run_command(args.command, lambda: args.func(args), verbose=args.verbose)
+    try:
+        return run_command(args.command, lambda: args.func(args), verbose=args.verbose)
+    finally:
+        _leave_process_group()
+
+
+def _leave_process_group() -> None:
+    """Under torchrun, tear down the process group a command set up before the interpreter exits:
+    a rank that exited with its group alive could abort in the backend's threads at exit
+    ("terminate called without an active exception": seen on a gloo rank with nothing to do)."""
+    dist = sys.modules.get("torch.distributed")  # never imported here: only commands that use it
+    if dist is not None and dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
 
 
 if __name__ == "__main__":
