@@ -15,6 +15,7 @@ import tiger.ops
 from tiger.language.featup import AttentionDownsampler, ImplicitConfig, ImplicitNet, sample_jitter
 from tiger.language.featup_fit import _step_loss, jitter_coords, jitter_params, reflect_coords
 from tiger.ops.featup import magnitude_blur, masked_logit
+from tiger.testing.cuda_graphs import capture
 from tiger.utils.filters import gaussian_blur
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
@@ -255,14 +256,7 @@ def test_cuda_is_deterministic_and_graph_capturable():
     first = run()
     assert torch.equal(first, run())
     torch.library.opcheck(torch.ops.tiger.magnitude_blur, (x, 2, 1.0))
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        run()
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        static = run()
+    graph, static = capture(run)
     graph.replay()
     torch.cuda.synchronize()
     assert torch.equal(static, first)

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 import tiger.ops
 from tiger.language.featup import FourierFeaturizer, ImplicitConfig, ImplicitNet, ImplicitUpsampler
 from tiger.ops.featup import fourier_layer_norm, relu_scale_layer_norm
+from tiger.testing.cuda_graphs import capture
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="needs CUDA")
@@ -313,14 +314,7 @@ def test_cuda_backward_is_deterministic_and_graph_capturable():
     first, second = grads(), grads()
     for a, b in zip(first, second):
         assert torch.equal(a, b)
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        grads()
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        captured = grads()
+    graph, captured = capture(grads)
     graph.replay()
     torch.cuda.synchronize()
     for a, b in zip(captured, first):

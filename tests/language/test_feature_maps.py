@@ -1,23 +1,8 @@
-"""ResidentMaps brings every view's map into memory once: in camera order, bit for bit, on threads."""
-import threading
-import time
-
+"""ResidentMaps brings every view's map into memory once: in camera order, bit for bit."""
 import pytest
 import torch
 
-from tiger.language.feature_maps import ResidentMaps, _on_threads
-
-
-def test_on_threads_keeps_the_order_and_uses_worker_threads():
-    seen = []
-
-    def slow_first(i):
-        time.sleep(0.02 * (5 - i))  # the first items finish last
-        seen.append(threading.current_thread().name)
-        return i * i
-
-    assert _on_threads(slow_first, list(range(5))) == [0, 1, 4, 9, 16]
-    assert all(name.startswith("tiger-maps") for name in seen)
+from tiger.language.feature_maps import ResidentMaps
 
 
 def _maps(count, device="cpu"):

@@ -7,6 +7,7 @@ import torch.nn.functional as F
 
 import tiger  # noqa: F401
 from tiger.ops.group_norm import GroupNormSiLU, group_norm
+from tiger.testing.cuda_graphs import capture
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
 F64 = torch.float64
@@ -283,15 +284,7 @@ def test_cuda_graph_capture_and_replay():
         return y.detach(), gx
 
     static_x = xc.clone()
-    s = torch.cuda.Stream()
-    s.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(s):
-        for _ in range(2):
-            step(static_x)
-    torch.cuda.current_stream().wait_stream(s)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        static_y, static_gx = step(static_x)
+    graph, (static_y, static_gx) = capture(lambda: step(static_x), warmup=2)
     for seed in (1, 2):
         new = torch.randn(x.shape, generator=torch.Generator().manual_seed(seed)).to(x.dtype).cuda()
         static_x.copy_(new.contiguous(memory_format=CL))

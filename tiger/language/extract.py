@@ -28,7 +28,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence, Union
+from typing import Any, Callable, Sequence, Union
 
 import torch
 import torch.nn.functional as F
@@ -47,9 +47,9 @@ from .sam_masks import SamMaskConfig, SamMaskGenerator
 logger = logging.getLogger(__name__)
 
 ImageLike = Union[str, os.PathLike, torch.Tensor]
-# maps written at once by the projection pass (fsync'd 265 MB files at 1080p). Where the disk is
-# the bound (the H100 machine: ~0.9 GB/s, 13.7-15.0 s for the fox's 50 maps with two or four) it
-# changes nothing; where serialisation is (it releases the GIL), four overlap it
+# maps written at once by the projection pass (265 MB files at 1080p). Where the disk is the bound
+# (the H100 machine with fsync'd writes: ~0.9 GB/s, 13.7-15.0 s for the fox's 50 maps with two or
+# four) it changes nothing; where serialisation is (it releases the GIL), four overlap it
 MAP_WRITERS = 4
 CACHE_VERSION = 2  # 2: the unmasked rows are regenerated from the record's upsampler state
 
@@ -492,7 +492,7 @@ def _fit_pca(out: Path, all_names: list[str], cache_dir: Path, fp: str, full_fp:
 
 def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Path, fp: str, cfg: FeatureConfig,
                  kept: KeptRecords, saver: BackgroundSaver, dev: torch.device,
-                 recompute: dict[str, Any] | None = None, rows: Any = None) -> None:
+                 recompute: dict[str, Any], rows: Callable[[str, dict[str, Any]], torch.Tensor]) -> None:
     """Stage 2 for this rank's images: each record (from memory, else from its cache file, else
     recomputed by ``recompute[name](name)`` when neither could hold it) projected on ``dev``; only the
     [h, w, k] float16 map and its validity are copied to the host and written atomically, without
@@ -500,7 +500,6 @@ def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Pat
     crash leaves torn does not load, so a rerun recomputes it (:func:`_finished`). With fsync the
     writes waited for the disk (the fox's 50 maps: 15.0 s at ~0.9 GB/s on the H100 machine).
     ``rows(name, rec)`` gives the features of the record's pixels in no mask (:func:`unmasked_rows`)."""
-    recompute = recompute or {}
     pfp = pca.fingerprint()
     saver.drop_optional()  # from here on a written map supersedes its stage-1 record
     saver.max_pending = max(saver.max_pending, MAP_WRITERS)
@@ -520,7 +519,7 @@ def _project_all(pca: PCABasis, names: list[str], cache_dir: Path, feat_dir: Pat
             if "regen" in rec:
                 rec["regen"] = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in rec["regen"].items()}
         if cfg.unmasked == "keep":
-            rec = dict(rec, unmasked=rows(name, rec) if rows is not None else unmasked_rows(rec, None, None, None, cfg))
+            rec = dict(rec, unmasked=rows(name, rec))
         feats, valid = project_record(rec, pca, cfg.unmasked)
         del rec
         saver.save({"features": feats, "valid": valid, "pca": pfp}, target, fsync=False)

@@ -17,6 +17,7 @@ from typing import Callable, Mapping, Optional, Protocol, Sequence, Union
 import torch
 
 from tiger.render import Camera
+from tiger.utils.threads import thread_map
 
 log = logging.getLogger(__name__)
 #: One view's target: features [H, W, D], (features, valid [H, W]) or {"features", "valid"}.
@@ -120,16 +121,6 @@ def pooled(m: ViewMap, factor: int) -> ViewMap:
 READ_THREADS = 8
 
 
-def _on_threads(fn: Callable, items: list) -> list:
-    """``[fn(x) for x in items]`` on up to :data:`READ_THREADS` threads, in order."""
-    if len(items) < 2:
-        return [fn(x) for x in items]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=min(READ_THREADS, len(items)), thread_name_prefix="tiger-maps") as pool:
-        return list(pool.map(fn, items))
-
-
 def _to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
     """``t`` on ``device`` through a pinned copy: the (possibly memory-mapped) bytes are read by the
     calling thread and the transfer is asynchronous on the current stream, so threads overlap."""
@@ -176,16 +167,14 @@ class ResidentMaps:
         self.on_device = self._decide(placement)
         self._stream = None
         self._inflight: dict[int, tuple[ViewMap, torch.cuda.Event]] = {}
-        if self.on_device and self.device.type == "cuda":
-            moved = _on_threads(lambda fv: tuple(None if t is None else _to_device(t, self.device) for t in fv),
-                                self._host)
-            self._maps = [ViewMap(f, v, n) for (f, v), n in zip(moved, self.n_valid)]
-            self._host = []
-        elif self.on_device:  # CPU training: the maps as read
+        if self.device.type == "cuda":  # on the device, or pinned for streaming (CPU: the maps as read)
+            move = (lambda t: _to_device(t, self.device)) if self.on_device else torch.Tensor.pin_memory
+            self._host = thread_map(lambda fv: tuple(None if t is None else move(t) for t in fv), self._host,
+                                    READ_THREADS, "tiger-maps")
+        if self.on_device:
             self._maps = [ViewMap(f, v, n) for (f, v), n in zip(self._host, self.n_valid)]
             self._host = []
         elif self.device.type == "cuda":
-            self._host = _on_threads(lambda fv: tuple(None if t is None else t.pin_memory() for t in fv), self._host)
             self._stream = torch.cuda.Stream(self.device)
         log.info("train_field: %d feature maps, %.2f GB, %s", count, self.bytes / 1e9,
                  "on the device" if self.on_device else

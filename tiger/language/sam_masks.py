@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +25,7 @@ import torch.nn.functional as F
 
 from tiger.ops.components import remove_small_regions as clean_small_regions
 from tiger.ops.nms import box_nms, mask_nms
+from tiger.utils.threads import thread_map
 
 from .sam_decoder import SamGridDecoder
 
@@ -186,8 +186,7 @@ def clean_masks_on_host(masks: torch.Tensor, area_thresh: int) -> tuple[torch.Te
         if c1 or c2:
             host[k], changed[k] = m, True
 
-    with ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1)) as pool:
-        list(pool.map(one, range(len(host))))
+    thread_map(one, range(len(host)), min(16, os.cpu_count() or 1), "tiger-sam-cleanup")
     return torch.from_numpy(host).to(masks.device), torch.from_numpy(changed).to(masks.device)
 
 

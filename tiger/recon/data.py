@@ -20,19 +20,12 @@ def load_views(cameras: Sequence[Camera], downscale: float = 1.0, cache_dir: Opt
     The images are decoded on a few threads (JPEG decoding, resampling and undistortion release
     the GIL); the result is in the cameras' order whatever the threads' order.
     """
-    from concurrent.futures import ThreadPoolExecutor, as_completed
-
     from tiger.utils.progress import progress as progress_lines
+    from tiger.utils.threads import thread_map
 
-    out: list = [None] * len(cameras)
-    workers = max(1, min(8, os.cpu_count() or 1, len(cameras)))
     bar = progress_lines(len(cameras), "loading images", disable=not progress)
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tiger-load-views") as pool:
-        jobs = {pool.submit(load_image, cam, downscale, cache_dir=cache_dir, background=background): i
-                for i, cam in enumerate(cameras)}
-        for job in as_completed(jobs):
-            out[jobs[job]] = job.result()
-            bar.update(1)
+    out = thread_map(lambda cam: load_image(cam, downscale, cache_dir=cache_dir, background=background), cameras,
+                     min(8, os.cpu_count() or 1), "tiger-load-views", on_done=lambda: bar.update(1))
     bar.close()
     return [c for _, c in out], [img for img, _ in out]
 

@@ -8,6 +8,8 @@ Nothing in the rest of ``tiger`` imports this package; it sits above every other
   and the language field.
 - :mod:`~tiger.testing.ideal_denoiser`: score distillation with the ideal denoiser of known targets,
   the edit loop's known-answer guidance.
+- :mod:`~tiger.testing.cuda_graphs`: capturing a function in a CUDA graph (warm-up on a side
+  stream, then the capture), for the CUDA-graph tests of the ops.
 """
 
 #: Nothing is re-exported here: import the modules (e.g. ``tiger.testing.random_models``) directly.
