@@ -267,9 +267,9 @@ def _tile_extents(coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int,
 def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int], k: int, sh: int, sw: int,
                       h: int, w: int, channels: int) -> dict:
     """Per backward: bytes of features the dots read (baseline / shared_scatter: each cell's whole
-    tile, from L2 or HBM; pixel_dots: every feature once, from HBM), and the global atomics on the
-    logit map's gradient (baseline: the taps of the K*K window pixels; shared_scatter and after:
-    one per tile pixel)."""
+    tile, from L2 or HBM; pixel_dots and after: every feature once, from HBM; bfloat16 for
+    staged_tiles_bf16), and the global atomics on the logit map's gradient (baseline: the taps of
+    the K*K window pixels; shared_scatter and after: at most one per tile pixel)."""
     cy, cx = coords
     rows, cols = _tile_extents(cy, cx, size, k, sh, sw, h, w)
     tile_px = int((rows.unsqueeze(2) * cols.unsqueeze(1)).sum())  # sum over cells of tr * tc
@@ -280,12 +280,12 @@ def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int
     taps_y = (1 + ty_second[:, win_y]).sum(-1)  # [J, FH]: taps of the window's rows
     taps_x = (1 + tx_second[:, win_x]).sum(-1)
     window_atomics = int((taps_y.unsqueeze(2) * taps_x.unsqueeze(1)).sum())
-    return {"tile_px": tile_px, "dots_bytes": {"baseline": tile_px * channels * 4,
-                                               "shared_scatter": tile_px * channels * 4,
-                                               "pixel_dots": h * w * channels * 4,
-                                               "pixel_dots_bf16": h * w * channels * 2},
+    per_cell, once = tile_px * channels * 4, h * w * channels * 4
+    return {"tile_px": tile_px,
+            "dots_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": once,
+                           "staged_tiles": once, "staged_tiles_bf16": once // 2},
             "atomics": {"baseline": window_atomics, "shared_scatter": tile_px, "pixel_dots": tile_px,
-                        "pixel_dots_bf16": tile_px}}
+                        "staged_tiles": tile_px, "staged_tiles_bf16": tile_px}}
 
 
 def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: int = 10,

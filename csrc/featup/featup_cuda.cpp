@@ -22,17 +22,17 @@ void check_cuda(const at::Tensor& features, const WindowDims& d, const char* op)
   TORCH_CHECK(d.H < 65536, op, " (CUDA): features must have fewer than 65536 rows, got ", d.H);
 }
 
-// The variant's extra requirements; for pixel_dots_bf16 the features' bfloat16 copy (else undefined).
+// The variant's extra requirements; for staged_tiles_bf16 the features' bfloat16 copy (else undefined).
 at::Tensor check_variant(const at::Tensor& F, const WindowDims& d, int variant, const char* op) {
-  if (variant == kPixelDots || variant == kPixelDotsBf16) {
-    const int64_t elem = variant == kPixelDotsBf16 ? 4 : static_cast<int64_t>(F.element_size());
+  if (uses_pixel_dots(variant)) {
+    const int64_t elem = uses_bf16_features(variant) ? 4 : static_cast<int64_t>(F.element_size());
     TORCH_CHECK((d.C + 1) * elem <= kDotStageBytes, op, " (CUDA): variant '", kWindowVariantNames[variant],
                 "' stages a pixel's channels in shared memory and takes at most ", kDotStageBytes / elem - 1,
                 " channels, got features with ", d.C, "; use variant 'shared_scatter'");
   }
-  if (variant != kPixelDotsBf16) return at::Tensor();
-  TORCH_CHECK(F.scalar_type() == at::kFloat, op, " (CUDA): variant 'pixel_dots_bf16' takes float32 features, got ",
-              F.scalar_type());
+  if (!uses_bf16_features(variant)) return at::Tensor();
+  TORCH_CHECK(F.scalar_type() == at::kFloat, op, " (CUDA): variant '", kWindowVariantNames[variant],
+              "' takes float32 features, got ", F.scalar_type());
   return F.to(at::kBFloat16).contiguous();
 }
 
@@ -87,7 +87,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
   auto origins = at::empty({cells, 2}, F.options().dtype(at::kInt));
   const at::Tensor Fb = check_variant(F, d, variant, "tiger.jittered_window_attention_backward");
   const void* fb = Fb.defined() ? Fb.data_ptr() : nullptr;
-  const bool pixel_dots = variant == kPixelDots || variant == kPixelDotsBf16;
+  const bool pixel_dots = uses_pixel_dots(variant);
   // pixel_dots' scratch: the cells' tile extents and the dots of g with the tile pixels' features
   auto extents = pixel_dots ? at::empty({cells, 4}, F.options().dtype(at::kInt)) : at::Tensor();
   auto dots = pixel_dots ? at::empty({cells, side * side}, F.options()) : at::Tensor();
@@ -102,7 +102,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
                                            origins.data_ptr<int32_t>(), stream);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     launch_window_grad_features<scalar_t>(g.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),
-                                          origins.data_ptr<int32_t>(), d, gF.data_ptr<scalar_t>(), stream);
+                                          origins.data_ptr<int32_t>(), d, variant, gF.data_ptr<scalar_t>(),
+                                          stream);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
   return {gF, gL, gzl.sum(0).view({d.K, d.K}), gz.sum(0).view({d.K, d.K})};

@@ -26,6 +26,7 @@ constexpr int kMaxThreads = 256;
 constexpr int kPixelsPerBlock = 16;       // grad_features: source pixels of one row per block
 constexpr int kDotCols = 32;              // tile_dots: source pixels of one row per block (at most)
 constexpr int kDotList = 1024;            // tile_dots: candidate cells tested per round
+constexpr int kGatherList = 256;          // grad_features_staged: candidate cells tested per round
 
 // A feature read as the accumulation type (bfloat16 widened to float).
 __device__ __forceinline__ float widen(float v) { return v; }
@@ -149,7 +150,7 @@ __device__ void build_tile(const WindowDims& d, CellShared<T>& s) {
   __syncthreads();
 }
 
-// TF: the features' storage type (T, or bfloat16 for variant kPixelDotsBf16), accumulated in T.
+// TF: the features' storage type (T, or bfloat16 for variant kStagedTilesBf16), accumulated in T.
 template <typename T, typename TF>
 __global__ void __launch_bounds__(kMaxThreads) forward_kernel(const TF* __restrict__ F, const T* __restrict__ logit_map,
                                                               const T* __restrict__ cy, const T* __restrict__ cx,
@@ -346,6 +347,60 @@ __global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restr
   }
 }
 
+// grad_features as grad_features_kernel computes it, with fewer instructions per multiply-add: the
+// covering cells are listed kGatherList at a time over all jitters, and their tiles' values at the
+// block's kPixelsPerBlock pixels (0 off the tile) are staged in shared memory first, so that the
+// per-channel loop reads them as a broadcast without bounds tests.
+template <typename T>
+__global__ void __launch_bounds__(kMaxThreads) grad_features_staged_kernel(const T* __restrict__ g,
+                                                                           const T* __restrict__ tiles,
+                                                                           const int32_t* __restrict__ origins,
+                                                                           WindowDims d, T* __restrict__ gF) {
+  __shared__ int list[kGatherList];
+  __shared__ __align__(16) T stage[kGatherList * kPixelsPerBlock];
+  __shared__ int count;
+  const int u = blockIdx.y, v0 = blockIdx.x * kPixelsPerBlock;
+  const int side = static_cast<int>(d.K) + 3, area = side * side;
+  const int64_t cells = d.J * d.FH * d.FW;
+  for (int64_t cbase = 0; cbase < d.C; cbase += blockDim.x) {
+    const int64_t c = cbase + threadIdx.x;
+    T acc[kPixelsPerBlock];
+#pragma unroll
+    for (int q = 0; q < kPixelsPerBlock; ++q) acc[q] = T(0);
+    for (int64_t round = 0; round < cells; round += kGatherList) {
+      if (threadIdx.x == 0) count = 0;
+      __syncthreads();
+      for (int k = threadIdx.x; k < kGatherList && round + k < cells; k += blockDim.x) {
+        const int64_t cell = round + k;
+        const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
+        if (u >= r0 && u < r0 + side && c0 < v0 + kPixelsPerBlock && c0 + side > v0)
+          list[atomicAdd(&count, 1)] = static_cast<int>(cell);
+      }
+      __syncthreads();
+      const int n = count;
+      for (int t = threadIdx.x; t < n * kPixelsPerBlock; t += blockDim.x) {
+        const int64_t cell = list[t / kPixelsPerBlock];
+        const int r0 = origins[cell * 2], c0 = origins[cell * 2 + 1];
+        const int dv = v0 + t % kPixelsPerBlock - c0;
+        stage[t] = dv >= 0 && dv < side ? tiles[cell * area + (u - r0) * side + dv] : T(0);
+      }
+      __syncthreads();
+      if (c < d.C)
+        for (int e = 0; e < n; ++e) {
+          const T gval = g[static_cast<int64_t>(list[e]) * d.C + c];
+          const T* sv = stage + e * kPixelsPerBlock;
+#pragma unroll
+          for (int q = 0; q < kPixelsPerBlock; ++q) acc[q] += sv[q] * gval;
+        }
+      __syncthreads();  // list and stage are rewritten next round
+    }
+    if (c < d.C)
+#pragma unroll
+      for (int q = 0; q < kPixelsPerBlock; ++q)
+        if (v0 + q < d.W) gF[(static_cast<int64_t>(u) * d.W + v0 + q) * d.C + c] = acc[q];
+  }
+}
+
 // grad_features[u, v0 + q, c] = sum over cells whose tile covers the pixel of tile value * g[cell, c].
 // A block: one source row u, kPixelsPerBlock columns, threads over channels; the covering cells
 // of each jitter are listed in shared memory first (rows and columns tested from the origins).
@@ -423,7 +478,7 @@ void launch_window_forward(const scalar_t* features, const scalar_t* logit_map, 
   const auto st = static_cast<cudaStream_t>(stream);
   const unsigned blocks = static_cast<unsigned>(cells);
   if constexpr (std::is_same<scalar_t, float>::value) {
-    if (variant == kPixelDotsBf16) {
+    if (uses_bf16_features(variant)) {
       forward_kernel<float, __nv_bfloat16><<<blocks, threads_for(d.C), 0, st>>>(
           static_cast<const __nv_bfloat16*>(features_bf16), logit_map, coord_y, coord_x, w, b, mask, d, out, attn);
       return;
@@ -456,7 +511,7 @@ void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* feat
         tiles, origins);
     return;
   }
-  // pixel_dots (_bf16): extents, the dots pixel-major, then the cells from the dots
+  // pixel_dots and after: extents, the dots pixel-major, then the cells from the dots
   int4* ext = reinterpret_cast<int4*>(extents);
   cell_extents_kernel<scalar_t><<<static_cast<unsigned>((cells + 255) / 256), 256, 0, st>>>(coord_y, coord_x, d, ext);
   int cols = 0, fstride = 0;
@@ -465,7 +520,7 @@ void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* feat
   const size_t smem = static_cast<size_t>(cols) * fstride * sizeof(scalar_t);
   bool bf16 = false;
   if constexpr (std::is_same<scalar_t, float>::value) {
-    if (variant == kPixelDotsBf16) {
+    if (uses_bf16_features(variant)) {
       bf16 = true;
       tile_dots_kernel<float, __nv_bfloat16><<<grid, kMaxThreads, smem, st>>>(
           grad_out, static_cast<const __nv_bfloat16*>(features_bf16), ext, d, cols, fstride, dots);
@@ -481,11 +536,15 @@ void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* feat
 
 template <typename scalar_t>
 void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles, const int32_t* origins,
-                                 WindowDims d, scalar_t* grad_features, void* stream) {
+                                 WindowDims d, int variant, scalar_t* grad_features, void* stream) {
   if (d.H * d.W * d.C == 0) return;
   const dim3 grid(static_cast<unsigned>((d.W + kPixelsPerBlock - 1) / kPixelsPerBlock), static_cast<unsigned>(d.H));
-  grad_features_kernel<scalar_t><<<grid, threads_for(d.C), 0, static_cast<cudaStream_t>(stream)>>>(
-      grad_out, tiles, origins, d, grad_features);
+  const auto st = static_cast<cudaStream_t>(stream);
+  if (variant >= kStagedTiles)
+    grad_features_staged_kernel<scalar_t><<<grid, threads_for(d.C), 0, st>>>(grad_out, tiles, origins, d,
+                                                                             grad_features);
+  else
+    grad_features_kernel<scalar_t><<<grid, threads_for(d.C), 0, st>>>(grad_out, tiles, origins, d, grad_features);
 }
 
 #define TIGER_INSTANTIATE(T)                                                                                    \
@@ -494,7 +553,7 @@ void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles
   template void launch_window_backward_cells<T>(const T*, const T*, const T*, const T*, const T*, const T*,     \
                                                 const T*, const T*, WindowDims, int, const void*, int32_t*, T*,  \
                                                 T*, T*, T*, T*, int32_t*, void*);                                \
-  template void launch_window_grad_features<T>(const T*, const T*, const int32_t*, WindowDims, T*, void*);
+  template void launch_window_grad_features<T>(const T*, const T*, const int32_t*, WindowDims, int, T*, void*);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
 #undef TIGER_INSTANTIATE

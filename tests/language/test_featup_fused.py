@@ -121,7 +121,7 @@ def test_cpu_computes_every_variant_as_the_reference(variant):
 def test_unknown_variant_names_the_choices():
     F, L, cy, cx, wk, bk, mask, stride = op_args()
     with pytest.raises(RuntimeError, match="variant must be one of 'baseline', 'shared_scatter', 'pixel_dots', "
-                                           "'pixel_dots_bf16', got 'fast'"):
+                                           "'staged_tiles', 'staged_tiles_bf16', got 'fast'"):
         jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "fast")
     g = torch.ones(2, 2, 2, 3, dtype=F64)
     attn = torch.full((2, 2, 2, 9), 1 / 9, dtype=F64)
@@ -228,7 +228,7 @@ def test_cuda_graph_fit_equals_the_eager_fit():
 # ----------------------------------------------------------------------------- CUDA kernel variants
 def _run(args, device, variant="baseline", bf16_features=False):
     """out, attn and the four gradients of <out, g> (g seeded) of the op on ``device``; features
-    rounded to bfloat16 first when ``bf16_features`` (the CPU reference of pixel_dots_bf16)."""
+    rounded to bfloat16 first when ``bf16_features`` (the CPU reference of staged_tiles_bf16)."""
     F, L, cy, cx, wk, bk, mask, stride = [a.to(device) if torch.is_tensor(a) else a for a in args]
     if bf16_features:
         F = F.to(torch.bfloat16).to(F.dtype)
@@ -246,21 +246,17 @@ VARIANT_SHAPES = [dict(), dict(h=13, w=17, c=37, j=3, size=(3, 4), k=5, stride=(
                   dict(h=70, w=75, c=33, j=2, size=(3, 2), k=29, stride=(15, 20))]  # K = 29, 32-pixel tiles
 
 
-def _fp32_variants():
-    return [v for v in WINDOW_VARIANTS if v != "pixel_dots_bf16"]
-
-
 @needs_cuda
 @pytest.mark.parametrize("variant", WINDOW_VARIANTS)
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("shape", VARIANT_SHAPES)
 def test_cuda_variant_equals_cpu(variant, dtype, shape):
-    """Every variant, forward and backward, against the CPU kernels (pixel_dots_bf16: against the
+    """Every variant, forward and backward, against the CPU kernels (staged_tiles_bf16: against the
     CPU kernels on the features rounded to bfloat16; float32 only)."""
-    if variant == "pixel_dots_bf16" and dtype == F64:
-        pytest.skip("pixel_dots_bf16 takes float32 features")
+    if variant == "staged_tiles_bf16" and dtype == F64:
+        pytest.skip("staged_tiles_bf16 takes float32 features")
     args = op_args(dtype=dtype, **shape)
-    bf16 = variant == "pixel_dots_bf16"
+    bf16 = variant == "staged_tiles_bf16"
     cpu, gpu = _run(args, "cpu", bf16_features=bf16), _run(args, "cuda", variant)
     tol = dict(atol=1e-10, rtol=1e-10) if dtype == F64 else dict(atol=1e-4, rtol=1e-3)
     for name, a, b in zip(NAMES, gpu, cpu):
@@ -291,7 +287,7 @@ def test_cuda_variant_equals_float64_cpu_at_the_fit_geometry(variant):
     """Half the fit's resolution (128 x 224, 8 x 14 cells, kernel 29, 129 channels, 6 jitters) in
     float32 on CUDA against the float64 CPU op (bf16: on the bfloat16-rounded features)."""
     args = _fit_args(128, 224, (8, 14), 6)
-    bf16 = variant == "pixel_dots_bf16"
+    bf16 = variant == "staged_tiles_bf16"
     cpu = _run(args, "cpu", bf16_features=bf16)
     f32 = [a.float() if torch.is_tensor(a) else a for a in args]
     gpu = _run(f32, "cuda", variant)
@@ -303,10 +299,10 @@ def test_cuda_variant_equals_float64_cpu_at_the_fit_geometry(variant):
 @pytest.mark.parametrize("variant", [v for v in WINDOW_VARIANTS if v != "baseline"])
 def test_cuda_variant_equals_baseline_at_the_full_fit_geometry(variant):
     """The fit's 256 x 448 map, 16 x 28 cells, 10 jitters, float32: each variant against the
-    baseline kernels (float rounding; pixel_dots_bf16 against the baseline on the bf16-rounded
+    baseline kernels (float rounding; staged_tiles_bf16 against the baseline on the bf16-rounded
     features)."""
     args = [a.float() if torch.is_tensor(a) else a for a in _fit_args(256, 448, (16, 28), 10)]
-    base = _run(args, "cuda", "baseline", bf16_features=variant == "pixel_dots_bf16")
+    base = _run(args, "cuda", "baseline", bf16_features=variant == "staged_tiles_bf16")
     new = _run(args, "cuda", variant)
     for name, a, b in zip(NAMES, new, base):
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-3, msg=lambda m, n=name: f"{variant} {n}: {m}")
@@ -331,8 +327,8 @@ def test_cuda_variant_footprint_past_the_tile_gives_the_baselines_nan(variant):
 @needs_cuda
 def test_cuda_variant_limits_name_the_problem():
     F, L, cy, cx, wk, bk, mask, stride = op_args(dtype=F64, device="cuda")
-    with pytest.raises(RuntimeError, match="'pixel_dots_bf16' takes float32 features"):
-        jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "pixel_dots_bf16")
+    with pytest.raises(RuntimeError, match="'staged_tiles_bf16' takes float32 features"):
+        jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "staged_tiles_bf16")
     F, L, cy, cx, wk, bk, mask, stride = op_args(c=10240, dtype=torch.float32, device="cuda")
     with pytest.raises(RuntimeError, match="variant 'pixel_dots' .* at most 10239 channels"):
         jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "pixel_dots")

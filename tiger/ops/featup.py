@@ -19,10 +19,10 @@ __all__ = ["jittered_window_attention", "WINDOW_VARIANTS", "fourier_layer_norm",
            "masked_logit"]
 
 
-# The CUDA kernel variants of tiger::jittered_window_attention (csrc/featup/featup.h): the same
-# function up to float rounding ("pixel_dots_bf16": the features read as bfloat16). The CPU
-# kernels are the reference of every variant.
-WINDOW_VARIANTS = ("baseline", "shared_scatter", "pixel_dots", "pixel_dots_bf16")
+# The CUDA kernel variants of tiger::jittered_window_attention (csrc/featup/featup.h), each adding
+# to the one before: the same function up to float rounding ("staged_tiles_bf16": the features
+# read as bfloat16). The CPU kernels are the reference of every variant.
+WINDOW_VARIANTS = ("baseline", "shared_scatter", "pixel_dots", "staged_tiles", "staged_tiles_bf16")
 
 
 @torch.library.register_fake("tiger::jittered_window_attention")
@@ -77,15 +77,16 @@ def jittered_window_attention(features: torch.Tensor, logit_map: torch.Tensor, c
         w, b: [K, K] logit scale and bias of the window softmax.
         mask: [J, FH, FW] logit multiplier per copy and cell (FeatUp's logit dropout; ones for none).
         stride: (rows, columns) between the windows of neighbouring cells.
-        variant: the CUDA kernels (one of :data:`WINDOW_VARIANTS`; forward and backward):
-            "baseline" (one block per cell, the logit map's gradient by K*K*4 global atomics per
-            cell), "shared_scatter" (that gradient summed per cell in shared memory first: one
-            global atomic per touched source pixel), "pixel_dots" (shared_scatter, and the
+        variant: the CUDA kernels (one of :data:`WINDOW_VARIANTS`, forward and backward; each
+            adds to the one before): "baseline" (one block per cell, the logit map's gradient by
+            K*K*4 global atomics per cell), "shared_scatter" (that gradient summed per cell in
+            shared memory first: one global atomic per touched source pixel), "pixel_dots" (the
             backward's dots of the output gradient with the features pixel-major: each feature
-            read once; C <= 10239 for float32), "pixel_dots_bf16" (pixel_dots with the attention's
-            reads of the features from a bfloat16 copy, float32 accumulation; float32 only). The
-            same function up to float rounding (bfloat16's for the last); the CPU computes the
-            reference for every name.
+            read once; C <= 10239 for float32), "staged_tiles" (the features' gradient reads the
+            covering tiles from shared memory), "staged_tiles_bf16" (the attention's reads of the
+            features from a bfloat16 copy, float32 accumulation; float32 only). The same function
+            up to float rounding (bfloat16's for the last); the CPU computes the reference for
+            every name.
 
     Returns:
         (out [J, FH, FW, C], attn [J, FH, FW, K*K]): the softmax-weighted window sums of the
