@@ -97,8 +97,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
                                            cy.data_ptr<scalar_t>(), cx.data_ptr<scalar_t>(), wc.data_ptr<scalar_t>(),
                                            mc.data_ptr<scalar_t>(), a.data_ptr<scalar_t>(), d, variant, fb,
                                            pixel_dots ? extents.data_ptr<int32_t>() : nullptr,
-                                           pixel_dots ? dots.data_ptr<scalar_t>() : nullptr, gz.data_ptr<scalar_t>(), gzl.data_ptr<scalar_t>(),
-                                           gL.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),
+                                           pixel_dots ? dots.data_ptr<scalar_t>() : nullptr, gz.data_ptr<scalar_t>(),
+                                           gzl.data_ptr<scalar_t>(), gL.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),
                                            origins.data_ptr<int32_t>(), stream);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     launch_window_grad_features<scalar_t>(g.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),

@@ -313,7 +313,8 @@ __global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restr
   const int ncols = min(cols, static_cast<int>(d.W) - v0);
   const int C = static_cast<int>(d.C), side = static_cast<int>(d.K) + 3, area = side * side;
   const TF* src = F + (static_cast<int64_t>(u) * d.W + v0) * C;  // ncols * C contiguous values
-  for (int t = threadIdx.x; t < ncols * C; t += blockDim.x) Fs[(t / C) * fstride + t % C] = static_cast<T>(widen(src[t]));
+  for (int t = threadIdx.x; t < ncols * C; t += blockDim.x)
+    Fs[(t / C) * fstride + t % C] = static_cast<T>(widen(src[t]));
   const int64_t cells = d.J * d.FH * d.FW;
   for (int64_t round = 0; round < cells; round += kDotList) {
     if (threadIdx.x == 0) count = 0;

@@ -15,8 +15,8 @@ import torch
 
 from ._eager_autograd import eager_autograd
 
-__all__ = ["jittered_window_attention", "WINDOW_VARIANTS", "fourier_layer_norm", "relu_scale_layer_norm", "magnitude_blur",
-           "masked_logit"]
+__all__ = ["jittered_window_attention", "WINDOW_VARIANTS", "fourier_layer_norm", "relu_scale_layer_norm",
+           "magnitude_blur", "masked_logit"]
 
 
 # The CUDA kernel variants of tiger::jittered_window_attention (csrc/featup/featup.h), each adding
