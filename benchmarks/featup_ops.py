@@ -251,28 +251,37 @@ def pre_attention_op_rows(dim: int, h: int, w: int, precision: str, dev: torch.d
 
 
 def _tile_extents(coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int, int], k: int, sh: int, sw: int,
-                  h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows [J, FH] and columns [J, FW] of each cell's source tile (the CUDA kernels' tr, tc):
-    the span of the window's bilinear taps, as ``axis_tap`` clamps them."""
-    def span(coords: torch.Tensor, cells: int, stride: int, n: int) -> torch.Tensor:
+                  h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """First row [J, FH], rows [J, FH], first column [J, FW] and columns [J, FW] of each cell's
+    source tile (the CUDA kernels' r0, tr, c0, tc): the span of the window's bilinear taps, as
+    ``axis_tap`` clamps them."""
+    def span(coords: torch.Tensor, cells: int, stride: int, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         c = coords.double().clamp(0, n - 1)
         idx = c.floor()
         hi = torch.where(idx + 1 < n, idx + 1, idx)
         win = torch.arange(k) + stride * torch.arange(cells).view(-1, 1)  # [cells, k]
-        return (hi[:, win].amax(-1) - idx[:, win].amin(-1) + 1).long()
+        lo = idx[:, win].amin(-1)
+        return lo.long(), (hi[:, win].amax(-1) - lo + 1).long()
 
-    return span(coord_y, size[0], sh, h), span(coord_x, size[1], sw, w)
+    return (*span(coord_y, size[0], sh, h), *span(coord_x, size[1], sw, w))
 
 
 def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int], k: int, sh: int, sw: int,
-                      h: int, w: int, channels: int) -> dict:
-    """Per backward: bytes of features the dots read (baseline / shared_scatter: each cell's whole
-    tile, from L2 or HBM; pixel_dots and after: every feature once, from HBM; bfloat16 for
-    staged_tiles_bf16), and the global atomics on the logit map's gradient (baseline: the taps of
-    the K*K window pixels; shared_scatter and after: at most one per tile pixel)."""
+                      h: int, w: int, channels: int, group: int = 4) -> dict:
+    """Feature bytes read and global atomics per variant (estimates from the geometry, float32):
+    the forward's reads (each cell's tile; staged_tiles and after: the union of the tiles of
+    ``group`` neighbouring cells of a window row, bfloat16 for staged_tiles_bf16), the backward's
+    dots' reads (each cell's tile, from L2 or HBM; pixel_dots and after: every feature once), and
+    the backward's global atomics on the logit map's gradient (baseline: the taps of the K*K window
+    pixels; shared_scatter and after: at most one per tile pixel)."""
     cy, cx = coords
-    rows, cols = _tile_extents(cy, cx, size, k, sh, sw, h, w)
+    _, rows, c0, cols = _tile_extents(cy, cx, size, k, sh, sw, h, w)
     tile_px = int((rows.unsqueeze(2) * cols.unsqueeze(1)).sum())  # sum over cells of tr * tc
+    union = torch.zeros(cols.shape[0], dtype=torch.long)  # per jitter: the groups' column unions
+    for g0 in range(0, size[1], group):
+        lo, hi = c0[:, g0:g0 + group], c0[:, g0:g0 + group] + cols[:, g0:g0 + group]
+        union += hi.amax(-1) - lo.amin(-1)
+    grouped_px = int((rows.sum(-1) * union).sum())
     ty_second = (cy.double().clamp(0, h - 1).floor() + 1 < h).double()
     tx_second = (cx.double().clamp(0, w - 1).floor() + 1 < w).double()
     win_y = torch.arange(k) + sh * torch.arange(size[0]).view(-1, 1)
@@ -280,8 +289,10 @@ def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int
     taps_y = (1 + ty_second[:, win_y]).sum(-1)  # [J, FH]: taps of the window's rows
     taps_x = (1 + tx_second[:, win_x]).sum(-1)
     window_atomics = int((taps_y.unsqueeze(2) * taps_x.unsqueeze(1)).sum())
-    per_cell, once = tile_px * channels * 4, h * w * channels * 4
+    per_cell, once, grouped = tile_px * channels * 4, h * w * channels * 4, grouped_px * channels * 4
     return {"tile_px": tile_px,
+            "forward_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": per_cell,
+                              "staged_tiles": grouped, "staged_tiles_bf16": grouped // 2},
             "dots_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": once,
                            "staged_tiles": once, "staged_tiles_bf16": once // 2},
             "atomics": {"baseline": window_atomics, "shared_scatter": tile_px, "pixel_dots": tile_px,
@@ -295,8 +306,8 @@ def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: 
     backbone's (h / patch) x (w / patch) cells; per kernel variant (CUDA; the CPU runs the
     reference kernels only): forward, forward + backward (eager and, on CUDA, replayed from a
     CUDA graph as the fit runs it), the backward alone, each one's errors against the float64 CPU
-    op, and the backward's feature bytes read by the dots and global atomics (estimates from the
-    geometry)."""
+    op, and the feature bytes read by the forward and by the backward's dots and the backward's
+    global atomics (estimates from the geometry, :func:`attention_traffic`)."""
     from tiger.language.featup import sample_jitter
     from tiger.language.featup_fit import jitter_coords, jitter_params, reflect_coords, window_geometry
     from tiger.ops.featup import WINDOW_VARIANTS, jittered_window_attention
@@ -353,7 +364,8 @@ def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: 
         row.update({"err out": rel_err(out, ref_out)})
         row.update({f"err grad {name}": rel_err(a, r)
                     for name, a, r in zip(("features", "logit", "w", "b"), grads, ref_grads)})
-        row["bwd dots GB"] = traffic["dots_bytes"][variant] / 1e9
+        row["fwd F GB"] = traffic["forward_bytes"][variant] / 1e9
+        row["bwd dots F GB"] = traffic["dots_bytes"][variant] / 1e9
         row["bwd atomics M"] = traffic["atomics"][variant] / 1e6
         rows.append(row)
     return rows
@@ -417,7 +429,8 @@ def main() -> None:
     if args.only in (None, "attention"):
         print_table(attention_rows(h, w, args.dim, dev, timer, variants=args.variants),
                     "jittered_window_attention at the fit's geometry (float32) per kernel variant; errors against "
-                    "the float64 CPU op; the backward's feature bytes read by its dots and global atomics (estimates)")
+                    "the float64 CPU op; feature bytes read by the forward and the backward's dots, global atomics "
+                    "(estimates)")
 
 
 if __name__ == "__main__":

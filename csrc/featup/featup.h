@@ -44,7 +44,8 @@
 //                      instead of once per covering cell).
 //   staged_tiles       the features' gradient reads the covering tiles' values at its pixels from
 //                      shared memory (staged per round of listed cells) instead of testing and
-//                      loading them per channel.
+//                      loading them per channel; the forward computes 4 neighbouring cells of a
+//                      window row per block (2 in float64) and reads the union of their tiles once.
 //   staged_tiles_bf16  the attention's reads of the features (forward output and the backward's
 //                      dots) from a bfloat16 copy, accumulated in float32 (float32 features only;
 //                      the features' own gradient does not read them).
@@ -62,6 +63,7 @@ constexpr const char* kWindowVariantNames[] = {"baseline", "shared_scatter", "pi
 constexpr int kWindowVariants = 5;
 inline bool uses_pixel_dots(int variant) { return variant >= kPixelDots; }
 inline bool uses_bf16_features(int variant) { return variant == kStagedTilesBf16; }
+inline bool uses_grouped_forward(int variant) { return variant >= kStagedTiles; }
 
 // pixel_dots (and after) stages one row segment of at least one pixel's C channels in shared memory: C * sizeof(T)
 // (plus one element of padding) must fit this many bytes.

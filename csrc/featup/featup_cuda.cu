@@ -9,6 +9,7 @@
 // one per touched tile pixel after a shared-memory sum). Variants: featup.h.
 #include <cuda_bf16.h>
 #include <cuda_runtime.h>
+#include <limits.h>
 #include <math.h>
 
 #include <type_traits>
@@ -27,6 +28,9 @@ constexpr int kPixelsPerBlock = 16;       // grad_features: source pixels of one
 constexpr int kDotCols = 32;              // tile_dots: source pixels of one row per block (at most)
 constexpr int kDotList = 1024;            // tile_dots: candidate cells tested per round
 constexpr int kGatherList = 256;          // grad_features_staged: candidate cells tested per round
+// forward_grouped: neighbouring cells per block (shared memory: CellShared plus G tiles, < 48 KB)
+template <typename T>
+constexpr int kForwardGroup = sizeof(T) == 4 ? 4 : 2;
 
 // A feature read as the accumulation type (bfloat16 widened to float).
 __device__ __forceinline__ float widen(float v) { return v; }
@@ -150,7 +154,6 @@ __device__ void build_tile(const WindowDims& d, CellShared<T>& s) {
   __syncthreads();
 }
 
-// TF: the features' storage type (T, or bfloat16 for variant kStagedTilesBf16), accumulated in T.
 template <typename T, typename TF>
 __global__ void __launch_bounds__(kMaxThreads) forward_kernel(const TF* __restrict__ F, const T* __restrict__ logit_map,
                                                               const T* __restrict__ cy, const T* __restrict__ cx,
@@ -176,6 +179,75 @@ __global__ void __launch_bounds__(kMaxThreads) forward_kernel(const TF* __restri
       }
     }
     out[cell * d.C + c] = acc;
+  }
+}
+
+// forward_kernel for G neighbouring cells (j, i, l0 .. l0 + G - 1) of a window row per block: they
+// share their tile rows (the row taps depend on (j, i) only) and their tiles overlap by about half,
+// so the block reads the union of their tiles' columns once per row instead of each tile apart.
+// Each cell's softmax and tile are computed in turn (as forward_kernel does) and its tile kept in
+// shared memory; the sums run over the same pixels in the same order as forward_kernel's.
+template <typename T, typename TF, int G>
+__global__ void __launch_bounds__(kMaxThreads) forward_grouped_kernel(
+    const TF* __restrict__ F, const T* __restrict__ logit_map, const T* __restrict__ cy, const T* __restrict__ cx,
+    const T* __restrict__ w, const T* __restrict__ b, const T* __restrict__ mask, WindowDims d, T* __restrict__ out,
+    T* __restrict__ attn) {
+  __shared__ CellShared<T> s;
+  __shared__ T group_tile[G][kMaxTile * kMaxTile];
+  __shared__ int group_c0[G], group_tc[G];  // tc = 0: no such cell, or its footprint overflows
+  const int groups_per_row = static_cast<int>((d.FW + G - 1) / G);
+  const int64_t window_row = blockIdx.x / groups_per_row;  // j * FH + i
+  const int l0 = static_cast<int>(blockIdx.x % groups_per_row) * G;
+  const int n = min(G, static_cast<int>(d.FW) - l0);
+  const int KK = static_cast<int>(d.K * d.K), side = static_cast<int>(d.K) + 3;
+  for (int k = 0; k < G; ++k) {
+    if (k >= n) {
+      if (threadIdx.x == 0) group_c0[k] = group_tc[k] = 0;
+      continue;
+    }
+    const int64_t cell = window_row * d.FW + l0 + k;
+    load_cell(cy, cx, d, cell, s);
+    cell_softmax(logit_map, w, b, mask[cell], d, s);
+    for (int p = threadIdx.x; p < KK; p += blockDim.x) attn[cell * KK + p] = s.attn[p];
+    build_tile(d, s);
+    for (int t = threadIdx.x; t < side * side; t += blockDim.x) group_tile[k][t] = s.tile[t];
+    if (threadIdx.x == 0) {
+      group_c0[k] = s.overflow ? 0 : s.c0;
+      group_tc[k] = s.overflow ? 0 : s.tc;
+    }
+    __syncthreads();  // the next cell's load_cell rewrites s
+  }
+  __syncthreads();  // (group_c0, group_tc of the missing cells past the row's end)
+  // every cell of the group has the same tile rows (s: the last cell's); the columns' union
+  const int r0 = s.r0, tr = s.tr;
+  int c0[G], tc[G], vlo = INT_MAX, vhi = -1;
+#pragma unroll
+  for (int k = 0; k < G; ++k) {
+    c0[k] = group_c0[k];
+    tc[k] = group_tc[k];
+    if (tc[k] > 0) {
+      vlo = min(vlo, c0[k]);
+      vhi = max(vhi, c0[k] + tc[k] - 1);
+    }
+  }
+  for (int64_t c = threadIdx.x; c < d.C; c += blockDim.x) {
+    T acc[G];
+#pragma unroll
+    for (int k = 0; k < G; ++k) acc[k] = T(0);
+    for (int r = 0; r < tr && vlo <= vhi; ++r) {
+      const TF* row = F + static_cast<int64_t>(r0 + r) * d.W * d.C + c;
+      for (int v = vlo; v <= vhi; ++v) {
+        const T f = static_cast<T>(widen(row[v * d.C]));
+#pragma unroll
+        for (int k = 0; k < G; ++k) {
+          const int q = v - c0[k];
+          if (q >= 0 && q < tc[k]) acc[k] += group_tile[k][r * side + q] * f;
+        }
+      }
+    }
+#pragma unroll
+    for (int k = 0; k < G; ++k)
+      if (k < n) out[(window_row * d.FW + l0 + k) * d.C + c] = tc[k] > 0 ? acc[k] : T(NAN);
   }
 }
 
@@ -477,16 +549,23 @@ void launch_window_forward(const scalar_t* features, const scalar_t* logit_map, 
   const int64_t cells = d.J * d.FH * d.FW;
   if (cells == 0) return;
   const auto st = static_cast<cudaStream_t>(stream);
-  const unsigned blocks = static_cast<unsigned>(cells);
+  const int threads = threads_for(d.C);
+  if (!uses_grouped_forward(variant)) {
+    forward_kernel<scalar_t, scalar_t><<<static_cast<unsigned>(cells), threads, 0, st>>>(
+        features, logit_map, coord_y, coord_x, w, b, mask, d, out, attn);
+    return;
+  }
+  constexpr int G = kForwardGroup<scalar_t>;
+  const unsigned blocks = static_cast<unsigned>(d.J * d.FH * ((d.FW + G - 1) / G));
   if constexpr (std::is_same<scalar_t, float>::value) {
     if (uses_bf16_features(variant)) {
-      forward_kernel<float, __nv_bfloat16><<<blocks, threads_for(d.C), 0, st>>>(
+      forward_grouped_kernel<float, __nv_bfloat16, G><<<blocks, threads, 0, st>>>(
           static_cast<const __nv_bfloat16*>(features_bf16), logit_map, coord_y, coord_x, w, b, mask, d, out, attn);
       return;
     }
   }
-  forward_kernel<scalar_t, scalar_t><<<blocks, threads_for(d.C), 0, st>>>(features, logit_map, coord_y, coord_x, w,
-                                                                          b, mask, d, out, attn);
+  forward_grouped_kernel<scalar_t, scalar_t, G><<<blocks, threads, 0, st>>>(features, logit_map, coord_y, coord_x, w,
+                                                                           b, mask, d, out, attn);
 }
 
 template <typename scalar_t>

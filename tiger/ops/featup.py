@@ -83,7 +83,8 @@ def jittered_window_attention(features: torch.Tensor, logit_map: torch.Tensor, c
             shared memory first: one global atomic per touched source pixel), "pixel_dots" (the
             backward's dots of the output gradient with the features pixel-major: each feature
             read once; C <= 10239 for float32), "staged_tiles" (the features' gradient reads the
-            covering tiles from shared memory), "staged_tiles_bf16" (the attention's reads of the
+            covering tiles from shared memory; the forward sums 4 neighbouring cells of a window
+            row per block over the union of their tiles), "staged_tiles_bf16" (the attention's reads of the
             features from a bfloat16 copy, float32 accumulation; float32 only). The same function
             up to float rounding (bfloat16's for the last); the CPU computes the reference for
             every name.
