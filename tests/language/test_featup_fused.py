@@ -310,15 +310,21 @@ def test_cuda_variant_equals_baseline_at_the_full_fit_geometry(variant):
 
 @needs_cuda
 @pytest.mark.parametrize("variant", WINDOW_VARIANTS)
-def test_cuda_variant_footprint_past_the_tile_gives_the_baselines_nan(variant):
+@pytest.mark.parametrize("axis", ["rows", "columns"])
+def test_cuda_variant_footprint_past_the_tile_gives_the_baselines_nan(variant, axis):
     """A copy that skips source pixels overflows the tile: every variant gives NaN exactly where
-    the baseline does (outputs and gradients), never a wrong number."""
-    F, L, cy, cx, wk, bk, mask, stride = op_args(h=20, w=20, c=7, size=(2, 2), k=3, stride=(2, 2),
+    the baseline does (outputs and gradients), never a wrong number. Rows: every cell overflows;
+    columns: only the cells reading copy columns 10-12 (l = 5: a forward group with both kinds)."""
+    F, L, cy, cx, wk, bk, mask, stride = op_args(h=20, w=20, c=7, size=(2, 8), k=3, stride=(2, 2),
                                                   dtype=torch.float32)
-    cy = (torch.arange(20.0) * 4).clamp(max=19).expand(2, 20).contiguous()
+    if axis == "rows":
+        cy = (torch.arange(20.0) * 4).clamp(max=19).expand(2, 20).contiguous()
+    else:
+        x = torch.arange(20.0)
+        cx = torch.where(x < 10, 0.9 * x, 8.1 + 3 * (x - 9)).clamp(max=19).expand(2, 20).contiguous()
     args = [F, L, cy, cx, wk, bk, mask, stride]
     base, new = _run(args, "cuda", "baseline"), _run(args, "cuda", variant)
-    assert base[0][:, 0].isnan().all()
+    assert base[0][:, :, 5].isnan().all() and (axis == "rows") == bool(base[0][:, :, 0].isnan().any())
     for name, a, b in zip(NAMES, new, base):
         assert torch.equal(a.isnan(), b.isnan()), name
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-3, equal_nan=True, msg=lambda m, n=name: f"{n}: {m}")
