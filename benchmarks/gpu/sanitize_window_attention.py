@@ -1,8 +1,8 @@
 """A small CUDA workload of tiger::jittered_window_attention for compute-sanitizer (memcheck /
 racecheck): forward and backward of every kernel variant (``WINDOW_VARIANTS``) in float32 and
 float64 (the bf16 variant in float32 only), on a tiny odd geometry, an even channel count, the
-fit's kernel 29 with 129 channels and FeatUp jitters, and a zoom < 1 copy whose footprint
-overflows the tile (NaN path). Each variant's result is checked against the baseline kernels.
+fit's kernel 29 with 129 channels and FeatUp jitters, and zoom < 1 copies whose footprints
+overflow the tile (NaN path: every cell, or some cells of a row). Each variant's result is checked against the baseline kernels.
 
     PYTORCH_NO_CUDA_MEMORY_CACHING=1 compute-sanitizer --tool memcheck --error-exitcode 99 \\
         python -m benchmarks.gpu.sanitize_window_attention
@@ -63,11 +63,15 @@ def main() -> None:
     assert tiger.ops.cuda_enabled() and torch.cuda.is_available()
     overflow, ostride = monotone_case(20, 20, 7, 2, (2, 2), 3, (2, 2))
     overflow[2] = (torch.arange(20.0, dtype=torch.float64) * 4).clamp(max=19).expand(2, 20).contiguous()
+    columns, cstride = monotone_case(20, 20, 7, 2, (2, 8), 3, (2, 2))
+    x = torch.arange(20.0, dtype=torch.float64)
+    columns[3] = torch.where(x < 10, 0.9 * x, 8.1 + 3 * (x - 9)).clamp(max=19).expand(2, 20).contiguous()
     cases = {"tiny": monotone_case(6, 7, 3, 2, (2, 2), 3, (2, 3)),
              "odd": monotone_case(23, 41, 64, 3, (2, 3), 9, (7, 13)),
              "kernel 29": monotone_case(70, 75, 33, 2, (3, 2), 29, (15, 20)),
              "fit jitters": fit_case(),
-             "overflow": (overflow, ostride)}
+             "overflow": (overflow, ostride),
+             "some columns overflow": (columns, cstride)}
     for name, (tensors, stride) in cases.items():
         for dtype in (torch.float32, torch.float64):
             for variant in WINDOW_VARIANTS:
