@@ -270,8 +270,9 @@ def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int
                       h: int, w: int, channels: int, group: int = 4) -> dict:
     """Feature bytes read and global atomics per variant (estimates from the geometry, float32):
     the forward's reads (each cell's tile; staged_tiles and after: the union of the tiles of
-    ``group`` neighbouring cells of a window row, bfloat16 for staged_tiles_bf16), the backward's
-    dots' reads (each cell's tile, from L2 or HBM; pixel_dots and after: every feature once), and
+    ``group`` neighbouring cells of a window row, from a bfloat16 copy for staged_tiles_bf16), the
+    backward's dots' reads (each cell's tile, from L2 or HBM; pixel_dots and after: every feature
+    once, float32, rounded to bfloat16 on the way for staged_tiles_bf16), and
     the backward's global atomics on the logit map's gradient (baseline: the taps of the K*K window
     pixels; shared_scatter and after: at most one per tile pixel)."""
     cy, cx = coords
@@ -294,7 +295,7 @@ def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int
             "forward_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": per_cell,
                               "staged_tiles": grouped, "staged_tiles_bf16": grouped // 2},
             "dots_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": once,
-                           "staged_tiles": once, "staged_tiles_bf16": once // 2},
+                           "staged_tiles": once, "staged_tiles_bf16": once},
             "atomics": {"baseline": window_atomics, "shared_scatter": tile_px, "pixel_dots": tile_px,
                         "staged_tiles": tile_px, "staged_tiles_bf16": tile_px}}
 

@@ -46,9 +46,10 @@
 //                      shared memory (staged per round of listed cells) instead of testing and
 //                      loading them per channel; the forward computes 4 neighbouring cells of a
 //                      window row per block (2 in float64) and reads the union of their tiles once.
-//   staged_tiles_bf16  the attention's reads of the features (forward output and the backward's
-//                      dots) from a bfloat16 copy, accumulated in float32 (float32 features only;
-//                      the features' own gradient does not read them).
+//   staged_tiles_bf16  the attention's reads of the features as bfloat16, accumulated in float32
+//                      (float32 features only): the forward reads a bfloat16 copy, the backward's
+//                      dots round each feature as they stage it (the same values, no copy); the
+//                      features' own gradient does not read them.
 #include <cstdint>
 
 namespace tiger {
@@ -86,12 +87,12 @@ void launch_window_forward(const scalar_t* features, const scalar_t* logit_map, 
 // the cells' source tiles (attention pushed through the bilinear weights, [J*FH*FW, T*T] with
 // T = K + 3) and tile origins ([J*FH*FW, 2] row, column) for launch_window_grad_features.
 // Variants from kPixelDots on need scratch: extents [J*FH*FW, 4] int32 and dots [J*FH*FW, T*T]
-// (null for the others); features_bf16 as for the forward.
+// (null for the others); kStagedTilesBf16 rounds the features to bfloat16 as its dots read them.
 template <typename scalar_t>
 void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
                                   const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
                                   const scalar_t* mask, const scalar_t* attn, WindowDims d, int variant,
-                                  const void* features_bf16, int32_t* extents, scalar_t* dots, scalar_t* gz,
+                                  int32_t* extents, scalar_t* dots, scalar_t* gz,
                                   scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* tiles,
                                   int32_t* origins, void* stream);
 

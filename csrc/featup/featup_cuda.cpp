@@ -22,8 +22,9 @@ void check_cuda(const at::Tensor& features, const WindowDims& d, const char* op)
   TORCH_CHECK(d.H < 65536, op, " (CUDA): features must have fewer than 65536 rows, got ", d.H);
 }
 
-// The variant's extra requirements; for staged_tiles_bf16 the features' bfloat16 copy (else undefined).
-at::Tensor check_variant(const at::Tensor& F, const WindowDims& d, int variant, const char* op) {
+// The variant's extra requirements; with `copy`, for staged_tiles_bf16 the features' bfloat16 copy that
+// the forward reads (else undefined).
+at::Tensor check_variant(const at::Tensor& F, const WindowDims& d, int variant, const char* op, bool copy) {
   if (uses_pixel_dots(variant)) {
     const int64_t elem = uses_bf16_features(variant) ? 4 : static_cast<int64_t>(F.element_size());
     TORCH_CHECK((d.C + 1) * elem <= kDotStageBytes, op, " (CUDA): variant '", kWindowVariantNames[variant],
@@ -33,7 +34,7 @@ at::Tensor check_variant(const at::Tensor& F, const WindowDims& d, int variant, 
   if (!uses_bf16_features(variant)) return at::Tensor();
   TORCH_CHECK(F.scalar_type() == at::kFloat, op, " (CUDA): variant '", kWindowVariantNames[variant],
               "' takes float32 features, got ", F.scalar_type());
-  return F.to(at::kBFloat16).contiguous();
+  return copy ? F.to(at::kBFloat16).contiguous() : at::Tensor();
 }
 
 std::tuple<at::Tensor, at::Tensor> window_attention_cuda(const at::Tensor& features, const at::Tensor& logit_map,
@@ -47,7 +48,7 @@ std::tuple<at::Tensor, at::Tensor> window_attention_cuda(const at::Tensor& featu
   const c10::cuda::CUDAGuard guard(features.device());
   const auto F = features.contiguous(), L = logit_map.contiguous(), cy = coord_y.contiguous(),
              cx = coord_x.contiguous(), wc = w.contiguous(), bc = b.contiguous(), mc = mask.contiguous();
-  const at::Tensor Fb = check_variant(F, d, variant, "tiger.jittered_window_attention");
+  const at::Tensor Fb = check_variant(F, d, variant, "tiger.jittered_window_attention", true);
   const void* fb = Fb.defined() ? Fb.data_ptr() : nullptr;
   auto out = at::empty({d.J, d.FH, d.FW, d.C}, F.options());
   auto attn = at::empty({d.J, d.FH, d.FW, d.K * d.K}, F.options());
@@ -85,8 +86,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
   auto gL = at::zeros_like(L), gF = at::empty_like(F);
   auto tiles = at::empty({cells, side * side}, F.options());
   auto origins = at::empty({cells, 2}, F.options().dtype(at::kInt));
-  const at::Tensor Fb = check_variant(F, d, variant, "tiger.jittered_window_attention_backward");
-  const void* fb = Fb.defined() ? Fb.data_ptr() : nullptr;
+  check_variant(F, d, variant, "tiger.jittered_window_attention_backward", false);
   const bool pixel_dots = uses_pixel_dots(variant);
   // pixel_dots' scratch: the cells' tile extents and the dots of g with the tile pixels' features
   auto extents = pixel_dots ? at::empty({cells, 4}, F.options().dtype(at::kInt)) : at::Tensor();
@@ -95,7 +95,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_back
   AT_DISPATCH_FLOATING_TYPES(F.scalar_type(), "tiger.jittered_window_attention_backward", [&] {
     launch_window_backward_cells<scalar_t>(g.data_ptr<scalar_t>(), F.data_ptr<scalar_t>(), L.data_ptr<scalar_t>(),
                                            cy.data_ptr<scalar_t>(), cx.data_ptr<scalar_t>(), wc.data_ptr<scalar_t>(),
-                                           mc.data_ptr<scalar_t>(), a.data_ptr<scalar_t>(), d, variant, fb,
+                                           mc.data_ptr<scalar_t>(), a.data_ptr<scalar_t>(), d, variant,
                                            pixel_dots ? extents.data_ptr<int32_t>() : nullptr,
                                            pixel_dots ? dots.data_ptr<scalar_t>() : nullptr, gz.data_ptr<scalar_t>(),
                                            gzl.data_ptr<scalar_t>(), gL.data_ptr<scalar_t>(), tiles.data_ptr<scalar_t>(),

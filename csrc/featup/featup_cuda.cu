@@ -373,8 +373,10 @@ __global__ void cell_extents_kernel(const T* __restrict__ cy, const T* __restric
 // v0, staged in shared memory ([cols][fstride], fstride odd for float: conflict-free); then the
 // cells whose tiles cover any of them are listed (kDotList candidates per round) and each thread
 // dots one (cell, pixel) pair, g read through L1 (a warp shares one cell when cols = 32).
-template <typename T, typename TF>
-__global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restrict__ g, const TF* __restrict__ F,
+// kRoundBf16 (float): the features rounded to bfloat16 as they are staged (the values the bf16
+// forward reads from its copy; each feature is read once here, so no copy is made).
+template <typename T, bool kRoundBf16>
+__global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restrict__ g, const T* __restrict__ F,
                                                                 const int4* __restrict__ extents, WindowDims d,
                                                                 int cols, int fstride, T* __restrict__ dots) {
   extern __shared__ __align__(16) unsigned char dot_smem[];
@@ -384,9 +386,12 @@ __global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restr
   const int u = blockIdx.y, v0 = blockIdx.x * cols;
   const int ncols = min(cols, static_cast<int>(d.W) - v0);
   const int C = static_cast<int>(d.C), side = static_cast<int>(d.K) + 3, area = side * side;
-  const TF* src = F + (static_cast<int64_t>(u) * d.W + v0) * C;  // ncols * C contiguous values
-  for (int t = threadIdx.x; t < ncols * C; t += blockDim.x)
-    Fs[(t / C) * fstride + t % C] = static_cast<T>(widen(src[t]));
+  const T* src = F + (static_cast<int64_t>(u) * d.W + v0) * C;  // ncols * C contiguous values
+  for (int t = threadIdx.x; t < ncols * C; t += blockDim.x) {
+    T f = src[t];
+    if constexpr (kRoundBf16) f = __bfloat162float(__float2bfloat16(f));  // as the bfloat16 copy holds it
+    Fs[(t / C) * fstride + t % C] = f;
+  }
   const int64_t cells = d.J * d.FH * d.FW;
   for (int64_t round = 0; round < cells; round += kDotList) {
     if (threadIdx.x == 0) count = 0;
@@ -572,7 +577,7 @@ template <typename scalar_t>
 void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* features, const scalar_t* logit_map,
                                   const scalar_t* coord_y, const scalar_t* coord_x, const scalar_t* w,
                                   const scalar_t* mask, const scalar_t* attn, WindowDims d, int variant,
-                                  const void* features_bf16, int32_t* extents, scalar_t* dots, scalar_t* gz,
+                                  int32_t* extents, scalar_t* dots, scalar_t* gz,
                                   scalar_t* gz_logit, scalar_t* grad_logit_map, scalar_t* tiles,
                                   int32_t* origins, void* stream) {
   const int64_t cells = d.J * d.FH * d.FW;
@@ -598,17 +603,11 @@ void launch_window_backward_cells(const scalar_t* grad_out, const scalar_t* feat
   dot_staging(d.C, sizeof(scalar_t), &cols, &fstride);
   const dim3 grid(static_cast<unsigned>((d.W + cols - 1) / cols), static_cast<unsigned>(d.H));
   const size_t smem = static_cast<size_t>(cols) * fstride * sizeof(scalar_t);
-  bool bf16 = false;
-  if constexpr (std::is_same<scalar_t, float>::value) {
-    if (uses_bf16_features(variant)) {
-      bf16 = true;
-      tile_dots_kernel<float, __nv_bfloat16><<<grid, kMaxThreads, smem, st>>>(
-          grad_out, static_cast<const __nv_bfloat16*>(features_bf16), ext, d, cols, fstride, dots);
-    }
-  }
-  if (!bf16)
-    tile_dots_kernel<scalar_t, scalar_t><<<grid, kMaxThreads, smem, st>>>(grad_out, features, ext, d, cols, fstride,
-                                                                         dots);
+  if (uses_bf16_features(variant) && std::is_same<scalar_t, float>::value)
+    tile_dots_kernel<scalar_t, true><<<grid, kMaxThreads, smem, st>>>(grad_out, features, ext, d, cols, fstride, dots);
+  else
+    tile_dots_kernel<scalar_t, false><<<grid, kMaxThreads, smem, st>>>(grad_out, features, ext, d, cols, fstride,
+                                                                      dots);
   backward_cells_kernel<scalar_t, true, true><<<blocks, kMaxThreads, 0, st>>>(
       grad_out, features, logit_map, coord_y, coord_x, w, mask, attn, dots, d, gz, gz_logit, grad_logit_map, tiles,
       origins);
@@ -631,8 +630,8 @@ void launch_window_grad_features(const scalar_t* grad_out, const scalar_t* tiles
   template void launch_window_forward<T>(const T*, const T*, const T*, const T*, const T*, const T*, const T*,  \
                                          WindowDims, int, const void*, T*, T*, void*);                          \
   template void launch_window_backward_cells<T>(const T*, const T*, const T*, const T*, const T*, const T*,     \
-                                                const T*, const T*, WindowDims, int, const void*, int32_t*, T*,  \
-                                                T*, T*, T*, T*, int32_t*, void*);                                \
+                                                const T*, const T*, WindowDims, int, int32_t*, T*, T*, T*, T*,   \
+                                                T*, int32_t*, void*);                                            \
   template void launch_window_grad_features<T>(const T*, const T*, const int32_t*, WindowDims, int, T*, void*);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(double)
