@@ -371,8 +371,10 @@ __global__ void cell_extents_kernel(const T* __restrict__ cy, const T* __restric
 // dots[cell, r, q] = g[cell, :] . F[r0 + r, c0 + q, :] for every tile pixel (r < tr, q < tc) of every
 // cell: pixel-major, so that each feature is read once. A block: source row u, `cols` columns from
 // v0, staged in shared memory ([cols][fstride], fstride odd for float: conflict-free); then the
-// cells whose tiles cover any of them are listed (kDotList candidates per round) and each thread
-// dots one (cell, pixel) pair, g read through L1 (a warp shares one cell when cols = 32).
+// cells whose tiles cover any of them are listed (kDotList candidates per round), and each thread
+// dots one (cell, pixel) pair: the pairs are numbered over each cell's overlap with the block's
+// columns (prefix sums), so consecutive threads mostly share a cell (g read through L1 as a
+// broadcast) and none idles on a column off the cell's tile.
 // kRoundBf16 (float): the features rounded to bfloat16 as they are staged (the values the bf16
 // forward reads from its copy; each feature is read once here, so no copy is made).
 template <typename T, bool kRoundBf16>
@@ -382,6 +384,7 @@ __global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restr
   extern __shared__ __align__(16) unsigned char dot_smem[];
   T* Fs = reinterpret_cast<T*>(dot_smem);
   __shared__ int list[kDotList];
+  __shared__ int start[kDotList + 1];  // the listed cells' first pair; start[n] = the pairs
   __shared__ int count;
   const int u = blockIdx.y, v0 = blockIdx.x * cols;
   const int ncols = min(cols, static_cast<int>(d.W) - v0);
@@ -403,11 +406,39 @@ __global__ void __launch_bounds__(kMaxThreads) tile_dots_kernel(const T* __restr
     }
     __syncthreads();
     const int n = count;
-    for (int pair = threadIdx.x; pair < n * cols; pair += blockDim.x) {
-      const int q = pair % cols, cell = list[pair / cols];
+    // pairs = (listed cell, one of its tile columns among the block's): an exclusive scan of the
+    // overlaps' widths by the first warp, so that no thread idles on a column off the tile
+    if (threadIdx.x < 32) {
+      int carry = 0;
+      for (int base = 0; base < n; base += 32) {
+        const int e = base + static_cast<int>(threadIdx.x);
+        int width = 0;
+        if (e < n) {
+          const int4 x = extents[list[e]];
+          width = min(v0 + ncols, x.y + x.w) - max(v0, x.y);
+        }
+        int incl = width;
+        for (int o = 1; o < 32; o <<= 1) {
+          const int up = __shfl_up_sync(cuda::kFullMask, incl, o);
+          if (static_cast<int>(threadIdx.x) >= o) incl += up;
+        }
+        if (e < n) start[e] = carry + incl - width;
+        carry += __shfl_sync(cuda::kFullMask, incl, 31);
+      }
+      if (threadIdx.x == 0) start[n] = carry;
+    }
+    __syncthreads();
+    const int pairs = start[n];
+    for (int pair = threadIdx.x; pair < pairs; pair += blockDim.x) {
+      int lo = 0, hi = n;  // start[lo] <= pair < start[hi]
+      while (hi - lo > 1) {
+        const int mid = (lo + hi) >> 1;
+        if (start[mid] <= pair) lo = mid; else hi = mid;
+      }
+      const int cell = list[lo];
       const int4 e = extents[cell];
-      const int dc = v0 + q - e.y;
-      if (q >= ncols || dc < 0 || dc >= e.w) continue;
+      const int q = max(v0, e.y) - v0 + (pair - start[lo]);  // the block's column
+      const int dc = v0 + q - e.y;                            // the tile's column
       const T* gc = g + static_cast<int64_t>(cell) * C;
       const T* f = Fs + q * fstride;
       T a0 = 0, a1 = 0, a2 = 0, a3 = 0;  // four chains: the loads overlap
