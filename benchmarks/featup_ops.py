@@ -10,13 +10,15 @@ reads) in both ``ImplicitConfig.step_layout`` values, forward + backward, eager 
 from a CUDA graph, with errors against float64; and its two custom ops alone
 (``tiger::magnitude_blur``, ``tiger::masked_logit``) against the compositions they replace.
 Then ``tiger::jittered_window_attention`` at the fit's geometry (10 jittered copies, kernel 29),
-forward and forward + backward, with its error against float64.
+every CUDA kernel variant side by side: forward, forward + backward (eager and graphed), the
+backward alone, errors against float64, the backward's feature bytes and global atomics.
 
     python -m benchmarks.featup_ops                          # CPU, 64 x 112 pixels
     python -m benchmarks.featup_ops --device cuda            # the fit's 256 x 448, bf16 autocast
     python -m benchmarks.featup_ops --device cuda --compile  # also torch.compile'd networks
     python -m benchmarks.featup_ops --device cuda --only pre_attention  # the two step layouts
-    python -m benchmarks.featup_ops --device cuda --only attention      # the attention op
+    python -m benchmarks.featup_ops --device cuda --only attention      # the attention op, every variant
+    python -m benchmarks.featup_ops --device cuda --only attention --variants baseline pixel_dots
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ import torch
 from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err
 from tiger.language.featup import AttentionDownsampler, ImplicitNet, _min_max
 from tiger.language.featup_fit import BLUR_RADIUS, BLUR_SIGMA, pre_attention
-from tiger.ops.featup import fourier_layer_norm, magnitude_blur, masked_logit, relu_scale_layer_norm
+from tiger.ops.featup import WINDOW_VARIANTS, fourier_layer_norm, magnitude_blur, masked_logit, relu_scale_layer_norm
 from tiger.utils.filters import gaussian_blur
 
 H100_HBM_TBPS = 3.35
@@ -248,14 +250,68 @@ def pre_attention_op_rows(dim: int, h: int, w: int, precision: str, dev: torch.d
             + _timed_pair("dropout + logit (masked_logit)", logit_composed, logit_fused, logit_bytes, dev, timer))
 
 
+def _tile_extents(coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int, int], k: int, sh: int, sw: int,
+                  h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """First row [J, FH], rows [J, FH], first column [J, FW] and columns [J, FW] of each cell's
+    source tile (the CUDA kernels' r0, tr, c0, tc): the span of the window's bilinear taps, as
+    ``axis_tap`` clamps them."""
+    def span(coords: torch.Tensor, cells: int, stride: int, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        c = coords.double().clamp(0, n - 1)
+        idx = c.floor()
+        hi = torch.where(idx + 1 < n, idx + 1, idx)
+        win = torch.arange(k) + stride * torch.arange(cells).view(-1, 1)  # [cells, k]
+        lo = idx[:, win].amin(-1)
+        return lo.long(), (hi[:, win].amax(-1) - lo + 1).long()
+
+    return (*span(coord_y, size[0], sh, h), *span(coord_x, size[1], sw, w))
+
+
+def attention_traffic(coords: tuple[torch.Tensor, torch.Tensor], size: tuple[int, int], k: int, sh: int, sw: int,
+                      h: int, w: int, channels: int, group: int = 4) -> dict:
+    """Feature bytes read and global atomics per variant (estimates from the geometry, float32):
+    the forward's reads (each cell's tile; staged_tiles and after: the union of the tiles of
+    ``group`` neighbouring cells of a window row, from a bfloat16 copy for staged_tiles_bf16), the
+    backward's dots' reads (each cell's tile, from L2 or HBM; pixel_dots and after: every feature
+    once, float32, rounded to bfloat16 on the way for staged_tiles_bf16), and
+    the backward's global atomics on the logit map's gradient (baseline: the taps of the K*K window
+    pixels; shared_scatter and after: at most one per tile pixel)."""
+    cy, cx = coords
+    _, rows, c0, cols = _tile_extents(cy, cx, size, k, sh, sw, h, w)
+    tile_px = int((rows.unsqueeze(2) * cols.unsqueeze(1)).sum())  # sum over cells of tr * tc
+    union = torch.zeros(cols.shape[0], dtype=torch.long)  # per jitter: the groups' column unions
+    for g0 in range(0, size[1], group):
+        lo, hi = c0[:, g0:g0 + group], c0[:, g0:g0 + group] + cols[:, g0:g0 + group]
+        union += hi.amax(-1) - lo.amin(-1)
+    grouped_px = int((rows.sum(-1) * union).sum())
+    ty_second = (cy.double().clamp(0, h - 1).floor() + 1 < h).double()
+    tx_second = (cx.double().clamp(0, w - 1).floor() + 1 < w).double()
+    win_y = torch.arange(k) + sh * torch.arange(size[0]).view(-1, 1)
+    win_x = torch.arange(k) + sw * torch.arange(size[1]).view(-1, 1)
+    taps_y = (1 + ty_second[:, win_y]).sum(-1)  # [J, FH]: taps of the window's rows
+    taps_x = (1 + tx_second[:, win_x]).sum(-1)
+    window_atomics = int((taps_y.unsqueeze(2) * taps_x.unsqueeze(1)).sum())
+    per_cell, once, grouped = tile_px * channels * 4, h * w * channels * 4, grouped_px * channels * 4
+    return {"tile_px": tile_px,
+            "forward_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": per_cell,
+                              "staged_tiles": grouped, "staged_tiles_bf16": grouped // 2},
+            "dots_bytes": {"baseline": per_cell, "shared_scatter": per_cell, "pixel_dots": once,
+                           "staged_tiles": once, "staged_tiles_bf16": once},
+            "atomics": {"baseline": window_atomics, "shared_scatter": tile_px, "pixel_dots": tile_px,
+                        "staged_tiles": tile_px, "staged_tiles_bf16": tile_px}}
+
+
 def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: int = 10,
-                   patch: int = 16, kernel: int = 29) -> list[dict]:
+                   patch: int = 16, kernel: int = 29, variants: tuple[str, ...] | None = None) -> list[dict]:
     """tiger::jittered_window_attention as the fit calls it: ``jitters`` copies of the blurred
     [h, w, dim + 1] map (FeatUp's jitters: reflect pad, zoom up to 1.8, flips) onto the
-    backbone's (h / patch) x (w / patch) cells; forward, and forward + backward of <out, g>."""
+    backbone's (h / patch) x (w / patch) cells; per kernel variant (CUDA; the CPU runs the
+    reference kernels only): forward, forward + backward (eager and, on CUDA, replayed from a
+    CUDA graph as the fit runs it), the backward alone, each one's errors against the float64 CPU
+    op, and the feature bytes read by the forward and by the backward's dots and the backward's
+    global atomics (estimates from the geometry, :func:`attention_traffic`)."""
     from tiger.language.featup import sample_jitter
     from tiger.language.featup_fit import jitter_coords, jitter_params, reflect_coords, window_geometry
-    from tiger.ops.featup import jittered_window_attention
+    from tiger.ops.featup import WINDOW_VARIANTS, jittered_window_attention
 
     gen = torch.Generator().manual_seed(3)
     size = (h // patch, w // patch)
@@ -274,29 +330,46 @@ def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: 
     def inputs(dtype, device):
         return [t.to(device, dtype) for t in (features, logit_map, *coords, wk, bk, mask)]
 
-    args = inputs(torch.float32, dev)
-    leaves = [args[0].requires_grad_(), args[1].requires_grad_()]
-    g32 = g.to(dev, torch.float32)
-
-    def forward() -> None:
-        with torch.no_grad():
-            jittered_window_attention(*[a.detach() for a in args], (sh, sw))
-
-    def both() -> None:
-        out, _ = jittered_window_attention(*args, (sh, sw))
-        torch.autograd.grad(out, leaves, g32)
-
     ref_args = inputs(torch.float64, "cpu")
-    ref_leaves = [ref_args[0].requires_grad_(), ref_args[1].requires_grad_()]
+    ref_leaves = [ref_args[0].requires_grad_(), ref_args[1].requires_grad_(), ref_args[4].requires_grad_(),
+                  ref_args[5].requires_grad_()]
     ref_out, _ = jittered_window_attention(*ref_args, (sh, sw))
     ref_grads = torch.autograd.grad(ref_out, ref_leaves, g)
-    out, _ = jittered_window_attention(*args, (sh, sw))
-    grads = torch.autograd.grad(out, leaves, g32)
-    errs = {"err out": rel_err(out, ref_out), "err grad features": rel_err(grads[0], ref_grads[0]),
-            "err grad logit": rel_err(grads[1], ref_grads[1])}
+    traffic = attention_traffic(coords, size, k, sh, sw, h, w, dim + 1)
+    g32 = g.to(dev, torch.float32)
     what = f"{jitters} copies, {size[0]} x {size[1]} cells, kernel {k}"
-    return [{"what": f"{what}, forward", "ms": timer(forward), **errs},
-            {"what": f"{what}, forward + backward", "ms": timer(both)}]
+    rows = []
+    for variant in variants or (WINDOW_VARIANTS if dev.type == "cuda" else ("baseline",)):
+        args = inputs(torch.float32, dev)
+        leaves = [args[0].requires_grad_(), args[1].requires_grad_(), args[4].requires_grad_(),
+                  args[5].requires_grad_()]
+
+        def forward(variant=variant, args=args) -> None:
+            with torch.no_grad():
+                jittered_window_attention(*[a.detach() for a in args], (sh, sw), variant)
+
+        def both(variant=variant, args=args, leaves=leaves) -> None:
+            out, _ = jittered_window_attention(*args, (sh, sw), variant)
+            torch.autograd.grad(out, leaves, g32)
+
+        out, _ = jittered_window_attention(*args, (sh, sw), variant)
+        grads = torch.autograd.grad(out, leaves, g32, retain_graph=True)
+
+        def backward(out=out, leaves=leaves) -> None:
+            torch.autograd.grad(out, leaves, g32, retain_graph=True)
+
+        row = {"what": f"{what}, {variant}", "fwd ms": timer(forward), "fwd+bwd ms": timer(both)}
+        if dev.type == "cuda":
+            row["fwd+bwd graph ms"] = timer(graphed(both, dev))
+        row["bwd ms"] = timer(backward)
+        row.update({"err out": rel_err(out, ref_out)})
+        row.update({f"err grad {name}": rel_err(a, r)
+                    for name, a, r in zip(("features", "logit", "w", "b"), grads, ref_grads)})
+        row["fwd F GB"] = traffic["forward_bytes"][variant] / 1e9
+        row["bwd dots F GB"] = traffic["dots_bytes"][variant] / 1e9
+        row["bwd atomics M"] = traffic["atomics"][variant] / 1e6
+        rows.append(row)
+    return rows
 
 
 def main() -> None:
@@ -312,6 +385,9 @@ def main() -> None:
     ap.add_argument("--only", choices=("network", "pre_attention", "attention"), default=None,
                     help="time only the network tables, the pre-attention block (both step layouts) or the "
                          "attention op")
+    ap.add_argument("--variants", nargs="+", default=None, choices=WINDOW_VARIANTS,
+                    help="jittered_window_attention kernel variants to time side by side (default: all on CUDA, "
+                         "the reference kernels on the CPU)")
     args = ap.parse_args()
     dev = torch.device(args.device)
     cuda = dev.type == "cuda"
@@ -352,8 +428,10 @@ def main() -> None:
         print_table(pre_attention_op_rows(args.dim, h, w, args.precision, dev, timer),
                     "the channels-last block's ops alone against the compositions they replace, forward + backward")
     if args.only in (None, "attention"):
-        print_table(attention_rows(h, w, args.dim, dev, timer),
-                    "jittered_window_attention at the fit's geometry (float32); errors against float64")
+        print_table(attention_rows(h, w, args.dim, dev, timer, variants=args.variants),
+                    "jittered_window_attention at the fit's geometry (float32) per kernel variant; errors against "
+                    "the float64 CPU op; feature bytes read by the forward and the backward's dots, global atomics "
+                    "(estimates)")
 
 
 if __name__ == "__main__":

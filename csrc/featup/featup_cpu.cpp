@@ -164,8 +164,10 @@ void backward_cpu(const T* g, const T* F, const T* logit_map, const T* cy, const
 std::tuple<at::Tensor, at::Tensor> window_attention_cpu(const at::Tensor& features, const at::Tensor& logit_map,
                                                         const at::Tensor& coord_y, const at::Tensor& coord_x,
                                                         const at::Tensor& w, const at::Tensor& b,
-                                                        const at::Tensor& mask, int64_t stride_h, int64_t stride_w) {
+                                                        const at::Tensor& mask, int64_t stride_h, int64_t stride_w,
+                                                        c10::string_view variant) {
   const WindowDims d = check_window_attention(features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w);
+  parse_window_variant(variant);  // the CPU kernels are every variant's reference: checked, not used
   TORCH_CHECK(features.device().is_cpu(), "tiger.jittered_window_attention (CPU): features must be on the CPU");
   const auto F = features.contiguous(), L = logit_map.contiguous(), cy = coord_y.contiguous(),
              cx = coord_x.contiguous(), wc = w.contiguous(), bc = b.contiguous(), mc = mask.contiguous();
@@ -182,8 +184,9 @@ std::tuple<at::Tensor, at::Tensor> window_attention_cpu(const at::Tensor& featur
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> window_attention_backward_cpu(
     const at::Tensor& grad_out, const at::Tensor& features, const at::Tensor& logit_map, const at::Tensor& coord_y,
     const at::Tensor& coord_x, const at::Tensor& w, const at::Tensor& b, const at::Tensor& mask,
-    const at::Tensor& attn, int64_t stride_h, int64_t stride_w) {
+    const at::Tensor& attn, int64_t stride_h, int64_t stride_w, c10::string_view variant) {
   const WindowDims d = check_window_attention(features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w);
+  parse_window_variant(variant);
   TORCH_CHECK(features.device().is_cpu(), "tiger.jittered_window_attention_backward (CPU): features must be on the CPU");
   TORCH_CHECK(grad_out.sizes() == at::IntArrayRef({d.J, d.FH, d.FW, d.C}),
               "tiger.jittered_window_attention_backward: grad_out must be [J, FH, FW, C] = [", d.J, ", ", d.FH, ", ",

@@ -2,6 +2,8 @@
 // ATen-side checks shared by the CPU and CUDA implementations of tiger::jittered_window_attention.
 #include <ATen/ATen.h>
 
+#include <string>
+
 #include "featup/featup.h"
 
 namespace tiger {
@@ -12,6 +14,18 @@ inline void check_same(const at::Tensor& t, const at::Tensor& ref, const char* n
               t.scalar_type(), ") must have the dtype of features (", ref.scalar_type(), ")");
   TORCH_CHECK(t.device() == ref.device(), "tiger.jittered_window_attention: ", name,
               " must be on the device of features (", ref.device(), "), got ", t.device());
+}
+
+// The WindowVariant named `name` (featup.h); one clear line naming the choices otherwise.
+inline int parse_window_variant(c10::string_view name) {
+  std::string choices;
+  for (int v = 0; v < kWindowVariants; ++v) {
+    if (name == kWindowVariantNames[v]) return v;
+    choices += std::string(v ? ", " : "") + "'" + kWindowVariantNames[v] + "'";
+  }
+  TORCH_CHECK(false, "tiger.jittered_window_attention: variant must be one of ", choices, ", got '",
+              std::string(name), "'");
+  return kBaseline;
 }
 
 inline WindowDims check_window_attention(const at::Tensor& features, const at::Tensor& logit_map,

@@ -5,11 +5,11 @@
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
   m.def(
       "jittered_window_attention(Tensor features, Tensor logit_map, Tensor coord_y, Tensor coord_x, "
-      "Tensor w, Tensor b, Tensor mask, int stride_h, int stride_w) -> (Tensor, Tensor)");
+      "Tensor w, Tensor b, Tensor mask, int stride_h, int stride_w, str variant=\"baseline\") -> (Tensor, Tensor)");
   m.def(
       "jittered_window_attention_backward(Tensor grad_out, Tensor features, Tensor logit_map, "
       "Tensor coord_y, Tensor coord_x, Tensor w, Tensor b, Tensor mask, Tensor attn, int stride_h, "
-      "int stride_w) -> (Tensor, Tensor, Tensor, Tensor)");
+      "int stride_w, str variant=\"baseline\") -> (Tensor, Tensor, Tensor, Tensor)");
   m.def(
       "fourier_layer_norm(Tensor inputs, Tensor freqs, Tensor phase, Tensor weight, Tensor bias, "
       "Tensor? scale, float eps, ScalarType? out_dtype) -> (Tensor, Tensor, Tensor)");

@@ -9,7 +9,7 @@ import tiger.ops
 from tiger.language.featup import AttentionDownsampler, sample_jitter
 from tiger.language.featup_fit import (apply_jitters, fused_window_attention, jitter_coords, jitter_grid,
                                        jitter_params, reflect_coords, window_attention, window_geometry)
-from tiger.ops.featup import jittered_window_attention
+from tiger.ops.featup import WINDOW_VARIANTS, jittered_window_attention
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="needs CUDA")
@@ -102,6 +102,31 @@ def test_gradcheck_and_opcheck():
     torch.library.opcheck(torch.ops.tiger.jittered_window_attention,
                           (F.detach(), L.detach(), cy, cx, wk.detach(), bk.detach(), mask, *stride))
     torch.library.opcheck(torch.ops.tiger.jittered_window_attention, (F, L, cy, cx, wk, bk, mask, *stride))
+
+
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+def test_cpu_computes_every_variant_as_the_reference(variant):
+    """The CPU kernels are the reference of every CUDA variant: the name is checked, the result
+    is the baseline's; the variant reaches the backward (opcheck runs it through autograd)."""
+    F, L, cy, cx, wk, bk, mask, stride = op_args()
+    base = jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride)
+    out = jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, variant)
+    for a, b in zip(out, base):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    for t in (F, L, wk, bk):
+        t.requires_grad_()
+    torch.library.opcheck(torch.ops.tiger.jittered_window_attention, (F, L, cy, cx, wk, bk, mask, *stride, variant))
+
+
+def test_unknown_variant_names_the_choices():
+    F, L, cy, cx, wk, bk, mask, stride = op_args()
+    with pytest.raises(RuntimeError, match="variant must be one of 'baseline', 'shared_scatter', 'pixel_dots', "
+                                           "'staged_tiles', 'staged_tiles_bf16', got 'fast'"):
+        jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "fast")
+    g = torch.ones(2, 2, 2, 3, dtype=F64)
+    attn = torch.full((2, 2, 2, 9), 1 / 9, dtype=F64)
+    with pytest.raises(RuntimeError, match="variant must be one of"):
+        torch.ops.tiger.jittered_window_attention_backward(g, F, L, cy, cx, wk, bk, mask, attn, *stride, "fast")
 
 
 def test_attention_rows_sum_to_one_and_mask_zero_is_the_bias_softmax():
@@ -198,3 +223,158 @@ def test_cuda_graph_fit_equals_the_eager_fit():
         assert cos.mean() >= 0.999 and cos.min() > 0.99, (cos.mean(), cos.min())
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+# ----------------------------------------------------------------------------- CUDA kernel variants
+def _run(args, device, variant="baseline", bf16_features=False):
+    """out, attn and the four gradients of <out, g> (g seeded) of the op on ``device``; features
+    rounded to bfloat16 first when ``bf16_features`` (the CPU reference of staged_tiles_bf16)."""
+    F, L, cy, cx, wk, bk, mask, stride = [a.to(device) if torch.is_tensor(a) else a for a in args]
+    if bf16_features:
+        F = F.to(torch.bfloat16).to(F.dtype)
+    leaves = [t.clone().requires_grad_() for t in (F, L, wk, bk)]
+    out, attn = jittered_window_attention(leaves[0], leaves[1], cy, cx, leaves[2], leaves[3], mask, stride, variant)
+    g = torch.randn(out.shape, generator=torch.Generator().manual_seed(4), dtype=out.dtype).to(device)
+    grads = torch.autograd.grad((out * g).sum(), leaves)
+    return [t.detach().cpu() for t in (out, attn, *grads)]
+
+
+NAMES = ("out", "attn", "grad features", "grad logit_map", "grad w", "grad b")
+VARIANT_SHAPES = [dict(), dict(h=13, w=17, c=37, j=3, size=(3, 4), k=5, stride=(4, 4)),
+                  dict(h=40, w=64, c=129, j=4, size=(3, 5), k=11, stride=(9, 11)),
+                  dict(h=23, w=41, c=64, j=3, size=(2, 3), k=9, stride=(7, 13)),  # even C, odd sizes
+                  dict(h=70, w=75, c=33, j=2, size=(3, 2), k=29, stride=(15, 20))]  # K = 29, 32-pixel tiles
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("shape", VARIANT_SHAPES)
+def test_cuda_variant_equals_cpu(variant, dtype, shape):
+    """Every variant, forward and backward, against the CPU kernels (staged_tiles_bf16: against the
+    CPU kernels on the features rounded to bfloat16; float32 only)."""
+    if variant == "staged_tiles_bf16" and dtype == F64:
+        pytest.skip("staged_tiles_bf16 takes float32 features")
+    args = op_args(dtype=dtype, **shape)
+    bf16 = variant == "staged_tiles_bf16"
+    cpu, gpu = _run(args, "cpu", bf16_features=bf16), _run(args, "cuda", variant)
+    tol = dict(atol=1e-10, rtol=1e-10) if dtype == F64 else dict(atol=1e-4, rtol=1e-3)
+    for name, a, b in zip(NAMES, gpu, cpu):
+        torch.testing.assert_close(a, b, **tol, msg=lambda m, n=name: f"{variant} {n}: {m}")
+
+
+def _fit_args(h, w, size, jitters, channels=129, kernel=29, seed=0):
+    """The fit's geometry: FeatUp jitters (reflect pad, zoom up to 1.8, flips) of an [h, w, C] map
+    onto size cells with kernel 29, as op arguments (float64, CPU)."""
+    from tiger.language.featup import sample_jitter
+
+    gen = torch.Generator().manual_seed(seed)
+    k, sh, sw, _, _ = window_geometry(h, w, size, kernel)
+    max_pad = min(int(round(30 * min(h, w) / 224)), min(h, w) - 1)
+    params = jitter_params([sample_jitter(h, w, max_pad, 1.8, True, gen) for _ in range(jitters)], h, w, "cpu")
+    sy, sx = jitter_coords(params.double(), h, w)
+    F = torch.randn(h, w, channels, generator=gen, dtype=F64)
+    L = torch.randn(h, w, generator=gen, dtype=F64)
+    wk = 1 + 0.3 * torch.randn(k, k, generator=gen, dtype=F64)
+    bk = 0.3 * torch.randn(k, k, generator=gen, dtype=F64)
+    mask = (torch.rand(jitters, *size, generator=gen) > 0.2).double()
+    return [F, L, reflect_coords(sy, h), reflect_coords(sx, w), wk, bk, mask, (sh, sw)]
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+def test_cuda_variant_equals_float64_cpu_at_the_fit_geometry(variant):
+    """Half the fit's resolution (128 x 224, 8 x 14 cells, kernel 29, 129 channels, 6 jitters) in
+    float32 on CUDA against the float64 CPU op (bf16: on the bfloat16-rounded features)."""
+    args = _fit_args(128, 224, (8, 14), 6)
+    bf16 = variant == "staged_tiles_bf16"
+    cpu = _run(args, "cpu", bf16_features=bf16)
+    f32 = [a.float() if torch.is_tensor(a) else a for a in args]
+    gpu = _run(f32, "cuda", variant)
+    for name, a, b in zip(NAMES, gpu, cpu):
+        torch.testing.assert_close(a.double(), b, atol=2e-4, rtol=1e-3, msg=lambda m, n=name: f"{variant} {n}: {m}")
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", [v for v in WINDOW_VARIANTS if v != "baseline"])
+def test_cuda_variant_equals_baseline_at_the_full_fit_geometry(variant):
+    """The fit's 256 x 448 map, 16 x 28 cells, 10 jitters, float32: each variant against the
+    baseline kernels (float rounding; staged_tiles_bf16 against the baseline on the bf16-rounded
+    features)."""
+    args = [a.float() if torch.is_tensor(a) else a for a in _fit_args(256, 448, (16, 28), 10)]
+    base = _run(args, "cuda", "baseline", bf16_features=variant == "staged_tiles_bf16")
+    new = _run(args, "cuda", variant)
+    for name, a, b in zip(NAMES, new, base):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-3, msg=lambda m, n=name: f"{variant} {n}: {m}")
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+@pytest.mark.parametrize("axis", ["rows", "columns"])
+def test_cuda_variant_footprint_past_the_tile_gives_the_baselines_nan(variant, axis):
+    """A copy that skips source pixels overflows the tile: every variant gives NaN exactly where
+    the baseline does (outputs and gradients), never a wrong number. Rows: every cell overflows;
+    columns: only the cells reading copy columns 10-12 (l = 5: a forward group with both kinds)."""
+    F, L, cy, cx, wk, bk, mask, stride = op_args(h=20, w=20, c=7, size=(2, 8), k=3, stride=(2, 2),
+                                                  dtype=torch.float32)
+    if axis == "rows":
+        cy = (torch.arange(20.0) * 4).clamp(max=19).expand(2, 20).contiguous()
+    else:
+        x = torch.arange(20.0)
+        cx = torch.where(x < 10, 0.9 * x, 8.1 + 3 * (x - 9)).clamp(max=19).expand(2, 20).contiguous()
+    args = [F, L, cy, cx, wk, bk, mask, stride]
+    base, new = _run(args, "cuda", "baseline"), _run(args, "cuda", variant)
+    assert base[0][:, :, 5].isnan().all() and (axis == "rows") == bool(base[0][:, :, 0].isnan().any())
+    for name, a, b in zip(NAMES, new, base):
+        assert torch.equal(a.isnan(), b.isnan()), name
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-3, equal_nan=True, msg=lambda m, n=name: f"{n}: {m}")
+
+
+@needs_cuda
+def test_cuda_variant_limits_name_the_problem():
+    F, L, cy, cx, wk, bk, mask, stride = op_args(dtype=F64, device="cuda")
+    with pytest.raises(RuntimeError, match="'staged_tiles_bf16' takes float32 features"):
+        jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "staged_tiles_bf16")
+    F, L, cy, cx, wk, bk, mask, stride = op_args(c=10240, dtype=torch.float32, device="cuda")
+    with pytest.raises(RuntimeError, match="variant 'pixel_dots' .* at most 10239 channels"):
+        jittered_window_attention(F, L, cy, cx, wk, bk, mask, stride, "pixel_dots")
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+def test_cuda_variant_opcheck(variant):
+    F, L, cy, cx, wk, bk, mask, stride = op_args(h=13, w=17, c=37, j=3, size=(3, 4), k=5, stride=(4, 4),
+                                                  dtype=torch.float32, device="cuda")
+    for t in (F, L, wk, bk):
+        t.requires_grad_()
+    # the logit map's gradient is summed with float atomics: run-to-run rounding, not bitwise
+    torch.library.opcheck(torch.ops.tiger.jittered_window_attention, (F, L, cy, cx, wk, bk, mask, *stride, variant),
+                          atol=1e-5, rtol=1e-4)
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+def test_cuda_variant_replays_from_a_cuda_graph(variant):
+    """Forward + backward captured in a CUDA graph (as the fit runs its step) = the eager call."""
+    args = [a.float().cuda() if torch.is_tensor(a) else a for a in _fit_args(64, 112, (4, 7), 4)]
+    F, L, cy, cx, wk, bk, mask, stride = args
+    leaves = [t.clone().requires_grad_() for t in (F, L, wk, bk)]
+    g = torch.randn(4, 4, 7, F.shape[2], generator=torch.Generator().manual_seed(1)).cuda()
+
+    def step():
+        out, _ = jittered_window_attention(leaves[0], leaves[1], cy, cx, leaves[2], leaves[3], mask, stride, variant)
+        return [out, *torch.autograd.grad((out * g).sum(), leaves)]
+
+    eager = [t.clone() for t in step()]
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        step()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        captured = step()
+    graph.replay()
+    torch.cuda.synchronize()
+    for name, a, b in zip(("out", "grad features", "grad logit_map", "grad w", "grad b"), captured, eager):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4, msg=lambda m, n=name: f"{variant} {n}: {m}")

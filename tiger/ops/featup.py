@@ -15,12 +15,18 @@ import torch
 
 from ._eager_autograd import eager_autograd
 
-__all__ = ["jittered_window_attention", "fourier_layer_norm", "relu_scale_layer_norm", "magnitude_blur",
-           "masked_logit"]
+__all__ = ["jittered_window_attention", "WINDOW_VARIANTS", "fourier_layer_norm", "relu_scale_layer_norm",
+           "magnitude_blur", "masked_logit"]
+
+
+# The CUDA kernel variants of tiger::jittered_window_attention (csrc/featup/featup.h), each adding
+# to the one before: the same function up to float rounding ("staged_tiles_bf16": the features
+# read as bfloat16). The CPU kernels are the reference of every variant.
+WINDOW_VARIANTS = ("baseline", "shared_scatter", "pixel_dots", "staged_tiles", "staged_tiles_bf16")
 
 
 @torch.library.register_fake("tiger::jittered_window_attention")
-def _fake(features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w):
+def _fake(features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w, variant="baseline"):
     torch._check(features.dim() == 3, lambda: f"features must be [H, W, C], got {tuple(features.shape)}")
     torch._check(mask.dim() == 3, lambda: f"mask must be [J, FH, FW], got {tuple(mask.shape)}")
     torch._check(w.dim() == 2, lambda: f"w must be [K, K], got {tuple(w.shape)}")
@@ -29,16 +35,18 @@ def _fake(features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w)
 
 
 @torch.library.register_fake("tiger::jittered_window_attention_backward")
-def _fake_backward(grad_out, features, logit_map, coord_y, coord_x, w, b, mask, attn, stride_h, stride_w):
+def _fake_backward(grad_out, features, logit_map, coord_y, coord_x, w, b, mask, attn, stride_h, stride_w,
+                   variant="baseline"):
     torch._check(grad_out.shape[-1] == features.shape[-1], lambda: "grad_out must be [J, FH, FW, C]")
     return (features.new_empty(features.shape), logit_map.new_empty(logit_map.shape), w.new_empty(w.shape),
             b.new_empty(b.shape))
 
 
 def _setup_context(ctx, inputs, output):
-    features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w = inputs
+    features, logit_map, coord_y, coord_x, w, b, mask, stride_h, stride_w, variant = inputs
     ctx.save_for_backward(features, logit_map, coord_y, coord_x, w, b, mask, output[1])
     ctx.strides = (stride_h, stride_w)
+    ctx.variant = variant
     ctx.mark_non_differentiable(output[1])
 
 
@@ -46,11 +54,11 @@ def _backward(ctx, grad_out, _grad_attn):
     features, logit_map, coord_y, coord_x, w, b, mask, attn = ctx.saved_tensors
     needs = ctx.needs_input_grad
     if grad_out is None or not (needs[0] or needs[1] or needs[4] or needs[5]):
-        return (None,) * 9
+        return (None,) * 10
     gf, gl, gw, gb = torch.ops.tiger.jittered_window_attention_backward(
-        grad_out.contiguous(), features, logit_map, coord_y, coord_x, w, b, mask, attn, *ctx.strides)
+        grad_out.contiguous(), features, logit_map, coord_y, coord_x, w, b, mask, attn, *ctx.strides, ctx.variant)
     return (gf if needs[0] else None, gl if needs[1] else None, None, None, gw if needs[4] else None,
-            gb if needs[5] else None, None, None, None)
+            gb if needs[5] else None, None, None, None, None)
 
 
 torch.library.register_autograd("tiger::jittered_window_attention", _backward, setup_context=_setup_context)
@@ -58,7 +66,7 @@ torch.library.register_autograd("tiger::jittered_window_attention", _backward, s
 
 def jittered_window_attention(features: torch.Tensor, logit_map: torch.Tensor, coord_y: torch.Tensor,
                               coord_x: torch.Tensor, w: torch.Tensor, b: torch.Tensor, mask: torch.Tensor,
-                              stride: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+                              stride: tuple[int, int], variant: str = "baseline") -> tuple[torch.Tensor, torch.Tensor]:
     """FeatUp's attention downsampler over J jittered copies of one map (float32/float64).
 
     Args:
@@ -69,6 +77,17 @@ def jittered_window_attention(features: torch.Tensor, logit_map: torch.Tensor, c
         w, b: [K, K] logit scale and bias of the window softmax.
         mask: [J, FH, FW] logit multiplier per copy and cell (FeatUp's logit dropout; ones for none).
         stride: (rows, columns) between the windows of neighbouring cells.
+        variant: the CUDA kernels (one of :data:`WINDOW_VARIANTS`, forward and backward; each
+            adds to the one before): "baseline" (one block per cell, the logit map's gradient by
+            K*K*4 global atomics per cell), "shared_scatter" (that gradient summed per cell in
+            shared memory first: one global atomic per touched source pixel), "pixel_dots" (the
+            backward's dots of the output gradient with the features pixel-major: each feature
+            read once; C <= 10239 for float32), "staged_tiles" (the features' gradient reads the
+            covering tiles from shared memory; the forward sums 4 neighbouring cells of a window
+            row per block over the union of their tiles), "staged_tiles_bf16" (the attention's reads of the
+            features from a bfloat16 copy, float32 accumulation; float32 only). The same function
+            up to float rounding (bfloat16's for the last); the CPU computes the reference for
+            every name.
 
     Returns:
         (out [J, FH, FW, C], attn [J, FH, FW, K*K]): the softmax-weighted window sums of the
@@ -76,7 +95,7 @@ def jittered_window_attention(features: torch.Tensor, logit_map: torch.Tensor, c
         differentiable in ``features``, ``logit_map``, ``w`` and ``b``.
     """
     return torch.ops.tiger.jittered_window_attention(features, logit_map, coord_y, coord_x, w, b, mask,
-                                                     int(stride[0]), int(stride[1]))
+                                                     int(stride[0]), int(stride[1]), variant)
 
 
 # ----------------------------------------------------------------------------- fourier_layer_norm
