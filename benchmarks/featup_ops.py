@@ -31,6 +31,7 @@ import torch
 from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err
 from tiger.language.featup import AttentionDownsampler, ImplicitNet, _min_max
 from tiger.language.featup_fit import BLUR_RADIUS, BLUR_SIGMA, pre_attention
+from tiger.testing.cuda_graphs import capture
 from tiger.ops.featup import WINDOW_VARIANTS, fourier_layer_norm, magnitude_blur, masked_logit, relu_scale_layer_norm
 from tiger.utils.filters import gaussian_blur
 
@@ -57,15 +58,8 @@ def network_step(net: ImplicitNet, image: torch.Tensor, grad: torch.Tensor, prec
 
 def graphed(step, device: torch.device):
     """``step`` captured once in a CUDA graph (after warm-up steps on a side stream); the replay."""
-    side = torch.cuda.Stream(device)
-    side.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(side):
-        for _ in range(3):
-            step()
-    torch.cuda.current_stream(device).wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        step()
+    with torch.cuda.device(device):
+        graph, _ = capture(step, warmup=3)
     return graph.replay
 
 

@@ -14,7 +14,7 @@ from torch import nn
 import tiger.ops
 from tiger.language.featup import AttentionDownsampler, ImplicitConfig, ImplicitNet, sample_jitter
 from tiger.language.featup_fit import _step_loss, jitter_coords, jitter_params, reflect_coords
-from tiger.ops.featup import magnitude_blur, masked_logit
+from tiger.ops.featup import WINDOW_VARIANTS, magnitude_blur, masked_logit
 from tiger.testing.cuda_graphs import capture
 from tiger.utils.filters import gaussian_blur
 
@@ -304,6 +304,7 @@ def test_cuda_step_layouts_agree_and_equal_the_cpu_step():
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
     try:
         cfg, args, leaves = _step_case(0.0, torch.float32)
+        cfg = dataclasses.replace(cfg, precision="fp32")  # bf16 autocast of the network on CUDA otherwise
         cpu_loss = _step_loss(*args, cfg)
         cpu_grads = torch.autograd.grad(cpu_loss, leaves, allow_unused=True)
         cfg, args, leaves = _cuda_case((cfg, args, leaves))
@@ -317,6 +318,43 @@ def test_cuda_step_layouts_agree_and_equal_the_cpu_step():
                                                msg=lambda m, i=i, l=layout: f"{l} {i}: {m}")
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+@needs_cuda
+@pytest.mark.parametrize("variant", WINDOW_VARIANTS)
+def test_cuda_step_with_each_attention_variant_equals_the_cpu_step(variant):
+    """``ImplicitConfig.attention_variant`` reaches the attention op: without dropout the CUDA
+    step with every kernel variant gives the CPU step's loss and gradients (float32 without TF32;
+    ``staged_tiles_bf16`` reads the features as bfloat16, so it is held to the gradients'
+    direction, cosine >= 0.999, and the loss to 1e-2 relative)."""
+    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    try:
+        cfg, args, leaves = _step_case(0.0, torch.float32)
+        cfg = dataclasses.replace(cfg, precision="fp32")  # bf16 autocast of the network on CUDA otherwise
+        cpu_loss = _step_loss(*args, cfg)
+        cpu_grads = torch.autograd.grad(cpu_loss, leaves, allow_unused=True)
+        cfg, args, leaves = _cuda_case((cfg, args, leaves))
+        loss = _step_loss(*args, dataclasses.replace(cfg, attention_variant=variant))
+        grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+        bf16 = variant.endswith("bf16")
+        torch.testing.assert_close(loss.cpu(), cpu_loss, atol=1e-5, rtol=1e-2 if bf16 else 1e-5)
+        for i, (g, r) in enumerate(zip(grads, cpu_grads)):
+            if r is None:
+                continue
+            if bf16:
+                cos = F.cosine_similarity(g.cpu().flatten().double(), r.flatten().double(), dim=0)
+                assert cos >= 0.999 or r.abs().max() < 1e-9, f"parameter {i}: gradient cosine {float(cos)}"
+            else:
+                torch.testing.assert_close(g.cpu(), r, atol=1e-5, rtol=1e-4, msg=lambda m, i=i: f"{variant} {i}: {m}")
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+def test_attention_variant_is_validated():
+    with pytest.raises(ValueError, match="attention_variant must be one of"):
+        ImplicitConfig(attention_variant="fastest")
+    assert {ImplicitConfig(attention_variant=v).attention_variant for v in WINDOW_VARIANTS} == set(WINDOW_VARIANTS)
 
 
 @needs_cuda

@@ -396,6 +396,8 @@ class ImplicitConfig:
     convolution, then a channels-last copy for the attention op). Both compute the same loss
     and gradients up to rounding; on the CPU they draw the same dropout masks (on CUDA
     ``F.dropout`` draws its mask with its own kernel, so the masks differ there).
+    ``attention_variant``: the CUDA kernels of ``tiger::jittered_window_attention`` the fast fit
+    uses (:data:`tiger.ops.featup.WINDOW_VARIANTS`; the CPU kernels are the same for all).
 
     ``steps`` is the most the fit runs (FeatUp's 1200). The fast fit stops earlier once the
     fitted map stops changing: every ``check_every`` steps (from ``min_steps`` on) it evaluates
@@ -433,6 +435,7 @@ class ImplicitConfig:
     cuda_graph: bool = True
     compile_network: bool = False
     step_layout: str = "channels_last"
+    attention_variant: str = "pixel_dots"
 
     def __post_init__(self) -> None:
         if self.method not in ("fast", "reference"):
@@ -446,6 +449,11 @@ class ImplicitConfig:
         if self.step_layout not in ("channels_last", "channels_first"):
             raise ValueError("tiger.ImplicitConfig: step_layout must be 'channels_last' or 'channels_first', "
                              f"got {self.step_layout!r}")
+        from tiger.ops.featup import WINDOW_VARIANTS
+
+        if self.attention_variant not in WINDOW_VARIANTS:
+            raise ValueError(f"tiger.ImplicitConfig: attention_variant must be one of {WINDOW_VARIANTS}, "
+                             f"got {self.attention_variant!r}")
 
 
 def _tv(x: torch.Tensor) -> torch.Tensor:

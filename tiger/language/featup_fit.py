@@ -170,7 +170,7 @@ def _autocast(device: torch.device, precision: str):
 
 def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor, features: torch.Tensor,
                            coord_y: torch.Tensor, coord_x: torch.Tensor, size: tuple[int, int],
-                           mask: torch.Tensor) -> torch.Tensor:
+                           mask: torch.Tensor, variant: str = "baseline") -> torch.Tensor:
     """``window_attention(down, *apply_jitters(cat([logit_map, x]), grid).split([1, C], 1), size, mask)``
     in one op (``tiger::jittered_window_attention``), without the jittered copies; x is
     ``features`` channels first.
@@ -178,7 +178,8 @@ def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor
     ``logit_map`` [H, W], ``features`` [H, W, C] channels last (float32/float64; read in place
     when contiguous); ``coord_y`` [J, H] and ``coord_x`` [J, W] the jitters' reflected source
     coordinates (:func:`jitter_coords`, :func:`reflect_coords`); ``mask`` [J, fh, fw] the logit
-    mask. Returns [J, C, fh, fw] (a view of the op's channels-last output).
+    mask. ``variant``: the op's CUDA kernels (:data:`tiger.ops.featup.WINDOW_VARIANTS`). Returns
+    [J, C, fh, fw] (a view of the op's channels-last output).
     """
     from tiger.ops.featup import jittered_window_attention
 
@@ -186,7 +187,8 @@ def fused_window_attention(down: "AttentionDownsampler", logit_map: torch.Tensor
     k, sh, sw, _, _ = window_geometry(h, w, size, down.kernel)
     dt = features.dtype
     out, _ = jittered_window_attention(features.contiguous(), logit_map.to(dt), coord_y.to(dt), coord_x.to(dt),
-                                       down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt), (sh, sw))
+                                       down.w[:k, :k].to(dt), down.b[:k, :k].to(dt), mask.to(dt), (sh, sw),
+                                       variant)
     return out.permute(0, 3, 1, 2)
 
 
@@ -436,5 +438,6 @@ def _step_loss(img: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, coor
         mask = (torch.rand(n, fh, fw, device=dev) > down.dropout).float()
     else:
         mask = torch.ones(n, fh, fw, device=dev)
-    out = fused_window_attention(down, pre.logit_map, pre.features, coord_y[idx], coord_x[idx], (fh, fw), mask)
+    out = fused_window_attention(down, pre.logit_map, pre.features, coord_y[idx], coord_x[idx], (fh, fw), mask,
+                                 cfg.attention_variant)
     return _fit_loss(cfg, out, targets[idx], outlier, pre.hr, pre.hr_mag, pre.hr_blurred)
