@@ -346,15 +346,16 @@ def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: 
             out, _ = jittered_window_attention(*args, (sh, sw), variant)
             torch.autograd.grad(out, leaves, g32)
 
+        row = {"what": f"{what}, {variant}", "fwd ms": timer(forward), "fwd+bwd ms": timer(both)}
+        if dev.type == "cuda":  # captured before any autograd graph is kept alive (below): a kept
+            # graph's AccumulateGrad nodes stay on the default stream and break the capture
+            row["fwd+bwd graph ms"] = timer(graphed(both, dev))
         out, _ = jittered_window_attention(*args, (sh, sw), variant)
         grads = torch.autograd.grad(out, leaves, g32, retain_graph=True)
 
         def backward(out=out, leaves=leaves) -> None:
             torch.autograd.grad(out, leaves, g32, retain_graph=True)
 
-        row = {"what": f"{what}, {variant}", "fwd ms": timer(forward), "fwd+bwd ms": timer(both)}
-        if dev.type == "cuda":
-            row["fwd+bwd graph ms"] = timer(graphed(both, dev))
         row["bwd ms"] = timer(backward)
         row.update({"err out": rel_err(out, ref_out)})
         row.update({f"err grad {name}": rel_err(a, r)

@@ -370,7 +370,9 @@ def test_cuda_variant_replays_from_a_cuda_graph(variant):
         out, _ = jittered_window_attention(leaves[0], leaves[1], cy, cx, leaves[2], leaves[3], mask, stride, variant)
         return [out, *torch.autograd.grad((out * g).sum(), leaves)]
 
-    eager = [t.clone() for t in step()]
+    # detached: a kept autograd graph keeps its AccumulateGrad nodes on the default stream, which
+    # breaks the capture ('legacy stream depend on a capturing blocking stream', H100)
+    eager = [t.detach().clone() for t in step()]
     graph, captured = capture(step)
     graph.replay()
     torch.cuda.synchronize()

@@ -12,12 +12,7 @@ def capture(fn: Callable[[], T], warmup: int = 1) -> tuple[torch.cuda.CUDAGraph,
     """Run ``fn()`` ``warmup`` times on a side stream (lazy initialisations and the allocator's
     first blocks happen outside the capture), then capture one call of ``fn`` in a CUDA graph on
     the current device. Returns (graph, the captured call's outputs: static tensors that each
-    ``graph.replay()`` overwrites).
-
-    The capture is ``thread_local``, as the FeatUp fit captures its step: a backward inside ``fn``
-    runs on autograd's device thread, and in the global mode the first capture of a process that
-    had such a backward failed on an H100 (torch 2.13: 'operation would make the legacy stream
-    depend on a capturing blocking stream'); every later capture passed."""
+    ``graph.replay()`` overwrites)."""
     side = torch.cuda.Stream()
     side.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(side):
@@ -25,7 +20,7 @@ def capture(fn: Callable[[], T], warmup: int = 1) -> tuple[torch.cuda.CUDAGraph,
             fn()
     torch.cuda.current_stream().wait_stream(side)
     graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+    with torch.cuda.graph(graph):
         out = fn()
     return graph, out
 
