@@ -423,7 +423,12 @@ def main() -> None:
         print_table(pre_attention_op_rows(args.dim, h, w, args.precision, dev, timer),
                     "the channels-last block's ops alone against the compositions they replace, forward + backward")
     if args.only in (None, "attention"):
-        print_table(attention_rows(h, w, args.dim, dev, timer, variants=args.variants),
+        # on a side stream: the rows' autograd graphs then never sit on the legacy default stream,
+        # which a graph capture may not depend on (the first capture of the rows failed so on an H100)
+        side = torch.cuda.Stream(dev) if dev.type == "cuda" else None
+        with torch.cuda.stream(side) if side is not None else contextlib.nullcontext():
+            rows = attention_rows(h, w, args.dim, dev, timer, variants=args.variants)
+        print_table(rows,
                     "jittered_window_attention at the fit's geometry (float32) per kernel variant; errors against "
                     "the float64 CPU op; feature bytes read by the forward and the backward's dots, global atomics "
                     "(estimates)")
