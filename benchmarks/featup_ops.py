@@ -31,8 +31,8 @@ import torch
 from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err
 from tiger.language.featup import AttentionDownsampler, ImplicitNet, _min_max
 from tiger.language.featup_fit import BLUR_RADIUS, BLUR_SIGMA, pre_attention
-from tiger.testing.cuda_graphs import capture
 from tiger.ops.featup import WINDOW_VARIANTS, fourier_layer_norm, magnitude_blur, masked_logit, relu_scale_layer_norm
+from tiger.testing.cuda_graphs import capture
 from tiger.utils.filters import gaussian_blur
 
 H100_HBM_TBPS = 3.35
@@ -347,8 +347,7 @@ def attention_rows(h: int, w: int, dim: int, dev: torch.device, timer, jitters: 
             torch.autograd.grad(out, leaves, g32)
 
         row = {"what": f"{what}, {variant}", "fwd ms": timer(forward), "fwd+bwd ms": timer(both)}
-        if dev.type == "cuda":  # captured before any autograd graph is kept alive (below): a kept
-            # graph's AccumulateGrad nodes stay on the default stream and break the capture
+        if dev.type == "cuda":  # needs a non-default current stream: see main()
             row["fwd+bwd graph ms"] = timer(graphed(both, dev))
         out, _ = jittered_window_attention(*args, (sh, sw), variant)
         grads = torch.autograd.grad(out, leaves, g32, retain_graph=True)
@@ -423,8 +422,10 @@ def main() -> None:
         print_table(pre_attention_op_rows(args.dim, h, w, args.precision, dev, timer),
                     "the channels-last block's ops alone against the compositions they replace, forward + backward")
     if args.only in (None, "attention"):
-        # on a side stream: the rows' autograd graphs then never sit on the legacy default stream,
-        # which a graph capture may not depend on (the first capture of the rows failed so on an H100)
+        # on a side stream: the rows' leaves and autograd nodes then never sit on the legacy default
+        # stream, on which a graph capture may not depend (on the default stream the first capture
+        # failed on an H100: 'operation would make the legacy stream depend on a capturing blocking
+        # stream'; torch warns of AccumulateGrad nodes on the default stream)
         side = torch.cuda.Stream(dev) if dev.type == "cuda" else None
         with torch.cuda.stream(side) if side is not None else contextlib.nullcontext():
             rows = attention_rows(h, w, args.dim, dev, timer, variants=args.variants)
