@@ -4,8 +4,9 @@
 # float64 reference at the fit's geometry and the baseline at the full one), compute-sanitizer
 # memcheck and racecheck on a small workload of every variant (benchmarks/gpu/sanitize_window_attention.py),
 # then benchmarks/featup_ops.py --only attention (every variant side by side at the fit's geometry)
-# and the implicit fit (bf16, no reference fit) per variant (the op's default swapped in by a wrapper: the fit itself has no
-# setting for it). From the repo root after `make build`; logs under $OUT/attention_variants.
+# and the implicit fit (bf16, no reference fit) per variant (ImplicitConfig.attention_variant, by
+# featup_implicit's --variants; the default list alternates baseline and pixel_dots for an A/B).
+# From the repo root after `make build`; logs under $OUT/attention_variants.
 cd "$(dirname "$0")/../.."
 export OUT="${OUT:-outputs}" PYTHONUNBUFFERED=1
 PY="${PY:-python3}"
@@ -21,16 +22,10 @@ for tool in memcheck racecheck; do
 done
 timeout 600 "$PY" -m benchmarks.featup_ops --device cuda --only attention > "$LOG/featup_ops.txt" 2>&1
 tail -9 "$LOG/featup_ops.txt"
-if [ "${FIT:-1}" = 1 ]; then  # FIT=0 skips the fits (about 1 min each)
-  for variant in ${FIT_VARIANTS:-baseline staged_tiles staged_tiles_bf16}; do
-    timeout 600 "$PY" - "$variant" > "$LOG/fit_$variant.txt" 2>&1 <<'EOF'
-import functools, runpy, sys
-import tiger.ops.featup as ops
-variant = sys.argv[1]
-ops.jittered_window_attention = functools.partial(ops.jittered_window_attention, variant=variant)
-sys.argv = ["benchmarks.featup_implicit", "--device", "cuda", "--no-reference", "--no-fp32"]
-runpy.run_module("benchmarks.featup_implicit", run_name="__main__")
-EOF
-    echo "== implicit fit, attention variant $variant (rc=$?)"; tail -12 "$LOG/fit_$variant.txt"
-  done
+if [ "${FIT:-1}" = 1 ]; then  # FIT=0 skips the fits (about 10 s a variant and seed)
+  specs=""
+  for variant in ${FIT_VARIANTS:-baseline pixel_dots baseline pixel_dots}; do specs="$specs attention_variant=$variant"; done
+  timeout 600 "$PY" -m benchmarks.featup_implicit --device cuda --no-reference --no-fp32 --variants $specs \
+    > "$LOG/fits.txt" 2>&1
+  echo "== implicit fits per attention variant (rc=$?)"; grep -A14 "^implicit FeatUp fit, per image" "$LOG/fits.txt"
 fi
