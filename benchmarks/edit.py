@@ -69,10 +69,11 @@ def demo_scene(density: float, device: str) -> tuple[GaussianScene, torch.Tensor
 
 
 def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cuda_graph: bool, seed: int = 0,
-                       fused_norms: Optional[bool] = None):
+                       fused_norms: Optional[bool] = None, concurrent: bool = True):
     """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
     SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py);
-    ``fused_norms`` as for the real loaders (None, their default: VAE and UNet fused on CUDA)."""
+    ``fused_norms`` as for the real loaders (None, their default: VAE and UNet fused on CUDA);
+    ``concurrent``: MVDream on a side stream beside InstructPix2Pix (CSDGuidance's default)."""
     from benchmarks.guidance import build_models, tokenizer
 
     from tiger.edit import CSDGuidance
@@ -85,7 +86,7 @@ def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cu
                                  generator=torch.Generator(device).manual_seed(seed), **kw) if "ip2p" in kind else None
     mv = MVDreamGuidance(mv_models, "a watermelon", cuda_graph=cuda_graph, image_size=256 if size == "full" else 32,
                          generator=torch.Generator(device).manual_seed(seed + 1)) if "mvdream" in kind else None
-    return CSDGuidance(ip, mv)
+    return CSDGuidance(ip, mv, concurrent=concurrent)
 
 
 def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
@@ -97,7 +98,8 @@ def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
         return IdealDenoiserGuidance(render_targets(truth, torch.ones(3, device=scene.device))), truth
     dtype = DTYPE_NAMES[args.dtype]
     fused = {"auto": None, "on": True, "off": False}[args.fused_norms]
-    return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph, fused_norms=fused), None
+    return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph, fused_norms=fused,
+                              concurrent=not args.sequential_guidance), None
 
 
 def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) -> dict:
@@ -233,6 +235,8 @@ def main() -> None:
     p.add_argument("--fused-norms", default="auto", choices=("auto", "on", "off"),
                    help="tiger's fused GroupNorm+SiLU in channels-last: auto = the loaders' default "
                         "(VAEs and UNets on CUDA, off on the CPU), on = both everywhere, off = torch's GroupNorm")
+    p.add_argument("--sequential-guidance", action="store_true",
+                   help="run MVDream after InstructPix2Pix on one stream (default: beside it on a side stream)")
     p.add_argument("--warmup", type=int, default=0, help="untimed warm-up steps before the timed edit")
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")

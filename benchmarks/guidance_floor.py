@@ -27,6 +27,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
 - ``after+fp8``: only the UNets' transformer matmuls in FP8 with row-wise scales
   (``ModelKernels(matmul_precision="fp8")``, opt-in);
 - ``default``: the three exact-within-rounding kernels together (the package's default on CUDA);
+- ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
+  (every other variant runs it beside InstructPix2Pix on a side stream, ``CSDGuidance``'s default);
 - ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
   ``torch._scaled_mm``'s fast accumulation.
 
@@ -79,6 +81,7 @@ VARIANTS = {
     "after+fold_norm_bias": (_plain_and(fold_norm_bias=True), True, False, False),
     "after+fp8": (_plain_and(matmul_precision="fp8"), True, False, False),
     "default": (DEFAULT, True, False, False),
+    "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
                                True, False, False),
@@ -271,7 +274,7 @@ def main() -> None:
                 set_folded(mv_models, folded)
                 torch.backends.cudnn.benchmark = cudnn_benchmark
                 ip_g, mv_g = make_guidances(ip_models, mv_models, graph=cuda, size=size, kernels=kernels)
-                csd = CSDGuidance(ip_g, mv_g)
+                csd = CSDGuidance(ip_g, mv_g, concurrent=variant != "default+sequential")
                 row = {"variant": variant}
                 row["ip2p_fresh_ms"] = timer(lambda: ip_g.grad(renders, views(0, False)))
                 row["ip2p_pooled_ms"] = timer(lambda: ip_g.grad(renders, views(0, True)))

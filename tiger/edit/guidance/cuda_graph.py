@@ -17,23 +17,31 @@ logger = logging.getLogger(__name__)
 
 StepFn = Callable[..., torch.Tensor]
 
-_SHARED_POOL = None
-_POOL_GRAPHS: "weakref.WeakSet[torch.cuda.CUDAGraph]" = weakref.WeakSet()
+_POOLS: dict[tuple, object] = {}
+_POOL_GRAPHS: "dict[tuple, weakref.WeakSet[torch.cuda.CUDAGraph]]" = {}
 
 
-def shared_graph_pool():
-    """One CUDA-graph memory pool for every guidance step alive in the process.
+def _stream_key(stream: "torch.cuda.Stream") -> tuple:
+    return (stream.device_index, stream.stream_id)
 
-    The steps run one after the other on one stream and each returns a copy of its output, so
-    their intermediates can share memory: with both guidances graphed, the peak is the larger
-    step's activations, not their sum (a graph's private pool is never released between replays).
+
+def shared_graph_pool(stream: "torch.cuda.Stream | None" = None):
+    """One CUDA-graph memory pool for the guidance steps replayed on ``stream`` (default: the
+    current stream).
+
+    Steps replayed on one stream run one after the other and each returns a copy of its output, so
+    their intermediates can share memory: with both guidances graphed on one stream, the peak is
+    the larger step's activations, not their sum (a graph's private pool is never released
+    between replays). Steps on different streams may run at the same time (``CSDGuidance`` runs
+    MVDream beside InstructPix2Pix), so each stream has its own pool.
     A pool lives only while a graph captured into it does: once every such graph is gone (the
     guidances of a finished edit were freed), the caching allocator has released the pool and
     capturing into its old handle fails an internal assertion, so a fresh handle is made."""
-    global _SHARED_POOL
-    if _SHARED_POOL is None or len(_POOL_GRAPHS) == 0:
-        _SHARED_POOL = torch.cuda.graph_pool_handle()
-    return _SHARED_POOL
+    key = _stream_key(torch.cuda.current_stream() if stream is None else stream)
+    graphs = _POOL_GRAPHS.setdefault(key, weakref.WeakSet())
+    if key not in _POOLS or len(graphs) == 0:
+        _POOLS[key] = torch.cuda.graph_pool_handle()
+    return _POOLS[key]
 
 
 class GraphedStep:
@@ -45,6 +53,8 @@ class GraphedStep:
     (no ``.item()``, no data-dependent Python branches) and draw no random numbers itself.
     Returns a fresh tensor (a copy of the graph's output buffer). ``share_pool``: capture into the
     pool shared by all guidance steps replayed on the same stream (:func:`shared_graph_pool`).
+    A graph is captured per input signature and per stream it is replayed on, so a step called on
+    another stream never shares memory with the steps of the stream it was first captured for.
     """
 
     def __init__(self, fn: StepFn, warmup: int = 3, share_pool: bool = True) -> None:
@@ -55,7 +65,8 @@ class GraphedStep:
 
     @staticmethod
     def _signature(args: Sequence[torch.Tensor]) -> tuple:
-        return tuple((tuple(a.shape), a.dtype, a.device) for a in args)
+        return (tuple((tuple(a.shape), a.dtype, a.device) for a in args),
+                _stream_key(torch.cuda.current_stream(args[0].device)))
 
     def __call__(self, *args: torch.Tensor) -> torch.Tensor:
         if not all(isinstance(a, torch.Tensor) and a.is_cuda for a in args):
@@ -79,11 +90,12 @@ class GraphedStep:
             for _ in range(self.warmup):
                 self.fn(*static_in)
         torch.cuda.current_stream().wait_stream(side)
+        replay_stream = torch.cuda.current_stream()
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=shared_graph_pool() if self.share_pool else None):
+        with torch.cuda.graph(graph, pool=shared_graph_pool(replay_stream) if self.share_pool else None):
             static_out = self.fn(*static_in)
         if self.share_pool:
-            _POOL_GRAPHS.add(graph)
+            _POOL_GRAPHS[_stream_key(replay_stream)].add(graph)
         logger.info("captured a CUDA graph for input shapes %s", [tuple(a.shape) for a in args])
         return graph, static_in, static_out
 
