@@ -64,5 +64,5 @@ def test_graphs_captured_per_stream():
     torch.cuda.current_stream().wait_stream(side)
     assert torch.equal(y, x * 2)
     assert len(step._graphs) == 2  # one graph (and pool) per stream
-    step(x + 1)
-    assert len(step._graphs) == 3
+    assert torch.equal(step(x + 1), (x + 1) * 2)  # replayed with new inputs, no new capture
+    assert len(step._graphs) == 2

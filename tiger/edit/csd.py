@@ -29,6 +29,9 @@ import torch
 from .guidance.base import Guidance, GuidanceInfo, ViewBatch, check_guidance, unique_generators
 
 
+SIDE_STREAM_PRIORITY = -1  # MVDream's stream; lower is higher priority (0: torch's default)
+
+
 @dataclass(frozen=True)
 class CSDSchedule:
     """λ1 (InstructPix2Pix) and λ2 (MVDream) over the edit (see the module docstring).
@@ -149,10 +152,12 @@ class CSDGuidance:
         return g, gi, 1e3 * (time.perf_counter() - t0)
 
     def _side_stream(self, device: torch.device) -> "torch.cuda.Stream":
-        # One stream per device for the guidance's life: the graphs are captured per stream.
+        # One stream per device for the guidance's life (the graphs are captured per stream),
+        # from the high-priority pool: never one of the default-priority streams that graphs are
+        # captured on (cuda_graph.capture_stream), whose per-stream cuBLAS workspace they use.
         index = device.index if device.index is not None else torch.cuda.current_device()
         if index not in self._side_streams:
-            self._side_streams[index] = torch.cuda.Stream(device=index)
+            self._side_streams[index] = torch.cuda.Stream(device=index, priority=SIDE_STREAM_PRIORITY)
         return self._side_streams[index]
 
 

@@ -44,11 +44,39 @@ def shared_graph_pool(stream: "torch.cuda.Stream | None" = None):
     return _POOLS[key]
 
 
+_CAPTURE_STREAMS: dict[tuple, "torch.cuda.Stream"] = {}
+_REPLAY_STREAMS: dict[tuple, int] = {}  # key -> raw handle of the replay streams seen
+
+
+def capture_stream(replay_stream: "torch.cuda.Stream") -> "torch.cuda.Stream":
+    """The stream on which the graphs replayed on ``replay_stream`` are warmed up and captured: one
+    per replay stream, shared with no other replay stream.
+
+    ``torch.cuda.graph`` captures on one process-wide stream by default, and a capture bakes in
+    per-stream resources: cuBLAS's workspace is chosen by (handle, stream). Graphs captured on the
+    same stream and replayed at the same time on different streams would share that workspace
+    (wrong values, or a hang in the kernels that keep semaphores in it: both seen on an H100)."""
+    key = _stream_key(replay_stream)
+    stream = _CAPTURE_STREAMS.get(key)
+    if stream is None:
+        _REPLAY_STREAMS[key] = replay_stream.cuda_stream
+        taken = {s.cuda_stream for s in _CAPTURE_STREAMS.values()} | set(_REPLAY_STREAMS.values())
+        for _ in range(256):  # torch hands out streams from a round-robin pool: skip ones in use
+            stream = torch.cuda.Stream(device=replay_stream.device)
+            if stream.cuda_stream not in taken:
+                break
+        else:
+            raise RuntimeError("tiger.edit: no free CUDA stream for graph capture")
+        _CAPTURE_STREAMS[key] = stream
+    return stream
+
+
 class GraphedStep:
     """``fn(*tensors) -> tensor`` replayed from a CUDA graph captured per input signature.
 
-    The first call with a new signature runs ``warmup`` eager calls on a side stream (cuDNN
-    autotuning, lazy initialisation, torch.compile happen there), then captures. Later calls copy
+    The first call with a new signature runs ``warmup`` eager calls on the replay stream's own
+    capture stream (:func:`capture_stream`; cuDNN autotuning, lazy initialisation, torch.compile
+    happen there), then captures on it. Later calls copy
     the inputs into the captured buffers and replay. ``fn`` must be free of host synchronisation
     (no ``.item()``, no data-dependent Python branches) and draw no random numbers itself.
     Returns a fresh tensor (a copy of the graph's output buffer). ``share_pool``: capture into the
@@ -84,15 +112,15 @@ class GraphedStep:
 
     def _capture(self, args: Sequence[torch.Tensor]):
         static_in = [a.detach().clone() for a in args]
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
+        replay_stream = torch.cuda.current_stream()
+        cap = capture_stream(replay_stream)
+        cap.wait_stream(replay_stream)
+        with torch.cuda.stream(cap):
             for _ in range(self.warmup):
                 self.fn(*static_in)
-        torch.cuda.current_stream().wait_stream(side)
-        replay_stream = torch.cuda.current_stream()
+        replay_stream.wait_stream(cap)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=shared_graph_pool(replay_stream) if self.share_pool else None):
+        with torch.cuda.graph(graph, pool=shared_graph_pool(replay_stream) if self.share_pool else None, stream=cap):
             static_out = self.fn(*static_in)
         if self.share_pool:
             _POOL_GRAPHS[_stream_key(replay_stream)].add(graph)
