@@ -70,7 +70,7 @@ def main() -> None:
     sequential = CSDGuidance(ip, mv, concurrent=False)
     concurrent = CSDGuidance(ip, mv)
     normal_priority = CSDGuidance(ip, mv)
-    normal_priority._side_streams[torch.cuda.current_device()] = normal
+    normal_priority._side_stream = lambda device: normal  # instead of the high-priority side stream
     rows = []
 
     class Rows(list):

@@ -26,10 +26,9 @@ from typing import Any, Optional
 
 import torch
 
+from tiger.utils.streams import side_stream
+
 from .guidance.base import Guidance, GuidanceInfo, ViewBatch, check_guidance, unique_generators
-
-
-SIDE_STREAM_PRIORITY = -1  # MVDream's stream; lower is higher priority (0: torch's default)
 
 
 @dataclass(frozen=True)
@@ -92,7 +91,6 @@ class CSDGuidance:
         self.mvdream = None if mvdream is None else check_guidance(mvdream)
         self.schedule = schedule
         self.concurrent = True if concurrent is None else bool(concurrent)
-        self._side_streams: dict[int, torch.cuda.Stream] = {}
         self.instruction = (self.ip2p or self.mvdream).instruction
 
     def settings(self) -> dict[str, Any]:
@@ -151,14 +149,12 @@ class CSDGuidance:
         g, gi = g_mod.grad(renders, views)
         return g, gi, 1e3 * (time.perf_counter() - t0)
 
-    def _side_stream(self, device: torch.device) -> "torch.cuda.Stream":
-        # One stream per device for the guidance's life (the graphs are captured per stream),
-        # from the high-priority pool: never one of the default-priority streams that graphs are
-        # captured on (cuda_graph.capture_stream), whose per-stream cuBLAS workspace they use.
-        index = device.index if device.index is not None else torch.cuda.current_device()
-        if index not in self._side_streams:
-            self._side_streams[index] = torch.cuda.Stream(device=index, priority=SIDE_STREAM_PRIORITY)
-        return self._side_streams[index]
+    @staticmethod
+    def _side_stream(device: torch.device) -> "torch.cuda.Stream":
+        # The same stream for every call (the graphs are captured per stream), from the
+        # high-priority pool: never one of the default-priority streams graphs are captured on,
+        # whose per-stream cuBLAS workspace those graphs use (cuda_graph.capture_stream).
+        return side_stream(device, high_priority=True)
 
 
 __all__ = ["CSDGuidance", "CSDSchedule"]

@@ -1,4 +1,5 @@
-"""Work that runs beside the caller's: a side CUDA stream driven by a worker thread."""
+"""Side CUDA streams (one per device and priority) and work that runs beside the caller's on one,
+driven by a worker thread (:func:`run_beside`)."""
 from __future__ import annotations
 
 import threading
@@ -11,7 +12,7 @@ T = TypeVar("T")
 
 _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
-_streams: dict[torch.device, torch.cuda.Stream] = {}
+_streams: dict[tuple[torch.device, bool], torch.cuda.Stream] = {}
 
 
 def _worker() -> ThreadPoolExecutor:
@@ -22,11 +23,20 @@ def _worker() -> ThreadPoolExecutor:
         return _pool
 
 
-def _side_stream(device: torch.device) -> torch.cuda.Stream:
+def side_stream(device: torch.device | str, high_priority: bool = False) -> torch.cuda.Stream:
+    """The process's side stream of ``device`` (a CUDA device) at default or high priority, made once.
+
+    High-priority streams come from a pool of their own in torch, so that stream is never one of
+    the default-priority streams made elsewhere (e.g. the streams CUDA graphs are captured on,
+    :func:`tiger.edit.guidance.cuda_graph.capture_stream`)."""
+    dev = torch.device(device)
+    if dev.index is None:
+        dev = torch.device("cuda", torch.cuda.current_device())
+    key = (dev, bool(high_priority))
     with _lock:
-        if device not in _streams:
-            _streams[device] = torch.cuda.Stream(device)
-        return _streams[device]
+        if key not in _streams:
+            _streams[key] = torch.cuda.Stream(dev, priority=-1 if high_priority else 0)
+        return _streams[key]
 
 
 def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[torch.Tensor, ...] = ()) -> Callable[[], T]:
@@ -52,7 +62,7 @@ def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[to
     if dev.index is None:
         dev = torch.device("cuda", torch.cuda.current_device())
     main = torch.cuda.current_stream(dev)
-    side = _side_stream(dev)
+    side = side_stream(dev)
     side.wait_stream(main)
     for t in inputs:  # their memory must not be reused before the side stream is done with them
         t.record_stream(side)
