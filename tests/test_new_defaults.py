@@ -100,6 +100,19 @@ def test_guidance_model_kernels_defaults():
     assert (k.fused_geglu, k.vae_downsample_4x4, k.fold_norm_bias) == (None, None, None)
 
 
+def test_csd_runs_mvdream_beside_instructpix2pix_and_records_no_stream_choice():
+    # MVDream on a side stream beside InstructPix2Pix: the CSD step 68.5 -> 64.7 ms, the 1200-step
+    # edit 88.4 -> 84.3 s (H100; benchmarks/gpu/results/guidance_streams_h100.txt,
+    # edit_1200_steps_h100.txt). The values do not depend on it, so the record does not either.
+    from tiger.edit.csd import CSDGuidance
+    from tiger.edit.guidance.recolor import RecolorGuidance
+
+    ip, mv = RecolorGuidance("make it red"), RecolorGuidance("make it blue")
+    default = CSDGuidance(ip, mv)
+    assert default.concurrent is True
+    assert default.settings() == CSDGuidance(ip, mv, concurrent=False).settings()
+
+
 def test_prepare_runs_features_alongside_by_device_and_sam_precision_follows_it():
     # None: alongside the reconstruction on one GPU, one after the other on the CPU (tiger/cli/prepare.py)
     assert _defaults("prepare")["alongside"] is None
