@@ -31,11 +31,10 @@ def on_streams(parts: list[tuple["torch.cuda.Stream", Callable[[], object]]]) ->
     """A call that launches each part on its stream (after the current stream's work) and joins them."""
     def run() -> None:
         main = torch.cuda.current_stream()
-        outs = []
         for stream, fn in parts:
             stream.wait_stream(main)
             with torch.cuda.stream(stream):
-                outs.append(fn())
+                fn()
         for stream, _ in parts:
             main.wait_stream(stream)
     return run
@@ -71,28 +70,26 @@ def main() -> None:
     concurrent = CSDGuidance(ip, mv)
     normal_priority = CSDGuidance(ip, mv)
     normal_priority._side_stream = lambda device: normal  # instead of the high-priority side stream
-    rows = []
+    rows: list[dict] = []
 
-    class Rows(list):
-        def append(self, row):  # progress as it goes
-            print(json.dumps(row), flush=True)
-            super().append(row)
+    def record(row: dict) -> None:  # printed as it is measured: a hang still leaves the rows before it
+        print(json.dumps(row), flush=True)
+        rows.append(row)
 
-    rows = Rows()
     ip_ms = timer(lambda: ip.grad(renders, views()))
-    rows.append({"what": "InstructPix2Pix, 4 views, one stream", "ms": ip_ms})
-    rows.append({"what": "InstructPix2Pix, 2 + 2 views on two streams",
+    record({"what": "InstructPix2Pix, 4 views, one stream", "ms": ip_ms})
+    record({"what": "InstructPix2Pix, 2 + 2 views on two streams",
                  "ms": timer(on_streams(halves))})
     mv_ms = timer(lambda: mv.grad(renders, views()))
-    rows.append({"what": "MVDream alone", "ms": mv_ms})
+    record({"what": "MVDream alone", "ms": mv_ms})
     for name, csd in (("CSD, MVDream after InstructPix2Pix (one stream)", sequential),
                       ("CSD, MVDream beside InstructPix2Pix (high-priority side stream; default)", concurrent),
                       ("CSD, MVDream beside, side stream at normal priority", normal_priority)):
         both = timer(lambda: csd.grad(renders, views()))
-        rows.append({"what": name, "ms": both, "step_ms": MV_FRACTION * both + (1 - MV_FRACTION) * ip_ms})
+        record({"what": name, "ms": both, "step_ms": MV_FRACTION * both + (1 - MV_FRACTION) * ip_ms})
     three = on_streams([(s1, lambda: mv.grad(renders, views()))] + halves)
     both = timer(three)
-    rows.append({"what": "MVDream beside InstructPix2Pix's 2 + 2 views (three streams)", "ms": both,
+    record({"what": "MVDream beside InstructPix2Pix's 2 + 2 views (three streams)", "ms": both,
                  "step_ms": MV_FRACTION * both + (1 - MV_FRACTION) * rows[1]["ms"]})
     meta = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "render": res,
             "peak_GiB": torch.cuda.max_memory_allocated() / 2**30}
