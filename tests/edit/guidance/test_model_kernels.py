@@ -227,6 +227,27 @@ def test_fp8_refused_on_cpu_with_reason(tiny_ip2p):
         mk.ModelKernels(fp8_fast_accum=True)
 
 
+def test_row_layer_norm_unet_equals_diffusers_float64(tiny_ip2p):
+    unet = tiny_ip2p.unet.double()
+    x, t, e = _unet_inputs(unet, torch.float64)
+    norms = [m for m in unet.modules() if type(m) is torch.nn.LayerNorm]
+    with torch.no_grad():
+        y0 = unet(x, t, encoder_hidden_states=e).sample
+        assert mk.set_row_layer_norm(unet, True) == len(norms) > 0  # three per transformer block
+        assert mk.set_row_layer_norm(unet, True) == len(norms)  # idempotent
+        calls = []
+        real = mk.layer_norm_rows
+        mk.layer_norm_rows = lambda *a: calls.append(a[0].shape) or real(*a)
+        try:
+            y1 = unet(x, t, encoder_hidden_states=e).sample
+        finally:
+            mk.layer_norm_rows = real
+        assert len(calls) == len(norms)
+    assert mk.set_row_layer_norm(unet, False) == 0
+    assert not any("forward" in m.__dict__ for m in norms)
+    assert torch.allclose(y1, y0, rtol=1e-10, atol=1e-12)
+
+
 def test_fused_geglu_unet_equals_diffusers_float64(tiny_ip2p):
     unet = tiny_ip2p.unet.double()
     x, t, e = _unet_inputs(unet, torch.float64)
@@ -310,7 +331,8 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
         assert any("forward" in m.__dict__ for m in models.unet.modules() if type(m).__name__ == "FeedForward") == on
         assert g.settings()["kernels"] == {"matmul_precision": "model", "fp8_fast_accum": False,
                                            "fused_geglu": True if on else "auto",
-                                           "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto"}
+                                           "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto",
+                                           "row_layer_norm": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)

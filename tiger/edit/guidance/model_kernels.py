@@ -1,5 +1,5 @@
 """How the guidances' frozen UNets and VAEs compute, beyond :mod:`.fused_norms`: FP8 matmuls,
-the fused GEGLU and the VAE's 4x4 downsampling convolutions (:class:`ModelKernels`).
+the fused GEGLU, the row LayerNorm and the VAE's 4x4 downsampling convolutions (:class:`ModelKernels`).
 
 - ``matmul_precision="fp8"`` (opt-in): the UNet's transformer-block linear layers (attention
   q/k/v/out projections, the feed-forward's GEGLU projection and output, the transformers'
@@ -14,6 +14,9 @@ the fused GEGLU and the VAE's 4x4 downsampling convolutions (:class:`ModelKernel
   except with ``emulate=True`` (tests: the same quantisation, the product in float32).
 - ``fused_geglu``: diffusers' ``FeedForward`` with a GEGLU computes ``a·gelu(g)`` in one pass
   (:func:`tiger.ops.fp8_rows.geglu`) instead of chunk + gelu + multiply.
+- ``row_layer_norm``: the UNet's LayerNorms (three per transformer block) by
+  :func:`tiger.ops.layer_norm.layer_norm_rows`, whose CUDA kernel gives each row of 320-1280
+  channels to a few lanes of one warp, instead of PyTorch's block of 128 threads per row.
 - ``fold_norm_bias``: in the fused ResNet blocks (:mod:`.fused_norms`), conv1's bias and the
   time embedding are added inside norm2 (tiger's GroupNorm ``input_bias``) instead of in a pass
   of their own: the biased map is never written (one full read and write fewer per block,
@@ -39,6 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
+from tiger.ops.layer_norm import layer_norm_rows
 
 from .fused_norms import set_fold_norm_bias
 from tiger.utils.lazy import require_diffusers
@@ -46,7 +50,7 @@ from tiger.utils.lazy import require_diffusers
 logger = logging.getLogger(__name__)
 
 __all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
-           "fp8_supported", "set_downsample_4x4", "set_fused_geglu", "set_matmul_precision"]
+           "fp8_supported", "set_downsample_4x4", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm"]
 
 MATMUL_PRECISIONS = ("model", "fp8")
 
@@ -67,6 +71,8 @@ class ModelKernels:
         fold_norm_bias: conv1's bias and the time embedding inside norm2 (models with fused norms
             only); None: on where the models are on CUDA with tiger's CUDA kernels (the sum
             rounded once less).
+        row_layer_norm: the UNet's LayerNorms by tiger's row kernel; None: on where the UNet is
+            on CUDA with tiger's CUDA kernels (same statistics, one rounding).
     """
 
     matmul_precision: str = "model"
@@ -74,6 +80,7 @@ class ModelKernels:
     fused_geglu: Optional[bool] = None
     vae_downsample_4x4: Optional[bool] = None
     fold_norm_bias: Optional[bool] = None
+    row_layer_norm: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -327,6 +334,27 @@ def set_fused_geglu(unet: torch.nn.Module, on: bool) -> int:
     return count
 
 
+# -- row LayerNorm --------------------------------------------------------------------------------
+def _layer_norm_rows_forward(self, x: torch.Tensor) -> torch.Tensor:
+    return layer_norm_rows(x, self.weight, self.bias, self.eps)
+
+
+def set_row_layer_norm(unet: torch.nn.Module, on: bool) -> int:
+    """Switch the UNet's LayerNorms (plain ``torch.nn.LayerNorm`` over one dimension, with a weight)
+    to :func:`tiger.ops.layer_norm.layer_norm_rows` (``on``) or PyTorch's; returns how many run
+    on tiger's op afterwards."""
+    count = 0
+    for m in unet.modules():
+        if type(m) is not torch.nn.LayerNorm or len(m.normalized_shape) != 1 or m.weight is None:
+            continue
+        if on:
+            m.forward = types.MethodType(_layer_norm_rows_forward, m)
+            count += 1
+        else:
+            m.__dict__.pop("forward", None)
+    return count
+
+
 # -- VAE downsampling -----------------------------------------------------------------------------
 def _downsample_4x4_forward(self, hidden_states: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
     conv = self.conv
@@ -372,9 +400,10 @@ def set_downsample_4x4(vae: torch.nn.Module, on: bool) -> int:
 def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: ModelKernels, *,
                         emulate_fp8: bool = False) -> dict[str, Any]:
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
-    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "vae_downsample_4x4",
+    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "vae_downsample_4x4",
     "fold_norm_bias_blocks"}``."""
     geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
+    ln_on = _on_cuda_with_kernels(unet) if kernels.row_layer_norm is None else bool(kernels.row_layer_norm)
     p = next(vae.parameters(), None)
     ds_on = (p is not None and p.device.type == "cuda") if kernels.vae_downsample_4x4 is None \
         else bool(kernels.vae_downsample_4x4)
@@ -382,7 +411,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     fp8_layers = set_matmul_precision(unet, kernels.matmul_precision, fast_accum=kernels.fp8_fast_accum,
                                       emulate=emulate_fp8)
     set_fused_geglu(unet, geglu_on)
+    row_norms = set_row_layer_norm(unet, ln_on)
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
-            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded}
+            "row_layer_norms": row_norms, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded}
