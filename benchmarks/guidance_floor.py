@@ -29,6 +29,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
 - ``default``: the exact-within-rounding kernels together (the package's default on CUDA);
 - ``default-row_layer_norm``: the default with PyTorch's LayerNorm instead of the row kernel
   (``ModelKernels.row_layer_norm``);
+- ``default-subpixel_upsample``: the default with diffusers' nearest upsampling + 3x3 convolution
+  instead of the per-phase 2x2 convolutions (``ModelKernels.subpixel_upsample``);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
   (every other variant runs it beside InstructPix2Pix on a side stream, ``CSDGuidance``'s default);
 - ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
@@ -64,8 +66,10 @@ from tiger.edit.guidance.ip2p import InstructPix2PixGuidance
 from tiger.edit.guidance.mvdream import MVDreamGuidance
 from tiger.utils.dtypes import DTYPE_NAMES
 
-PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False)
-DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True)
+PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
+                        subpixel_upsample=False)
+DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
+                          subpixel_upsample=True)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -84,13 +88,14 @@ VARIANTS = {
     "after+fp8": (_plain_and(matmul_precision="fp8"), True, False, False),
     "default": (DEFAULT, True, False, False),
     "default-row_layer_norm": (dataclasses.replace(DEFAULT, row_layer_norm=False), True, False, False),
+    "default-subpixel_upsample": (dataclasses.replace(DEFAULT, subpixel_upsample=False), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
                                True, False, False),
 }
 DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
-                    "default-row_layer_norm", "default+fp8", "default+fp8_fast_accum")
+                    "default-row_layer_norm", "default-subpixel_upsample", "default+fp8", "default+fp8_fast_accum")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 
 

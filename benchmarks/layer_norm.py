@@ -5,7 +5,8 @@ and one write of the rows at the GPU's bandwidth).
 Shapes: InstructPix2Pix's UNet (3 branches x 4 views = 12 samples) at 64², 32², 16², 8² latents
 (rows of 320, 640, 1280, 1280 channels; three norms per transformer block, five blocks per
 resolution but the 8² one) and MVDream's (2 branches x 4 views) at 32² ... 4²; on the CPU the
-same channel counts with 1/16 of the rows.
+same channel counts with 1/16 of the rows. CUDA times are GPU time per call, from 20 calls
+replayed as one CUDA graph (as the guidance steps run them).
 
     python -m benchmarks.layer_norm                         # CPU
     python -m benchmarks.layer_norm --device cuda [--json out.json]
@@ -36,6 +37,21 @@ def reference(x, w, b, eps=1e-5):
     return (xd - mean) / torch.sqrt((xd - mean).square().mean(-1, keepdim=True) + eps) * w.double() + b.double()
 
 
+def graph_ms(fn, calls: int = 20) -> float:
+    """GPU ms per call: ``calls`` calls captured in one CUDA graph and replayed (as the guidance
+    steps run; an eager call of either op costs more on the host than on the GPU at these sizes)."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.stream(side):
+        fn()
+        with torch.cuda.graph(graph, stream=side):
+            for _ in range(calls):
+                fn()
+    torch.cuda.current_stream().wait_stream(side)
+    return cuda_time_ms(graph.replay) / calls
+
+
 def rel(y, ref) -> float:
     return float((y.double() - ref).norm() / ref.norm())
 
@@ -58,8 +74,7 @@ def main() -> None:
         b = (0.1 * torch.randn(c, device=dev, generator=g)).to(dtype)
         ours = lambda: layer_norm_rows(x, w, b, 1e-5)  # noqa: E731
         theirs = lambda: F.layer_norm(x, (c,), w, b, 1e-5)  # noqa: E731
-        timer = cuda_time_ms if cuda else cpu_time_ms
-        t_ours, t_torch = timer(ours), timer(theirs)
+        t_ours, t_torch = (graph_ms(ours), graph_ms(theirs)) if cuda else (cpu_time_ms(ours), cpu_time_ms(theirs))
         ref = reference(x, w, b)
         floor = 2 * x.numel() * x.element_size() / H100_BYTES_PER_S * 1e3 if cuda else float("nan")
         rows.append({"model": model, "shape": f"{n}x{tokens}x{c}", "norms": count, "ours_ms": round(t_ours, 4),

@@ -32,12 +32,13 @@ def ulp(dtype):
 
 
 def assert_one_rounding(y, ref_scale, dtype):
-    """|y - ref| within one rounding of ref to dtype (half an ulp) plus the float32 statistics'
-    error (relative 1e-5 of the terms' size; 1e-12 for float64)."""
+    """|y - ref| within one rounding of ref to dtype (half an ulp; a subnormal's spacing near 0)
+    plus the float32 statistics' error (relative 1e-5 of the terms' size; 1e-12 for float64)."""
     ref, scale = ref_scale
     err = (y.double() - ref).abs()
     stats = 1e-12 if dtype == torch.float64 else 1e-5
-    bound = ref.abs() * ulp(dtype) * 0.5 + scale * stats + 1e-300
+    subnormal = torch.finfo(dtype).tiny * ulp(dtype)  # the spacing below the normal range (fp16: 6e-8)
+    bound = ref.abs() * ulp(dtype) * 0.5 + scale * stats + subnormal
     assert bool((err <= bound).all()), f"max error {float(err.max()):.3g}, worst excess {float((err - bound).max()):.3g}"
 
 

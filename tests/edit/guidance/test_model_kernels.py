@@ -248,6 +248,55 @@ def test_row_layer_norm_unet_equals_diffusers_float64(tiny_ip2p):
     assert torch.allclose(y1, y0, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("bias", [True, False])
+def test_subpixel_upsample_equals_nearest_then_conv_float64(channels_last, bias):
+    from diffusers.models.upsampling import Upsample2D
+
+    g = torch.Generator().manual_seed(4)
+    m = Upsample2D(6, use_conv=True, out_channels=5, bias=bias).double()
+    x = torch.randn(2, 6, 5, 7, generator=g, dtype=torch.float64)
+    if channels_last:
+        m, x = m.to(memory_format=torch.channels_last), x.contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        y0 = m(x)
+        assert mk.set_subpixel_upsample(m, True) == 1
+        y1, y2 = m(x), m(x, output_size=(10, 14))
+        odd = m(x, output_size=(11, 14))  # not 2x: diffusers' own computation
+        assert mk.set_subpixel_upsample(m, False) == 0 and "forward" not in m.__dict__
+        assert torch.equal(odd, m(x, output_size=(11, 14)))
+    torch.testing.assert_close(y1, y0, atol=1e-13, rtol=0)
+    torch.testing.assert_close(y2, y0, atol=1e-13, rtol=0)
+    assert y1.is_contiguous(memory_format=torch.channels_last) == channels_last
+
+
+def test_subpixel_weight_taps():
+    # one 3x3 tap at a time: phase (a, b) sees it at 2x2 position (row of tap s in phase a, col of t in b)
+    where = {0: {0: 0, 1: 1, 2: 1}, 1: {0: 0, 1: 0, 2: 1}}
+    for s_ in range(3):
+        for t_ in range(3):
+            w = torch.zeros(1, 1, 3, 3, dtype=torch.float64)
+            w[0, 0, s_, t_] = 1.0
+            w4 = mk.subpixel_weight(w)
+            for a in (0, 1):
+                for b in (0, 1):
+                    expect = torch.zeros(2, 2, dtype=torch.float64)
+                    expect[where[a][s_], where[b][t_]] = 1.0
+                    assert torch.equal(w4[2 * a + b, 0], expect), (s_, t_, a, b)
+
+
+def test_subpixel_upsample_unet_equals_diffusers_float64(tiny_ip2p):
+    unet = tiny_ip2p.unet.double()
+    x, t, e = _unet_inputs(unet, torch.float64)
+    ups = sum(1 for m in unet.modules() if type(m).__name__ == "Upsample2D")
+    with torch.no_grad():
+        y0 = unet(x, t, encoder_hidden_states=e).sample
+        assert mk.set_subpixel_upsample(unet, True) == ups > 0
+        y1 = unet(x, t, encoder_hidden_states=e).sample
+    mk.set_subpixel_upsample(unet, False)
+    assert torch.allclose(y1, y0, rtol=1e-10, atol=1e-12)
+
+
 def test_fused_geglu_unet_equals_diffusers_float64(tiny_ip2p):
     unet = tiny_ip2p.unet.double()
     x, t, e = _unet_inputs(unet, torch.float64)
@@ -332,7 +381,7 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
         assert g.settings()["kernels"] == {"matmul_precision": "model", "fp8_fast_accum": False,
                                            "fused_geglu": True if on else "auto",
                                            "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto",
-                                           "row_layer_norm": "auto"}
+                                           "row_layer_norm": "auto", "subpixel_upsample": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
