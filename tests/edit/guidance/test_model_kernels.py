@@ -387,3 +387,14 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
     mv = MVDreamGuidance(lambda: None, "a fox", kernels=mk.ModelKernels(fused_geglu=False))
     assert mv.settings()["kernels"]["fused_geglu"] is False  # recorded before loading
+
+
+def test_row_layer_norm_and_subpixel_follow_the_device(tiny_ip2p):
+    # None ("auto"): on for CUDA models only; True puts them on CPU models too (the reference ops)
+    unet, vae = tiny_ip2p.unet, tiny_ip2p.vae
+    got = mk.apply_model_kernels(unet, vae, mk.ModelKernels())
+    assert (got["row_layer_norms"], got["subpixel_upsamples"]) == (0, 0)
+    got = mk.apply_model_kernels(unet, vae, mk.ModelKernels(row_layer_norm=True, subpixel_upsample=True))
+    assert got["row_layer_norms"] == sum(1 for m in unet.modules() if type(m) is torch.nn.LayerNorm) > 0
+    assert got["subpixel_upsamples"] == sum(1 for m in unet.modules() if type(m).__name__ == "Upsample2D") > 0
+    mk.apply_model_kernels(unet, vae, mk.ModelKernels(row_layer_norm=False, subpixel_upsample=False))
