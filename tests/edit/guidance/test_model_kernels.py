@@ -381,7 +381,8 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
         assert g.settings()["kernels"] == {"matmul_precision": "model", "fp8_fast_accum": False,
                                            "fused_geglu": True if on else "auto",
                                            "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto",
-                                           "row_layer_norm": "auto", "subpixel_upsample": "auto"}
+                                           "row_layer_norm": "auto", "subpixel_upsample": "auto",
+                                           "lean_attention": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
@@ -398,3 +399,39 @@ def test_row_layer_norm_and_subpixel_follow_the_device(tiny_ip2p):
     assert got["row_layer_norms"] == sum(1 for m in unet.modules() if type(m) is torch.nn.LayerNorm) > 0
     assert got["subpixel_upsamples"] == sum(1 for m in unet.modules() if type(m).__name__ == "Upsample2D") > 0
     mk.apply_model_kernels(unet, vae, mk.ModelKernels(row_layer_norm=False, subpixel_upsample=False))
+
+
+def test_lean_attention_gives_the_same_values(tiny_ip2p):
+    from diffusers.models.attention_processor import Attention
+
+    unet = tiny_ip2p.unet
+    x, t, e = _unet_inputs(unet)
+    attns = [m for m in unet.modules() if isinstance(m, Attention)]
+    mk.set_lean_attention(unet, False)
+    with torch.no_grad():
+        y0 = unet(x, t, encoder_hidden_states=e).sample
+        assert mk.set_lean_attention(unet, True) == len(attns) > 0
+        assert mk.set_lean_attention(unet, True) == len(attns)  # idempotent: no wrapper around a wrapper
+        y1 = unet(x, t, encoder_hidden_states=e).sample
+    assert torch.equal(y1, y0)  # the same operations, minus a division by 1
+    assert mk.set_lean_attention(unet, False) == 0
+    assert not any(isinstance(m.processor, mk.LeanAttnProcessor) for m in attns)
+
+
+def test_lean_attention_inside_the_multiview_processor_and_fallback():
+    from diffusers.models.attention_processor import Attention, AttnProcessor2_0
+
+    from tiger.edit.guidance.mvdream_attention import MultiViewAttnProcessor
+
+    torch.manual_seed(0)
+    attn = Attention(16, heads=2, dim_head=8)
+    attn.set_processor(MultiViewAttnProcessor(2))
+    h = torch.randn(4, 5, 16)
+    with torch.no_grad():
+        y0 = attn(h)
+        assert mk.set_lean_attention(attn, True) == 1 and isinstance(attn.processor.inner, mk.LeanAttnProcessor)
+        assert torch.equal(attn(h), y0)
+        attn.rescale_output_factor = 2.0  # a feature it does not handle: diffusers' processor runs
+        torch.testing.assert_close(attn(h), y0 / 2.0)
+    mk.set_lean_attention(attn, False)
+    assert type(attn.processor.inner) is AttnProcessor2_0

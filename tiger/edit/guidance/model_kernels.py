@@ -29,6 +29,11 @@ the fused GEGLU, the row LayerNorm and the VAE's 4x4 downsampling convolutions (
   with the bias added: 32 instead of 72 multiply-adds per output pixel and channel pair, and no
   upsampled copy of the input. Same sums, except that the combined taps are rounded once to the
   model's dtype.
+- ``lean_attention``: the UNet's attention layers without the steps diffusers' SDPA processor
+  takes for features these models do not use; in particular without dividing every attention
+  output by ``rescale_output_factor`` = 1 (one full pass per layer). The same operations
+  otherwise, so the same values; any layer with a mask, a norm, a residual or another factor
+  keeps diffusers' processor.
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
   the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
@@ -59,7 +64,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
            "fp8_supported", "set_downsample_4x4", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm",
-           "set_subpixel_upsample", "subpixel_weight"]
+           "set_subpixel_upsample", "subpixel_weight", "LeanAttnProcessor", "set_lean_attention"]
 
 MATMUL_PRECISIONS = ("model", "fp8")
 
@@ -84,6 +89,8 @@ class ModelKernels:
             on CUDA with tiger's CUDA kernels (same statistics, one rounding).
         subpixel_upsample: the UNet's upsampling layers as per-phase 2x2 convolutions; None: on
             where the UNet is on CUDA (the combined taps rounded once to the model's dtype).
+        lean_attention: the UNet's attentions without diffusers' unused steps; None: on (the
+            same operations and values on any device).
     """
 
     matmul_precision: str = "model"
@@ -93,6 +100,7 @@ class ModelKernels:
     fold_norm_bias: Optional[bool] = None
     row_layer_norm: Optional[bool] = None
     subpixel_upsample: Optional[bool] = None
+    lean_attention: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -443,6 +451,61 @@ def set_subpixel_upsample(unet: torch.nn.Module, on: bool) -> int:
     return count
 
 
+# -- lean attention -------------------------------------------------------------------------------
+class LeanAttnProcessor:
+    """diffusers 0.42's ``AttnProcessor2_0`` for the layers these UNets have (token input [B, L, C],
+    no mask, no norms, no residual, output factor 1): q/k/v projections, SDPA (its default scale,
+    as diffusers), output projection and dropout, without the division by
+    ``rescale_output_factor`` = 1 that costs a pass over every attention output. Anything else
+    goes to the processor it replaced (``fallback``)."""
+
+    def __init__(self, fallback) -> None:
+        self.fallback = fallback
+
+    @staticmethod
+    def handles(attn, hidden_states: torch.Tensor, attention_mask, args: tuple, kwargs: dict) -> bool:
+        return (attention_mask is None and hidden_states.ndim == 3 and not args and kwargs.get("scale") is None
+                and attn.spatial_norm is None and attn.group_norm is None and not attn.norm_cross
+                and attn.norm_q is None and attn.norm_k is None and not attn.residual_connection
+                and attn.rescale_output_factor == 1.0)
+
+    def __call__(self, attn, hidden_states: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor] = None,
+                 attention_mask: Optional[torch.Tensor] = None, temb: Optional[torch.Tensor] = None,
+                 *args: object, **kwargs: object) -> torch.Tensor:
+        if not self.handles(attn, hidden_states, attention_mask, args, kwargs):
+            return self.fallback(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
+        b = hidden_states.shape[0]
+        context = hidden_states if encoder_hidden_states is None else encoder_hidden_states
+        query, key, value = attn.to_q(hidden_states), attn.to_k(context), attn.to_v(context)
+        head_dim = key.shape[-1] // attn.heads
+        q, k, v = (t.view(b, -1, attn.heads, head_dim).transpose(1, 2) for t in (query, key, value))
+        out = F.scaled_dot_product_attention(q, k, v, dropout_p=0.0, is_causal=False)
+        out = out.transpose(1, 2).reshape(b, -1, attn.heads * head_dim).to(query.dtype)
+        return attn.to_out[1](attn.to_out[0](out))
+
+
+def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
+    """Put :class:`LeanAttnProcessor` in front of the UNet's SDPA attention processors (also inside
+    MVDream's multi-view processor) (``on``), or take it away; returns how many layers have it."""
+    diffusers = require_diffusers("the lean attention")
+    sdpa = diffusers.models.attention_processor.AttnProcessor2_0
+    from diffusers.models.attention_processor import Attention
+
+    count = 0
+    for m in unet.modules():
+        if not isinstance(m, Attention):
+            continue
+        proc = m.processor
+        holder, attr = (proc, "inner") if type(getattr(proc, "inner", None)) in (sdpa, LeanAttnProcessor) else (m, "processor")
+        current = getattr(holder, attr)
+        if on and type(current) is sdpa:
+            setattr(holder, attr, LeanAttnProcessor(current))
+        elif not on and type(current) is LeanAttnProcessor:
+            setattr(holder, attr, current.fallback)
+        count += type(getattr(holder, attr)) is LeanAttnProcessor
+    return count
+
+
 # -- VAE downsampling -----------------------------------------------------------------------------
 def _downsample_4x4_forward(self, hidden_states: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
     conv = self.conv
@@ -488,10 +551,12 @@ def set_downsample_4x4(vae: torch.nn.Module, on: bool) -> int:
 def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: ModelKernels, *,
                         emulate_fp8: bool = False) -> dict[str, Any]:
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
-    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples", "vae_downsample_4x4",
+    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples", "lean_attentions",
+    "vae_downsample_4x4",
     "fold_norm_bias_blocks"}``."""
     geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
     ln_on = _on_cuda_with_kernels(unet) if kernels.row_layer_norm is None else bool(kernels.row_layer_norm)
+    lean_on = True if kernels.lean_attention is None else bool(kernels.lean_attention)
     pu = next(unet.parameters(), None)
     up_on = (pu is not None and pu.device.type == "cuda") if kernels.subpixel_upsample is None \
         else bool(kernels.subpixel_upsample)
@@ -504,7 +569,9 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     set_fused_geglu(unet, geglu_on)
     row_norms = set_row_layer_norm(unet, ln_on)
     subpixel = set_subpixel_upsample(unet, up_on)
+    lean = set_lean_attention(unet, lean_on)
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
-            "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded}
+            "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
+            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded}
