@@ -102,6 +102,9 @@ def test_guidance_model_kernels_defaults():
     # 61.2 / 61.0 ms without either, 60.3 ms with both, SDS error vs float32 unchanged (H100, one
     # call; benchmarks/gpu/results/guidance_floor_layer_norm_upsample_h100.txt)
     assert (k.row_layer_norm, k.subpixel_upsample) == (None, None)
+    # the lean attention is on everywhere (same values bit for bit): CSD pooled step 61.2 -> 60.3 ms
+    # (H100, one call; guidance_floor_lean_attention_h100.txt)
+    assert k.lean_attention is None
 
 
 def test_csd_runs_mvdream_beside_instructpix2pix_and_records_no_stream_choice():
