@@ -375,6 +375,28 @@ def set_row_layer_norm(unet: torch.nn.Module, on: bool) -> int:
     return count
 
 
+# -- resampling layers with a derived kernel (sub-pixel upsampling, 4x4 downsampling) -------------
+def _plain_3x3(conv: object, stride: int, padding: int) -> bool:
+    """Whether ``conv`` is a plain 3x3 ``Conv2d`` (one group, no dilation) with this stride and padding."""
+    return (type(conv) is torch.nn.Conv2d and conv.kernel_size == (3, 3) and conv.stride == (stride, stride)
+            and conv.padding == (padding, padding) and conv.groups == 1 and conv.dilation == (1, 1))
+
+
+def _put_kernel(layer: torch.nn.Module, name: str, weight: torch.Tensor, forward) -> None:
+    """Give ``layer`` a derived kernel (``layer.<name>``, not a parameter: the state dict is
+    unchanged; channels-last when the layer's convolution weight is) and the forward that uses it."""
+    if not layer.conv.weight.is_contiguous():  # channels-last models keep their layout
+        weight = weight.contiguous(memory_format=torch.channels_last)
+    layer.__dict__[name] = weight
+    layer.forward = types.MethodType(forward, layer)
+
+
+def _take_kernel(layer: torch.nn.Module, name: str) -> None:
+    """Undo :func:`_put_kernel`: the class's forward again."""
+    layer.__dict__.pop("forward", None)
+    layer.__dict__.pop(name, None)
+
+
 # -- sub-pixel upsampling -------------------------------------------------------------------------
 # Which 3x3 taps (rows or columns) fall on the two low-resolution pixels a 2x-upsampled output
 # pixel of phase a sees: phase 0 sees input rows i-1 (tap 0) and i (taps 1, 2), phase 1 rows i
@@ -434,20 +456,13 @@ def set_subpixel_upsample(unet: torch.nn.Module, on: bool) -> int:
         if type(m) is not Upsample2D or not m.use_conv or m.use_conv_transpose or not m.interpolate \
                 or m.norm is not None or m.name != "conv":
             continue
-        conv = m.conv
-        if type(conv) is not torch.nn.Conv2d or conv.kernel_size != (3, 3) or conv.stride != (1, 1) \
-                or conv.padding != (1, 1) or conv.groups != 1 or conv.dilation != (1, 1):
+        if not _plain_3x3(m.conv, stride=1, padding=1):
             continue
-        if not on:
-            m.__dict__.pop("forward", None)
-            m.__dict__.pop("_tiger_weight_subpixel", None)
-            continue
-        w4 = subpixel_weight(conv.weight)
-        if not conv.weight.is_contiguous():  # channels-last models keep their layout
-            w4 = w4.contiguous(memory_format=torch.channels_last)
-        m.__dict__["_tiger_weight_subpixel"] = w4
-        m.forward = types.MethodType(_subpixel_upsample_forward, m)
-        count += 1
+        if on:
+            _put_kernel(m, "_tiger_weight_subpixel", subpixel_weight(m.conv.weight), _subpixel_upsample_forward)
+            count += 1
+        else:
+            _take_kernel(m, "_tiger_weight_subpixel")
     return count
 
 
@@ -496,7 +511,8 @@ def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
         if not isinstance(m, Attention):
             continue
         proc = m.processor
-        holder, attr = (proc, "inner") if type(getattr(proc, "inner", None)) in (sdpa, LeanAttnProcessor) else (m, "processor")
+        wraps = type(getattr(proc, "inner", None)) in (sdpa, LeanAttnProcessor)  # MVDream's multi-view processor
+        holder, attr = (proc, "inner") if wraps else (m, "processor")
         current = getattr(holder, attr)
         if on and type(current) is sdpa:
             setattr(holder, attr, LeanAttnProcessor(current))
@@ -530,20 +546,15 @@ def set_downsample_4x4(vae: torch.nn.Module, on: bool) -> int:
         if type(m) is not Downsample2D or not m.use_conv or m.padding != 0 or m.norm is not None:
             continue
         conv = m.conv
-        if type(conv) is not torch.nn.Conv2d or conv.kernel_size != (3, 3) or conv.stride != (2, 2) \
-                or conv.padding != (0, 0) or conv.groups != 1 or conv.dilation != (1, 1):
+        if not _plain_3x3(conv, stride=2, padding=0):
             continue
-        if not on:
-            m.__dict__.pop("forward", None)
-            m.__dict__.pop("_tiger_weight_4x4", None)
-            continue
-        w4 = conv.weight.new_zeros(conv.out_channels, conv.in_channels, 4, 4)
-        w4[:, :, 1:, 1:] = conv.weight.detach()
-        if not conv.weight.is_contiguous():  # channels-last models keep their layout
-            w4 = w4.contiguous(memory_format=torch.channels_last)
-        m.__dict__["_tiger_weight_4x4"] = w4
-        m.forward = types.MethodType(_downsample_4x4_forward, m)
-        count += 1
+        if on:
+            w4 = conv.weight.new_zeros(conv.out_channels, conv.in_channels, 4, 4)
+            w4[:, :, 1:, 1:] = conv.weight.detach()
+            _put_kernel(m, "_tiger_weight_4x4", w4, _downsample_4x4_forward)
+            count += 1
+        else:
+            _take_kernel(m, "_tiger_weight_4x4")
     return count
 
 
@@ -551,9 +562,8 @@ def set_downsample_4x4(vae: torch.nn.Module, on: bool) -> int:
 def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: ModelKernels, *,
                         emulate_fp8: bool = False) -> dict[str, Any]:
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
-    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples", "lean_attentions",
-    "vae_downsample_4x4",
-    "fold_norm_bias_blocks"}``."""
+    resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
+    "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks"}``."""
     geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
     ln_on = _on_cuda_with_kernels(unet) if kernels.row_layer_norm is None else bool(kernels.row_layer_norm)
     lean_on = True if kernels.lean_attention is None else bool(kernels.lean_attention)
