@@ -1,6 +1,7 @@
 """A small CUDA workload of tiger::group_norm and tiger::channel_bias_add (the other kernel of the
 fused diffusion models) for compute-sanitizer (memcheck / racecheck):
-forward and backward (with and without parameter gradients) for every dtype, both layouts,
+forward and backward (with and without parameter gradients, and the input gradient with a residual
+gradient added) for every dtype, both layouts,
 with and without SiLU, on shapes that take the 16-byte vector path, the scalar path (C or H·W
 no multiple of the vector, an unaligned view), several row chunks and a several-pass column walk.
 """
@@ -10,7 +11,7 @@ import torch
 
 import tiger
 from tiger.ops.channel_bias import channel_bias_add
-from tiger.ops.group_norm import group_norm
+from tiger.ops.group_norm import group_norm, group_norm_input_grad, group_norm_with_stats
 
 SHAPES = [(2, 128, 9, 7, 32), (2, 30, 5, 7, 3), (1, 1280, 4, 4, 32), (1, 64, 40, 24, 8)]
 
@@ -26,8 +27,11 @@ def run(shape, dtype, channels_last, silu, param_grads):
         torch.randn(c, device="cuda", dtype=dtype, requires_grad=param_grads)
     y = group_norm(x, g, wt, b, 1e-6, silu)
     y.backward(torch.randn_like(y))
+    with torch.no_grad():  # the input gradient with a residual gradient added (a ResNet block's own backward)
+        _, mean, rstd = group_norm_with_stats(x, g, wt, b, 1e-6, silu)
+        dx = group_norm_input_grad(torch.randn_like(y), x, g, mean, rstd, wt, b, silu, residual_grad=torch.randn_like(y))
     torch.cuda.synchronize()
-    assert bool(torch.isfinite(x.grad.float()).all())
+    assert bool(torch.isfinite(x.grad.float()).all()) and bool(torch.isfinite(dx.float()).all())
     print(f"ok {shape} {dtype} cl={channels_last} silu={silu} params={param_grads}", flush=True)
 
 

@@ -11,7 +11,9 @@
 // Backward (group_norm_backward), with x̂ = (x − mean)·rstd and dz = dy·σ(z)(1 + z(1 − σ(z)))
 // (z recomputed from x, mean and rstd; dz = dy without SiLU), M = D·H·W:
 //   c1[n, g] = Σ_{c∈g, p} w[c]·dz / M,   c2[n, g] = Σ_{c∈g, p} w[c]·dz·x̂ / M
-//   dx = rstd·(w[c]·dz − c1 − x̂·c2),     dw[c] = Σ_{n, p} dz·x̂,   db[c] = Σ_{n, p} dz.
+//   dx = rstd·(w[c]·dz − c1 − x̂·c2) (+ residual_grad),   dw[c] = Σ_{n, p} dz·x̂,   db[c] = Σ_{n, p} dz.
+// residual_grad (optional, like x): the gradient x receives through another path (a ResNet
+// block's shortcut), added before dx is rounded: the sum costs no pass of its own.
 //
 // The CUDA launchers take raw pointers (no torch headers in the .cu). Layouts: NCHW
 // (contiguous) or NHWC (channels-last); per-(n, c, chunk) partials live in caller-allocated
@@ -46,11 +48,12 @@ void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, i
                     float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
                     void* stream);
 
-// sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces.
+// sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces;
+// residual (like x, may be null) is added to dx.
 template <typename T>
 void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd,
                      bool silu, int64_t chunks, float* partial_dz, float* partial_dzx, float* sum_dz,
-                     float* sum_dzx, float* c1, float* c2, T* dx, int vector_width, void* stream);
+                     float* sum_dzx, float* c1, float* c2, const T* residual, T* dx, int vector_width, void* stream);
 
 }  // namespace group_norm
 }  // namespace tiger

@@ -95,11 +95,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cpu(
     const at::Tensor& grad_y_in, const at::Tensor& x_in, const c10::optional<at::Tensor>& weight,
     const c10::optional<at::Tensor>& bias, const at::Tensor& mean_in, const at::Tensor& rstd_in, int64_t num_groups,
-    bool silu, bool param_grads, const c10::optional<at::Tensor>& input_bias) {
+    bool silu, bool param_grads, const c10::optional<at::Tensor>& input_bias,
+    const c10::optional<at::Tensor>& residual_grad) {
   const char* op = "tiger.group_norm_backward (CPU)";
   const Dims d = check_inputs(x_in, weight, bias, num_groups, op);
   check_backward_inputs(grad_y_in, x_in, mean_in, rstd_in, d, op);
   const auto ib = input_bias_values(input_bias, x_in, op);
+  const auto residual = residual_grad_of(residual_grad, x_in, /*nhwc=*/false, op);  // NCHW, like x below
   const auto x = x_in.contiguous();
   const auto dy = grad_y_in.contiguous();
   const auto mean = mean_in.to(at::kDouble).contiguous();
@@ -113,6 +115,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cpu(
     const scalar_t* xp = x.data_ptr<scalar_t>();
     const scalar_t* gp = dy.data_ptr<scalar_t>();
     scalar_t* op_ = dx.data_ptr<scalar_t>();
+    const scalar_t* rg = residual.defined() ? residual.data_ptr<scalar_t>() : nullptr;
     const double* mp = mean.data_ptr<double>();
     const double* rp = rstd.data_ptr<double>();
     at::parallel_for(0, d.N * d.G, 1, [&](int64_t i0, int64_t i1) {
@@ -146,7 +149,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cpu(
         for (int64_t j = 0; j < D; ++j)
           for (int64_t p = 0; p < d.HW; ++p) {
             const int64_t k = j * d.HW + p;
-            op_[i * M + k] = static_cast<scalar_t>(r * (w[c0 + j] * dz[k] - c1 - xh[k] * c2));
+            const double extra = rg != nullptr ? static_cast<double>(rg[i * M + k]) : 0.0;
+            op_[i * M + k] = static_cast<scalar_t>(r * (w[c0 + j] * dz[k] - c1 - xh[k] * c2) + extra);
           }
       }
     });

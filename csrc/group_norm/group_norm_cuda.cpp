@@ -78,7 +78,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
     const at::Tensor& grad_y_in, const at::Tensor& x_in, const c10::optional<at::Tensor>& weight_in,
     const c10::optional<at::Tensor>& bias_in, const at::Tensor& mean_in, const at::Tensor& rstd_in,
-    int64_t num_groups, bool silu, bool param_grads, const c10::optional<at::Tensor>& input_bias_in) {
+    int64_t num_groups, bool silu, bool param_grads, const c10::optional<at::Tensor>& input_bias_in,
+    const c10::optional<at::Tensor>& residual_grad_in) {
   const char* op = "tiger.group_norm_backward (CUDA)";
   const Dims d = check_inputs(x_in, weight_in, bias_in, num_groups, op);
   check_backward_inputs(grad_y_in, x_in, mean_in, rstd_in, d, op);
@@ -89,12 +90,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
   const auto mean = mean_in.contiguous(), rstd = rstd_in.contiguous();
   const auto weight = contiguous(weight_in), bias = contiguous(bias_in);
   const auto input_bias = input_bias_of(input_bias_in, x_in, op);
+  const auto residual = residual_grad_of(residual_grad_in, x_in, d.nhwc, op);
   const Params p = params_of(weight, bias, input_bias);
   auto dx = at::empty_like(x, memory_format(d.nhwc));
   const auto fopts = x.options().dtype(at::kFloat);
   auto sum_dz = at::zeros({d.N, d.C}, fopts), sum_dzx = at::zeros({d.N, d.C}, fopts);
   if (x.numel() > 0) {
-    const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), dy.data_ptr(), dx.data_ptr()});
+    const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), dy.data_ptr(), dx.data_ptr(),
+                                                             residual.defined() ? residual.data_ptr() : nullptr});
     const int64_t chunks = plan_chunks(d, vw);
     auto pdz = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
     auto pdzx = at::empty_like(pdz);
@@ -105,7 +108,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
       launch_backward<T>(reinterpret_cast<const T*>(dy.data_ptr()), reinterpret_cast<const T*>(x.data_ptr()), p, d,
                          mean.data_ptr<float>(), rstd.data_ptr<float>(), silu, chunks, pdz.data_ptr<float>(),
                          pdzx.data_ptr<float>(), sum_dz.data_ptr<float>(), sum_dzx.data_ptr<float>(),
-                         c1.data_ptr<float>(), c2.data_ptr<float>(), reinterpret_cast<T*>(dx.data_ptr()), vw, stream);
+                         c1.data_ptr<float>(), c2.data_ptr<float>(),
+                         residual.defined() ? reinterpret_cast<const T*>(residual.data_ptr()) : nullptr,
+                         reinterpret_cast<T*>(dx.data_ptr()), vw, stream);
     });
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }

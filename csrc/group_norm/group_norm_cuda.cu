@@ -457,12 +457,19 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_backward_kernel(Partia
   }
 }
 
-// ---- backward apply: dx = rstd·(w·dz − c1 − x̂·c2) ----------------------------------------
-template <typename T, int V, bool SILU>
+template <typename T, int V>
+struct VecTriple {
+  Vec<T, V> x, g, r;
+};
+
+// ---- backward apply: dx = rstd·(w·dz − c1 − x̂·c2) (+ residual) ----------------------------
+// RES: a residual gradient (like x) is read with x and dy and added before the rounding.
+template <typename T, int V, bool SILU, bool RES>
 __global__ void __launch_bounds__(kThreads) dx_kernel(const T* __restrict__ dy, const T* __restrict__ x, Walk w,
                                                       Params p, int64_t G, const float* __restrict__ mean_g,
                                                       const float* __restrict__ rstd_g, const float* __restrict__ c1,
-                                                      const float* __restrict__ c2, T* __restrict__ dx) {
+                                                      const float* __restrict__ c2, const T* __restrict__ residual,
+                                                      T* __restrict__ dx) {
   const Tile t = tile_of(w);
   if (t.ty >= t.R) return;
   const int64_t D = w.C / G;
@@ -480,17 +487,22 @@ __global__ void __launch_bounds__(kThreads) dx_kernel(const T* __restrict__ dy, 
         t.r0 + t.ty, t.r1, t.R,
         [&](int64_t r) {
           const int64_t off = offset_of<V>(w, t, r, v);
-          return VecPair<T, V>{*reinterpret_cast<const Vec<T, V>*>(x + off),
-                               *reinterpret_cast<const Vec<T, V>*>(dy + off)};
+          VecTriple<T, V> in;
+          in.x = *reinterpret_cast<const Vec<T, V>*>(x + off);
+          in.g = *reinterpret_cast<const Vec<T, V>*>(dy + off);
+          if constexpr (RES) in.r = *reinterpret_cast<const Vec<T, V>*>(residual + off);
+          return in;
         },
-        [&](int64_t r, const VecPair<T, V>& in) {
+        [&](int64_t r, const VecTriple<T, V>& in) {
           Vec<T, V> out;
 #pragma unroll
           for (int j = 0; j < V; ++j) {
             float dz, xh;
             dz_xhat<SILU>(load_as<float>(in.x.v[j]) + k.ib[j], load_as<float>(in.g.v[j]), k.mean[j], k.rstd[j],
                           k.w[j], k.b[j], dz, xh);
-            out.v[j] = store_as<T>(k.rstd[j] * (k.w[j] * dz - k1[j] - xh * k2[j]));
+            float g = k.rstd[j] * (k.w[j] * dz - k1[j] - xh * k2[j]);
+            if constexpr (RES) g += load_as<float>(in.r.v[j]);
+            out.v[j] = store_as<T>(g);
           }
           *reinterpret_cast<Vec<T, V>*>(dx + offset_of<V>(w, t, r, v)) = out;
         });
@@ -534,14 +546,17 @@ void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int
 
 template <typename T, int V, bool SILU>
 void backward_impl(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd,
-                   int64_t chunks, float* pdz, float* pdzx, float* sum_dz, float* sum_dzx, float* c1, float* c2, T* dx,
-                   cudaStream_t st) {
+                   int64_t chunks, float* pdz, float* pdzx, float* sum_dz, float* sum_dzx, float* c1, float* c2,
+                   const T* residual, T* dx, cudaStream_t st) {
   const Walk w = make_walk(d, V, chunks);
   const dim3 grid = walk_grid(d, chunks);
   backward_reduce_kernel<T, V, SILU><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, pdz, pdzx);
   finalize_backward_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
       make_partials(d, w, V, chunks), p, pdz, pdzx, sum_dz, sum_dzx, c1, c2);
-  dx_kernel<T, V, SILU><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, c1, c2, dx);
+  if (residual != nullptr)
+    dx_kernel<T, V, SILU, true><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, c1, c2, residual, dx);
+  else
+    dx_kernel<T, V, SILU, false><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, c1, c2, nullptr, dx);
 }
 
 }  // namespace
@@ -575,11 +590,12 @@ void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, i
 template <typename T>
 void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd, bool silu,
                      int64_t chunks, float* partial_dz, float* partial_dzx, float* sum_dz, float* sum_dzx, float* c1,
-                     float* c2, T* dx, int vector_width, void* stream) {
+                     float* c2, const T* residual, T* dx, int vector_width, void* stream) {
   const auto st = static_cast<cudaStream_t>(stream);
   constexpr int VV = 16 / sizeof(T);
 #define TIGER_GN_BWD(V, S) \
-  backward_impl<T, V, S>(dy, x, p, d, mean, rstd, chunks, partial_dz, partial_dzx, sum_dz, sum_dzx, c1, c2, dx, st)
+  backward_impl<T, V, S>(dy, x, p, d, mean, rstd, chunks, partial_dz, partial_dzx, sum_dz, sum_dzx, c1, c2, residual, \
+                         dx, st)
   if (vector_width > 1) {
     if (silu) TIGER_GN_BWD(VV, true); else TIGER_GN_BWD(VV, false);
   } else {
@@ -592,7 +608,7 @@ void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const flo
   template void launch_forward<T>(const T*, Params, const Dims&, float, bool, int64_t, float*, float*, float*, \
                                   float*, T*, int, void*);                                                     \
   template void launch_backward<T>(const T*, const T*, Params, const Dims&, const float*, const float*, bool,  \
-                                   int64_t, float*, float*, float*, float*, float*, float*, T*, int, void*);
+                                   int64_t, float*, float*, float*, float*, float*, float*, const T*, T*, int, void*);
 TIGER_INSTANTIATE(float)
 TIGER_INSTANTIATE(__half)
 TIGER_INSTANTIATE(__nv_bfloat16)

@@ -57,6 +57,16 @@ inline void check_backward_inputs(const at::Tensor& grad_y, const at::Tensor& x,
   }
 }
 
+// The residual gradient (undefined when absent), in x's shape, dtype and device, laid out like x's
+// kernels read it (channels-last when nhwc, else contiguous).
+inline at::Tensor residual_grad_of(const c10::optional<at::Tensor>& r, const at::Tensor& x, bool nhwc, const char* op) {
+  if (!r.has_value() || !r->defined()) return at::Tensor();
+  TORCH_CHECK(r->sizes() == x.sizes(), op, ": residual_grad must have x's shape ", shape_str(x.sizes()), ", got ",
+              shape_str(r->sizes()));
+  check_same(*r, x, op, "residual_grad");
+  return r->contiguous(memory_format(nhwc));
+}
+
 // The input bias as float32 [N, C] contiguous (an undefined tensor when absent): [C] or [N, C]
 // of any floating dtype, on x's device.
 inline at::Tensor input_bias_of(const c10::optional<at::Tensor>& ib, const at::Tensor& x, const char* op) {

@@ -6,5 +6,6 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
         "Tensor? input_bias=None) -> (Tensor, Tensor, Tensor)");
   m.def(
       "group_norm_backward(Tensor grad_y, Tensor x, Tensor? weight, Tensor? bias, Tensor mean, Tensor rstd, "
-      "int num_groups, bool silu, bool param_grads, Tensor? input_bias=None) -> (Tensor, Tensor, Tensor)");
+      "int num_groups, bool silu, bool param_grads, Tensor? input_bias=None, Tensor? residual_grad=None) "
+      "-> (Tensor, Tensor, Tensor)");
 }

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 import tiger  # noqa: F401
-from tiger.ops.group_norm import GroupNormSiLU, group_norm
+from tiger.ops.group_norm import GroupNormSiLU, group_norm, group_norm_input_grad, group_norm_with_stats
 from tiger.testing.cuda_graphs import capture
 
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
@@ -118,6 +118,30 @@ def test_input_bias_equals_norm_of_the_sum(layout, per_sample):
                                reference(x + ib_map, 4, w, b, 1e-5, True), atol=2e-5, rtol=2e-5)
     with pytest.raises(RuntimeError, match=r"input_bias must be \[C\] = \[8\] or \[N, C\]"):
         group_norm(x, 4, w, b, 1e-5, True, input_bias=torch.zeros(3, dtype=F64))
+
+
+@pytest.mark.parametrize("layout", ["nchw", "cl"])
+@pytest.mark.parametrize("dtype", [F64, torch.bfloat16])
+def test_input_grad_adds_the_residual_gradient_before_rounding(layout, dtype):
+    x, w, b = make(dtype=dtype, layout=layout, seed=3)
+    ib = torch.randn(2, 8, generator=torch.Generator().manual_seed(4), dtype=F64)
+    gy = torch.randn(x.shape, generator=torch.Generator().manual_seed(5), dtype=F64).to(dtype)
+    res = torch.randn(x.shape, generator=torch.Generator().manual_seed(6), dtype=F64).to(dtype)
+    y, mean, rstd = group_norm_with_stats(x, 4, w, b, 1e-5, True, ib)
+    torch.testing.assert_close(y, group_norm(x, 4, w, b, 1e-5, True, ib), atol=0, rtol=0)
+    xr = x.to(F64).detach().requires_grad_()
+    (gx,) = torch.autograd.grad(reference(xr + ib[:, :, None, None], 4, w, b, 1e-5, True), xr, gy.to(F64))
+    got = group_norm_input_grad(gy, x, 4, mean, rstd, w, b, True, ib, residual_grad=res)
+    assert got.dtype == dtype and is_cl(got) == (layout == "cl")
+    # one rounding of dx + residual (float64: exact to its rounding)
+    tol = 1e-12 if dtype == F64 else 2.0 ** -8
+    scale = (gx + res.to(F64)).abs().max()
+    torch.testing.assert_close(got.to(F64) / scale, (gx + res.to(F64)) / scale, atol=tol, rtol=tol)
+    plain = group_norm_input_grad(gy, x, 4, mean, rstd, w, b, True, ib)
+    if dtype == F64:
+        torch.testing.assert_close(got, plain + res, atol=1e-12, rtol=0)
+    with pytest.raises(RuntimeError, match="residual_grad must have x's shape"):
+        group_norm_input_grad(gy, x, 4, mean, rstd, w, b, True, ib, residual_grad=res[:1])
 
 
 def test_large_mean_input_is_accurate():
@@ -256,6 +280,37 @@ def test_cuda_input_bias_matches_cpu(dtype, layout, shape):
         for a, r in zip(outs["cuda"], outs["cpu"]):
             scale = r.abs().max().clamp_min(1.0)
             torch.testing.assert_close(a / scale, r / scale, atol=tol * 2, rtol=tol * 2)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason="needs CUDA and tiger's CUDA kernels")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("layout", ["nchw", "cl"])
+@pytest.mark.parametrize("shape", CUDA_SHAPES)
+def test_cuda_residual_grad_matches_cpu(dtype, layout, shape):
+    n, c, h, w_, groups = shape
+    x, w, b = make(n, c, h, w_, dtype=dtype, layout=layout, seed=c + 2)
+    gy = torch.randn(x.shape, generator=torch.Generator().manual_seed(7)).to(dtype)
+    res = torch.randn(x.shape, generator=torch.Generator().manual_seed(8)).to(dtype)
+    outs = {}
+    for dev in ("cpu", "cuda"):
+        xa = x.to(dev)
+        _, mean, rstd = group_norm_with_stats(xa, groups, w.to(dev), b.to(dev), 1e-6, True)
+        with_res = group_norm_input_grad(gy.to(dev), xa, groups, mean, rstd, w.to(dev), b.to(dev), True,
+                                         residual_grad=res.to(dev))
+        without = group_norm_input_grad(gy.to(dev), xa, groups, mean, rstd, w.to(dev), b.to(dev), True)
+        assert is_cl(with_res) == (layout == "cl")
+        outs[dev] = (with_res.cpu().to(F64), without.cpu().to(F64))
+    tol = LOW[dtype] if dtype != torch.float32 else 1e-4
+    for a, r in zip(outs["cuda"], outs["cpu"]):
+        scale = r.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(a / scale, r / scale, atol=tol * 2, rtol=tol * 2)
+    # the residual is added before the one rounding: within a rounding of the unfused sum
+    fused, plain = outs["cuda"]
+    unfused = plain + res.to(F64)
+    scale = unfused.abs().max().clamp_min(1.0)
+    torch.testing.assert_close(fused / scale, unfused / scale, atol=2 * LOW[dtype] if dtype != torch.float32 else 1e-6,
+                               rtol=0)
 
 
 @pytest.mark.cuda

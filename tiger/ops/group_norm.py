@@ -16,7 +16,7 @@ import torch
 
 from ._layout import output_format
 
-__all__ = ["group_norm", "GroupNormSiLU"]
+__all__ = ["group_norm", "group_norm_with_stats", "group_norm_input_grad", "GroupNormSiLU"]
 
 
 def _stat_dtype(x: torch.Tensor) -> torch.dtype:
@@ -30,7 +30,8 @@ def _fake(x, weight, bias, num_groups, eps, silu, input_bias=None):
 
 
 @torch.library.register_fake("tiger::group_norm_backward")
-def _fake_backward(grad_y, x, weight, bias, mean, rstd, num_groups, silu, param_grads, input_bias=None):
+def _fake_backward(grad_y, x, weight, bias, mean, rstd, num_groups, silu, param_grads, input_bias=None,
+                   residual_grad=None):
     c = x.shape[1] if param_grads else 0
     return (torch.empty_like(x, memory_format=output_format(x)), x.new_empty((c,), dtype=_stat_dtype(x)),
             x.new_empty((c,), dtype=_stat_dtype(x)))
@@ -91,6 +92,38 @@ def group_norm(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] 
     if input_bias is None:
         return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu))[0]
     return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias)[0]
+
+
+def group_norm_with_stats(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] = None,
+                          bias: Optional[torch.Tensor] = None, eps: float = 1e-5, silu: bool = False,
+                          input_bias: Optional[torch.Tensor] = None
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`group_norm` that also returns the statistics a hand-written backward needs
+    (:func:`group_norm_input_grad`): (y, mean [N, G], rstd [N, G]), float32 statistics (float64
+    for float64 x). Meant for code that runs its own backward (no autograd through the stats)."""
+    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias)
+
+
+def group_norm_input_grad(grad_y: torch.Tensor, x: torch.Tensor, num_groups: int, mean: torch.Tensor,
+                          rstd: torch.Tensor, weight: Optional[torch.Tensor] = None,
+                          bias: Optional[torch.Tensor] = None, silu: bool = False,
+                          input_bias: Optional[torch.Tensor] = None,
+                          residual_grad: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """dL/dx of :func:`group_norm` (weights frozen: no parameter gradients), plus ``residual_grad``.
+
+    Args:
+        grad_y: [N, C, H, W] dL/dy, x's dtype.
+        x, num_groups, weight, bias, silu, input_bias: as given to the forward.
+        mean, rstd: [N, G] from :func:`group_norm_with_stats`.
+        residual_grad: optional [N, C, H, W] (x's dtype): a gradient x receives through another
+            path (a ResNet block's shortcut), added in the same pass before dx is rounded, instead
+            of autograd's separate sum.
+
+    Returns:
+        [N, C, H, W] in x's dtype and layout.
+    """
+    return torch.ops.tiger.group_norm_backward(grad_y, x, weight, bias, mean, rstd, int(num_groups), bool(silu), False,
+                                               input_bias, residual_grad)[0]
 
 
 class GroupNormSiLU(torch.nn.Module):

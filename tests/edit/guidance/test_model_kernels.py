@@ -363,6 +363,46 @@ def test_fold_norm_bias_equals_separate_bias_pass_float64(tiny_models):
     assert torch.equal(run()[0], plain[0])
 
 
+def test_block_backward_equals_autograd_float64(tiny_models):
+    """The VAE encoder's ResNet blocks with their own backward (the shortcut's gradient added
+    inside norm1's backward) give autograd's values and input gradient; blocks with a shortcut
+    convolution keep autograd; without a gradient to the input nothing changes."""
+    from diffusers.models.resnet import ResnetBlock2D
+
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    vae = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=True, dtype=torch.float64).vae
+    img = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(11), dtype=torch.float64)
+    gz = torch.randn(2, 4, 8, 8, generator=torch.Generator().manual_seed(12), dtype=torch.float64)
+    calls = []
+    real = fused_norms._FoldedBlock.apply
+    fused_norms._FoldedBlock.apply = lambda *a: calls.append(1) or real(*a)
+
+    def run():
+        xx = img.contiguous(memory_format=torch.channels_last).requires_grad_(True)
+        dist = vae.encode(xx).latent_dist
+        z = dist.mean + dist.std * gz
+        (g,) = torch.autograd.grad(z, xx, gz)
+        return z.detach(), g
+
+    try:
+        assert fused_norms.set_fold_norm_bias(vae, True) > 0
+        plain = run()
+        blocks = [m for m in vae.modules() if type(m) is ResnetBlock2D]
+        assert fused_norms.set_block_backward(vae, True) == len(blocks)
+        own = run()
+        assert len(calls) == sum(1 for m in blocks if m.conv_shortcut is None) > 0
+        with torch.no_grad():
+            vae.encode(img)  # no gradient needed: autograd's path
+        assert len(calls) == sum(1 for m in blocks if m.conv_shortcut is None)
+    finally:
+        fused_norms._FoldedBlock.apply = real
+        fused_norms.set_block_backward(vae, False)
+        fused_norms.set_fold_norm_bias(vae, False)
+    for a, b in zip(own, plain):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12), float((a - b).abs().max())
+
+
 def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
     from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
     from tiger.edit.guidance.mvdream import MVDreamGuidance
@@ -382,7 +422,7 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
                                            "fused_geglu": True if on else "auto",
                                            "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto",
                                            "row_layer_norm": "auto", "subpixel_upsample": "auto",
-                                           "lean_attention": "auto"}
+                                           "lean_attention": "auto", "block_backward": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)

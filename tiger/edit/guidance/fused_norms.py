@@ -37,14 +37,14 @@ import torch
 import torch.nn.functional as F
 
 from tiger.ops.channel_bias import channel_bias_add
-from tiger.ops.group_norm import GroupNormSiLU
+from tiger.ops.group_norm import GroupNormSiLU, group_norm_input_grad, group_norm_with_stats
 
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["SiLUThenLinear", "fuse_group_norms", "bias_after_conv", "apply_fused_norms", "fused_norms_default",
-           "set_fold_norm_bias"]
+           "set_fold_norm_bias", "set_block_backward"]
 
 
 class SiLUThenLinear(torch.nn.Linear):
@@ -115,6 +115,8 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
     if self.time_emb_proj is not None and temb is not None:
         temb_bias = self.time_emb_proj(temb)  # its SiLU: SiLUThenLinear or skip_time_act
     if self.__dict__.get("_tiger_fold_norm_bias", False):  # conv1's bias and temb added inside norm2
+        if self.__dict__.get("_tiger_block_backward", False) and _block_backward_applies(self, input_tensor, temb_bias):
+            return _FoldedBlock.apply(input_tensor, self)
         h = self.conv1._conv_forward(self.norm1(input_tensor), self.conv1.weight, None)
         h = self.dropout(self.norm2(h, input_bias=_norm_input_bias(self.conv1.bias, temb_bias, h.shape[0])))
     else:
@@ -140,6 +142,72 @@ def _norm_input_bias(conv_bias: Optional[torch.Tensor], temb_bias: Optional[torc
     if b.shape[0] != n:
         b = b.expand(n, -1)
     return b if conv_bias is None else b + conv_bias.to(acc)
+
+
+def _block_backward_applies(block, x: torch.Tensor, temb_bias: Optional[torch.Tensor]) -> bool:
+    """Whether :class:`_FoldedBlock` may run ``block`` on ``x``: a gradient to x only (frozen
+    block, eval mode), no time embedding, no shortcut convolution, fused SiLU norms."""
+    return (torch.is_grad_enabled() and x.requires_grad and temb_bias is None and block.conv_shortcut is None
+            and not block.training and type(block.norm1) is GroupNormSiLU and type(block.norm2) is GroupNormSiLU
+            and not any(p.requires_grad for p in block.parameters()))
+
+
+def _input_grad(conv: torch.nn.Conv2d, grad_out: torch.Tensor, like_input: torch.Tensor) -> torch.Tensor:
+    """dL/d(input) of a bias-free ``conv`` (weights frozen), as autograd's convolution backward
+    computes it; ``like_input`` gives the input's shape and layout (its values are not read)."""
+    return torch.ops.aten.convolution_backward(grad_out, like_input, conv.weight, None, conv.stride, conv.padding,
+                                               conv.dilation, False, [0, 0], conv.groups, (True, False, False))[0]
+
+
+class _FoldedBlock(torch.autograd.Function):
+    """A folded ``ResnetBlock2D`` (no time embedding, no shortcut convolution) whose backward is
+    written out for a gradient to its input only: the same convolution and GroupNorm backward
+    kernels autograd runs, except that the shortcut's gradient is added inside norm1's backward
+    (:func:`tiger.ops.group_norm.group_norm_input_grad`'s ``residual_grad``) instead of by a
+    separate sum, and only x and conv1's output are kept for it (autograd also keeps both norms'
+    outputs, the convolutions' inputs). The VAE encoder's blocks under SDS."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, block) -> torch.Tensor:
+        n1, n2, conv1, conv2 = block.norm1, block.norm2, block.conv1, block.conv2
+        h1, mean1, rstd1 = group_norm_with_stats(x, n1.num_groups, n1.weight, n1.bias, n1.eps, n1.silu)
+        c1 = conv1._conv_forward(h1, conv1.weight, None)
+        ib = _norm_input_bias(conv1.bias, None, c1.shape[0])
+        h2, mean2, rstd2 = group_norm_with_stats(c1, n2.num_groups, n2.weight, n2.bias, n2.eps, n2.silu, ib)
+        c2 = conv2._conv_forward(block.dropout(h2), conv2.weight, None)
+        bias = conv2.bias if conv2.bias is not None else c2.new_zeros(c2.shape[1])
+        ctx.save_for_backward(x, c1, mean1, rstd1, mean2, rstd2, ib)
+        ctx.block = block
+        return channel_bias_add(c2, bias.to(c2.dtype), x)
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        x, c1, mean1, rstd1, mean2, rstd2, ib = ctx.saved_tensors
+        b = ctx.block
+        n1, n2 = b.norm1, b.norm2
+        dh2 = _input_grad(b.conv2, grad_out, c1)  # norm2's output has conv1's output's shape and layout
+        dc1 = group_norm_input_grad(dh2, c1, n2.num_groups, mean2, rstd2, n2.weight, n2.bias, n2.silu, ib)
+        dh1 = _input_grad(b.conv1, dc1, x)
+        dx = group_norm_input_grad(dh1, x, n1.num_groups, mean1, rstd1, n1.weight, n1.bias, n1.silu, None,
+                                   residual_grad=grad_out)
+        return dx, None
+
+
+def set_block_backward(module: torch.nn.Module, on: bool) -> int:
+    """In every folded ``ResnetBlock2D`` of ``module`` that folds its norm bias
+    (:func:`set_fold_norm_bias`), run the block through :class:`_FoldedBlock` when only its input
+    needs a gradient (``on``), or through autograd (off). Returns how many blocks have it on
+    (the time-embedded and shortcut-convolution blocks keep autograd when they run)."""
+    require_diffusers("the ResNet blocks' own backward")
+    from diffusers.models.resnet import ResnetBlock2D
+
+    count = 0
+    for m in module.modules():
+        if type(m) is ResnetBlock2D:
+            here = bool(on) and m.__dict__.get("_tiger_fold_norm_bias", False)
+            m.__dict__["_tiger_block_backward"] = here
+            count += here
+    return count
 
 
 def set_fold_norm_bias(module: torch.nn.Module, on: bool) -> int:

@@ -34,6 +34,10 @@ the fused GEGLU, the row LayerNorm and the VAE's 4x4 downsampling convolutions (
   output by ``rescale_output_factor`` = 1 (one full pass per layer). The same operations
   otherwise, so the same values; any layer with a mask, a norm, a residual or another factor
   keeps diffusers' processor.
+- ``block_backward``: the VAE encoder's ResNet blocks without a shortcut convolution run their
+  own backward when only their input needs a gradient (SDS): the kernels autograd runs, except
+  that the shortcut's gradient is added inside norm1's backward pass (no separate sum: two map
+  passes fewer per block) and the norms' outputs are not kept. Needs ``fold_norm_bias``.
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
   the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
@@ -57,7 +61,7 @@ import torch.nn.functional as F
 from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
 from tiger.ops.layer_norm import layer_norm_rows
 
-from .fused_norms import set_fold_norm_bias
+from .fused_norms import set_block_backward, set_fold_norm_bias
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
@@ -91,6 +95,9 @@ class ModelKernels:
             where the UNet is on CUDA (the combined taps rounded once to the model's dtype).
         lean_attention: the UNet's attentions without diffusers' unused steps; None: on (the
             same operations and values on any device).
+        block_backward: the VAE's ResNet blocks' own input-gradient backward (with
+            ``fold_norm_bias``); None: on where the VAE is on CUDA with tiger's CUDA kernels (the
+            shortcut's gradient summed before rounding instead of after).
     """
 
     matmul_precision: str = "model"
@@ -101,6 +108,7 @@ class ModelKernels:
     row_layer_norm: Optional[bool] = None
     subpixel_upsample: Optional[bool] = None
     lean_attention: Optional[bool] = None
+    block_backward: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -563,7 +571,7 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
                         emulate_fp8: bool = False) -> dict[str, Any]:
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
-    "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks"}``."""
+    "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks", "block_backward_blocks"}``."""
     geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
     ln_on = _on_cuda_with_kernels(unet) if kernels.row_layer_norm is None else bool(kernels.row_layer_norm)
     lean_on = True if kernels.lean_attention is None else bool(kernels.lean_attention)
@@ -582,6 +590,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     lean = set_lean_attention(unet, lean_on)
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
+    bb_on = _on_cuda_with_kernels(vae) if kernels.block_backward is None else bool(kernels.block_backward)
+    own_backward = set_block_backward(vae, bb_on)
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
-            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded}
+            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded, "block_backward_blocks": own_backward}
