@@ -105,6 +105,9 @@ def test_guidance_model_kernels_defaults():
     # the lean attention is on everywhere (same values bit for bit): CSD pooled step 61.2 -> 60.3 ms
     # (H100, one call; guidance_floor_lean_attention_h100.txt)
     assert k.lean_attention is None
+    # the VAE ResNet blocks' own backward follows the device too: CSD pooled step 60.8 -> 59.8 ms, the
+    # 1200-step edit 83.5 -> 82.0 s (H100; guidance_floor_block_backward_h100.txt, edit_1200_steps_h100.txt)
+    assert k.block_backward is None
 
 
 def test_csd_runs_mvdream_beside_instructpix2pix_and_records_no_stream_choice():
