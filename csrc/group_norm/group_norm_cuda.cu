@@ -464,8 +464,11 @@ struct VecTriple {
 
 // ---- backward apply: dx = rstd·(w·dz − c1 − x̂·c2) (+ residual) ----------------------------
 // RES: a residual gradient (like x) is read with x and dy and added before the rounding.
+// At most 128 registers a thread (two blocks per SM): the residual's loads took the 16-byte
+// bf16 variant to 140 (one block per SM); capped, it spills 16 bytes and the InstructPix2Pix
+// step is 0.6 ms faster (H100, benchmarks/gpu/results/guidance_floor_dx_registers_h100.txt).
 template <typename T, int V, bool SILU, bool RES>
-__global__ void __launch_bounds__(kThreads) dx_kernel(const T* __restrict__ dy, const T* __restrict__ x, Walk w,
+__global__ void __launch_bounds__(kThreads, 2) dx_kernel(const T* __restrict__ dy, const T* __restrict__ x, Walk w,
                                                       Params p, int64_t G, const float* __restrict__ mean_g,
                                                       const float* __restrict__ rstd_g, const float* __restrict__ c1,
                                                       const float* __restrict__ c2, const T* __restrict__ residual,
