@@ -35,6 +35,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
   (``ModelKernels.lean_attention``);
 - ``default-block_backward``: the default with autograd's backward through the VAE's ResNet
   blocks (``ModelKernels.block_backward``);
+- ``default-pad_conv_in``: the default with the first convolutions on their 3-8 input channels
+  (``ModelKernels.pad_conv_in``);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
   (every other variant runs it beside InstructPix2Pix on a side stream, ``CSDGuidance``'s default);
 - ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
@@ -71,9 +73,9 @@ from tiger.edit.guidance.mvdream import MVDreamGuidance
 from tiger.utils.dtypes import DTYPE_NAMES
 
 PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
-                        subpixel_upsample=False, lean_attention=False, block_backward=False)
+                        subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False)
 DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
-                          subpixel_upsample=True, lean_attention=True, block_backward=True)
+                          subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -95,6 +97,7 @@ VARIANTS = {
     "default-subpixel_upsample": (dataclasses.replace(DEFAULT, subpixel_upsample=False), True, False, False),
     "default-lean_attention": (dataclasses.replace(DEFAULT, lean_attention=False), True, False, False),
     "default-block_backward": (dataclasses.replace(DEFAULT, block_backward=False), True, False, False),
+    "default-pad_conv_in": (dataclasses.replace(DEFAULT, pad_conv_in=False), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
@@ -102,7 +105,7 @@ VARIANTS = {
 }
 DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
-                    "default-block_backward", "default+fp8", "default+fp8_fast_accum")
+                    "default-block_backward", "default-pad_conv_in", "default+fp8", "default+fp8_fast_accum")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 
 

@@ -422,7 +422,8 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
                                            "fused_geglu": True if on else "auto",
                                            "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto",
                                            "row_layer_norm": "auto", "subpixel_upsample": "auto",
-                                           "lean_attention": "auto", "block_backward": "auto"}
+                                           "lean_attention": "auto", "block_backward": "auto",
+                                           "pad_conv_in": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
@@ -475,3 +476,28 @@ def test_lean_attention_inside_the_multiview_processor_and_fallback():
         torch.testing.assert_close(attn(h), y0 / 2.0)
     mk.set_lean_attention(attn, False)
     assert type(attn.processor.inner) is AttnProcessor2_0
+
+
+def test_pad_conv_in_gives_the_same_sums_float64(tiny_ip2p):
+    unet, vae = tiny_ip2p.unet.double(), tiny_ip2p.vae.double()
+    x, t, e = _unet_inputs(unet, torch.float64)
+    img = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(13), dtype=torch.float64)
+
+    def run():
+        with torch.no_grad():
+            y = unet(x, t, encoder_hidden_states=e).sample
+        xx = img.clone().requires_grad_(True)
+        z = vae.encode(xx).latent_dist.mean
+        (g,) = torch.autograd.grad((z * z).sum(), xx)
+        return y, z.detach(), g
+
+    plain = run()
+    forwards = [m.__dict__.get("forward") for m in (unet.conv_in, vae.encoder.conv_in)]
+    assert mk.set_pad_conv_in(unet, True) + mk.set_pad_conv_in(vae, True) == 2
+    assert unet.conv_in.__dict__["_tiger_weight_padded"].shape[1] == 16
+    padded = run()
+    assert mk.set_pad_conv_in(unet, False) + mk.set_pad_conv_in(vae, False) == 0
+    assert [m.__dict__.get("forward") for m in (unet.conv_in, vae.encoder.conv_in)] == forwards
+    for a, b in zip(padded, plain):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
+    assert torch.equal(run()[0], plain[0])

@@ -38,6 +38,10 @@ the fused GEGLU, the row LayerNorm and the VAE's 4x4 downsampling convolutions (
   own backward when only their input needs a gradient (SDS): the kernels autograd runs, except
   that the shortcut's gradient is added inside norm1's backward pass (no separate sum: two map
   passes fewer per block) and the norms' outputs are not kept. Needs ``fold_norm_bias``.
+- ``pad_conv_in``: the first convolution of the UNet and of the VAE encoder (4-8 or 3 input
+  channels) on an input zero-padded to a multiple of 16 channels, with a zero-padded kernel: the
+  same sums (the extra products are with zeros), but cuDNN's tensor-core kernels instead of its
+  slow path for so few channels.
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
   the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
@@ -68,7 +72,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
            "fp8_supported", "set_downsample_4x4", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm",
-           "set_subpixel_upsample", "subpixel_weight", "LeanAttnProcessor", "set_lean_attention"]
+           "set_subpixel_upsample", "subpixel_weight", "LeanAttnProcessor", "set_lean_attention", "set_pad_conv_in"]
 
 MATMUL_PRECISIONS = ("model", "fp8")
 
@@ -98,6 +102,8 @@ class ModelKernels:
         block_backward: the VAE's ResNet blocks' own input-gradient backward (with
             ``fold_norm_bias``); None: on where the VAE is on CUDA with tiger's CUDA kernels (the
             shortcut's gradient summed before rounding instead of after).
+        pad_conv_in: the first convolutions on inputs zero-padded to 16-channel multiples; None:
+            on where the models are on CUDA (same sums).
     """
 
     matmul_precision: str = "model"
@@ -109,6 +115,7 @@ class ModelKernels:
     subpixel_upsample: Optional[bool] = None
     lean_attention: Optional[bool] = None
     block_backward: Optional[bool] = None
+    pad_conv_in: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -530,6 +537,53 @@ def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
     return count
 
 
+# -- zero-padded first convolutions ---------------------------------------------------------------
+_PAD_CHANNELS = 16  # cuDNN's tensor-core kernels for 3-8 input channels pad to 8 and run a slow path
+
+
+def _padded_conv_in_forward(self, x: torch.Tensor) -> torch.Tensor:
+    """The first convolution on ``x`` zero-padded to the kernel's channel count (channels-last)."""
+    n, c, h, w = x.shape
+    weight = self.__dict__["_tiger_weight_padded"]
+    padded = torch.empty((n, weight.shape[1], h, w), dtype=x.dtype, device=x.device,
+                         memory_format=torch.channels_last)
+    padded[:, c:] = 0
+    padded[:, :c] = x
+    y = F.conv2d(padded, weight, None, self.stride, self.padding, self.dilation, self.groups)
+    if self.bias is None:
+        return y
+    from tiger.ops.channel_bias import channel_bias_add
+
+    return channel_bias_add(y, self.bias)
+
+
+def set_pad_conv_in(model: torch.nn.Module, on: bool) -> int:
+    """The first convolution of a UNet (``conv_in``) or VAE encoder (``encoder.conv_in``) on an input
+    zero-padded to a multiple of 16 channels with a zero-padded kernel (``on``), or as it was;
+    returns how many convolutions run padded afterwards."""
+    count = 0
+    for conv in (getattr(model, "conv_in", None), getattr(getattr(model, "encoder", None), "conv_in", None)):
+        if type(conv) is not torch.nn.Conv2d or conv.groups != 1 or conv.in_channels % _PAD_CHANNELS == 0:
+            continue
+        if not on:
+            if conv.__dict__.pop("_tiger_weight_padded", None) is not None:
+                before = conv.__dict__.pop("_tiger_forward_before_pad")  # e.g. fused_norms' bias pass
+                if before is None:
+                    conv.__dict__.pop("forward", None)
+                else:
+                    conv.forward = before
+            continue
+        if "_tiger_weight_padded" not in conv.__dict__:
+            conv.__dict__["_tiger_forward_before_pad"] = conv.__dict__.get("forward")
+        cp = -(-conv.in_channels // _PAD_CHANNELS) * _PAD_CHANNELS
+        w = conv.weight.new_zeros(conv.out_channels, cp, *conv.kernel_size)
+        w[:, :conv.in_channels] = conv.weight.detach()
+        conv.__dict__["_tiger_weight_padded"] = w.contiguous(memory_format=torch.channels_last)
+        conv.forward = types.MethodType(_padded_conv_in_forward, conv)
+        count += 1
+    return count
+
+
 # -- VAE downsampling -----------------------------------------------------------------------------
 def _downsample_4x4_forward(self, hidden_states: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
     conv = self.conv
@@ -571,7 +625,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
                         emulate_fp8: bool = False) -> dict[str, Any]:
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
-    "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks", "block_backward_blocks"}``."""
+    "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks", "block_backward_blocks",
+    "padded_conv_ins"}``."""
     geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
     ln_on = _on_cuda_with_kernels(unet) if kernels.row_layer_norm is None else bool(kernels.row_layer_norm)
     lean_on = True if kernels.lean_attention is None else bool(kernels.lean_attention)
@@ -579,6 +634,7 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     up_on = (pu is not None and pu.device.type == "cuda") if kernels.subpixel_upsample is None \
         else bool(kernels.subpixel_upsample)
     p = next(vae.parameters(), None)
+    pad_on = (p is not None and p.device.type == "cuda") if kernels.pad_conv_in is None else bool(kernels.pad_conv_in)
     ds_on = (p is not None and p.device.type == "cuda") if kernels.vae_downsample_4x4 is None \
         else bool(kernels.vae_downsample_4x4)
     fold_on = _on_cuda_with_kernels(unet) if kernels.fold_norm_bias is None else bool(kernels.fold_norm_bias)
@@ -588,10 +644,12 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     row_norms = set_row_layer_norm(unet, ln_on)
     subpixel = set_subpixel_upsample(unet, up_on)
     lean = set_lean_attention(unet, lean_on)
+    padded = set_pad_conv_in(unet, pad_on) + set_pad_conv_in(vae, pad_on)
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
     bb_on = _on_cuda_with_kernels(vae) if kernels.block_backward is None else bool(kernels.block_backward)
     own_backward = set_block_backward(vae, bb_on)
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
-            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded, "block_backward_blocks": own_backward}
+            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded, "block_backward_blocks": own_backward,
+            "padded_conv_ins": padded}
