@@ -108,6 +108,9 @@ def test_guidance_model_kernels_defaults():
     # the VAE ResNet blocks' own backward follows the device too: CSD pooled step 60.8 -> 59.8 ms, the
     # 1200-step edit 83.5 -> 82.0 s (H100; guidance_floor_block_backward_h100.txt, edit_1200_steps_h100.txt)
     assert k.block_backward is None
+    # zero-padded first convolutions follow the device: CSD pooled step 59.6-59.7 -> 59.0-59.1 ms, the
+    # 1200-step edit 81.4 s (H100; guidance_floor_pad_conv_in_h100.txt, edit_1200_steps_h100.txt)
+    assert k.pad_conv_in is None
 
 
 def test_csd_runs_mvdream_beside_instructpix2pix_and_records_no_stream_choice():
