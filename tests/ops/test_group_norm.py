@@ -309,8 +309,8 @@ def test_cuda_residual_grad_matches_cpu(dtype, layout, shape):
     fused, plain = outs["cuda"]
     unfused = plain + res.to(F64)
     scale = unfused.abs().max().clamp_min(1.0)
-    torch.testing.assert_close(fused / scale, unfused / scale, atol=2 * LOW[dtype] if dtype != torch.float32 else 1e-6,
-                               rtol=0)
+    tol = 2 * LOW[dtype] if dtype != torch.float32 else 1e-6
+    torch.testing.assert_close(fused / scale, unfused / scale, atol=tol, rtol=0)
 
 
 @pytest.mark.cuda

@@ -122,8 +122,8 @@ def group_norm_input_grad(grad_y: torch.Tensor, x: torch.Tensor, num_groups: int
     Returns:
         [N, C, H, W] in x's dtype and layout.
     """
-    return torch.ops.tiger.group_norm_backward(grad_y, x, weight, bias, mean, rstd, int(num_groups), bool(silu), False,
-                                               input_bias, residual_grad)[0]
+    return torch.ops.tiger.group_norm_backward(grad_y, x, weight, bias, mean, rstd, int(num_groups), bool(silu),
+                                               False, input_bias, residual_grad)[0]
 
 
 class GroupNormSiLU(torch.nn.Module):

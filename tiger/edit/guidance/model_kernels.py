@@ -357,12 +357,18 @@ def set_fused_geglu(unet: torch.nn.Module, on: bool) -> int:
     require_diffusers("the fused GEGLU")
     from diffusers.models.attention import FeedForward
 
+    return _switch_forward(unet, lambda m: type(m) is FeedForward and _fusable_feed_forward(m), _feed_forward_fused, on)
+
+
+def _switch_forward(model: torch.nn.Module, eligible, forward, on: bool) -> int:
+    """Give every submodule of ``model`` that ``eligible`` accepts the instance method ``forward``
+    (``on``), or its class's forward again (off); returns how many have ``forward`` afterwards."""
     count = 0
-    for m in unet.modules():
-        if type(m) is not FeedForward or not _fusable_feed_forward(m):
+    for m in model.modules():
+        if not eligible(m):
             continue
         if on:
-            m.forward = types.MethodType(_feed_forward_fused, m)
+            m.forward = types.MethodType(forward, m)
             count += 1
         else:
             m.__dict__.pop("forward", None)
@@ -378,16 +384,10 @@ def set_row_layer_norm(unet: torch.nn.Module, on: bool) -> int:
     """Switch the UNet's LayerNorms (plain ``torch.nn.LayerNorm`` over one dimension, with a weight)
     to :func:`tiger.ops.layer_norm.layer_norm_rows` (``on``) or PyTorch's; returns how many run
     on tiger's op afterwards."""
-    count = 0
-    for m in unet.modules():
-        if type(m) is not torch.nn.LayerNorm or len(m.normalized_shape) != 1 or m.weight is None:
-            continue
-        if on:
-            m.forward = types.MethodType(_layer_norm_rows_forward, m)
-            count += 1
-        else:
-            m.__dict__.pop("forward", None)
-    return count
+    def eligible(m: torch.nn.Module) -> bool:
+        return type(m) is torch.nn.LayerNorm and len(m.normalized_shape) == 1 and m.weight is not None
+
+    return _switch_forward(unet, eligible, _layer_norm_rows_forward, on)
 
 
 # -- resampling layers with a derived kernel (sub-pixel upsampling, 4x4 downsampling) -------------
