@@ -21,3 +21,26 @@ def ip2p_step_inputs(ring_cameras):
         return renders, views, draws
 
     return make
+
+
+@pytest.fixture
+def tiny_ip2p(tiny_models):
+    """The tiny InstructPix2Pix models (float32, CPU, diffusers' own norms)."""
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    return load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=False)
+
+
+@pytest.fixture
+def unet_inputs():
+    """A builder ``(unet, dtype=float32) -> (x, t, encoder_hidden_states)`` of one fixed UNet call
+    on 3 samples of 8x8 latents."""
+
+    def make(unet, dtype=torch.float32):
+        gen = torch.Generator().manual_seed(7)
+        c = unet.config
+        x = torch.randn(3, c.in_channels, 8, 8, generator=gen).to(dtype)
+        e = torch.randn(3, 77, c.cross_attention_dim, generator=gen).to(dtype)
+        return x, torch.tensor([10, 200, 900]), e
+
+    return make

@@ -1,8 +1,10 @@
 """The guidances' model kernels (tiger.edit.guidance.model_kernels, tiger.ops.fp8_rows) against
 independent references: row-wise e4m3 quantisation against a nearest-value search over the 256
 e4m3 codes, the GEGLU against diffusers' chunk + gelu + multiply (float64), FP8 linears against
-float64 linears with the error bound of two e4m3 roundings, the 4x4 VAE downsampling and the
-fused feed-forward against diffusers' modules (float64), and the guidances' settings. The FP8
+float64 linears with the error bound of two e4m3 roundings; the fused feed-forward, the row
+LayerNorm, the lean attention, the folded norm biases and the VAE blocks' own backward against
+diffusers' modules and autograd (float64); the guidances' settings. The convolution layers:
+test_conv_layers.py. The FP8
 matmul itself (torch._scaled_mm) needs a Hopper/Ada GPU: tests/edit/guidance/test_model_kernels_cuda.py."""
 import pytest
 import torch
@@ -166,21 +168,6 @@ def test_fp8_linear_refuses_bad_shapes_and_gradients():
 
 
 # -- on the tiny UNets ----------------------------------------------------------------------------
-@pytest.fixture
-def tiny_ip2p(tiny_models):
-    from tiger.edit.guidance.ip2p import load_ip2p
-
-    return load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=False)
-
-
-def _unet_inputs(unet, dtype=torch.float32):
-    gen = torch.Generator().manual_seed(7)
-    c = unet.config
-    x = torch.randn(3, c.in_channels, 8, 8, generator=gen).to(dtype)
-    e = torch.randn(3, 77, c.cross_attention_dim, generator=gen).to(dtype)
-    return x, torch.tensor([10, 200, 900]), e
-
-
 def _expected_fp8_layers(unet) -> int:
     """Linear layers inside the transformer models, plus their 1x1-convolution projections."""
     from diffusers.models.transformers.transformer_2d import Transformer2DModel
@@ -193,9 +180,9 @@ def _expected_fp8_layers(unet) -> int:
     return n
 
 
-def test_fp8_unet_converts_every_transformer_matmul_and_restores(tiny_ip2p, monkeypatch):
+def test_fp8_unet_converts_every_transformer_matmul_and_restores(tiny_ip2p, monkeypatch, unet_inputs):
     unet = tiny_ip2p.unet
-    x, t, e = _unet_inputs(unet)
+    x, t, e = unet_inputs(unet)
     expected = _expected_fp8_layers(unet)
     with torch.no_grad():
         y0 = unet(x, t, encoder_hidden_states=e).sample
@@ -227,9 +214,9 @@ def test_fp8_refused_on_cpu_with_reason(tiny_ip2p):
         mk.ModelKernels(fp8_fast_accum=True)
 
 
-def test_row_layer_norm_unet_equals_diffusers_float64(tiny_ip2p):
+def test_row_layer_norm_unet_equals_diffusers_float64(tiny_ip2p, unet_inputs):
     unet = tiny_ip2p.unet.double()
-    x, t, e = _unet_inputs(unet, torch.float64)
+    x, t, e = unet_inputs(unet, torch.float64)
     norms = [m for m in unet.modules() if type(m) is torch.nn.LayerNorm]
     with torch.no_grad():
         y0 = unet(x, t, encoder_hidden_states=e).sample
@@ -248,58 +235,9 @@ def test_row_layer_norm_unet_equals_diffusers_float64(tiny_ip2p):
     assert torch.allclose(y1, y0, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("channels_last", [False, True])
-@pytest.mark.parametrize("bias", [True, False])
-def test_subpixel_upsample_equals_nearest_then_conv_float64(channels_last, bias):
-    from diffusers.models.upsampling import Upsample2D
-
-    g = torch.Generator().manual_seed(4)
-    m = Upsample2D(6, use_conv=True, out_channels=5, bias=bias).double()
-    x = torch.randn(2, 6, 5, 7, generator=g, dtype=torch.float64)
-    if channels_last:
-        m, x = m.to(memory_format=torch.channels_last), x.contiguous(memory_format=torch.channels_last)
-    with torch.no_grad():
-        y0 = m(x)
-        assert mk.set_subpixel_upsample(m, True) == 1
-        y1, y2 = m(x), m(x, output_size=(10, 14))
-        odd = m(x, output_size=(11, 14))  # not 2x: diffusers' own computation
-        assert mk.set_subpixel_upsample(m, False) == 0 and "forward" not in m.__dict__
-        assert torch.equal(odd, m(x, output_size=(11, 14)))
-    torch.testing.assert_close(y1, y0, atol=1e-13, rtol=0)
-    torch.testing.assert_close(y2, y0, atol=1e-13, rtol=0)
-    assert y1.is_contiguous(memory_format=torch.channels_last) == channels_last
-
-
-def test_subpixel_weight_taps():
-    # one 3x3 tap at a time: phase (a, b) sees it at 2x2 position (row of tap s in phase a, col of t in b)
-    where = {0: {0: 0, 1: 1, 2: 1}, 1: {0: 0, 1: 0, 2: 1}}
-    for s_ in range(3):
-        for t_ in range(3):
-            w = torch.zeros(1, 1, 3, 3, dtype=torch.float64)
-            w[0, 0, s_, t_] = 1.0
-            w4 = mk.subpixel_weight(w)
-            for a in (0, 1):
-                for b in (0, 1):
-                    expect = torch.zeros(2, 2, dtype=torch.float64)
-                    expect[where[a][s_], where[b][t_]] = 1.0
-                    assert torch.equal(w4[2 * a + b, 0], expect), (s_, t_, a, b)
-
-
-def test_subpixel_upsample_unet_equals_diffusers_float64(tiny_ip2p):
+def test_fused_geglu_unet_equals_diffusers_float64(tiny_ip2p, unet_inputs):
     unet = tiny_ip2p.unet.double()
-    x, t, e = _unet_inputs(unet, torch.float64)
-    ups = sum(1 for m in unet.modules() if type(m).__name__ == "Upsample2D")
-    with torch.no_grad():
-        y0 = unet(x, t, encoder_hidden_states=e).sample
-        assert mk.set_subpixel_upsample(unet, True) == ups > 0
-        y1 = unet(x, t, encoder_hidden_states=e).sample
-    mk.set_subpixel_upsample(unet, False)
-    assert torch.allclose(y1, y0, rtol=1e-10, atol=1e-12)
-
-
-def test_fused_geglu_unet_equals_diffusers_float64(tiny_ip2p):
-    unet = tiny_ip2p.unet.double()
-    x, t, e = _unet_inputs(unet, torch.float64)
+    x, t, e = unet_inputs(unet, torch.float64)
     with torch.no_grad():
         y0 = unet(x, t, encoder_hidden_states=e).sample
         assert mk.set_fused_geglu(unet, True) == sum(1 for m in unet.modules() if type(m).__name__ == "FeedForward")
@@ -308,40 +246,14 @@ def test_fused_geglu_unet_equals_diffusers_float64(tiny_ip2p):
     assert torch.allclose(y1, y0, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("fused_norms", [False, True])
-def test_downsample_4x4_vae_equals_padded_3x3_float64(tiny_models, fused_norms):
-    from tiger.edit.guidance.ip2p import load_ip2p
-
-    vae = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=fused_norms, dtype=torch.float64).vae
-    x = torch.rand(2, 3, 16, 12, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
-    if fused_norms:
-        x = x.contiguous(memory_format=torch.channels_last)
-
-    def encode_and_grad():
-        xx = x.clone().requires_grad_(True)
-        z = vae.encode(xx).latent_dist.mean
-        (g,) = torch.autograd.grad((z * torch.linspace(-1, 1, z.numel(), dtype=z.dtype).reshape(z.shape)).sum(), xx)
-        return z.detach(), g
-
-    z0, g0 = encode_and_grad()
-    n_down = sum(1 for m in vae.modules() if type(m).__name__ == "Downsample2D")
-    assert mk.set_downsample_4x4(vae, True) == n_down > 0
-    z1, g1 = encode_and_grad()
-    assert mk.set_downsample_4x4(vae, False) == 0
-    z2, _ = encode_and_grad()
-    # the same sums in another order (plus products with zero weights): float64 rounding only
-    assert torch.allclose(z1, z0, rtol=1e-12, atol=1e-13) and torch.allclose(g1, g0, rtol=1e-12, atol=1e-13)
-    assert torch.equal(z2, z0)
-
-
-def test_fold_norm_bias_equals_separate_bias_pass_float64(tiny_models):
+def test_fold_norm_bias_equals_separate_bias_pass_float64(tiny_models, unet_inputs):
     """conv1's bias and the time embedding added inside norm2 (tiger's GroupNorm input_bias) give
     the UNet's output and the VAE encoder's values and input gradient of the separate pass."""
     from tiger.edit.guidance.ip2p import load_ip2p
 
     models = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=True, dtype=torch.float64)
     unet, vae = models.unet, models.vae
-    x, t, e = _unet_inputs(unet, torch.float64)
+    x, t, e = unet_inputs(unet, torch.float64)
     img = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(10), dtype=torch.float64)
 
     def run():
@@ -442,11 +354,11 @@ def test_row_layer_norm_and_subpixel_follow_the_device(tiny_ip2p):
     mk.apply_model_kernels(unet, vae, mk.ModelKernels(row_layer_norm=False, subpixel_upsample=False))
 
 
-def test_lean_attention_gives_the_same_values(tiny_ip2p):
+def test_lean_attention_gives_the_same_values(tiny_ip2p, unet_inputs):
     from diffusers.models.attention_processor import Attention
 
     unet = tiny_ip2p.unet
-    x, t, e = _unet_inputs(unet)
+    x, t, e = unet_inputs(unet)
     attns = [m for m in unet.modules() if isinstance(m, Attention)]
     mk.set_lean_attention(unet, False)
     with torch.no_grad():
@@ -476,28 +388,3 @@ def test_lean_attention_inside_the_multiview_processor_and_fallback():
         torch.testing.assert_close(attn(h), y0 / 2.0)
     mk.set_lean_attention(attn, False)
     assert type(attn.processor.inner) is AttnProcessor2_0
-
-
-def test_pad_conv_in_gives_the_same_sums_float64(tiny_ip2p):
-    unet, vae = tiny_ip2p.unet.double(), tiny_ip2p.vae.double()
-    x, t, e = _unet_inputs(unet, torch.float64)
-    img = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(13), dtype=torch.float64)
-
-    def run():
-        with torch.no_grad():
-            y = unet(x, t, encoder_hidden_states=e).sample
-        xx = img.clone().requires_grad_(True)
-        z = vae.encode(xx).latent_dist.mean
-        (g,) = torch.autograd.grad((z * z).sum(), xx)
-        return y, z.detach(), g
-
-    plain = run()
-    forwards = [m.__dict__.get("forward") for m in (unet.conv_in, vae.encoder.conv_in)]
-    assert mk.set_pad_conv_in(unet, True) + mk.set_pad_conv_in(vae, True) == 2
-    assert unet.conv_in.__dict__["_tiger_weight_padded"].shape[1] == 16
-    padded = run()
-    assert mk.set_pad_conv_in(unet, False) + mk.set_pad_conv_in(vae, False) == 0
-    assert [m.__dict__.get("forward") for m in (unet.conv_in, vae.encoder.conv_in)] == forwards
-    for a, b in zip(padded, plain):
-        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
-    assert torch.equal(run()[0], plain[0])
