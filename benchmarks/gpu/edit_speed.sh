@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One device call for the edit-speed measurements of docs/BENCHMARKS.md ("Diffusion guidance",
-# "Edit loop"): build, the CUDA tests of the guidance streams, CUDA graphs and GroupNorm, memcheck
-# of the GroupNorm kernels, how the two guidances share the GPU (benchmarks.gpu.guidance_streams),
+# "Edit loop"): build, the CUDA tests of the guidance models' kernels, streams, CUDA graphs, GroupNorm
+# and LayerNorm, memcheck of the GroupNorm and LayerNorm kernels, how the two guidances share the GPU (benchmarks.gpu.guidance_streams),
 # then the 1200-step CSD edit at its defaults and with the guidances on one stream, in that order
 # on one card. About 8 minutes on an H100 (build 80-100 s, each edit ~105 s).
 #
@@ -20,13 +20,17 @@ CHECK_STEPS=build OUT="$OUT/check" bash benchmarks/gpu/check.sh .whl .carry/deb/
   > "$OUT/build.log" 2>&1
 say "build: $(grep -E 'build ok|BUILD FAILED' "$OUT/check/check.log" | tail -1)"
 export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
-timeout 300 python3 -m pytest -q -p no:cacheprovider tests/edit/test_csd_streams.py tests/edit/test_cuda_graph.py \
-  tests/edit/guidance/test_cuda_fresh_graph.py tests/edit/guidance/test_model_kernels_cuda.py tests/ops/test_group_norm.py \
-  tests/utils/test_streams.py > "$OUT/tests.txt" 2>&1
+# tests/edit/guidance as a whole: listing its files among others' can lose its conftest's fixtures
+timeout 300 python3 -m pytest -q -p no:cacheprovider tests/edit/guidance tests/edit/test_csd_streams.py \
+  tests/edit/test_cuda_graph.py tests/ops/test_group_norm.py tests/ops/test_layer_norm.py tests/utils/test_streams.py \
+  > "$OUT/tests.txt" 2>&1
 say "CUDA tests: $(tail -1 "$OUT/tests.txt")"
 timeout 120 compute-sanitizer --tool memcheck --error-exitcode 9 python3 -m benchmarks.gpu.sanitize_group_norm \
   > "$OUT/memcheck.txt" 2>&1
 say "memcheck rc=$? $(grep 'ERROR SUMMARY' "$OUT/memcheck.txt")"
+timeout 150 compute-sanitizer --tool memcheck --error-exitcode 9 python3 -m pytest -q -p no:cacheprovider \
+  tests/ops/test_layer_norm.py -k "cuda and not graph" > "$OUT/memcheck_layer_norm.txt" 2>&1
+say "memcheck layer_norm rc=$? $(grep 'ERROR SUMMARY' "$OUT/memcheck_layer_norm.txt")"
 # timeout -s ABRT with faulthandler: a hang prints where Python waits instead of nothing
 timeout -s ABRT 180 python3 -X faulthandler -m benchmarks.gpu.guidance_streams > "$OUT/guidance_streams.log" 2>&1
 say "guidance_streams rc=$?"
