@@ -67,15 +67,15 @@ import torch.nn.functional as F
 from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
 from tiger.ops.layer_norm import layer_norm_rows
 
-from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample, subpixel_weight
+from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
 from .fused_norms import set_block_backward, set_fold_norm_bias
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
-           "fp8_supported", "set_downsample_4x4", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm",
-           "set_subpixel_upsample", "subpixel_weight", "LeanAttnProcessor", "set_lean_attention", "set_pad_conv_in"]
+           "fp8_supported", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm", "LeanAttnProcessor",
+           "set_lean_attention"]
 
 MATMUL_PRECISIONS = ("model", "fp8")
 
