@@ -132,11 +132,20 @@ class ModelKernels:
         return {k: ("auto" if v is None else v) for k, v in dataclasses.asdict(self).items()}
 
 
+def _on_cuda(module: torch.nn.Module) -> bool:
+    p = next(module.parameters(), None)
+    return p is not None and p.device.type == "cuda"
+
+
 def _on_cuda_with_kernels(module: torch.nn.Module) -> bool:
     from tiger.ops import cuda_enabled
 
-    p = next(module.parameters(), None)
-    return p is not None and p.device.type == "cuda" and cuda_enabled()
+    return _on_cuda(module) and cuda_enabled()
+
+
+def _resolve(setting: Optional[bool], default: bool) -> bool:
+    """A :class:`ModelKernels` switch: ``default`` when None ("auto")."""
+    return default if setting is None else bool(setting)
 
 
 def fp8_supported(device: torch.device | str) -> tuple[bool, str]:
@@ -456,28 +465,22 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks", "block_backward_blocks",
     "padded_conv_ins"}``."""
-    geglu_on = _on_cuda_with_kernels(unet) if kernels.fused_geglu is None else bool(kernels.fused_geglu)
-    ln_on = _on_cuda_with_kernels(unet) if kernels.row_layer_norm is None else bool(kernels.row_layer_norm)
-    lean_on = True if kernels.lean_attention is None else bool(kernels.lean_attention)
-    pu = next(unet.parameters(), None)
-    up_on = (pu is not None and pu.device.type == "cuda") if kernels.subpixel_upsample is None \
-        else bool(kernels.subpixel_upsample)
-    p = next(vae.parameters(), None)
-    pad_on = (p is not None and p.device.type == "cuda") if kernels.pad_conv_in is None else bool(kernels.pad_conv_in)
-    ds_on = (p is not None and p.device.type == "cuda") if kernels.vae_downsample_4x4 is None \
-        else bool(kernels.vae_downsample_4x4)
-    fold_on = _on_cuda_with_kernels(unet) if kernels.fold_norm_bias is None else bool(kernels.fold_norm_bias)
+    unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
+    vae_cuda = _on_cuda(vae)
+    geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
+    ds_on = _resolve(kernels.vae_downsample_4x4, vae_cuda)
+    pad_on = _resolve(kernels.pad_conv_in, vae_cuda)
+    fold_on = _resolve(kernels.fold_norm_bias, unet_kernels)
     fp8_layers = set_matmul_precision(unet, kernels.matmul_precision, fast_accum=kernels.fp8_fast_accum,
                                       emulate=emulate_fp8)
     set_fused_geglu(unet, geglu_on)
-    row_norms = set_row_layer_norm(unet, ln_on)
-    subpixel = set_subpixel_upsample(unet, up_on)
-    lean = set_lean_attention(unet, lean_on)
+    row_norms = set_row_layer_norm(unet, _resolve(kernels.row_layer_norm, unet_kernels))
+    subpixel = set_subpixel_upsample(unet, _resolve(kernels.subpixel_upsample, _on_cuda(unet)))
+    lean = set_lean_attention(unet, _resolve(kernels.lean_attention, True))
     padded = set_pad_conv_in(unet, pad_on) + set_pad_conv_in(vae, pad_on)
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
-    bb_on = _on_cuda_with_kernels(vae) if kernels.block_backward is None else bool(kernels.block_backward)
-    own_backward = set_block_backward(vae, bb_on)
+    own_backward = set_block_backward(vae, _resolve(kernels.block_backward, vae_kernels))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded, "block_backward_blocks": own_backward,
