@@ -37,6 +37,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
   blocks (``ModelKernels.block_backward``);
 - ``default-pad_conv_in``: the default with the first convolutions on their 3-8 input channels
   (``ModelKernels.pad_conv_in``);
+- ``default-fused_transformer``: the default with diffusers' transformer-block forward (separate
+  residual adds, q/k/v matmuls apart) instead of the fused blocks (``ModelKernels.fused_transformer``);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
   (every other variant runs it beside InstructPix2Pix on a side stream, ``CSDGuidance``'s default);
 - ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
@@ -98,6 +100,7 @@ VARIANTS = {
     "default-lean_attention": (dataclasses.replace(DEFAULT, lean_attention=False), True, False, False),
     "default-block_backward": (dataclasses.replace(DEFAULT, block_backward=False), True, False, False),
     "default-pad_conv_in": (dataclasses.replace(DEFAULT, pad_conv_in=False), True, False, False),
+    "default-fused_transformer": (dataclasses.replace(DEFAULT, fused_transformer=False), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
@@ -105,7 +108,8 @@ VARIANTS = {
 }
 DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
-                    "default-block_backward", "default-pad_conv_in", "default+fp8", "default+fp8_fast_accum")
+                    "default-block_backward", "default-pad_conv_in", "default-fused_transformer", "default+fp8",
+                    "default+fp8_fast_accum")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 
 

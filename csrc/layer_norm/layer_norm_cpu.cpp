@@ -9,10 +9,11 @@ namespace layer_norm {
 namespace {
 
 at::Tensor layer_norm_rows_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
-                               double eps) {
-  check_inputs(x, weight, bias, eps);
+                               double eps, const std::optional<at::Tensor>& input_bias) {
+  check_inputs(x, weight, bias, eps, input_bias);
   const auto acc = x.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
-  const auto xf = x.to(acc);
+  auto xf = x.to(acc);
+  if (input_bias.has_value() && input_bias->defined()) xf = xf + input_bias->to(acc);
   const auto mean = xf.mean(-1, /*keepdim=*/true);
   const auto centred = xf - mean;
   const auto var = (centred * centred).mean(-1, /*keepdim=*/true);

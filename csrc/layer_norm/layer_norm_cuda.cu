@@ -5,7 +5,9 @@
 // group of G lanes of one warp owns a row (G the power of two that gives each lane at most 4
 // vectors, at most 32), keeps its vectors in registers (up to 8 a lane; longer rows are re-read),
 // and reduces over the group with shuffles: mean first, then the sum of squared deviations (two
-// passes over registers, no cancellation), then the output, rounded once.
+// passes over registers, no cancellation), then the output, rounded once. An optional input bias
+// (a per-channel vector the residual stream has not added yet) is added in float wherever a value
+// is read, so the biased row is never written.
 #include <cuda_bf16.h>
 #include <cuda_fp16.h>
 #include <cuda_runtime.h>
@@ -46,8 +48,9 @@ __device__ __forceinline__ Vec<T, V> load_vec(const T* p, int64_t i) {
 
 template <typename T, int V>
 __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x, const T* __restrict__ weight,
-                                                        const T* __restrict__ bias, T* __restrict__ y, int64_t M,
-                                                        int nv, int C, int G, Acc<T> eps) {
+                                                        const T* __restrict__ bias,
+                                                        const T* __restrict__ input_bias, T* __restrict__ y,
+                                                        int64_t M, int nv, int C, int G, Acc<T> eps) {
   using A = Acc<T>;
   const int lane = threadIdx.x & 31;
   const int rows_per_warp = 32 / G;
@@ -58,7 +61,19 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
   const T* xr = x + (valid ? row : 0) * C;
   const bool in_regs = nv <= G * kMaxVecs;
 
+  // Vector i of the row plus the input bias, in float.
+  auto widen = [&](const Vec<T, V>& v, int i, A (&u)[V]) {
+#pragma unroll
+    for (int j = 0; j < V; ++j) u[j] = load_as<A>(v.v[j]);
+    if (input_bias != nullptr) {
+      const Vec<T, V> b = load_vec<T, V>(input_bias, i);
+#pragma unroll
+      for (int j = 0; j < V; ++j) u[j] += load_as<A>(b.v[j]);
+    }
+  };
+
   Vec<T, V> reg[kMaxVecs];
+  A u[V];
   A sum = A(0);
   if (in_regs) {
 #pragma unroll
@@ -66,15 +81,16 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
       const int i = sub + k * G;
       if (valid && i < nv) {
         reg[k] = load_vec<T, V>(xr, i);
+        widen(reg[k], i, u);
 #pragma unroll
-        for (int j = 0; j < V; ++j) sum += load_as<A>(reg[k].v[j]);
+        for (int j = 0; j < V; ++j) sum += u[j];
       }
     }
   } else if (valid) {
     for (int i = sub; i < nv; i += G) {
-      const Vec<T, V> v = load_vec<T, V>(xr, i);
+      widen(load_vec<T, V>(xr, i), i, u);
 #pragma unroll
-      for (int j = 0; j < V; ++j) sum += load_as<A>(v.v[j]);
+      for (int j = 0; j < V; ++j) sum += u[j];
     }
   }
   const A mean = group_sum(sum, G) / A(C);
@@ -85,19 +101,20 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
     for (int k = 0; k < kMaxVecs; ++k) {
       const int i = sub + k * G;
       if (valid && i < nv) {
+        widen(reg[k], i, u);
 #pragma unroll
         for (int j = 0; j < V; ++j) {
-          const A d = load_as<A>(reg[k].v[j]) - mean;
+          const A d = u[j] - mean;
           sq += d * d;
         }
       }
     }
   } else if (valid) {
     for (int i = sub; i < nv; i += G) {
-      const Vec<T, V> v = load_vec<T, V>(xr, i);
+      widen(load_vec<T, V>(xr, i), i, u);
 #pragma unroll
       for (int j = 0; j < V; ++j) {
-        const A d = load_as<A>(v.v[j]) - mean;
+        const A d = u[j] - mean;
         sq += d * d;
       }
     }
@@ -110,10 +127,12 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
     const Vec<T, V> wv = load_vec<T, V>(weight, i);
     Vec<T, V> bv;
     if (bias != nullptr) bv = load_vec<T, V>(bias, i);
+    A w[V];
+    widen(v, i, w);
     Vec<T, V> out;
 #pragma unroll
     for (int j = 0; j < V; ++j) {
-      A r = (load_as<A>(v.v[j]) - mean) * rstd * load_as<A>(wv.v[j]);
+      A r = (w[j] - mean) * rstd * load_as<A>(wv.v[j]);
       if (bias != nullptr) r += load_as<A>(bv.v[j]);
       out.v[j] = convert_to<T>(r);
     }
@@ -131,16 +150,16 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
 }
 
 template <typename T, int V>
-void launch(const T* x, const T* weight, const T* bias, T* y, int64_t M, int64_t C, double eps, cudaStream_t st) {
+void launch(const T* x, const T* weight, const T* bias, const T* input_bias, T* y, int64_t M, int64_t C, double eps,
+            cudaStream_t st) {
   const int nv = static_cast<int>(C / V);
   int G = 1;  // the power of two giving each lane at most 4 vectors, at most a warp
   while (G < 32 && static_cast<int64_t>(G) * 4 < nv) G *= 2;
   const int64_t rows_per_block = (kThreads / 32) * (32 / G);
   const int64_t blocks = (M + rows_per_block - 1) / rows_per_block;
   if (blocks > 0)
-    rows_kernel<T, V><<<static_cast<unsigned>(blocks), kThreads, 0, st>>>(x, weight, bias, y, M, nv,
-                                                                          static_cast<int>(C), G,
-                                                                          static_cast<Acc<T>>(eps));
+    rows_kernel<T, V><<<static_cast<unsigned>(blocks), kThreads, 0, st>>>(
+        x, weight, bias, input_bias, y, M, nv, static_cast<int>(C), G, static_cast<Acc<T>>(eps));
 }
 
 bool aligned(const void* p) { return p == nullptr || reinterpret_cast<uintptr_t>(p) % 16 == 0; }
@@ -148,24 +167,23 @@ bool aligned(const void* p) { return p == nullptr || reinterpret_cast<uintptr_t>
 }  // namespace
 
 template <typename T>
-void launch_layer_norm_rows(const T* x, const T* weight, const T* bias, T* y, int64_t M, int64_t C, double eps,
-                            void* stream) {
+void launch_layer_norm_rows(const T* x, const T* weight, const T* bias, const T* input_bias, T* y, int64_t M,
+                            int64_t C, double eps, void* stream) {
   constexpr int V = 16 / sizeof(T);
   const auto st = static_cast<cudaStream_t>(stream);
-  if (C % V == 0 && aligned(x) && aligned(y) && aligned(weight) && aligned(bias))
-    launch<T, V>(x, weight, bias, y, M, C, eps, st);
+  if (C % V == 0 && aligned(x) && aligned(y) && aligned(weight) && aligned(bias) && aligned(input_bias))
+    launch<T, V>(x, weight, bias, input_bias, y, M, C, eps, st);
   else
-    launch<T, 1>(x, weight, bias, y, M, C, eps, st);
+    launch<T, 1>(x, weight, bias, input_bias, y, M, C, eps, st);
 }
 
-template void launch_layer_norm_rows<float>(const float*, const float*, const float*, float*, int64_t, int64_t,
-                                            double, void*);
-template void launch_layer_norm_rows<double>(const double*, const double*, const double*, double*, int64_t, int64_t,
-                                             double, void*);
-template void launch_layer_norm_rows<__half>(const __half*, const __half*, const __half*, __half*, int64_t, int64_t,
-                                             double, void*);
-template void launch_layer_norm_rows<__nv_bfloat16>(const __nv_bfloat16*, const __nv_bfloat16*, const __nv_bfloat16*,
-                                                    __nv_bfloat16*, int64_t, int64_t, double, void*);
+#define TIGER_LAYER_NORM_ROWS(T) \
+  template void launch_layer_norm_rows<T>(const T*, const T*, const T*, const T*, T*, int64_t, int64_t, double, void*);
+TIGER_LAYER_NORM_ROWS(float)
+TIGER_LAYER_NORM_ROWS(double)
+TIGER_LAYER_NORM_ROWS(__half)
+TIGER_LAYER_NORM_ROWS(__nv_bfloat16)
+#undef TIGER_LAYER_NORM_ROWS
 
 }  // namespace layer_norm
 }  // namespace tiger

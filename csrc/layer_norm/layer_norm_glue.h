@@ -12,7 +12,7 @@ namespace layer_norm {
 constexpr const char* kOp = "tiger.layer_norm_rows";
 
 inline void check_inputs(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
-                         double eps) {
+                         double eps, const std::optional<at::Tensor>& input_bias) {
   TORCH_CHECK(x.dim() >= 1, kOp, ": x must have at least one dimension (rows of C values), got a scalar");
   TORCH_CHECK(x.is_floating_point(), kOp, ": x must be a floating-point tensor, got ", x.scalar_type());
   const int64_t C = x.size(-1);
@@ -24,6 +24,11 @@ inline void check_inputs(const at::Tensor& x, const at::Tensor& weight, const st
     TORCH_CHECK(bias->dim() == 1 && bias->size(0) == C, kOp, ": bias must be [C] = [", C, "], got ",
                 shape_str(bias->sizes()));
     check_same(*bias, x, kOp, "bias");
+  }
+  if (input_bias.has_value() && input_bias->defined()) {
+    TORCH_CHECK(input_bias->dim() == 1 && input_bias->size(0) == C, kOp, ": input_bias must be [C] = [", C, "], got ",
+                shape_str(input_bias->sizes()));
+    check_same(*input_bias, x, kOp, "input_bias");
   }
   TORCH_CHECK(eps >= 0.0, kOp, ": eps must be >= 0, got ", eps);
 }

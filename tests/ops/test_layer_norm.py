@@ -1,7 +1,7 @@
 """tiger::layer_norm_rows against LayerNorm computed here in float64 (values rounded once, layouts,
 gradients), gradcheck/opcheck and clear errors; on CUDA every kernel path (16-byte vectors kept
-in registers, rows re-read when longer than the registers hold, scalar rows, misaligned storage)
-against that reference within one rounding of the dtype."""
+in registers, rows re-read when longer than the registers hold, scalar rows, misaligned storage),
+with and without an input bias, against that reference within one rounding of the dtype."""
 import pytest
 import torch
 import torch.nn.functional as F
@@ -12,11 +12,11 @@ from tiger.ops.layer_norm import layer_norm_rows
 CUDA = torch.cuda.is_available() and tiger.ops.cuda_enabled()
 
 
-def reference(x, w, b, eps):
-    """float64 LayerNorm (two passes), not rounded; and the size of its terms
-    (|x| + |mean|)·rstd·|w| + |b| per element (what the float32 statistics' error scales with:
-    x - mean loses the mean's rounding)."""
-    xd = x.double()
+def reference(x, w, b, eps, input_bias=None):
+    """float64 LayerNorm (two passes) of x (+ input_bias), not rounded; and the size of its terms
+    (|u| + |mean|)·rstd·|w| + |b| per element (what the float32 statistics' error scales with:
+    u - mean loses the mean's rounding)."""
+    xd = x.double() if input_bias is None else x.double() + input_bias.double()
     mean = xd.mean(-1, keepdim=True)
     var = (xd - mean).square().mean(-1, keepdim=True)
     rstd = 1 / torch.sqrt(var + eps)
@@ -58,6 +58,33 @@ def test_cpu_values(dtype, bias):
         torch.testing.assert_close(y, F.layer_norm(x, (40,), w, b, 1e-5), atol=1e-13, rtol=0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.bfloat16])
+def test_cpu_input_bias(dtype):
+    """``input_bias`` normalises x + input_bias: against the float64 reference, and in float64
+    against LayerNorm of the materialised sum."""
+    g = torch.Generator().manual_seed(4)
+    x = (torch.randn(3, 5, 40, generator=g, dtype=torch.float64) * 3).to(dtype)
+    w, b, ib = (torch.randn(40, generator=g, dtype=torch.float64).to(dtype) for _ in range(3))
+    ib = ib * 4 + 1  # an offset the row's own statistics would not hide
+    y = layer_norm_rows(x, w, b, 1e-5, input_bias=ib)
+    assert_one_rounding(y, reference(x, w, b, 1e-5, ib), dtype)
+    if dtype == torch.float64:
+        torch.testing.assert_close(y, F.layer_norm(x + ib, (40,), w, b, 1e-5), atol=1e-13, rtol=0)
+        assert not torch.allclose(y, layer_norm_rows(x, w, b, 1e-5))
+
+
+def test_cpu_input_bias_gradients():
+    g = torch.Generator().manual_seed(5)
+    args = [torch.randn(*s, generator=g, dtype=torch.float64).requires_grad_() for s in ((4, 12), (12,), (12,), (12,))]
+    fn = lambda x, w, b, ib: layer_norm_rows(x, w, b, 1e-3, input_bias=ib)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, args)
+    gy = torch.randn(4, 12, generator=g, dtype=torch.float64)
+    ours = torch.autograd.grad(fn(*args), args, gy)
+    theirs = torch.autograd.grad(F.layer_norm(args[0] + args[3], (12,), args[1], args[2], 1e-3), args, gy)
+    for a, t in zip(ours, theirs):
+        torch.testing.assert_close(a, t, atol=1e-12, rtol=0)
+
+
 def test_cpu_strided_input_and_gradients():
     g = torch.Generator().manual_seed(1)
     x = torch.randn(4, 12, 2, generator=g, dtype=torch.float64)[..., 0]  # not contiguous
@@ -79,6 +106,7 @@ def test_opcheck():
     w, b = torch.randn(8, requires_grad=True), torch.randn(8, requires_grad=True)
     torch.library.opcheck(torch.ops.tiger.layer_norm_rows, (x, w, b, 1e-5))
     torch.library.opcheck(torch.ops.tiger.layer_norm_rows, (x, w, None, 1e-5))
+    torch.library.opcheck(torch.ops.tiger.layer_norm_rows, (x, w, b, 1e-5, torch.randn(8, requires_grad=True)))
 
 
 def test_constant_rows_give_the_bias():
@@ -97,6 +125,10 @@ def test_errors_name_the_problem():
         layer_norm_rows(x, torch.ones(3, dtype=torch.float64))
     with pytest.raises(RuntimeError, match="must not be empty"):
         layer_norm_rows(torch.zeros(2, 0), torch.ones(0))
+    with pytest.raises(RuntimeError, match=r"input_bias must be \[C\] = \[3\]"):
+        layer_norm_rows(x, torch.ones(3), None, 1e-5, input_bias=torch.zeros(3, 1))
+    with pytest.raises(RuntimeError, match="input_bias has dtype"):
+        layer_norm_rows(x, torch.ones(3), None, 1e-5, input_bias=torch.zeros(3, dtype=torch.float64))
     with pytest.raises(RuntimeError, match="eps must be >= 0"):
         layer_norm_rows(x, torch.ones(3), None, -1.0)
 
@@ -107,23 +139,26 @@ def test_errors_name_the_problem():
 @pytest.mark.parametrize("shape,case", [((12, 256, 320), "vectors"), ((3, 5, 1280), "vectors"), ((7, 4096), "re-read"),
                                         ((33, 13), "scalar"), ((5, 320), "misaligned"), ((1, 8), "vectors"),
                                         ((1000, 40), "vectors")])
-@pytest.mark.parametrize("bias", [True, False])
-def test_cuda_against_float64(dtype, shape, case, bias):
+@pytest.mark.parametrize("bias,input_bias", [(True, False), (False, False), (True, True)])
+def test_cuda_against_float64(dtype, shape, case, bias, input_bias):
     g = torch.Generator().manual_seed(2)
     C = shape[-1]
     x = torch.randn(*shape, generator=g, dtype=torch.float64) * 2 + 0.5
     w = torch.randn(C, generator=g, dtype=torch.float64)
     b = torch.randn(C, generator=g, dtype=torch.float64) if bias else None
+    ib = torch.randn(C, generator=g, dtype=torch.float64) * 3 if input_bias else None
     x, w = x.to(dtype).cuda(), w.to(dtype).cuda()
     b = None if b is None else b.to(dtype).cuda()
+    ib = None if ib is None else ib.to(dtype).cuda()
     if case == "misaligned":  # storage offset of one element: the scalar path
         buf = torch.empty(x.numel() + 1, dtype=dtype, device="cuda")
         buf[1:] = x.flatten()
         x = buf[1:].view(shape)
-    y = layer_norm_rows(x, w, b, 1e-5)
+    y = layer_norm_rows(x, w, b, 1e-5, input_bias=ib)
     assert y.dtype == dtype and y.shape == x.shape
     assert torch.isfinite(y).all()
-    assert_one_rounding(y.cpu(), reference(x.cpu(), w.cpu(), None if b is None else b.cpu(), 1e-5), dtype)
+    cpu = lambda t: None if t is None else t.cpu()  # noqa: E731
+    assert_one_rounding(y.cpu(), reference(x.cpu(), w.cpu(), cpu(b), 1e-5, cpu(ib)), dtype)
 
 
 @pytest.mark.cuda

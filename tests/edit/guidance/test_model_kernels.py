@@ -2,9 +2,9 @@
 independent references: row-wise e4m3 quantisation against a nearest-value search over the 256
 e4m3 codes, the GEGLU against diffusers' chunk + gelu + multiply (float64), FP8 linears against
 float64 linears with the error bound of two e4m3 roundings; the fused feed-forward, the row
-LayerNorm, the lean attention, the folded norm biases and the VAE blocks' own backward against
-diffusers' modules and autograd (float64); the guidances' settings. The convolution layers:
-test_conv_layers.py. The FP8
+LayerNorm, the folded norm biases and the VAE blocks' own backward against diffusers' modules and
+autograd (float64); the guidances' settings. The convolution layers: test_conv_layers.py; the lean
+attention and the fused transformer blocks: test_transformer_blocks.py. The FP8
 matmul itself (torch._scaled_mm) needs a Hopper/Ada GPU: tests/edit/guidance/test_model_kernels_cuda.py."""
 import pytest
 import torch
@@ -325,7 +325,7 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
     noise, vae_noise = torch.randn(4, 4, 8, 8, generator=gen), torch.randn(4, 4, 8, 8, generator=gen)
     t = torch.tensor([20, 60, 120, 180])
     views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=originals, object_center=torch.zeros(3))
-    for kernels in (None, mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True)):
+    for kernels in (None, mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fused_transformer=True)):
         models = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=False)
         g = InstructPix2PixGuidance(models, "make it red", short_side=16, kernels=kernels)
         on = kernels is not None
@@ -335,7 +335,7 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
                                            "vae_downsample_4x4": True if on else "auto", "fold_norm_bias": "auto",
                                            "row_layer_norm": "auto", "subpixel_upsample": "auto",
                                            "lean_attention": "auto", "block_backward": "auto",
-                                           "pad_conv_in": "auto"}
+                                           "pad_conv_in": "auto", "fused_transformer": True if on else "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
@@ -354,37 +354,3 @@ def test_row_layer_norm_and_subpixel_follow_the_device(tiny_ip2p):
     mk.apply_model_kernels(unet, vae, mk.ModelKernels(row_layer_norm=False, subpixel_upsample=False))
 
 
-def test_lean_attention_gives_the_same_values(tiny_ip2p, unet_inputs):
-    from diffusers.models.attention_processor import Attention
-
-    unet = tiny_ip2p.unet
-    x, t, e = unet_inputs(unet)
-    attns = [m for m in unet.modules() if isinstance(m, Attention)]
-    mk.set_lean_attention(unet, False)
-    with torch.no_grad():
-        y0 = unet(x, t, encoder_hidden_states=e).sample
-        assert mk.set_lean_attention(unet, True) == len(attns) > 0
-        assert mk.set_lean_attention(unet, True) == len(attns)  # idempotent: no wrapper around a wrapper
-        y1 = unet(x, t, encoder_hidden_states=e).sample
-    assert torch.equal(y1, y0)  # the same operations, minus a division by 1
-    assert mk.set_lean_attention(unet, False) == 0
-    assert not any(isinstance(m.processor, mk.LeanAttnProcessor) for m in attns)
-
-
-def test_lean_attention_inside_the_multiview_processor_and_fallback():
-    from diffusers.models.attention_processor import Attention, AttnProcessor2_0
-
-    from tiger.edit.guidance.mvdream_attention import MultiViewAttnProcessor
-
-    torch.manual_seed(0)
-    attn = Attention(16, heads=2, dim_head=8)
-    attn.set_processor(MultiViewAttnProcessor(2))
-    h = torch.randn(4, 5, 16)
-    with torch.no_grad():
-        y0 = attn(h)
-        assert mk.set_lean_attention(attn, True) == 1 and isinstance(attn.processor.inner, mk.LeanAttnProcessor)
-        assert torch.equal(attn(h), y0)
-        attn.rescale_output_factor = 2.0  # a feature it does not handle: diffusers' processor runs
-        torch.testing.assert_close(attn(h), y0 / 2.0)
-    mk.set_lean_attention(attn, False)
-    assert type(attn.processor.inner) is AttnProcessor2_0

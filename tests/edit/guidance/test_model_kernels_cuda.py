@@ -98,12 +98,13 @@ def test_graphed_default_kernels_equal_plain_eager_float32(tiny_models, ip2p_ste
     ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
     plain = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
                            subpixel_upsample=False, lean_attention=False,
-                           block_backward=False, pad_conv_in=False)
+                           block_backward=False, pad_conv_in=False, fused_transformer=False)
     torch.manual_seed(3)
     renders, views, draws = ip2p_step_inputs(t=[30, 80, 130, 190])
     a, _ = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True,
                                    kernels=plain).grad(renders, views, **draws)
     graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)  # the defaults
     assert any("forward" in m.__dict__ for m in ip.unet.modules() if type(m).__name__ == "FeedForward")
+    assert any("_tiger_fused_weights" in m.__dict__ for m in ip.unet.modules())  # fused transformer blocks
     b, _ = graphed.grad(renders, views, **draws)
     assert torch.allclose(a, b, rtol=1e-3, atol=1e-3 * float(a.abs().max())), float((a - b).abs().max())

@@ -1,7 +1,8 @@
 """How the guidances' frozen UNets and VAEs compute, beyond :mod:`.fused_norms`
-(:class:`ModelKernels`): FP8 matmuls, the fused GEGLU, the row LayerNorm and the lean attention
-here; the rewritten convolution layers (sub-pixel upsampling, padded first convolutions, 4x4
-downsampling) in :mod:`.conv_layers`.
+(:class:`ModelKernels`): FP8 matmuls, the fused GEGLU and the row LayerNorm here; the lean
+attention and the fused transformer blocks in :mod:`.transformer_blocks`; the rewritten
+convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsampling) in
+:mod:`.conv_layers`.
 
 - ``matmul_precision="fp8"`` (opt-in): the UNet's transformer-block linear layers (attention
   q/k/v/out projections, the feed-forward's GEGLU projection and output, the transformers'
@@ -36,6 +37,11 @@ downsampling) in :mod:`.conv_layers`.
   output by ``rescale_output_factor`` = 1 (one full pass per layer). The same operations
   otherwise, so the same values; any layer with a mask, a norm, a residual or another factor
   keeps diffusers' processor.
+- ``fused_transformer``: the UNet's plain transformer blocks (self-attention, cross-attention,
+  GEGLU feed-forward) without their three residual adds: the residual stream is the output
+  matmuls' accumulator, the attention outputs' biases are carried into the next LayerNorm
+  (``input_bias``) and added by the feed-forward's output matmul through an extra input column,
+  and q/k/v come from one matmul (:mod:`.transformer_blocks`). Same sums, rounded once less.
 - ``block_backward``: the VAE encoder's ResNet blocks without a shortcut convolution run their
   own backward when only their input needs a gradient (SDS): the kernels autograd runs, except
   that the shortcut's gradient is added inside norm1's backward pass (no separate sum: two map
@@ -69,13 +75,13 @@ from tiger.ops.layer_norm import layer_norm_rows
 
 from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
 from .fused_norms import set_block_backward, set_fold_norm_bias
+from .transformer_blocks import set_fused_transformer, set_lean_attention
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["MATMUL_PRECISIONS", "Fp8Linear", "ModelKernels", "apply_model_kernels", "fp8_matmul",
-           "fp8_supported", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm", "LeanAttnProcessor",
-           "set_lean_attention"]
+           "fp8_supported", "set_fused_geglu", "set_matmul_precision", "set_row_layer_norm"]
 
 MATMUL_PRECISIONS = ("model", "fp8")
 
@@ -107,6 +113,9 @@ class ModelKernels:
             shortcut's gradient summed before rounding instead of after).
         pad_conv_in: the first convolutions on inputs zero-padded to 16-channel multiples; None:
             on where the models are on CUDA (same sums).
+        fused_transformer: the UNet's transformer blocks with their residual adds inside the
+            output matmuls and q/k/v in one matmul; None: on where the UNet is on CUDA with
+            tiger's CUDA kernels (each residual sum rounded once instead of twice).
     """
 
     matmul_precision: str = "model"
@@ -119,6 +128,7 @@ class ModelKernels:
     lean_attention: Optional[bool] = None
     block_backward: Optional[bool] = None
     pad_conv_in: Optional[bool] = None
+    fused_transformer: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -402,69 +412,13 @@ def set_row_layer_norm(unet: torch.nn.Module, on: bool) -> int:
     return _switch_forward(unet, eligible, _layer_norm_rows_forward, on)
 
 
-# -- lean attention -------------------------------------------------------------------------------
-class LeanAttnProcessor:
-    """diffusers 0.42's ``AttnProcessor2_0`` for the layers these UNets have (token input [B, L, C],
-    no mask, no norms, no residual, output factor 1): q/k/v projections, SDPA (its default scale,
-    as diffusers), output projection and dropout, without the division by
-    ``rescale_output_factor`` = 1 that costs a pass over every attention output. Anything else
-    goes to the processor it replaced (``fallback``)."""
-
-    def __init__(self, fallback) -> None:
-        self.fallback = fallback
-
-    @staticmethod
-    def handles(attn, hidden_states: torch.Tensor, attention_mask, args: tuple, kwargs: dict) -> bool:
-        return (attention_mask is None and hidden_states.ndim == 3 and not args and kwargs.get("scale") is None
-                and attn.spatial_norm is None and attn.group_norm is None and not attn.norm_cross
-                and attn.norm_q is None and attn.norm_k is None and not attn.residual_connection
-                and attn.rescale_output_factor == 1.0)
-
-    def __call__(self, attn, hidden_states: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor] = None,
-                 attention_mask: Optional[torch.Tensor] = None, temb: Optional[torch.Tensor] = None,
-                 *args: object, **kwargs: object) -> torch.Tensor:
-        if not self.handles(attn, hidden_states, attention_mask, args, kwargs):
-            return self.fallback(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
-        b = hidden_states.shape[0]
-        context = hidden_states if encoder_hidden_states is None else encoder_hidden_states
-        query, key, value = attn.to_q(hidden_states), attn.to_k(context), attn.to_v(context)
-        head_dim = key.shape[-1] // attn.heads
-        q, k, v = (t.view(b, -1, attn.heads, head_dim).transpose(1, 2) for t in (query, key, value))
-        out = F.scaled_dot_product_attention(q, k, v, dropout_p=0.0, is_causal=False)
-        out = out.transpose(1, 2).reshape(b, -1, attn.heads * head_dim).to(query.dtype)
-        return attn.to_out[1](attn.to_out[0](out))
-
-
-def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
-    """Put :class:`LeanAttnProcessor` in front of the UNet's SDPA attention processors (also inside
-    MVDream's multi-view processor) (``on``), or take it away; returns how many layers have it."""
-    diffusers = require_diffusers("the lean attention")
-    sdpa = diffusers.models.attention_processor.AttnProcessor2_0
-    from diffusers.models.attention_processor import Attention
-
-    count = 0
-    for m in unet.modules():
-        if not isinstance(m, Attention):
-            continue
-        proc = m.processor
-        wraps = type(getattr(proc, "inner", None)) in (sdpa, LeanAttnProcessor)  # MVDream's multi-view processor
-        holder, attr = (proc, "inner") if wraps else (m, "processor")
-        current = getattr(holder, attr)
-        if on and type(current) is sdpa:
-            setattr(holder, attr, LeanAttnProcessor(current))
-        elif not on and type(current) is LeanAttnProcessor:
-            setattr(holder, attr, current.fallback)
-        count += type(getattr(holder, attr)) is LeanAttnProcessor
-    return count
-
-
 # -- all of it ------------------------------------------------------------------------------------
 def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: ModelKernels, *,
                         emulate_fp8: bool = False) -> dict[str, Any]:
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
-    "lean_attentions", "vae_downsample_4x4", "fold_norm_bias_blocks", "block_backward_blocks",
-    "padded_conv_ins"}``."""
+    "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
+    "block_backward_blocks", "padded_conv_ins"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -477,11 +431,13 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     row_norms = set_row_layer_norm(unet, _resolve(kernels.row_layer_norm, unet_kernels))
     subpixel = set_subpixel_upsample(unet, _resolve(kernels.subpixel_upsample, _on_cuda(unet)))
     lean = set_lean_attention(unet, _resolve(kernels.lean_attention, True))
+    # after the matmul precision and the processors: FP8 layers and other processors are not fused
+    fused_blocks = set_fused_transformer(unet, _resolve(kernels.fused_transformer, unet_kernels))
     padded = set_pad_conv_in(unet, pad_on) + set_pad_conv_in(vae, pad_on)
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
     own_backward = set_block_backward(vae, _resolve(kernels.block_backward, vae_kernels))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
-            "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded, "block_backward_blocks": own_backward,
-            "padded_conv_ins": padded}
+            "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
+            "block_backward_blocks": own_backward, "padded_conv_ins": padded}

@@ -1,0 +1,218 @@
+"""The UNets' transformer layers (tiger.edit.guidance.transformer_blocks): the lean attention and
+the fused transformer blocks against diffusers' own forward (float64, the tiny InstructPix2Pix
+UNet), the fused blocks' bias column (exactly 1 in every dtype), their fallbacks, in-place
+semantics, re-derivation and eligibility."""
+import copy
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from tiger.edit.guidance import model_kernels as mk
+from tiger.edit.guidance import transformer_blocks as tb
+from tiger.ops.fp8_rows import geglu
+
+diffusers = pytest.importorskip("diffusers")
+
+
+def _blocks(unet):
+    from diffusers.models.attention import BasicTransformerBlock
+
+    return [m for m in unet.modules() if type(m) is BasicTransformerBlock]
+
+
+def test_lean_attention_gives_the_same_values(tiny_ip2p, unet_inputs):
+    from diffusers.models.attention_processor import Attention
+
+    unet = tiny_ip2p.unet
+    x, t, e = unet_inputs(unet)
+    attns = [m for m in unet.modules() if isinstance(m, Attention)]
+    tb.set_lean_attention(unet, False)
+    with torch.no_grad():
+        y0 = unet(x, t, encoder_hidden_states=e).sample
+        assert tb.set_lean_attention(unet, True) == len(attns) > 0
+        assert tb.set_lean_attention(unet, True) == len(attns)  # idempotent: no wrapper around a wrapper
+        y1 = unet(x, t, encoder_hidden_states=e).sample
+    assert torch.equal(y1, y0)  # the same operations, minus a division by 1
+    assert tb.set_lean_attention(unet, False) == 0
+    assert not any(isinstance(m.processor, tb.LeanAttnProcessor) for m in attns)
+
+
+def test_lean_attention_inside_the_multiview_processor_and_fallback():
+    from diffusers.models.attention_processor import Attention, AttnProcessor2_0
+
+    from tiger.edit.guidance.mvdream_attention import MultiViewAttnProcessor
+
+    torch.manual_seed(0)
+    attn = Attention(16, heads=2, dim_head=8)
+    attn.set_processor(MultiViewAttnProcessor(2))
+    h = torch.randn(4, 5, 16)
+    with torch.no_grad():
+        y0 = attn(h)
+        assert tb.set_lean_attention(attn, True) == 1 and isinstance(attn.processor.inner, tb.LeanAttnProcessor)
+        assert torch.equal(attn(h), y0)
+        attn.rescale_output_factor = 2.0  # a feature it does not handle: diffusers' processor runs
+        torch.testing.assert_close(attn(h), y0 / 2.0)
+    tb.set_lean_attention(attn, False)
+    assert type(attn.processor.inner) is AttnProcessor2_0
+
+
+@pytest.fixture
+def unet64(tiny_ip2p):
+    """The tiny InstructPix2Pix UNet in float64 with the lean attention (a copy per test)."""
+    unet = copy.deepcopy(tiny_ip2p.unet).double().eval()
+    tb.set_lean_attention(unet, True)
+    return unet
+
+
+def _perturb_biases(unet):
+    """Give every bias a visible value (random models may start them at zero, which would hide a
+    bias carried to the wrong place)."""
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for m in unet.modules():
+            if type(m) is torch.nn.Linear and m.bias is not None:
+                m.bias.copy_(torch.randn(m.bias.shape, generator=gen, dtype=m.bias.dtype))
+
+
+def test_fused_blocks_equal_diffusers_in_float64(unet64, unet_inputs):
+    _perturb_biases(unet64)
+    x, t, e = unet_inputs(unet64, torch.float64)
+    with torch.no_grad():
+        ref = unet64(x, t, encoder_hidden_states=e).sample
+        n = tb.set_fused_transformer(unet64, True)
+        assert n == len(_blocks(unet64)) > 0
+        assert tb.set_fused_transformer(unet64, True) == n  # idempotent
+        got = unet64(x, t, encoder_hidden_states=e).sample
+    torch.testing.assert_close(got, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
+    assert tb.set_fused_transformer(unet64, False) == 0
+    assert not any("forward" in b.__dict__ or "_tiger_fused_weights" in b.__dict__ for b in _blocks(unet64))
+
+
+def test_fused_block_in_bfloat16_is_as_close_to_float64_as_diffusers(unet64, unet_inputs):
+    _perturb_biases(unet64)
+    block = _blocks(unet64)[0]
+    gen = torch.Generator().manual_seed(1)
+    c = block.norm1.normalized_shape[0]
+    h = torch.randn(3, 16, c, generator=gen, dtype=torch.float64)
+    text = torch.randn(3, 77, block.attn2.to_k.in_features, generator=gen, dtype=torch.float64)
+    with torch.no_grad():
+        ref = block(h.clone(), encoder_hidden_states=text)
+        b16 = copy.deepcopy(block).bfloat16()
+        theirs = b16(h.bfloat16(), encoder_hidden_states=text.bfloat16()).double()
+        tb.set_fused_transformer(b16, True)
+        ours = b16(h.bfloat16(), encoder_hidden_states=text.bfloat16()).double()
+    err_ours, err_theirs = (float((v - ref).norm() / ref.norm()) for v in (ours, theirs))
+    assert err_ours < 0.02 and err_ours <= 1.5 * err_theirs, (err_ours, err_theirs)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float32])
+def test_fused_block_on_cuda_is_as_close_to_float64_as_diffusers(unet64, dtype):
+    """cuBLAS's in-place accumulation and the LayerNorm kernel's input bias, in a CUDA graph too."""
+    _perturb_biases(unet64)
+    block = _blocks(unet64)[-1]
+    gen = torch.Generator().manual_seed(2)
+    c = block.norm1.normalized_shape[0]
+    h = torch.randn(4, 64, c, generator=gen, dtype=torch.float64)
+    text = torch.randn(4, 77, block.attn2.to_k.in_features, generator=gen, dtype=torch.float64)
+    with torch.no_grad():
+        ref = block(h.clone(), encoder_hidden_states=text)
+        dev = copy.deepcopy(block).to("cuda", dtype)
+        hd, td = h.to("cuda", dtype), text.to("cuda", dtype)
+        theirs = dev(hd.clone(), encoder_hidden_states=td).double().cpu()
+        assert tb.set_fused_transformer(dev, True) == 1
+        ours = dev(hd.clone(), encoder_hidden_states=td).double().cpu()
+        graph, x = torch.cuda.CUDAGraph(), hd.clone()
+        s = torch.cuda.Stream()
+        s.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(s):
+            dev(hd.clone(), encoder_hidden_states=td)
+            with torch.cuda.graph(graph, stream=s):
+                out = dev(x, encoder_hidden_states=td)
+        torch.cuda.current_stream().wait_stream(s)
+        x.copy_(hd)
+        graph.replay()
+        torch.cuda.synchronize()
+    assert torch.equal(out.double().cpu(), ours)
+    err_ours, err_theirs = (float((v - ref).norm() / ref.norm()) for v in (ours, theirs))
+    bound = 0.02 if dtype == torch.bfloat16 else 1e-5
+    assert err_ours < bound and err_ours <= 1.5 * err_theirs + 1e-7, (err_ours, err_theirs)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.float16, torch.float64])
+def test_the_extra_geglu_column_is_one(unet64, dtype):
+    """The GEGLU projection's extra pairs give exactly 1 then zeros, for any input."""
+    block = copy.deepcopy(_blocks(unet64)[0]).to(dtype)
+    d = tb._derive(block)
+    f = block.ff.net[2].in_features
+    n = torch.randn(5, block.norm3.normalized_shape[0], dtype=torch.float64).to(dtype)
+    g = geglu(F.linear(n, d.proj_weight, d.proj_bias))
+    assert g.shape == (5, f + 8)
+    one = 1 - 1e-15 if dtype == torch.float64 else 1.0  # erf(8/sqrt 2) is 1 in float32, not in float64
+    torch.testing.assert_close(g[:, f].double(), torch.full((5,), one, dtype=torch.float64), atol=1e-15, rtol=0)
+    assert bool((g[:, f + 1:] == 0).all())
+    torch.testing.assert_close(g[:, :f], geglu(block.ff.net[0].proj(n)))  # the same up to summation order
+
+
+def test_fused_block_writes_into_its_input_and_falls_back(unet64):
+    block = _blocks(unet64)[0]
+    tb.set_fused_transformer(block, True)
+    c = block.norm1.normalized_shape[0]
+    h = torch.randn(2, 9, c, dtype=torch.float64)
+    text = torch.randn(2, 77, block.attn2.to_k.in_features, dtype=torch.float64)
+    with torch.no_grad():
+        keep = h.clone()
+        out = block(h, encoder_hidden_states=text)
+        assert out.data_ptr() == h.data_ptr() and not torch.equal(h, keep)  # in place
+        h2 = keep.clone()
+        block.train()
+        ref = block(h2, encoder_hidden_states=text)  # training mode: diffusers' forward
+        block.eval()
+        assert torch.equal(h2, keep) and ref.data_ptr() != h2.data_ptr()
+    torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
+    h3 = keep.clone()
+    with_grad = block(h3, encoder_hidden_states=text)  # gradients on: diffusers' forward
+    assert torch.equal(h3, keep)
+    torch.testing.assert_close(with_grad.detach(), ref, atol=1e-12, rtol=0)
+    h4 = keep.clone()
+    with torch.no_grad():  # a mask is one of the features left to diffusers: its forward runs
+        block(h4, encoder_hidden_states=text, encoder_attention_mask=torch.zeros(2, 1, 77, dtype=torch.float64))
+    assert torch.equal(h4, keep)
+
+
+def test_fused_block_derives_again_when_a_weight_changes(unet64):
+    block = _blocks(unet64)[0]
+    tb.set_fused_transformer(block, True)
+    c = block.norm1.normalized_shape[0]
+    h = torch.randn(2, 9, c, dtype=torch.float64)
+    text = torch.randn(2, 77, block.attn2.to_k.in_features, dtype=torch.float64)
+    with torch.no_grad():
+        block(h.clone(), encoder_hidden_states=text)
+        block.attn1.to_out[0].bias.add_(0.5)
+        block.ff.net[2].weight.mul_(1.5)
+        got = block(h.clone(), encoder_hidden_states=text)
+        tb.set_fused_transformer(block, False)
+        ref = block(h.clone(), encoder_hidden_states=text)
+    torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
+
+
+def test_what_is_not_fused(tiny_models, unet64):
+    from tiger.edit.guidance.mvdream import load_mvdream
+
+    mv = load_mvdream(tiny_models / "mvdream", fused_norms=False)
+    tb.set_lean_attention(mv.unet, True)
+    assert tb.set_fused_transformer(mv.unet, True) == 0  # multi-view self-attention
+    mk.set_matmul_precision(unet64.float(), "fp8", emulate=True)
+    assert tb.set_fused_transformer(unet64, True) == 0  # FP8 layers
+    mk.set_matmul_precision(unet64, "model")
+    assert tb.set_fused_transformer(unet64, True) == len(_blocks(unet64))
+
+
+def test_apply_model_kernels_fuses_on_cuda_models_only(tiny_ip2p):
+    unet, vae = copy.deepcopy(tiny_ip2p.unet), tiny_ip2p.vae
+    assert mk.apply_model_kernels(unet, vae, mk.ModelKernels())["fused_transformer_blocks"] == 0  # CPU: auto = off
+    got = mk.apply_model_kernels(unet, vae, mk.ModelKernels(fused_transformer=True))
+    assert got["fused_transformer_blocks"] == len(_blocks(unet)) > 0
+    assert mk.apply_model_kernels(unet, vae, mk.ModelKernels(fused_transformer=False))["fused_transformer_blocks"] == 0

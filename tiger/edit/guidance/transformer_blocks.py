@@ -1,0 +1,275 @@
+"""The guidances' UNet transformer layers: the lean attention processor and the fused transformer
+blocks (:class:`~tiger.edit.guidance.model_kernels.ModelKernels` fields ``lean_attention`` and
+``fused_transformer``).
+
+A diffusers ``BasicTransformerBlock`` (LayerNorm, self-attention, LayerNorm, cross-attention,
+LayerNorm, GEGLU feed-forward, each sub-layer added to the residual stream) spends a quarter of its
+non-attention time on three residual adds, each a full read of two token maps and a write of one.
+The fused block (forward, without autograd) moves them into the output matmuls:
+
+- the residual stream ``h`` is the matmul's accumulator: ``h += o · W_outᵀ`` (``addmm_``, one
+  read and one write of ``h`` inside the GEMM);
+- the attention outputs' biases, which that matmul cannot add, are carried instead of added: the
+  next LayerNorm normalises ``h + b`` (:func:`tiger.ops.layer_norm.layer_norm_rows`'
+  ``input_bias``), and the feed-forward's output matmul adds all of them with its own bias through
+  one extra input column: the GEGLU projection gets 8 extra output pairs whose weights are zero
+  and whose biases are (0.125, 8) for the first and (0, 0) for the others, so the GEGLU's extra
+  outputs are ``0.125 · gelu(8) = 1`` (erf(8/√2) is 1 in float32) and zeros, and the output
+  matmul's extra column holds ``b_ff + b_attn1 + b_attn2``. The block's output is the residual
+  stream with every bias added, as diffusers computes it;
+- the self-attention's q, k, v come from one matmul on stacked weights (and the cross-attention's
+  k, v from one on the text), read as strided views by SDPA.
+
+Same sums; the roundings differ: each residual sum is rounded once instead of twice, and the
+summed biases are rounded once to the model's dtype. The derived weights are built once from the
+block's (frozen) weights and rebuilt when a source parameter changes (its version counter). The
+block writes its output into its input tensor (the UNet's transformer passes each block a map it
+owns and never reads again); with gradients enabled, in training mode, with masks or other
+arguments, or on a block whose derived weights are elsewhere, diffusers' forward runs.
+"""
+from __future__ import annotations
+
+import types
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+
+from tiger.ops.fp8_rows import geglu
+from tiger.ops.layer_norm import layer_norm_rows
+from tiger.utils.lazy import require_diffusers
+
+__all__ = ["LeanAttnProcessor", "set_lean_attention", "set_fused_transformer"]
+
+# The GEGLU projection's extra outputs: pairs (a, g) giving a · gelu(g) = 1, then 0 (one 16-byte
+# vector of bfloat16 per half, so rows stay aligned).
+_EXTRA = 8
+_ONE_A, _ONE_G = 0.125, 8.0
+
+
+# -- lean attention -------------------------------------------------------------------------------
+class LeanAttnProcessor:
+    """diffusers 0.42's ``AttnProcessor2_0`` for the layers these UNets have (token input [B, L, C],
+    no mask, no norms, no residual, output factor 1): q/k/v projections, SDPA (its default scale,
+    as diffusers), output projection and dropout, without the division by
+    ``rescale_output_factor`` = 1 that costs a pass over every attention output. Anything else
+    goes to the processor it replaced (``fallback``)."""
+
+    def __init__(self, fallback) -> None:
+        self.fallback = fallback
+
+    @staticmethod
+    def plain(attn) -> bool:
+        """Whether the layer has none of the features this processor leaves to diffusers."""
+        return (attn.spatial_norm is None and attn.group_norm is None and not attn.norm_cross
+                and attn.norm_q is None and attn.norm_k is None and not attn.residual_connection
+                and attn.rescale_output_factor == 1.0)
+
+    @classmethod
+    def handles(cls, attn, hidden_states: torch.Tensor, attention_mask, args: tuple, kwargs: dict) -> bool:
+        return (attention_mask is None and hidden_states.ndim == 3 and not args and kwargs.get("scale") is None
+                and cls.plain(attn))
+
+    def __call__(self, attn, hidden_states: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor] = None,
+                 attention_mask: Optional[torch.Tensor] = None, temb: Optional[torch.Tensor] = None,
+                 *args: object, **kwargs: object) -> torch.Tensor:
+        if not self.handles(attn, hidden_states, attention_mask, args, kwargs):
+            return self.fallback(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
+        b = hidden_states.shape[0]
+        context = hidden_states if encoder_hidden_states is None else encoder_hidden_states
+        query, key, value = attn.to_q(hidden_states), attn.to_k(context), attn.to_v(context)
+        head_dim = key.shape[-1] // attn.heads
+        q, k, v = (t.view(b, -1, attn.heads, head_dim).transpose(1, 2) for t in (query, key, value))
+        out = F.scaled_dot_product_attention(q, k, v, dropout_p=0.0, is_causal=False)
+        out = out.transpose(1, 2).reshape(b, -1, attn.heads * head_dim).to(query.dtype)
+        return attn.to_out[1](attn.to_out[0](out))
+
+
+def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
+    """Put :class:`LeanAttnProcessor` in front of the UNet's SDPA attention processors (also inside
+    MVDream's multi-view processor) (``on``), or take it away; returns how many layers have it."""
+    diffusers = require_diffusers("the lean attention")
+    sdpa = diffusers.models.attention_processor.AttnProcessor2_0
+    from diffusers.models.attention_processor import Attention
+
+    count = 0
+    for m in unet.modules():
+        if not isinstance(m, Attention):
+            continue
+        proc = m.processor
+        wraps = type(getattr(proc, "inner", None)) in (sdpa, LeanAttnProcessor)  # MVDream's multi-view processor
+        holder, attr = (proc, "inner") if wraps else (m, "processor")
+        current = getattr(holder, attr)
+        if on and type(current) is sdpa:
+            setattr(holder, attr, LeanAttnProcessor(current))
+        elif not on and type(current) is LeanAttnProcessor:
+            setattr(holder, attr, current.fallback)
+        count += type(getattr(holder, attr)) is LeanAttnProcessor
+    return count
+
+
+# -- fused transformer blocks ---------------------------------------------------------------------
+@dataclass
+class _Derived:
+    """A fused block's weights, derived from its parameters (``sources``, at ``versions``)."""
+
+    sources: tuple[torch.Tensor, ...]
+    versions: tuple[int, ...]
+    qkv_weight: torch.Tensor            # [3I, C]: attn1's to_q, to_k, to_v stacked
+    qkv_bias: Optional[torch.Tensor]    # [3I] or None
+    kv_weight: torch.Tensor             # [2I, D]: attn2's to_k, to_v stacked (D: the text's width)
+    kv_bias: Optional[torch.Tensor]
+    norm2_shift: torch.Tensor           # [C]: attn1's output bias, carried into norm2
+    norm3_shift: torch.Tensor           # [C]: attn1's + attn2's output biases, carried into norm3
+    proj_weight: torch.Tensor           # [2(F + 8), C]: the GEGLU projection with the extra pairs
+    proj_bias: torch.Tensor             # [2(F + 8)]
+    out_weight: torch.Tensor            # [C, F + 8]: the feed-forward output with the biases' column
+
+
+def _linear_parts(layer: torch.nn.Linear) -> tuple[torch.Tensor, torch.Tensor]:
+    bias = layer.bias if layer.bias is not None else torch.zeros_like(layer.weight[:, 0])
+    return layer.weight, bias
+
+
+def _stack(layers: list[torch.nn.Linear]) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    weight = torch.cat([m.weight for m in layers])
+    if all(m.bias is None for m in layers):
+        return weight, None
+    return weight, torch.cat([_linear_parts(m)[1] for m in layers])
+
+
+def _sources(block) -> tuple[torch.Tensor, ...]:
+    a1, a2, ff = block.attn1, block.attn2, block.ff
+    layers = [a1.to_q, a1.to_k, a1.to_v, a1.to_out[0], a2.to_k, a2.to_v, a2.to_out[0], ff.net[0].proj, ff.net[2]]
+    return tuple(p for m in layers for p in (m.weight, m.bias) if p is not None)
+
+
+def _derive(block) -> _Derived:
+    """The fused block's weights from ``block``'s (module docstring), in the weights' dtype; the
+    summed biases are added in float32 (float64 for float64) and rounded once."""
+    a1, a2, ff = block.attn1, block.attn2, block.ff
+    with torch.no_grad():
+        qkv_w, qkv_b = _stack([a1.to_q, a1.to_k, a1.to_v])
+        kv_w, kv_b = _stack([a2.to_k, a2.to_v])
+        b1, b2 = _linear_parts(a1.to_out[0])[1], _linear_parts(a2.to_out[0])[1]
+        proj_w, proj_b = _linear_parts(ff.net[0].proj)
+        out_w, out_b = _linear_parts(ff.net[2])
+        acc = torch.float64 if out_w.dtype == torch.float64 else torch.float32
+        f, c = out_w.shape[1], proj_w.shape[1]
+        zeros = proj_w.new_zeros(_EXTRA, c)
+        pair_a, pair_g = proj_b.new_zeros(_EXTRA), proj_b.new_zeros(_EXTRA)
+        pair_a[0], pair_g[0] = _ONE_A, _ONE_G
+        carried = (out_b.to(acc) + b1.to(acc) + b2.to(acc)).to(out_w.dtype)
+        bias_columns = out_w.new_zeros(out_w.shape[0], _EXTRA)
+        bias_columns[:, 0] = carried
+        sources = _sources(block)
+        return _Derived(
+            sources=sources, versions=tuple(p._version for p in sources),
+            qkv_weight=qkv_w, qkv_bias=qkv_b, kv_weight=kv_w, kv_bias=kv_b,
+            norm2_shift=b1.clone(), norm3_shift=(b1.to(acc) + b2.to(acc)).to(b1.dtype),
+            proj_weight=torch.cat([proj_w[:f], zeros, proj_w[f:], zeros]),
+            proj_bias=torch.cat([proj_b[:f], pair_a, proj_b[f:], pair_g]),
+            out_weight=torch.cat([out_w, bias_columns], dim=1).contiguous())
+
+
+def _derived(block) -> _Derived:
+    d = block.__dict__["_tiger_fused_weights"]
+    if d.versions != tuple(p._version for p in d.sources):  # a parameter changed in place: derive again
+        d = block.__dict__["_tiger_fused_weights"] = _derive(block)
+    return d
+
+
+def _heads(t: torch.Tensor, b: int, heads: int) -> torch.Tensor:
+    """[B·L, heads·d] (a strided view is fine) → [B, heads, L, d] view."""
+    return t.unflatten(-1, (heads, -1)).unflatten(0, (b, -1)).transpose(1, 2)
+
+
+def _attend(attn, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, b: int) -> torch.Tensor:
+    """SDPA over [B·L, I] token rows (strided views allowed) → [B·L, I] (a view of SDPA's output)."""
+    out = F.scaled_dot_product_attention(_heads(q, b, attn.heads), _heads(k, b, attn.heads), _heads(v, b, attn.heads),
+                                         dropout_p=0.0, is_causal=False)
+    return out.transpose(1, 2).reshape(q.shape[0], -1)
+
+
+def _fused_block_forward(self, hidden_states: torch.Tensor, attention_mask: Optional[torch.Tensor] = None,
+                         encoder_hidden_states: Optional[torch.Tensor] = None,
+                         encoder_attention_mask: Optional[torch.Tensor] = None, timestep=None,
+                         cross_attention_kwargs=None, class_labels=None, added_cond_kwargs=None) -> torch.Tensor:
+    """``BasicTransformerBlock.forward`` with the residual adds inside the output matmuls (module
+    docstring); writes the result into ``hidden_states`` and returns it."""
+    d = self.__dict__.get("_tiger_fused_weights")
+    x = hidden_states
+    if (torch.is_grad_enabled() or self.training or d is None or attention_mask is not None
+            or encoder_attention_mask is not None or timestep is not None or class_labels is not None
+            or cross_attention_kwargs or added_cond_kwargs or encoder_hidden_states is None or x.ndim != 3
+            or not x.is_contiguous() or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
+            or encoder_hidden_states.dtype != x.dtype):
+        return type(self).forward(self, hidden_states, attention_mask, encoder_hidden_states, encoder_attention_mask,
+                                  timestep, cross_attention_kwargs, class_labels, added_cond_kwargs)
+    d = _derived(self)
+    b, c = x.shape[0], x.shape[-1]
+    h = x.view(-1, c)  # the residual stream, updated in place
+    a1, a2 = self.attn1, self.attn2
+
+    n = layer_norm_rows(h, self.norm1.weight, self.norm1.bias, self.norm1.eps)
+    q, k, v = F.linear(n, d.qkv_weight, d.qkv_bias).chunk(3, dim=-1)
+    h.addmm_(_attend(a1, q, k, v, b), a1.to_out[0].weight.t())
+
+    n = layer_norm_rows(h, self.norm2.weight, self.norm2.bias, self.norm2.eps, input_bias=d.norm2_shift)
+    text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
+    k, v = F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1)
+    h.addmm_(_attend(a2, a2.to_q(n), k, v, b), a2.to_out[0].weight.t())
+
+    n = layer_norm_rows(h, self.norm3.weight, self.norm3.bias, self.norm3.eps, input_bias=d.norm3_shift)
+    h.addmm_(geglu(F.linear(n, d.proj_weight, d.proj_bias)), d.out_weight.t())
+    return x
+
+
+def _fusable(block) -> bool:
+    """A plain self- plus cross-attention block with LayerNorms and a GEGLU feed-forward whose
+    attentions run diffusers' SDPA processor or :class:`LeanAttnProcessor` directly."""
+    from diffusers.models.activations import GEGLU
+    from diffusers.models.attention import BasicTransformerBlock
+    from diffusers.models.attention_processor import AttnProcessor2_0
+
+    if type(block) is not BasicTransformerBlock:
+        return False
+    a1, a2, ff = block.attn1, block.attn2, block.ff
+    norms_plain = all(type(m) is torch.nn.LayerNorm and m.weight is not None and len(m.normalized_shape) == 1
+                      for m in (block.norm1, block.norm2, block.norm3))
+
+    def attention_plain(attn, cross: bool) -> bool:
+        linear = all(type(m) is torch.nn.Linear for m in (attn.to_q, attn.to_k, attn.to_v, attn.to_out[0]))
+        return (attn is not None and type(attn.processor) in (AttnProcessor2_0, LeanAttnProcessor) and linear
+                and LeanAttnProcessor.plain(attn) and attn.is_cross_attention == cross
+                and len(attn.to_out) == 2 and isinstance(attn.to_out[1], torch.nn.Dropout)
+                and attn.to_out[0].out_features == attn.to_q.in_features)
+
+    ff_plain = (ff is not None and len(ff.net) in (3, 4) and type(ff.net[0]) is GEGLU
+                and type(ff.net[0].proj) is torch.nn.Linear and type(ff.net[2]) is torch.nn.Linear
+                and isinstance(ff.net[1], torch.nn.Dropout)
+                and all(isinstance(m, torch.nn.Dropout) for m in ff.net[3:]))
+    return (block.norm_type == "layer_norm" and block.pos_embed is None and not block.only_cross_attention
+            and block._chunk_size is None and not hasattr(block, "fuser") and norms_plain and ff_plain
+            and attention_plain(a1, False) and a2 is not None and attention_plain(a2, True))
+
+
+def set_fused_transformer(unet: torch.nn.Module, on: bool) -> int:
+    """Give the UNet's plain ``BasicTransformerBlock`` s the fused forward (``on``; module
+    docstring) or diffusers' again; returns how many blocks run fused afterwards. Blocks whose
+    attentions or feed-forward are anything else (MVDream's multi-view attention, FP8 layers)
+    keep diffusers' forward."""
+    require_diffusers("the fused transformer blocks")
+    count = 0
+    for m in unet.modules():
+        fusable = on and _fusable(m)
+        if fusable:
+            if "_tiger_fused_weights" not in m.__dict__:
+                m.__dict__["_tiger_fused_weights"] = _derive(m)
+            m.forward = types.MethodType(_fused_block_forward, m)
+            count += 1
+        elif "_tiger_fused_weights" in m.__dict__:
+            m.__dict__.pop("_tiger_fused_weights")
+            m.__dict__.pop("forward", None)
+    return count
