@@ -14,6 +14,21 @@ from torch import Tensor
 from tests.render.standard_scenes import heavy_tailed_scene, standard_camera, standard_scene  # noqa: F401
 
 
+def _addmm_inplace_flops(self_shape, a_shape, b_shape, out_shape=None, **kwargs) -> int:
+    return 2 * a_shape[0] * a_shape[1] * b_shape[1]
+
+
+def count_flops(fn: Callable[[], object]) -> float:
+    """FLOPs of one ``fn()`` call by ``torch.utils.flop_counter``, counting in-place ``addmm_``
+    too (the fused transformer blocks accumulate their residual stream that way; torch's counter
+    has no formula for it)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False, custom_mapping={torch.ops.aten.addmm_: _addmm_inplace_flops}) as counter:
+        fn()
+    return float(counter.get_total_flops())
+
+
 def rel_err(a: Tensor, b: Tensor) -> float:
     """Norm-wise relative error ||a - b|| / ||b|| in float64."""
     a, b = a.detach().double(), b.detach().double().to(a.device)

@@ -26,7 +26,7 @@ from typing import Optional
 
 import torch
 
-from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
+from benchmarks.common import count_flops, cpu_time_ms, cuda_time_ms, print_table  # noqa: E402
 
 from tiger.edit.guidance.base import ViewBatch  # noqa: E402
 from tiger.edit.guidance.fused_norms import apply_fused_norms  # noqa: E402
@@ -156,11 +156,7 @@ def split_ms(guidance, renders: torch.Tensor, views: ViewBatch, cuda: bool, reps
 
 
 def step_flops(guidance, renders: torch.Tensor, views: ViewBatch) -> float:
-    from torch.utils.flop_counter import FlopCounterMode
-
-    with FlopCounterMode(display=False) as counter:
-        guidance.grad(renders, views)
-    return float(counter.get_total_flops())
+    return count_flops(lambda: guidance.grad(renders, views))
 
 
 def make_guidances(ip2p_models, mv_models, graph: bool, size: str):

@@ -63,7 +63,7 @@ import types
 from pathlib import Path
 import torch
 
-from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table
+from benchmarks.common import count_flops, cpu_time_ms, cuda_time_ms, print_table
 from benchmarks.guidance import H100_BF16_TFLOPS, build_models, ring, tokenizer
 from tiger.edit.csd import CSDGuidance
 from tiger.edit.guidance.base import ViewBatch
@@ -75,9 +75,11 @@ from tiger.edit.guidance.mvdream import MVDreamGuidance
 from tiger.utils.dtypes import DTYPE_NAMES
 
 PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
-                        subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False)
+                        subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False,
+                        fused_transformer=False)
 DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
-                          subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True)
+                          subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True,
+                          fused_transformer=True)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -175,11 +177,7 @@ def attention_backends(flash_first: bool):
 
 
 def step_flops(fn) -> float:
-    from torch.utils.flop_counter import FlopCounterMode
-
-    with FlopCounterMode(display=False) as counter:
-        fn()
-    return float(counter.get_total_flops())
+    return count_flops(fn)
 
 
 def cosine_rel(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
