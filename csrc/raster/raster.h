@@ -22,12 +22,14 @@
 // rasterize_backward_colors: the features-only backward: gradients w.r.t. colors and
 //   background only (geometry and opacity frozen); walks front to back, no division.
 // trainable (optional, all three ops): bool [N] (N the stacked count with views > 1): the
-//   Gaussians whose gradients are wanted. The backward ops still walk every listed Gaussian
-//   (the frozen ones shape the transmittance and the colour behind), but add no gradient for
-//   a frozen one: its rows of v_geometry and v_colors are zero, and on CUDA it costs no
-//   reduction and no atomics. The trainable ones' gradients are those of the full backward
-//   (the same sums; on CUDA up to the atomics' order). rasterize only checks and carries it
-//   for its autograd formula.
+//   Gaussians whose gradients are wanted. The backward ops still walk the frozen Gaussians
+//   behind a trainable one (they shape the transmittance and the colour behind), but add no
+//   gradient for a frozen one: its rows of v_geometry and v_colors are zero, and on CUDA it
+//   costs no reduction and no atomics. On CUDA the full backward's back-to-front walk of a tile
+//   also stops at its front-most trainable Gaussian, and tiles without one only add their
+//   background gradient (an edit's views: most tiles). The trainable ones' gradients are those
+//   of the full backward (the same sums; on CUDA up to the atomics' order). rasterize only
+//   checks and carries it for its autograd formula.
 //
 // Kernel choices of the CUDA kernels (op arguments, float32 only: float64 runs blocks of 8
 // channels, one pixel per thread; the CPU kernels only check them). Every choice gives the same

@@ -310,6 +310,30 @@ __device__ __forceinline__ int block_max_count(const RasterLaunch<T>& a, const i
   return *s_max;
 }
 
+// The list rank of the tile's front-most trainable Gaussian among its first max_cnt entries;
+// max_cnt when there is none, 0 when every Gaussian is trainable (a.trainable null). The
+// back-to-front walk stops there: the entries in front of it are frozen, and the state a
+// trainable Gaussian's gradient needs (transmittance in front, colour and depth behind) comes
+// from behind it, so skipping them changes no value. Tiles the edited object does not reach
+// skip the walk altogether.
+template <typename T>
+__device__ __forceinline__ int first_trainable_rank(const RasterLaunch<T>& a, int tile, int max_cnt, int* s_first) {
+  if (a.trainable == nullptr) return 0;
+  const int64_t start = a.tile_offsets[tile];
+  for (int r0 = 0; r0 < max_cnt; r0 += blockDim.x) {  // max_cnt is uniform: every thread loops alike
+    const int r = r0 + int(threadIdx.x);
+    const bool hit = r < max_cnt && a.trainable[a.ids[start + r]];
+    if (__syncthreads_or(hit)) {
+      if (threadIdx.x == 0) *s_first = max_cnt;
+      __syncthreads();
+      if (hit) atomicMin(s_first, r);
+      __syncthreads();
+      return *s_first;
+    }
+  }
+  return max_cnt;
+}
+
 // Adds the block's sum of vals[c] (one per thread) to v_bg_tiles[tile, c0 + c].
 template <int CB, typename T>
 __device__ __forceinline__ void block_background_grad(T (&vals)[CB], int C, int c0, int tile,
@@ -416,7 +440,7 @@ struct BackPixel {
 template <int CB, int PPT, typename T, typename TC>
 __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC* colors,
                                               const BackwardIO<T>& io, const TilePixels<PPT>& p,
-                                              int max_cnt, int c0, bool first,
+                                              int max_cnt, int min_rank, int c0, bool first,
                                               SplatGeom<T>* s_geom, int32_t* s_id, T* s_col,
                                               T* s_bg) {
   const int C = a.channels;
@@ -456,8 +480,9 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
     for (int k = 0; k < PPT; ++k) tfin[k] = s[k].Tfin;
     background_grads<CB, PPT>(vc, tfin, C, c0, p.tile, s_bg, io.v_bg_tiles);
   }
-  for (int64_t b1 = start + max_cnt; b1 > start; b1 -= BS) {
-    const int64_t b0 = b1 - BS > start ? b1 - BS : start;
+  const int64_t stop = start + min_rank;  // entries in front of min_rank are frozen
+  for (int64_t b1 = start + max_cnt; b1 > stop; b1 -= BS) {
+    const int64_t b0 = b1 - BS > stop ? b1 - BS : stop;
     const int nb = int(b1 - b0);
     __syncthreads();
     load_batch_geometry(a, b0, nb, s_geom, s_id);
@@ -545,14 +570,16 @@ __global__ void __launch_bounds__(256) backward_kernel(RasterLaunch<T> a, const 
   int* s_max = s_id + BS;
   const TilePixels<PPT> p = tile_pixels<PPT>(a);
   const int max_cnt = block_max_count<PPT>(a, io.count, p, s_max);
+  const int min_rank = first_trainable_rank(a, p.tile, max_cnt, s_max + 1);
   int c0 = 0;
   if constexpr (CBM > 0) {
     for (int k = 0; k < n_main; ++k, c0 += CBM)
-      backward_walk<CBM, PPT>(a, colors, io, p, max_cnt, c0, k == 0, s_geom, s_id, s_col,
+      backward_walk<CBM, PPT>(a, colors, io, p, max_cnt, min_rank, c0, k == 0, s_geom, s_id, s_col,
                               s_bg);
   }
   if constexpr (CBT > 0)
-    backward_walk<CBT, PPT>(a, colors, io, p, max_cnt, c0, c0 == 0, s_geom, s_id, s_col, s_bg);
+    backward_walk<CBT, PPT>(a, colors, io, p, max_cnt, min_rank, c0, c0 == 0, s_geom, s_id, s_col,
+                            s_bg);
 }
 
 // ----------------------------------------------------------------------------------------

@@ -37,14 +37,15 @@ def _grads(per_view, views, cols, bg, trainable, features_only, kernels, device)
 @pytest.mark.parametrize("features_only", [False, True])
 @pytest.mark.parametrize("kernels", [RasterKernelSettings(), RasterKernelSettings(backward_pixels_per_thread=1)],
                          ids=["2px", "1px"])
+@pytest.mark.parametrize("share", [0.3, 0.03])  # 3 %: most tiles have none, the rest few (the CUDA walk's early stop)
 def test_trainable_mask_keeps_the_trainable_gradients_and_zeroes_the_frozen(device, dtype, views,
-                                                                            features_only, kernels):
+                                                                            features_only, kernels, share):
     per_view = _views(views, n=200, dtype=dtype, seed=9, device=device, w=CW, h=CH)
     n = views * per_view[0][0].shape[0]
     g = torch.Generator().manual_seed(10)
     cols = torch.rand(n, 3, generator=g, dtype=dtype).to(device)
     bg = torch.rand(3, generator=g, dtype=dtype).to(device)
-    trainable = (torch.rand(n, generator=g) < 0.3).to(device)
+    trainable = (torch.rand(n, generator=g) < share).to(device)
     trainable[:3] = False  # the large Gaussians (every tile) frozen: they shape the others' gradients
     color_all, full = _grads(per_view, views, cols, bg, None, features_only, kernels, device)
     color_some, masked = _grads(per_view, views, cols, bg, trainable, features_only, kernels, device)
