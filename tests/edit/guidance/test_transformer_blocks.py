@@ -198,6 +198,23 @@ def test_fused_block_derives_again_when_a_weight_changes(unet64):
     torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
 
 
+def test_fused_block_follows_a_dtype_change(unet64):
+    block = _blocks(unet64)[0]
+    tb.set_fused_transformer(block, True)
+    c = block.norm1.normalized_shape[0]
+    h = torch.randn(2, 9, c)
+    text = torch.randn(2, 77, block.attn2.to_k.in_features)
+    block.float()  # .to() replaces the parameters' data without an in-place version bump
+    with torch.no_grad():
+        keep = h.clone()
+        out = block(h, encoder_hidden_states=text)
+        assert out.data_ptr() == h.data_ptr()  # the fused path ran on the float32 weights
+        assert block.__dict__["_tiger_fused_weights"].qkv_weight.dtype == torch.float32
+        tb.set_fused_transformer(block, False)
+        ref = block(keep, encoder_hidden_states=text)
+    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
+
+
 def test_what_is_not_fused(tiny_models, unet64):
     from tiger.edit.guidance.mvdream import load_mvdream
 

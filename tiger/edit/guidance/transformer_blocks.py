@@ -22,7 +22,8 @@ The fused block (forward, without autograd) moves them into the output matmuls:
 
 Same sums; the roundings differ: each residual sum is rounded once instead of twice, and the
 summed biases are rounded once to the model's dtype. The derived weights are built once from the
-block's (frozen) weights and rebuilt when a source parameter changes (its version counter). The
+block's (frozen) weights and rebuilt when a source parameter changes (its version counter) or the
+block moves to another device or dtype. The
 block writes its output into its input tensor (the UNet's transformer passes each block a map it
 owns and never reads again); with gradients enabled, in training mode, with masks or other
 arguments, or on a block whose derived weights are elsewhere, diffusers' forward runs.
@@ -174,8 +175,12 @@ def _derive(block) -> _Derived:
 
 
 def _derived(block) -> _Derived:
+    """The block's derived weights, derived again when a parameter changed in place (its version
+    counter) or the block moved to another device or dtype."""
     d = block.__dict__["_tiger_fused_weights"]
-    if d.versions != tuple(p._version for p in d.sources):  # a parameter changed in place: derive again
+    w = block.attn1.to_q.weight
+    if (d.versions != tuple(p._version for p in d.sources) or d.qkv_weight.device != w.device
+            or d.qkv_weight.dtype != w.dtype):
         d = block.__dict__["_tiger_fused_weights"] = _derive(block)
     return d
 
@@ -198,16 +203,16 @@ def _fused_block_forward(self, hidden_states: torch.Tensor, attention_mask: Opti
                          cross_attention_kwargs=None, class_labels=None, added_cond_kwargs=None) -> torch.Tensor:
     """``BasicTransformerBlock.forward`` with the residual adds inside the output matmuls (module
     docstring); writes the result into ``hidden_states`` and returns it."""
-    d = self.__dict__.get("_tiger_fused_weights")
     x = hidden_states
-    if (torch.is_grad_enabled() or self.training or d is None or attention_mask is not None
-            or encoder_attention_mask is not None or timestep is not None or class_labels is not None
-            or cross_attention_kwargs or added_cond_kwargs or encoder_hidden_states is None or x.ndim != 3
-            or not x.is_contiguous() or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
+    plain_call = ("_tiger_fused_weights" in self.__dict__ and not torch.is_grad_enabled() and not self.training
+                  and attention_mask is None and encoder_attention_mask is None and timestep is None
+                  and class_labels is None and not cross_attention_kwargs and not added_cond_kwargs
+                  and encoder_hidden_states is not None and x.ndim == 3 and x.is_contiguous())
+    d = _derived(self) if plain_call else None
+    if (d is None or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
             or encoder_hidden_states.dtype != x.dtype):
         return type(self).forward(self, hidden_states, attention_mask, encoder_hidden_states, encoder_attention_mask,
                                   timestep, cross_attention_kwargs, class_labels, added_cond_kwargs)
-    d = _derived(self)
     b, c = x.shape[0], x.shape[-1]
     h = x.view(-1, c)  # the residual stream, updated in place
     a1, a2 = self.attn1, self.attn2
