@@ -200,6 +200,21 @@ def fixed_draws(ip: InstructPix2PixGuidance, mv: MVDreamGuidance, res: int, devi
                             vae_noise=torch.randn(mv_shape, generator=gen).to(device))}
 
 
+def default_cuda_guidances():
+    """Full-size random InstructPix2Pix and MVDream models on CUDA (bf16, fused norms) with the
+    ``default`` variant's kernels, and eager guidances on them: (ip_models, mv_models, ip, mv).
+    The kernel profiles (``benchmarks.gpu.guidance_kernel_profile``, ``benchmarks.gpu.group_norm_ncu``)
+    start here."""
+    torch.manual_seed(0)
+    ip_models, mv_models = build_models("full", "cuda", torch.bfloat16, tokenizer(Path(tempfile.mkdtemp())),
+                                        fused_norms=True)
+    kernels, folded = VARIANTS["default"][:2]
+    set_folded(ip_models, folded)
+    set_folded(mv_models, folded)
+    ip, mv = make_guidances(ip_models, mv_models, graph=False, size="full", kernels=kernels)
+    return ip_models, mv_models, ip, mv
+
+
 def make_guidances(ip_models, mv_models, graph: bool, size: str, kernels: mk.ModelKernels = PLAIN):
     kw = {} if size == "full" else {"short_side": 64}
     ip = InstructPix2PixGuidance(ip_models, "turn the fox into a red panda", cuda_graph=graph, kernels=kernels, **kw)

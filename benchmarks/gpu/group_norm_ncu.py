@@ -15,24 +15,16 @@ from __future__ import annotations
 
 import argparse
 import re
-import tempfile
 from pathlib import Path
 
 import torch
 
 
 def profiled_pass() -> None:
-    from benchmarks.guidance import build_models, tokenizer
-    from benchmarks.guidance_floor import VARIANTS, make_guidances, set_folded
+    from benchmarks.guidance_floor import default_cuda_guidances
     from tiger.edit.guidance.diffusers_models import render_gradient, vae_downsampling_factor
 
-    torch.manual_seed(0)
-    ip_models, mv_models = build_models("full", "cuda", torch.bfloat16, tokenizer(Path(tempfile.mkdtemp())),
-                                        fused_norms=True)
-    kernels, folded = VARIANTS["default"][:2]
-    set_folded(ip_models, folded)
-    set_folded(mv_models, folded)
-    make_guidances(ip_models, mv_models, graph=False, size="full", kernels=kernels)  # puts the kernels on
+    ip_models = default_cuda_guidances()[0]  # the guidances put the default kernels on the models
     res = 512
     lat = res // vae_downsampling_factor(ip_models.vae)
     renders = torch.rand(4, 3, res, res, device="cuda")

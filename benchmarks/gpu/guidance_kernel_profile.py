@@ -9,14 +9,12 @@ full-size random models, bf16, 4 views of 512². Prints per call the kernel time
 from __future__ import annotations
 
 import collections
-import tempfile
-from pathlib import Path
 
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from benchmarks.guidance import build_models, ring, tokenizer
-from benchmarks.guidance_floor import VARIANTS, make_guidances, set_folded
+from benchmarks.guidance import ring
+from benchmarks.guidance_floor import default_cuda_guidances
 from tiger.edit.guidance.base import ViewBatch
 
 # first match wins: cuDNN's attention before its convolutions, cuBLAS (nvjet) after them
@@ -66,13 +64,7 @@ def profile_calls(cases: dict, reps: int = 5) -> None:
 def main() -> None:
     if not torch.cuda.is_available():
         raise SystemExit("benchmarks.gpu.guidance_kernel_profile needs CUDA")
-    torch.manual_seed(0)
-    ip_models, mv_models = build_models("full", "cuda", torch.bfloat16, tokenizer(Path(tempfile.mkdtemp())),
-                                        fused_norms=True)
-    kernels, folded = VARIANTS["default"][:2]
-    set_folded(ip_models, folded)
-    set_folded(mv_models, folded)
-    ip, mv = make_guidances(ip_models, mv_models, graph=False, size="full", kernels=kernels)
+    ip_models, mv_models, ip, mv = default_cuda_guidances()
     res = 512
     renders = torch.rand(4, 3, res, res, device="cuda")
     originals = torch.rand(4, 3, res, res, device="cuda")

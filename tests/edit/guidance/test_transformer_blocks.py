@@ -65,6 +65,21 @@ def unet64(tiny_ip2p):
     return unet
 
 
+def _block_inputs(block, batch: int, tokens: int, seed: int):
+    """float64 tokens [batch, tokens, C] and text [batch, 77, D] for one call of ``block``."""
+    gen = torch.Generator().manual_seed(seed)
+    h = torch.randn(batch, tokens, block.norm1.normalized_shape[0], generator=gen, dtype=torch.float64)
+    return h, torch.randn(batch, 77, block.attn2.to_k.in_features, generator=gen, dtype=torch.float64)
+
+
+@pytest.fixture
+def fused_block(unet64):
+    """The tiny UNet's first transformer block, fused, and one float64 call's inputs (h, text)."""
+    block = _blocks(unet64)[0]
+    tb.set_fused_transformer(block, True)
+    return (block, *_block_inputs(block, 2, 9, seed=0))
+
+
 def _perturb_biases(unet):
     """Give every bias a visible value (random models may start them at zero, which would hide a
     bias carried to the wrong place)."""
@@ -92,10 +107,7 @@ def test_fused_blocks_equal_diffusers_in_float64(unet64, unet_inputs):
 def test_fused_block_in_bfloat16_is_as_close_to_float64_as_diffusers(unet64, unet_inputs):
     _perturb_biases(unet64)
     block = _blocks(unet64)[0]
-    gen = torch.Generator().manual_seed(1)
-    c = block.norm1.normalized_shape[0]
-    h = torch.randn(3, 16, c, generator=gen, dtype=torch.float64)
-    text = torch.randn(3, 77, block.attn2.to_k.in_features, generator=gen, dtype=torch.float64)
+    h, text = _block_inputs(block, 3, 16, seed=1)
     with torch.no_grad():
         ref = block(h.clone(), encoder_hidden_states=text)
         b16 = copy.deepcopy(block).bfloat16()
@@ -113,10 +125,7 @@ def test_fused_block_on_cuda_is_as_close_to_float64_as_diffusers(unet64, dtype):
     """cuBLAS's in-place accumulation and the LayerNorm kernel's input bias, in a CUDA graph too."""
     _perturb_biases(unet64)
     block = _blocks(unet64)[-1]
-    gen = torch.Generator().manual_seed(2)
-    c = block.norm1.normalized_shape[0]
-    h = torch.randn(4, 64, c, generator=gen, dtype=torch.float64)
-    text = torch.randn(4, 77, block.attn2.to_k.in_features, generator=gen, dtype=torch.float64)
+    h, text = _block_inputs(block, 4, 64, seed=2)
     with torch.no_grad():
         ref = block(h.clone(), encoder_hidden_states=text)
         dev = copy.deepcopy(block).to("cuda", dtype)
@@ -156,12 +165,8 @@ def test_the_extra_geglu_column_is_one(unet64, dtype):
     torch.testing.assert_close(g[:, :f], geglu(block.ff.net[0].proj(n)))  # the same up to summation order
 
 
-def test_fused_block_writes_into_its_input_and_falls_back(unet64):
-    block = _blocks(unet64)[0]
-    tb.set_fused_transformer(block, True)
-    c = block.norm1.normalized_shape[0]
-    h = torch.randn(2, 9, c, dtype=torch.float64)
-    text = torch.randn(2, 77, block.attn2.to_k.in_features, dtype=torch.float64)
+def test_fused_block_writes_into_its_input_and_falls_back(fused_block):
+    block, h, text = fused_block
     with torch.no_grad():
         keep = h.clone()
         out = block(h, encoder_hidden_states=text)
@@ -182,12 +187,8 @@ def test_fused_block_writes_into_its_input_and_falls_back(unet64):
     assert torch.equal(h4, keep)
 
 
-def test_fused_block_derives_again_when_a_weight_changes(unet64):
-    block = _blocks(unet64)[0]
-    tb.set_fused_transformer(block, True)
-    c = block.norm1.normalized_shape[0]
-    h = torch.randn(2, 9, c, dtype=torch.float64)
-    text = torch.randn(2, 77, block.attn2.to_k.in_features, dtype=torch.float64)
+def test_fused_block_derives_again_when_a_weight_changes(fused_block):
+    block, h, text = fused_block
     with torch.no_grad():
         block(h.clone(), encoder_hidden_states=text)
         block.attn1.to_out[0].bias.add_(0.5)
@@ -198,12 +199,9 @@ def test_fused_block_derives_again_when_a_weight_changes(unet64):
     torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
 
 
-def test_fused_block_follows_a_dtype_change(unet64):
-    block = _blocks(unet64)[0]
-    tb.set_fused_transformer(block, True)
-    c = block.norm1.normalized_shape[0]
-    h = torch.randn(2, 9, c)
-    text = torch.randn(2, 77, block.attn2.to_k.in_features)
+def test_fused_block_follows_a_dtype_change(fused_block):
+    block, h, text = fused_block
+    h, text = h.float(), text.float()
     block.float()  # .to() replaces the parameters' data without an in-place version bump
     with torch.no_grad():
         keep = h.clone()

@@ -68,7 +68,6 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 import torch
-import torch.nn.functional as F
 
 from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
 from tiger.ops.layer_norm import layer_norm_rows
