@@ -22,8 +22,9 @@ The fused block (forward, without autograd) moves them into the output matmuls:
 
 Same sums; the roundings differ: each residual sum is rounded once instead of twice, and the
 summed biases are rounded once to the model's dtype. The derived weights are built once from the
-block's (frozen) weights and rebuilt when a source parameter changes (its version counter) or the
-block moves to another device or dtype. The
+block's (frozen) weights and rebuilt when a source parameter changes in place (its version
+counter: ``load_state_dict`` and ``param.add_`` count, writes through ``param.data`` do not) or
+the block moves to another device or dtype. The
 block writes its output into its input tensor (the UNet's transformer passes each block a map it
 owns and never reads again); with gradients enabled, in training mode, with masks or other
 arguments, or on a block whose derived weights are elsewhere, diffusers' forward runs.
