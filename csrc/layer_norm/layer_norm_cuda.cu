@@ -97,30 +97,28 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
   }
   const A mean = group_sum(sum, G) / A(C);
 
+  // Every vector of the row: from the registers, or read again when the row is longer.
+  auto each_vector = [&](auto&& use) {
+    if (in_regs) {
+#pragma unroll
+      for (int k = 0; k < kMaxVecs; ++k) {
+        const int i = sub + k * G;
+        if (valid && i < nv) use(reg[k], i);
+      }
+    } else if (valid) {
+      for (int i = sub; i < nv; i += G) use(load_vec<T, V>(xr, i), i);
+    }
+  };
+
   A sq = A(0);
-  if (in_regs) {
+  each_vector([&](const Vec<T, V>& v, int i) {
+    widen(v, i, u);
 #pragma unroll
-    for (int k = 0; k < kMaxVecs; ++k) {
-      const int i = sub + k * G;
-      if (valid && i < nv) {
-        widen(reg[k], i, u);
-#pragma unroll
-        for (int j = 0; j < V; ++j) {
-          const A d = u[j] - mean;
-          sq += d * d;
-        }
-      }
+    for (int j = 0; j < V; ++j) {
+      const A d = u[j] - mean;
+      sq += d * d;
     }
-  } else if (valid) {
-    for (int i = sub; i < nv; i += G) {
-      widen(load_vec<T, V>(xr, i), i, u);
-#pragma unroll
-      for (int j = 0; j < V; ++j) {
-        const A d = u[j] - mean;
-        sq += d * d;
-      }
-    }
-  }
+  });
   const A rstd = reciprocal_sqrt(group_sum(sq, G) / A(C) + eps);
   if (!valid) return;
 
@@ -140,15 +138,7 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
     }
     reinterpret_cast<Vec<T, V>*>(yr)[i] = out;
   };
-  if (in_regs) {
-#pragma unroll
-    for (int k = 0; k < kMaxVecs; ++k) {
-      const int i = sub + k * G;
-      if (i < nv) write(reg[k], i);
-    }
-  } else {
-    for (int i = sub; i < nv; i += G) write(load_vec<T, V>(xr, i), i);
-  }
+  each_vector(write);
 }
 
 template <typename T, int V>

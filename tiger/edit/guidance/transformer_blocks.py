@@ -80,11 +80,8 @@ class LeanAttnProcessor:
             return self.fallback(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
         b = hidden_states.shape[0]
         context = hidden_states if encoder_hidden_states is None else encoder_hidden_states
-        query, key, value = attn.to_q(hidden_states), attn.to_k(context), attn.to_v(context)
-        head_dim = key.shape[-1] // attn.heads
-        q, k, v = (t.view(b, -1, attn.heads, head_dim).transpose(1, 2) for t in (query, key, value))
-        out = F.scaled_dot_product_attention(q, k, v, dropout_p=0.0, is_causal=False)
-        out = out.transpose(1, 2).reshape(b, -1, attn.heads * head_dim).to(query.dtype)
+        q, k, v = (t.flatten(0, 1) for t in (attn.to_q(hidden_states), attn.to_k(context), attn.to_v(context)))
+        out = _attend(attn, q, k, v, b).unflatten(0, (b, -1))
         return attn.to_out[1](attn.to_out[0](out))
 
 
