@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from tiger.ops.channel_bias import channel_bias_add
 from tiger.utils.lazy import require_diffusers
 
-__all__ = ["set_downsample_4x4", "set_pad_conv_in", "set_subpixel_upsample", "subpixel_weight"]
+__all__ = ["padded_conv_in", "set_downsample_4x4", "set_pad_conv_in", "set_subpixel_upsample", "subpixel_weight"]
 
 
 # -- resampling layers with a derived kernel (sub-pixel upsampling, 4x4 downsampling) -------------
@@ -119,16 +119,21 @@ def set_subpixel_upsample(unet: torch.nn.Module, on: bool) -> int:
 _PAD_CHANNELS = 16  # cuDNN's tensor-core kernels for 3-8 input channels pad to 8 and run a slow path
 
 
-def _padded_conv_in_forward(self, x: torch.Tensor) -> torch.Tensor:
-    """The first convolution on ``x`` zero-padded to the kernel's channel count (channels-last)."""
+def padded_conv_in(conv: torch.nn.Conv2d, x: torch.Tensor, bias: bool = True) -> torch.Tensor:
+    """``conv`` (given a padded kernel by :func:`set_pad_conv_in`) on ``x`` zero-padded to the
+    kernel's channel count (channels-last); its bias added when ``bias`` (else the caller carries it)."""
     n, c, h, w = x.shape
-    weight = self.__dict__["_tiger_weight_padded"]
+    weight = conv.__dict__["_tiger_weight_padded"]
     padded = torch.empty((n, weight.shape[1], h, w), dtype=x.dtype, device=x.device,
                          memory_format=torch.channels_last)
     padded[:, c:] = 0
     padded[:, :c] = x
-    y = F.conv2d(padded, weight, None, self.stride, self.padding, self.dilation, self.groups)
-    return y if self.bias is None else channel_bias_add(y, self.bias)
+    y = F.conv2d(padded, weight, None, conv.stride, conv.padding, conv.dilation, conv.groups)
+    return y if conv.bias is None or not bias else channel_bias_add(y, conv.bias)
+
+
+def _padded_conv_in_forward(self, x: torch.Tensor) -> torch.Tensor:
+    return padded_conv_in(self, x)
 
 
 def set_pad_conv_in(model: torch.nn.Module, on: bool) -> int:

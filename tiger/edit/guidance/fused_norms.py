@@ -104,28 +104,48 @@ def _conv_then_add(conv: torch.nn.Conv2d, x: torch.Tensor, extra_bias: Optional[
 
 
 def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torch.Tensor],
-                             *args: object, **kwargs: object) -> torch.Tensor:
+                             *args: object, input_bias: Optional[torch.Tensor] = None,
+                             **kwargs: object) -> torch.Tensor:
     """A fused ``ResnetBlock2D`` (SiLUs inside the norms, ``time_embedding_norm == "default"``,
     no resampling, ``output_scale_factor == 1``): diffusers 0.42's computation with the adds
     folded into the convolutions' bias passes: ``conv1``'s bias and the time embedding as one
     [N, C] bias, ``conv2``'s bias (plus ``conv_shortcut``'s) and the shortcut in one pass
     (:func:`_conv_then_add`), and no division by a scale factor of 1: two full-size passes and
-    allocations fewer per block. Same values (the sums rounded once)."""
+    allocations fewer per block. Same values (the sums rounded once).
+
+    ``input_bias`` [C] (model dtype): a bias the producing convolution has not added to
+    ``input_tensor`` (:mod:`.encoder_bias`); the block computes on ``input_tensor + input_bias``
+    by adding it inside norm1 and to the shortcut's bias (through a 1x1 shortcut convolution:
+    ``W_sc·input_bias``, a per-channel constant)."""
     temb_bias = None
     if self.time_emb_proj is not None and temb is not None:
         temb_bias = self.time_emb_proj(temb)  # its SiLU: SiLUThenLinear or skip_time_act
+    ib1 = None if input_bias is None else _norm_input_bias(input_bias, None, input_tensor.shape[0])
     if self.__dict__.get("_tiger_fold_norm_bias", False):  # conv1's bias and temb added inside norm2
         if self.__dict__.get("_tiger_block_backward", False) and _block_backward_applies(self, input_tensor, temb_bias):
-            return _FoldedBlock.apply(input_tensor, self)
-        h = self.conv1._conv_forward(self.norm1(input_tensor), self.conv1.weight, None)
+            return _FoldedBlock.apply(input_tensor, self, ib1)
+        h = self.conv1._conv_forward(self.norm1(input_tensor, input_bias=ib1), self.conv1.weight, None)
         h = self.dropout(self.norm2(h, input_bias=_norm_input_bias(self.conv1.bias, temb_bias, h.shape[0])))
     else:
-        h = _conv_then_add(self.conv1, self.norm1(input_tensor), temb_bias)
+        h = _conv_then_add(self.conv1, self.norm1(input_tensor, input_bias=ib1), temb_bias)
         h = self.dropout(self.norm2(h))
     if self.conv_shortcut is None:
-        return _conv_then_add(self.conv2, h, None, input_tensor)
-    shortcut = self.conv_shortcut._conv_forward(input_tensor, self.conv_shortcut.weight, None)
-    return _conv_then_add(self.conv2, h, self.conv_shortcut.bias, shortcut)
+        return _conv_then_add(self.conv2, h, input_bias, input_tensor)
+    sc = self.conv_shortcut
+    shortcut = sc._conv_forward(input_tensor, sc.weight, None)
+    return _conv_then_add(self.conv2, h, _shortcut_bias(sc, input_bias), shortcut)
+
+
+def _shortcut_bias(sc: torch.nn.Conv2d, input_bias: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+    """The 1x1 shortcut convolution's bias plus its weights times ``input_bias`` (the constant
+    ``sc(x + input_bias) − sc(x)``), summed in float32 (float64 for float64) and rounded once."""
+    if input_bias is None:
+        return sc.bias
+    acc = torch.float64 if sc.weight.dtype == torch.float64 else torch.float32
+    carried = sc.weight.reshape(sc.out_channels, sc.in_channels).to(acc) @ input_bias.to(acc)
+    if sc.bias is not None:
+        carried = carried + sc.bias.to(acc)
+    return carried.to(sc.weight.dtype)
 
 
 def _norm_input_bias(conv_bias: Optional[torch.Tensor], temb_bias: Optional[torch.Tensor],
@@ -168,29 +188,32 @@ class _FoldedBlock(torch.autograd.Function):
     outputs, the convolutions' inputs). The VAE encoder's blocks under SDS."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, block) -> torch.Tensor:
+    def forward(ctx, x: torch.Tensor, block, ib1: Optional[torch.Tensor] = None) -> torch.Tensor:
+        # ib1: norm1's input bias (a producer's carried bias, float32), also added with the shortcut
         n1, n2, conv1, conv2 = block.norm1, block.norm2, block.conv1, block.conv2
-        h1, mean1, rstd1 = group_norm_with_stats(x, n1.num_groups, n1.weight, n1.bias, n1.eps, n1.silu)
+        h1, mean1, rstd1 = group_norm_with_stats(x, n1.num_groups, n1.weight, n1.bias, n1.eps, n1.silu, ib1)
         c1 = conv1._conv_forward(h1, conv1.weight, None)
         ib = _norm_input_bias(conv1.bias, None, c1.shape[0])
         h2, mean2, rstd2 = group_norm_with_stats(c1, n2.num_groups, n2.weight, n2.bias, n2.eps, n2.silu, ib)
         c2 = conv2._conv_forward(block.dropout(h2), conv2.weight, None)
         bias = conv2.bias if conv2.bias is not None else c2.new_zeros(c2.shape[1])
-        ctx.save_for_backward(x, c1, mean1, rstd1, mean2, rstd2, ib)
+        if ib1 is not None:
+            bias = bias.to(ib1.dtype) + ib1
+        ctx.save_for_backward(x, c1, mean1, rstd1, mean2, rstd2, ib, ib1)
         ctx.block = block
         return channel_bias_add(c2, bias.to(c2.dtype), x)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        x, c1, mean1, rstd1, mean2, rstd2, ib = ctx.saved_tensors
+        x, c1, mean1, rstd1, mean2, rstd2, ib, ib1 = ctx.saved_tensors
         b = ctx.block
         n1, n2 = b.norm1, b.norm2
         dh2 = _input_grad(b.conv2, grad_out, c1)  # norm2's output has conv1's output's shape and layout
         dc1 = group_norm_input_grad(dh2, c1, n2.num_groups, mean2, rstd2, n2.weight, n2.bias, n2.silu, ib)
         dh1 = _input_grad(b.conv1, dc1, x)
-        dx = group_norm_input_grad(dh1, x, n1.num_groups, mean1, rstd1, n1.weight, n1.bias, n1.silu, None,
+        dx = group_norm_input_grad(dh1, x, n1.num_groups, mean1, rstd1, n1.weight, n1.bias, n1.silu, ib1,
                                    residual_grad=grad_out)
-        return dx, None
+        return dx, None, None
 
 
 def set_block_backward(module: torch.nn.Module, on: bool) -> int:

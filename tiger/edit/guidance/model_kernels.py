@@ -46,6 +46,10 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   own backward when only their input needs a gradient (SDS): the kernels autograd runs, except
   that the shortcut's gradient is added inside norm1's backward pass (no separate sum: two map
   passes fewer per block) and the norms' outputs are not kept. Needs ``fold_norm_bias``.
+- ``carry_conv_bias``: the VAE encoder's first convolution and its downsampling convolutions
+  leave their bias to the next ResNet block, which adds it inside norm1 and with its shortcut
+  (:mod:`.encoder_bias`): one full read and write fewer per such layer (the largest at 512²),
+  the same sums.
 - ``pad_conv_in``: the first convolution of the UNet and of the VAE encoder (4-8 or 3 input
   channels) on an input zero-padded to a multiple of 16 channels, with a zero-padded kernel: the
   same sums (the extra products are with zeros), but cuDNN's tensor-core kernels instead of its
@@ -73,6 +77,7 @@ from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
 from tiger.ops.layer_norm import layer_norm_rows
 
 from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
+from .encoder_bias import set_carry_conv_bias
 from .fused_norms import set_block_backward, set_fold_norm_bias
 from .transformer_blocks import set_fused_transformer, set_lean_attention
 from tiger.utils.lazy import require_diffusers
@@ -115,6 +120,10 @@ class ModelKernels:
         fused_transformer: the UNet's transformer blocks with their residual adds inside the
             output matmuls and q/k/v in one matmul; None: on where the UNet is on CUDA with
             tiger's CUDA kernels (each residual sum rounded once instead of twice).
+        carry_conv_bias: the VAE encoder's ``conv_in`` and downsampler biases added by the next
+            ResNet block (norm1's input bias, the shortcut's bias) instead of a pass of their
+            own; None: on where the VAE is on CUDA with tiger's CUDA kernels (the biased map
+            rounded once less).
     """
 
     matmul_precision: str = "model"
@@ -128,6 +137,7 @@ class ModelKernels:
     block_backward: Optional[bool] = None
     pad_conv_in: Optional[bool] = None
     fused_transformer: Optional[bool] = None
+    carry_conv_bias: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -417,7 +427,7 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
-    "block_backward_blocks", "padded_conv_ins"}``."""
+    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -436,7 +446,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     set_downsample_4x4(vae, ds_on)
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
     own_backward = set_block_backward(vae, _resolve(kernels.block_backward, vae_kernels))
+    carried = set_carry_conv_bias(vae, _resolve(kernels.carry_conv_bias, vae_kernels))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
-            "block_backward_blocks": own_backward, "padded_conv_ins": padded}
+            "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried}
