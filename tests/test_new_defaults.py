@@ -115,6 +115,10 @@ def test_guidance_model_kernels_defaults():
     # 58.7-58.9 -> 58.4-58.8 ms, SDS error vs float32 unchanged (H100, one call;
     # guidance_floor_fused_transformer_h100.txt)
     assert k.fused_transformer is None
+    # the VAE encoder's conv_in / downsampler biases carried into the next ResNet block: CSD step
+    # pooled 58.8 / 59.3 -> 58.5 / 58.9 ms, fresh 70.0 / 70.7 -> 69.4 / 69.9 ms (H100, one call;
+    # guidance_floor_carry_conv_bias_h100.txt)
+    assert k.carry_conv_bias is None
 
 
 def test_csd_runs_mvdream_beside_instructpix2pix_and_records_no_stream_choice():

@@ -120,7 +120,7 @@ struct VecPair {
   Vec<T, V> x, g;
 };
 
-// ---- statistics: per-(slice, chunk, lane) moments -----------------------------------------
+// ---- statistics: per-(slice, chunk, lane) Welford moments --------------------------------
 template <typename T, int V>
 __global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x, Walk w, float* __restrict__ pmean,
                                                          float* __restrict__ pm2) {
@@ -131,9 +131,6 @@ __global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x
   for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
     const int64_t v = v0 + t.tx;
     const bool active = t.ty < t.R && v < w.cols;
-    // Inside a thread: plain sums of the shifted values (two dependent FMAs fewer per element
-    // than a Welford update and no reciprocal per row; the shift keeps the sum of squares from
-    // cancelling), turned into (mean, M2) for the Welford tree across the block's threads.
     float n = 0.f, mean[V], m2[V], shift[V];
 #pragma unroll
     for (int j = 0; j < V; ++j) mean[j] = m2[j] = shift[j] = 0.f;
@@ -145,22 +142,15 @@ __global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x
           [&](int64_t r) { return *reinterpret_cast<const Vec<T, V>*>(x + offset_of<V>(w, t, r, v)); },
           [&](int64_t, const Vec<T, V>& val) {
             n += 1.f;
+            const float inv = 1.f / n;
 #pragma unroll
             for (int j = 0; j < V; ++j) {
               const float xv = load_as<float>(val.v[j]) - shift[j];
-              mean[j] += xv;              // Σ (x − shift)
-              m2[j] = fmaf(xv, xv, m2[j]);  // Σ (x − shift)²
+              const float d = xv - mean[j];
+              mean[j] += d * inv;
+              m2[j] += d * (xv - mean[j]);
             }
           });
-      if (n > 0.f) {
-        const float inv = 1.f / n;
-#pragma unroll
-        for (int j = 0; j < V; ++j) {
-          const float s = mean[j];
-          mean[j] = s * inv;
-          m2[j] = fmaxf(fmaf(-s, mean[j], m2[j]), 0.f);
-        }
-      }
     }
 #pragma unroll
     for (int j = 0; j < V; ++j) {
