@@ -8,6 +8,7 @@
 
 #include "binning.h"
 #include "binning_cuda.h"
+#include "common/cuda_zeros.h"
 #include "common/torch_checks.h"
 
 namespace tiger {
@@ -18,6 +19,16 @@ namespace {
     const cudaError_t err_ = (expr);                                                          \
     TORCH_CHECK(err_ == cudaSuccess, "tiger.bin_gaussians: CUDA error: ", cudaGetErrorString(err_)); \
   } while (0)
+
+// The one host synchronisation: the total number of intersections (the last entry of a scan on
+// the device), read by one copy (Tensor::item would add a select, a TensorIterator copy and
+// their host time while the GPU waits).
+int64_t read_total(const int64_t* total, cudaStream_t stream) {
+  int64_t m = 0;
+  TIGER_CUDA_OK(cudaMemcpyAsync(&m, total, sizeof(int64_t), cudaMemcpyDeviceToHost, stream));
+  TIGER_CUDA_OK(cudaStreamSynchronize(stream));
+  return m;
+}
 
 at::Tensor temp_buffer(size_t bytes, const at::Tensor& like) {
   return at::empty({int64_t(bytes) + 1}, like.options().dtype(at::kByte));
@@ -63,7 +74,7 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
   const auto int_opts = like.options().dtype(at::kInt), long_opts = like.options().dtype(at::kLong);
   // One zeroed buffer: the chunk counter, the long-list counter of the sort, the tile counts,
   // and a last zero (the scan runs over tiles + 1 entries, so tile_offsets[tiles] is the total).
-  auto state = at::zeros({n_tiles + 3}, long_opts);
+  auto state = cuda_zeros({n_tiles + 3}, long_opts);
   auto* counter = reinterpret_cast<unsigned long long*>(state.data_ptr<int64_t>());
   unsigned long long* n_long_lists = counter + 1;
   unsigned long long* tile_counts = counter + 2;
@@ -94,7 +105,7 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
   TIGER_CUDA_OK(bin_offsets_cuda(nullptr, bytes, tile_counts, offsets, n_tiles, stream));
   auto temp = temp_buffer(bytes, like);
   TIGER_CUDA_OK(bin_offsets_cuda(temp.data_ptr(), bytes, tile_counts, offsets, n_tiles, stream));
-  const int64_t m = tile_offsets[n_tiles].item<int64_t>();  // the one host synchronisation
+  const int64_t m = read_total(offsets + n_tiles, stream);  // the one host synchronisation
   auto keys = at::empty({m}, long_opts);
   TIGER_CUDA_OK(bin_tiles_cuda<T>(in, g, true, tile_counts, offsets, ptr_of<uint64_t>(keys), list,
                                   stream));
@@ -152,7 +163,7 @@ at::Tensor bin_global(const BinInputs<T>& in, const BinGeometry& g, int64_t n_ti
                                 offsets.data_ptr<int64_t>(), n, stream));
   }
   counts = at::Tensor();
-  const int64_t m = offsets[n - 1].item<int64_t>();  // the one host synchronisation
+  const int64_t m = read_total(offsets.data_ptr<int64_t>() + (n - 1), stream);  // the one host synchronisation
   auto keys = at::empty({m}, int_opts), keys_alt = at::empty({m}, int_opts);
   auto ids = at::empty({m}, int_opts), ids_alt = at::empty({m}, int_opts);
   TIGER_CUDA_OK(bin_emit_cuda<T>(in, order, rank.data_ptr<int32_t>(), large, large_n, g,

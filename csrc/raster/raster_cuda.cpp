@@ -5,6 +5,7 @@
 #include <c10/cuda/CUDAStream.h>
 #include <torch/library.h>
 
+#include "common/cuda_zeros.h"
 #include "common/torch_checks.h"
 #include "raster.h"
 #include "raster_cuda.h"
@@ -169,10 +170,10 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   // terms share one zero fill (the geometry gradients are returned as views of it);
   // v_colors is returned as is, so it keeps its own buffer.
   const int64_t tiles = num_tiles(a);
-  auto acc = at::zeros({n * 8 + tiles * C}, opts);
+  auto acc = cuda_zeros({n * 8 + tiles * C}, opts);
   auto v_geom = acc.narrow(0, 0, n * 8).view({n, 8});  // u, v, conic a, b, c, opacity, depth, pad
   auto v_bg_tiles = acc.narrow(0, n * 8, tiles * C).view({tiles, C});
-  auto v_colors = at::zeros({n, C}, opts);
+  auto v_colors = cuda_zeros({n, C}, opts);
   const auto dt = means2d.scalar_type();
   const auto m = means2d.contiguous(), c = conics.contiguous(), o = opacities.contiguous(),
              d = depths.contiguous(), col = colors.contiguous(), to = tile_offsets.contiguous(),
@@ -224,8 +225,8 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
   check_trainable(op, trainable, means2d);
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto dt = means2d.scalar_type();
-  auto v_colors = at::zeros({n, C}, means2d.options());
-  auto v_bg_tiles = at::zeros({num_tiles(a), C}, means2d.options());
+  auto v_colors = cuda_zeros({n, C}, means2d.options());
+  auto v_bg_tiles = cuda_zeros({num_tiles(a), C}, means2d.options());
   const auto m = means2d.contiguous(), c = conics.contiguous(), o = opacities.contiguous(),
              to = tile_offsets.contiguous(), ids = gaussian_ids.contiguous(),
              cnt = n_contrib.contiguous(), vc = v_color.to(dt).contiguous();
