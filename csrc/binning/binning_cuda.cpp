@@ -2,6 +2,7 @@
 // in binning_cuda.h).
 // Every buffer comes from torch's caching allocator; the one host synchronisation reads the
 // total number of intersections, which sizes the outputs.
+#include <c10/cuda/CUDAFunctions.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 #include <torch/library.h>
@@ -22,11 +23,11 @@ namespace {
 
 // The one host synchronisation: the total number of intersections (the last entry of a scan on
 // the device), read by one copy (Tensor::item would add a select, a TensorIterator copy and
-// their host time while the GPU waits).
+// their host time while the GPU waits). c10's copy-and-sync, so that torch's sync debug mode
+// still sees it.
 int64_t read_total(const int64_t* total, cudaStream_t stream) {
   int64_t m = 0;
-  TIGER_CUDA_OK(cudaMemcpyAsync(&m, total, sizeof(int64_t), cudaMemcpyDeviceToHost, stream));
-  TIGER_CUDA_OK(cudaStreamSynchronize(stream));
+  c10::cuda::memcpy_and_sync(&m, total, sizeof(int64_t), cudaMemcpyDeviceToHost, stream);
   return m;
 }
 
