@@ -2,7 +2,6 @@
 // in binning_cuda.h).
 // Every buffer comes from torch's caching allocator; the one host synchronisation reads the
 // total number of intersections, which sizes the outputs.
-#include <c10/cuda/CUDAFunctions.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 #include <torch/library.h>
@@ -20,16 +19,6 @@ namespace {
     const cudaError_t err_ = (expr);                                                          \
     TORCH_CHECK(err_ == cudaSuccess, "tiger.bin_gaussians: CUDA error: ", cudaGetErrorString(err_)); \
   } while (0)
-
-// The one host synchronisation: the total number of intersections (the last entry of a scan on
-// the device), read by one copy (Tensor::item would add a select, a TensorIterator copy and
-// their host time while the GPU waits). c10's copy-and-sync, so that torch's sync debug mode
-// still sees it.
-int64_t read_total(const int64_t* total, cudaStream_t stream) {
-  int64_t m = 0;
-  c10::cuda::memcpy_and_sync(&m, total, sizeof(int64_t), cudaMemcpyDeviceToHost, stream);
-  return m;
-}
 
 at::Tensor temp_buffer(size_t bytes, const at::Tensor& like) {
   return at::empty({int64_t(bytes) + 1}, like.options().dtype(at::kByte));
@@ -106,7 +95,7 @@ at::Tensor bin_per_tile(BinInputs<T> in, const BinGeometry& g, int64_t n_tiles,
   TIGER_CUDA_OK(bin_offsets_cuda(nullptr, bytes, tile_counts, offsets, n_tiles, stream));
   auto temp = temp_buffer(bytes, like);
   TIGER_CUDA_OK(bin_offsets_cuda(temp.data_ptr(), bytes, tile_counts, offsets, n_tiles, stream));
-  const int64_t m = read_total(offsets + n_tiles, stream);  // the one host synchronisation
+  const int64_t m = tile_offsets[n_tiles].item<int64_t>();  // the one host synchronisation
   auto keys = at::empty({m}, long_opts);
   TIGER_CUDA_OK(bin_tiles_cuda<T>(in, g, true, tile_counts, offsets, ptr_of<uint64_t>(keys), list,
                                   stream));
@@ -164,7 +153,7 @@ at::Tensor bin_global(const BinInputs<T>& in, const BinGeometry& g, int64_t n_ti
                                 offsets.data_ptr<int64_t>(), n, stream));
   }
   counts = at::Tensor();
-  const int64_t m = read_total(offsets.data_ptr<int64_t>() + (n - 1), stream);  // the one host synchronisation
+  const int64_t m = offsets[n - 1].item<int64_t>();  // the one host synchronisation
   auto keys = at::empty({m}, int_opts), keys_alt = at::empty({m}, int_opts);
   auto ids = at::empty({m}, int_opts), ids_alt = at::empty({m}, int_opts);
   TIGER_CUDA_OK(bin_emit_cuda<T>(in, order, rank.data_ptr<int32_t>(), large, large_n, g,
