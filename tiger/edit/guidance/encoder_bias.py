@@ -17,7 +17,6 @@ they keep their bias pass.
 """
 from __future__ import annotations
 
-import types
 from typing import Optional
 
 import torch
@@ -28,6 +27,7 @@ from tiger.ops.group_norm import GroupNormSiLU
 from tiger.utils.lazy import require_diffusers
 
 from .conv_layers import padded_conv_in
+from .forward_switch import switch_forward
 from .fused_norms import _resnet_forward_folded
 
 __all__ = ["set_carry_conv_bias"]
@@ -102,13 +102,4 @@ def set_carry_conv_bias(vae: torch.nn.Module, on: bool) -> int:
     require_diffusers("carrying the VAE encoder's convolution biases")
     from diffusers.models.autoencoders.vae import Encoder
 
-    count = 0
-    for m in vae.modules():
-        if type(m) is not Encoder:
-            continue
-        if on:
-            m.forward = types.MethodType(_encoder_forward_carried, m)
-            count += 1
-        else:
-            m.__dict__.pop("forward", None)
-    return count
+    return switch_forward(vae, lambda m: type(m) is Encoder, _encoder_forward_carried, on)

@@ -67,7 +67,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import types
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -78,6 +77,7 @@ from tiger.ops.layer_norm import layer_norm_rows
 
 from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
 from .encoder_bias import set_carry_conv_bias
+from .forward_switch import switch_forward
 from .fused_norms import set_block_backward, set_fold_norm_bias
 from .transformer_blocks import set_fused_transformer, set_lean_attention
 from tiger.utils.lazy import require_diffusers
@@ -388,22 +388,7 @@ def set_fused_geglu(unet: torch.nn.Module, on: bool) -> int:
     require_diffusers("the fused GEGLU")
     from diffusers.models.attention import FeedForward
 
-    return _switch_forward(unet, lambda m: type(m) is FeedForward and _fusable_feed_forward(m), _feed_forward_fused, on)
-
-
-def _switch_forward(model: torch.nn.Module, eligible, forward, on: bool) -> int:
-    """Give every submodule of ``model`` that ``eligible`` accepts the instance method ``forward``
-    (``on``), or its class's forward again (off); returns how many have ``forward`` afterwards."""
-    count = 0
-    for m in model.modules():
-        if not eligible(m):
-            continue
-        if on:
-            m.forward = types.MethodType(forward, m)
-            count += 1
-        else:
-            m.__dict__.pop("forward", None)
-    return count
+    return switch_forward(unet, lambda m: type(m) is FeedForward and _fusable_feed_forward(m), _feed_forward_fused, on)
 
 
 # -- row LayerNorm --------------------------------------------------------------------------------
@@ -418,7 +403,7 @@ def set_row_layer_norm(unet: torch.nn.Module, on: bool) -> int:
     def eligible(m: torch.nn.Module) -> bool:
         return type(m) is torch.nn.LayerNorm and len(m.normalized_shape) == 1 and m.weight is not None
 
-    return _switch_forward(unet, eligible, _layer_norm_rows_forward, on)
+    return switch_forward(unet, eligible, _layer_norm_rows_forward, on)
 
 
 # -- all of it ------------------------------------------------------------------------------------
