@@ -20,7 +20,7 @@ args = p.parse_args()
 import tiger  # noqa: E402
 from tests.render.standard_scenes import standard_camera, standard_scene  # noqa: E402
 
-LAUNCHING = {"aten::zero_", "aten::fill_", "aten::copy_", "aten::gt", "aten::where", "aten::div",
+LAUNCHING = {"aten::zero_", "aten::fill_", "aten::copy_", "aten::gt", "aten::eq", "aten::where", "aten::div",
              "aten::amax", "aten::sum", "aten::mul", "aten::add", "aten::clamp_min"}
 
 

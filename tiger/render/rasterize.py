@@ -13,7 +13,7 @@ from tiger.ops.raster import RasterKernelSettings, rasterize
 from tiger.ops.sh import sh_to_color
 
 __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
-           "composite", "composite_views", "bin_projection", "camera_center", "sh_colors"]
+           "composite", "composite_views", "bin_projection", "camera_center", "expected_depth", "sh_colors"]
 
 
 @dataclass(frozen=True)
@@ -296,6 +296,18 @@ def bin_projection(p: Projection, width: int, height: int,
                              settings.tile_size, settings.alpha_threshold, settings.binning)
 
 
+def expected_depth(depth_accum: Tensor, alpha: Tensor) -> Tensor:
+    """Expected depth Σ w z / Σ w per pixel, 0 where ``alpha == 0``; differentiable.
+
+    Shape: ``depth_accum`` and ``alpha`` [..., H, W] (the rasterizer's), the result the same.
+    Where alpha == 0 no Gaussian contributed, so depth_accum is 0 there too: dividing by
+    ``alpha + (alpha == 0)`` (1 there) gives that 0 exactly and no 0/0 in the backward, in three
+    kernels (nested ``torch.where`` with scalars took six and more host time per render). The
+    gradient reaching depth_accum at such pixels is read by no Gaussian (none contributes there).
+    """
+    return depth_accum / (alpha + (alpha == 0))
+
+
 def composite(p: Projection, width: int, height: int,
               settings: RasterSettings = RasterSettings(),
               binned: Optional[tuple[Tensor, Tensor]] = None) -> dict[str, Tensor]:
@@ -310,10 +322,7 @@ def composite(p: Projection, width: int, height: int,
         means2d, conics, opac, feats, depths, background, tile_offsets, gaussian_ids, width,
         height, settings.tile_size, settings.alpha_max, settings.alpha_threshold, settings.t_min,
         settings.kernels)
-    # Expected depth, 0 where alpha == 0 (divided by 1 there, so no 0/0 reaches the backward).
-    # Scalar branches: four kernels, no ones/zeros tensors filled for them.
-    covered = alpha > 0
-    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, 1.0), 0.0)
+    depth = expected_depth(depth_accum, alpha)
     return {
         "color": color,
         "alpha": alpha,
@@ -381,8 +390,7 @@ def composite_views(projections: list[Projection], width: int, height: int,
     color = color.reshape(views, height, width, -1)
     alpha = alpha.reshape(views, height, width)
     depth_accum = depth_accum.reshape(views, height, width)
-    covered = alpha > 0
-    depth = torch.where(covered, depth_accum / torch.where(covered, alpha, 1.0), 0.0)
+    depth = expected_depth(depth_accum, alpha)
     view_tiles = (tile_offsets.shape[0] - 1) // views
     return {
         "color": color,
