@@ -155,10 +155,6 @@ def split_ms(guidance, renders: torch.Tensor, views: ViewBatch, cuda: bool, reps
     return {k: sorted(v)[len(v) // 2] for k, v in times.items()}
 
 
-def step_flops(guidance, renders: torch.Tensor, views: ViewBatch) -> float:
-    return count_flops(lambda: guidance.grad(renders, views))
-
-
 def make_guidances(ip2p_models, mv_models, graph: bool, size: str):
     kw = {} if size == "full" else {"short_side": 64}
     ip = InstructPix2PixGuidance(ip2p_models, "turn the fox into a red panda", cuda_graph=graph, **kw)
@@ -307,7 +303,7 @@ def main() -> None:
             row["total_ms"] = timer(lambda: g.grad(renders, views))
             key = name
             if key not in flops and mode == "eager":
-                flops[key] = step_flops(g, renders, views)
+                flops[key] = count_flops(lambda: g.grad(renders, views))
             if key in flops:
                 row["tflop"] = flops[key] / 1e12
                 row["tflop_per_s"] = flops[key] / 1e12 / (row["total_ms"] / 1e3)

@@ -180,10 +180,6 @@ def attention_backends(flash_first: bool):
         yield
 
 
-def step_flops(fn) -> float:
-    return count_flops(fn)
-
-
 def cosine_rel(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
     """(cosine similarity, ‖a − b‖ / ‖b‖) in float64."""
     a, b = a.double().flatten(), b.double().flatten()
@@ -283,10 +279,10 @@ def main() -> None:
     # FLOPs of one eager call each (the variants change no FLOPs)
     ip_e, mv_e = make_guidances(ip_models, mv_models, graph=False, size=size)
     draws = fixed_draws(ip_e, mv_e, res, args.device)
-    flops = {"ip2p_fresh": step_flops(lambda: ip_e.grad(renders, views(0, False)))}
+    flops = {"ip2p_fresh": count_flops(lambda: ip_e.grad(renders, views(0, False)))}
     ip_e.grad(renders, views(0, True))  # fills the condition cache: the pooled call encodes no condition
-    flops["ip2p_pooled"] = step_flops(lambda: ip_e.grad(renders, views(0, True)))
-    flops["mvdream"] = step_flops(lambda: mv_e.grad(renders, views(0, False)))
+    flops["ip2p_pooled"] = count_flops(lambda: ip_e.grad(renders, views(0, True)))
+    flops["mvdream"] = count_flops(lambda: mv_e.grad(renders, views(0, False)))
     flops["csd_fresh"] = flops["ip2p_fresh"] + MV_FRACTION * flops["mvdream"]
     flops["csd_pooled"] = flops["ip2p_pooled"] + MV_FRACTION * flops["mvdream"]
     print("TFLOP per call:", json.dumps({k: round(v / 1e12, 3) for k, v in flops.items()}), flush=True)
