@@ -122,3 +122,16 @@ def test_cuda_default_kernels_carry_the_biases(tiny_models, dtype):
     tol = 1e-5 if dtype == torch.float32 else 3e-2
     for a, b in zip(carried, plain):
         assert float((a - b).norm() / b.norm()) < tol
+
+
+def test_auto_follows_the_device(tiny_models):
+    """``carry_conv_bias=None`` ("auto") carries the biases only for CUDA VAEs with tiger's kernels
+    (the CUDA test above); on the CPU it stays diffusers' encoder unless asked for."""
+    from tiger.edit.guidance import model_kernels as mk
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    models = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=False)
+    assert mk.apply_model_kernels(models.unet, models.vae, mk.ModelKernels())["carry_conv_bias_encoders"] == 0
+    assert "forward" not in models.vae.encoder.__dict__
+    got = mk.apply_model_kernels(models.unet, models.vae, mk.ModelKernels(carry_conv_bias=True))
+    assert got["carry_conv_bias_encoders"] == 1
