@@ -242,7 +242,8 @@ def test_opcheck_with_other_kernel_settings(device):
 
 def test_rasterize_gaussians_passes_kernel_settings_down():
     """rasterize_gaussians' binning= / kernels= (RasterSettings' fields) reach the binning and the
-    compositing ops as their arguments; the image is the same."""
+    compositing ops as their arguments, op by op (a render recording gradients) and through
+    render_forward (one without); the image is the same."""
     from tiger.ops.binning import BinningSettings
 
     w, h = 24, 20
@@ -253,9 +254,15 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
     kernels = RasterKernelSettings(32, 32, 64, 1)
     log = _ArgLog()
     with log:
-        got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
+        got = tiger.rasterize_gaussians(m, q, s, o, col.requires_grad_(), V, K, w, h, binning=binning,
+                                        kernels=kernels)
     want = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h)
     calls = dict(log.calls)
     assert calls["tiger.bin_gaussians.default"][-6:] == binning.op_args() + (1,)  # views last
     assert calls["tiger.rasterize.default"][-6:] == kernels.op_args() + (1, None)  # views, trainable
+    assert torch.equal(got["color"], want["color"])
+    log = _ArgLog()
+    with log, torch.no_grad():
+        got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
+    assert dict(log.calls)["tiger.render_forward.default"][-6:] == binning.op_args() + (32,)
     assert torch.equal(got["color"], want["color"])

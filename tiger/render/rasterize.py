@@ -10,7 +10,10 @@ from torch import Tensor
 from tiger.ops.binning import BinningSettings, bin_gaussians
 from tiger.ops.projection import project_gaussians
 from tiger.ops.raster import RasterKernelSettings, rasterize
+from tiger.ops.render import render_forward
 from tiger.ops.sh import sh_to_color
+
+from .raster_checks import checked_sizes
 
 __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
            "composite", "composite_views", "bin_projection", "camera_center", "expected_depth", "sh_colors"]
@@ -47,68 +50,6 @@ class Projection(NamedTuple):
     radii: Tensor
     features: Tensor
     background: Optional[Tensor]
-
-
-_NAME = "tiger.rasterize_gaussians"
-
-
-def _check_tensor(t: object, name: str, shape: tuple, ref: Optional[Tensor] = None) -> Tensor:
-    if not isinstance(t, Tensor):
-        raise TypeError(f"{_NAME}: {name} must be a torch.Tensor, got {type(t).__name__}")
-    ok = t.dim() == len(shape) and all(s is None or t.shape[i] == s for i, s in enumerate(shape))
-    if not ok:
-        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
-        raise ValueError(f"{_NAME}: {name} must have shape {want}, got {list(t.shape)}")
-    if not t.is_floating_point():
-        raise TypeError(f"{_NAME}: {name} must be a floating-point tensor, got {t.dtype}")
-    if ref is not None and t.device != ref.device:
-        raise ValueError(f"{_NAME}: {name} is on {t.device} but means is on {ref.device}")
-    return t
-
-
-def _check_inputs(tensors: dict[str, Optional[Tensor]], quats: Tensor, scales: Tensor,
-                  opacities: Tensor) -> None:
-    """check_finite's tests, read back in one device synchronisation (was one per tensor):
-    NaN/Inf in any tensor, then zero quaternions (no rotation), negative scales and opacities
-    outside [0, 1] -- input mistakes the kernels would render without complaint. The message
-    names the tensor (and its first bad row); the details are looked up only on failure."""
-    named = [(name, t) for name, t in tensors.items() if t is not None]
-    with torch.no_grad():
-        zero_q = (quats == 0).all(dim=1)
-        neg_s = (scales < 0).any(dim=1)
-        bad_o = (opacities < 0) | (opacities > 1)
-        flags = [~torch.isfinite(t).all() for _, t in named] + [zero_q.any(), bad_o.any(), neg_s.any()]
-        bad = torch.stack(flags).tolist()
-    for (name, t), b in zip(named, bad):
-        if b:
-            count = int((~torch.isfinite(t)).sum())
-            raise ValueError(f"{_NAME}: {name} contains {count} non-finite value(s) (NaN or Inf); "
-                             "pass check_finite=False to skip this check")
-    hint = "; pass check_finite=False to skip the input checks"
-    for b, (name, rows_bad, t, what) in zip(bad[len(named):], (
-            ("quats", zero_q, quats, "is zero, not a rotation"),
-            ("opacities", bad_o, opacities, "is outside [0, 1]"),
-            ("scales", neg_s, scales, "has a negative entry (scales are linear standard "
-                                      "deviations, not logs)"))):
-        if b:
-            rows = rows_bad.nonzero().flatten()
-            row = int(rows[0])
-            raise ValueError(f"{_NAME}: {name}[{row}] = {t[row].tolist()} {what} "
-                             f"({rows.numel()} bad row(s) of {t.shape[0]}){hint}")
-
-
-def _check_size(width: object, height: object) -> tuple[int, int]:
-    out = []
-    for name, v in (("width", width), ("height", height)):
-        if isinstance(v, Tensor) and v.numel() == 1:
-            v = v.item()
-        if isinstance(v, bool) or not (isinstance(v, int) or hasattr(v, "__index__")
-                                       or (isinstance(v, float) and v.is_integer())):
-            raise TypeError(f"{_NAME}: {name} must be a whole number of pixels, got {v!r}")
-        out.append(int(v))
-    if out[0] <= 0 or out[1] <= 0:
-        raise ValueError(f"{_NAME}: width and height must be positive, got {out[0]}x{out[1]}")
-    return out[0], out[1]
 
 
 def camera_center(viewmat: Tensor) -> Tensor:
@@ -209,9 +150,39 @@ def rasterize_gaussians(
                               alpha_max=alpha_max, alpha_threshold=alpha_threshold, t_min=t_min,
                               tile_size=tile_size, check_finite=check_finite, binning=binning,
                               kernels=kernels)
+    inputs = (means, quats, scales, opacities, colors, sh_rest, viewmat, K, background)
+    if not _records_gradients(inputs):
+        width, height, background = checked_sizes(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                                  background, sh_degree, sh_rest, settings.tile_size,
+                                                  settings.check_finite)
+        return _render_without_gradients(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                          background, sh_degree, sh_rest, settings)
     p = project_for_raster(means, quats, scales, opacities, colors, viewmat, K, width, height,
                            background=background, sh_degree=sh_degree, sh_rest=sh_rest, settings=settings)
     return composite(p, width, height, settings)
+
+
+def _records_gradients(tensors: tuple) -> bool:
+    """Whether autograd records this render (or a transform or the compiler traces it): then it
+    runs op by op, each op with its autograd formula."""
+    if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
+        return True
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
+
+
+def _render_without_gradients(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                              colors: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
+                              background: Optional[Tensor], sh_degree: Optional[int],
+                              sh_rest: Optional[Tensor], settings: RasterSettings) -> dict[str, Tensor]:
+    """:func:`rasterize_gaussians`' dict from one ``tiger::render_forward`` call (checked inputs):
+    projection, SH, binning and compositing chained in C++, no Python between the stages."""
+    s = settings
+    color, alpha, depth, depth_accum, radii, means2d, conics, depths, ids = render_forward(
+        means, quats, scales, opacities, colors, sh_rest, sh_degree, background, viewmat, K, width, height,
+        s.eps2d, s.near, s.far, s.alpha_threshold, s.antialiased, s.tile_size, s.alpha_max, s.t_min,
+        s.binning, s.kernels)
+    return {"color": color, "alpha": alpha, "depth": depth, "depth_accum": depth_accum, "radii": radii,
+            "means2d": means2d, "conics": conics, "depths": depths, "n_isects": int(ids.shape[0])}
 
 
 def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
@@ -222,54 +193,11 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
     """The first half of :func:`rasterize_gaussians` (same arguments, checked the same way):
     projection and the SH colour step. Batched renders project every view first, so that
     a tensor stacking the views' ``means2d`` can sit in the graph (see ``render_views``)."""
-    _check_tensor(means, "means", (None, 3))
-    n = means.shape[0]
-    if means.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"{_NAME}: means must be float32 or float64, got {means.dtype}")
-    _check_tensor(quats, "quats", (n, 4), means)
-    _check_tensor(scales, "scales", (n, 3), means)
-    _check_tensor(opacities, "opacities", (n,), means)
-    if sh_degree is None:
-        if sh_rest is not None:
-            raise ValueError(f"{_NAME}: sh_rest needs sh_degree (it is part of the SH coefficients)")
-        _check_tensor(colors, "colors", (n, None), means)
-        if colors.shape[1] < 1:
-            raise ValueError(f"{_NAME}: colors must have at least one channel, got shape "
-                             f"{list(colors.shape)}")
-    else:
-        if not 0 <= int(sh_degree) <= 3:
-            raise ValueError(f"{_NAME}: sh_degree must be in [0, 3], got {sh_degree}")
-        _check_tensor(colors, "colors (SH coefficients)", (n, None, 3), means)
-        k = colors.shape[1]
-        if sh_rest is not None:
-            _check_tensor(sh_rest, "sh_rest", (n, None, 3), means)
-            if sh_rest.dtype != colors.dtype:
-                raise TypeError(f"{_NAME}: sh_rest has dtype {sh_rest.dtype} but colors has {colors.dtype}")
-            k += sh_rest.shape[1]
-        if k < (sh_degree + 1) ** 2:
-            raise ValueError(f"{_NAME}: colors{' + sh_rest' if sh_rest is not None else ''} hold {k} SH "
-                             f"coefficients per Gaussian but sh_degree={sh_degree} needs {(sh_degree + 1) ** 2}")
-    _check_tensor(viewmat, "viewmat", (4, 4), means)
-    _check_tensor(K, "K", (3, 3), means)
-    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities)):
-        if t.dtype != means.dtype:
-            raise TypeError(f"{_NAME}: {name} has dtype {t.dtype} but means has {means.dtype}")
+    width, height, background = checked_sizes(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                              background, sh_degree, sh_rest, settings.tile_size,
+                                              settings.check_finite)
     half_colors = (sh_degree is None and means.dtype == torch.float32
                    and colors.dtype in (torch.float16, torch.bfloat16))
-    if colors.dtype != means.dtype and not half_colors:
-        raise TypeError(f"{_NAME}: colors has dtype {colors.dtype} but means has {means.dtype} "
-                        "(float16/bfloat16 colors are accepted with float32 geometry)")
-    if means.is_cuda and not 1 <= int(settings.tile_size) <= 16:
-        raise ValueError(f"{_NAME}: the CUDA kernels take tile_size in [1, 16], got {settings.tile_size}")
-    width, height = _check_size(width, height)
-    channels = 3 if sh_degree is not None else colors.shape[1]
-    if background is not None:
-        _check_tensor(background, "background", (channels,), means)
-        background = background.to(means.dtype)
-    if settings.check_finite:
-        _check_inputs({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-                       "colors": colors, "sh_rest": sh_rest, "viewmat": viewmat, "K": K,
-                       "background": background}, quats, scales, opacities)
     viewmat = viewmat.to(means.dtype)
     K = K.to(means.dtype)
 
@@ -371,7 +299,7 @@ def composite_views(projections: list[Projection], width: int, height: int,
         if not isinstance(trainable, Tensor) or trainable.dtype != torch.bool or trainable.shape != (n,):
             got = (f"{trainable.dtype} {list(trainable.shape)}" if isinstance(trainable, Tensor)
                    else type(trainable).__name__)
-            raise ValueError(f"{_NAME}: trainable must be a bool tensor [N={n}], got {got}")
+            raise ValueError(f"tiger.rasterize_gaussians: trainable must be a bool tensor [N={n}], got {got}")
         trainable = trainable.to(means2d.device).repeat(views)  # the mask of every view's block
     flat = means2d.reshape(views * n, 2)
     conics = torch.cat([p.conics for p in projections])
