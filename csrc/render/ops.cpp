@@ -23,7 +23,7 @@ using OptT = std::optional<at::Tensor>;
 
 using ProjectFn = std::tuple<T, T, T, T, T>(const T&, const T&, const T&, const T&, const T&, const T&,
                                             int64_t, int64_t, double, double, double, double, bool);
-using ShFn = T(const T&, const T&, int64_t, const OptT&, const OptT&, bool);
+using ShFn = T(const T&, const T&, int64_t, const OptT&, const OptT&, bool, const OptT&);
 using BinFn = std::tuple<T, T>(const T&, const T&, const T&, const T&, const T&, int64_t, int64_t,
                                int64_t, double, c10::string_view, int64_t, int64_t, int64_t, bool,
                                int64_t);
@@ -45,7 +45,7 @@ T sh_colors(const T& means, const T& coeffs, const OptT& rest, const T& viewmat,
   const T rot = viewmat.slice(0, 0, 3).slice(1, 0, 3), trans = viewmat.slice(0, 0, 3).select(1, 3);
   const T centre = at::neg(at::matmul(rot.transpose(0, 1), trans));
   const T visible = radii.select(1, 0) > 0;
-  return at::clamp_min(sh.call(means - centre, coeffs, degree, visible, rest, true) + 0.5, 0.0);
+  return at::clamp_min(sh.call(means - centre, coeffs, degree, visible, rest, true, std::nullopt) + 0.5, 0.0);
 }
 
 std::tuple<T, T, T, T, T, T, T, T, T> render_forward(

@@ -30,6 +30,20 @@ void check_sh_inputs(const char* op, const at::Tensor& dirs, const at::Tensor& c
   }
 }
 
+void check_sh_trainable(const char* op, const at::Tensor& dirs, const std::optional<at::Tensor>& trainable) {
+  if (!trainable.has_value()) return;
+  check_shape(*trainable, op, "trainable", {dirs.size(0)});
+  check_dtype(*trainable, at::kBool, op, "trainable");
+  TORCH_CHECK(trainable->device() == dirs.device(), op, ": trainable must be on ", dirs.device());
+}
+
+std::optional<at::Tensor> backward_rows(const std::optional<at::Tensor>& visible,
+                                        const std::optional<at::Tensor>& trainable) {
+  if (!trainable.has_value()) return visible;
+  if (!visible.has_value()) return trainable;
+  return at::logical_and(*visible, *trainable);
+}
+
 at::Tensor joined_coeffs(const at::Tensor& coeffs, const std::optional<at::Tensor>& rest) {
   return rest.has_value() ? at::cat({coeffs, *rest}, 1) : coeffs;
 }
@@ -45,10 +59,10 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
   // _staged=False: float32 rows through the plain kernels too (comparisons; sh.h).
   m.def(
       "sh_to_color(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, Tensor? rest=None, "
-      "bool _staged=True) -> Tensor");
+      "bool _staged=True, Tensor? trainable=None) -> Tensor");
   m.def(
       "sh_to_color_backward(Tensor dirs, Tensor coeffs, int degree, Tensor? visible, "
-      "Tensor v_colors, Tensor? rest=None, bool _staged=True) "
+      "Tensor v_colors, Tensor? rest=None, bool _staged=True, Tensor? trainable=None) "
       "-> (Tensor v_dirs, Tensor v_coeffs, Tensor v_rest)");
 }
 

@@ -10,8 +10,9 @@ namespace tiger {
 
 at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree,
                            const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
-                           bool /*staged: a CUDA choice*/) {
+                           bool /*staged: a CUDA choice*/, const std::optional<at::Tensor>& trainable) {
   check_sh_inputs("tiger.sh_to_color", dirs, coeffs_in, degree, visible, rest);
+  check_sh_trainable("tiger.sh_to_color", dirs, trainable);
   const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   const int64_t n = dirs.size(0), k = coeffs.size(1);
   auto out = at::zeros({n, 3}, dirs.options());
@@ -34,20 +35,23 @@ at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs_in, 
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cpu(
     const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree, const std::optional<at::Tensor>& visible,
-    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool /*staged: a CUDA choice*/) {
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool /*staged: a CUDA choice*/,
+    const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color_backward";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
+  check_sh_trainable(op, dirs, trainable);
+  const std::optional<at::Tensor> rows = backward_rows(visible, trainable);
   const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});
   const int64_t n = dirs.size(0), k = coeffs.size(1);
   auto v_dirs = at::zeros({n, 3}, dirs.options());
   auto v_coeffs = at::zeros({n, k, 3}, dirs.options());
   const auto d_c = dirs.contiguous(), c_c = coeffs.contiguous(), g_c = v_colors.contiguous();
-  const auto v_c = visible.has_value() ? visible->contiguous() : at::Tensor();
+  const auto v_c = rows.has_value() ? rows->contiguous() : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "sh_to_color_backward_cpu", [&] {
     using T = scalar_t;
     const T *dp = d_c.data_ptr<T>(), *cp = c_c.data_ptr<T>(), *gp = g_c.data_ptr<T>();
-    const bool* vis = visible.has_value() ? v_c.data_ptr<bool>() : nullptr;
+    const bool* vis = rows.has_value() ? v_c.data_ptr<bool>() : nullptr;
     T *vd = v_dirs.data_ptr<T>(), *vc = v_coeffs.data_ptr<T>();
     at::parallel_for(0, n, 2048, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {

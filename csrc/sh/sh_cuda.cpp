@@ -41,9 +41,10 @@ StagedSources staged_sources(const at::Tensor& coeffs, const std::optional<at::T
 
 at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree,
                             const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
-                            bool staged_wanted) {
+                            bool staged_wanted, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
+  check_sh_trainable(op, dirs, trainable);
   const c10::cuda::CUDAGuard guard(dirs.device());
   const int64_t n = dirs.size(0);
   auto out = at::zeros({n, 3}, dirs.options());
@@ -71,16 +72,19 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
     const at::Tensor& dirs, const at::Tensor& coeffs_in, int64_t degree, const std::optional<at::Tensor>& visible,
-    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool staged_wanted) {
+    const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool staged_wanted,
+    const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color_backward";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
+  check_sh_trainable(op, dirs, trainable);
   check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});
   check_same(v_colors, dirs, op, "v_colors");
   const c10::cuda::CUDAGuard guard(dirs.device());
   const int64_t n = dirs.size(0);
   auto v_dirs = at::zeros({n, 3}, dirs.options());
   const auto d = dirs.contiguous(), g = v_colors.contiguous();
-  const auto v = visible.has_value() ? visible->contiguous() : at::Tensor();
+  const std::optional<at::Tensor> rows = backward_rows(visible, trainable);  // the rows walked
+  const auto v = rows.has_value() ? rows->contiguous() : at::Tensor();
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   cudaError_t err = cudaSuccess;

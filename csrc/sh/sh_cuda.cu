@@ -98,21 +98,30 @@ __global__ void __launch_bounds__(kStagedThreads) sh_staged_kernel(const float* 
     sh_eval<float>(degree, dirs + 3 * i, s_coeffs + threadIdx.x * row, colors + 3 * i);
 }
 
-// a.out / b.out: contiguous gradient rows (pitch = width), every row written.
+// a.out / b.out: contiguous gradient rows (pitch = width), every row written. A block none of
+// whose rows is walked (visible: the rows walked, culled and frozen ones excluded) writes zeros
+// without staging: an edit's frozen Gaussians cost a write of their rows, not the walk.
 __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(const float* dirs, Rows a, Rows b,
                                                                             int64_t n, int degree,
                                                                             const bool* visible, const float* v_colors,
                                                                             float* v_dirs) {
   extern __shared__ float s_mem[];  // coefficients, then their gradients: [blockDim][3k + 1] each
   const int row = a.width + b.width + 1, rows = staged_rows(n);
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const bool walked = threadIdx.x < rows && !(visible && !visible[i]);
+  if (!__syncthreads_or(walked)) {  // no row of the block is walked (culled or frozen): zeros
+    for (RowWalk w(a.width); w.r < rows; w.next()) a.out[(int64_t(blockIdx.x) * blockDim.x + w.r) * a.width + w.c] = 0.f;
+    for (RowWalk w(b.width); b.width && w.r < rows; w.next())
+      b.out[(int64_t(blockIdx.x) * blockDim.x + w.r) * b.width + w.c] = 0.f;
+    return;
+  }
   float* s_coeffs = s_mem;
   float* s_grad = s_mem + blockDim.x * row;
   stage_in(a, s_coeffs, rows, row, 0);
   if (b.width) stage_in(b, s_coeffs, rows, row, a.width);
   for (int e = threadIdx.x; e < static_cast<int>(blockDim.x) * row; e += blockDim.x) s_grad[e] = 0.f;
   __syncthreads();
-  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (threadIdx.x < rows && !(visible && !visible[i]))
+  if (walked)
     sh_eval_vjp<float>(degree, dirs + 3 * i, s_coeffs + threadIdx.x * row, v_colors + 3 * i,
                        s_grad + threadIdx.x * row, v_dirs + 3 * i);
   __syncthreads();

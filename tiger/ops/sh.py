@@ -11,7 +11,8 @@ _OP = "tiger::sh_to_color"
 
 
 def sh_to_color(dirs: Tensor, coeffs: Tensor, degree: int, visible: Optional[Tensor] = None,
-                rest: Optional[Tensor] = None, *, _staged: bool = True) -> Tensor:
+                rest: Optional[Tensor] = None, *, trainable: Optional[Tensor] = None,
+                _staged: bool = True) -> Tensor:
     """Real SH (INRIA order) evaluated per Gaussian for its view direction, differentiably.
 
     Args:
@@ -21,6 +22,9 @@ def sh_to_color(dirs: Tensor, coeffs: Tensor, degree: int, visible: Optional[Ten
         visible: [N] bool; rows that are False are skipped (output 0, gradient 0). None: all.
         rest: [N, K1, 3] or None: the coefficients are then ``cat([coeffs, rest], 1)``, read in
             place (float32 on CUDA) -- a scene's DC band and higher bands without the copy.
+        trainable: [N] bool or None: the rows whose gradients the backward computes; the others
+            get zero gradients and cost no gradient work (an edit's frozen Gaussians). The values
+            do not depend on it.
         _staged: test-only: False sends float32 rows on CUDA through the plain kernels (which
             float64 and very long rows always take) instead of the staged ones (coefficient rows
             through shared memory); the same arithmetic, bit for bit, kept for comparisons.
@@ -33,16 +37,16 @@ def sh_to_color(dirs: Tensor, coeffs: Tensor, degree: int, visible: Optional[Ten
         [[0.282..., 0.564..., 0.846...]]
     """
     return torch.ops.tiger.sh_to_color(dirs.contiguous(), coeffs, int(degree), visible, rest,
-                                       bool(_staged))
+                                       bool(_staged), trainable)
 
 
 @torch.library.register_fake(_OP)
-def _sh_fake(dirs, coeffs, degree, visible, rest=None, _staged=True):
+def _sh_fake(dirs, coeffs, degree, visible, rest=None, _staged=True, trainable=None):
     return dirs.new_empty(dirs.shape[0], 3)
 
 
 @torch.library.register_fake("tiger::sh_to_color_backward")
-def _sh_backward_fake(dirs, coeffs, degree, visible, v_colors, rest=None, _staged=True):
+def _sh_backward_fake(dirs, coeffs, degree, visible, v_colors, rest=None, _staged=True, trainable=None):
     v_rest = rest.new_empty(rest.shape) if rest is not None else dirs.new_empty(0)
     return torch.empty_like(dirs), coeffs.new_empty(coeffs.shape), v_rest
 
@@ -50,15 +54,16 @@ def _sh_backward_fake(dirs, coeffs, degree, visible, v_colors, rest=None, _stage
 def _setup(ctx: Any, inputs: tuple, output: torch.Tensor) -> None:
     dirs, coeffs, degree, visible = inputs[:4]
     rest = inputs[4] if len(inputs) > 4 else None
-    ctx.save_for_backward(dirs, coeffs, visible, rest)
+    trainable = inputs[6] if len(inputs) > 6 else None
+    ctx.save_for_backward(dirs, coeffs, visible, rest, trainable)
     ctx.degree = degree
     ctx.staged = bool(inputs[5]) if len(inputs) > 5 else True
 
 
 def _backward(ctx: Any, v_colors: torch.Tensor):
-    dirs, coeffs, visible, rest = ctx.saved_tensors
+    dirs, coeffs, visible, rest, trainable = ctx.saved_tensors
     v_dirs, v_coeffs, v_rest = torch.ops.tiger.sh_to_color_backward(
-        dirs, coeffs, ctx.degree, visible, v_colors.contiguous(), rest, ctx.staged)
+        dirs, coeffs, ctx.degree, visible, v_colors.contiguous(), rest, ctx.staged, trainable)
     need = ctx.needs_input_grad
     return (v_dirs if need[0] else None, v_coeffs if need[1] else None, None, None,
             v_rest if rest is not None and need[4] else None) + (None,) * (len(need) - 5)

@@ -59,7 +59,8 @@ def camera_center(viewmat: Tensor) -> Tensor:
 
 
 def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
-              visible: Optional[Tensor] = None, sh_rest: Optional[Tensor] = None) -> Tensor:
+              visible: Optional[Tensor] = None, sh_rest: Optional[Tensor] = None,
+              trainable: Optional[Tensor] = None) -> Tensor:
     """[N, 3] RGB of each Gaussian seen from the camera of ``viewmat``: max(SH(dir) + 0.5, 0).
 
     The one SH→RGB step of the renderer (INRIA's convention), differentiable.
@@ -72,9 +73,11 @@ def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
         visible: [N] bool; rows that are False get colour max(0.5, 0) and no gradient.
         sh_rest: [N, K1, 3] or None: the coefficients are ``cat([sh, sh_rest], 1)``, read in
             place (a scene's DC band and higher bands; no [N, K, 3] copy on CUDA).
+        trainable: [N] bool or None: the rows whose gradients the backward computes (the others
+            get zero gradients and cost no gradient work: :func:`tiger.ops.sh.sh_to_color`).
     """
     dirs = means - camera_center(viewmat.to(means))
-    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible, sh_rest) + 0.5, 0.0)
+    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible, sh_rest, trainable=trainable) + 0.5, 0.0)
 
 
 def rasterize_gaussians(
@@ -189,10 +192,12 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
                        colors: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, *,
                        background: Optional[Tensor] = None, sh_degree: Optional[int] = None,
                        sh_rest: Optional[Tensor] = None,
-                       settings: RasterSettings = RasterSettings()) -> Projection:
+                       settings: RasterSettings = RasterSettings(),
+                       trainable: Optional[Tensor] = None) -> Projection:
     """The first half of :func:`rasterize_gaussians` (same arguments, checked the same way):
     projection and the SH colour step. Batched renders project every view first, so that
-    a tensor stacking the views' ``means2d`` can sit in the graph (see ``render_views``)."""
+    a tensor stacking the views' ``means2d`` can sit in the graph (see ``render_views``).
+    ``trainable`` ([N] bool): the rows whose SH gradients the backward computes (:func:`sh_colors`)."""
     width, height, background = checked_sizes(means, quats, scales, opacities, colors, viewmat, K, width, height,
                                               background, sh_degree, sh_rest, settings.tile_size,
                                               settings.check_finite)
@@ -206,7 +211,7 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
         settings.far, settings.alpha_threshold, settings.antialiased)
 
     if sh_degree is not None:
-        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0, sh_rest)
+        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0, sh_rest, trainable)
     elif half_colors and not colors.is_cuda:
         feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:

@@ -442,8 +442,8 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     over the V renders reach the scene's tensors and ``colors`` through one graph. Each view is
     projected by its own call; the V views are then binned and rasterized in one call each, on
     the CPU and on CUDA (:func:`tiger.render.rasterize.composite_views`). ``trainable``: optional
-    bool [N]: the Gaussians whose gradients the rasterizer's backward computes (an edit's
-    editable ones); the frozen ones get zero gradients and cost no gradient work there.
+    bool [N]: the Gaussians whose gradients the rasterizer's and the SH colours' backward compute
+    (an edit's editable ones); the frozen ones get zero gradients and cost no gradient work there.
 
     Returns:
         dict with 'color' [V, H, W, C], 'alpha' [V, H, W], 'depth' [V, H, W],
@@ -460,7 +460,7 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
             raise ValueError(f"tiger: render_views stacks views of one size: camera {i} "
                              f"('{cam.image_name}') is {cam.width}x{cam.height}, camera 0 is "
                              f"{size[0]}x{size[1]}")
-    projections = _project_each(scene, cameras, colors, background, sh_degree, options)
+    projections = _project_each(scene, cameras, colors, background, sh_degree, options, trainable)
     # Composite from one stacked means2d, so that its retain_grad() sees every view.
     means2d = torch.stack([p.means2d for p in projections])
     return composite_views(projections, size[0], size[1], _settings(options), means2d, trainable)
@@ -516,8 +516,9 @@ def _settings(options: dict[str, RasterOption]) -> RasterSettings:
 
 def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec,
                   background: Optional[torch.Tensor], sh_degree: Optional[int],
-                  options: dict[str, RasterOption]) -> list[Projection]:
-    """Each camera's projection, sharing the activated geometry and the colour input."""
+                  options: dict[str, RasterOption], trainable: Optional[torch.Tensor] = None) -> list[Projection]:
+    """Each camera's projection, sharing the activated geometry and the colour input; the SH
+    colours' backward walks only the ``trainable`` rows when given ([N] bool)."""
     settings = _settings(options)
     deg = scene._check_sh_degree(sh_degree)
     n = len(scene)
@@ -544,15 +545,21 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
         raise ValueError("tiger: render colors must be None, 'rgb', 'lang', 'rgb+lang', a tensor [N, C] or "
                          f"('rgb', tensor [N, C]), got {colors!r}")
     means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
+    if not (isinstance(trainable, torch.Tensor) and trainable.dtype == torch.bool and trainable.shape == (n,)):
+        trainable = None  # none, or not a mask: composite_views names the problem
+    else:
+        trainable = trainable.to(scene.device)
     out = []
     for camera in cameras:
         cam = camera.to(device=scene.device, dtype=scene.dtype)
         view_feats = feats
         if per_view_rgb:
-            view_feats = torch.cat([sh_colors(means, sh_dc, cam.viewmat, deg, sh_rest=sh_rest), feats], 1)
+            view_feats = torch.cat([sh_colors(means, sh_dc, cam.viewmat, deg, sh_rest=sh_rest, trainable=trainable),
+                                    feats], 1)
         out.append(project_for_raster(means, quats, scales, opacities, view_feats, cam.viewmat, cam.K,
                                       cam.width, cam.height, background=background, sh_degree=raster_deg,
-                                      sh_rest=sh_rest if raster_deg is not None else None, settings=settings))
+                                      sh_rest=sh_rest if raster_deg is not None else None, settings=settings,
+                                      trainable=trainable))
     return out
 
 
