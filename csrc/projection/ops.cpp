@@ -29,6 +29,14 @@ void check_projection_inputs(const char* op, const at::Tensor& means, const at::
               height);
 }
 
+void check_projection_trainable(const char* op, const at::Tensor& means,
+                                const std::optional<at::Tensor>& trainable) {
+  if (!trainable.has_value()) return;
+  check_shape(*trainable, op, "trainable", {means.size(0)});
+  check_dtype(*trainable, at::kBool, op, "trainable");
+  TORCH_CHECK(trainable->device() == means.device(), op, ": trainable must be on ", means.device());
+}
+
 std::tuple<at::Tensor, at::Tensor> camera_grads_from_rows(const at::Tensor& rows, bool camera_grad,
                                                           const at::TensorOptions& options) {
   auto v_viewmat = at::zeros({4, 4}, options);
@@ -48,7 +56,7 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
   m.def(
       "project_gaussians(Tensor means, Tensor quats, Tensor scales, Tensor opacities, "
       "Tensor viewmat, Tensor K, int width, int height, float eps2d, float near_plane, "
-      "float far_plane, float alpha_threshold, bool antialiased) "
+      "float far_plane, float alpha_threshold, bool antialiased, Tensor? trainable=None) "
       "-> (Tensor means2d, Tensor conics, Tensor depths, Tensor opacities_out, Tensor radii)");
   m.def(
       "project_gaussians_backward(Tensor means, Tensor quats, Tensor scales, Tensor opacities, "

@@ -7,10 +7,14 @@
 //   -> means2d [N,2] px, conics [N,3] (a, b, c of the inverse dilated 2D covariance),
 //      depths [N] camera z, opacities_out [N] (after antialias compensation),
 //      radii [N,2] int32 opacity-aware half extents in px (0 = culled).
+//   trainable (optional [N] bool, not read by the forward): the rows whose gradients the
+//   backward computes; its autograd formula hands the backward op radii with the other rows
+//   zeroed, so they are skipped like culled ones (zero gradients, nothing added to the camera's).
 // project_gaussians_backward: gradients of the above w.r.t. means, quats, scales,
 //   opacities, viewmat [4,4] (rows 0-2) and K [3,3] (fx, fy, cx, cy); culled Gaussians get 0.
 #include <ATen/ATen.h>
 
+#include <optional>
 #include <tuple>
 
 namespace tiger {
@@ -19,7 +23,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_g
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
     const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
     int64_t height, double eps2d, double near_plane, double far_plane, double alpha_threshold,
-    bool antialiased);
+    bool antialiased, const std::optional<at::Tensor>& trainable);
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
 project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
@@ -35,6 +39,10 @@ project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
 // Zeros when camera_grad is false.
 std::tuple<at::Tensor, at::Tensor> camera_grads_from_rows(const at::Tensor& rows, bool camera_grad,
                                                           const at::TensorOptions& options);
+
+// trainable: absent, or [N] bool on means' device.
+void check_projection_trainable(const char* op, const at::Tensor& means,
+                                const std::optional<at::Tensor>& trainable);
 
 // Shared argument validation (CPU and CUDA glue).
 void check_projection_inputs(const char* op, const at::Tensor& means, const at::Tensor& quats,

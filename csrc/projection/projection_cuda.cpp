@@ -34,9 +34,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_g
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
     const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
     int64_t height, double eps2d, double near_plane, double far_plane, double alpha_threshold,
-    bool antialiased) {
+    bool antialiased, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.project_gaussians";
   check_projection_inputs(op, means, quats, scales, opacities, viewmat, K, width, height);
+  check_projection_trainable(op, means, trainable);  // for the backward (autograd formula)
   const c10::cuda::CUDAGuard guard(means.device());
   const int64_t n = means.size(0);
   // The kernel writes every row (zeros for culled Gaussians): no zero fills to launch.

@@ -22,7 +22,8 @@ using T = at::Tensor;
 using OptT = std::optional<at::Tensor>;
 
 using ProjectFn = std::tuple<T, T, T, T, T>(const T&, const T&, const T&, const T&, const T&, const T&,
-                                            int64_t, int64_t, double, double, double, double, bool);
+                                            int64_t, int64_t, double, double, double, double, bool,
+                                            const OptT&);
 using ShFn = T(const T&, const T&, int64_t, const OptT&, const OptT&, bool, const OptT&);
 using BinFn = std::tuple<T, T>(const T&, const T&, const T&, const T&, const T&, int64_t, int64_t,
                                int64_t, double, c10::string_view, int64_t, int64_t, int64_t, bool,
@@ -65,7 +66,7 @@ std::tuple<T, T, T, T, T, T, T, T, T> render_forward(
   const auto [means2d, conics, depths, opac, radii] =
       project.call(means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
                    vm, K.to(means.scalar_type()).contiguous(), width, height, eps2d, near_plane,
-                   far_plane, alpha_threshold, antialiased);
+                   far_plane, alpha_threshold, antialiased, std::nullopt);
   T feats;
   if (sh_degree >= 0)
     feats = sh_colors(means, colors, sh_rest, vm, sh_degree, radii);

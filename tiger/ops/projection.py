@@ -2,7 +2,7 @@
 autograd; semantics in ``csrc/projection/projection.h``)."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import torch
 from torch import Tensor
@@ -17,7 +17,8 @@ __all__ = ["project_gaussians"]
 def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                       viewmat: Tensor, K: Tensor, width: int, height: int, eps2d: float,
                       near: float, far: float, alpha_threshold: float,
-                      antialiased: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+                      antialiased: bool, trainable: Optional[Tensor] = None
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Project N Gaussians into one pinhole camera, differentiably (viewmat and K included).
 
     Args:
@@ -27,6 +28,9 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         width, height: image size (px); eps2d: dilation of the 2D covariance diagonal (px^2);
         near, far: camera-z range kept; alpha_threshold: opacity-aware extent rule;
         antialiased: scale opacity by sqrt(det Σ2d / det(Σ2d + eps2d I)).
+        trainable: [N] bool or None: the rows whose gradients the backward computes; the others
+            (an edit's frozen Gaussians) get zero gradients, cost no gradient work and add nothing
+            to viewmat's and K's. The values do not depend on it.
     Returns:
         means2d [N, 2] px, conics [N, 3] (a, b, c of the inverse dilated 2D covariance),
         depths [N] camera z, opacities [N] (after the antialiasing factor), radii [N, 2] int32
@@ -35,12 +39,12 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     return _project_eager(
         means.contiguous(), quats.contiguous(), scales.contiguous(), opacities.contiguous(),
         viewmat.contiguous(), K.contiguous(), int(width), int(height), float(eps2d), float(near),
-        float(far), float(alpha_threshold), bool(antialiased))
+        float(far), float(alpha_threshold), bool(antialiased), trainable)
 
 
 @torch.library.register_fake(_OP)
 def _project_fake(means, quats, scales, opacities, viewmat, K, width, height, eps2d, near_plane,
-                  far_plane, alpha_threshold, antialiased):
+                  far_plane, alpha_threshold, antialiased, trainable=None):
     n = means.shape[0]
     return (means.new_empty(n, 2), means.new_empty(n, 3), means.new_empty(n),
             means.new_empty(n), means.new_empty(n, 2, dtype=torch.int32))
@@ -54,16 +58,19 @@ def _project_backward_fake(means, quats, scales, opacities, viewmat, K, radii, w
 
 
 def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
-    means, quats, scales, opacities, viewmat, K, width, height, eps2d, _, _, _, antialiased = inputs
-    ctx.save_for_backward(means, quats, scales, opacities, viewmat, K, output[4])
+    means, quats, scales, opacities, viewmat, K, width, height, eps2d, _, _, _, antialiased = inputs[:13]
+    trainable = inputs[13] if len(inputs) > 13 else None
+    ctx.save_for_backward(means, quats, scales, opacities, viewmat, K, output[4], trainable)
     ctx.args = (width, height, eps2d, antialiased)
     ctx.mark_non_differentiable(output[4])
     ctx.set_materialize_grads(False)  # no zero fills for unused outputs (radii, ...): see _backward
 
 
 def _backward(ctx: Any, v_means2d, v_conics, v_depths, v_opac, _v_radii):
-    means, quats, scales, opacities, viewmat, K, radii = ctx.saved_tensors
+    means, quats, scales, opacities, viewmat, K, radii, trainable = ctx.saved_tensors
     width, height, eps2d, antialiased = ctx.args
+    if trainable is not None:  # the kernels skip the other rows as they skip culled ones
+        radii = radii.masked_fill(~trainable[:, None], 0)
     n = means.shape[0]
     zeros = lambda *s: means.new_zeros(*s)  # noqa: E731
     v_means2d = zeros(n, 2) if v_means2d is None else v_means2d
@@ -76,7 +83,7 @@ def _backward(ctx: Any, v_means2d, v_conics, v_depths, v_opac, _v_radii):
         means, quats, scales, opacities, viewmat, K, radii, width, height, eps2d, antialiased,
         v_means2d, v_conics, v_depths, v_opac, camera_grad)  # both glues take strided rows
     grads = [gi if need[i] else None for i, gi in enumerate(g)]
-    return (*grads, None, None, None, None, None, None, None)
+    return (*grads, *[None] * (len(need) - len(grads)))
 
 
 torch.library.register_autograd(_OP, _backward, setup_context=_setup)

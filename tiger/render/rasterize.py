@@ -197,7 +197,8 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
     """The first half of :func:`rasterize_gaussians` (same arguments, checked the same way):
     projection and the SH colour step. Batched renders project every view first, so that
     a tensor stacking the views' ``means2d`` can sit in the graph (see ``render_views``).
-    ``trainable`` ([N] bool): the rows whose SH gradients the backward computes (:func:`sh_colors`)."""
+    ``trainable`` ([N] bool): the rows whose projection and SH gradients the backward computes
+    (:func:`tiger.ops.projection.project_gaussians`, :func:`sh_colors`)."""
     width, height, background = checked_sizes(means, quats, scales, opacities, colors, viewmat, K, width, height,
                                               background, sh_degree, sh_rest, settings.tile_size,
                                               settings.check_finite)
@@ -208,7 +209,7 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
 
     means2d, conics, depths, opac, radii = project_gaussians(
         means, quats, scales, opacities, viewmat, K, width, height, settings.eps2d, settings.near,
-        settings.far, settings.alpha_threshold, settings.antialiased)
+        settings.far, settings.alpha_threshold, settings.antialiased, trainable)
 
     if sh_degree is not None:
         feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0, sh_rest, trainable)

@@ -442,8 +442,9 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     over the V renders reach the scene's tensors and ``colors`` through one graph. Each view is
     projected by its own call; the V views are then binned and rasterized in one call each, on
     the CPU and on CUDA (:func:`tiger.render.rasterize.composite_views`). ``trainable``: optional
-    bool [N]: the Gaussians whose gradients the rasterizer's and the SH colours' backward compute
-    (an edit's editable ones); the frozen ones get zero gradients and cost no gradient work there.
+    bool [N]: the Gaussians whose gradients the rasterizer's, the projection's and the SH colours'
+    backward compute (an edit's editable ones); the frozen ones get zero gradients and cost no
+    gradient work there.
 
     Returns:
         dict with 'color' [V, H, W, C], 'alpha' [V, H, W], 'depth' [V, H, W],
@@ -517,8 +518,8 @@ def _settings(options: dict[str, RasterOption]) -> RasterSettings:
 def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec,
                   background: Optional[torch.Tensor], sh_degree: Optional[int],
                   options: dict[str, RasterOption], trainable: Optional[torch.Tensor] = None) -> list[Projection]:
-    """Each camera's projection, sharing the activated geometry and the colour input; the SH
-    colours' backward walks only the ``trainable`` rows when given ([N] bool)."""
+    """Each camera's projection, sharing the activated geometry and the colour input; the
+    projection's and the SH colours' backward walk only the ``trainable`` rows when given ([N] bool)."""
     settings = _settings(options)
     deg = scene._check_sh_degree(sh_degree)
     n = len(scene)
