@@ -107,3 +107,16 @@ def test_opcheck(device):
                           test_utils=("test_schema", "test_faketensor"))
     with pytest.raises(RuntimeError, match="sh_degree must be -1"):
         torch.ops.tiger.render_forward(*args[:6], 4, *args[7:])
+
+
+def test_fake_kernel_defaults_are_the_schema_defaults():
+    """The fake kernel repeats the kernel choices' defaults that csrc/render/ops.cpp writes into the
+    schema (from binning_choices.h and raster.h)."""
+    import inspect
+
+    from tiger.ops import render as render_ops
+
+    schema = torch.ops.tiger.render_forward.default._schema
+    defaults = {a.name: a.default_value for a in schema.arguments if a.has_default_value()}
+    fake = inspect.signature(render_ops._render_forward_fake).parameters
+    assert defaults and defaults == {k: fake[k].default for k in defaults}

@@ -147,7 +147,9 @@ def rasterize_gaussians(
         ``depths`` [N], ``n_isects`` (number of tile-Gaussian pairs, int).
         Every float output is differentiable w.r.t. every float input (viewmat and K included).
         When only ``colors``/``background`` require grad, the backward runs the features-only
-        kernel (no geometry gradient is computed).
+        kernel (no geometry gradient is computed). A render that autograd does not record
+        (``torch.no_grad()``, or no input requiring grad) runs as one op,
+        :func:`tiger.ops.render.render_forward` (the same kernels in C++, the same values).
     """
     settings = RasterSettings(near=near, far=far, eps2d=eps2d, antialiased=antialiased,
                               alpha_max=alpha_max, alpha_threshold=alpha_threshold, t_min=t_min,
