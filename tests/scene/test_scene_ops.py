@@ -137,3 +137,25 @@ def test_scene_extent_is_inria_radius():
         cams.append(Camera(vm, intrinsics(1, 1, 1, 1), 2, 2))
     assert scene_extent(cams) == pytest.approx(2.0 * 1.1)
     assert math.isfinite(scene_extent(cams[:1]))
+
+
+def test_render_without_gradients_is_one_op_with_the_same_values(monkeypatch):
+    """GaussianScene.render under no_grad goes through tiger::render_forward (what the viewer,
+    `tiger render` and evaluation run) and gives the op-by-op render's values, every colour input."""
+    from tiger.render import rasterize as raster_mod
+
+    s = scene(60, 2, lang=5)
+    s.parameter_groups()  # its tensors require grad: a render records gradients unless no_grad
+    cam = front_camera()
+    calls = []
+    real = raster_mod.render_forward
+    monkeypatch.setattr(raster_mod, "render_forward", lambda *a, **k: calls.append(1) or real(*a, **k))
+    tint = torch.rand(60, 4, generator=torch.Generator().manual_seed(1))
+    for colors in (None, "lang", "rgb+lang", tint, ("rgb", tint)):
+        want = s.render(cam, colors, sh_degree=1)  # recorded: op by op
+        assert want["color"].requires_grad
+        with torch.no_grad():
+            got = s.render(cam, colors, sh_degree=1)
+        for k in ("color", "alpha", "depth", "radii", "means2d"):
+            assert torch.equal(got[k], want[k].detach()), (colors if isinstance(colors, str) else "tensor", k)
+    assert len(calls) == 5

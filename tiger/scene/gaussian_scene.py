@@ -4,15 +4,15 @@ from __future__ import annotations
 import copy
 import math
 import os
-from typing import Any, Iterable, Literal, Optional, Sequence, Union
+from typing import Any, Iterable, Literal, NamedTuple, Optional, Sequence, Union
 
 import torch
 
 from tiger.ops.binning import BinningSettings
 from tiger.ops.raster import RasterKernelSettings
 from tiger.render import Camera
-from tiger.render.rasterize import (Projection, RasterSettings, composite, composite_views, project_for_raster,
-                                   sh_colors)
+from tiger.render.rasterize import (Projection, RasterSettings, composite_views, project_for_raster,
+                                   rasterize_gaussians, sh_colors)
 
 from .ply import read_ply_state, write_ply_state
 from .sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh, sh_degree_from_rest, sh_to_rgb
@@ -372,8 +372,14 @@ class GaussianScene:
             'depth_accum' [H, W], 'radii' [N], 'means2d' [N, 2], 'conics' [N, 3], 'depths' [N],
             'n_isects' (int). Differentiable w.r.t. the scene's tensors and a ``colors`` tensor.
         """
-        p = _project_each(self, [camera], colors, background, sh_degree, options)[0]
-        return composite(p, camera.width, camera.height, _settings(options))
+        _settings(options)  # unknown keywords: one error naming them
+        c = _color_inputs(self, colors, sh_degree)
+        cam = camera.to(device=self.device, dtype=self.dtype)
+        feats, raster_deg, rest = _view_colors(self, c, cam.viewmat)
+        # a render autograd does not record runs as one op (tiger::render_forward)
+        return rasterize_gaussians(self.means, self.quats, self.scales, self.opacities, feats, cam.viewmat, cam.K,
+                                   cam.width, cam.height, background=background, sh_degree=raster_deg, sh_rest=rest,
+                                   **options)
 
     def view_colors(self, camera: Camera, sh_degree: Optional[int] = None) -> torch.Tensor:
         """[N, 3] RGB of each Gaussian seen from ``camera``: max(SH(dir) + 0.5, 0), the
@@ -515,12 +521,21 @@ def _settings(options: dict[str, RasterOption]) -> RasterSettings:
                         f"known: {known}") from None
 
 
-def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec,
-                  background: Optional[torch.Tensor], sh_degree: Optional[int],
-                  options: dict[str, RasterOption], trainable: Optional[torch.Tensor] = None) -> list[Projection]:
-    """Each camera's projection, sharing the activated geometry and the colour input; the
-    projection's and the SH colours' backward walk only the ``trainable`` rows when given ([N] bool)."""
-    settings = _settings(options)
+class _ColorInputs(NamedTuple):
+    """A render's colour input resolved against a scene: ``feats`` (per-Gaussian channels [N, C],
+    or the SH DC band [N, 1, 3] when ``sh_degree`` is set: the rasterizer evaluates SH then),
+    ``sh_rest`` (the higher bands, read in place), ``degree`` (the scene's SH bands used) and
+    ``per_view_rgb`` (each view's SH colour goes in front of ``feats``)."""
+
+    feats: torch.Tensor
+    sh_degree: Optional[int]
+    sh_dc: torch.Tensor
+    sh_rest: Optional[torch.Tensor]
+    degree: int
+    per_view_rgb: bool
+
+
+def _color_inputs(scene: GaussianScene, colors: ColorSpec, sh_degree: Optional[int]) -> _ColorInputs:
     deg = scene._check_sh_degree(sh_degree)
     n = len(scene)
     raster_deg: Optional[int] = None
@@ -545,6 +560,26 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
     else:
         raise ValueError("tiger: render colors must be None, 'rgb', 'lang', 'rgb+lang', a tensor [N, C] or "
                          f"('rgb', tensor [N, C]), got {colors!r}")
+    return _ColorInputs(feats, raster_deg, sh_dc, sh_rest, deg, per_view_rgb)
+
+
+def _view_colors(scene: GaussianScene, c: _ColorInputs, viewmat: torch.Tensor,
+                 trainable: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, Optional[int], Optional[torch.Tensor]]:
+    """One view's ``colors``, ``sh_degree`` and ``sh_rest`` arguments of the rasterizer."""
+    if not c.per_view_rgb:
+        return c.feats, c.sh_degree, c.sh_rest if c.sh_degree is not None else None
+    rgb = sh_colors(scene.means, c.sh_dc, viewmat, c.degree, sh_rest=c.sh_rest, trainable=trainable)
+    return torch.cat([rgb, c.feats], 1), None, None
+
+
+def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec,
+                  background: Optional[torch.Tensor], sh_degree: Optional[int],
+                  options: dict[str, RasterOption], trainable: Optional[torch.Tensor] = None) -> list[Projection]:
+    """Each camera's projection, sharing the activated geometry and the colour input; the
+    projection's and the SH colours' backward walk only the ``trainable`` rows when given ([N] bool)."""
+    settings = _settings(options)
+    c = _color_inputs(scene, colors, sh_degree)
+    n = len(scene)
     means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
     if not (isinstance(trainable, torch.Tensor) and trainable.dtype == torch.bool and trainable.shape == (n,)):
         trainable = None  # none, or not a mask: composite_views names the problem
@@ -553,14 +588,10 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
     out = []
     for camera in cameras:
         cam = camera.to(device=scene.device, dtype=scene.dtype)
-        view_feats = feats
-        if per_view_rgb:
-            view_feats = torch.cat([sh_colors(means, sh_dc, cam.viewmat, deg, sh_rest=sh_rest, trainable=trainable),
-                                    feats], 1)
+        view_feats, raster_deg, rest = _view_colors(scene, c, cam.viewmat, trainable)
         out.append(project_for_raster(means, quats, scales, opacities, view_feats, cam.viewmat, cam.K,
                                       cam.width, cam.height, background=background, sh_degree=raster_deg,
-                                      sh_rest=sh_rest if raster_deg is not None else None, settings=settings,
-                                      trainable=trainable))
+                                      sh_rest=rest, settings=settings, trainable=trainable))
     return out
 
 
