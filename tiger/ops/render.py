@@ -40,8 +40,10 @@ def render_forward(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tens
 @torch.library.register_fake("tiger::render_forward")
 def _render_forward_fake(means, quats, scales, opacities, colors, sh_rest, sh_degree, background, viewmat,
                          K, width, height, eps2d, near_plane, far_plane, alpha_threshold, antialiased,
-                         tile_size, alpha_max, t_min, path="auto", block_sort_keys=4096, warp_sort_keys=256,
-                         giant_tiles=512, _serial=False, channel_block=64):
+                         tile_size, alpha_max, t_min, path=BinningSettings.path,
+                         block_sort_keys=BinningSettings.block_sort_keys,
+                         warp_sort_keys=BinningSettings.warp_sort_keys, giant_tiles=BinningSettings.giant_tiles,
+                         _serial=False, channel_block=RasterKernelSettings.forward_channel_block):
     n = means.shape[0]
     c = 3 if sh_degree >= 0 else colors.shape[1]
     m = torch.library.get_ctx().new_dynamic_size()

@@ -7,7 +7,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-__all__ = ["checked_sizes"]
+__all__ = ["checked_sizes", "checked_trainable"]
 
 _NAME = "tiger.rasterize_gaussians"
 
@@ -128,3 +128,16 @@ def checked_sizes(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
                        "colors": colors, "sh_rest": sh_rest, "viewmat": viewmat, "K": K,
                        "background": background}, quats, scales, opacities)
     return width, height, background
+
+
+def checked_trainable(trainable: Optional[Tensor], n: int, device: torch.device) -> Optional[Tensor]:
+    """A render's ``trainable`` mask on ``device`` (None stays None); anything but a bool tensor
+    [N] is one error naming what was given."""
+    if trainable is None:
+        return None
+    if not isinstance(trainable, Tensor) or trainable.dtype != torch.bool or trainable.shape != (n,):
+        got = (f"{trainable.dtype} {list(trainable.shape)}" if isinstance(trainable, Tensor)
+               else type(trainable).__name__)
+        raise ValueError(f"{_NAME}: trainable must be a bool tensor [N={n}], got {got}")
+    return trainable.to(device)
+

@@ -13,7 +13,7 @@ from tiger.ops.raster import RasterKernelSettings, rasterize
 from tiger.ops.render import render_forward
 from tiger.ops.sh import sh_to_color
 
-from .raster_checks import checked_sizes
+from .raster_checks import checked_sizes, checked_trainable
 
 __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
            "composite", "composite_views", "bin_projection", "camera_center", "expected_depth", "sh_colors"]
@@ -204,8 +204,6 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
     width, height, background = checked_sizes(means, quats, scales, opacities, colors, viewmat, K, width, height,
                                               background, sh_degree, sh_rest, settings.tile_size,
                                               settings.check_finite)
-    half_colors = (sh_degree is None and means.dtype == torch.float32
-                   and colors.dtype in (torch.float16, torch.bfloat16))
     viewmat = viewmat.to(means.dtype)
     K = K.to(means.dtype)
 
@@ -215,7 +213,7 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
 
     if sh_degree is not None:
         feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0, sh_rest, trainable)
-    elif half_colors and not colors.is_cuda:
+    elif colors.dtype != means.dtype and not colors.is_cuda:  # float16/bfloat16 channels (checked)
         feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
     else:
         # CUDA reads float16/bfloat16 channels directly and accumulates in float32.
@@ -303,12 +301,9 @@ def composite_views(projections: list[Projection], width: int, height: int,
     if means2d is None:
         means2d = torch.stack([p.means2d for p in projections])
     n = means2d.shape[1]
+    trainable = checked_trainable(trainable, n, means2d.device)
     if trainable is not None:
-        if not isinstance(trainable, Tensor) or trainable.dtype != torch.bool or trainable.shape != (n,):
-            got = (f"{trainable.dtype} {list(trainable.shape)}" if isinstance(trainable, Tensor)
-                   else type(trainable).__name__)
-            raise ValueError(f"tiger.rasterize_gaussians: trainable must be a bool tensor [N={n}], got {got}")
-        trainable = trainable.to(means2d.device).repeat(views)  # the mask of every view's block
+        trainable = trainable.repeat(views)  # the mask of every view's block
     flat = means2d.reshape(views * n, 2)
     conics = torch.cat([p.conics for p in projections])
     depths = torch.cat([p.depths for p in projections])

@@ -11,6 +11,7 @@ import torch
 from tiger.ops.binning import BinningSettings
 from tiger.ops.raster import RasterKernelSettings
 from tiger.render import Camera
+from tiger.render.raster_checks import checked_trainable
 from tiger.render.rasterize import (Projection, RasterSettings, composite_views, project_for_raster,
                                    rasterize_gaussians, sh_colors)
 
@@ -581,10 +582,7 @@ def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: Color
     c = _color_inputs(scene, colors, sh_degree)
     n = len(scene)
     means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
-    if not (isinstance(trainable, torch.Tensor) and trainable.dtype == torch.bool and trainable.shape == (n,)):
-        trainable = None  # none, or not a mask: composite_views names the problem
-    else:
-        trainable = trainable.to(scene.device)
+    trainable = checked_trainable(trainable, n, scene.device)
     out = []
     for camera in cameras:
         cam = camera.to(device=scene.device, dtype=scene.dtype)
