@@ -67,15 +67,22 @@ void check_pixels_per_thread(const char* op, const char* name, int64_t pixels_pe
 
 // The kernel choices' defaults come from raster.h (tiger.ops.raster.RasterKernelSettings repeats
 // them; tests/ops/test_raster.py compares the two).
+void check_tile_order(const char* op, int64_t tile_order) {
+  TORCH_CHECK(tile_order == kTileOrderIndex || tile_order == kTileOrderHeavyFirst, op,
+              ": tile_order must be ", kTileOrderIndex, " (index order) or ", kTileOrderHeavyFirst,
+              " (longest tile lists first), got ", tile_order);
+}
+
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
   const std::string cb = std::to_string(kRasterChannelBlock);
   const std::string ppt = std::to_string(kRasterPixelsPerThread);
+  const std::string order = ", int tile_order=" + std::to_string(kRasterTileOrder);
   m.def((
       "rasterize(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
       "Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, int height, "
       "int tile_size, float alpha_max, float alpha_threshold, float t_min, int channel_block=" + cb +
       ", int backward_channel_block=" + cb + ", int colors_channel_block=" + cb +
-      ", int backward_pixels_per_thread=" + ppt + ", int views=1, Tensor? trainable=None"
+      ", int backward_pixels_per_thread=" + ppt + ", int views=1, Tensor? trainable=None" + order +
       ") -> (Tensor color, Tensor alpha, Tensor depth, Tensor n_contrib, Tensor transmittance)")
             .c_str());
   m.def((
@@ -84,13 +91,13 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       "int height, int tile_size, float alpha_max, float alpha_threshold, float t_min, "
       "Tensor transmittance, Tensor n_contrib, Tensor v_color, Tensor? v_alpha, Tensor? v_depth, "
       "int channel_block=" + cb + ", int pixels_per_thread=" + ppt + ", int views=1, "
-      "Tensor? trainable=None) -> (Tensor v_geometry, Tensor v_colors, Tensor v_background)")
+      "Tensor? trainable=None" + order + ") -> (Tensor v_geometry, Tensor v_colors, Tensor v_background)")
             .c_str());
   m.def((
       "rasterize_backward_colors(Tensor means2d, Tensor conics, Tensor opacities, "
       "Tensor tile_offsets, Tensor gaussian_ids, int width, int height, int tile_size, "
       "float alpha_max, float alpha_threshold, float t_min, Tensor n_contrib, Tensor v_color, "
-      "int channel_block=" + cb + ", int views=1, Tensor? trainable=None"
+      "int channel_block=" + cb + ", int views=1, Tensor? trainable=None" + order +
       ") -> (Tensor v_colors, Tensor v_background)")
             .c_str());
 }

@@ -366,7 +366,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable) {
+    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable,
+    int64_t tile_order) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t rows = views * height;  // the views' images, stacked
@@ -375,6 +376,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_channel_block(op, "backward_channel_block", backward_channel_block);
   check_channel_block(op, "colors_channel_block", colors_channel_block);
   check_pixels_per_thread(op, "backward_pixels_per_thread", backward_pixels_per_thread);
+  check_tile_order(op, tile_order);
   check_shape(colors, op, "colors", {means2d.size(0), -1});
   check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
                       tile_offsets, gaussian_ids, a);
@@ -415,12 +417,13 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
                        int64_t pixels_per_thread, int64_t views,
-                       const std::optional<at::Tensor>& trainable) {
+                       const std::optional<at::Tensor>& trainable, int64_t tile_order) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t H = views * height;  // the views' images, stacked
   check_channel_block(op, "channel_block", channel_block);  // CUDA choices: checked only
   check_pixels_per_thread(op, "pixels_per_thread", pixels_per_thread);
+  check_tile_order(op, tile_order);
   const int64_t n = means2d.size(0);
   check_shape(colors, op, "colors", {n, -1});
   const int64_t C = colors.size(1);
@@ -469,11 +472,12 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
-    const std::optional<at::Tensor>& trainable) {
+    const std::optional<at::Tensor>& trainable, int64_t tile_order) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t H = views * height;  // the views' images, stacked
-  check_channel_block(op, "channel_block", channel_block);  // a CUDA choice: checked only
+  check_channel_block(op, "channel_block", channel_block);  // CUDA choices: checked only
+  check_tile_order(op, tile_order);
   const int64_t n = means2d.size(0);
   check_shape(v_color, op, "v_color", {H, width, -1});
   const int64_t C = v_color.size(2);

@@ -33,7 +33,8 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
                             const at::Tensor& opac, const at::Tensor* depths,
                             const at::Tensor& tile_offsets, const at::Tensor& ids,
                             const RasterArgs& a, int64_t channels,
-                            const at::Tensor& trainable = at::Tensor()) {
+                            const at::Tensor& trainable = at::Tensor(),
+                            const at::Tensor& tile_order = at::Tensor()) {
   RasterLaunch<T> l;
   l.means2d = means2d.data_ptr<T>();
   l.conics = conics.data_ptr<T>();
@@ -42,6 +43,7 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
   l.tile_offsets = tile_offsets.data_ptr<int64_t>();
   l.ids = ids.data_ptr<int32_t>();
   l.trainable = trainable.defined() ? trainable.data_ptr<bool>() : nullptr;
+  l.tile_order = tile_order.defined() ? tile_order.data_ptr<int32_t>() : nullptr;
   l.width = int(a.width);
   l.height = int(a.height);
   l.tile_size = int(a.tile_size);
@@ -71,6 +73,19 @@ void check_cuda_limits(const char* op, const RasterArgs& a, int64_t channels) {
               op, ": ", a.views, " images of ", a.width, "x", a.height, " are too many tiles");
 }
 
+// The order of the kernels' blocks (raster.h, tile_order): null for index order, else a
+// permutation of the tiles, longest list first (tile_order_cuda.cu), on the current stream.
+at::Tensor launch_order(const at::Tensor& tile_offsets, int64_t tile_order, const char* op) {
+  if (tile_order != kTileOrderHeavyFirst) return at::Tensor();
+  const int64_t tiles = tile_offsets.size(0) - 1;
+  auto order = at::empty({tiles}, tile_offsets.options().dtype(at::kInt));
+  const cudaError_t err = heavy_first_order_cuda_launch(
+      tile_offsets.data_ptr<int64_t>(), int(tiles), order.data_ptr<int32_t>(),
+      c10::cuda::getCurrentCUDAStream());
+  TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
+  return order;
+}
+
 void check_ok(cudaError_t err, const char* op) {
   TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
 }
@@ -83,7 +98,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
-    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable) {
+    int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable,
+    int64_t tile_order) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -91,6 +107,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_channel_block(op, "backward_channel_block", backward_channel_block);
   check_channel_block(op, "colors_channel_block", colors_channel_block);
   check_pixels_per_thread(op, "backward_pixels_per_thread", backward_pixels_per_thread);
+  check_tile_order(op, tile_order);
   check_shape(colors, op, "colors", {means2d.size(0), -1});
   check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
                       tile_offsets, gaussian_ids, a);
@@ -112,9 +129,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
              d = depths.contiguous(), col = colors.contiguous(), to = tile_offsets.contiguous(),
              ids = gaussian_ids.contiguous();
   const auto bg = background.has_value() ? background->contiguous() : at::Tensor();
+  const at::Tensor order = launch_order(to, tile_order, op);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C);
+    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, at::Tensor(), order);
     check_ok(rasterize_forward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  out_color.data_ptr<T>(), out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
@@ -136,11 +154,12 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         const std::optional<at::Tensor>& v_alpha,
                         const std::optional<at::Tensor>& v_depth, int64_t channel_block,
                         int64_t pixels_per_thread, int64_t views,
-                        const std::optional<at::Tensor>& trainable) {
+                        const std::optional<at::Tensor>& trainable, int64_t tile_order) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
   check_pixels_per_thread(op, "pixels_per_thread", pixels_per_thread);
+  check_tile_order(op, tile_order);
   const int64_t n = means2d.size(0);
   check_shape(colors, op, "colors", {n, -1});
   const int64_t C = colors.size(1);
@@ -183,9 +202,10 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
              vd = v_depth.has_value() ? v_depth->to(dt).contiguous() : at::Tensor();
   const auto bg = background.has_value() ? background->contiguous() : at::Tensor();
   const auto train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
+  const at::Tensor order = launch_order(to, tile_order, op);
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, train);
+    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, train, order);
     check_ok(rasterize_backward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(),
@@ -205,10 +225,11 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
-    const std::optional<at::Tensor>& trainable) {
+    const std::optional<at::Tensor>& trainable, int64_t tile_order) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
+  check_tile_order(op, tile_order);
   const int64_t n = means2d.size(0);
   const int64_t H = views * height;  // the views' images, stacked
   check_shape(v_color, op, "v_color", {H, width, -1});
@@ -231,9 +252,10 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
              to = tile_offsets.contiguous(), ids = gaussian_ids.contiguous(),
              cnt = n_contrib.contiguous(), vc = v_color.to(dt).contiguous();
   const auto train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
+  const at::Tensor order = launch_order(to, tile_order, op);
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_colors_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C, train);
+    const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C, train, order);
     check_ok(rasterize_backward_colors_cuda_launch<T>(
                  l, cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), v_colors.data_ptr<T>(),
                  v_bg_tiles.data_ptr<T>(), int(channel_block),

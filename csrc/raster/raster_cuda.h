@@ -23,6 +23,8 @@ struct RasterLaunch {
   const int32_t* ids;
   // [N] or null (all): the backward kernels add gradients only for these Gaussians (raster.h)
   const bool* trainable;
+  // [tiles] or null (identity): block b draws tile tile_order[b] (raster.h: heaviest first)
+  const int32_t* tile_order;
   int width, height, tile_size, tiles_x, tiles_y;  // of one image
   // Images drawn (raster.h): one block per tile of views * tiles_y * tiles_x; tile t belongs
   // to image t / (tiles_x * tiles_y), whose pixels are rows image * height ... of the outputs.
@@ -62,5 +64,10 @@ cudaError_t rasterize_backward_colors_cuda_launch(const RasterLaunch<T>& a,
                                                   const int32_t* n_contrib, const T* v_color,
                                                   T* v_colors, T* v_bg_tiles, int channel_block,
                                                   cudaStream_t stream);
+
+// order [tiles]: a permutation of the tiles, longest list first within a factor of sqrt(2) (lists
+// of one half-octave of lengths in no fixed order); tile_offsets [tiles + 1].
+cudaError_t heavy_first_order_cuda_launch(const int64_t* tile_offsets, int tiles, int32_t* order,
+                                          cudaStream_t stream);
 
 }  // namespace tiger

@@ -35,7 +35,7 @@ struct BlockTile {
 template <typename T>
 __device__ __forceinline__ BlockTile block_tile(const RasterLaunch<T>& a) {
   BlockTile b;
-  b.tile = blockIdx.x;
+  b.tile = a.tile_order ? a.tile_order[blockIdx.x] : int(blockIdx.x);
   const int view_tiles = a.tiles_x * a.tiles_y;
   const int local = b.tile - b.tile / view_tiles * view_tiles;
   b.tx = local % a.tiles_x;

@@ -6,7 +6,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import tiger
-from tiger.ops.raster import RasterKernelSettings, rasterize
+from tiger.ops.raster import TILE_ORDERS, RasterKernelSettings, rasterize
 
 from ..render.devices import DEVICES
 from ..render.scenes import camera, random_scene
@@ -174,13 +174,16 @@ def test_kernel_settings_defaults_are_the_op_schemas():
     assert _schema_defaults(ops.rasterize) == {
         "channel_block": s.forward_channel_block, "backward_channel_block": s.backward_channel_block,
         "colors_channel_block": s.colors_channel_block,
-        "backward_pixels_per_thread": s.backward_pixels_per_thread, "views": 1, "trainable": None}
+        "backward_pixels_per_thread": s.backward_pixels_per_thread, "views": 1, "trainable": None,
+        "tile_order": s.tile_order_arg()}
     assert _schema_defaults(ops.rasterize_backward) == {
         "channel_block": s.backward_channel_block, "pixels_per_thread": s.backward_pixels_per_thread,
-        "views": 1, "trainable": None}
+        "views": 1, "trainable": None, "tile_order": s.tile_order_arg()}
     assert _schema_defaults(ops.rasterize_backward_colors) == {"channel_block": s.colors_channel_block,
-                                                               "views": 1, "trainable": None}
-    assert (s.forward_channel_block, s.backward_pixels_per_thread) == (64, 2)
+                                                               "views": 1, "trainable": None,
+                                                               "tile_order": s.tile_order_arg()}
+    assert (s.forward_channel_block, s.backward_pixels_per_thread, s.tile_order) == (64, 2, "heavy_first")
+    assert TILE_ORDERS.index("heavy_first") == 1 and TILE_ORDERS.index("index") == 0  # raster.h's numbers
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -191,7 +194,7 @@ def test_kernel_settings_reach_the_backward_ops(device, geometry):
     gives the same values (the CPU kernels only check them)."""
     m2, cn, op, col, d, bg, to, ids, w, h = _raster_args(device=device)
     kernels = RasterKernelSettings(forward_channel_block=32, backward_channel_block=32,
-                                   colors_channel_block=32, backward_pixels_per_thread=1)
+                                   colors_channel_block=32, backward_pixels_per_thread=1, tile_order="index")
     grads = []
     for k in (RasterKernelSettings(), kernels):
         ins = [t.clone().requires_grad_(geometry) for t in (m2, cn, op)] + [col.clone().requires_grad_()]
@@ -204,7 +207,8 @@ def test_kernel_settings_reach_the_backward_ops(device, geometry):
         assert len(args) == 1, [n for n, _ in log.calls]
         want = ((k.backward_channel_block, k.backward_pixels_per_thread) if geometry
                 else (k.colors_channel_block,))
-        assert args[0][-len(want) - 2:] == want + (1, None)  # then views (one image), trainable (all)
+        # then views (one image), trainable (all), tile_order
+        assert args[0][-len(want) - 3:] == want + (1, None, k.tile_order_arg())
         grads.append([out[0].detach()] + [t.grad for t in ins if t.grad is not None])
     assert _same(grads[1], grads[0], device)
 
@@ -219,6 +223,8 @@ def test_kernel_settings_reach_the_backward_ops(device, geometry):
 def test_kernel_settings_reject_bad_values(device, field, value, message):
     """Every device (and the fake kernel, for tracing) rejects a choice the CUDA kernels lack."""
     args = _raster_args(device=device)
+    with pytest.raises(RuntimeError, match="tile_order must be 0"):  # the op's own argument
+        ops.rasterize(*args, 16, 0.99, 1 / 255, 1e-4, *RasterKernelSettings().op_args(), 1, None, 2)
     bad = RasterKernelSettings(**{field: value})
     with pytest.raises(RuntimeError, match=message):
         rasterize(*args, 16, 0.99, 1 / 255, 1e-4, bad)
@@ -233,11 +239,20 @@ def test_opcheck_with_other_kernel_settings(device):
     m2, cn, op, col, d, bg, to, ids, w, h = _raster_args(device=device)
     args = (m2, cn, op, col, d, bg, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
     torch.library.opcheck(ops.rasterize.default, (*args, 32, 32, 32, 1))
+    torch.library.opcheck(ops.rasterize.default, (*args, 64, 64, 64, 2, 1, None, 0))
     c, a, dep, cnt, tr = ops.rasterize(*args)
     vc, va, vd = torch.randn_like(c), torch.randn_like(a), torch.randn_like(dep)
     torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 32, 1))
+    torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 64, 2, 1, None, 0))
     torch.library.opcheck(ops.rasterize_backward_colors.default,
                           (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 32))
+    torch.library.opcheck(ops.rasterize_backward_colors.default,
+                          (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 64, 1, None, 0))
+
+
+def test_tile_order_setting_is_checked():
+    with pytest.raises(ValueError, match="tile_order must be one of"):
+        RasterKernelSettings(tile_order="random")
 
 
 def test_rasterize_gaussians_passes_kernel_settings_down():
@@ -251,7 +266,7 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
     V, K = camera(w, h)
     binning = BinningSettings(path="global", block_sort_keys=64, warp_sort_keys=8, giant_tiles=9,
                               _serial=True)
-    kernels = RasterKernelSettings(32, 32, 64, 1)
+    kernels = RasterKernelSettings(32, 32, 64, 1, "index")
     log = _ArgLog()
     with log:
         got = tiger.rasterize_gaussians(m, q, s, o, col.requires_grad_(), V, K, w, h, binning=binning,
@@ -259,10 +274,10 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
     want = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h)
     calls = dict(log.calls)
     assert calls["tiger.bin_gaussians.default"][-6:] == binning.op_args() + (1,)  # views last
-    assert calls["tiger.rasterize.default"][-6:] == kernels.op_args() + (1, None)  # views, trainable
+    assert calls["tiger.rasterize.default"][-7:] == kernels.op_args() + (1, None, 0)  # views, trainable, order
     assert torch.equal(got["color"], want["color"])
     log = _ArgLog()
     with log, torch.no_grad():
         got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
-    assert dict(log.calls)["tiger.render_forward.default"][-6:] == binning.op_args() + (32,)
+    assert dict(log.calls)["tiger.render_forward.default"][-7:] == binning.op_args() + (32, 0)
     assert torch.equal(got["color"], want["color"])

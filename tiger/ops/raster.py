@@ -18,7 +18,9 @@ from tiger.ops._eager_autograd import eager_autograd
 
 _OP = "tiger::rasterize"
 
-__all__ = ["rasterize", "RasterKernelSettings"]
+__all__ = ["rasterize", "RasterKernelSettings", "TILE_ORDERS"]
+
+TILE_ORDERS = ("index", "heavy_first")  # the ops' tile_order argument is the index (raster.h)
 
 
 @dataclass(frozen=True)
@@ -34,22 +36,35 @@ class RasterKernelSettings:
             backward kernel: 64 (a C <= 64 tile list is walked once) or 32.
         backward_pixels_per_thread: pixels per backward thread, 2 where they apply (16-px tiles,
             channel blocks of at most 16 channels) or 1.
+        tile_order: the order the kernels draw tiles in: ``"heavy_first"`` (tiles with longer
+            lists first, within a factor of sqrt 2, so that the longest walks do not run alone
+            at the end of a kernel) or ``"index"``. The forward's values are the same bit for
+            bit, the backward's up to the order of its atomic sums.
     """
 
     forward_channel_block: int = 64
     backward_channel_block: int = 64
     colors_channel_block: int = 64
     backward_pixels_per_thread: int = 2
+    tile_order: str = "heavy_first"
+
+    def __post_init__(self) -> None:
+        if self.tile_order not in TILE_ORDERS:
+            raise ValueError(f"tiger.ops.raster: tile_order must be one of {TILE_ORDERS}, got {self.tile_order!r}")
 
     def op_args(self) -> tuple[int, int, int, int]:
-        """The forward op's trailing arguments, in schema order."""
+        """The forward op's kernel arguments before ``views``, in schema order."""
         return (int(self.forward_channel_block), int(self.backward_channel_block),
                 int(self.colors_channel_block), int(self.backward_pixels_per_thread))
+
+    def tile_order_arg(self) -> int:
+        """The ops' ``tile_order`` argument (their last): 0 index order, 1 heavy first."""
+        return TILE_ORDERS.index(self.tile_order)
 
 
 _DEFAULT = RasterKernelSettings()
 _N_GEOMETRY_ARGS = 6  # width, height, tile_size, alpha_max, alpha_threshold, t_min
-_N_KERNEL_ARGS = 4  # RasterKernelSettings.op_args(); then the forward's views and trainable
+_N_KERNEL_ARGS = 4  # RasterKernelSettings.op_args(); then the forward's views, trainable, tile_order
 
 
 def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
@@ -84,12 +99,17 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         means2d, conics, opacities, colors, depths,
         background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
         int(width), int(height), int(tile_size), float(alpha_max), float(alpha_threshold),
-        float(t_min), *kernels.op_args(), int(views), trainable)
+        float(t_min), *kernels.op_args(), int(views), trainable, kernels.tile_order_arg())
 
 
 def _check_channel_block(op: str, name: str, value: int) -> None:
     torch._check(value in (64, 32), lambda: f"{op}: {name} must be 64 or 32 (the compiled float32 "
                                             f"channel blocks), got {value}")
+
+
+def _check_tile_order(op: str, value: int) -> None:
+    torch._check(value in (0, 1), lambda: f"{op}: tile_order must be 0 (index order) or 1 (longest tile "
+                 f"lists first), got {value}")
 
 
 def _check_pixels_per_thread(op: str, name: str, value: int) -> None:
@@ -103,12 +123,13 @@ def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_of
                  backward_channel_block=_DEFAULT.backward_channel_block,
                  colors_channel_block=_DEFAULT.colors_channel_block,
                  backward_pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1,
-                 trainable=None):
+                 trainable=None, tile_order=_DEFAULT.tile_order_arg()):
     op = "tiger.rasterize"
     _check_channel_block(op, "channel_block", channel_block)
     _check_channel_block(op, "backward_channel_block", backward_channel_block)
     _check_channel_block(op, "colors_channel_block", colors_channel_block)
     _check_pixels_per_thread(op, "backward_pixels_per_thread", backward_pixels_per_thread)
+    _check_tile_order(op, tile_order)
     # Outputs take the geometry dtype: colors may be stored in float16/bfloat16 (CUDA).
     c = colors.shape[1]
     rows = views * height  # the views' images, stacked
@@ -123,9 +144,10 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
                           transmittance, n_contrib, v_color, v_alpha, v_depth,
                           channel_block=_DEFAULT.backward_channel_block,
                           pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1,
-                          trainable=None):
+                          trainable=None, tile_order=_DEFAULT.tile_order_arg()):
     _check_channel_block("tiger.rasterize_backward", "channel_block", channel_block)
     _check_pixels_per_thread("tiger.rasterize_backward", "pixels_per_thread", pixels_per_thread)
+    _check_tile_order("tiger.rasterize_backward", tile_order)
     return (means2d.new_empty(means2d.shape[0], 8), means2d.new_empty(colors.shape),
             means2d.new_empty(colors.shape[1]))
 
@@ -134,8 +156,9 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
 def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gaussian_ids, width,
                                  height, tile_size, alpha_max, alpha_threshold, t_min, n_contrib,
                                  v_color, channel_block=_DEFAULT.colors_channel_block, views=1,
-                                 trainable=None):
+                                 trainable=None, tile_order=_DEFAULT.tile_order_arg()):
     _check_channel_block("tiger.rasterize_backward_colors", "channel_block", channel_block)
+    _check_tile_order("tiger.rasterize_backward_colors", tile_order)
     c = v_color.shape[2]
     return means2d.new_empty(means2d.shape[0], c), means2d.new_empty(c)
 
@@ -151,6 +174,7 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     extra = args[_N_GEOMETRY_ARGS + _N_KERNEL_ARGS:]
     ctx.views = extra[0] if len(extra) > 0 else 1
     trainable = extra[1] if len(extra) > 1 else None
+    ctx.tile_order = extra[2] if len(extra) > 2 else _DEFAULT.tile_order_arg()
     ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
                           gaussian_ids, transmittance, n_contrib, trainable)
     ctx.args = tuple(args[:_N_GEOMETRY_ARGS])
@@ -171,7 +195,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
     if not geometry:
         v_colors, v_bg = torch.ops.tiger.rasterize_backward_colors(
             means2d, conics, opacities, tile_offsets, gaussian_ids, *ctx.args, n_contrib,
-            v_color.contiguous(), ctx.colors_channel_block, ctx.views, trainable)
+            v_color.contiguous(), ctx.colors_channel_block, ctx.views, trainable, ctx.tile_order)
         v_colors = v_colors.to(colors.dtype)  # half-precision storage: grads in its dtype
         return (None, None, None, v_colors if need[3] else None, None,
                 v_bg if need[5] else None) + (None,) * (len(need) - 6)
@@ -180,7 +204,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         *ctx.args, trans, n_contrib, v_color.contiguous(),
         None if v_alpha is None else v_alpha.contiguous(),
         None if v_depth is None else v_depth.contiguous(), ctx.backward_channel_block,
-        ctx.backward_pixels_per_thread, ctx.views, trainable)
+        ctx.backward_pixels_per_thread, ctx.views, trainable, ctx.tile_order)
     v_geom, v_colors, v_bg = g   # v_geom [N, 8]: u, v, conic a, b, c, opacity, depth, 0
     v_means2d, v_conics, v_opac, v_depths = v_geom[:, 0:2], v_geom[:, 2:5], v_geom[:, 5], v_geom[:, 6]
     v_colors = v_colors.to(colors.dtype)
