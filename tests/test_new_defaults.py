@@ -160,3 +160,14 @@ def test_feature_stage_memory_and_disk_shares(monkeypatch, tmp_path):
     assert budget.room(100 << 30) and not budget.room((100 << 30) + 1)  # a tenth of the disk
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1000 << 30, 0, (50 << 30) + (1 << 20)))
     assert budget.room(1 << 20) and not budget.room((1 << 20) + 1)  # 5 % kept free
+
+
+def test_edit_renders_with_one_pixel_per_backward_thread():
+    # docs/BENCHMARKS.md (edit render stage, H100): the edit's backward on few tiles with long lists
+    # is faster with one pixel per backward thread (2.56 against 3.30 ms), the library default
+    # stays 2 (real captures' full backward: fox 1.24 against 1.56 ms)
+    from tiger.edit.loop import EDIT_RASTER_KERNELS
+    from tiger.ops.raster import RasterKernelSettings
+
+    assert EDIT_RASTER_KERNELS == RasterKernelSettings(backward_pixels_per_thread=1)
+    assert RasterKernelSettings().backward_pixels_per_thread == 2

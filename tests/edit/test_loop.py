@@ -220,3 +220,30 @@ def test_view_pool_zero_draws_fresh_views_every_step():
     for _ in range(3):
         s.step_once()
     assert s.pool is None and all(ids is None for ids, _ in seen) and len({c for _, c in seen}) == 3
+
+
+def test_step_renders_with_the_edit_raster_kernels():
+    """The step's render hands the rasterizer the edit's kernel choices (tiger.edit.loop.
+    EDIT_RASTER_KERNELS: one pixel per backward thread), read off the dispatched calls."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from tiger.edit.loop import EDIT_RASTER_KERNELS
+
+    calls = []
+
+    class _Log(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if str(func) in ("tiger.rasterize.default", "tiger.rasterize_backward.default"):
+                calls.append((str(func), args))
+            return func(*args, **(kwargs or {}))
+
+    s = EditSession(two_objects(), resolve_target(two_objects(), query_a(), tau=0.5), RecolorGuidance("red"),
+                    None, EditConfig(**dict(SMALL, view_pool=0)))
+    with _Log():
+        s.step_once()
+    k = EDIT_RASTER_KERNELS
+    forward = [a for f, a in calls if f == "tiger.rasterize.default"]
+    backward = [a for f, a in calls if f == "tiger.rasterize_backward.default"]
+    assert forward and backward
+    assert forward[-1][14:18] == k.op_args()  # (a trailing default such as tile_order is not dispatched)
+    assert backward[-1][19:21] == (k.backward_channel_block, k.backward_pixels_per_thread) == (64, 1)

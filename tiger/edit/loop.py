@@ -42,6 +42,7 @@ from typing import Any, Optional, Sequence, Union
 
 import torch
 
+from tiger.ops.raster import RasterKernelSettings
 from tiger.retrieval.text import TextEncoder
 from tiger.recon.step import SceneOptimizer
 from tiger.recon.strategy import DensifySchedule, RegionTopKStrategy
@@ -59,6 +60,13 @@ CHECKPOINT_FORMAT = "tiger.edit-checkpoint/1"
 POOL_SEED_OFFSET = 7919  # the view pool's generator: seed + this, apart from the per-step draws
 OPTIMISED = ("means", "log_scales", "quats", "opacity_logits", "sh_dc")
 STAGES = ("view_pool", "render", "guidance", "backward", "optimizer", "densify")
+# The edit's rasterizer kernels: one pixel per backward thread (8 warps a tile) instead of the
+# default two (4 warps). An edit's backward walks long tile lists (the object's tiles, behind and
+# in front of it) on few tiles, where more warps per tile hide more latency: on the H100 the
+# backward of the demo edit's 4 views of 512² (317,600 Gaussians, 41,600 editable) takes 2.56 ms
+# against 3.30 (docs/BENCHMARKS.md); a real capture's full backward (fox, 268 entries a tile)
+# is faster with two (1.24 against 1.56 ms), so the library default stays 2.
+EDIT_RASTER_KERNELS = RasterKernelSettings(backward_pixels_per_thread=1)
 
 
 @dataclass
@@ -343,7 +351,7 @@ class EditSession:
             cams, cams_on_device, originals, masks, view_ids = self._views(k)
             layout = self.render_layout()
             out = render_views(layout.scene(self.opt.leaves), cams_on_device, "rgb", background=self.background,
-                               check_finite=False, trainable=layout.trainable)
+                               check_finite=False, trainable=layout.trainable, kernels=EDIT_RASTER_KERNELS)
             out["means2d"].retain_grad()
             x = out["color"].permute(0, 3, 1, 2).clamp(0, 1)
         batch = ViewBatch(cameras=cams, originals=originals, masks=masks, view_ids=view_ids, step=self.step,
