@@ -19,7 +19,8 @@ every scene tensor) timed apart; the edit step's own stage (half the views as or
 the footprint channel, half with gradient); the largest output difference from the per-view
 renders (0: bit-identical) and relative gradient difference (atomics' order on CUDA); and the
 backward with ``trainable`` = the ball's Gaussians (what the edit optimises: no gradient work for
-the frozen ones), its editable gradients against the full backward's and its frozen ones (0).
+the frozen ones) and the edit's kernel choices (``tiger.edit.loop.EDIT_RASTER_KERNELS``: one pixel
+per backward thread), its editable gradients against the full backward's and its frozen ones (0).
 
     python -m benchmarks.render_views               # CPU
     python -m benchmarks.render_views --device cuda
@@ -117,6 +118,7 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int,
     forward and backward timed apart; plus the edit loop's own stage (half the views rendered
     as originals with the footprint channel, no gradient; half with gradient)."""
     from benchmarks.edit import demo_scene
+    from tiger.edit.loop import EDIT_RASTER_KERNELS
     from tiger.ops.binning import BinningSettings
     from tiger.render.views import orbit_cameras_around
     from tiger.scene import render_rgb
@@ -147,9 +149,10 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int,
         leaves()
         return (forward_batched()["color"] * upstream).sum()
 
-    def loss_batched_editable():  # the rasterizer's backward for the editable Gaussians only
+    def loss_batched_editable():  # the edit's render: the editable Gaussians only, its kernel choices
         leaves()
-        return (render_views(scene, cams, trainable=editable, **opts)["color"] * upstream).sum()
+        return (render_views(scene, cams, trainable=editable, kernels=EDIT_RASTER_KERNELS, **opts)["color"]
+                * upstream).sum()
 
     def backward(loss):
         loss.backward()
