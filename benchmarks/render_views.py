@@ -26,6 +26,10 @@ per backward thread), its editable gradients against the full backward's and its
     python -m benchmarks.render_views --device cuda
     python -m benchmarks.render_views --edit --density 1 --size 128 --views 8            # CPU
     python -m benchmarks.render_views --edit --density 16 --size 512 --views 8 --device cuda
+
+On CUDA ``--edit`` also times the rasterizer's kernels of the edit's render under each kernel
+choice (tile order x pixels per backward thread) on the edit's own cameras and on orbit cameras
+(the evidence for ``tiger.edit.loop.EDIT_RASTER_KERNELS`` and the tile order's default).
 """
 from __future__ import annotations
 
@@ -205,6 +209,71 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int,
     return [row]
 
 
+def raster_kernel_ms(fn, reps: int) -> dict[str, float]:
+    """GPU ms per ``fn()`` call of the rasterizer's forward and backward kernels and of every other
+    kernel (torch.profiler, after two warm-up calls)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    for _ in range(2):
+        fn()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(reps):
+            fn()
+        torch.cuda.synchronize()
+    out = {"raster fwd ms": 0.0, "raster bwd ms": 0.0, "other kernels ms": 0.0}
+    for ev in prof.events():
+        if ev.device_type != torch.autograd.DeviceType.CUDA:
+            continue
+        raster = "raster_cuda::" in ev.name
+        key = ("raster fwd ms" if raster and "forward_kernel" in ev.name else
+               "raster bwd ms" if raster and "backward_kernel" in ev.name else "other kernels ms")
+        out[key] += ev.device_time / 1e3 / reps
+    return out
+
+
+def run_kernel_choices(density: float, size: int, repeats: int) -> list[dict]:
+    """CUDA: the edit step's render (4 views with gradient, editable backward) under each raster
+    kernel choice the edit could take (tile order x pixels per backward thread), on the edit's own
+    cameras (8 sets of tiger.edit's ObjectViews at the EditConfig defaults, drawn with a fixed
+    generator: the object fills the view) and on 4 orbit cameras around the whole scene (the
+    object small in the view); GPU kernel ms per render + backward (profiler)."""
+    from benchmarks.edit import demo_scene
+    from tiger.edit import EditConfig
+    from tiger.edit.target import resolve_target
+    from tiger.edit.views import ObjectViews
+    from tiger.ops.raster import RasterKernelSettings
+    from tiger.render.views import orbit_cameras_around
+
+    scene, query = demo_scene(density, "cuda")
+    tgt = resolve_target(scene, query, tau=0.5)
+    editable = tgt.mask
+    scene.lang = None
+    cfg = EditConfig(width=size, height=size)
+    views = ObjectViews(tgt.center, tgt.bbox_min, tgt.bbox_max, n_views=cfg.n_views, width=size, height=size,
+                        fov_deg=cfg.fov_deg, elevation_deg=cfg.elevation_deg, fill=cfg.fill, force_360=True)
+    gen = torch.Generator().manual_seed(0)
+    camera_sets = {"edit views": [[c.to("cuda") for c in views.sample(gen)] for _ in range(8)],
+                   "orbit": [[c.to("cuda") for c in orbit_cameras_around(scene.means, 4, size, size,
+                                                                       elevation_deg=20.0)]]}
+    upstream = torch.rand(4, size, size, 3, device="cuda", generator=torch.Generator(device="cuda").manual_seed(1))
+    rows = []
+    for cams_name, sets in camera_sets.items():
+        for order in ("heavy_first", "index"):
+            for ppt in (1, 2):
+                k = RasterKernelSettings(tile_order=order, backward_pixels_per_thread=ppt)
+
+                def step():
+                    for cams in sets:
+                        scene.parameter_groups()
+                        out = render_views(scene, cams, "rgb", trainable=editable, check_finite=False, kernels=k)
+                        (out["color"] * upstream).sum().backward()
+                t = raster_kernel_ms(step, repeats)
+                rows.append({"cameras": cams_name, "tile_order": order, "bwd px/thread": ppt,
+                             **{key: v / len(sets) for key, v in t.items()}})
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
@@ -225,6 +294,10 @@ def main() -> None:
         print_table([{k: r[k] for k in ("device", "V")} | {k: r[k] for k in r if k.startswith(("stage", "max"))}
                      for r in rows], "the edit step's render stage (half originals + footprint, half with "
                                      "gradient; ms) and the batched render's error vs per-view renders")
+        if args.device.startswith("cuda"):
+            print_table(run_kernel_choices(args.density, args.size, args.repeats),
+                        "the edit's render + editable backward (4 views) under each raster kernel choice: "
+                        "GPU kernel ms per render (profiler)")
         return
     cases = [(20000, 128, 3, 4)] if args.quick else [(20000, 128, 3, 4), (100000, 256, 3, 4), (100000, 256, 64, 4)]
     print_table([run(*c, args.device, args.repeats) for c in cases],
