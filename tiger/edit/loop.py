@@ -63,9 +63,11 @@ STAGES = ("view_pool", "render", "guidance", "backward", "optimizer", "densify")
 # The edit's rasterizer kernels: one pixel per backward thread (8 warps a tile) instead of the
 # default two (4 warps). An edit's backward walks long tile lists (the object's tiles, behind and
 # in front of it) on few tiles, where more warps per tile hide more latency: on the H100 the
-# backward of the demo edit's 4 views of 512² (317,600 Gaussians, 41,600 editable) takes 2.56 ms
-# against 3.30 (docs/BENCHMARKS.md); a real capture's full backward (fox, 268 entries a tile)
-# is faster with two (1.24 against 1.56 ms), so the library default stays 2.
+# raster backward of the demo edit's 4 views of 512² (317,600 Gaussians, 41,600 editable) takes
+# 1.94 ms against 2.38 on the edit's own cameras, 2.55 against 3.34 on orbit cameras
+# (`python -m benchmarks.render_views --edit ...`, docs/BENCHMARKS.md); a real capture's full
+# backward (fox, 268 entries a tile) is faster with two (1.24 against 1.56 ms), so the library
+# default stays 2.
 EDIT_RASTER_KERNELS = RasterKernelSettings(backward_pixels_per_thread=1)
 
 
