@@ -29,6 +29,22 @@ def count_flops(fn: Callable[[], object]) -> float:
     return float(counter.get_total_flops())
 
 
+def cuda_kernel_names(fn: Callable[[], object], reps: int, warmup: int = 2) -> list[tuple[str, float]]:
+    """(name, ms) of every CUDA kernel, memset and copy that ``reps`` calls of ``fn()`` ran, after
+    ``warmup`` calls (torch.profiler; divide sums by ``reps`` for per-call figures)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    for _ in range(warmup):
+        fn()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(reps):
+            fn()
+        torch.cuda.synchronize()
+    return [(ev.name, ev.device_time / 1e3) for ev in prof.events()
+            if ev.device_type == torch.autograd.DeviceType.CUDA]
+
+
 def rel_err(a: Tensor, b: Tensor) -> float:
     """Norm-wise relative error ||a - b|| / ||b|| in float64."""
     a, b = a.detach().double(), b.detach().double().to(a.device)

@@ -39,7 +39,7 @@ import time
 
 import torch
 
-from benchmarks.common import cpu_time_ms, cuda_time_ms, median_time, print_table  # noqa: E402
+from benchmarks.common import cpu_time_ms, cuda_kernel_names, cuda_time_ms, median_time, print_table  # noqa: E402
 from tests.render.standard_scenes import standard_scene  # noqa: E402
 
 import tiger  # noqa: E402
@@ -212,23 +212,12 @@ def run_edit(density: float, size: int, views: int, device: str, repeats: int,
 def raster_kernel_ms(fn, reps: int) -> dict[str, float]:
     """GPU ms per ``fn()`` call of the rasterizer's forward and backward kernels and of every other
     kernel (torch.profiler, after two warm-up calls)."""
-    from torch.profiler import ProfilerActivity, profile
-
-    for _ in range(2):
-        fn()
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        for _ in range(reps):
-            fn()
-        torch.cuda.synchronize()
     out = {"raster fwd ms": 0.0, "raster bwd ms": 0.0, "other kernels ms": 0.0}
-    for ev in prof.events():
-        if ev.device_type != torch.autograd.DeviceType.CUDA:
-            continue
-        raster = "raster_cuda::" in ev.name
-        key = ("raster fwd ms" if raster and "forward_kernel" in ev.name else
-               "raster bwd ms" if raster and "backward_kernel" in ev.name else "other kernels ms")
-        out[key] += ev.device_time / 1e3 / reps
+    for name, ms in cuda_kernel_names(fn, reps):
+        raster = "raster_cuda::" in name
+        key = ("raster fwd ms" if raster and "forward_kernel" in name else
+               "raster bwd ms" if raster and "backward_kernel" in name else "other kernels ms")
+        out[key] += ms / reps
     return out
 
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import collections
 
 import torch
-from torch.profiler import ProfilerActivity, profile
 
+from benchmarks.common import cuda_kernel_names
 from benchmarks.guidance import ring
 from benchmarks.guidance_floor import default_cuda_guidances
 from tiger.edit.guidance.base import ViewBatch
@@ -38,27 +38,19 @@ def category(name: str) -> str:
 def profile_calls(cases: dict, reps: int = 5) -> None:
     """Profile ``reps`` calls of each case after 3 warm-up calls; print the breakdown."""
     for name, fn in cases.items():
-        for _ in range(3):
-            fn()
-        torch.cuda.synchronize()
-        with profile(activities=[ProfilerActivity.CUDA]) as prof:
-            for _ in range(reps):
-                fn()
-            torch.cuda.synchronize()
         per_cat, per_kernel, counts = collections.Counter(), collections.Counter(), collections.Counter()
-        for ev in prof.events():
-            if ev.device_type == torch.autograd.DeviceType.CUDA:
-                per_cat[category(ev.name)] += ev.device_time
-                per_kernel[ev.name[:110]] += ev.device_time
-                counts[ev.name[:110]] += 1
+        for kernel, ms in cuda_kernel_names(fn, reps, warmup=3):
+            per_cat[category(kernel)] += ms
+            per_kernel[kernel[:110]] += ms
+            counts[kernel[:110]] += 1
         total = sum(per_cat.values())
-        print(f"\n== {name}: GPU kernel time {total / reps / 1e3:.2f} ms per call, "
+        print(f"\n== {name}: GPU kernel time {total / reps:.2f} ms per call, "
               f"{sum(counts.values()) // reps} kernels per call")
-        for cat, us in per_cat.most_common():
-            print(f"  {cat:14s} {us / reps / 1e3:7.2f} ms  {100 * us / total:5.1f} %")
+        for cat, ms in per_cat.most_common():
+            print(f"  {cat:14s} {ms / reps:7.2f} ms  {100 * ms / total:5.1f} %")
         print("  top kernels (ms per call, launches per call):")
-        for k, us in per_kernel.most_common(22):
-            print(f"    {us / reps / 1e3:7.3f}  {counts[k] // reps:4d}  {k}")
+        for k, ms in per_kernel.most_common(22):
+            print(f"    {ms / reps:7.3f}  {counts[k] // reps:4d}  {k}")
 
 
 def main() -> None:
