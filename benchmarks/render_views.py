@@ -216,7 +216,7 @@ def raster_kernel_ms(fn, reps: int) -> dict[str, float]:
     for name, ms in cuda_kernel_names(fn, reps):
         raster = "raster_cuda::" in name
         key = ("raster fwd ms" if raster and "forward_kernel" in name else
-               "raster bwd ms" if raster and "backward_kernel" in name else "other kernels ms")
+               "raster bwd ms" if raster and "backward" in name else "other kernels ms")
         out[key] += ms / reps
     return out
 
