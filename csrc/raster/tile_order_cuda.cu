@@ -10,7 +10,8 @@
 namespace tiger {
 namespace {
 
-constexpr int kOrderBuckets = 66;  // half-octaves of an int64 length: 2 * 33
+// Half-octaves of lengths below 2^33 (2 * 33); a list holds int32 ids, so fewer than 2^31 entries.
+constexpr int kOrderBuckets = 66;
 
 // Half-octave of n >= 0: 0 for 0 and 1, then 2 * floor(log2 n) + the bit below the top one.
 __device__ __forceinline__ int length_bucket(int64_t n) {
