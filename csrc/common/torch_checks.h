@@ -5,6 +5,7 @@
 #include <ATen/ATen.h>
 
 #include <initializer_list>
+#include <optional>
 #include <sstream>
 #include <string>
 
@@ -46,6 +47,17 @@ inline void check_same(const at::Tensor& t, const at::Tensor& ref, const char* o
 
 inline void check_dtype(const at::Tensor& t, at::ScalarType dt, const char* op, const char* name) {
   TORCH_CHECK(t.scalar_type() == dt, op, ": ", name, " must have dtype ", dt, ", got ", t.scalar_type());
+}
+
+// An optional per-row mask (e.g. an op's `trainable`): absent, or bool [rows] on the device of
+// `ref` (the tensor named `ref_name`).
+inline void check_row_mask(const std::optional<at::Tensor>& mask, int64_t rows, const at::Tensor& ref,
+                           const char* op, const char* name, const char* ref_name) {
+  if (!mask.has_value()) return;
+  check_dtype(*mask, at::kBool, op, name);
+  check_shape(*mask, op, name, {rows});
+  TORCH_CHECK(mask->device() == ref.device(), op, ": ", name, " is on ", mask->device(), " but ", ref_name,
+              " is on ", ref.device());
 }
 
 }  // namespace tiger

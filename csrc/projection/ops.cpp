@@ -29,14 +29,6 @@ void check_projection_inputs(const char* op, const at::Tensor& means, const at::
               height);
 }
 
-void check_projection_trainable(const char* op, const at::Tensor& means,
-                                const std::optional<at::Tensor>& trainable) {
-  if (!trainable.has_value()) return;
-  check_shape(*trainable, op, "trainable", {means.size(0)});
-  check_dtype(*trainable, at::kBool, op, "trainable");
-  TORCH_CHECK(trainable->device() == means.device(), op, ": trainable must be on ", means.device());
-}
-
 std::tuple<at::Tensor, at::Tensor> camera_grads_from_rows(const at::Tensor& rows, bool camera_grad,
                                                           const at::TensorOptions& options) {
   auto v_viewmat = at::zeros({4, 4}, options);

@@ -40,10 +40,6 @@ project_gaussians_backward_cpu(const at::Tensor& means, const at::Tensor& quats,
 std::tuple<at::Tensor, at::Tensor> camera_grads_from_rows(const at::Tensor& rows, bool camera_grad,
                                                           const at::TensorOptions& options);
 
-// trainable: absent, or [N] bool on means' device.
-void check_projection_trainable(const char* op, const at::Tensor& means,
-                                const std::optional<at::Tensor>& trainable);
-
 // Shared argument validation (CPU and CUDA glue).
 void check_projection_inputs(const char* op, const at::Tensor& means, const at::Tensor& quats,
                              const at::Tensor& scales, const at::Tensor& opacities,

@@ -35,7 +35,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_g
     bool antialiased, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.project_gaussians";
   check_projection_inputs(op, means, quats, scales, opacities, viewmat, K, width, height);
-  check_projection_trainable(op, means, trainable);  // for the backward (autograd formula)
+  check_row_mask(trainable, means.size(0), means, op, "trainable", "means");  // for the backward (autograd formula)
   const int64_t n = means.size(0);
   auto means2d = at::zeros({n, 2}, means.options());
   auto conics = at::zeros({n, 3}, means.options());

@@ -45,15 +45,6 @@ void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Te
   TORCH_CHECK(a.t_min >= 0 && a.t_min < 1, op, ": t_min must be in [0, 1), got ", a.t_min);
 }
 
-void check_trainable(const char* op, const std::optional<at::Tensor>& trainable,
-                     const at::Tensor& means2d) {
-  if (!trainable.has_value()) return;
-  check_dtype(*trainable, at::kBool, op, "trainable");
-  check_shape(*trainable, op, "trainable", {means2d.size(0)});
-  TORCH_CHECK(trainable->device() == means2d.device(), op, ": trainable is on ",
-              trainable->device(), " but means2d is on ", means2d.device());
-}
-
 void check_channel_block(const char* op, const char* name, int64_t channel_block) {
   TORCH_CHECK(channel_block == kRasterChannelBlock || channel_block == 32, op, ": ", name,
               " must be ", kRasterChannelBlock, " or 32 (the compiled float32 channel blocks), got ",

@@ -75,10 +75,6 @@ void check_channel_block(const char* op, const char* name, int64_t channel_block
 void check_pixels_per_thread(const char* op, const char* name, int64_t pixels_per_thread);
 void check_tile_order(const char* op, int64_t tile_order);
 
-// Rejects a trainable mask that is not bool [n] on means2d's device, naming it.
-void check_trainable(const char* op, const std::optional<at::Tensor>& trainable,
-                     const at::Tensor& means2d);
-
 void check_raster_inputs(const char* op, const at::Tensor& means2d, const at::Tensor& conics,
                          const at::Tensor& opacities, const at::Tensor& depths,
                          const std::optional<at::Tensor>& background, int64_t channels,

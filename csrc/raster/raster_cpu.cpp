@@ -381,7 +381,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_raster_inputs(op, means2d, conics, opacities, depths, background, colors.size(1),
                       tile_offsets, gaussian_ids, a);
   check_same(colors, means2d, op, "colors");
-  check_trainable(op, trainable, means2d);  // carried for the autograd formula
+  check_row_mask(trainable, means2d.size(0), means2d, op, "trainable", "means2d");  // carried for the autograd formula
   const int64_t C = colors.size(1);
   auto out_color = at::empty({rows, width, C}, means2d.options());
   auto out_alpha = at::empty({rows, width}, means2d.options());
@@ -435,7 +435,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
   check_shape(v_color, op, "v_color", {H, width, C});
   if (v_alpha.has_value()) check_shape(*v_alpha, op, "v_alpha", {H, width});
   if (v_depth.has_value()) check_shape(*v_depth, op, "v_depth", {H, width});
-  check_trainable(op, trainable, means2d);
+  check_row_mask(trainable, means2d.size(0), means2d, op, "trainable", "means2d");
   const at::Tensor train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
   const int64_t S = C + kGeomGrads, m = gaussian_ids.size(0), tiles = num_tiles(a);
   auto rows = at::zeros({m, S}, means2d.options());
@@ -486,7 +486,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
   check_same(v_color, means2d, op, "v_color");
   check_shape(n_contrib, op, "n_contrib", {H, width});
   check_dtype(n_contrib, at::kInt, op, "n_contrib");
-  check_trainable(op, trainable, means2d);
+  check_row_mask(trainable, means2d.size(0), means2d, op, "trainable", "means2d");
   const at::Tensor train = trainable.has_value() ? trainable->contiguous() : at::Tensor();
   const int64_t m = gaussian_ids.size(0), tiles = num_tiles(a);
   // Gradients go either straight into one [N, C] buffer per thread (summed at the end), or,

@@ -73,21 +73,20 @@ void check_cuda_limits(const char* op, const RasterArgs& a, int64_t channels) {
               op, ": ", a.views, " images of ", a.width, "x", a.height, " are too many tiles");
 }
 
+void check_ok(cudaError_t err, const char* op) {
+  TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
+}
+
 // The order of the kernels' blocks (raster.h, tile_order): null for index order, else a
 // permutation of the tiles, longest list first (tile_order_cuda.cu), on the current stream.
 at::Tensor launch_order(const at::Tensor& tile_offsets, int64_t tile_order, const char* op) {
   if (tile_order != kTileOrderHeavyFirst) return at::Tensor();
   const int64_t tiles = tile_offsets.size(0) - 1;
   auto order = at::empty({tiles}, tile_offsets.options().dtype(at::kInt));
-  const cudaError_t err = heavy_first_order_cuda_launch(
-      tile_offsets.data_ptr<int64_t>(), int(tiles), order.data_ptr<int32_t>(),
-      c10::cuda::getCurrentCUDAStream());
-  TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
+  check_ok(heavy_first_order_cuda_launch(tile_offsets.data_ptr<int64_t>(), int(tiles),
+                                         order.data_ptr<int32_t>(), c10::cuda::getCurrentCUDAStream()),
+           op);
   return order;
-}
-
-void check_ok(cudaError_t err, const char* op) {
-  TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
 }
 
 }  // namespace
@@ -116,7 +115,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   check_device(colors, means2d, op, "colors");
   check_device(tile_offsets, means2d, op, "tile_offsets");
   check_device(gaussian_ids, means2d, op, "gaussian_ids");
-  check_trainable(op, trainable, means2d);  // carried for the autograd formula
+  check_row_mask(trainable, means2d.size(0), means2d, op, "trainable", "means2d");  // carried for the autograd formula
   const c10::cuda::CUDAGuard guard(means2d.device());
   const int64_t C = colors.size(1);
   const int64_t rows = views * height;  // the views' images, stacked
@@ -182,7 +181,7 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   check_device(v_color, means2d, op, "v_color");
   if (v_alpha.has_value()) check_device(*v_alpha, means2d, op, "v_alpha");
   if (v_depth.has_value()) check_device(*v_depth, means2d, op, "v_depth");
-  check_trainable(op, trainable, means2d);
+  check_row_mask(trainable, means2d.size(0), means2d, op, "trainable", "means2d");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto opts = means2d.options();
   // The kernel adds into these atomically. The geometry rows and the per-tile background
@@ -243,7 +242,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
   check_device(gaussian_ids, means2d, op, "gaussian_ids");
   check_device(n_contrib, means2d, op, "n_contrib");
   check_device(v_color, means2d, op, "v_color");
-  check_trainable(op, trainable, means2d);
+  check_row_mask(trainable, means2d.size(0), means2d, op, "trainable", "means2d");
   const c10::cuda::CUDAGuard guard(means2d.device());
   const auto dt = means2d.scalar_type();
   auto v_colors = cuda_zeros({n, C}, means2d.options());

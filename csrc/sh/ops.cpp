@@ -30,13 +30,6 @@ void check_sh_inputs(const char* op, const at::Tensor& dirs, const at::Tensor& c
   }
 }
 
-void check_sh_trainable(const char* op, const at::Tensor& dirs, const std::optional<at::Tensor>& trainable) {
-  if (!trainable.has_value()) return;
-  check_shape(*trainable, op, "trainable", {dirs.size(0)});
-  check_dtype(*trainable, at::kBool, op, "trainable");
-  TORCH_CHECK(trainable->device() == dirs.device(), op, ": trainable must be on ", dirs.device());
-}
-
 std::optional<at::Tensor> backward_rows(const std::optional<at::Tensor>& visible,
                                         const std::optional<at::Tensor>& trainable) {
   if (!trainable.has_value()) return visible;

@@ -23,7 +23,6 @@ namespace tiger {
 
 void check_sh_inputs(const char* op, const at::Tensor& dirs, const at::Tensor& coeffs, int64_t degree,
                      const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest);
-void check_sh_trainable(const char* op, const at::Tensor& dirs, const std::optional<at::Tensor>& trainable);
 
 // The rows the backward walks: visible and trainable (either may be absent).
 std::optional<at::Tensor> backward_rows(const std::optional<at::Tensor>& visible,

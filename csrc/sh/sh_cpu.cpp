@@ -12,7 +12,7 @@ at::Tensor sh_to_color_cpu(const at::Tensor& dirs, const at::Tensor& coeffs_in, 
                            const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
                            bool /*staged: a CUDA choice*/, const std::optional<at::Tensor>& trainable) {
   check_sh_inputs("tiger.sh_to_color", dirs, coeffs_in, degree, visible, rest);
-  check_sh_trainable("tiger.sh_to_color", dirs, trainable);
+  check_row_mask(trainable, dirs.size(0), dirs, "tiger.sh_to_color", "trainable", "dirs");
   const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   const int64_t n = dirs.size(0), k = coeffs.size(1);
   auto out = at::zeros({n, 3}, dirs.options());
@@ -39,7 +39,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cpu(
     const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color_backward";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
-  check_sh_trainable(op, dirs, trainable);
+  check_row_mask(trainable, dirs.size(0), dirs, op, "trainable", "dirs");
   const std::optional<at::Tensor> rows = backward_rows(visible, trainable);
   const at::Tensor coeffs = joined_coeffs(coeffs_in, rest);
   check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});

@@ -44,7 +44,7 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
                             bool staged_wanted, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
-  check_sh_trainable(op, dirs, trainable);
+  check_row_mask(trainable, dirs.size(0), dirs, op, "trainable", "dirs");
   const c10::cuda::CUDAGuard guard(dirs.device());
   const int64_t n = dirs.size(0);
   auto out = at::zeros({n, 3}, dirs.options());
@@ -76,7 +76,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
     const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color_backward";
   check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
-  check_sh_trainable(op, dirs, trainable);
+  check_row_mask(trainable, dirs.size(0), dirs, op, "trainable", "dirs");
   check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});
   check_same(v_colors, dirs, op, "v_colors");
   const c10::cuda::CUDAGuard guard(dirs.device());

@@ -108,8 +108,8 @@ def _check_channel_block(op: str, name: str, value: int) -> None:
 
 
 def _check_tile_order(op: str, value: int) -> None:
-    torch._check(value in (0, 1), lambda: f"{op}: tile_order must be 0 (index order) or 1 (longest tile "
-                 f"lists first), got {value}")
+    torch._check(0 <= value < len(TILE_ORDERS), lambda: f"{op}: tile_order must be 0 (index order) or 1 "
+                 f"(longest tile lists first), got {value}")
 
 
 def _check_pixels_per_thread(op: str, name: str, value: int) -> None:
