@@ -223,7 +223,7 @@ def raster_kernel_ms(fn, reps: int) -> dict[str, float]:
 
 def run_kernel_choices(density: float, size: int, repeats: int) -> list[dict]:
     """CUDA: the edit step's render (4 views with gradient, editable backward) under each raster
-    kernel choice the edit could take (tile order x pixels per backward thread), on the edit's own
+    kernel choice the edit could take (tile order, pixels per backward thread, warp cull), on the edit's own
     cameras (8 sets of tiger.edit's ObjectViews at the EditConfig defaults, drawn with a fixed
     generator: the object fills the view) and on 4 orbit cameras around the whole scene (the
     object small in the view); GPU kernel ms per render + backward (profiler)."""
@@ -247,19 +247,22 @@ def run_kernel_choices(density: float, size: int, repeats: int) -> list[dict]:
                                                                        elevation_deg=20.0)]]}
     upstream = torch.rand(4, size, size, 3, device="cuda", generator=torch.Generator(device="cuda").manual_seed(1))
     rows = []
+    # (tile order, pixels per backward thread, warp cull): the edit's choice with and without the
+    # cull, the library default with and without it, and the choices of two rounds before
+    choices = [("heavy_first", 1, True), ("heavy_first", 1, False), ("heavy_first", 2, True),
+               ("heavy_first", 2, False), ("index", 2, False)]
     for cams_name, sets in camera_sets.items():
-        for order in ("heavy_first", "index"):
-            for ppt in (1, 2):
-                k = RasterKernelSettings(tile_order=order, backward_pixels_per_thread=ppt)
+        for order, ppt, cull in choices:
+            k = RasterKernelSettings(tile_order=order, backward_pixels_per_thread=ppt, warp_cull=cull)
 
-                def step():
-                    for cams in sets:
-                        scene.parameter_groups()
-                        out = render_views(scene, cams, "rgb", trainable=editable, check_finite=False, kernels=k)
-                        (out["color"] * upstream).sum().backward()
-                t = raster_kernel_ms(step, repeats)
-                rows.append({"cameras": cams_name, "tile_order": order, "bwd px/thread": ppt,
-                             **{key: v / len(sets) for key, v in t.items()}})
+            def step():
+                for cams in sets:
+                    scene.parameter_groups()
+                    out = render_views(scene, cams, "rgb", trainable=editable, check_finite=False, kernels=k)
+                    (out["color"] * upstream).sum().backward()
+            t = raster_kernel_ms(step, repeats)
+            rows.append({"cameras": cams_name, "tile_order": order, "bwd px/thread": ppt, "warp cull": cull,
+                         **{key: v / len(sets) for key, v in t.items()}})
     return rows
 
 

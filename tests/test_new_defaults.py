@@ -173,3 +173,4 @@ def test_edit_renders_with_one_pixel_per_backward_thread():
     assert EDIT_RASTER_KERNELS == RasterKernelSettings(backward_pixels_per_thread=1)
     assert RasterKernelSettings().backward_pixels_per_thread == 2
     assert RasterKernelSettings().tile_order == "heavy_first"
+    assert RasterKernelSettings().warp_cull is True

@@ -67,7 +67,8 @@ void check_tile_order(const char* op, int64_t tile_order) {
 TORCH_LIBRARY_FRAGMENT(tiger, m) {
   const std::string cb = std::to_string(kRasterChannelBlock);
   const std::string ppt = std::to_string(kRasterPixelsPerThread);
-  const std::string order = ", int tile_order=" + std::to_string(kRasterTileOrder);
+  const std::string order = ", int tile_order=" + std::to_string(kRasterTileOrder) +
+                            ", bool warp_cull=" + (kRasterWarpCull ? "True" : "False");
   m.def((
       "rasterize(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
       "Tensor? background, Tensor tile_offsets, Tensor gaussian_ids, int width, int height, "

@@ -44,6 +44,11 @@
 //     sqrt 2), so that the longest walks do not run alone at the end of the kernel. Only the
 //     order of the blocks changes: the forward's values are the same bit for bit, the backward's
 //     up to the order of its atomic sums.
+//   warp_cull (all three ops, default kRasterWarpCull): each warp of a tile's block walks only
+//     the list entries whose cutoff ellipse may reach one of its own pixel centres (the exact
+//     minimum of the conic along each of its pixel rows, with a rounding margin), and the
+//     backward ones only entries below its pixels' largest n_contrib. The entries skipped are
+//     those every pixel of the warp would skip: the values are the same bit for bit.
 #include <ATen/ATen.h>
 
 #include <optional>
@@ -68,6 +73,7 @@ constexpr int64_t kRasterPixelsPerThread = 2;
 constexpr int64_t kTileOrderIndex = 0;
 constexpr int64_t kTileOrderHeavyFirst = 1;
 constexpr int64_t kRasterTileOrder = kTileOrderHeavyFirst;
+constexpr bool kRasterWarpCull = true;
 
 // Rejects a channel block other than 64 or 32, or pixels_per_thread other than 1 or 2, naming
 // the argument.
@@ -88,7 +94,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
     int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable,
-    int64_t tile_order);
+    int64_t tile_order, bool warp_cull);
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor>
 rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
@@ -100,13 +106,13 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
                        int64_t pixels_per_thread, int64_t views,
-                       const std::optional<at::Tensor>& trainable, int64_t tile_order);
+                       const std::optional<at::Tensor>& trainable, int64_t tile_order, bool warp_cull);
 
 std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
-    const std::optional<at::Tensor>& trainable, int64_t tile_order);
+    const std::optional<at::Tensor>& trainable, int64_t tile_order, bool warp_cull);
 
 }  // namespace tiger

@@ -367,7 +367,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
     int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable,
-    int64_t tile_order) {
+    int64_t tile_order, bool warp_cull) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t rows = views * height;  // the views' images, stacked
@@ -417,7 +417,7 @@ rasterize_backward_cpu(const at::Tensor& means2d, const at::Tensor& conics,
                        const at::Tensor& v_color, const std::optional<at::Tensor>& v_alpha,
                        const std::optional<at::Tensor>& v_depth, int64_t channel_block,
                        int64_t pixels_per_thread, int64_t views,
-                       const std::optional<at::Tensor>& trainable, int64_t tile_order) {
+                       const std::optional<at::Tensor>& trainable, int64_t tile_order, bool warp_cull) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t H = views * height;  // the views' images, stacked
@@ -472,7 +472,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cpu(
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
-    const std::optional<at::Tensor>& trainable, int64_t tile_order) {
+    const std::optional<at::Tensor>& trainable, int64_t tile_order, bool warp_cull) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   const int64_t H = views * height;  // the views' images, stacked

@@ -34,7 +34,7 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
                             const at::Tensor& tile_offsets, const at::Tensor& ids,
                             const RasterArgs& a, int64_t channels,
                             const at::Tensor& trainable = at::Tensor(),
-                            const at::Tensor& tile_order = at::Tensor()) {
+                            const at::Tensor& tile_order = at::Tensor(), bool warp_cull = true) {
   RasterLaunch<T> l;
   l.means2d = means2d.data_ptr<T>();
   l.conics = conics.data_ptr<T>();
@@ -44,6 +44,7 @@ RasterLaunch<T> make_launch(const at::Tensor& means2d, const at::Tensor& conics,
   l.ids = ids.data_ptr<int32_t>();
   l.trainable = trainable.defined() ? trainable.data_ptr<bool>() : nullptr;
   l.tile_order = tile_order.defined() ? tile_order.data_ptr<int32_t>() : nullptr;
+  l.warp_cull = warp_cull;
   l.width = int(a.width);
   l.height = int(a.height);
   l.tile_size = int(a.tile_size);
@@ -98,7 +99,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     int64_t channel_block, int64_t backward_channel_block, int64_t colors_channel_block,
     int64_t backward_pixels_per_thread, int64_t views, const std::optional<at::Tensor>& trainable,
-    int64_t tile_order) {
+    int64_t tile_order, bool warp_cull) {
   const char* op = "tiger.rasterize";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -131,7 +132,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize
   const at::Tensor order = launch_order(to, tile_order, op);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, at::Tensor(), order);
+    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, at::Tensor(), order, warp_cull);
     check_ok(rasterize_forward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  out_color.data_ptr<T>(), out_alpha.data_ptr<T>(), out_depth.data_ptr<T>(),
@@ -153,7 +154,7 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
                         const std::optional<at::Tensor>& v_alpha,
                         const std::optional<at::Tensor>& v_depth, int64_t channel_block,
                         int64_t pixels_per_thread, int64_t views,
-                        const std::optional<at::Tensor>& trainable, int64_t tile_order) {
+                        const std::optional<at::Tensor>& trainable, int64_t tile_order, bool warp_cull) {
   const char* op = "tiger.rasterize_backward";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -204,7 +205,7 @@ rasterize_backward_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   const at::Tensor order = launch_order(to, tile_order, op);
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, train, order);
+    const auto l = make_launch<T>(m, c, o, &d, to, ids, a, C, train, order, warp_cull);
     check_ok(rasterize_backward_cuda_launch<T>(
                  l, col.data_ptr(), storage, bg.defined() ? bg.data_ptr<T>() : nullptr,
                  tr.data_ptr<T>(), cnt.data_ptr<int32_t>(), vc.data_ptr<T>(),
@@ -224,7 +225,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
     const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids, int64_t width, int64_t height,
     int64_t tile_size, double alpha_max, double alpha_threshold, double t_min,
     const at::Tensor& n_contrib, const at::Tensor& v_color, int64_t channel_block, int64_t views,
-    const std::optional<at::Tensor>& trainable, int64_t tile_order) {
+    const std::optional<at::Tensor>& trainable, int64_t tile_order, bool warp_cull) {
   const char* op = "tiger.rasterize_backward_colors";
   const RasterArgs a{width, height, tile_size, alpha_max, alpha_threshold, t_min, views};
   check_channel_block(op, "channel_block", channel_block);
@@ -254,7 +255,7 @@ std::tuple<at::Tensor, at::Tensor> rasterize_backward_colors_cuda(
   const at::Tensor order = launch_order(to, tile_order, op);
   AT_DISPATCH_FLOATING_TYPES(dt, "rasterize_backward_colors_cuda", [&] {
     using T = scalar_t;
-    const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C, train, order);
+    const auto l = make_launch<T>(m, c, o, nullptr, to, ids, a, C, train, order, warp_cull);
     check_ok(rasterize_backward_colors_cuda_launch<T>(
                  l, cnt.data_ptr<int32_t>(), vc.data_ptr<T>(), v_colors.data_ptr<T>(),
                  v_bg_tiles.data_ptr<T>(), int(channel_block),

@@ -25,6 +25,9 @@ struct RasterLaunch {
   const bool* trainable;
   // [tiles] or null (identity): block b draws tile tile_order[b] (raster.h: heaviest first)
   const int32_t* tile_order;
+  // Each warp skips the list entries whose cutoff ellipse reaches none of its pixel centres
+  // (raster_kernels.cuh, WarpSpan): the values are those of the walk without it (raster.h).
+  bool warp_cull;
   int width, height, tile_size, tiles_x, tiles_y;  // of one image
   // Images drawn (raster.h): one block per tile of views * tiles_y * tiles_x; tile t belongs
   // to image t / (tiles_x * tiles_y), whose pixels are rows image * height ... of the outputs.

@@ -19,6 +19,9 @@ namespace raster_cuda {
 
 using cuda::kFullMask;
 
+// span_reaches' margin relative to the size of the conic's terms: ~100 float32 roundings.
+constexpr double kCullMargin = 1e-5;
+
 // One Gaussian of the current batch, packed so a thread reads it with two 16-byte loads.
 template <typename T>
 struct alignas(4 * sizeof(T)) SplatGeom {
@@ -105,6 +108,63 @@ __device__ __forceinline__ TilePixels<PPT> tile_pixels(const RasterLaunch<T>& a)
     }
   }
   return p;
+}
+
+// The pixel centres of this thread's warp: rows [y0, y0 + rows) of its tile, columns [x0, x1]
+// in its image's coordinates (a box around them where a warp holds part of a row). PPT = 1:
+// threads in row-major pixel order (16-px tiles: two rows a warp); PPT = 2: TilePixels' four
+// rows a warp. A warp beyond its tile's pixels gets rows = 0.
+template <typename T>
+struct WarpSpan {
+  T x0, x1, y0;
+  int rows;
+};
+
+template <int PPT, typename T>
+__device__ __forceinline__ WarpSpan<T> warp_span(const RasterLaunch<T>& a) {
+  const BlockTile b = block_tile(a);
+  const int ts = a.tile_size, w = int(threadIdx.x >> 5);
+  int r0, r1, c0 = 0, c1 = ts - 1;
+  if constexpr (PPT == 2) {
+    r0 = 4 * w;
+    r1 = 4 * w + 3;
+  } else {
+    const int t0 = 32 * w, t1 = 32 * w + 31;
+    r0 = t0 / ts;
+    r1 = min(t1 / ts, ts - 1);
+    if (r1 == r0) c0 = t0 % ts;           // the warp starts inside its only row
+    if (t1 / ts == r0) c1 = t1 % ts;      // and ends inside it
+  }
+  WarpSpan<T> s;
+  s.x0 = T(b.tx * ts + c0) + T(0.5);
+  s.x1 = T(b.tx * ts + c1) + T(0.5);
+  s.y0 = T(b.ty * ts + r0) + T(0.5);
+  s.rows = max(r1 - r0 + 1, 0);
+  return s;
+}
+
+// False only where every pixel centre of the span surely fails the walk's first test,
+// q > qcut: per row, the minimum of q over the segment of centres (the conic's minimum along
+// the row, clamped to the segment) exceeds qcut by more than its rounding. The walk's own q at
+// a pixel is evaluated in another order; the relative margin covers both roundings where the
+// terms nearly cancel (elongated Gaussians), and qcut's own margin (cutoff_quadratic) puts
+// every contributing pixel below qcut by more than that. A NaN anywhere reaches (the walk's
+// test lets NaN through, so the cull must too).
+template <typename T>
+__device__ __forceinline__ bool span_reaches(const SplatGeom<T>& g, const WarpSpan<T>& s) {
+  const T lo = s.x0 - g.u, hi = s.x1 - g.u;
+  if (!(g.ca > T(0)) || !(lo <= hi)) return true;
+  const T slope = -g.cb / g.ca;
+  for (int r = 0; r < s.rows; ++r) {
+    const T dy = s.y0 + T(r) - g.v;
+    T t = slope * dy;
+    t = t < lo ? lo : (t > hi ? hi : t);
+    const T cross = T(2) * g.cb * dy, yy = g.cc * dy * dy;
+    const T q = fused_multiply_add(fused_multiply_add(g.ca, t, cross), t, yy);
+    const T scale = fused_multiply_add(g.ca * t, t, fabs(cross * t)) + yy;
+    if (!(q > fused_multiply_add(scale, T(kCullMargin), g.qcut))) return true;
+  }
+  return false;
 }
 
 template <typename T>
@@ -226,6 +286,8 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
   T Tr = T(1), accd = T(0);
   int32_t cnt = 0;
   bool done = !p.inside;
+  const int lane = threadIdx.x & 31;
+  const WarpSpan<T> span = warp_span<1>(a);
   for (int64_t b0 = start; b0 < end; b0 += BS) {
     // Also the barrier that protects the previous batch's shared memory.
     if (__syncthreads_count(done) == BS) break;
@@ -233,28 +295,39 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
     if (int(threadIdx.x) < nb) load_geom(a, a.ids[b0 + threadIdx.x], s_geom[threadIdx.x]);
     load_colors<CB>(colors, a.ids, b0, nb, C, c0, s_col);
     __syncthreads();
-    if (done) continue;
-    for (int j = 0; j < nb; ++j) {
-      const SplatGeom<T> g = s_geom[j];
-      const T dx = fx - g.u, dy = fy - g.v;
-      const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
-      if (q > g.qcut) continue;
-      T gauss;
-      bool clamped;
-      const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
-      if (alpha < a.alpha_threshold) continue;
-      const T next_T = Tr * (T(1) - alpha);
-      if (next_T < a.t_min) {
-        done = true;
-        break;
-      }
-      const T w = alpha * Tr;
-      const T* col = s_col + j * CB;
+    // The batch in groups of 32 entries: each lane tests one entry against the warp's pixels
+    // (warp_cull), and the warp walks only the entries that may reach one, in list order.
+    // Lanes that are done keep voting until the whole warp is.
+    for (int g0 = 0; g0 < nb; g0 += 32) {
+      if (__all_sync(kFullMask, done)) break;
+      const int e = g0 + lane;
+      const bool reach = e < nb && (!a.warp_cull || span_reaches(s_geom[e], span));
+      uint32_t hits = __ballot_sync(kFullMask, reach);
+      if (done) continue;
+      while (hits) {
+        const int j = g0 + __ffs(hits) - 1;
+        hits &= hits - 1;
+        const SplatGeom<T> g = s_geom[j];
+        const T dx = fx - g.u, dy = fy - g.v;
+        const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
+        if (q > g.qcut) continue;
+        T gauss;
+        bool clamped;
+        const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
+        if (alpha < a.alpha_threshold) continue;
+        const T next_T = Tr * (T(1) - alpha);
+        if (next_T < a.t_min) {
+          done = true;
+          break;
+        }
+        const T w = alpha * Tr;
+        const T* col = s_col + j * CB;
 #pragma unroll
-      for (int c = 0; c < CB; ++c) acc[c] += w * col[c];
-      accd += w * g.z;
-      Tr = next_T;
-      cnt = int32_t(b0 + j - start + 1);
+        for (int c = 0; c < CB; ++c) acc[c] += w * col[c];
+        accd += w * g.z;
+        Tr = next_T;
+        cnt = int32_t(b0 + j - start + 1);
+      }
     }
   }
   if (!p.inside) return;
@@ -481,6 +554,13 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
     background_grads<CB, PPT>(vc, tfin, C, c0, p.tile, s_bg, io.v_bg_tiles);
   }
   const int64_t stop = start + min_rank;  // entries in front of min_rank are frozen
+  // The warp's pixels use list entries up to rank warp_cnt - 1 (n_contrib) and, with warp_cull,
+  // only those whose cutoff ellipse reaches one of them (span_reaches).
+  int32_t warp_cnt = 0;
+#pragma unroll
+  for (int k = 0; k < PPT; ++k) warp_cnt = max(warp_cnt, s[k].cnt);
+  warp_cnt = __reduce_max_sync(kFullMask, warp_cnt);
+  const WarpSpan<T> span = warp_span<PPT>(a);
   for (int64_t b1 = start + max_cnt; b1 > stop; b1 -= BS) {
     const int64_t b0 = b1 - BS > stop ? b1 - BS : stop;
     const int nb = int(b1 - b0);
@@ -488,77 +568,94 @@ __device__ __forceinline__ void backward_walk(const RasterLaunch<T>& a, const TC
     load_batch_geometry(a, b0, nb, s_geom, s_id);
     load_colors<CB>(colors, a.ids, b0, nb, C, c0, s_col);
     __syncthreads();
-    for (int j = nb - 1; j >= 0; --j) {
-      const int32_t rank = int32_t(b0 + j - start);
-      const SplatGeom<T> g = s_geom[j];
-      T alpha[PPT], gauss[PPT], dx[PPT], dy[PPT];
-      bool contrib[PPT], clamped[PPT];
-      bool any = false;
+    // Groups of 32 entries from the back: each lane tests one, the warp walks the hits back to
+    // front (the same order as walking every entry).
+    for (int g1 = nb; g1 > 0; g1 -= 32) {
+      const int g0 = g1 > 32 ? g1 - 32 : 0;
+      const int e = g0 + lane;
+      const bool reach = e < g1 && int32_t(b0 + e - start) < warp_cnt &&
+                         (!a.warp_cull || span_reaches(s_geom[e], span));
+      uint32_t hits = __ballot_sync(kFullMask, reach);
+      while (hits) {
+        const int top = 31 - __clz(hits);
+        hits &= ~(1u << top);
+        const int j = g0 + top;
+        const int32_t rank = int32_t(b0 + j - start);
+        const SplatGeom<T> g = s_geom[j];
+        T alpha[PPT], gauss[PPT], dx[PPT], dy[PPT];
+        bool contrib[PPT], clamped[PPT];
+        bool any = false;
 #pragma unroll
-      for (int k = 0; k < PPT; ++k) {
-        dx[k] = s[k].fx - g.u;
-        dy[k] = s[k].fy - g.v;
-        contrib[k] = clamped[k] = false;
-        alpha[k] = gauss[k] = T(0);
-        if (rank < s[k].cnt) {
-          const T q = conic_quadratic(g.ca, g.cb, g.cc, dx[k], dy[k]);
-          if (q <= g.qcut) {
-            alpha[k] = splat_alpha(g.o, q, a.alpha_max, gauss[k], clamped[k]);
-            contrib[k] = alpha[k] >= a.alpha_threshold;
+        for (int k = 0; k < PPT; ++k) {
+          dx[k] = s[k].fx - g.u;
+          dy[k] = s[k].fy - g.v;
+          contrib[k] = clamped[k] = false;
+          alpha[k] = gauss[k] = T(0);
+          if (rank < s[k].cnt) {
+            const T q = conic_quadratic(g.ca, g.cb, g.cc, dx[k], dy[k]);
+            if (q <= g.qcut) {
+              alpha[k] = splat_alpha(g.o, q, a.alpha_max, gauss[k], clamped[k]);
+              contrib[k] = alpha[k] >= a.alpha_threshold;
+            }
+          }
+          any = any || contrib[k];
+        }
+        if (!__any_sync(kFullMask, any)) continue;
+        const int32_t sid = s_id[j];  // < 0: frozen (uniform in the block)
+        const bool train = sid >= 0;
+        T geo[8];
+#pragma unroll
+        for (int i = 0; i < 8; ++i) geo[i] = T(0);
+        T w[PPT];
+        const T* col = s_col + j * CB;
+#pragma unroll
+        for (int k = 0; k < PPT; ++k) {
+          w[k] = T(0);
+          if (!contrib[k]) continue;
+          BackPixel<T>& q = s[k];
+          const T ra = T(1) / (T(1) - alpha[k]);
+          const T Ti = q.Tr * ra;  // transmittance in front of this Gaussian
+          w[k] = alpha[k] * Ti;
+          T sdot = T(0);
+#pragma unroll
+          for (int c = 0; c < CB; ++c) sdot += vc[k][c] * col[c];
+          T v_a = Ti * (sdot - q.P);
+          q.P = alpha[k] * sdot + (T(1) - alpha[k]) * q.P;
+          if (first) {
+            v_a += q.vD * Ti * (g.z - q.Rd) + q.vA * q.Tfin * ra;
+            q.Rd = alpha[k] * g.z + (T(1) - alpha[k]) * q.Rd;
+            geo[6] += w[k] * q.vD;
+          }
+          q.Tr = Ti;
+          if (train && !clamped[k]) {
+            const T ddx = dx[k], ddy = dy[k];
+            geo[5] += v_a * gauss[k];
+            const T vq = T(-0.5) * v_a * g.o * gauss[k];  // d alpha / d q = -o G / 2
+            geo[2] += vq * ddx * ddx;
+            geo[3] += vq * T(2) * ddx * ddy;
+            geo[4] += vq * ddy * ddy;
+            geo[0] += -vq * T(2) * (g.ca * ddx + g.cb * ddy);
+            geo[1] += -vq * T(2) * (g.cb * ddx + g.cc * ddy);
           }
         }
-        any = any || contrib[k];
+        if (!train) continue;  // the state is updated; a frozen Gaussian gets no gradient
+        const int64_t gid = sid;
+        warp_add_color_grads<CB, PPT>(vc, w, gid, C, c0, lane, io.v_colors);
+        // Lanes 0-6 add to one 32-byte row: a single sector per warp and Gaussian.
+        const T sg = cuda::warp_reduce_scatter<8>(geo, lane);
+        if (lane < (first ? 7 : 6)) atomicAdd(&io.v_geom[8 * gid + lane], sg);
       }
-      if (!__any_sync(kFullMask, any)) continue;
-      const int32_t sid = s_id[j];  // < 0: frozen (uniform in the block)
-      const bool train = sid >= 0;
-      T geo[8];
-#pragma unroll
-      for (int i = 0; i < 8; ++i) geo[i] = T(0);
-      T w[PPT];
-      const T* col = s_col + j * CB;
-#pragma unroll
-      for (int k = 0; k < PPT; ++k) {
-        w[k] = T(0);
-        if (!contrib[k]) continue;
-        BackPixel<T>& q = s[k];
-        const T ra = T(1) / (T(1) - alpha[k]);
-        const T Ti = q.Tr * ra;  // transmittance in front of this Gaussian
-        w[k] = alpha[k] * Ti;
-        T sdot = T(0);
-#pragma unroll
-        for (int c = 0; c < CB; ++c) sdot += vc[k][c] * col[c];
-        T v_a = Ti * (sdot - q.P);
-        q.P = alpha[k] * sdot + (T(1) - alpha[k]) * q.P;
-        if (first) {
-          v_a += q.vD * Ti * (g.z - q.Rd) + q.vA * q.Tfin * ra;
-          q.Rd = alpha[k] * g.z + (T(1) - alpha[k]) * q.Rd;
-          geo[6] += w[k] * q.vD;
-        }
-        q.Tr = Ti;
-        if (train && !clamped[k]) {
-          const T ddx = dx[k], ddy = dy[k];
-          geo[5] += v_a * gauss[k];
-          const T vq = T(-0.5) * v_a * g.o * gauss[k];  // d alpha / d q = -o G / 2
-          geo[2] += vq * ddx * ddx;
-          geo[3] += vq * T(2) * ddx * ddy;
-          geo[4] += vq * ddy * ddy;
-          geo[0] += -vq * T(2) * (g.ca * ddx + g.cb * ddy);
-          geo[1] += -vq * T(2) * (g.cb * ddx + g.cc * ddy);
-        }
-      }
-      if (!train) continue;  // the state is updated; a frozen Gaussian gets no gradient
-      const int64_t gid = sid;
-      warp_add_color_grads<CB, PPT>(vc, w, gid, C, c0, lane, io.v_colors);
-      // Lanes 0-6 add to one 32-byte row: a single sector per warp and Gaussian.
-      const T sg = cuda::warp_reduce_scatter<8>(geo, lane);
-      if (lane < (first ? 7 : 6)) atomicAdd(&io.v_geom[8 * gid + lane], sg);
     }
   }
 }
 
+// Blocks of 64 channels: two blocks per SM, as before the warp cull's extra state (without the
+// bound ptxas took 172 registers a thread for the float32 64 + tail instances, one block per SM).
+template <int CBM, int CBT>
+constexpr int kBackwardMinBlocks = (CBM >= 64 || CBT >= 64) ? 2 : 1;
+
 template <typename T, typename TC, int CBM, int CBT, int PPT>
-__global__ void __launch_bounds__(256) backward_kernel(RasterLaunch<T> a, const TC* colors,
+__global__ void __launch_bounds__(256, (kBackwardMinBlocks<CBM, CBT>)) backward_kernel(RasterLaunch<T> a, const TC* colors,
                                                        BackwardIO<T> io, int n_main) {
   extern __shared__ __align__(16) unsigned char smem[];
   constexpr int CBX = CBM > CBT ? CBM : CBT;
@@ -605,33 +702,45 @@ __device__ __forceinline__ void colors_walk(const RasterLaunch<T>& a, const int3
   }
   const T fx = T(p.px[0]) + T(0.5), fy = T(p.py[0]) + T(0.5);
   T Tr[1] = {T(1)};
+  // As in backward_walk: the warp walks the entries below its largest count that may reach
+  // one of its pixels, in list order.
+  const int32_t warp_cnt = __reduce_max_sync(kFullMask, cnt);
+  const WarpSpan<T> span = warp_span<1>(a);
   for (int64_t b0 = start; b0 < start + max_cnt; b0 += BS) {
     const int nb = int(min(int64_t(BS), start + max_cnt - b0));
     __syncthreads();
     load_batch_geometry(a, b0, nb, s_geom, s_id);
     __syncthreads();
-    for (int j = 0; j < nb; ++j) {
-      const int32_t rank = int32_t(b0 + j - start);
-      bool contrib = false;
-      T w[1] = {T(0)};
-      if (rank < cnt) {
-        const SplatGeom<T> g = s_geom[j];
-        const T dx = fx - g.u, dy = fy - g.v;
-        const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
-        if (q <= g.qcut) {
-          T gauss;
-          bool clamped;
-          const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
-          if (alpha >= a.alpha_threshold) {
-            contrib = true;
-            w[0] = alpha * Tr[0];
-            Tr[0] *= T(1) - alpha;
+    for (int g0 = 0; g0 < nb; g0 += 32) {
+      const int e = g0 + lane;
+      const bool reach = e < nb && int32_t(b0 + e - start) < warp_cnt &&
+                         (!a.warp_cull || span_reaches(s_geom[e], span));
+      uint32_t hits = __ballot_sync(kFullMask, reach);
+      while (hits) {
+        const int j = g0 + __ffs(hits) - 1;
+        hits &= hits - 1;
+        const int32_t rank = int32_t(b0 + j - start);
+        bool contrib = false;
+        T w[1] = {T(0)};
+        if (rank < cnt) {
+          const SplatGeom<T> g = s_geom[j];
+          const T dx = fx - g.u, dy = fy - g.v;
+          const T q = conic_quadratic(g.ca, g.cb, g.cc, dx, dy);
+          if (q <= g.qcut) {
+            T gauss;
+            bool clamped;
+            const T alpha = splat_alpha(g.o, q, a.alpha_max, gauss, clamped);
+            if (alpha >= a.alpha_threshold) {
+              contrib = true;
+              w[0] = alpha * Tr[0];
+              Tr[0] *= T(1) - alpha;
+            }
           }
         }
+        // a frozen Gaussian (s_id < 0, uniform in the block) only updates the transmittance
+        if (s_id[j] < 0 || !__any_sync(kFullMask, contrib)) continue;
+        warp_add_color_grads<CB, 1>(vc, w, s_id[j], C, c0, lane, v_colors);
       }
-      // a frozen Gaussian (s_id < 0, uniform in the block) only updates the transmittance
-      if (s_id[j] < 0 || !__any_sync(kFullMask, contrib)) continue;
-      warp_add_color_grads<CB, 1>(vc, w, s_id[j], C, c0, lane, v_colors);
     }
   }
   background_grads<CB, 1>(vc, Tr, C, c0, p.tile, s_bg, v_bg_tiles);

@@ -31,7 +31,7 @@ using BinFn = std::tuple<T, T>(const T&, const T&, const T&, const T&, const T&,
 using RasterFn = std::tuple<T, T, T, T, T>(const T&, const T&, const T&, const T&, const T&,
                                            const OptT&, const T&, const T&, int64_t, int64_t,
                                            int64_t, double, double, double, int64_t, int64_t,
-                                           int64_t, int64_t, int64_t, const OptT&, int64_t);
+                                           int64_t, int64_t, int64_t, const OptT&, int64_t, bool);
 
 template <typename Fn>
 c10::TypedOperatorHandle<Fn> handle(const char* name) {
@@ -55,7 +55,7 @@ std::tuple<T, T, T, T, T, T, T, T, T> render_forward(
     int64_t width, int64_t height, double eps2d, double near_plane, double far_plane,
     double alpha_threshold, bool antialiased, int64_t tile_size, double alpha_max, double t_min,
     c10::string_view path, int64_t block_sort_keys, int64_t warp_sort_keys, int64_t giant_tiles,
-    bool serial, int64_t channel_block, int64_t tile_order) {
+    bool serial, int64_t channel_block, int64_t tile_order, bool warp_cull) {
   static const auto project = handle<ProjectFn>("tiger::project_gaussians");
   static const auto bin = handle<BinFn>("tiger::bin_gaussians");
   static const auto raster = handle<RasterFn>("tiger::rasterize");
@@ -82,7 +82,7 @@ std::tuple<T, T, T, T, T, T, T, T, T> render_forward(
   const auto [color, alpha, depth_accum, n_contrib, transmittance] =
       raster.call(means2d, conics, opac, feats, depths, bg, tile_offsets, gaussian_ids, width, height,
                   tile_size, alpha_max, alpha_threshold, t_min, channel_block, kRasterChannelBlock,
-                  kRasterChannelBlock, kRasterPixelsPerThread, 1, std::nullopt, tile_order);
+                  kRasterChannelBlock, kRasterPixelsPerThread, 1, std::nullopt, tile_order, warp_cull);
   // tiger.render.rasterize.expected_depth: 0 where nothing contributed (alpha == 0)
   T depth = depth_accum / (alpha + (alpha == 0));
   return {color, alpha, depth, depth_accum, radii.amax(1), means2d, conics, depths, gaussian_ids};
@@ -100,7 +100,8 @@ TORCH_LIBRARY_FRAGMENT(tiger, m) {
       ", int warp_sort_keys=" + std::to_string(kWarpSortKeys) +
       ", int giant_tiles=" + std::to_string(kBinGiantTiles) +
       ", bool _serial=False, int channel_block=" + std::to_string(kRasterChannelBlock) +
-      ", int tile_order=" + std::to_string(kRasterTileOrder) + ") -> (Tensor color, Tensor alpha, Tensor depth, Tensor depth_accum, Tensor radii, "
+      ", int tile_order=" + std::to_string(kRasterTileOrder) +
+      ", bool warp_cull=" + (kRasterWarpCull ? "True" : "False") + ") -> (Tensor color, Tensor alpha, Tensor depth, Tensor depth_accum, Tensor radii, "
       "Tensor means2d, Tensor conics, Tensor depths, Tensor gaussian_ids)";
   m.def(schema.c_str());
 }

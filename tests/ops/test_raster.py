@@ -175,14 +175,16 @@ def test_kernel_settings_defaults_are_the_op_schemas():
         "channel_block": s.forward_channel_block, "backward_channel_block": s.backward_channel_block,
         "colors_channel_block": s.colors_channel_block,
         "backward_pixels_per_thread": s.backward_pixels_per_thread, "views": 1, "trainable": None,
-        "tile_order": s.tile_order_arg()}
+        "tile_order": s.tile_order_arg(), "warp_cull": s.warp_cull}
     assert _schema_defaults(ops.rasterize_backward) == {
         "channel_block": s.backward_channel_block, "pixels_per_thread": s.backward_pixels_per_thread,
-        "views": 1, "trainable": None, "tile_order": s.tile_order_arg()}
+        "views": 1, "trainable": None, "tile_order": s.tile_order_arg(), "warp_cull": s.warp_cull}
     assert _schema_defaults(ops.rasterize_backward_colors) == {"channel_block": s.colors_channel_block,
                                                                "views": 1, "trainable": None,
-                                                               "tile_order": s.tile_order_arg()}
-    assert (s.forward_channel_block, s.backward_pixels_per_thread, s.tile_order) == (64, 2, "heavy_first")
+                                                               "tile_order": s.tile_order_arg(),
+                                                               "warp_cull": s.warp_cull}
+    assert (s.forward_channel_block, s.backward_pixels_per_thread, s.tile_order, s.warp_cull) == (
+        64, 2, "heavy_first", True)
     assert TILE_ORDERS.index("heavy_first") == 1 and TILE_ORDERS.index("index") == 0  # raster.h's numbers
 
 
@@ -194,7 +196,8 @@ def test_kernel_settings_reach_the_backward_ops(device, geometry):
     gives the same values (the CPU kernels only check them)."""
     m2, cn, op, col, d, bg, to, ids, w, h = _raster_args(device=device)
     kernels = RasterKernelSettings(forward_channel_block=32, backward_channel_block=32,
-                                   colors_channel_block=32, backward_pixels_per_thread=1, tile_order="index")
+                                   colors_channel_block=32, backward_pixels_per_thread=1, tile_order="index",
+                                   warp_cull=False)
     grads = []
     for k in (RasterKernelSettings(), kernels):
         ins = [t.clone().requires_grad_(geometry) for t in (m2, cn, op)] + [col.clone().requires_grad_()]
@@ -207,8 +210,8 @@ def test_kernel_settings_reach_the_backward_ops(device, geometry):
         assert len(args) == 1, [n for n, _ in log.calls]
         want = ((k.backward_channel_block, k.backward_pixels_per_thread) if geometry
                 else (k.colors_channel_block,))
-        # then views (one image), trainable (all), tile_order
-        assert args[0][-len(want) - 3:] == want + (1, None, k.tile_order_arg())
+        # then views (one image), trainable (all), tile_order, warp_cull
+        assert args[0][-len(want) - 4:] == want + (1, None, k.tile_order_arg(), k.warp_cull)
         grads.append([out[0].detach()] + [t.grad for t in ins if t.grad is not None])
     assert _same(grads[1], grads[0], device)
 
@@ -240,14 +243,18 @@ def test_opcheck_with_other_kernel_settings(device):
     args = (m2, cn, op, col, d, bg, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4)
     torch.library.opcheck(ops.rasterize.default, (*args, 32, 32, 32, 1))
     torch.library.opcheck(ops.rasterize.default, (*args, 64, 64, 64, 2, 1, None, 0))
+    torch.library.opcheck(ops.rasterize.default, (*args, 64, 64, 64, 2, 1, None, 1, False))
     c, a, dep, cnt, tr = ops.rasterize(*args)
     vc, va, vd = torch.randn_like(c), torch.randn_like(a), torch.randn_like(dep)
     torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 32, 1))
     torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 64, 2, 1, None, 0))
+    torch.library.opcheck(ops.rasterize_backward.default, (*args, tr, cnt, vc, va, vd, 64, 1, 1, None, 1, False))
     torch.library.opcheck(ops.rasterize_backward_colors.default,
                           (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 32))
     torch.library.opcheck(ops.rasterize_backward_colors.default,
                           (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 64, 1, None, 0))
+    torch.library.opcheck(ops.rasterize_backward_colors.default,
+                          (m2, cn, op, to, ids, w, h, 16, 0.99, 1 / 255, 1e-4, cnt, vc, 64, 1, None, 1, False))
 
 
 def test_tile_order_setting_is_checked():
@@ -266,7 +273,7 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
     V, K = camera(w, h)
     binning = BinningSettings(path="global", block_sort_keys=64, warp_sort_keys=8, giant_tiles=9,
                               _serial=True)
-    kernels = RasterKernelSettings(32, 32, 64, 1, "index")
+    kernels = RasterKernelSettings(32, 32, 64, 1, "index", False)
     log = _ArgLog()
     with log:
         got = tiger.rasterize_gaussians(m, q, s, o, col.requires_grad_(), V, K, w, h, binning=binning,
@@ -274,10 +281,11 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
     want = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h)
     calls = dict(log.calls)
     assert calls["tiger.bin_gaussians.default"][-6:] == binning.op_args() + (1,)  # views last
-    assert calls["tiger.rasterize.default"][-7:] == kernels.op_args() + (1, None, 0)  # views, trainable, order
+    # then views, trainable, tile_order, warp_cull
+    assert calls["tiger.rasterize.default"][-8:] == kernels.op_args() + (1, None, 0, False)
     assert torch.equal(got["color"], want["color"])
     log = _ArgLog()
     with log, torch.no_grad():
         got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
-    assert dict(log.calls)["tiger.render_forward.default"][-7:] == binning.op_args() + (32, 0)
+    assert dict(log.calls)["tiger.render_forward.default"][-8:] == binning.op_args() + (32, 0, False)
     assert torch.equal(got["color"], want["color"])

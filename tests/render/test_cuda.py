@@ -41,17 +41,17 @@ def _raster_all(device, m2, cn, op, col, d, bg, to, ids, w, h, seed=5,
     CUDA kernel choices of `kernels`."""
     k = kernels
     args = [t.to(device) for t in (m2, cn, op, col, d, bg, to, ids)]
-    order = k.tile_order_arg()
-    out = ops.rasterize(*args, w, h, 16, 0.99, 1 / 255, 1e-4, *k.op_args(), 1, None, order)
+    order = k.launch_args()  # tile_order, warp_cull
+    out = ops.rasterize(*args, w, h, 16, 0.99, 1 / 255, 1e-4, *k.op_args(), 1, None, *order)
     g = torch.Generator().manual_seed(seed)
     C = col.shape[1]
     vc = torch.randn(h, w, C, generator=g, dtype=F64).to(device, m2.dtype)
     va = torch.randn(h, w, generator=g, dtype=F64).to(device, m2.dtype)
     vd = torch.randn(h, w, generator=g, dtype=F64).to(device, m2.dtype)
     bwd = ops.rasterize_backward(*args, w, h, 16, 0.99, 1 / 255, 1e-4, out[4], out[3], vc, va, vd,
-                                 k.backward_channel_block, k.backward_pixels_per_thread, 1, None, order)
+                                 k.backward_channel_block, k.backward_pixels_per_thread, 1, None, *order)
     feat = ops.rasterize_backward_colors(args[0], args[1], args[2], args[6], args[7], w, h, 16, 0.99,
-                                         1 / 255, 1e-4, out[3], vc, k.colors_channel_block, 1, None, order)
+                                         1 / 255, 1e-4, out[3], vc, k.colors_channel_block, 1, None, *order)
     return out, bwd, feat
 
 
@@ -104,7 +104,8 @@ def test_raster_ops_match_cpu_any_channel_count(channels, dtype):
                                      RasterKernelSettings(backward_channel_block=32),
                                      RasterKernelSettings(colors_channel_block=32),
                                      RasterKernelSettings(backward_pixels_per_thread=1),
-                                     RasterKernelSettings(tile_order="index")], ids=str)
+                                     RasterKernelSettings(tile_order="index"),
+                                     RasterKernelSettings(warp_cull=False)], ids=str)
 @pytest.mark.parametrize("channels", [3, 16, 67, 96])
 def test_kernel_choices_same_result(kernels, channels):
     w, h = 40, 33
@@ -149,6 +150,52 @@ def test_tile_order_changes_no_value_on_uneven_lists():
     assert all(torch.equal(a, b) for a, b in zip(runs[0][0], runs[1][0]))
     for a, b in zip(runs[0][1] + runs[0][2], runs[1][1] + runs[1][2]):
         assert rel(b, a) <= 1e-5
+
+
+@pytest.mark.parametrize("tile_size", [16, 12, 8, 5])
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_warp_cull_changes_no_value(tile_size, dtype):
+    """Each warp walking only the entries whose cutoff ellipse may reach its pixels (the default)
+    or every entry: the forward's outputs are the same bit for bit, the backward ops' (one and
+    two pixels a thread, all Gaussians or a trainable subset) up to the atomics' order. A
+    heavy-tailed scene with a third of its Gaussians stretched 400:1 (the per-row test's rounding
+    margin), two views in one call, tile sizes whose warps hold two rows, four, or part of a row."""
+    from .standard_scenes import heavy_tailed_scene
+
+    w, h = 300, 220
+    s = heavy_tailed_scene(12_000, 3, device="cuda", seed=11)
+    scales = s["scales"].clone()
+    scales[::3, 0] *= 20.0
+    scales[::3, 1] *= 0.05
+    V, K = standard_camera(w, h, device="cuda")
+    geom = [t.to(dtype) for t in (s["means"], s["quats"], scales, s["opacities"])]
+    m2, cn, d, op, r = ops.project_gaussians(*geom, V.to(dtype), K.to(dtype), w, h, 0.3, 0.01, 1e10,
+                                             1 / 255, False)
+    m2, cn, d, op, r = [torch.cat([t, t]) for t in (m2, cn, d, op, r)]
+    to, ids = ops.bin_gaussians(m2, cn, op, d, r, w, h, tile_size, 1 / 255, views=2)
+    col = torch.cat([s["colors"], s["colors"]]).to(dtype)
+    bg = torch.rand(3, device="cuda", dtype=dtype)
+    trainable = torch.zeros(m2.shape[0], dtype=torch.bool, device="cuda")
+    trainable[::7] = True
+    args = (m2, cn, op, col, d, bg, to, ids, w, h, tile_size, 0.99, 1 / 255, 1e-4)
+    runs = []
+    for cull in (False, True):
+        k = RasterKernelSettings(warp_cull=cull)
+        out = ops.rasterize(*args, *k.op_args(), 2, None, *k.launch_args())
+        g = torch.Generator(device="cuda").manual_seed(4)
+        vc = torch.randn(out[0].shape, device="cuda", generator=g, dtype=dtype)
+        va = torch.randn(out[1].shape, device="cuda", generator=g, dtype=dtype)
+        grads = []
+        for ppt in (1, 2):
+            for train in (None, trainable):
+                grads += ops.rasterize_backward(*args, out[4], out[3], vc, va, None, 64, ppt, 2, train,
+                                                *k.launch_args())
+        grads += ops.rasterize_backward_colors(m2, cn, op, to, ids, w, h, tile_size, 0.99, 1 / 255, 1e-4,
+                                               out[3], vc, 64, 2, trainable, *k.launch_args())
+        runs.append((out, grads))
+    assert all(torch.equal(a, b) for a, b in zip(runs[0][0], runs[1][0]))
+    for a, b in zip(runs[0][1], runs[1][1]):
+        assert rel(b, a) <= (1e-5 if dtype == F32 else 1e-12)
 
 
 @pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])

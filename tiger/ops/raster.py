@@ -40,6 +40,9 @@ class RasterKernelSettings:
             lists first, within a factor of sqrt 2, so that the longest walks do not run alone
             at the end of a kernel) or ``"index"``. The forward's values are the same bit for
             bit, the backward's up to the order of its atomic sums.
+        warp_cull: each warp walks only the list entries whose cutoff ellipse may reach one of
+            its pixel centres (an exact per-row test with a rounding margin): the values are the
+            same bit for bit; ``False`` walks every entry (comparisons).
     """
 
     forward_channel_block: int = 64
@@ -47,6 +50,7 @@ class RasterKernelSettings:
     colors_channel_block: int = 64
     backward_pixels_per_thread: int = 2
     tile_order: str = "heavy_first"
+    warp_cull: bool = True
 
     def __post_init__(self) -> None:
         if self.tile_order not in TILE_ORDERS:
@@ -61,10 +65,14 @@ class RasterKernelSettings:
         """The ops' ``tile_order`` argument (their last): 0 index order, 1 heavy first."""
         return TILE_ORDERS.index(self.tile_order)
 
+    def launch_args(self) -> tuple[int, bool]:
+        """The ops' last two arguments, ``tile_order`` and ``warp_cull``."""
+        return self.tile_order_arg(), bool(self.warp_cull)
+
 
 _DEFAULT = RasterKernelSettings()
 _N_GEOMETRY_ARGS = 6  # width, height, tile_size, alpha_max, alpha_threshold, t_min
-_N_KERNEL_ARGS = 4  # RasterKernelSettings.op_args(); then the forward's views, trainable, tile_order
+_N_KERNEL_ARGS = 4  # RasterKernelSettings.op_args(); then the forward's views, trainable, tile_order, warp_cull
 
 
 def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor,
@@ -99,7 +107,7 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
         means2d, conics, opacities, colors, depths,
         background.contiguous() if background is not None else None, tile_offsets, gaussian_ids,
         int(width), int(height), int(tile_size), float(alpha_max), float(alpha_threshold),
-        float(t_min), *kernels.op_args(), int(views), trainable, kernels.tile_order_arg())
+        float(t_min), *kernels.op_args(), int(views), trainable, *kernels.launch_args())
 
 
 def _check_channel_block(op: str, name: str, value: int) -> None:
@@ -123,7 +131,7 @@ def _raster_fake(means2d, conics, opacities, colors, depths, background, tile_of
                  backward_channel_block=_DEFAULT.backward_channel_block,
                  colors_channel_block=_DEFAULT.colors_channel_block,
                  backward_pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1,
-                 trainable=None, tile_order=_DEFAULT.tile_order_arg()):
+                 trainable=None, tile_order=_DEFAULT.tile_order_arg(), warp_cull=_DEFAULT.warp_cull):
     op = "tiger.rasterize"
     _check_channel_block(op, "channel_block", channel_block)
     _check_channel_block(op, "backward_channel_block", backward_channel_block)
@@ -144,7 +152,8 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
                           transmittance, n_contrib, v_color, v_alpha, v_depth,
                           channel_block=_DEFAULT.backward_channel_block,
                           pixels_per_thread=_DEFAULT.backward_pixels_per_thread, views=1,
-                          trainable=None, tile_order=_DEFAULT.tile_order_arg()):
+                          trainable=None, tile_order=_DEFAULT.tile_order_arg(),
+                          warp_cull=_DEFAULT.warp_cull):
     _check_channel_block("tiger.rasterize_backward", "channel_block", channel_block)
     _check_pixels_per_thread("tiger.rasterize_backward", "pixels_per_thread", pixels_per_thread)
     _check_tile_order("tiger.rasterize_backward", tile_order)
@@ -156,7 +165,8 @@ def _raster_backward_fake(means2d, conics, opacities, colors, depths, background
 def _raster_backward_colors_fake(means2d, conics, opacities, tile_offsets, gaussian_ids, width,
                                  height, tile_size, alpha_max, alpha_threshold, t_min, n_contrib,
                                  v_color, channel_block=_DEFAULT.colors_channel_block, views=1,
-                                 trainable=None, tile_order=_DEFAULT.tile_order_arg()):
+                                 trainable=None, tile_order=_DEFAULT.tile_order_arg(),
+                                 warp_cull=_DEFAULT.warp_cull):
     _check_channel_block("tiger.rasterize_backward_colors", "channel_block", channel_block)
     _check_tile_order("tiger.rasterize_backward_colors", tile_order)
     c = v_color.shape[2]
@@ -175,6 +185,7 @@ def _setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     ctx.views = extra[0] if len(extra) > 0 else 1
     trainable = extra[1] if len(extra) > 1 else None
     ctx.tile_order = extra[2] if len(extra) > 2 else _DEFAULT.tile_order_arg()
+    ctx.warp_cull = extra[3] if len(extra) > 3 else _DEFAULT.warp_cull
     ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, tile_offsets,
                           gaussian_ids, transmittance, n_contrib, trainable)
     ctx.args = tuple(args[:_N_GEOMETRY_ARGS])
@@ -195,7 +206,8 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
     if not geometry:
         v_colors, v_bg = torch.ops.tiger.rasterize_backward_colors(
             means2d, conics, opacities, tile_offsets, gaussian_ids, *ctx.args, n_contrib,
-            v_color.contiguous(), ctx.colors_channel_block, ctx.views, trainable, ctx.tile_order)
+            v_color.contiguous(), ctx.colors_channel_block, ctx.views, trainable, ctx.tile_order,
+            ctx.warp_cull)
         v_colors = v_colors.to(colors.dtype)  # half-precision storage: grads in its dtype
         return (None, None, None, v_colors if need[3] else None, None,
                 v_bg if need[5] else None) + (None,) * (len(need) - 6)
@@ -204,7 +216,7 @@ def _backward(ctx: Any, v_color, v_alpha, v_depth, _v_count, _v_trans):
         *ctx.args, trans, n_contrib, v_color.contiguous(),
         None if v_alpha is None else v_alpha.contiguous(),
         None if v_depth is None else v_depth.contiguous(), ctx.backward_channel_block,
-        ctx.backward_pixels_per_thread, ctx.views, trainable, ctx.tile_order)
+        ctx.backward_pixels_per_thread, ctx.views, trainable, ctx.tile_order, ctx.warp_cull)
     v_geom, v_colors, v_bg = g   # v_geom [N, 8]: u, v, conic a, b, c, opacity, depth, 0
     v_means2d, v_conics, v_opac, v_depths = v_geom[:, 0:2], v_geom[:, 2:5], v_geom[:, 5], v_geom[:, 6]
     v_colors = v_colors.to(colors.dtype)

@@ -34,7 +34,7 @@ def render_forward(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tens
         means, quats, scales, opacities, colors, sh_rest, -1 if sh_degree is None else int(sh_degree),
         background, viewmat, K, int(width), int(height), float(eps2d), float(near), float(far),
         float(alpha_threshold), bool(antialiased), int(tile_size), float(alpha_max), float(t_min),
-        *binning.op_args(), int(kernels.forward_channel_block), kernels.tile_order_arg())
+        *binning.op_args(), int(kernels.forward_channel_block), *kernels.launch_args())
 
 
 @torch.library.register_fake("tiger::render_forward")
@@ -44,7 +44,8 @@ def _render_forward_fake(means, quats, scales, opacities, colors, sh_rest, sh_de
                          block_sort_keys=BinningSettings.block_sort_keys,
                          warp_sort_keys=BinningSettings.warp_sort_keys, giant_tiles=BinningSettings.giant_tiles,
                          _serial=False, channel_block=RasterKernelSettings.forward_channel_block,
-                         tile_order=RasterKernelSettings().tile_order_arg()):
+                         tile_order=RasterKernelSettings().tile_order_arg(),
+                         warp_cull=RasterKernelSettings.warp_cull):
     n = means.shape[0]
     c = 3 if sh_degree >= 0 else colors.shape[1]
     m = torch.library.get_ctx().new_dynamic_size()
