@@ -131,8 +131,9 @@ __global__ void __launch_bounds__(kStagedThreads) sh_backward_staged_kernel(cons
   const bool walked = threadIdx.x < rows && row_walked(visible, trainable, views, n, i);
   if (!__syncthreads_or(walked)) {  // no row of the block is walked (culled or frozen): zeros
     for (RowWalk w(a.width); w.r < rows; w.next()) a.out[(int64_t(blockIdx.x) * blockDim.x + w.r) * a.width + w.c] = 0.f;
-    for (RowWalk w(b.width); b.width && w.r < rows; w.next())
-      b.out[(int64_t(blockIdx.x) * blockDim.x + w.r) * b.width + w.c] = 0.f;
+    if (b.width)  // (RowWalk divides by its width: not built for an absent source)
+      for (RowWalk w(b.width); w.r < rows; w.next())
+        b.out[(int64_t(blockIdx.x) * blockDim.x + w.r) * b.width + w.c] = 0.f;
     return;
   }
   float* s_coeffs = s_mem;
