@@ -4,6 +4,7 @@
 // evaluates colours, with Dual3 it also yields the basis' gradient w.r.t. the
 // (normalised) view direction, so forward and backward share one formula.
 #include <math.h>
+#include <stdint.h>
 
 #include "macros.h"
 
@@ -83,8 +84,10 @@ TIGER_HD void sh_eval(int degree, const T* dir, const T* coeffs, T* rgb) {
   }
 }
 
-// Given v_rgb[3], writes v_coeffs[(degree+1)^2][3] (=) and v_dir[3] (=).
-template <typename T>
+// Given v_rgb[3], writes v_coeffs[(degree+1)^2][3] (= , or += with Accumulate) and v_dir[3] (=).
+// Accumulate: a Gaussian's coefficient gradient summed over several views in one buffer
+// (sh_eval_vjp_views); v_dir is per view and always assigned.
+template <typename T, bool Accumulate = false>
 TIGER_HD void sh_eval_vjp(int degree, const T* dir, const T* coeffs, const T* v_rgb, T* v_coeffs,
                           T* v_dir) {
   const T n = sh_dir_norm(dir);
@@ -97,7 +100,10 @@ TIGER_HD void sh_eval_vjp(int degree, const T* dir, const T* coeffs, const T* v_
   for (int k = 0; k < nb; ++k) {
     T vb = T(0);
     for (int c = 0; c < 3; ++c) {
-      v_coeffs[k * 3 + c] = b[k].v * v_rgb[c];
+      if constexpr (Accumulate)
+        v_coeffs[k * 3 + c] += b[k].v * v_rgb[c];
+      else
+        v_coeffs[k * 3 + c] = b[k].v * v_rgb[c];
       vb += coeffs[k * 3 + c] * v_rgb[c];
     }
     gx += vb * b[k].dx;
@@ -109,6 +115,40 @@ TIGER_HD void sh_eval_vjp(int degree, const T* dir, const T* coeffs, const T* v_
   v_dir[0] = (gx - x * dot) / n;
   v_dir[1] = (gy - y * dot) / n;
   v_dir[2] = (gz - z * dot) / n;
+}
+
+// One Gaussian seen from V views (the CPU and CUDA kernels' row loop; one view is V = 1).
+// The per-view arrays hold view v's entry for this Gaussian at an offset of v * n entries:
+// dir, rgb, v_rgb and v_dir point at view 0's [3] (view v at + 3 v n), visible (null: every view)
+// at view 0's flag (view v at + v n). coeffs / v_coeffs: the Gaussian's [K][3] row, shared by the
+// views.
+
+// rgb of every view whose flag is set (the others are left untouched).
+template <typename T>
+TIGER_HD void sh_eval_views(int degree, int64_t views, int64_t n, const T* dir, const T* coeffs,
+                            const bool* visible, T* rgb) {
+  for (int64_t v = 0; v < views; ++v)
+    if (!visible || visible[v * n]) sh_eval<T>(degree, dir + 3 * v * n, coeffs, rgb + 3 * v * n);
+}
+
+// v_dir of every view whose flag is set (the others untouched) and v_coeffs = the sum over those
+// views of their coefficient gradients, added in view order. The first view assigns (Accumulate
+// false), so one view writes exactly sh_eval_vjp's values (bit for bit, signed zeros included).
+// Like sh_eval_vjp it writes only the first (degree+1)^2 bases of v_coeffs, and nothing when no
+// view's flag is set: the caller zero-fills the rest.
+template <typename T>
+TIGER_HD void sh_eval_vjp_views(int degree, int64_t views, int64_t n, const T* dir, const T* coeffs,
+                                const bool* visible, const T* v_rgb, T* v_coeffs, T* v_dir) {
+  bool first = true;
+  for (int64_t v = 0; v < views; ++v) {
+    if (visible && !visible[v * n]) continue;
+    const int64_t o = 3 * v * n;
+    if (first)
+      sh_eval_vjp<T, false>(degree, dir + o, coeffs, v_rgb + o, v_coeffs, v_dir + o);
+    else
+      sh_eval_vjp<T, true>(degree, dir + o, coeffs, v_rgb + o, v_coeffs, v_dir + o);
+    first = false;
+  }
 }
 
 }  // namespace tiger

@@ -43,11 +43,11 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
                             const std::optional<at::Tensor>& visible, const std::optional<at::Tensor>& rest,
                             bool staged_wanted, const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color";
-  check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
-  check_row_mask(trainable, dirs.size(0), dirs, op, "trainable", "dirs");
+  const ShViews sv = check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
+  const int64_t views = sv.views, n = sv.n;
+  check_row_mask(trainable, n, dirs, op, "trainable", "dirs");
   const c10::cuda::CUDAGuard guard(dirs.device());
-  const int64_t n = dirs.size(0);
-  auto out = at::zeros({n, 3}, dirs.options());
+  auto out = at::zeros(dirs.sizes(), dirs.options());  // [N,3] or [V,N,3]; invisible rows keep 0
   const auto d = dirs.contiguous();
   const auto v = visible.has_value() ? visible->contiguous() : at::Tensor();
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
@@ -56,13 +56,13 @@ at::Tensor sh_to_color_cuda(const at::Tensor& dirs, const at::Tensor& coeffs_in,
   if (staged(dirs, coeffs_in, rest, staged_wanted)) {
     const StagedSources s = staged_sources(coeffs_in, rest);
     err = sh_to_color_staged_cuda_launch(d.data_ptr<float>(), s.c0.data_ptr<float>(), s.pitch(s.c0), s.c0.size(1),
-                                        s.ptr1(), s.pitch(s.c1), s.k1(), n, int(degree), vis, out.data_ptr<float>(),
-                                        stream);
+                                        s.ptr1(), s.pitch(s.c1), s.k1(), views, n, int(degree), vis,
+                                        out.data_ptr<float>(), stream);
   } else {
     const auto c = joined_coeffs(coeffs_in, rest).contiguous();
     AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "sh_to_color_cuda", [&] {
       using T = scalar_t;
-      err = sh_to_color_cuda_launch<T>(d.data_ptr<T>(), c.data_ptr<T>(), n, c.size(1), int(degree), vis,
+      err = sh_to_color_cuda_launch<T>(d.data_ptr<T>(), c.data_ptr<T>(), views, n, c.size(1), int(degree), vis,
                                        out.data_ptr<T>(), stream);
     });
   }
@@ -75,17 +75,19 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
     const at::Tensor& v_colors, const std::optional<at::Tensor>& rest, bool staged_wanted,
     const std::optional<at::Tensor>& trainable) {
   const char* op = "tiger.sh_to_color_backward";
-  check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
-  check_row_mask(trainable, dirs.size(0), dirs, op, "trainable", "dirs");
-  check_shape(v_colors, op, "v_colors", {dirs.size(0), 3});
-  check_same(v_colors, dirs, op, "v_colors");
+  const ShViews sv = check_sh_inputs(op, dirs, coeffs_in, degree, visible, rest);
+  const int64_t views = sv.views, n = sv.n;
+  check_row_mask(trainable, n, dirs, op, "trainable", "dirs");
+  check_per_view(v_colors, dirs, op, "v_colors", dirs.scalar_type(), true);
   const c10::cuda::CUDAGuard guard(dirs.device());
-  const int64_t n = dirs.size(0);
-  auto v_dirs = at::zeros({n, 3}, dirs.options());
+  auto v_dirs = at::zeros(dirs.sizes(), dirs.options());
   const auto d = dirs.contiguous(), g = v_colors.contiguous();
-  const std::optional<at::Tensor> rows = backward_rows(visible, trainable);  // the rows walked
-  const auto v = rows.has_value() ? rows->contiguous() : at::Tensor();
+  // The kernels walk the (view, row) pairs visible in that view and trainable (both masks read
+  // as they are: no [V,N] mask is built for the shared [N] one).
+  const auto v = visible.has_value() ? visible->contiguous() : at::Tensor();
   const bool* vis = v.defined() ? v.data_ptr<bool>() : nullptr;
+  const auto t = trainable.has_value() ? trainable->contiguous() : at::Tensor();
+  const bool* tr = t.defined() ? t.data_ptr<bool>() : nullptr;
   cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   cudaError_t err = cudaSuccess;
   if (staged(dirs, coeffs_in, rest, staged_wanted)) {
@@ -94,18 +96,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_to_color_backward_cuda(
     auto v0 = at::empty({n, s.c0.size(1), 3}, dirs.options());
     auto v1 = rest.has_value() ? at::empty({n, s.k1(), 3}, dirs.options()) : dirs.new_empty({0});
     err = sh_to_color_backward_staged_cuda_launch(
-        d.data_ptr<float>(), s.c0.data_ptr<float>(), s.pitch(s.c0), s.c0.size(1), s.ptr1(), s.pitch(s.c1), s.k1(), n,
-        int(degree), vis, g.data_ptr<float>(), v_dirs.data_ptr<float>(), v0.data_ptr<float>(),
+        d.data_ptr<float>(), s.c0.data_ptr<float>(), s.pitch(s.c0), s.c0.size(1), s.ptr1(), s.pitch(s.c1), s.k1(),
+        views, n, int(degree), vis, tr, g.data_ptr<float>(), v_dirs.data_ptr<float>(), v0.data_ptr<float>(),
         rest.has_value() ? v1.data_ptr<float>() : nullptr, stream);
     TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));
     return {v_dirs, v0, v1};
   }
   const auto c = joined_coeffs(coeffs_in, rest).contiguous();
   const int64_t k = c.size(1);
-  auto v_coeffs = at::zeros({n, k, 3}, dirs.options());  // the plain kernel skips invisible rows
+  auto v_coeffs = at::zeros({n, k, 3}, dirs.options());  // the plain kernel skips rows it does not walk
   AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "sh_to_color_backward_cuda", [&] {
     using T = scalar_t;
-    err = sh_to_color_backward_cuda_launch<T>(d.data_ptr<T>(), c.data_ptr<T>(), n, k, int(degree), vis,
+    err = sh_to_color_backward_cuda_launch<T>(d.data_ptr<T>(), c.data_ptr<T>(), views, n, k, int(degree), vis, tr,
                                               g.data_ptr<T>(), v_dirs.data_ptr<T>(), v_coeffs.data_ptr<T>(), stream);
   });
   TORCH_CHECK(err == cudaSuccess, op, ": CUDA kernel failed: ", cudaGetErrorString(err));

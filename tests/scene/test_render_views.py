@@ -1,12 +1,16 @@
 """The one render path: GaussianScene.render with any colours, and render_views over V cameras."""
 from __future__ import annotations
 
+from collections import Counter
+
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import tiger
 from tiger.render.reference import sh_to_color_ref
-from tiger.render import Camera
+from tiger.ops.sh import sh_to_color
+from tiger.render import Camera, camera_center
 from tiger.scene import GaussianScene, render_views
 from tiger.scene.cameras import intrinsics
 
@@ -218,3 +222,74 @@ def test_batched_render_views_are_the_single_camera_renders_with_gradients(devic
             continue
         assert a.abs().max() > 0 or k == "lang", k
         torch.testing.assert_close(a, o_grads[k], rtol=tol, atol=tol, msg=k)
+
+
+class _ShCalls(TorchDispatchMode):
+    """Counts the SH ops dispatched (forward and backward)."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if str(func).startswith("tiger.sh_to_color"):
+            self.calls[str(func)] += 1
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("colors", ["rgb", "rgb+lang"])
+def test_render_views_evaluates_sh_once_for_all_views(colors):
+    """render_views of 4 cameras: one SH forward and one SH backward (the views' coefficient
+    gradients summed in the kernel), not one per view."""
+    s = _scene(seed=8)
+    s.parameter_groups()
+    cams = [_camera(a) for a in (0.0, 0.5, -0.8, 1.2)]
+    probe = _ShCalls()
+    with probe:
+        out = render_views(s, cams, colors)
+        out["color"].sum().backward()
+    assert dict(probe.calls) == {"tiger.sh_to_color.default": 1, "tiger.sh_to_color_backward.default": 1}
+    assert s.sh_rest.grad.abs().max() > 0
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("masked", [False, True])
+def test_render_views_sh_matches_per_view_sh_calls(device, dtype, masked):
+    """The batched SH step changes nothing: render_views' images equal, bit for bit, per-view renders
+    of colours from one one-view SH call per view (the path before the V-view op, whose
+    coefficient gradients autograd summed), and the scene's gradients agree to float rounding;
+    with a trainable mask the frozen rows get none."""
+    cams = [_camera(0.4 * k - 0.6, w=37, h=29) for k in range(4)]
+    g = torch.Generator().manual_seed(9)
+    bg = torch.tensor([0.1, 0.3, 0.5], dtype=dtype, device=device)
+    w_col = torch.rand(4, 29, 37, 3, generator=g, dtype=dtype).to(device)
+    trainable = (torch.arange(50) % 3 != 1).to(device) if masked else None
+
+    def run(batched: bool):
+        s = _large_scene(dtype, device)
+        s.parameter_groups()
+        if batched:
+            color = render_views(s, cams, background=bg, trainable=trainable)["color"]
+        else:
+            views = []
+            for cam in cams:
+                c = cam.to(device=device, dtype=dtype)
+                dirs = s.means - camera_center(c.viewmat)
+                rgb = (sh_to_color(dirs, s.sh_dc[:, None], s.sh_degree, None, s.sh_rest) + 0.5).clamp_min(0)
+                views.append(s.render(c, rgb, background=bg)["color"])
+            color = torch.stack(views)
+        (color * w_col).sum().backward()
+        return color.detach(), {k: t.grad for k, t in s.params().items()}
+
+    b_color, b_grads = run(True)
+    o_color, o_grads = run(False)
+    assert torch.equal(b_color, o_color)
+    tol = 1e-11 if dtype == torch.float64 else 2e-5
+    for k in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"):
+        a, b = b_grads[k], o_grads[k]
+        assert b.abs().max() > 0, k
+        if trainable is not None:
+            assert int(a[~trainable].count_nonzero()) == 0, k
+            a, b = a[trainable], b[trainable]
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol, msg=k)

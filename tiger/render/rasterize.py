@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -15,8 +15,12 @@ from tiger.ops.sh import sh_to_color
 
 from .raster_checks import checked_sizes, checked_trainable
 
-__all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster",
-           "composite", "composite_views", "bin_projection", "camera_center", "expected_depth", "sh_colors"]
+__all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster", "project_views",
+           "composite", "composite_views", "bin_projection", "camera_center", "expected_depth", "sh_colors",
+           "sh_colors_views"]
+
+#: V cameras' matrices: a tensor [V, r, c] or a sequence of V tensors [r, c] (e.g. each camera's own).
+ViewMatrices = Union[Tensor, Sequence[Tensor]]
 
 
 @dataclass(frozen=True)
@@ -58,12 +62,55 @@ def camera_center(viewmat: Tensor) -> Tensor:
     return -(R.transpose(0, 1) @ t)
 
 
+def _stack_views(ts: Sequence[Tensor]) -> Tensor:
+    """``torch.stack(ts)``; one view's is a view of it, no copy (the one-view render's path)."""
+    return ts[0][None] if len(ts) == 1 else torch.stack(list(ts))
+
+
+def _unstack_views(t: Tensor) -> list[Tensor]:
+    """``t.unbind(0)``; one view's is ``t.squeeze(0)``, whose backward is a view too (an unbind's
+    stacks the gradients: a copy)."""
+    return [t.squeeze(0)] if t.shape[0] == 1 else list(t.unbind(0))
+
+
+def sh_colors_views(means: Tensor, sh: Tensor, viewmats: ViewMatrices, sh_degree: int,
+                    visible: Optional[Tensor] = None, sh_rest: Optional[Tensor] = None,
+                    trainable: Optional[Tensor] = None) -> Tensor:
+    """[V, N, 3] RGB of each Gaussian seen from each of V cameras, max(SH(dir) + 0.5, 0), in one
+    SH call (:func:`tiger.ops.sh.sh_to_color` with directions [V, N, 3]).
+
+    The one SH→RGB step of the renderer (INRIA's convention), differentiable. The call reads each
+    coefficient row once for all V views, and its backward sums the views' coefficient gradients
+    in the kernel (one ``sh`` / ``sh_rest`` gradient, not V of them added by autograd). View v
+    equals ``sh_colors(means, sh, viewmats[v], ...)`` bit for bit.
+
+    Args:
+        means: [N, 3] world-space centres.
+        sh: [N, K, 3] coefficients (INRIA order, DC first), K >= (sh_degree + 1)^2.
+        viewmats: V world→camera matrices, [V, 4, 4] or a sequence of V [4, 4] (their centres
+            give each Gaussian's view direction per view).
+        sh_degree: bands evaluated, 0..3.
+        visible: [V, N] bool; (view, row) pairs that are False get colour max(0.5, 0) and no
+            gradient.
+        sh_rest: [N, K1, 3] or None: the coefficients are ``cat([sh, sh_rest], 1)``, read in
+            place (a scene's DC band and higher bands; no [N, K, 3] copy on CUDA).
+        trainable: [N] bool or None: the rows whose gradients the backward computes (the others
+            get zero gradients and cost no gradient work: :func:`tiger.ops.sh.sh_to_color`).
+    """
+    # Each centre by camera_center's own 3x3 product, one per view: a batched product may round
+    # differently, and view v must match the one-view render (and tiger::render_forward, which
+    # takes the same product) bit for bit. V tiny products; the SH op is the costly part.
+    centres = _stack_views([camera_center(vm.to(means)) for vm in viewmats])  # [V, 3]
+    dirs = means[None] - centres[:, None]  # [V, N, 3]
+    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible, sh_rest, trainable=trainable) + 0.5, 0.0)
+
+
 def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
               visible: Optional[Tensor] = None, sh_rest: Optional[Tensor] = None,
               trainable: Optional[Tensor] = None) -> Tensor:
     """[N, 3] RGB of each Gaussian seen from the camera of ``viewmat``: max(SH(dir) + 0.5, 0).
 
-    The one SH→RGB step of the renderer (INRIA's convention), differentiable.
+    The one-view case of :func:`sh_colors_views` (the renderer's SH→RGB step), differentiable.
 
     Args:
         means: [N, 3] world-space centres.
@@ -76,8 +123,8 @@ def sh_colors(means: Tensor, sh: Tensor, viewmat: Tensor, sh_degree: int,
         trainable: [N] bool or None: the rows whose gradients the backward computes (the others
             get zero gradients and cost no gradient work: :func:`tiger.ops.sh.sh_to_color`).
     """
-    dirs = means - camera_center(viewmat.to(means))
-    return torch.clamp_min(sh_to_color(dirs, sh, sh_degree, visible, sh_rest, trainable=trainable) + 0.5, 0.0)
+    vis = None if visible is None else visible[None]
+    return sh_colors_views(means, sh, [viewmat], sh_degree, vis, sh_rest, trainable).squeeze(0)
 
 
 def rasterize_gaussians(
@@ -197,28 +244,69 @@ def project_for_raster(means: Tensor, quats: Tensor, scales: Tensor, opacities: 
                        settings: RasterSettings = RasterSettings(),
                        trainable: Optional[Tensor] = None) -> Projection:
     """The first half of :func:`rasterize_gaussians` (same arguments, checked the same way):
-    projection and the SH colour step. Batched renders project every view first, so that
-    a tensor stacking the views' ``means2d`` can sit in the graph (see ``render_views``).
+    projection and the SH colour step; the one-view case of :func:`project_views`.
     ``trainable`` ([N] bool): the rows whose projection and SH gradients the backward computes
     (:func:`tiger.ops.projection.project_gaussians`, :func:`sh_colors`)."""
-    width, height, background = checked_sizes(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                                              background, sh_degree, sh_rest, settings.tile_size,
-                                              settings.check_finite)
-    viewmat = viewmat.to(means.dtype)
-    K = K.to(means.dtype)
+    return project_views(means, quats, scales, opacities, colors, [viewmat], [K], width, height,
+                         background=background, sh_degree=sh_degree, sh_rest=sh_rest, settings=settings,
+                         trainable=trainable)[0]
 
-    means2d, conics, depths, opac, radii = project_gaussians(
-        means, quats, scales, opacities, viewmat, K, width, height, settings.eps2d, settings.near,
-        settings.far, settings.alpha_threshold, settings.antialiased, trainable)
+
+def project_views(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                  colors: Tensor, viewmats: ViewMatrices, Ks: ViewMatrices, width: int, height: int, *,
+                  background: Optional[Tensor] = None, sh_degree: Optional[int] = None,
+                  sh_rest: Optional[Tensor] = None,
+                  settings: RasterSettings = RasterSettings(),
+                  trainable: Optional[Tensor] = None) -> list[Projection]:
+    """The first half of a render of V views of one image size: each view's projection (one call
+    per view) and the SH colours of all V views in one call (:func:`sh_colors_views`). Batched
+    renders project every view first, so that a tensor stacking the views' ``means2d`` can sit in
+    the graph (see ``render_views``, :func:`composite_views`).
+
+    Args:
+        means, quats, scales, opacities, width, height, background, sh_degree, sh_rest, settings:
+            as :func:`rasterize_gaussians` (checked the same way, per view).
+        colors: as :func:`rasterize_gaussians`' (SH coefficients [N, K, 3] with ``sh_degree``,
+            or channels [N, C] shared by the views), or without ``sh_degree`` [V, N, C]: each
+            view's own channels (e.g. its SH colour in front of shared features).
+        viewmats: V world→camera matrices, [V, 4, 4] or a sequence of V [4, 4].
+        Ks: V intrinsics, [V, 3, 3] or a sequence of V [3, 3].
+        trainable: [N] bool or None: the rows whose projection and SH gradients the backward
+            computes (:func:`tiger.ops.projection.project_gaussians`, :func:`sh_colors_views`).
+    Returns:
+        V :class:`Projection` s; view v equals ``project_for_raster`` of camera v bit for bit.
+    """
+    viewmats, Ks = list(viewmats), list(Ks)
+    views = len(viewmats)
+    if views == 0 or len(Ks) != views:
+        raise ValueError(f"tiger.project_views: needs V >= 1 viewmats and as many Ks, got {views} viewmats "
+                         f"and {len(Ks)} Ks")
+    per_view_colors = sh_degree is None and isinstance(colors, Tensor) and colors.dim() == 3
+    if per_view_colors and colors.shape[0] != views:
+        raise ValueError(f"tiger.project_views: per-view colors must have shape [V={views}, N, C], got "
+                         f"{list(colors.shape)}")
+    geometry = []
+    for v in range(views):
+        width, height, bg = checked_sizes(means, quats, scales, opacities, colors[v] if per_view_colors else colors,
+                                          viewmats[v], Ks[v], width, height, background, sh_degree, sh_rest,
+                                          settings.tile_size, settings.check_finite)
+        viewmats[v], Ks[v] = viewmats[v].to(means.dtype), Ks[v].to(means.dtype)
+        geometry.append(project_gaussians(
+            means, quats, scales, opacities, viewmats[v], Ks[v], width, height, settings.eps2d, settings.near,
+            settings.far, settings.alpha_threshold, settings.antialiased, trainable))
 
     if sh_degree is not None:
-        feats = sh_colors(means, colors, viewmat, int(sh_degree), radii[:, 0] > 0, sh_rest, trainable)
-    elif colors.dtype != means.dtype and not colors.is_cuda:  # float16/bfloat16 channels (checked)
-        feats = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
+        visible = _stack_views([g[4] for g in geometry])[..., 0] > 0  # [V, N]: radii > 0, culled otherwise
+        feats = _unstack_views(sh_colors_views(means, colors, viewmats, int(sh_degree), visible, sh_rest,
+                                               trainable))
     else:
-        # CUDA reads float16/bfloat16 channels directly and accumulates in float32.
-        feats = colors.contiguous()
-    return Projection(means2d, conics, depths, opac, radii, feats, background)
+        if colors.dtype != means.dtype and not colors.is_cuda:  # float16/bfloat16 channels (checked)
+            shared = colors.float().contiguous()  # the CPU kernels accumulate in the storage dtype
+        else:
+            # CUDA reads float16/bfloat16 channels directly and accumulates in float32.
+            shared = colors.contiguous()
+        feats = _unstack_views(shared) if per_view_colors else [shared] * views
+    return [Projection(*g, f, bg) for g, f in zip(geometry, feats)]
 
 
 def bin_projection(p: Projection, width: int, height: int,

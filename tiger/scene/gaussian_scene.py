@@ -12,8 +12,8 @@ from tiger.ops.binning import BinningSettings
 from tiger.ops.raster import RasterKernelSettings
 from tiger.render import Camera
 from tiger.render.raster_checks import checked_trainable
-from tiger.render.rasterize import (Projection, RasterSettings, composite_views, project_for_raster,
-                                   rasterize_gaussians, sh_colors)
+from tiger.render.rasterize import (Projection, RasterSettings, composite_views, project_views,
+                                   rasterize_gaussians, sh_colors, sh_colors_views)
 
 from .ply import read_ply_state, write_ply_state
 from .sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh, sh_degree_from_rest, sh_to_rgb
@@ -376,7 +376,9 @@ class GaussianScene:
         _settings(options)  # unknown keywords: one error naming them
         c = _color_inputs(self, colors, sh_degree)
         cam = camera.to(device=self.device, dtype=self.dtype)
-        feats, raster_deg, rest = _view_colors(self, c, cam.viewmat)
+        feats, raster_deg, rest = _view_colors(self, c, [cam.viewmat])
+        if c.per_view_rgb:
+            feats = feats.squeeze(0)  # [1, N, 3 + C] -> this view's [N, 3 + C]
         # a render autograd does not record runs as one op (tiger::render_forward)
         return rasterize_gaussians(self.means, self.quats, self.scales, self.opacities, feats, cam.viewmat, cam.K,
                                    cam.width, cam.height, background=background, sh_degree=raster_deg, sh_rest=rest,
@@ -447,8 +449,10 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     :meth:`GaussianScene.render` (one ``colors`` tensor [N, C] serves every view). The scene's
     activations (scales, opacities) are computed once for all views, so gradients of a loss
     over the V renders reach the scene's tensors and ``colors`` through one graph. Each view is
-    projected by its own call; the V views are then binned and rasterized in one call each, on
-    the CPU and on CUDA (:func:`tiger.render.rasterize.composite_views`). ``trainable``: optional
+    projected by its own call, the SH colours of all V views come from one call (its backward
+    sums the views' SH gradients in the kernel: :func:`tiger.render.rasterize.project_views`);
+    the V views are then binned and rasterized in one call each, on the CPU and on CUDA
+    (:func:`tiger.render.rasterize.composite_views`). ``trainable``: optional
     bool [N]: the Gaussians whose gradients the rasterizer's, the projection's and the SH colours'
     backward compute (an edit's editable ones); the frozen ones get zero gradients and cost no
     gradient work there.
@@ -564,33 +568,36 @@ def _color_inputs(scene: GaussianScene, colors: ColorSpec, sh_degree: Optional[i
     return _ColorInputs(feats, raster_deg, sh_dc, sh_rest, deg, per_view_rgb)
 
 
-def _view_colors(scene: GaussianScene, c: _ColorInputs, viewmat: torch.Tensor,
+def _view_colors(scene: GaussianScene, c: _ColorInputs, viewmats: Sequence[torch.Tensor],
                  trainable: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, Optional[int], Optional[torch.Tensor]]:
-    """One view's ``colors``, ``sh_degree`` and ``sh_rest`` arguments of the rasterizer."""
+    """V views' ``colors``, ``sh_degree`` and ``sh_rest`` arguments of the rasterizer
+    (:func:`tiger.render.rasterize.project_views`; ``viewmats``: V [4, 4] in the scene's dtype):
+    shared by the views (channels [N, C], or the SH DC band with its degree: the projection
+    evaluates SH then), or with ``per_view_rgb`` each view's SH colour in front of ``feats``,
+    [V, N, 3 + C], from one SH call for the V views."""
     if not c.per_view_rgb:
         return c.feats, c.sh_degree, c.sh_rest if c.sh_degree is not None else None
-    rgb = sh_colors(scene.means, c.sh_dc, viewmat, c.degree, sh_rest=c.sh_rest, trainable=trainable)
-    return torch.cat([rgb, c.feats], 1), None, None
+    rgb = sh_colors_views(scene.means, c.sh_dc, viewmats, c.degree, sh_rest=c.sh_rest, trainable=trainable)
+    return torch.cat([rgb, c.feats.expand(len(viewmats), -1, -1)], 2), None, None
 
 
 def _project_each(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec,
                   background: Optional[torch.Tensor], sh_degree: Optional[int],
                   options: dict[str, RasterOption], trainable: Optional[torch.Tensor] = None) -> list[Projection]:
-    """Each camera's projection, sharing the activated geometry and the colour input; the
+    """Each camera's projection, sharing the activated geometry and the colour input, and the SH
+    colours of all the cameras in one call (:func:`tiger.render.rasterize.project_views`); the
     projection's and the SH colours' backward walk only the ``trainable`` rows when given ([N] bool)."""
     settings = _settings(options)
     c = _color_inputs(scene, colors, sh_degree)
     n = len(scene)
     means, quats, scales, opacities = scene.means, scene.quats, scene.scales, scene.opacities
     trainable = checked_trainable(trainable, n, scene.device)
-    out = []
-    for camera in cameras:
-        cam = camera.to(device=scene.device, dtype=scene.dtype)
-        view_feats, raster_deg, rest = _view_colors(scene, c, cam.viewmat, trainable)
-        out.append(project_for_raster(means, quats, scales, opacities, view_feats, cam.viewmat, cam.K,
-                                      cam.width, cam.height, background=background, sh_degree=raster_deg,
-                                      sh_rest=rest, settings=settings, trainable=trainable))
-    return out
+    cams = [camera.to(device=scene.device, dtype=scene.dtype) for camera in cameras]
+    viewmats = [cam.viewmat for cam in cams]
+    feats, raster_deg, rest = _view_colors(scene, c, viewmats, trainable)
+    return project_views(means, quats, scales, opacities, feats, viewmats, [cam.K for cam in cams],
+                         cams[0].width, cams[0].height, background=background, sh_degree=raster_deg, sh_rest=rest,
+                         settings=settings, trainable=trainable)
 
 
 def read_ply(path: PathLike, allow_nonfinite: bool = False,
