@@ -34,6 +34,7 @@ choice (tile order x pixels per backward thread) on the edit's own cameras and o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import time
 
@@ -252,7 +253,7 @@ def run_kernel_choices(density: float, size: int, repeats: int) -> list[dict]:
     choices = [("heavy_first", 1, True), ("heavy_first", 1, False), ("heavy_first", 2, True),
                ("heavy_first", 2, False), ("index", 2, False)]
     for cams_name, sets in camera_sets.items():
-        for order, ppt, cull in choices:
+        for (order, ppt, cull), sh_calls in [(c, "one") for c in choices] + [(choices[0], "per view")]:
             k = RasterKernelSettings(tile_order=order, backward_pixels_per_thread=ppt, warp_cull=cull)
 
             def step():
@@ -260,10 +261,27 @@ def run_kernel_choices(density: float, size: int, repeats: int) -> list[dict]:
                     scene.parameter_groups()
                     out = render_views(scene, cams, "rgb", trainable=editable, check_finite=False, kernels=k)
                     (out["color"] * upstream).sum().backward()
-            t = raster_kernel_ms(step, repeats)
+            with sh_call_per_view(sh_calls == "per view"):
+                t = raster_kernel_ms(step, repeats)
             rows.append({"cameras": cams_name, "tile_order": order, "bwd px/thread": ppt, "warp cull": cull,
-                         **{key: v / len(sets) for key, v in t.items()}})
+                         "SH calls": sh_calls, **{key: v / len(sets) for key, v in t.items()}})
     return rows
+
+
+@contextlib.contextmanager
+def sh_call_per_view(enabled: bool):
+    """Within: render_views projects and evaluates the SH colours of each view with its own call
+    (the one-view case of its projection step, bit-identical to the previous rounds' per-view
+    path), so the same build times one SH call for all views against one per view."""
+    import tiger.scene.gaussian_scene as gs
+
+    batched = gs._project_each
+    if enabled:
+        gs._project_each = lambda scene, cameras, *a, **kw: [p for cam in cameras for p in batched(scene, [cam], *a, **kw)]
+    try:
+        yield
+    finally:
+        gs._project_each = batched
 
 
 def main() -> None:
