@@ -8,7 +8,7 @@ import torch
 from tiger.eval.edit import (PSNR_CAP, clip_direction_consistency, clip_direction_similarity, dilate_mask,
                              locality, psnr_outside)
 from tiger.render.views import orbit_cameras
-from tiger.scene import GaussianScene
+from tiger.scene import GaussianScene, render_rgb
 
 
 def _np_cos(a, b):
@@ -79,3 +79,35 @@ def test_locality_sees_leaks_only():
     after.sh_dc[~obj] += 2.0  # the other blob changes too: a leak
     leak = locality(before, after, cams, obj, obj)
     assert leak["psnr"] < 30
+
+
+def test_rest_pixels_exclude_walks_an_edited_gaussian_ends():
+    """A pixel whose walk an edited Gaussian ends (transmittance would fall below t_min: it is not
+    composited, footprint exactly 0) still depends on it: lowering its opacity lets the Gaussian
+    behind it in. Such pixels are "reached" (edited_reach), not "rest"; the rest stays exact."""
+    from tiger.eval.edit import edited_reach
+    from tiger.render import Camera
+    from tiger.render.views import pinhole_K
+
+    # four wide Gaussians on the axis of a camera at the origin looking down +z, front to back:
+    # frozen 0.99 and 0.5 (T: 1 -> 0.01 -> 0.005), the edited one at 0.99 (0.005 -> 5e-5 < t_min:
+    # the walk ends there), a frozen one behind it that only the edit lets through
+    means = torch.tensor([[0.0, 0.0, z] for z in (2.0, 3.0, 4.0, 5.0)], dtype=torch.float64)
+    s = GaussianScene.from_points(means, torch.tensor([[0.9, 0.1, 0.1], [0.1, 0.9, 0.1], [0.5, 0.5, 0.5],
+                                                       [0.1, 0.1, 0.9]], dtype=torch.float64),
+                                  sh_degree=0, scales=torch.full((4,), 3.0, dtype=torch.float64))
+    s.opacity_logits = torch.logit(torch.tensor([0.99, 0.5, 0.999, 0.9], dtype=torch.float64))
+    edited = torch.tensor([False, False, True, False])
+    cam = Camera(viewmat=torch.eye(4, dtype=torch.float64), K=pinhole_K(16, 12, 60.0).double(), width=16, height=12)
+    after = s.clone()
+    after.opacity_logits[2] = torch.logit(torch.tensor(1e-4, dtype=torch.float64))  # below the threshold
+    _, foot_before = render_rgb(s, [cam], footprint=edited)
+    _, foot_after = render_rgb(after, [cam], footprint=edited)
+    centre = (0, 6, 8)
+    assert float(foot_before[centre]) == 0.0 and float(foot_after[centre]) == 0.0  # never composited
+    reach = edited_reach(s, [cam], edited)
+    assert bool(reach[centre]) and not bool(edited_reach(after, [cam], edited)[centre])
+    loc = locality(s, after, [cam], edited, edited, dilate_px=0)
+    assert loc["psnr"] < 60  # the pixels behind the edited Gaussian changed
+    assert loc["parts"]["rest"]["max_abs_err"] == 0.0
+    assert loc["parts"]["fringe"]["pixels"] > 0 and loc["parts"]["fringe"]["max_abs_err"] > 1e-3

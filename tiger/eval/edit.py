@@ -120,6 +120,8 @@ def locality_parts(before: torch.Tensor, after: torch.Tensor, outside: torch.Ten
     ``fringe`` (the edited Gaussians reached them before the edit: the object's faint edge),
     ``spread`` (reached only after the edit) and ``rest`` (reached by no edited Gaussian, before or
     after: they can differ only if other Gaussians changed, or by float rounding).
+    :func:`locality` takes "reached" as :func:`edited_reach`: an edited Gaussian at or above the
+    alpha threshold anywhere in the pixel's list, composited or not.
 
     Args:
         before, after: [V, H, W, C] images in [0, 1].
@@ -155,8 +157,27 @@ def locality(before: GaussianScene, after: GaussianScene, cameras: Sequence[Came
     out = psnr_outside(rb, ra, masks, dilate_px)
     out["dilate_px"] = int(dilate_px)
     outside = ~dilate_mask(masks.to(rb.device), dilate_px)
-    out["parts"] = locality_parts(rb, ra, outside, fb > 0, fa > 0)
+    out["parts"] = locality_parts(rb, ra, outside, edited_reach(before, cameras, edited_before),
+                                  edited_reach(after, cameras, edited_after))
     return out
+
+
+def edited_reach(scene: GaussianScene, cameras: Sequence[Camera], edited: torch.Tensor) -> torch.Tensor:
+    """[V, H, W] bool: the pixels where some ``edited`` Gaussian ([N] bool) reaches the alpha
+    threshold, wherever it lies in the pixel's depth order.
+
+    Not the composited footprint (``render_rgb(footprint=)`` > 0): a Gaussian that would take the
+    pixel's transmittance below ``t_min`` ends the walk without being composited, so an edited
+    Gaussian can decide where a pixel stops (and which Gaussians behind it are drawn) with a
+    footprint of exactly 0. Rendered alone, the edited Gaussians' first one at or above the
+    threshold is always composited (nothing in front of it), so their footprint is > 0 exactly
+    where one reaches the pixel.
+    """
+    if not bool(edited.any()):
+        return torch.zeros(len(cameras), cameras[0].height, cameras[0].width, dtype=torch.bool, device=scene.device)
+    alone = scene.subset(edited)
+    _, foot = render_rgb(alone, cameras, footprint=torch.ones(len(alone), dtype=torch.bool, device=scene.device))
+    return foot > 0
 
 
 @torch.no_grad()
@@ -196,4 +217,4 @@ def clip_metrics(clip: Union["MaskCLIP", "CLIPModel"], before: torch.Tensor, aft
 
 
 __all__ = ["PSNR_CAP", "clip_direction_consistency", "clip_direction_similarity", "clip_image_embeddings",
-           "clip_metrics", "dilate_mask", "locality", "locality_parts", "psnr_outside"]
+           "clip_metrics", "dilate_mask", "edited_reach", "locality", "locality_parts", "psnr_outside"]
