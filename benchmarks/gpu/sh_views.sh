@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# One device call for the SH op over V views (branch batched-sh-views; its CUDA kernels had not run
-# when it was written): build, the SH and render_views tests (their CUDA cases are marked cuda),
+# One device call for the SH op over V views (sh_to_color with dirs [V, N, 3]; first run on the H100 in
+# the round that added it): build, the SH and render_views tests (their CUDA cases are marked cuda),
 # compute-sanitizer memcheck and racecheck on the SH kernels (plain and staged, one and several
 # views), then benchmarks/sh_views.py (V one-view calls against one V-view call) and the edit's
 # render stage. From the repo root with .carry/deb carried; results also under $OUT/sh_views.
