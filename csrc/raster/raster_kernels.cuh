@@ -7,7 +7,8 @@
 // list once per channel block, main blocks of CBM channels then one tail block of CBT,
 // so every C runs in one launch and C = 67 costs a 64-block plus a 4-block walk.
 // Per-pixel alpha, skipping, termination and gradients follow common/raster_math.h and
-// raster_cpu.cpp term by term.
+// raster_cpu.cpp term by term. With warp_cull (raster.h) each warp walks only the staged entries
+// that may reach one of its own pixels (WarpSpan, span_reaches): the same values, fewer steps.
 #include <type_traits>
 
 #include "common/cuda_helpers.cuh"
