@@ -46,9 +46,10 @@
 //     up to the order of its atomic sums.
 //   warp_cull (all three ops, default kRasterWarpCull): each warp of a tile's block walks only
 //     the list entries whose cutoff ellipse may reach one of its own pixel centres (the exact
-//     minimum of the conic along each of its pixel rows, with a rounding margin), and the
-//     backward ones only entries below its pixels' largest n_contrib. The entries skipped are
-//     those every pixel of the warp would skip: the values are the same bit for bit.
+//     minimum of the conic along each of its pixel rows, with a rounding margin). The backward
+//     walks, either way, take only entries below the warp's pixels' largest n_contrib. The
+//     entries skipped are those every pixel of the warp would skip: the values are the same bit
+//     for bit.
 #include <ATen/ATen.h>
 
 #include <optional>

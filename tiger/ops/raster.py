@@ -42,7 +42,8 @@ class RasterKernelSettings:
             bit, the backward's up to the order of its atomic sums.
         warp_cull: each warp walks only the list entries whose cutoff ellipse may reach one of
             its pixel centres (an exact per-row test with a rounding margin): the values are the
-            same bit for bit; ``False`` walks every entry (comparisons).
+            same bit for bit; ``False`` skips that test (comparisons; the backward walks still stop
+            at the warp's largest ``n_contrib``, which needs no test).
     """
 
     forward_channel_block: int = 64

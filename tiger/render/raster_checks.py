@@ -7,7 +7,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-__all__ = ["checked_sizes", "checked_trainable"]
+__all__ = ["checked_camera", "checked_sizes", "checked_trainable"]
 
 _NAME = "tiger.rasterize_gaussians"
 
@@ -26,6 +26,15 @@ def _check_tensor(t: object, name: str, shape: tuple, ref: Optional[Tensor] = No
     return t
 
 
+def _raise_nonfinite(named: list[tuple[str, Tensor]], bad: list[bool]) -> None:
+    """The error for the first of ``named`` whose flag in ``bad`` is set, counting its NaN/Inf."""
+    for (name, t), b in zip(named, bad):
+        if b:
+            count = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{_NAME}: {name} contains {count} non-finite value(s) (NaN or Inf); "
+                             "pass check_finite=False to skip this check")
+
+
 def _check_inputs(tensors: dict[str, Optional[Tensor]], quats: Tensor, scales: Tensor,
                   opacities: Tensor) -> None:
     """check_finite's tests, read back in one device synchronisation (was one per tensor):
@@ -39,11 +48,7 @@ def _check_inputs(tensors: dict[str, Optional[Tensor]], quats: Tensor, scales: T
         bad_o = (opacities < 0) | (opacities > 1)
         flags = [~torch.isfinite(t).all() for _, t in named] + [zero_q.any(), bad_o.any(), neg_s.any()]
         bad = torch.stack(flags).tolist()
-    for (name, t), b in zip(named, bad):
-        if b:
-            count = int((~torch.isfinite(t)).sum())
-            raise ValueError(f"{_NAME}: {name} contains {count} non-finite value(s) (NaN or Inf); "
-                             "pass check_finite=False to skip this check")
+    _raise_nonfinite(named, bad)
     hint = "; pass check_finite=False to skip the input checks"
     for b, (name, rows_bad, t, what) in zip(bad[len(named):], (
             ("quats", zero_q, quats, "is zero, not a rotation"),
@@ -141,3 +146,21 @@ def checked_trainable(trainable: Optional[Tensor], n: int, device: torch.device)
         raise ValueError(f"{_NAME}: trainable must be a bool tensor [N={n}], got {got}")
     return trainable.to(device)
 
+
+
+def checked_camera(viewmat: Tensor, K: Tensor, means: Tensor, check_finite: bool,
+                   colors: Optional[Tensor] = None) -> None:
+    """The per-view part of :func:`checked_sizes` for a further view of a render whose first view
+    went through it (same scene, size and settings): ``viewmat`` [4, 4] and ``K`` [3, 3] beside
+    ``means``, and with ``check_finite`` their values and those of the view's own ``colors`` (when
+    given, [N, C] like the first view's), in one device synchronisation. The scene's tensors are
+    not read again."""
+    _check_tensor(viewmat, "viewmat", (4, 4), means)
+    _check_tensor(K, "K", (3, 3), means)
+    if colors is not None:
+        _check_tensor(colors, "colors", (means.shape[0], None), means)
+    if check_finite:
+        named = [(name, t) for name, t in (("colors", colors), ("viewmat", viewmat), ("K", K)) if t is not None]
+        with torch.no_grad():
+            bad = torch.stack([~torch.isfinite(t).all() for _, t in named]).tolist()
+        _raise_nonfinite(named, bad)

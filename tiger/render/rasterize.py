@@ -13,7 +13,7 @@ from tiger.ops.raster import RasterKernelSettings, rasterize
 from tiger.ops.render import render_forward
 from tiger.ops.sh import sh_to_color
 
-from .raster_checks import checked_sizes, checked_trainable
+from .raster_checks import checked_camera, checked_sizes, checked_trainable
 
 __all__ = ["rasterize_gaussians", "RasterSettings", "Projection", "project_for_raster", "project_views",
            "composite", "composite_views", "bin_projection", "camera_center", "expected_depth", "sh_colors",
@@ -265,7 +265,8 @@ def project_views(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
 
     Args:
         means, quats, scales, opacities, width, height, background, sh_degree, sh_rest, settings:
-            as :func:`rasterize_gaussians` (checked the same way, per view).
+            as :func:`rasterize_gaussians` (checked the same way: the scene's tensors once, each
+            view's camera and own colours per view).
         colors: as :func:`rasterize_gaussians`' (SH coefficients [N, K, 3] with ``sh_degree``,
             or channels [N, C] shared by the views), or without ``sh_degree`` [V, N, C]: each
             view's own channels (e.g. its SH colour in front of shared features).
@@ -287,9 +288,14 @@ def project_views(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
                          f"{list(colors.shape)}")
     geometry = []
     for v in range(views):
-        width, height, bg = checked_sizes(means, quats, scales, opacities, colors[v] if per_view_colors else colors,
-                                          viewmats[v], Ks[v], width, height, background, sh_degree, sh_rest,
-                                          settings.tile_size, settings.check_finite)
+        view_colors = colors[v] if per_view_colors else colors
+        if v == 0:  # the scene's tensors, size and background once; each further view its camera
+            width, height, bg = checked_sizes(means, quats, scales, opacities, view_colors, viewmats[v], Ks[v],
+                                              width, height, background, sh_degree, sh_rest, settings.tile_size,
+                                              settings.check_finite)
+        else:
+            checked_camera(viewmats[v], Ks[v], means, settings.check_finite,
+                           view_colors if per_view_colors else None)
         viewmats[v], Ks[v] = viewmats[v].to(means.dtype), Ks[v].to(means.dtype)
         geometry.append(project_gaussians(
             means, quats, scales, opacities, viewmats[v], Ks[v], width, height, settings.eps2d, settings.near,
