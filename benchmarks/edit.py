@@ -111,19 +111,26 @@ def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) ->
 
     n = cfg.steps
     torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA],
+                 with_stack=bool(args.profile_trace)) as prof:
         t0 = time.perf_counter()
         edit(scene, tgt, guidance, config=cfg)
         torch.cuda.synchronize()
         wall = time.perf_counter() - t0
-    spans = sorted((e.time_range.start, e.time_range.end) for e in prof.events()
+    spans = sorted((e.time_range.start, e.time_range.end, e.name) for e in prof.events()
                    if e.device_type == DeviceType.CUDA)
-    busy, end = 0.0, -math.inf
-    for a, b in spans:  # the union of the kernels' intervals, us
+    busy, end, last = 0.0, -math.inf, ""
+    gaps: dict[tuple[str, str], list[float]] = {}
+    for a, b, name in spans:  # the union of the kernels' intervals, us; idle gaps by the kernels around them
+        if a > end > -math.inf:
+            gaps.setdefault((last[:60], name[:60]), []).append(a - end)
         if b > end:
             busy += b - max(a, end)
-            end = b
+            end, last = b, name
     out = {"profile_steps": n, "profile_wall_ms/step": 1e3 * wall / n, "profile_gpu_busy_ms/step": 1e-3 * busy / n}
+    worst = sorted(gaps.items(), key=lambda kv: -sum(kv[1]))[:12]
+    out["gpu_idle_gaps"] = [{"after": k[0], "before": k[1], "count/step": len(v) / n,
+                             "idle_ms/step": 1e-3 * sum(v) / n} for k, v in worst]
     averages = prof.key_averages()
     for ev in averages:
         dev_us = getattr(ev, "device_time_total", None)
@@ -141,6 +148,8 @@ def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) ->
                                                 "cudaGraphLaunch", "cudaLaunchKernel", "aten::item",
                                                 "aten::_local_scalar_dense"):
             out[f"calls_{ev.key}/step"] = ev.count / n
+    if args.profile_trace:
+        prof.export_chrome_trace(args.profile_trace)  # chrome://tracing or ui.perfetto.dev
     if args.profile_out:
         text = "\n".join([json.dumps(out), averages.table(sort_by="cpu_time_total", row_limit=45),
                           averages.table(sort_by="cuda_time_total", row_limit=45)])
@@ -200,8 +209,10 @@ def run(args) -> dict:
     if cuda:
         row["peak_GiB"] = torch.cuda.max_memory_allocated() / 2**30
     if cuda and args.profile_steps:
-        row.update(profile_steps(scene, tgt, guidance, dataclasses.replace(cfg, steps=args.profile_steps,
-                                                                           progress=False), args))
+        prof = profile_steps(scene, tgt, guidance, dataclasses.replace(cfg, steps=args.profile_steps,
+                                                                       progress=False), args)
+        print("GPU idle gaps (the kernels around them):", json.dumps(prof.pop("gpu_idle_gaps")))
+        row.update(prof)
     row["after"] = len(res.scene)
     white = torch.ones(3, device=scene.device)
     cams = ObjectViews(tgt.center, tgt.bbox_min, tgt.bbox_max, force_360=True, width=128, height=128).fixed(6, 15.0)
@@ -251,6 +262,7 @@ def main() -> None:
     p.add_argument("--profile-steps", type=int, default=0,
                    help="CUDA: after the timed edit, this many steps under torch.profiler (host vs GPU per stage)")
     p.add_argument("--profile-out", default=None, help="the profiler's tables go here")
+    p.add_argument("--profile-trace", default=None, help="the profiled steps' host and GPU timeline (Chrome trace JSON)")
     p.add_argument("--json", default=None, help="also write the rows here")
     args = p.parse_args()
     rows = []

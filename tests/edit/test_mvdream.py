@@ -136,3 +136,25 @@ def test_bad_inputs_named(models, ring_cameras):
         g.grad(torch.rand(4, 16, 16), views)
     with pytest.raises(ValueError, match="object_center"):
         g.grad(torch.rand(4, 3, 16, 16), ViewBatch(cameras=views.cameras, originals=views.originals))
+
+
+def test_camera_conditions_cached_by_view_ids(models, ring_cameras):
+    """Pooled camera sets keep their conditions (the same values as the uncached conversion); other
+    ids, another object centre or a reset convert again."""
+    g = MVDreamGuidance(models, "a fox", image_size=S)
+    cams = ring_cameras(center=(1.0, 0.0, 0.5))
+    center = torch.tensor([1.0, 0.0, 0.5])
+    pooled = ViewBatch(cameras=cams, originals=torch.rand(4, 3, 16, 16), object_center=center,
+                       view_ids=torch.arange(8, 12))
+    first = g.camera_conditions(pooled)
+    assert torch.equal(first, mvdream_cameras(cams, center))
+    assert g.camera_conditions(pooled) is first  # cached
+    moved = ViewBatch(cameras=cams, originals=pooled.originals, object_center=center + 1, view_ids=pooled.view_ids)
+    assert torch.equal(g.camera_conditions(moved), mvdream_cameras(cams, center + 1))
+    other = ring_cameras(center=(0.0, 1.0, 0.5))
+    renamed = ViewBatch(cameras=other, originals=pooled.originals, object_center=center, view_ids=torch.arange(4))
+    assert torch.equal(g.camera_conditions(renamed), mvdream_cameras(other, center))
+    g.reset_caches()
+    assert g.camera_conditions(pooled) is not first
+    fresh = ViewBatch(cameras=cams, originals=pooled.originals, object_center=center)
+    assert g.camera_conditions(fresh) is not g.camera_conditions(fresh)  # no ids: nothing cached

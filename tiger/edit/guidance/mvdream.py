@@ -193,6 +193,7 @@ class MVDreamGuidance:
         self._loader = None if isinstance(models, MVDreamModels) else models
         self.models: Optional[MVDreamModels] = None
         self._graphed: Optional[GraphedStep] = None
+        self._camera_cache: dict[tuple, torch.Tensor] = {}
         # the dtype recorded in settings(): fixed now, so loading later does not change the record
         self._settings_dtype = model_device_dtype(models.unet)[1] if isinstance(models, MVDreamModels) else models_dtype
         if isinstance(models, MVDreamModels):
@@ -256,7 +257,8 @@ class MVDreamGuidance:
         return [] if self.generator is None else [self.generator]
 
     def reset_caches(self) -> None:
-        """Nothing is cached by camera (the text embeddings do not depend on the views)."""
+        """Forget the camera conditions cached by view ids (when the ids name other cameras)."""
+        self._camera_cache.clear()
 
     # -- pieces -------------------------------------------------------------------------------
     def step(self, renders: torch.Tensor, cameras: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
@@ -293,13 +295,26 @@ class MVDreamGuidance:
         return finite_clamped(g, self.grad_clip) / v
 
     def camera_conditions(self, views: ViewBatch) -> torch.Tensor:
-        """[4, 16] MVDream cameras of the batch (needs ``views.object_center``)."""
+        """[4, 16] MVDream cameras of the batch (needs ``views.object_center``), on the models'
+        device; cached by ``views.view_ids`` (with the centre and up they were built for) when
+        given: a pooled camera set costs its host-side conversion once, not in every step while
+        the GPU waits for the step's launch."""
         if views.object_center is None:
             raise ValueError("tiger.edit.mvdream: views.object_center is required (MVDream's cameras are "
                              "relative to the object)")
         if len(views.cameras) != NUM_VIEWS:
             raise ValueError(f"tiger.edit.mvdream: needs exactly {NUM_VIEWS} cameras, got {len(views.cameras)}")
-        return mvdream_cameras(views.cameras, views.object_center, views.world_up).to(self.device)
+        key = None
+        if views.view_ids is not None:
+            frame = [views.object_center] + ([] if views.world_up is None else [views.world_up])
+            key = (tuple(int(i) for i in views.view_ids.reshape(-1).tolist()),
+                   *(tuple(torch.as_tensor(f, dtype=torch.float64).reshape(-1).tolist()) for f in frame))
+            if key in self._camera_cache:
+                return self._camera_cache[key]
+        cams = mvdream_cameras(views.cameras, views.object_center, views.world_up).to(self.device)
+        if key is not None:
+            self._camera_cache[key] = cams
+        return cams
 
     # -- Guidance protocol --------------------------------------------------------------------
     def grad(self, renders: torch.Tensor, views: ViewBatch, *, t: Optional[torch.Tensor] = None,

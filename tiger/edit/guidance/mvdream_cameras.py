@@ -64,13 +64,11 @@ def mvdream_cameras(cameras: Sequence[Camera], object_center: torch.Tensor,
     if float(up.norm()) < 1e-12:
         raise ValueError("tiger.edit.mvdream: world_up must be non-zero")
     rot = rotation_to_z(up)
-    out = []
-    for cam in cameras:
-        c2w = torch.linalg.inv(cam.viewmat.to(torch.float64))
-        r = rot @ c2w[:3, :3] @ _FLIP_YZ_CAMERA
-        p = rot @ (c2w[:3, 3] - center)
-        p = p / (p.norm() + 1e-8)
-        m = torch.eye(4, dtype=torch.float64)
-        m[:3, :3], m[:3, 3] = r, p
-        out.append(m.reshape(16))
-    return torch.stack(out).float()
+    # all V cameras in one batched inverse and two matmuls (the edit calls this every step)
+    c2w = torch.linalg.inv(torch.stack([cam.viewmat.to(torch.float64) for cam in cameras]))
+    r = rot @ c2w[:, :3, :3] @ _FLIP_YZ_CAMERA
+    p = (c2w[:, :3, 3] - center) @ rot.T
+    p = p / (p.norm(dim=1, keepdim=True) + 1e-8)
+    m = torch.eye(4, dtype=torch.float64).repeat(len(cameras), 1, 1)
+    m[:, :3, :3], m[:, :3, 3] = r, p
+    return m.reshape(-1, 16).float()
