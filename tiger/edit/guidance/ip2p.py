@@ -26,6 +26,7 @@ from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
 from tiger.utils.lazy import require, require_diffusers
 
 from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values, dtype_name
+from .branch_prefix import BranchShare, shared_branches
 from .cuda_graph import GraphedStep
 from .diffusers_models import (PromptEncoder, encode_latents, freeze, latent_shape, matmul_vae_attention,
                                model_device_dtype, render_gradient, resize, resolution_for, vae_downsampling_factor)
@@ -230,7 +231,8 @@ class InstructPix2PixGuidance:
         inp = torch.cat([torch.cat([z_t, z_t, z_t]), cond3], dim=1)
         e = self.text_embeddings  # branches: instruction, "", "" (device ops only: graph capturable)
         emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(2 * v, -1, -1)])
-        eps = m.unet(inp, torch.cat([t, t, t]), encoder_hidden_states=emb).sample.float()
+        with shared_branches(m.unet, BranchShare(v, v)):  # instruction and image-only rows agree until text enters
+            eps = m.unet(inp, torch.cat([t, t, t]), encoder_hidden_states=emb).sample.float()
         e_text, e_img, e_unc = eps.chunk(3)
         eps_hat = e_unc + self.text_scale * (e_text - e_img) + self.image_scale * (e_img - e_unc)
         return finite_clamped(m.schedule.sds_weight(t) * (eps_hat - noise.float()), self.grad_clip) / v

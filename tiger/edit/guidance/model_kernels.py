@@ -46,6 +46,9 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   own backward when only their input needs a gradient (SDS): the kernels autograd runs, except
   that the shortcut's gradient is added inside norm1's backward pass (no separate sum: two map
   passes fewer per block) and the norms' outputs are not kept. Needs ``fold_norm_bias``.
+- ``branch_prefix``: InstructPix2Pix's instruction and image-only branches are equal until the
+  first cross-attention; the first down block runs its first ResNet block and self-attention on
+  the rows that differ (:mod:`.branch_prefix`). The same operations on fewer rows.
 - ``carry_conv_bias``: the VAE encoder's first convolution and its downsampling convolutions
   leave their bias to the next ResNet block, which adds it inside norm1 and with its shortcut
   (:mod:`.encoder_bias`): one full read and write fewer per such layer (the largest at 512²),
@@ -75,6 +78,7 @@ import torch
 from tiger.ops.fp8_rows import dequantize_rows, geglu, quantize_rows_fp8
 from tiger.ops.layer_norm import layer_norm_rows
 
+from .branch_prefix import set_branch_prefix
 from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
 from .encoder_bias import set_carry_conv_bias
 from .forward_switch import switch_forward
@@ -124,6 +128,10 @@ class ModelKernels:
             ResNet block (norm1's input bias, the shortcut's bias) instead of a pass of their
             own; None: on where the VAE is on CUDA with tiger's CUDA kernels (the biased map
             rounded once less).
+        branch_prefix: the UNet's first down block computes, up to the first cross-attention,
+            only the guidance branches that differ there (InstructPix2Pix's instruction and
+            image-only branches share their first ResNet block and self-attention:
+            :mod:`.branch_prefix`); None: on (the same operations on fewer rows, any device).
     """
 
     matmul_precision: str = "model"
@@ -138,6 +146,7 @@ class ModelKernels:
     pad_conv_in: Optional[bool] = None
     fused_transformer: Optional[bool] = None
     carry_conv_bias: Optional[bool] = None
+    branch_prefix: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -412,7 +421,7 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
-    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders"}``."""
+    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -432,7 +441,9 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     folded = set_fold_norm_bias(unet, fold_on) + set_fold_norm_bias(vae, fold_on)
     own_backward = set_block_backward(vae, _resolve(kernels.block_backward, vae_kernels))
     carried = set_carry_conv_bias(vae, _resolve(kernels.carry_conv_bias, vae_kernels))
+    prefix = set_branch_prefix(unet, _resolve(kernels.branch_prefix, True))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
-            "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried}
+            "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried,
+            "branch_prefix_blocks": prefix}

@@ -42,7 +42,8 @@ from tiger.ops.fp8_rows import geglu
 from tiger.ops.layer_norm import layer_norm_rows
 from tiger.utils.lazy import require_diffusers
 
-__all__ = ["LeanAttnProcessor", "set_lean_attention", "set_fused_transformer"]
+__all__ = ["LeanAttnProcessor", "fused_cross_feed_forward", "fused_derived", "fused_self_attention",
+           "set_fused_transformer", "set_lean_attention"]
 
 # The GEGLU projection's extra outputs: pairs (a, g) giving a · gelu(g) = 1, then 0 (one 16-byte
 # vector of bfloat16 per half, so rows stay aligned).
@@ -195,38 +196,63 @@ def _attend(attn, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, b: int) -> 
     return out.transpose(1, 2).reshape(q.shape[0], -1)
 
 
+def fused_derived(block, x: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor], attention_mask=None,
+                  encoder_attention_mask=None, timestep=None, cross_attention_kwargs=None, class_labels=None,
+                  added_cond_kwargs=None) -> Optional[_Derived]:
+    """The derived weights when ``block`` can run fused on this call (a plain call: fused block,
+    no gradients, eval mode, no masks or extra arguments, contiguous [B, L, C] tokens and text in
+    the weights' dtype and device), else None (diffusers' forward runs)."""
+    plain_call = ("_tiger_fused_weights" in block.__dict__ and not torch.is_grad_enabled() and not block.training
+                  and attention_mask is None and encoder_attention_mask is None and timestep is None
+                  and class_labels is None and not cross_attention_kwargs and not added_cond_kwargs
+                  and encoder_hidden_states is not None and x.ndim == 3 and x.is_contiguous())
+    d = _derived(block) if plain_call else None
+    if (d is None or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
+            or encoder_hidden_states.dtype != x.dtype):
+        return None
+    return d
+
+
+def fused_self_attention(block, d: _Derived, x: torch.Tensor) -> torch.Tensor:
+    """The fused block's first half on tokens ``x`` [B, L, C], in place: norm1, self-attention and
+    its output matmul accumulated into the residual stream (attn1's bias carried, not added)."""
+    b, c = x.shape[0], x.shape[-1]
+    h = x.view(-1, c)
+    n = layer_norm_rows(h, block.norm1.weight, block.norm1.bias, block.norm1.eps)
+    q, k, v = F.linear(n, d.qkv_weight, d.qkv_bias).chunk(3, dim=-1)
+    h.addmm_(_attend(block.attn1, q, k, v, b), block.attn1.to_out[0].weight.t())
+    return x
+
+
+def fused_cross_feed_forward(block, d: _Derived, x: torch.Tensor, encoder_hidden_states: torch.Tensor) -> torch.Tensor:
+    """The fused block's second half on ``x`` [B, L, C] (the first half's output), in place:
+    norm2 with attn1's bias, cross-attention on ``encoder_hidden_states`` [B, T, D], norm3 with both
+    attention biases, the GEGLU feed-forward whose output matmul adds every carried bias."""
+    b, c = x.shape[0], x.shape[-1]
+    h = x.view(-1, c)
+    a2 = block.attn2
+    n = layer_norm_rows(h, block.norm2.weight, block.norm2.bias, block.norm2.eps, input_bias=d.norm2_shift)
+    text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
+    k, v = F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1)
+    h.addmm_(_attend(a2, a2.to_q(n), k, v, b), a2.to_out[0].weight.t())
+    n = layer_norm_rows(h, block.norm3.weight, block.norm3.bias, block.norm3.eps, input_bias=d.norm3_shift)
+    h.addmm_(geglu(F.linear(n, d.proj_weight, d.proj_bias)), d.out_weight.t())
+    return x
+
+
 def _fused_block_forward(self, hidden_states: torch.Tensor, attention_mask: Optional[torch.Tensor] = None,
                          encoder_hidden_states: Optional[torch.Tensor] = None,
                          encoder_attention_mask: Optional[torch.Tensor] = None, timestep=None,
                          cross_attention_kwargs=None, class_labels=None, added_cond_kwargs=None) -> torch.Tensor:
     """``BasicTransformerBlock.forward`` with the residual adds inside the output matmuls (module
     docstring); writes the result into ``hidden_states`` and returns it."""
-    x = hidden_states
-    plain_call = ("_tiger_fused_weights" in self.__dict__ and not torch.is_grad_enabled() and not self.training
-                  and attention_mask is None and encoder_attention_mask is None and timestep is None
-                  and class_labels is None and not cross_attention_kwargs and not added_cond_kwargs
-                  and encoder_hidden_states is not None and x.ndim == 3 and x.is_contiguous())
-    d = _derived(self) if plain_call else None
-    if (d is None or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
-            or encoder_hidden_states.dtype != x.dtype):
+    d = fused_derived(self, hidden_states, encoder_hidden_states, attention_mask, encoder_attention_mask,
+                      timestep, cross_attention_kwargs, class_labels, added_cond_kwargs)
+    if d is None:
         return type(self).forward(self, hidden_states, attention_mask, encoder_hidden_states, encoder_attention_mask,
                                   timestep, cross_attention_kwargs, class_labels, added_cond_kwargs)
-    b, c = x.shape[0], x.shape[-1]
-    h = x.view(-1, c)  # the residual stream, updated in place
-    a1, a2 = self.attn1, self.attn2
-
-    n = layer_norm_rows(h, self.norm1.weight, self.norm1.bias, self.norm1.eps)
-    q, k, v = F.linear(n, d.qkv_weight, d.qkv_bias).chunk(3, dim=-1)
-    h.addmm_(_attend(a1, q, k, v, b), a1.to_out[0].weight.t())
-
-    n = layer_norm_rows(h, self.norm2.weight, self.norm2.bias, self.norm2.eps, input_bias=d.norm2_shift)
-    text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
-    k, v = F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1)
-    h.addmm_(_attend(a2, a2.to_q(n), k, v, b), a2.to_out[0].weight.t())
-
-    n = layer_norm_rows(h, self.norm3.weight, self.norm3.bias, self.norm3.eps, input_bias=d.norm3_shift)
-    h.addmm_(geglu(F.linear(n, d.proj_weight, d.proj_bias)), d.out_weight.t())
-    return x
+    fused_self_attention(self, d, hidden_states)
+    return fused_cross_feed_forward(self, d, hidden_states, encoder_hidden_states)
 
 
 def _fusable(block) -> bool:
