@@ -119,6 +119,11 @@ def test_guidance_model_kernels_defaults():
     # pooled 58.8 / 59.3 -> 58.5 / 58.9 ms, fresh 70.0 / 70.7 -> 69.4 / 69.9 ms (H100, one call;
     # guidance_floor_carry_conv_bias_h100.txt)
     assert k.carry_conv_bias is None
+    # InstructPix2Pix's instruction and image-only branches once up to the first cross-attention, on
+    # every device ("auto" resolves to on): CSD step pooled 58.3 -> 57.9 ms, fresh 69.7 -> 68.9-69.4 ms
+    # (H100, one call; guidance_floor_branch_prefix_h100.txt); the 1200-step edit 80.6 -> 79.0 s with
+    # MVDream's cached camera conditions (edit_1200_steps_h100.txt)
+    assert k.branch_prefix is None
 
 
 def test_csd_runs_mvdream_beside_instructpix2pix_and_records_no_stream_choice():

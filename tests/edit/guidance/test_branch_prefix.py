@@ -81,3 +81,16 @@ def test_compact_and_expand_rows():
     assert share.expand(share.compact(x)).tolist() == x.tolist()
     with pytest.raises(ValueError, match="BranchShare"):
         bp.BranchShare(1, 2)
+
+
+def test_model_kernels_put_the_prefix_on_by_default(tiny_ip2p):
+    from tiger.edit.guidance import model_kernels as mk
+
+    unet, vae = tiny_ip2p.unet, tiny_ip2p.vae
+    try:
+        assert mk.apply_model_kernels(unet, vae, mk.ModelKernels())["branch_prefix_blocks"] == 1
+        assert "forward" in unet.down_blocks[0].__dict__
+        assert mk.apply_model_kernels(unet, vae, mk.ModelKernels(branch_prefix=False))["branch_prefix_blocks"] == 0
+        assert "forward" not in unet.down_blocks[0].__dict__
+    finally:
+        mk.apply_model_kernels(unet, vae, mk.ModelKernels(branch_prefix=False))
