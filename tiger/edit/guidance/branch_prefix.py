@@ -15,8 +15,10 @@ cross-attention (:func:`tiger.edit.guidance.transformer_blocks.fused_cross_feed_
 carries on with all 3V rows. ``conv_in`` and the time embedding still run on all rows (the
 skip connection keeps ``conv_in``'s full output; both are small). The same operations on the same
 values, so the same result up to the batch-size-dependent choices of the convolution and matmul
-libraries; anything the shared path does not handle (a transformer block that does not run
-fused, gradients, masks, extra residuals) falls back to diffusers' forward with all rows.
+libraries. A first transformer block that does not run fused gets all rows after ``proj_in``
+(only the ResNet block, norm and ``proj_in`` are shared then); anything else the shared path does
+not handle (gradients, training mode, masks, extra residuals, no share set) falls back to
+diffusers' forward with all rows.
 """
 from __future__ import annotations
 
