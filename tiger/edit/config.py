@@ -34,15 +34,16 @@ class EditConfig:
             originals than fresh views (at most min(K, steps) sets); guidances cache per-camera
             work by view id (InstructPix2Pix's image-condition latents, a VAE encode of 4 renders
             per step otherwise). 0: a fresh set every step (the paper). The rule, measured on the
-            analytic guidance's known answer (``benchmarks/edit_view_pool.py``, demo scene, mean
-            of 2 seeds, PSNR to the target on the object's pixels from held-out views): 256 sets
-            reach it as well as fresh cameras (within 0.3 dB, less than the seeds' spread, at 100, 300 and
-            1200 steps, worst held-out view included; locality unchanged); fewer sets fall behind
-            as each is reused more (16 sets: -0.7 dB at 300 steps, -1.1 dB at 1200; 64: -0.5 dB at
-            300 and -0.8 dB on the worst view at 300 and 1200). The pool's 1024
-            views leave no fresh camera more than ~6° from a pooled one (64 sets: 11°, 16: 19°).
-            On the GPU a pool saves the originals' renders and condition encodes of the steps
-            that reuse a set (1200 steps: 136 s fresh vs 110 s with 64 sets on an H100).
+            analytic guidance's known answer (``benchmarks/edit_view_pool.py``, demo scene, 4-8
+            seeds, PSNR to the target on the object's pixels from held-out views, docs/EDITING.md):
+            256 sets reach it as well as fresh cameras at 1200 steps (-0.13 +- 0.12 dB, worst
+            held-out view +0.2; within the seeds' spread at 100 and 300 steps too; locality
+            unchanged); fewer sets fall behind as each is reused more (at 1200 steps: 128 sets
+            -0.46 +- 0.14 dB, 64 sets -0.6 dB and -1.4 dB on the worst view, 16 sets -1.1 dB). The
+            pool's 1024 views leave no fresh camera more than ~6° from a pooled one (128 sets: 6.9°,
+            64: 11°, 16: 19°). On the GPU a pool saves the originals' renders and condition encodes
+            of the steps that reuse a set (1200 steps on an H100: 91.2 s fresh, 79.0 s with 256
+            sets, 75.8 s with 64).
             Memory: K x n_views x 4 x width x height bytes on the device (1 GiB at 256 x 4 x 512²).
         width, height, fov_deg: render size and vertical field of view of those cameras.
         elevation_deg: elevation range of the cameras for 360° captures.
