@@ -4,8 +4,9 @@ The scenes the rendering benchmarks draw live with the tests (:mod:`tests.render
 """
 from __future__ import annotations
 
+import math
 import time
-from typing import Callable, Optional
+from typing import Callable, Iterable, Optional
 
 import torch
 from torch import Tensor
@@ -43,6 +44,22 @@ def cuda_kernel_names(fn: Callable[[], object], reps: int, warmup: int = 2) -> l
         torch.cuda.synchronize()
     return [(ev.name, ev.device_time / 1e3) for ev in prof.events()
             if ev.device_type == torch.autograd.DeviceType.CUDA]
+
+
+def gpu_timeline(spans: Iterable[tuple[float, float, str]], min_gap: float = 0.0
+                 ) -> tuple[float, list[tuple[float, float, str, str]]]:
+    """The busy time of GPU activities ``(start, end, name)`` (the union of their intervals) and
+    the idle gaps longer than ``min_gap`` between them, as ``(start, end, name of the activity that
+    ended last before, name of the one after)``; same time unit as the spans."""
+    busy, end, last = 0.0, -math.inf, ""
+    gaps: list[tuple[float, float, str, str]] = []
+    for a, b, name in sorted(spans):
+        if end > -math.inf and a - end > min_gap:
+            gaps.append((end, a, last, name))
+        if b > end:
+            busy += b - max(a, end)
+            end, last = b, name
+    return busy, gaps
 
 
 def rel_err(a: Tensor, b: Tensor) -> float:

@@ -40,7 +40,7 @@ from typing import Optional
 
 import torch
 
-from benchmarks.common import print_table  # noqa: E402
+from benchmarks.common import gpu_timeline, print_table  # noqa: E402
 
 from tiger.demo.run import label_features  # noqa: E402
 from tiger.demo.scene import tabletop_scene  # noqa: E402
@@ -117,16 +117,11 @@ def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) ->
         edit(scene, tgt, guidance, config=cfg)
         torch.cuda.synchronize()
         wall = time.perf_counter() - t0
-    spans = sorted((e.time_range.start, e.time_range.end, e.name) for e in prof.events()
-                   if e.device_type == DeviceType.CUDA)
-    busy, end, last = 0.0, -math.inf, ""
-    gaps: dict[tuple[str, str], list[float]] = {}
-    for a, b, name in spans:  # the union of the kernels' intervals, us; idle gaps by the kernels around them
-        if a > end > -math.inf:
-            gaps.setdefault((last[:60], name[:60]), []).append(a - end)
-        if b > end:
-            busy += b - max(a, end)
-            end, last = b, name
+    busy, idle = gpu_timeline((e.time_range.start, e.time_range.end, e.name) for e in prof.events()
+                              if e.device_type == DeviceType.CUDA)  # us
+    gaps: dict[tuple[str, str], list[float]] = {}  # idle gaps by the kernels around them
+    for a, b, before, after in idle:
+        gaps.setdefault((before[:60], after[:60]), []).append(b - a)
     out = {"profile_steps": n, "profile_wall_ms/step": 1e3 * wall / n, "profile_gpu_busy_ms/step": 1e-3 * busy / n}
     worst = sorted(gaps.items(), key=lambda kv: -sum(kv[1]))[:12]
     out["gpu_idle_gaps"] = [{"after": k[0], "before": k[1], "count/step": len(v) / n,

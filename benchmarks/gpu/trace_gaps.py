@@ -19,7 +19,8 @@ import collections
 import gzip
 import json
 from pathlib import Path
-from typing import Iterable
+
+from benchmarks.common import gpu_timeline
 
 GPU_CATS = ("kernel", "gpu_memcpy", "gpu_memset")
 HOST_CATS = ("python_function", "cpu_op")
@@ -35,17 +36,6 @@ def load_events(path: Path) -> list[dict]:
         trace = json.load(f)
     events = trace["traceEvents"] if isinstance(trace, dict) else trace
     return [e for e in events if e.get("ph") == "X" and "dur" in e]
-
-
-def idle_gaps(gpu: Iterable[dict], min_us: float) -> list[tuple[float, float]]:
-    """(start, end) in µs of every interval longer than ``min_us`` where no GPU activity runs."""
-    gaps, end = [], None
-    for e in sorted(gpu, key=lambda e: e["ts"]):
-        a, b = e["ts"], e["ts"] + e["dur"]
-        if end is not None and a - end > min_us:
-            gaps.append((end, a))
-        end = b if end is None else max(end, b)
-    return gaps
 
 
 def main() -> None:
@@ -71,7 +61,7 @@ def main() -> None:
     keys = [k for k in args.keys.split(",") if k]
     per_key: collections.Counter = collections.Counter()
     listed = []
-    for a, b in idle_gaps(gpu, args.min_us):
+    for a, b, _, _ in gpu_timeline(((e["ts"], e["ts"] + e["dur"], e["name"]) for e in gpu), args.min_us)[1]:
         if not lo <= a <= hi:
             continue
         mid = (a + b) / 2
