@@ -25,8 +25,8 @@ READ_BACKS = {"aten._local_scalar_dense.default", "aten.nonzero.default", "aten.
 class ReadBackProbe(TorchDispatchMode):
     """Records each read-back operator with the innermost ``tiger/`` frame that issued it, except
     those of host-side work: camera sampling (float64 CPU tensors in every run), Adam's step counter
-    (a CPU tensor on the CPU; CUDA's fused Adam keeps it on the device and never reads it), the
-    guidance's own diagnostics, and the pool index drawn from the sampler's CPU generator."""
+    (a CPU tensor on the CPU; CUDA's fused Adam keeps it on the device and never reads it) and the
+    guidance's own diagnostics."""
 
     HOST_SIDE = ("tiger/edit/views.py", "torch/optim/", "tiger/edit/guidance/", "tiger/testing/")
 
@@ -41,8 +41,7 @@ class ReadBackProbe(TorchDispatchMode):
         if name in READ_BACKS or bool_index:
             stack = traceback.extract_stack()
             inner = [f for f in stack if "/tiger/" in f.filename]
-            host = any(any(h in f.filename for h in self.HOST_SIDE) for f in stack) or (
-                inner and inner[-1].name == "_pool_set" and "torch.randint" in (inner[-1].line or ""))
+            host = any(any(h in f.filename for h in self.HOST_SIDE) for f in stack)
             if not host:
                 where = f"{inner[-1].filename.split('/tiger/')[-1]}:{inner[-1].lineno}" if inner else "?"
                 self.hits[(name, where)] += 1

@@ -61,6 +61,11 @@ class EditConfig:
         seed: seed of the view sampler.
         checkpoint_every: write the checkpoint every this many steps (0: only on interrupt/end).
         progress: show a progress bar.
+        prefetch_views: with a view pool, render the next step's set and let the guidance cache its
+            per-view work for it (:meth:`~tiger.edit.guidance.base.Guidance.prepare`) while the
+            current step runs: on CUDA in a worker thread on a side stream, so a new set's original
+            renders and InstructPix2Pix's condition encode overlap the step's guidance instead of
+            delaying the next one. Changes no value (not recorded, like ``progress``).
     """
 
     steps: int = 1200
@@ -83,6 +88,7 @@ class EditConfig:
     seed: int = 0
     checkpoint_every: int = 100
     progress: bool = True
+    prefetch_views: bool = True
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.n_views < 1 or self.width < 1 or self.height < 1:
@@ -104,6 +110,7 @@ class EditConfig:
         d["elevation_deg"] = list(self.elevation_deg)
         d["background"] = list(self.background)
         d.pop("progress")
+        d.pop("prefetch_views")
         return d
 
 

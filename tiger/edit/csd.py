@@ -28,7 +28,8 @@ import torch
 
 from tiger.utils.streams import side_stream
 
-from .guidance.base import Guidance, GuidanceInfo, ViewBatch, check_guidance, unique_generators
+from .guidance.base import (Guidance, GuidanceInfo, ViewBatch, check_guidance, prepare_guidance,
+                            unique_generators)
 
 
 @dataclass(frozen=True)
@@ -107,6 +108,10 @@ class CSDGuidance:
         for g in (self.ip2p, self.mvdream):
             if g is not None:
                 g.reset_caches()
+
+    def prepare(self, views: ViewBatch) -> list[torch.Tensor]:
+        """Each part's :meth:`~tiger.edit.guidance.base.Guidance.prepare` (the optional member)."""
+        return [t for g in (self.ip2p, self.mvdream) if g is not None for t in prepare_guidance(g, views)]
 
     def weights(self, step: int, total_steps: int) -> tuple[float, float]:
         if self.mvdream is None:

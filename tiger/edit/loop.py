@@ -38,7 +38,7 @@ import copy
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Sequence, Union
+from typing import Any, Callable, Optional, Sequence, Union
 
 import torch
 
@@ -49,9 +49,10 @@ from tiger.recon.strategy import DensifySchedule, RegionTopKStrategy
 from tiger.render import Camera
 from tiger.scene.gaussian_scene import GaussianScene, render_rgb, render_views
 from tiger.train import StageTimer, read_checkpoint, restore_rng, run_loop, write_checkpoint
+from tiger.utils.streams import run_beside
 
 from .config import EditConfig
-from .guidance.base import Guidance, ViewBatch, check_guidance
+from .guidance.base import Guidance, ViewBatch, check_guidance, prepare_guidance
 from .target import EditTarget, TargetLike, resolve_target
 from .views import ObjectViews
 
@@ -106,13 +107,16 @@ class ViewPool:
     and ``masks`` [K, V, 1, H, W] are the unedited scene's renders and the object's footprint
     from them, in [0, 1] stored as 8-bit steps (uint8, value x 255, rounded: the precision of
     a photograph, a quarter of float32's memory), rendered when a set is first drawn
-    (``rendered[k]``), so a pool costs no more renders than the sets an edit uses."""
+    (``rendered[k]``), so a pool costs no more renders than the sets an edit uses. ``order[s]``
+    is the set step ``s`` takes (uniform, with replacement), fixed when the pool is drawn, so the
+    next step's set is known a step ahead (:attr:`EditConfig.prefetch_views`)."""
 
     cameras: list[Sequence[Camera]]
     device_cameras: list[Sequence[Camera]]
     originals: torch.Tensor
     masks: torch.Tensor
     rendered: list[bool]
+    order: list[int]  # the set each step takes, drawn with the pool
 
 
 def _to_8bit(x: torch.Tensor) -> torch.Tensor:
@@ -267,6 +271,7 @@ class EditSession:
                                            extent=max(self.radius, 1e-6), top_percent=100.0 * config.densify_fraction,
                                            percent_dense=config.percent_dense, min_opacity=config.min_opacity)
         self.pool: Optional[ViewPool] = None
+        self._pending: Optional[tuple[int, Callable[[], Any]]] = None  # (pool set, join) of a prefetch
         self._layout: Optional[RenderLayout] = None  # rebuilt after every change of rows
         guidance.reset_caches()  # view ids of an earlier round named other cameras
         if config.view_pool:
@@ -299,38 +304,67 @@ class EditSession:
         return rgb.permute(0, 3, 1, 2), foot[:, None]
 
     def _build_pool(self, sets: int) -> "ViewPool":
-        """``sets`` camera sets drawn with the per-step rules from their own seeded generator
-        (a resumed run rebuilds the same pool); their original renders come when first drawn."""
+        """``sets`` camera sets drawn with the per-step rules from their own seeded generator,
+        then the set of every step (a resumed run rebuilds the same pool and order); their
+        original renders come when first drawn."""
         gen = torch.Generator().manual_seed(self.cfg.seed + POOL_SEED_OFFSET)
         cams = [self.views.sample(gen) for _ in range(sets)]
+        order = torch.randint(sets, (self.cfg.steps,), generator=gen).tolist()
         on_device = [device_cameras(c, self.device, self.scene.dtype) for c in cams]
         V, H, W = self.cfg.n_views, self.cfg.height, self.cfg.width
         empty = lambda c: torch.zeros(sets, V, c, H, W, dtype=torch.uint8, device=self.device)  # noqa: E731
-        return ViewPool(cams, on_device, empty(3), empty(1), [False] * sets)
+        return ViewPool(cams, on_device, empty(3), empty(1), [False] * sets, order)
 
-    def _pool_set(self) -> int:
-        """Draw this step's pool set (from the sampler's CPU generator) and render its originals
-        if it is new (stage ``view_pool``)."""
-        k = int(torch.randint(len(self.pool.cameras), (1,), generator=self.gen))
-        if not self.pool.rendered[k]:
-            with self.timer("view_pool"):
-                rgb, foot = self._render_originals(self.pool.device_cameras[k])
-                self.pool.originals[k], self.pool.masks[k] = _to_8bit(rgb), _to_8bit(foot)
-                self.pool.rendered[k] = True
-        return k
+    def _pool_set(self, step: int) -> Optional[int]:
+        """The pool set step ``step`` (0-based) takes; None without a pool or past the last step."""
+        if self.pool is None or step >= len(self.pool.order):
+            return None
+        return self.pool.order[step]
 
-    def _views(self, k: Optional[int]) -> tuple[Sequence[Camera], Sequence[Camera], torch.Tensor, torch.Tensor,
-                                                Optional[torch.Tensor]]:
-        """This step's cameras (on the CPU for the guidance, and on the scene's device for the
-        rasterizer), original renders [V,3,H,W], footprints [V,1,H,W] and pool ids: fresh ones,
-        or pool set ``k``."""
-        if k is None:
-            cams = self.views.sample(self.gen)
-            on_device = device_cameras(cams, self.device, self.scene.dtype)
-            return (cams, on_device, *self._render_originals(on_device), None)
+    def _pool_batch(self, k: int, step: int) -> ViewBatch:
+        """The :class:`ViewBatch` of pool set ``k`` at step ``step`` (its originals must be rendered)."""
         v = len(self.pool.cameras[k])
-        return (self.pool.cameras[k], self.pool.device_cameras[k], _from_8bit(self.pool.originals[k], self.scene.dtype),
-                _from_8bit(self.pool.masks[k], self.scene.dtype), torch.arange(k * v, (k + 1) * v))
+        return ViewBatch(cameras=self.pool.cameras[k], originals=_from_8bit(self.pool.originals[k], self.scene.dtype),
+                         masks=_from_8bit(self.pool.masks[k], self.scene.dtype),
+                         view_ids=torch.arange(k * v, (k + 1) * v), step=step, total_steps=self.cfg.steps,
+                         object_center=self.views.center, world_up=self.views.layout.up)
+
+    def _prepare_set(self, k: int, step: int) -> list[torch.Tensor]:
+        """Render pool set ``k``'s originals and footprints (8-bit, into the pool) and let the
+        guidance cache its per-view work for them (:func:`prepare_guidance`); returns the tensors
+        the guidance cached."""
+        rgb, foot = self._render_originals(self.pool.device_cameras[k])
+        self.pool.originals[k], self.pool.masks[k] = _to_8bit(rgb), _to_8bit(foot)
+        made = prepare_guidance(self.guidance, self._pool_batch(k, step))
+        self.pool.rendered[k] = True
+        return made
+
+    def _prefetch_next(self) -> None:
+        """Start preparing the next step's pool set if it is new (:attr:`EditConfig.prefetch_views`):
+        on CUDA in a worker thread on a side stream (:func:`tiger.utils.streams.run_beside`), so its
+        renders, their read-backs and the guidance's encodes overlap this step's queued work; on the
+        CPU it runs when the next step asks for it."""
+        k = self._pool_set(self.step)
+        if k is None or not self.cfg.prefetch_views or self.pool.rendered[k] or self._pending is not None:
+            return
+        step = self.step
+        self._pending = (k, run_beside(lambda: self._prepare_set(k, step), self.device))
+
+    def _ready_set(self, k: int) -> None:
+        """Pool set ``k`` rendered and prepared before this step's guidance: the prefetch joined
+        (the main stream waits for the side stream's work), or the work done now (stage ``view_pool``)."""
+        with self.timer("view_pool"):
+            if self._pending is not None and self._pending[0] == k:
+                self._join_prefetch()
+            elif not self.pool.rendered[k]:
+                self._prepare_set(k, self.step)
+
+    def _join_prefetch(self) -> None:
+        """Wait for a started prefetch (its errors surface here) and forget it."""
+        if self._pending is not None:
+            _, result = self._pending
+            self._pending = None
+            result()
 
     def render_layout(self) -> RenderLayout:
         """The current :class:`RenderLayout` (built after the start, a densification or a resume)."""
@@ -348,17 +382,26 @@ class EditSession:
         relevance scaling stay on the device (what the rasterizer and the guidance do is theirs).
         """
         cfg, T = self.cfg, self.timer
-        k = self._pool_set() if self.pool is not None else None
+        k = self._pool_set(self.step)
         with T("render"):
-            cams, cams_on_device, originals, masks, view_ids = self._views(k)
+            if k is None:  # fresh cameras: the originals are rendered with them
+                cams = self.views.sample(self.gen)
+                cams_on_device = device_cameras(cams, self.device, self.scene.dtype)
+                originals, masks = self._render_originals(cams_on_device)
+            else:
+                cams, cams_on_device = self.pool.cameras[k], self.pool.device_cameras[k]
             layout = self.render_layout()
             out = render_views(layout.scene(self.opt.leaves), cams_on_device, "rgb", background=self.background,
                                check_finite=False, trainable=layout.trainable, kernels=EDIT_RASTER_KERNELS)
             out["means2d"].retain_grad()
             x = out["color"].permute(0, 3, 1, 2).clamp(0, 1)
-        batch = ViewBatch(cameras=cams, originals=originals, masks=masks, view_ids=view_ids, step=self.step,
-                          total_steps=cfg.steps, object_center=self.views.center,
-                          world_up=self.views.layout.up)  # float64 on the CPU, like the cameras
+        if k is None:
+            batch = ViewBatch(cameras=cams, originals=originals, masks=masks, step=self.step, total_steps=cfg.steps,
+                              object_center=self.views.center,
+                              world_up=self.views.layout.up)  # float64 on the CPU, like the cameras
+        else:  # after the render: a prefetch's side-stream work only has to be done before the guidance
+            self._ready_set(k)
+            batch = self._pool_batch(k, self.step)
         with T("guidance"):
             g, info = self.guidance.grad(x.detach(), batch)
         if g.shape != x.shape:
@@ -384,6 +427,7 @@ class EditSession:
                 rec["densify"] = self.strategy.step_post_backward(self.opt, self.step, self.gen)
                 rec["densify"].update(editable_before=editable_before, editable=self.opt.num_trainable)
                 self._layout = None
+        self._prefetch_next()  # last: this step's work is queued, the next set's overlaps it
         return rec
 
     def generators(self) -> list[torch.Generator]:
@@ -427,6 +471,7 @@ class EditSession:
                                  what="edit")
         except ValueError as exc:
             raise ValueError(f"tiger.edit: {exc}") from None
+        self._join_prefetch()  # its set stays rendered and prepared: the pool is the same after a resume
         self.opt.load_state_dict(ck["optimizer"])
         self.strategy.load_state_dict(ck["strategy"], self.device)
         restore_rng(ck["rng"], self.generators())
@@ -448,6 +493,7 @@ class EditSession:
             run_loop(self, cfg.steps, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
                      progress=cfg.progress, desc=f"edit: {self.instruction}"[:40], after_step=keep)
         finally:
+            self._join_prefetch()  # no worker left writing the pool after the loop (or an interrupt)
             self.settle_history()
 
 

@@ -1,7 +1,7 @@
 """Guidance modules: each turns rendered views into a gradient on those renders.
 
 The edit loop and ``tiger edit`` only see the :class:`~tiger.edit.guidance.base.Guidance` protocol
-(name, instruction, grad, settings, generators, reset_caches); the models behind a guidance
+(name, instruction, grad, settings, generators, reset_caches; optionally prepare); the models behind a guidance
 (diffusion UNets, VAEs, text encoders) stay inside it. diffusers and transformers are imported
 only when a model is loaded or built.
 

@@ -76,6 +76,12 @@ class Guidance(Protocol):
       latents keyed by camera id); the edit loop calls it when a round starts, since pool ids of
       an earlier round name other cameras.
 
+    Optional: ``prepare(views)`` caches, ahead of the step that uses ``views``, the work that
+    depends only on its cameras and original renders (InstructPix2Pix's image-condition latents
+    and MVDream's camera conditions of pooled views); it returns the tensors it made, so that a
+    caller running it on another CUDA stream can hand them to its own (:func:`prepare_guidance`).
+    The edit loop calls it for the next step's pool set beside the current step.
+
     :func:`check_guidance` checks an object against this list with a message naming what is missing.
     """
 
@@ -115,6 +121,13 @@ def check_guidance(guidance: object) -> Guidance:
                         "Guidance protocol (tiger.edit.guidance.base.Guidance: name, instruction, grad, settings, "
                         "generators, reset_caches)")
     return guidance  # type: ignore[return-value]
+
+
+def prepare_guidance(guidance: Guidance, views: ViewBatch) -> list[torch.Tensor]:
+    """``guidance.prepare(views)`` (the protocol's optional member) as a list of the tensors it
+    cached; ``[]`` for a guidance without one."""
+    fn = getattr(guidance, "prepare", None)
+    return list(fn(views)) if callable(fn) else []
 
 
 def unique_generators(*groups: Sequence[torch.Generator]) -> list[torch.Generator]:

@@ -182,6 +182,17 @@ class InstructPix2PixGuidance:
                 self._cond_cache[(ids[k], *size)] = z
         return torch.stack([self._cond_cache[(i, *size)] for i in ids])
 
+    def prepare(self, views: ViewBatch) -> list[torch.Tensor]:
+        """Encode and cache the image conditions of pooled ``views`` (with ``view_ids`` and
+        ``originals``) ahead of their step; returns the cached latents ([] for fresh views, whose
+        condition is encoded inside their step)."""
+        if views.view_ids is None or views.originals is None:
+            return []
+        check_render_shape(views.originals, self.name)
+        size = self.resolution(*views.originals.shape[-2:])
+        self.condition_latents(views.originals, size, views.view_ids)
+        return [self._cond_cache[(int(i), *size)] for i in views.view_ids.reshape(-1).tolist()]
+
     def reset_caches(self) -> None:
         """Forget the cached image-condition latents (when the original renders change)."""
         self._cond_cache.clear()

@@ -294,6 +294,11 @@ class MVDreamGuidance:
             g = m.schedule.sds_weight(tt) * (eps_hat - noise.float())
         return finite_clamped(g, self.grad_clip) / v
 
+    def prepare(self, views: ViewBatch) -> list[torch.Tensor]:
+        """Cache the camera conditions of pooled ``views`` (with ``view_ids``) ahead of their
+        step; returns them ([] for fresh views, converted in their step)."""
+        return [] if views.view_ids is None else [self.camera_conditions(views)]
+
     def camera_conditions(self, views: ViewBatch) -> torch.Tensor:
         """[4, 16] MVDream cameras of the batch (needs ``views.object_center``), on the models'
         device; cached by ``views.view_ids`` (with the centre and up they were built for) when

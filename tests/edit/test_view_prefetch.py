@@ -1,0 +1,161 @@
+"""The view pool's fixed order and the prefetch of the next step's set: every step takes the set the
+pool's order names, each new set is rendered and handed to the guidance's ``prepare`` once and
+before its step's ``grad``, the prefetch changes no value (CPU; on CUDA, where it runs in a worker
+thread on a side stream, beside the rounding of the same kernels), and InstructPix2Pix's and
+MVDream's ``prepare`` fill the caches their steps read."""
+import threading
+
+import pytest
+import torch
+
+from tiger.edit import CSDGuidance, EditConfig, EditSession, resolve_target
+from tiger.edit.guidance import RecolorGuidance, ViewBatch
+from tiger.edit.guidance.base import prepare_guidance
+
+from .scenes import query_a, two_objects
+
+SMALL = dict(width=24, height=24, progress=False, densify_every=0)
+
+
+class _Prepared(RecolorGuidance):
+    """Recolour with a ``prepare`` that caches a device value per pooled view and a ``grad`` that
+    reads it (so a step run before its set's preparation would fail), recording both calls."""
+
+    def __init__(self) -> None:
+        super().__init__("make it red")
+        self.events: list[tuple] = []
+        self.cache: dict[int, torch.Tensor] = {}
+
+    def prepare(self, views: ViewBatch) -> list[torch.Tensor]:
+        made = []
+        for i, img in zip(views.view_ids.tolist(), views.originals):
+            self.cache[i] = img.mean(dim=(1, 2))  # [3] on the scene's device
+            made.append(self.cache[i])
+        self.events.append(("prepare", views.step, views.view_ids.tolist(), threading.current_thread().name))
+        return made
+
+    def grad(self, renders, views):
+        self.events.append(("grad", views.step, views.view_ids.tolist()))
+        shade = torch.stack([self.cache[i] for i in views.view_ids.tolist()])  # KeyError if not prepared
+        g, info = super().grad(renders, views)
+        return g + 1e-3 * shade[:, :, None, None].to(g), info
+
+
+def _session(guidance, **cfg) -> EditSession:
+    scene = two_objects()
+    return EditSession(scene, resolve_target(scene, query_a(), tau=0.5), guidance, None,
+                       EditConfig(**{**SMALL, **cfg}))
+
+
+def test_pool_order_is_fixed_by_the_seed():
+    a, b = _session(RecolorGuidance("red"), view_pool=5, steps=40), _session(RecolorGuidance("red"), view_pool=5,
+                                                                            steps=40)
+    c = _session(RecolorGuidance("red"), view_pool=5, steps=40, seed=1)
+    assert a.pool.order == b.pool.order and a.pool.order != c.pool.order
+    assert len(a.pool.order) == 40 and set(a.pool.order) <= set(range(5)) and len(set(a.pool.order)) > 1
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_each_step_takes_its_set_prepared_once_before_its_grad(prefetch):
+    g = _Prepared()
+    s = _session(g, view_pool=3, steps=10, prefetch_views=prefetch)
+    for _ in range(10):
+        s.step_once()
+    grads = [e for e in g.events if e[0] == "grad"]
+    assert [ids[0] // 4 for _, _, ids in grads] == s.pool.order  # step s takes order[s]
+    prepared = [tuple(e[2]) for e in g.events if e[0] == "prepare"]
+    assert len(prepared) == len(set(prepared)) == len(set(s.pool.order))  # each drawn set once
+    for i, e in enumerate(g.events):
+        if e[0] == "grad":  # its set was prepared earlier
+            assert ("prepare", tuple(e[2])) in [(p[0], tuple(p[2])) for p in g.events[:i]]
+    assert s._pending is None  # nothing prefetched past the last step
+
+
+def test_prefetch_changes_no_value():
+    out = {}
+    for prefetch in (True, False):
+        s = _session(_Prepared(), view_pool=3, steps=6, prefetch_views=prefetch)
+        for _ in range(6):
+            s.step_once()
+        out[prefetch] = s.result_scene()[0]
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc"):
+        assert torch.equal(getattr(out[True], name), getattr(out[False], name)), name
+    assert "prefetch_views" not in EditConfig().to_dict()  # changes no value: not in the record
+
+
+def test_csd_prepares_both_parts_and_guidances_without_prepare_are_skipped():
+    a, b = _Prepared(), _Prepared()
+    csd = CSDGuidance(a, b)
+    views = ViewBatch(cameras=[], originals=torch.rand(4, 3, 8, 8), view_ids=torch.arange(4, 8))
+    made = csd.prepare(views)
+    assert len(made) == 8 and sorted(a.cache) == sorted(b.cache) == [4, 5, 6, 7]
+    assert prepare_guidance(RecolorGuidance("red"), views) == []
+
+
+def test_ip2p_prepare_fills_the_condition_cache(tiny_models, ring_cameras, monkeypatch):
+    pytest.importorskip("diffusers")
+    from tiger.edit.guidance import ip2p as ip2p_module
+    from tiger.edit.guidance.ip2p import InstructPix2PixGuidance, load_ip2p
+
+    g = InstructPix2PixGuidance(load_ip2p(tiny_models / "instruct-pix2pix"), "make it red", short_side=16,
+                                keep_text_encoder=True, generator=torch.Generator().manual_seed(0))
+    originals = torch.rand(4, 3, 16, 16)
+    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=originals, view_ids=torch.arange(4),
+                      object_center=torch.zeros(3))
+    assert g.prepare(ViewBatch(cameras=views.cameras, originals=originals)) == []  # fresh: encoded in the step
+    made = g.prepare(views)
+    want = ip2p_module.encode_latents(g.models.vae, ip2p_module.resize(originals, (16, 16)), None)
+    assert len(made) == 4 and torch.allclose(torch.stack(made), want, atol=1e-6)
+    calls = []
+    monkeypatch.setattr(ip2p_module, "encode_latents", lambda *a: calls.append(1) or want)
+    renders = torch.rand(4, 3, 16, 16)
+    grad, _ = g.grad(renders, views)
+    assert not calls and torch.isfinite(grad).all()  # the step read the prepared latents
+
+
+def test_mvdream_prepare_caches_the_cameras(tiny_models, ring_cameras):
+    pytest.importorskip("diffusers")
+    from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
+
+    g = MVDreamGuidance(load_mvdream(tiny_models / "mvdream"), "a fox", image_size=16, keep_text_encoder=True)
+    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16),
+                      view_ids=torch.arange(4), object_center=torch.zeros(3))
+    made = g.prepare(views)
+    assert len(made) == 1 and g.camera_conditions(views) is made[0]
+    assert g.prepare(ViewBatch(cameras=views.cameras, originals=views.originals, object_center=torch.zeros(3))) == []
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_prefetch_runs_beside_and_equals_inline(tiny_models):
+    """On CUDA the next set is prepared in the worker thread (a side stream), and the tiny CSD edit
+    ends where the inline preparation ends, within the rounding of the same kernels."""
+    pytest.importorskip("diffusers")
+    from tiger.edit.build import build_guidance
+
+    scene = two_objects(n=150).to("cuda")
+    target = resolve_target(scene, query_a().cuda(), tau=0.5)
+    out, threads = {}, {}
+    for prefetch in (True, False):
+        csd = build_guidance("ip2p+mvdream", "make it red", models=str(tiny_models), seed=0, device="cuda",
+                             dtype=torch.float32, ip2p_kwargs={"short_side": 32}, mvdream_kwargs={"image_size": 32})
+        seen = []
+        inner = csd.ip2p.prepare
+
+        def recording(views, inner=inner, seen=seen):
+            seen.append(threading.current_thread().name)
+            return inner(views)
+
+        csd.ip2p.prepare = recording
+        s = EditSession(scene, target, csd, None, EditConfig(**{**SMALL, "width": 32, "height": 32}, steps=6,
+                                                             view_pool=3, prefetch_views=prefetch))
+        for _ in range(6):
+            s.step_once()
+        torch.cuda.synchronize()
+        out[prefetch], threads[prefetch] = s.result_scene()[0], seen
+    assert any(t.startswith("tiger-beside") for t in threads[True])
+    assert all(not t.startswith("tiger-beside") for t in threads[False])
+    for name in ("means", "sh_dc", "opacity_logits"):  # float32: the streams' rounding, far below the edit's steps
+        a, b, start = getattr(out[True], name), getattr(out[False], name), getattr(scene, name)
+        moved = float((b - start).abs().max())
+        assert moved > 0 and float((a - b).abs().max()) <= 1e-2 * moved, (name, float((a - b).abs().max()), moved)
