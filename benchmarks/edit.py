@@ -166,7 +166,7 @@ def run(args) -> dict:
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
                      densify_every=args.densify_every, densify_from=args.densify_every,
                      background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0,
-                     view_pool=args.view_pool)
+                     view_pool=args.view_pool, prefetch_views=not args.no_prefetch_views)
     projected = None
     if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
         edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
@@ -194,7 +194,8 @@ def run(args) -> dict:
     total = time.perf_counter() - t0
     n = cfg.steps
     row = {"device": dev, "gaussians": len(scene), "editable": tgt.count, "guidance": args.guidance,
-           "view_pool": args.view_pool, "steps": n, "size": args.size, "models_build_s": build_s, "edit_s": total,
+           "view_pool": args.view_pool, "prefetch_views": cfg.prefetch_views, "steps": n, "size": args.size,
+           "models_build_s": build_s, "edit_s": total,
            f"edit_{args.steps}_steps_s": total * args.steps / n}
     if projected is not None:
         row["warmup_projection_s"] = projected
@@ -247,6 +248,9 @@ def main() -> None:
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")
     p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--no-prefetch-views", action="store_true",
+                   help="prepare a new pool set when its step comes, not beside the step before "
+                        "(EditConfig.prefetch_views off; for A/B timing)")
     p.add_argument("--view-pool", type=int, default=EditConfig().view_pool,
                    help="camera sets pre-sampled, their original renders made when first drawn "
                         "(EditConfig.view_pool, default %(default)s as tiger edit; 0: fresh views every step)")
