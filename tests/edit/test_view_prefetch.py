@@ -117,9 +117,11 @@ def test_mvdream_prepare_caches_the_cameras(tiny_models, ring_cameras):
     pytest.importorskip("diffusers")
     from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
 
-    g = MVDreamGuidance(load_mvdream(tiny_models / "mvdream"), "a fox", image_size=16, keep_text_encoder=True)
     views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16),
                       view_ids=torch.arange(4), object_center=torch.zeros(3))
+    lazy = MVDreamGuidance(lambda: load_mvdream(tiny_models / "mvdream"), "a fox", image_size=16)
+    assert lazy.prepare(views) == [] and not lazy.loaded  # not loaded by a (worker's) prepare
+    g = MVDreamGuidance(load_mvdream(tiny_models / "mvdream"), "a fox", image_size=16, keep_text_encoder=True)
     made = g.prepare(views)
     assert len(made) == 1 and g.camera_conditions(views) is made[0]
     assert g.prepare(ViewBatch(cameras=views.cameras, originals=views.originals, object_center=torch.zeros(3))) == []

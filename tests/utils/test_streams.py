@@ -55,3 +55,35 @@ def test_cuda_side_stream_result_equals_a_plain_call_beside_a_captured_graph():
     assert torch.equal(out, expected)
     assert threading.current_thread() is threading.main_thread()
     assert float(x[0]) == 63.0  # 1, then five replays of x = 2x + 1 (a capture itself runs nothing)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_after_an_event_runs_while_the_callers_queue_does():
+    """``after=event``: the side work waits for that event only, not for the kernels the caller
+    queued since (here a ~1 s sleep kernel), and its result is still ordered before the caller's
+    later work once joined."""
+    dev = torch.device("cuda")
+    a = torch.randn(512, 512, device=dev)
+    ready = torch.cuda.Event()
+    ready.record(torch.cuda.current_stream(dev))
+    torch.cuda._sleep(2_000_000_000)  # ~1 s of GPU clock on the caller's stream
+    main_done = torch.cuda.Event()
+    main_done.record(torch.cuda.current_stream(dev))
+
+    def fn():
+        out = (a @ a).sum(0)
+        done = torch.cuda.Event()
+        done.record()
+        return out, done
+
+    later = run_beside(fn, dev, after=ready)
+    import time
+
+    start = time.perf_counter()
+    out, side_done = later()
+    while not side_done.query() and time.perf_counter() - start < 5.0:
+        time.sleep(0.001)
+    assert side_done.query() and not main_done.query()  # done while the caller's sleep still runs
+    torch.cuda.synchronize()
+    torch.testing.assert_close(out, (a @ a).sum(0))

@@ -274,8 +274,12 @@ class EditSession:
         self._pending: Optional[tuple[int, Callable[[], Any]]] = None  # (pool set, join) of a prefetch
         self._layout: Optional[RenderLayout] = None  # rebuilt after every change of rows
         guidance.reset_caches()  # view ids of an earlier round named other cameras
+        self._pool_drawn: Optional[torch.cuda.Event] = None  # on CUDA: the pool's and originals' copies queued
         if config.view_pool:
             self.pool = self._build_pool(config.view_pool)
+            if self.device.type == "cuda":
+                self._pool_drawn = torch.cuda.Event()
+                self._pool_drawn.record(torch.cuda.current_stream(self.device))
 
     def _lrs(self) -> dict[str, float]:
         lrs = self.cfg.learning_rates()
@@ -348,7 +352,9 @@ class EditSession:
         if k is None or not self.cfg.prefetch_views or self.pool.rendered[k] or self._pending is not None:
             return
         step = self.step
-        self._pending = (k, run_beside(lambda: self._prepare_set(k, step), self.device))
+        # it reads only what existed when the pool was drawn (the original scene, the pool's
+        # cameras), so it waits for that, not for this step's queued guidance
+        self._pending = (k, run_beside(lambda: self._prepare_set(k, step), self.device, after=self._pool_drawn))
 
     def _ready_set(self, k: int) -> None:
         """Pool set ``k`` rendered and prepared before this step's guidance: the prefetch joined

@@ -39,11 +39,14 @@ def side_stream(device: torch.device | str, high_priority: bool = False) -> torc
         return _streams[key]
 
 
-def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[torch.Tensor, ...] = ()) -> Callable[[], T]:
+def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[torch.Tensor, ...] = (),
+               after: "torch.cuda.Event | None" = None) -> Callable[[], T]:
     """Start ``fn()`` beside the caller's work and return a function that waits for its result.
 
     On CUDA ``fn`` runs in a worker thread on a side stream of ``device`` (after everything queued
-    on the caller's stream so far, so it may read ``inputs`` and anything else already computed),
+    on the caller's stream so far, so it may read ``inputs`` and anything else already computed;
+    or, given ``after``, only after that event: for work that reads nothing the caller queued
+    since, so that it can run while the caller's queued kernels do),
     so the GPU can overlap it with kernels that the caller launches meanwhile, e.g. SAM's masks
     while the implicit FeatUp fit replays its small steps. The returned function joins the thread
     and makes the caller's stream wait for the side stream; tensors in the result may then be used
@@ -63,7 +66,10 @@ def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[to
         dev = torch.device("cuda", torch.cuda.current_device())
     main = torch.cuda.current_stream(dev)
     side = side_stream(dev)
-    side.wait_stream(main)
+    if after is None:
+        side.wait_stream(main)
+    else:
+        side.wait_event(after)
     for t in inputs:  # their memory must not be reused before the side stream is done with them
         t.record_stream(side)
 

@@ -296,8 +296,9 @@ class MVDreamGuidance:
 
     def prepare(self, views: ViewBatch) -> list[torch.Tensor]:
         """Cache the camera conditions of pooled ``views`` (with ``view_ids``) ahead of their
-        step; returns them ([] for fresh views, converted in their step)."""
-        return [] if views.view_ids is None else [self.camera_conditions(views)]
+        step; returns them ([] for fresh views, converted in their step, and before the models are
+        loaded: a worker thread does not load them)."""
+        return [] if views.view_ids is None or not self.loaded else [self.camera_conditions(views)]
 
     def camera_conditions(self, views: ViewBatch) -> torch.Tensor:
         """[4, 16] MVDream cameras of the batch (needs ``views.object_center``), on the models'
