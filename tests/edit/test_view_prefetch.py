@@ -130,14 +130,16 @@ def test_mvdream_prepare_caches_the_cameras(tiny_models, ring_cameras):
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_prefetch_runs_beside_and_equals_inline(tiny_models):
-    """On CUDA the next set is prepared in the worker thread (a side stream), and the tiny CSD edit
-    ends where the inline preparation ends, within the rounding of the same kernels."""
+    """On CUDA the next set is prepared in the worker thread (a side stream): the pool's originals
+    and InstructPix2Pix's cached condition latents equal the inline preparation's, and the tiny CSD
+    edit ends near where the inline one ends (float32; the rasterizer's atomics and Adam make two
+    runs of either differ slightly; a race would give other originals or latents)."""
     pytest.importorskip("diffusers")
     from tiger.edit.build import build_guidance
 
     scene = two_objects(n=150).to("cuda")
     target = resolve_target(scene, query_a().cuda(), tau=0.5)
-    out, threads = {}, {}
+    runs = {}
     for prefetch in (True, False):
         csd = build_guidance("ip2p+mvdream", "make it red", models=str(tiny_models), seed=0, device="cuda",
                              dtype=torch.float32, ip2p_kwargs={"short_side": 32}, mvdream_kwargs={"image_size": 32})
@@ -149,15 +151,23 @@ def test_cuda_prefetch_runs_beside_and_equals_inline(tiny_models):
             return inner(views)
 
         csd.ip2p.prepare = recording
-        s = EditSession(scene, target, csd, None, EditConfig(**{**SMALL, "width": 32, "height": 32}, steps=6,
+        s = EditSession(scene, target, csd, None, EditConfig(**{**SMALL, "width": 32, "height": 32}, steps=8,
                                                              view_pool=3, prefetch_views=prefetch))
-        for _ in range(6):
+        for _ in range(8):
             s.step_once()
         torch.cuda.synchronize()
-        out[prefetch], threads[prefetch] = s.result_scene()[0], seen
-    assert any(t.startswith("tiger-beside") for t in threads[True])
-    assert all(not t.startswith("tiger-beside") for t in threads[False])
-    for name in ("means", "sh_dc", "opacity_logits"):  # float32: the streams' rounding, far below the edit's steps
-        a, b, start = getattr(out[True], name), getattr(out[False], name), getattr(scene, name)
+        runs[prefetch] = (s, csd, seen)
+    (on, csd_on, seen_on), (off, csd_off, seen_off) = runs[True], runs[False]
+    assert any(t.startswith("tiger-beside") for t in seen_on)
+    assert all(not t.startswith("tiger-beside") for t in seen_off)
+    assert on.pool.order == off.pool.order and on.pool.rendered == off.pool.rendered
+    assert torch.equal(on.pool.originals, off.pool.originals) and torch.equal(on.pool.masks, off.pool.masks)
+    cache_on, cache_off = csd_on.ip2p._cond_cache, csd_off.ip2p._cond_cache
+    assert sorted(cache_on) == sorted(cache_off) and len(cache_on) == 4 * sum(on.pool.rendered)
+    for key in cache_off:
+        torch.testing.assert_close(cache_on[key], cache_off[key], rtol=1e-5, atol=1e-5)
+    out_on, out_off = on.result_scene()[0], off.result_scene()[0]
+    for name in ("means", "sh_dc", "opacity_logits"):
+        a, b, start = getattr(out_on, name), getattr(out_off, name), getattr(scene, name)
         moved = float((b - start).abs().max())
-        assert moved > 0 and float((a - b).abs().max()) <= 1e-2 * moved, (name, float((a - b).abs().max()), moved)
+        assert moved > 0 and float((a - b).abs().max()) <= 0.1 * moved, (name, float((a - b).abs().max()), moved)

@@ -65,11 +65,6 @@ def test_cuda_after_an_event_runs_while_the_callers_queue_does():
     later work once joined."""
     dev = torch.device("cuda")
     a = torch.randn(512, 512, device=dev)
-    ready = torch.cuda.Event()
-    ready.record(torch.cuda.current_stream(dev))
-    torch.cuda._sleep(2_000_000_000)  # ~1 s of GPU clock on the caller's stream
-    main_done = torch.cuda.Event()
-    main_done.record(torch.cuda.current_stream(dev))
 
     def fn():
         out = (a @ a).sum(0)
@@ -77,6 +72,13 @@ def test_cuda_after_an_event_runs_while_the_callers_queue_does():
         done.record()
         return out, done
 
+    run_beside(fn, dev)()  # the worker's first use: its cuBLAS handle and memory, which may synchronise
+    torch.cuda.synchronize()
+    ready = torch.cuda.Event()
+    ready.record(torch.cuda.current_stream(dev))
+    torch.cuda._sleep(2_000_000_000)  # ~1 s of GPU clock on the caller's stream
+    main_done = torch.cuda.Event()
+    main_done.record(torch.cuda.current_stream(dev))
     later = run_beside(fn, dev, after=ready)
     import time
 
