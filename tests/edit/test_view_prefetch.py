@@ -151,22 +151,12 @@ def test_cuda_prefetch_runs_beside_and_equals_inline(tiny_models):
             return inner(views)
 
         csd.ip2p.prepare = recording
-        priorities = []
-        inner_grad = csd.grad
-
-        def grad(renders, views, inner_grad=inner_grad, priorities=priorities):
-            priorities.append(torch.cuda.current_stream().priority)
-            return inner_grad(renders, views)
-
-        csd.grad = grad
         s = EditSession(scene, target, csd, None, EditConfig(**{**SMALL, "width": 32, "height": 32}, steps=8,
                                                              view_pool=3, prefetch_views=prefetch))
         for _ in range(8):
             s.step_once()
         torch.cuda.synchronize()
         runs[prefetch] = (s, csd, seen)
-        # with the prefetch the step runs on a high-priority stream (the prefetch's fills its gaps)
-        assert all(p < 0 for p in priorities) if prefetch else all(p == 0 for p in priorities), priorities
     (on, csd_on, seen_on), (off, csd_off, seen_off) = runs[True], runs[False]
     assert any(t.startswith("tiger-beside") for t in seen_on)
     assert all(not t.startswith("tiger-beside") for t in seen_off)

@@ -36,10 +36,9 @@ from __future__ import annotations
 
 import copy
 import logging
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional, Sequence, Union
+from typing import Any, Callable, Optional, Sequence, Union
 
 import torch
 
@@ -50,7 +49,7 @@ from tiger.recon.strategy import DensifySchedule, RegionTopKStrategy
 from tiger.render import Camera
 from tiger.scene.gaussian_scene import GaussianScene, render_rgb, render_views
 from tiger.train import StageTimer, read_checkpoint, restore_rng, run_loop, write_checkpoint
-from tiger.utils.streams import run_beside, side_stream
+from tiger.utils.streams import run_beside
 
 from .config import EditConfig
 from .guidance.base import Guidance, ViewBatch, check_guidance, prepare_guidance
@@ -380,29 +379,7 @@ class EditSession:
         return self._layout
 
     # -- one step -------------------------------------------------------------------------------
-    @contextmanager
-    def _step_stream(self) -> Iterator[None]:
-        """With the view prefetch on CUDA, the step runs on a high-priority stream, so that the
-        prefetch's kernels (a default-priority side stream) take the SMs the step leaves idle
-        rather than slowing it; ordered after and before the caller's stream (no host wait)."""
-        if self.device.type != "cuda" or self.pool is None or not self.cfg.prefetch_views:
-            yield
-            return
-        caller = torch.cuda.current_stream(self.device)
-        step = side_stream(self.device, high_priority=True, purpose="edit-step")
-        step.wait_stream(caller)
-        try:
-            with torch.cuda.stream(step):
-                yield
-        finally:
-            caller.wait_stream(step)
-
     def step_once(self) -> dict:
-        """One CSD step (:meth:`_step`) on the step's stream (:meth:`_step_stream`)."""
-        with self._step_stream():
-            return self._step()
-
-    def _step(self) -> dict:
         """One CSD step (views, renders, guidance, backward, scaled Adam, densification); the
         record's ``loss`` may be a 0-d tensor (not read back, so the host need not wait).
 

@@ -12,7 +12,7 @@ T = TypeVar("T")
 
 _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
-_streams: dict[tuple[torch.device, bool, str], torch.cuda.Stream] = {}
+_streams: dict[tuple[torch.device, bool], torch.cuda.Stream] = {}
 
 
 def _worker() -> ThreadPoolExecutor:
@@ -23,9 +23,8 @@ def _worker() -> ThreadPoolExecutor:
         return _pool
 
 
-def side_stream(device: torch.device | str, high_priority: bool = False, purpose: str = "side") -> torch.cuda.Stream:
-    """The process's stream of ``device`` (a CUDA device) for ``purpose`` at default or high
-    priority, made once (distinct purposes get distinct streams).
+def side_stream(device: torch.device | str, high_priority: bool = False) -> torch.cuda.Stream:
+    """The process's side stream of ``device`` (a CUDA device) at default or high priority, made once.
 
     High-priority streams come from a pool of their own in torch, so that stream is never one of
     the default-priority streams made elsewhere (e.g. the streams CUDA graphs are captured on,
@@ -33,15 +32,10 @@ def side_stream(device: torch.device | str, high_priority: bool = False, purpose
     dev = torch.device(device)
     if dev.index is None:
         dev = torch.device("cuda", torch.cuda.current_device())
-    key = (dev, bool(high_priority), purpose)
+    key = (dev, bool(high_priority))
     with _lock:
         if key not in _streams:
-            taken = {s.cuda_stream for s in _streams.values()}
-            for _ in range(64):  # torch hands out pool streams round-robin: skip ones given to another purpose
-                stream = torch.cuda.Stream(dev, priority=-1 if high_priority else 0)
-                if stream.cuda_stream not in taken:
-                    break
-            _streams[key] = stream
+            _streams[key] = torch.cuda.Stream(dev, priority=-1 if high_priority else 0)
         return _streams[key]
 
 
