@@ -36,10 +36,10 @@ class EditConfig:
             per step otherwise). 0: a fresh set every step (the paper). The rule, measured on the
             analytic guidance's known answer (``benchmarks/edit_view_pool.py``, demo scene, 4-8
             seeds, PSNR to the target on the object's pixels from held-out views, docs/EDITING.md):
-            256 sets reach it as well as fresh cameras at 1200 steps (-0.13 +- 0.12 dB, worst
-            held-out view +0.2; within the seeds' spread at 100 and 300 steps too; locality
+            256 sets reach it as well as fresh cameras at 1200 steps (-0.14 +- 0.19 dB, worst
+            held-out view +0.3; within the seeds' spread at 100 and 300 steps too; locality
             unchanged); fewer sets fall behind as each is reused more (at 1200 steps: 128 sets
-            -0.46 +- 0.14 dB, 64 sets -0.6 dB and -1.4 dB on the worst view, 16 sets -1.1 dB). The
+            -0.35 +- 0.14 dB, 64 sets -0.6 dB and -1.4 dB on the worst view, 16 sets -1.1 dB). The
             pool's 1024 views leave no fresh camera more than ~6° from a pooled one (128 sets: 6.9°,
             64: 11°, 16: 19°). On the GPU a pool saves the originals' renders and condition encodes
             of the steps that reuse a set, and a new set's are prepared beside the step before it
