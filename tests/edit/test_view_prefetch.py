@@ -171,3 +171,28 @@ def test_cuda_prefetch_runs_beside_and_equals_inline(tiny_models):
         a, b, start = getattr(out_on, name), getattr(out_off, name), getattr(scene, name)
         moved = float((b - start).abs().max())
         assert moved > 0 and float((a - b).abs().max()) <= 0.1 * moved, (name, float((a - b).abs().max()), moved)
+
+
+class _FailingPrepare(_Prepared):
+    def prepare(self, views):
+        if views.step > 0:
+            raise RuntimeError("prepare failed on purpose")
+        return super().prepare(views)
+
+
+def test_a_failed_prefetch_surfaces_at_its_step_and_never_hides_another_error():
+    s = _session(_FailingPrepare(), view_pool=3, steps=10)
+    with pytest.raises(RuntimeError, match="on purpose"):  # a later step's new set: at its join
+        for _ in range(10):
+            s.step_once()
+    s = _session(_FailingPrepare(), view_pool=3, steps=10, prefetch_views=False)
+    s.step_once()
+    k = next(i for i in range(3) if not s.pool.rendered[i])
+    s.pool.rendered[k] = True  # as a worker flags its set before a later failure would show
+
+    def broken():
+        raise RuntimeError("prefetch broke")
+
+    s._pending = (k, broken)
+    s._join_prefetch(quiet=True)  # at the loop's end: logged, the set left to be prepared again
+    assert s._pending is None and not s.pool.rendered[k]

@@ -339,6 +339,10 @@ class EditSession:
         the guidance cached."""
         rgb, foot = self._render_originals(self.pool.device_cameras[k])
         self.pool.originals[k], self.pool.masks[k] = _to_8bit(rgb), _to_8bit(foot)
+        if self.pool.originals.is_cuda:  # written on this stream: not reused before it is done, even if never joined
+            stream = torch.cuda.current_stream(self.pool.originals.device)
+            self.pool.originals.record_stream(stream)
+            self.pool.masks.record_stream(stream)
         made = prepare_guidance(self.guidance, self._pool_batch(k, step))
         self.pool.rendered[k] = True
         return made
@@ -365,12 +369,21 @@ class EditSession:
             elif not self.pool.rendered[k]:
                 self._prepare_set(k, self.step)
 
-    def _join_prefetch(self) -> None:
-        """Wait for a started prefetch (its errors surface here) and forget it."""
-        if self._pending is not None:
-            _, result = self._pending
-            self._pending = None
+    def _join_prefetch(self, quiet: bool = False) -> None:
+        """Wait for a started prefetch and forget it; its errors surface here, or are only logged
+        (``quiet``: when the loop ends, perhaps on another error, whose place they must not take;
+        the set is then prepared again when drawn)."""
+        if self._pending is None:
+            return
+        k, result = self._pending
+        self._pending = None
+        try:
             result()
+        except Exception as exc:
+            if not quiet:
+                raise
+            self.pool.rendered[k] = False
+            log.warning("edit: preparing pool set %d beside the loop failed: %s", k, exc)
 
     def render_layout(self) -> RenderLayout:
         """The current :class:`RenderLayout` (built after the start, a densification or a resume)."""
@@ -499,7 +512,7 @@ class EditSession:
             run_loop(self, cfg.steps, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
                      progress=cfg.progress, desc=f"edit: {self.instruction}"[:40], after_step=keep)
         finally:
-            self._join_prefetch()  # no worker left writing the pool after the loop (or an interrupt)
+            self._join_prefetch(quiet=True)  # no worker left writing the pool after the loop (or an interrupt)
             self.settle_history()
 
 
