@@ -364,9 +364,8 @@ class EditSession:
         """Pool set ``k`` rendered and prepared before this step's guidance: the prefetch joined
         (the main stream waits for the side stream's work), or the work done now (stage ``view_pool``)."""
         with self.timer("view_pool"):
-            if self._pending is not None and self._pending[0] == k:
-                self._join_prefetch()
-            elif not self.pool.rendered[k]:
+            self._join_prefetch()  # k's, normally (any other is done first: none may be left pending)
+            if not self.pool.rendered[k]:
                 self._prepare_set(k, self.step)
 
     def _join_prefetch(self, quiet: bool = False) -> None:
