@@ -196,3 +196,13 @@ def test_a_failed_prefetch_surfaces_at_its_step_and_never_hides_another_error():
     s._pending = (k, broken)
     s._join_prefetch(quiet=True)  # at the loop's end: logged, the set left to be prepared again
     assert s._pending is None and not s.pool.rendered[k]
+
+
+def test_an_unjoined_prefetch_is_dropped_at_the_loops_end_on_the_cpu():
+    g = _Prepared()
+    s = _session(g, view_pool=3, steps=10)
+    s.step_once()
+    k = next(i for i in range(3) if not s.pool.rendered[i])
+    s._pending = (k, lambda: s._prepare_set(k, 1))  # as run_beside defers it off CUDA
+    s._join_prefetch(quiet=True)
+    assert s._pending is None and not s.pool.rendered[k]  # not rendered now; prepared when drawn

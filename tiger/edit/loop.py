@@ -376,6 +376,8 @@ class EditSession:
             return
         k, result = self._pending
         self._pending = None
+        if quiet and self.device.type != "cuda":
+            return  # off CUDA the work only runs when joined: at the loop's end it is dropped, not done
         try:
             result()
         except Exception as exc:
