@@ -194,6 +194,7 @@ def test_a_failed_prefetch_surfaces_at_its_step_and_never_hides_another_error():
         raise RuntimeError("prefetch broke")
 
     s._pending = (k, broken)
+    s.device = torch.device("cuda")  # where a worker may have started: the join waits for it (no CUDA work here)
     s._join_prefetch(quiet=True)  # at the loop's end: logged, the set left to be prepared again
     assert s._pending is None and not s.pool.rendered[k]
 
