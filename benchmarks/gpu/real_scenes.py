@@ -34,6 +34,7 @@ import math
 import os
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -89,8 +90,16 @@ def snowmiku(folder: Path, height: int, device: str) -> tuple[dict, torch.Tensor
             V.float().to(device), K.float().to(device), w, h)
 
 
-def fox(data: Path, device: str, iterations: int, budget_s: float, cache: Path):
-    """Our trainer on the fox (half resolution), then a held-out camera at full resolution."""
+def fox(data: Path, device: str, iterations: int, budget_s: float, cache: Path,
+        scene_file: Optional[Path] = None):
+    """Our trainer on the fox (half resolution), then a held-out camera at full resolution.
+    With ``scene_file``: the trained scene and camera are read from it when it exists, else
+    written to it, so that two builds timed in one call render the same scene (the training
+    stops at a time budget, so two trainings differ)."""
+    if scene_file is not None and scene_file.is_file():
+        saved = torch.load(scene_file, map_location=device)
+        return (saved["scene"], saved["viewmat"], saved["K"], saved["width"], saved["height"],
+                {**saved["info"], "scene_file": str(scene_file)})
     from tiger.recon import ReconConfig, Trainer, load_views
     from tiger.scene.dataset import load_dataset
 
@@ -111,8 +120,14 @@ def fox(data: Path, device: str, iterations: int, budget_s: float, cache: Path):
     scene = {"means": gs.means, "quats": gs.quats, "scales": gs.scales, "opacities": gs.opacities,
              "colors": rgb}
     info = {"fit_steps": tr.step, "fit_s": fit_s, "gaussians": len(gs)}
-    return ({k: t.detach().float().contiguous() for k, t in scene.items()}, cam.viewmat.float(),
-            cam.K.float(), cam.width, cam.height, info)
+    scene = {k: t.detach().float().contiguous() for k, t in scene.items()}
+    if scene_file is not None:
+        from tiger.utils.io import atomic_write
+
+        with atomic_write(scene_file, "wb") as f:
+            torch.save({"scene": scene, "viewmat": cam.viewmat.float(), "K": cam.K.float(),
+                        "width": cam.width, "height": cam.height, "info": info}, f)
+    return scene, cam.viewmat.float(), cam.K.float(), cam.width, cam.height, info
 
 
 def with_channels(scene: dict, C: int) -> dict:
@@ -362,6 +377,9 @@ def main() -> None:
     p.add_argument("--fox-data", type=Path, default=REPO.parent / "shared" / "data" / "fox")
     p.add_argument("--fox-iterations", type=int, default=3000)
     p.add_argument("--fox-budget", type=float, default=40.0, help="seconds of training")
+    p.add_argument("--fox-scene", type=Path, default=None,
+                   help="file of the trained fox scene: read if it exists, else written (the same "
+                        "scene for two builds timed in one call)")
     p.add_argument("--n", type=int, default=1_000_000, help="Gaussians of the synthetic cases")
     p.add_argument("--no-gsplat", action="store_true")
     p.add_argument("--sort-keys-sweep", type=lambda s: [int(x) for x in s.split(",") if x], default=[],
@@ -396,7 +414,7 @@ def main() -> None:
                 info = {}
             elif case == "fox":
                 sc, V, K, w, h, info = fox(args.fox_data, "cuda", args.fox_iterations, args.fox_budget,
-                                          Path("/tmp/tiger_fox_cache"))
+                                          Path("/tmp/tiger_fox_cache"), args.fox_scene)
             elif case in ("heavy", "standard"):
                 make = heavy_tailed_scene if case == "heavy" else standard_scene
                 sc = make(args.n, 3, device="cuda")

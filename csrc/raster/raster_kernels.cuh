@@ -293,6 +293,7 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
     // Also the barrier that protects the previous batch's shared memory.
     if (__syncthreads_count(done) == BS) break;
     const int nb = int(min(int64_t(BS), end - b0));
+    const int32_t rank1 = int32_t(b0 - start) + 1;  // n_contrib of the batch's entry 0 (32-bit adds in the walk)
     if (int(threadIdx.x) < nb) load_geom(a, a.ids[b0 + threadIdx.x], s_geom[threadIdx.x]);
     load_colors<CB>(colors, a.ids, b0, nb, C, c0, s_col);
     __syncthreads();
@@ -327,7 +328,7 @@ __device__ __forceinline__ void forward_walk(const RasterLaunch<T>& a, const TC*
         for (int c = 0; c < CB; ++c) acc[c] += w * col[c];
         accd += w * g.z;
         Tr = next_T;
-        cnt = int32_t(b0 + j - start + 1);
+        cnt = rank1 + j;
       }
     }
   }
