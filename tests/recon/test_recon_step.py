@@ -123,6 +123,42 @@ def test_update_weight_scales_the_adam_update_per_gaussian():
                                    weighted.optimizer.state[gb["params"][0]]["exp_avg"])
 
 
+def test_weighted_masked_steps_match_adam_on_the_rows_with_the_update_scaled():
+    """Several relevance-scaled steps with a trainable mask (the edit's case: one scaled_adam_
+    call writes the rows into the scene) against torch Adam on the trainable rows, each step's
+    update scaled by hand and scattered back; the step counts and moments stay Adam's own."""
+    scene, cams, imgs = setup()
+    mask = torch.rand(len(scene), generator=torch.Generator().manual_seed(7)) < 0.6
+    idx = torch.nonzero(mask).reshape(-1)
+    w = torch.rand(len(scene), generator=torch.Generator().manual_seed(8))
+    ref = scene.clone()
+    rows = {n: getattr(ref, n)[idx].detach().clone().requires_grad_(True) for n in LRS}
+    adam = torch.optim.Adam([{"params": [rows[n]], "lr": LRS[n]} for n in LRS], lr=0.0, eps=1e-15)
+    opt = SceneOptimizer(scene, LRS, trainable=mask, update_weight=w)
+    for i in range(4):
+        batch = (cams[i], imgs[i])
+        view = ref.clone()
+        for n in LRS:
+            setattr(view, n, getattr(ref, n).detach().index_put((idx,), rows[n]))
+        loss(render(view, batch), batch).backward()
+        olds = {n: r.detach().clone() for n, r in rows.items()}
+        adam.step()
+        adam.zero_grad()
+        with torch.no_grad():
+            for n, r in rows.items():
+                r.copy_(torch.lerp(olds[n], r, w[idx].view(-1, *([1] * (r.dim() - 1)))))
+                getattr(ref, n)[idx] = r
+        opt.step(loss, batch, render)
+    for n in LRS:
+        torch.testing.assert_close(getattr(opt.scene, n), getattr(ref, n).detach(), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(opt.leaves[n].detach(), rows[n].detach(), rtol=1e-5, atol=1e-6)
+        assert torch.equal(getattr(opt.scene, n)[~mask], getattr(ref, n)[~mask].detach())  # frozen rows untouched
+    for g_ref, g in zip(adam.param_groups, opt.optimizer.param_groups):
+        a, b = adam.state[g_ref["params"][0]], opt.optimizer.state[g["params"][0]]
+        assert float(a["step"]) == float(b["step"]) == 4
+        torch.testing.assert_close(b["exp_avg"], a["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
 def test_per_group_learning_rates_and_errors():
     scene, cams, imgs = setup()
     opt = SceneOptimizer(scene, {"sh_dc": 0.1, "means": 0.0})

@@ -22,6 +22,7 @@ from typing import Callable, Generic, Mapping, Optional, Sequence, TypeVar
 
 import torch
 
+from tiger.ops.scaled_adam import scaled_adam_
 from tiger.scene.gaussian_scene import PARAM_NAMES, GaussianScene
 
 R = TypeVar("R")
@@ -216,16 +217,44 @@ class SceneOptimizer:
         the gradients."""
         if self.optimizer is None:
             return
-        w = self.update_weight
-        olds = {n: p.detach().clone() for n, p in self._leaves.items()} if w is not None else None
-        self.optimizer.step()
+        if self.update_weight is not None:
+            self._scaled_update()
+        else:
+            self.optimizer.step()
+            if self._idx is not None:
+                for n, p in self._leaves.items():
+                    getattr(self.scene, n).index_copy_(0, self._idx, p.detach())
         self.optimizer.zero_grad(set_to_none=True)
-        if olds is not None:
-            for n, p in self._leaves.items():
-                p.copy_(torch.lerp(olds[n], p, _rows_view(w, p)))
-        if self._idx is not None:
-            for n, p in self._leaves.items():
-                getattr(self.scene, n).index_copy_(0, self._idx, p.detach())
+
+    def _scaled_update(self) -> None:
+        """Adam with each row's update scaled by :attr:`update_weight`, written into the scene's
+        rows as well: one :func:`tiger.ops.scaled_adam.scaled_adam_` call over every parameter
+        with a gradient, on the optimizer's own state (``exp_avg``, ``exp_avg_sq``, ``step``
+        as ``torch.optim.Adam`` keeps them, so checkpoints and row surgery see no difference)."""
+        names, params, grads, m, v, steps, lrs, targets = [], [], [], [], [], [], [], []
+        for group in self.optimizer.param_groups:
+            p = group["params"][0]
+            if p.grad is None:
+                continue  # as Adam: no gradient, no step
+            st = self.optimizer.state[p]
+            if not st:  # Adam's fresh state, as its fused CUDA and CPU implementations lay it out
+                st["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
+                st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            elif st["step"].device != p.device:  # a state loaded for a CPU step: the kernel reads it here
+                st["step"] = st["step"].to(p.device)
+            names.append(group["name"])
+            params.append(p.detach())
+            grads.append(p.grad.detach().contiguous())
+            m.append(st["exp_avg"])
+            v.append(st["exp_avg_sq"])
+            steps.append(st["step"])
+            lrs.append(float(group["lr"]))
+            if self._idx is not None:
+                targets.append(getattr(self.scene, group["name"]))
+        if params:
+            scaled_adam_(params, grads, m, v, steps, lrs, self.betas, self.eps, weight=self.update_weight,
+                         targets=targets, index=self._idx)
 
     # -- row surgery (used by tiger.recon.strategy) --------------------------------------------
     @torch.no_grad()
