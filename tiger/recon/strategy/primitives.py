@@ -33,7 +33,8 @@ def _mask(opt: SceneOptimizer, mask: torch.Tensor, what: str) -> torch.Tensor:
 def duplicate(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, torch.Tensor]] = None) -> int:
     """Append an identical copy of each Gaussian in ``mask`` (INRIA's clone); returns the count."""
     parents = torch.nonzero(_mask(opt, mask, "duplicate")).reshape(-1)
-    opt.edit_rows(parents=parents, state=state)
+    if parents.numel():  # none: no row surgery (it would copy every tensor and Adam row unchanged)
+        opt.edit_rows(parents=parents, state=state)
     return int(parents.numel())
 
 
@@ -43,6 +44,8 @@ def split(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, tor
     the parent's Gaussian, scales divided by 1.6, INRIA's split); the children go to the end.
     Returns the number of Gaussians split."""
     idx = torch.nonzero(_mask(opt, mask, "split")).reshape(-1)
+    if idx.numel() == 0:
+        return 0
     s = opt.scene
     rep = idx.repeat(SPLIT_CHILDREN)
     std = s.scales.detach()[rep]
@@ -57,8 +60,10 @@ def split(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, tor
 def remove(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, torch.Tensor]] = None) -> int:
     """Delete the Gaussians in ``mask`` (parameters, Adam rows, extras, ``state`` rows)."""
     mask = _mask(opt, mask, "remove")
-    opt.edit_rows(keep=~mask, state=state)
-    return int(mask.sum())
+    n = int(mask.sum())
+    if n:  # none: no row surgery (an edit's densification seldom prunes)
+        opt.edit_rows(keep=~mask, state=state)
+    return n
 
 
 def reset_opacity(opt: SceneOptimizer, max_opacity: float = 0.01, mask: Optional[torch.Tensor] = None) -> None:
