@@ -1,6 +1,7 @@
 """``tiger::scaled_adam_``: one Adam step of several tensors, each row's update scaled by a weight
 (TIGER's relevance-scaled update, paper §3.3), optionally written into the rows of the full tensors
-the optimised rows came from. Kernels in ``csrc/scaled_adam/``.
+the optimised rows came from. :class:`tiger.recon.SceneOptimizer` steps every trainable subset of a
+scene with it (the edit's weighted rows, a deletion refit's region). Kernels in ``csrc/scaled_adam/``.
 
 Adam as ``torch.optim.Adam`` computes it (no weight decay, no amsgrad); with weight ``w`` of row
 ``r`` the parameter moves by ``w_r`` times Adam's update, ``p <- p + w_r (p_adam - p)``; the moments

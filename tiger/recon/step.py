@@ -231,7 +231,7 @@ class SceneOptimizer:
         keeps them, so checkpoints and row surgery see no difference). On CUDA that is two
         launches where torch's fused Adam gave a region of a few ten thousand rows only a few
         blocks per tensor and the scatter into the scene one launch per tensor."""
-        names, params, grads, m, v, steps, lrs, targets = [], [], [], [], [], [], [], []
+        params, grads, m, v, steps, lrs, targets = [], [], [], [], [], [], []
         for group in self.optimizer.param_groups:
             p = group["params"][0]
             if p.grad is None:
@@ -243,7 +243,6 @@ class SceneOptimizer:
                 st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
             elif st["step"].device != p.device:  # a state loaded for a CPU step: the kernel reads it here
                 st["step"] = st["step"].to(p.device)
-            names.append(group["name"])
             params.append(p.detach())
             grads.append(p.grad.detach().contiguous())
             m.append(st["exp_avg"])
