@@ -134,3 +134,14 @@ def test_cuda_equals_cpu(dtype):
             torch.testing.assert_close(b.cpu(), a, **tol)
     for a, b in zip(tc, tg):
         torch.testing.assert_close(b.cpu(), a, **tol)
+
+
+def test_no_rows_is_a_step_of_nothing():
+    """A region with no trainable rows (a deletion refit with nothing to refit): counts still
+    advance, as Adam's do for an empty parameter, and nothing else is touched."""
+    p, g, m, v = (torch.zeros(0, 3, dtype=F64) for _ in range(4))
+    step = torch.zeros(())
+    target = torch.ones(5, 3, dtype=F64)
+    scaled_adam_([p], [g], [m], [v], [step], [0.1], weight=torch.zeros(0, dtype=F64), targets=[target],
+                 index=torch.zeros(0, dtype=torch.long))
+    assert float(step) == 1.0 and torch.equal(target, torch.ones(5, 3, dtype=F64))
