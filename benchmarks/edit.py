@@ -155,6 +155,14 @@ def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) ->
     return out
 
 
+def edit_config(args) -> EditConfig:
+    """The benchmark's :class:`EditConfig` from its command-line arguments (:func:`parser`)."""
+    return EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
+                      densify_every=args.densify_every, densify_from=args.densify_every,
+                      background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0,
+                      view_pool=args.view_pool, prefetch_views=not args.no_prefetch_views)
+
+
 def run(args) -> dict:
     dev = args.device
     cuda = dev.startswith("cuda")
@@ -163,10 +171,7 @@ def run(args) -> dict:
     t0 = time.perf_counter()
     guidance, truth = build(args.guidance, scene, tgt.mask, args)
     build_s = time.perf_counter() - t0
-    cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
-                     densify_every=args.densify_every, densify_from=args.densify_every,
-                     background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0,
-                     view_pool=args.view_pool, prefetch_views=not args.no_prefetch_views)
+    cfg = edit_config(args)
     projected = None
     if args.warmup:  # CUDA graphs, cuDNN autotuning, allocator: not part of the edit's time
         edit(scene, tgt, guidance, config=dataclasses.replace(cfg, steps=args.warmup, progress=False))
@@ -231,7 +236,8 @@ def run(args) -> dict:
     return row
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
+    """The benchmark's command line (also read by benchmarks.gpu.edit_stage_kernels)."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
     p.add_argument("--density", type=float, default=1.0, help="demo scene density (15 = ~300k Gaussians)")
@@ -263,7 +269,11 @@ def main() -> None:
     p.add_argument("--profile-out", default=None, help="the profiler's tables go here")
     p.add_argument("--profile-trace", default=None, help="the profiled steps' host and GPU timeline (Chrome trace JSON)")
     p.add_argument("--json", default=None, help="also write the rows here")
-    args = p.parse_args()
+    return p
+
+
+def main() -> None:
+    args = parser().parse_args()
     rows = []
     for kind in args.guidance:
         a = argparse.Namespace(**{**vars(args), "guidance": kind})

@@ -10,10 +10,11 @@ log-scales, quaternions, opacity logits and base colour optimised).
 from __future__ import annotations
 
 import argparse
+import math
 
 import torch
 
-from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table, rel_err
+from benchmarks.common import median_time, print_table, rel_err
 from tiger.ops.scaled_adam import scaled_adam_
 
 ROWS = {"means": (3,), "log_scales": (3,), "quats": (4,), "opacity_logits": (), "sh_dc": (3,)}
@@ -88,13 +89,13 @@ def main() -> None:
             opt.step(gr)
         # error of the three steps' update of the trainable rows (the untouched rows are equal)
         err = max(rel_err(full[k][idx].double() - start[k], ref.full[k][idx] - start[k]) for k in ROWS)
-        timer = cuda_time_ms if dev.startswith("cuda") else cpu_time_ms
-        ms = timer(lambda: opt.step(grads[0]), iters=a.iters, warmup=5) if dev.startswith("cuda") else \
-            timer(lambda: opt.step(grads[0]), iters=max(3, a.iters // 10), warmup=1)
+        cuda = dev.startswith("cuda")
+        ms = 1e3 * median_time(lambda: opt.step(grads[0]), repeats=a.iters if cuda else max(3, a.iters // 10),
+                               warmup=5 if cuda else 1, cuda=cuda)
         rows.append({"device": dev, "who": name, "rows": a.rows, "trainable": a.trainable, "ms/step": ms,
                      "update rel err vs float64 (3 steps)": err})
     rows[0]["x peer"] = rows[0]["ms/step"] / rows[1]["ms/step"]
-    elems = a.trainable * sum(max(1, int(torch.tensor(s).prod())) for s in ROWS.values())
+    elems = a.trainable * sum(math.prod(s) for s in ROWS.values())
     # floor: read p, g, m, v, w; write p, m, v and the scene's rows (float32)
     floor_ms = (elems * 4 * 8 + a.trainable * 4) / 3.35e12 * 1e3 if dev.startswith("cuda") else float("nan")
     rows[0]["HBM floor ms (3.35 TB/s)"] = floor_ms

@@ -25,19 +25,6 @@ import time
 import torch
 
 
-def busy_ms(spans: list[tuple[float, float]]) -> float:
-    """Union length of [start, end) spans (us in, us out)."""
-    total, cur_s, cur_e = 0.0, None, None
-    for a, b in sorted(spans):
-        if cur_e is None or a > cur_e:
-            if cur_e is not None:
-                total += cur_e - cur_s
-            cur_s, cur_e = a, b
-        else:
-            cur_e = max(cur_e, b)
-    return total + (cur_e - cur_s if cur_e is not None else 0.0)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--view-pool", type=int, default=256)
@@ -48,17 +35,19 @@ def main() -> None:
     from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
-    from benchmarks.edit import build, demo_scene
-    from tiger.edit import EditConfig, resolve_target
+    from benchmarks.common import gpu_timeline
+    from benchmarks.edit import build, demo_scene, edit_config, parser
+    from tiger.edit import resolve_target
     from tiger.edit.loop import EditSession
 
-    args = argparse.Namespace(device="cuda", density=16, random_models="full", dtype="bf16", cuda_graph=True,
-                              fused_norms="auto", sequential_guidance=False)
-    scene, query = demo_scene(16, "cuda")
+    # the issue's edit: benchmarks/edit.py's arguments and configuration, 1200 steps
+    args = parser().parse_args(["--device", "cuda", "--density", "16", "--guidance", "ip2p+mvdream",
+                                "--random-models", "full", "--dtype", "bf16", "--size", "512", "--cuda-graph",
+                                "--steps", "1200", "--view-pool", str(a.view_pool)])
+    scene, query = demo_scene(args.density, args.device)
     tgt = resolve_target(scene, query, tau=0.5)
-    guidance, _ = build("ip2p+mvdream", scene, tgt.mask, args)
-    cfg = EditConfig(steps=1200, width=512, height=512, lrs={"sh_dc": 0.05}, densify_every=25, densify_from=25,
-                     background=(1.0, 1.0, 1.0), progress=False, checkpoint_every=0, view_pool=a.view_pool)
+    guidance, _ = build(args.guidance[0], scene, tgt.mask, args)
+    cfg = edit_config(args)
     session = EditSession(scene, tgt, guidance, None, cfg)
     for _ in range(a.warm):
         session.step_once()
@@ -88,7 +77,7 @@ def main() -> None:
     span: dict[str, float] = collections.defaultdict(float)
     for s, e, name in ranges:
         span[name] += e - s
-    busy = busy_ms([(e.time_range.start, e.time_range.end) for e in kernels])
+    busy, _ = gpu_timeline((e.time_range.start, e.time_range.end, e.name) for e in kernels)
     print(f"pool {a.view_pool}, {n} steps after {a.warm}: wall {1e3 * wall / n:.2f} ms/step (under the profiler), "
           f"GPU busy {1e-3 * busy / n:.2f} ms/step")
     print("stage GPU spans ms/step:", {k: round(1e-3 * v / n, 3) for k, v in span.items()})

@@ -37,12 +37,14 @@ void scaled_adam_cpu(at::TensorList params, at::TensorList grads, at::TensorList
                      const std::optional<at::Tensor>& weight, at::TensorList targets,
                      const std::optional<at::Tensor>& index) {
   check_inputs(params, grads, exp_avgs, exp_avg_sqs, steps, lrs, beta1, beta2, eps, weight, targets, index);
-  if (index.has_value()) {
+  if (index.has_value()) {  // every index a row of every target: checked against the shortest once
+    size_t shortest = 0;
+    for (size_t k = 1; k < targets.size(); ++k)
+      if (targets[k].size(0) < targets[shortest].size(0)) shortest = k;
     const auto idx = index->accessor<int64_t, 1>();
-    for (size_t k = 0; k < targets.size(); ++k)
-      for (int64_t r = 0; r < idx.size(0); ++r)
-        TORCH_CHECK(idx[r] >= 0 && idx[r] < targets[k].size(0), kOp, ": index[", r, "] = ", idx[r],
-                    " is not a row of targets[", k, "] (", targets[k].size(0), " rows)");
+    for (int64_t r = 0; r < idx.size(0); ++r)
+      TORCH_CHECK(idx[r] >= 0 && idx[r] < targets[shortest].size(0), kOp, ": index[", r, "] = ", idx[r],
+                  " is not a row of targets[", shortest, "] (", targets[shortest].size(0), " rows)");
   }
   for (size_t k = 0; k < params.size(); ++k) {
     at::Tensor s = steps[k];
