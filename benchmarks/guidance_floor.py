@@ -43,8 +43,6 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
   added in passes of their own instead of by the next ResNet block (``ModelKernels.carry_conv_bias``);
 - ``default-branch_prefix``: the default with InstructPix2Pix's instruction and image-only branches
   computed apart up to the first cross-attention instead of once (``ModelKernels.branch_prefix``);
-- ``default-norm_moments``: the default with every GroupNorm taking its own statistics pass instead of
-  the moments its input's producing pass took (``ModelKernels.norm_moments``);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
   (every other variant runs it beside InstructPix2Pix on a side stream, ``CSDGuidance``'s default);
 - ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
@@ -82,10 +80,10 @@ from tiger.utils.dtypes import DTYPE_NAMES
 
 PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
                         subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False,
-                        fused_transformer=False, carry_conv_bias=False, branch_prefix=False, norm_moments=False)
+                        fused_transformer=False, carry_conv_bias=False, branch_prefix=False)
 DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
                           subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True,
-                          fused_transformer=True, carry_conv_bias=True, branch_prefix=True, norm_moments=True)
+                          fused_transformer=True, carry_conv_bias=True, branch_prefix=True)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -111,7 +109,6 @@ VARIANTS = {
     "default-fused_transformer": (dataclasses.replace(DEFAULT, fused_transformer=False), True, False, False),
     "default-carry_conv_bias": (dataclasses.replace(DEFAULT, carry_conv_bias=False), True, False, False),
     "default-branch_prefix": (dataclasses.replace(DEFAULT, branch_prefix=False), True, False, False),
-    "default-norm_moments": (dataclasses.replace(DEFAULT, norm_moments=False), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
@@ -120,7 +117,7 @@ VARIANTS = {
 DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
                     "default-block_backward", "default-pad_conv_in", "default-fused_transformer",
-                    "default-carry_conv_bias", "default-branch_prefix", "default-norm_moments", "default+fp8",
+                    "default-carry_conv_bias", "default-branch_prefix", "default+fp8",
                     "default+fp8_fast_accum")
 MV_FRACTION = 0.75  # MVDream runs while λ2 > 0: the first 75 % of the steps (CSDSchedule.mv_end)
 

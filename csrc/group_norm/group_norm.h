@@ -42,29 +42,11 @@ struct Params {
   const float* input_bias;
 };
 
-// x's partial moments when they come with x (launch_bias_moments; mean == nullptr: absent): the
-// workspaces of that call, its chunks and vector width. NHWC partials are [N, chunks, C], NCHW
-// [N, C, chunks, vector_width] (per lane), each relative to its channel's first element of x.
-struct Moments {
-  const float* mean;
-  const float* m2;
-  int64_t chunks;
-  int vector_width;
-};
-
-// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces (unused when `given` holds
-// x's moments: the statistics pass is skipped); y like x.
+// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x.
 template <typename T>
 void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks,
-                    float* partial_mean, float* partial_m2, const Moments& given, float* mean, float* rstd, T* y,
-                    int vector_width, void* stream);
-
-// y = x + bias[(n,) c] (+ residual) with y's partial moments (the statistics pass of a
-// group_norm of y, done while y is written): bias [C] or [N, C] (per_sample) in x's dtype;
-// residual like x or null; Dims of y (G unused); chunks = plan_chunks(d, vector_width).
-template <typename T>
-void launch_bias_moments(const T* x, const T* bias, bool per_sample, const T* residual, T* y, const Dims& d,
-                         int64_t chunks, float* partial_mean, float* partial_m2, int vector_width, void* stream);
+                    float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
+                    void* stream);
 
 // sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces;
 // residual (like x, may be null) is added to dx.

@@ -4,7 +4,6 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
-#include <algorithm>
 #include <cmath>
 #include <tuple>
 #include <vector>
@@ -41,45 +40,11 @@ std::vector<double> input_bias_values(const c10::optional<at::Tensor>& ib, const
   return v;
 }
 
-// Per-(n, g) mean and biased variance from x's partial moments (check_moments' layouts): each
-// entry (count, mean relative to its channel's first element, M2) moved into absolute terms and
-// Chan-merged in float64, in entry order.
-void stats_from_moments(const at::Tensor& moments, const MomentsShape& ms, const at::Tensor& x_nchw,
-                        const std::vector<double>& ib, const Dims& d, double* mean, double* var) {
-  const auto m = moments.to(at::kDouble).contiguous();
-  const double* pm = m.data_ptr<double>();
-  const double* pm2 = pm + m.numel() / 2;
-  const auto xd = x_nchw.to(at::kDouble).contiguous();
-  const double* xs = xd.data_ptr<double>();
-  const int64_t D = d.C / d.G, K = ms.chunks, V = ms.vector_width;
-  const int64_t rows = d.HW / V, chunk = (rows + K - 1) / K;
-  for (int64_t n = 0; n < d.N; ++n)
-    for (int64_t g = 0; g < d.G; ++g) {
-      double cnt = 0.0, mu = 0.0, m2 = 0.0;
-      for (int64_t c = g * D; c < (g + 1) * D; ++c) {
-        const double shift = xs[(n * d.C + c) * d.HW] + ib[n * d.C + c];
-        for (int64_t k = 0; k < K; ++k)
-          for (int64_t j = 0; j < V; ++j) {
-            const int64_t idx = ms.nhwc ? (n * K + k) * d.C + c : (((n * d.C + c) * K + k) * V + j);
-            const double nb = static_cast<double>(std::min(chunk, rows - k * chunk));
-            if (nb <= 0) continue;
-            const double mb = shift + pm[idx], tot = cnt + nb, delta = mb - mu;
-            mu += delta * nb / tot;
-            m2 += pm2[idx] + delta * delta * cnt * nb / tot;
-            cnt = tot;
-          }
-      }
-      mean[n * d.G + g] = mu;
-      var[n * d.G + g] = cnt > 0 ? std::max(m2 / cnt, 0.0) : 0.0;
-    }
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& x_in,
                                                               const c10::optional<at::Tensor>& weight,
                                                               const c10::optional<at::Tensor>& bias,
                                                               int64_t num_groups, double eps, bool silu,
-                                                              const c10::optional<at::Tensor>& input_bias,
-                                                              const c10::optional<at::Tensor>& moments) {
+                                                              const c10::optional<at::Tensor>& input_bias) {
   const Dims d = check_inputs(x_in, weight, bias, num_groups, kOp);
   check_eps(eps, kOp);
   TORCH_CHECK(x_in.device().is_cpu(), kOp, ": x must be on the CPU");
@@ -87,14 +52,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& 
   const int64_t D = d.C / d.G, M = D * d.HW;
   const auto w = param_values(weight, d.C, 1.0), b = param_values(bias, d.C, 0.0);
   const auto ib = input_bias_values(input_bias, x_in, kOp);
-  // statistics handed in with x (channel_bias_add_moments): no pass of their own
-  std::vector<double> given_mean, given_var;
-  if (moments.has_value() && moments->defined()) {
-    const MomentsShape ms = check_moments(*moments, x_in, d, kOp);
-    given_mean.resize(d.N * d.G);
-    given_var.resize(d.N * d.G);
-    stats_from_moments(*moments, ms, x, ib, d, given_mean.data(), given_var.data());
-  }
   auto y = at::empty_like(x);
   auto mean = at::empty({d.N, d.G}, x.options().dtype(at::kDouble));
   auto rstd = at::empty({d.N, d.G}, x.options().dtype(at::kDouble));
@@ -107,22 +64,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cpu(const at::Tensor& 
       for (int64_t i = i0; i < i1; ++i) {
         const scalar_t* xs = xp + i * M;  // (n, g) is one contiguous run in NCHW
         const double* ibs = ib.data() + (i / d.G) * d.C + (i % d.G) * D;  // the group's input biases
-        double mu = 0.0, var = 0.0;
-        if (!given_mean.empty()) {
-          mu = given_mean[i];
-          var = given_var[i];
-        } else {
-          double s = 0.0;
-          for (int64_t k = 0; k < M; ++k) s += static_cast<double>(xs[k]) + ibs[k / d.HW];
-          mu = M > 0 ? s / M : 0.0;
-          double ss = 0.0;  // two passes: exact for large-mean inputs
-          for (int64_t k = 0; k < M; ++k) {
-            const double e = static_cast<double>(xs[k]) + ibs[k / d.HW] - mu;
-            ss += e * e;
-          }
-          var = M > 0 ? ss / M : 0.0;
+        double s = 0.0;
+        for (int64_t k = 0; k < M; ++k) s += static_cast<double>(xs[k]) + ibs[k / d.HW];
+        const double mu = M > 0 ? s / M : 0.0;
+        double ss = 0.0;  // two passes: exact for large-mean inputs
+        for (int64_t k = 0; k < M; ++k) {
+          const double e = static_cast<double>(xs[k]) + ibs[k / d.HW] - mu;
+          ss += e * e;
         }
-        const double r = 1.0 / std::sqrt(var + eps);
+        const double r = 1.0 / std::sqrt((M > 0 ? ss / M : 0.0) + eps);
         mp[i] = mu;
         rp[i] = r;
         const int64_t c0 = (i % d.G) * D;
@@ -224,45 +174,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cpu(
   return {dx.contiguous(memory_format(d.nhwc)), dw.to(st), db.to(st)};
 }
 
-// y = x + bias (+ residual), summed in float (double for float64) and rounded once as
-// channel_bias_add does, and y's moments as one chunk per channel: [2, N, 1, C] for a
-// channels-last y, [2, N, C, 1, 1] otherwise; per (n, c) the mean of y relative to y[n, c, 0, 0]
-// and the sum of squared deviations, in float64, stored in the statistics dtype.
-std::tuple<at::Tensor, at::Tensor> channel_bias_add_moments_cpu(const at::Tensor& x, const at::Tensor& bias,
-                                                                const c10::optional<at::Tensor>& residual) {
-  const char* op = "tiger.channel_bias_add_moments (CPU)";
-  check_bias_add_inputs(x, bias, residual, op);
-  TORCH_CHECK(x.device().is_cpu(), op, ": x must be on the CPU");
-  const bool nhwc = is_nhwc(x);
-  const auto acc = x.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
-  const int64_t N = x.size(0), C = x.size(1), HW = x.size(2) * x.size(3);
-  auto sum = at::add(x.to(acc), bias.reshape({bias.dim() == 2 ? N : 1, C, 1, 1}).to(acc));
-  if (residual.has_value() && residual->defined()) sum.add_(residual->to(acc));
-  auto y = at::empty_like(x, memory_format(nhwc));
-  y.copy_(sum);
-  const auto yd = y.to(at::kDouble).contiguous();  // the values as stored
-  const double* ys = yd.data_ptr<double>();
-  auto md = nhwc ? at::zeros({2, N, 1, C}, yd.options()) : at::zeros({2, N, C, 1, 1}, yd.options());
-  double* mean = md.data_ptr<double>();
-  double* m2 = mean + N * C;
-  for (int64_t n = 0; n < N; ++n)
-    for (int64_t c = 0; c < C; ++c) {
-      const double* yc = ys + (n * C + c) * HW;
-      double s = 0.0;
-      for (int64_t p = 0; p < HW; ++p) s += yc[p] - yc[0];
-      const double mu = HW > 0 ? s / HW : 0.0;
-      double ss = 0.0;
-      for (int64_t p = 0; p < HW; ++p) ss += (yc[p] - yc[0] - mu) * (yc[p] - yc[0] - mu);
-      mean[n * C + c] = mu;  // [N, 1, C] and [N, C, 1, 1] share the (n, c) order
-      m2[n * C + c] = ss;
-    }
-  return {y, md.to(stat_dtype(x))};
-}
-
 }  // namespace
 
 TORCH_LIBRARY_IMPL(tiger, CPU, m) {
-  m.impl("channel_bias_add_moments", &channel_bias_add_moments_cpu);
   m.impl("group_norm", &group_norm_cpu);
   m.impl("group_norm_backward", &group_norm_backward_cpu);
 }

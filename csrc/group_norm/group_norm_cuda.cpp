@@ -47,8 +47,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
                                                                const c10::optional<at::Tensor>& weight_in,
                                                                const c10::optional<at::Tensor>& bias_in,
                                                                int64_t num_groups, double eps, bool silu,
-                                                               const c10::optional<at::Tensor>& input_bias_in,
-                                                               const c10::optional<at::Tensor>& moments_in) {
+                                                               const c10::optional<at::Tensor>& input_bias_in) {
   const Dims d = check_inputs(x_in, weight_in, bias_in, num_groups, kOp);
   check_eps(eps, kOp);
   check_cuda(x_in, kOp);
@@ -57,70 +56,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
   const auto weight = contiguous(weight_in), bias = contiguous(bias_in);
   const auto input_bias = input_bias_of(input_bias_in, x_in, kOp);
   const Params p = params_of(weight, bias, input_bias);
-  Moments given{nullptr, nullptr, 0, 1};
-  if (moments_in.has_value() && moments_in->defined()) {
-    const MomentsShape ms = check_moments(*moments_in, x_in, d, kOp);
-    TORCH_CHECK(ms.nhwc == d.nhwc, kOp, ": moments were taken in the ", ms.nhwc ? "channels-last" : "NCHW",
-                " layout but x is ", d.nhwc ? "channels-last" : "NCHW");
-    given = Moments{moments_in->data_ptr<float>(), moments_in->data_ptr<float>() + moments_in->numel() / 2,
-                    ms.chunks, ms.vector_width};
-  }
   auto y = at::empty_like(x, memory_format(d.nhwc));
   const auto fopts = x.options().dtype(at::kFloat);
   auto mean = at::empty({d.N, d.G}, fopts), rstd = at::empty({d.N, d.G}, fopts);
   if (x.numel() == 0) return {y, mean.zero_(), rstd.fill_(1.0 / std::sqrt(eps))};
   const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), y.data_ptr()});
   const int64_t chunks = plan_chunks(d, vw);
-  at::Tensor pmean, pm2;  // the statistics pass's workspaces (none when the moments came with x)
-  if (given.mean == nullptr) {
-    pmean = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
-    pm2 = at::empty_like(pmean);
-  }
+  auto pmean = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
+  auto pm2 = at::empty_like(pmean);
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   dispatch(x.scalar_type(), [&](auto tag) {
     using T = typename decltype(tag)::type;
     launch_forward<T>(reinterpret_cast<const T*>(x.data_ptr()), p, d, static_cast<float>(eps), silu, chunks,
-                      pmean.defined() ? pmean.data_ptr<float>() : nullptr,
-                      pm2.defined() ? pm2.data_ptr<float>() : nullptr, given, mean.data_ptr<float>(),
-                      rstd.data_ptr<float>(), reinterpret_cast<T*>(y.data_ptr()), vw, stream);
+                      pmean.data_ptr<float>(), pm2.data_ptr<float>(), mean.data_ptr<float>(), rstd.data_ptr<float>(),
+                      reinterpret_cast<T*>(y.data_ptr()), vw, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return {y, mean, rstd};
-}
-
-// y = x + bias (+ residual) and y's partial moments, for a group_norm of y that skips its
-// statistics pass (group_norm.h). Moments: float32 [2, N, K, C] (channels-last y) or
-// [2, N, C, K, V] (NCHW y), K the chunks group_norm's own walk would take.
-std::tuple<at::Tensor, at::Tensor> channel_bias_add_moments_cuda(const at::Tensor& x_in, const at::Tensor& bias_in,
-                                                                 const c10::optional<at::Tensor>& residual_in) {
-  const char* op = "tiger.channel_bias_add_moments (CUDA)";
-  check_bias_add_inputs(x_in, bias_in, residual_in, op);
-  check_cuda(x_in, op);
-  const c10::cuda::CUDAGuard guard(x_in.device());
-  const Dims d{x_in.size(0), x_in.size(1), x_in.size(2) * x_in.size(3), 1, is_nhwc(x_in)};
-  const auto fmt = memory_format(d.nhwc);
-  const auto x = x_in.contiguous(fmt);
-  const auto bias = bias_in.contiguous();
-  const bool has_residual = residual_in.has_value() && residual_in->defined();
-  const auto residual = has_residual ? residual_in->contiguous(fmt) : at::Tensor();
-  auto y = at::empty_like(x, fmt);
-  const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), y.data_ptr(),
-                                                           has_residual ? residual.data_ptr() : nullptr});
-  const int64_t chunks = x.numel() == 0 ? 1 : plan_chunks(d, vw);
-  const auto fopts = x.options().dtype(at::kFloat);
-  // every entry is written by its block (no zero fill) except for an empty x
-  auto moments = d.nhwc ? at::empty({2, d.N, chunks, d.C}, fopts) : at::empty({2, d.N, d.C, chunks, vw}, fopts);
-  if (x.numel() == 0) return {y, moments.zero_()};
-  float* pm = moments.data_ptr<float>();
-  void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  dispatch(x.scalar_type(), [&](auto tag) {
-    using T = typename decltype(tag)::type;
-    launch_bias_moments<T>(reinterpret_cast<const T*>(x.data_ptr()), reinterpret_cast<const T*>(bias.data_ptr()),
-                           bias.dim() == 2, has_residual ? reinterpret_cast<const T*>(residual.data_ptr()) : nullptr,
-                           reinterpret_cast<T*>(y.data_ptr()), d, chunks, pm, pm + moments.numel() / 2, vw, stream);
-  });
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  return {y, moments};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
@@ -174,7 +126,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
 TORCH_LIBRARY_IMPL(tiger, CUDA, m) {
   m.impl("group_norm", &group_norm_cuda);
   m.impl("group_norm_backward", &group_norm_backward_cuda);
-  m.impl("channel_bias_add_moments", &channel_bias_add_moments_cuda);
 }
 
 }  // namespace group_norm

@@ -187,99 +187,6 @@ __global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x
   }
 }
 
-// ---- a sum and its moments: y = x + bias[(n,) c] (+ residual), with stats_kernel's partials of y --
-// The walk, the shift (y's first element of each channel in the slice: recomputed here from the
-// inputs, rounded as it is stored) and the merge order are stats_kernel's, and the moments are
-// taken from y's values as stored: a group_norm of y given these partials computes the very
-// statistics it would compute itself, without reading y again. The sum is channel_bias_add's
-// ((x + bias) + residual in float, rounded once).
-template <typename T, int V>
-__global__ void __launch_bounds__(kThreads) bias_moments_kernel(const T* __restrict__ x, const T* __restrict__ bias,
-                                                                bool per_sample, const T* __restrict__ residual,
-                                                                T* __restrict__ y, Walk w, float* __restrict__ pmean,
-                                                                float* __restrict__ pm2) {
-  __shared__ float s_mean[kThreads * V], s_m2[kThreads * V], s_n[kThreads];
-  const Tile t = tile_of(w);
-  const int slot = threadIdx.x;
-  const int P = pow2_at_least(t.R);
-  const T* bias_n = per_sample ? bias + t.n * w.C : bias;
-  for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
-    const int64_t v = v0 + t.tx;
-    const bool active = t.ty < t.R && v < w.cols;
-    float n = 0.f, mean[V], m2[V], shift[V], b[V];
-#pragma unroll
-    for (int j = 0; j < V; ++j) mean[j] = m2[j] = shift[j] = b[j] = 0.f;
-    if (active) {
-#pragma unroll
-      for (int j = 0; j < V; ++j) {
-        b[j] = load_as<float>(bias_n[channel_of<V>(w, t, v, j)]);
-        // the shift element: channel c's first in the slice (NCHW: the slice's first element)
-        const int64_t i = w.nhwc ? t.slice * w.rows * w.C + v * V + j : t.slice * w.rows * V;
-        float s = load_as<float>(x[i]) + b[j];
-        if (residual != nullptr) s += load_as<float>(residual[i]);
-        shift[j] = load_as<float>(store_as<T>(s));
-      }
-      walk_rows<2>(
-          t.r0 + t.ty, t.r1, t.R,
-          [&](int64_t r) {
-            const int64_t off = offset_of<V>(w, t, r, v);
-            VecPair<T, V> in;
-            in.x = *reinterpret_cast<const Vec<T, V>*>(x + off);
-            if (residual != nullptr) in.g = *reinterpret_cast<const Vec<T, V>*>(residual + off);
-            return in;
-          },
-          [&](int64_t r, const VecPair<T, V>& in) {
-            Vec<T, V> out;
-            n += 1.f;
-            const float inv = 1.f / n;
-#pragma unroll
-            for (int j = 0; j < V; ++j) {
-              float acc = load_as<float>(in.x.v[j]) + b[j];
-              if (residual != nullptr) acc += load_as<float>(in.g.v[j]);
-              out.v[j] = store_as<T>(acc);
-              const float xv = load_as<float>(out.v[j]) - shift[j];
-              const float d = xv - mean[j];
-              mean[j] += d * inv;
-              m2[j] += d * (xv - mean[j]);
-            }
-            *reinterpret_cast<Vec<T, V>*>(y + offset_of<V>(w, t, r, v)) = out;
-          });
-    }
-#pragma unroll
-    for (int j = 0; j < V; ++j) {
-      s_mean[slot * V + j] = mean[j];
-      s_m2[slot * V + j] = m2[j];
-    }
-    s_n[slot] = n;
-    __syncthreads();
-    for (int s = P / 2; s >= 1; s >>= 1) {
-      if (active && t.ty < s && t.ty + s < t.R) {
-        const int other = slot + s * w.cvt;
-        const float nb = s_n[other];
-#pragma unroll
-        for (int j = 0; j < V; ++j) {
-          float n_j = n;
-          merge(n_j, mean[j], m2[j], nb, s_mean[other * V + j], s_m2[other * V + j]);
-          s_mean[slot * V + j] = mean[j];
-          s_m2[slot * V + j] = m2[j];
-        }
-        n += nb;
-        s_n[slot] = n;
-      }
-      __syncthreads();
-    }
-    if (active && t.ty == 0) {
-      const int64_t base = (t.slice * gridDim.y + blockIdx.y) * w.cols * V + v * V;
-#pragma unroll
-      for (int j = 0; j < V; ++j) {
-        pmean[base + j] = mean[j];
-        pm2[base + j] = m2[j];
-      }
-    }
-    __syncthreads();
-  }
-}
-
 // Number of partial entries of group (n, g) and the address/count of entry e: NHWC partials are
 // [N, K, C], NCHW partials [N·C, K, V] (V lanes of one channel).
 struct Partials {
@@ -640,19 +547,12 @@ dim3 walk_grid(const Dims& d, int64_t chunks) {
 
 template <typename T, int V>
 void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* pmean, float* pm2,
-                  const Moments& given, float* mean, float* rstd, T* y, cudaStream_t st) {
+                  float* mean, float* rstd, T* y, cudaStream_t st) {
   const Walk w = make_walk(d, V, chunks);
   const dim3 grid = walk_grid(d, chunks);
-  if (given.mean != nullptr) {  // x's partials come with it (launch_bias_moments): no statistics pass
-    const Walk gw = make_walk(d, given.vector_width, given.chunks);
-    finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
-        make_partials(d, gw, given.vector_width, given.chunks), x, p.input_bias, given.mean, given.m2, eps, mean,
-        rstd);
-  } else {
-    stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
-    finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
-        make_partials(d, w, V, chunks), x, p.input_bias, pmean, pm2, eps, mean, rstd);
-  }
+  stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
+  finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
+      make_partials(d, w, V, chunks), x, p.input_bias, pmean, pm2, eps, mean, rstd);
   if (silu)
     apply_kernel<T, V, true><<<grid, kThreads, 0, st>>>(x, w, p, d.G, mean, rstd, y);
   else
@@ -694,28 +594,12 @@ int64_t plan_chunks(const Dims& d, int vector_width) {
 
 template <typename T>
 void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* partial_mean,
-                    float* partial_m2, const Moments& given, float* mean, float* rstd, T* y, int vector_width,
-                    void* stream) {
+                    float* partial_m2, float* mean, float* rstd, T* y, int vector_width, void* stream) {
   const auto st = static_cast<cudaStream_t>(stream);
   if (vector_width > 1)
-    forward_impl<T, 16 / sizeof(T)>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, given, mean, rstd, y, st);
+    forward_impl<T, 16 / sizeof(T)>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);
   else
-    forward_impl<T, 1>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, given, mean, rstd, y, st);
-}
-
-template <typename T>
-void launch_bias_moments(const T* x, const T* bias, bool per_sample, const T* residual, T* y, const Dims& d,
-                         int64_t chunks, float* partial_mean, float* partial_m2, int vector_width, void* stream) {
-  const auto st = static_cast<cudaStream_t>(stream);
-  const dim3 grid = walk_grid(d, chunks);
-  if (vector_width > 1) {
-    constexpr int V = 16 / sizeof(T);
-    bias_moments_kernel<T, V><<<grid, kThreads, 0, st>>>(x, bias, per_sample, residual, y, make_walk(d, V, chunks),
-                                                         partial_mean, partial_m2);
-  } else {
-    bias_moments_kernel<T, 1><<<grid, kThreads, 0, st>>>(x, bias, per_sample, residual, y, make_walk(d, 1, chunks),
-                                                         partial_mean, partial_m2);
-  }
+    forward_impl<T, 1>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);
 }
 
 template <typename T>
@@ -736,10 +620,8 @@ void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const flo
 }
 
 #define TIGER_INSTANTIATE(T)                                                                                     \
-  template void launch_forward<T>(const T*, Params, const Dims&, float, bool, int64_t, float*, float*,         \
-                                  const Moments&, float*, float*, T*, int, void*);                             \
-  template void launch_bias_moments<T>(const T*, const T*, bool, const T*, T*, const Dims&, int64_t, float*,  \
-                                       float*, int, void*);                                                    \
+  template void launch_forward<T>(const T*, Params, const Dims&, float, bool, int64_t, float*, float*, float*, \
+                                  float*, T*, int, void*);                                                     \
   template void launch_backward<T>(const T*, const T*, Params, const Dims&, const float*, const float*, bool,  \
                                    int64_t, float*, float*, float*, float*, float*, float*, const T*, T*, int, void*);
 TIGER_INSTANTIATE(float)

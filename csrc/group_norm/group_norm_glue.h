@@ -82,54 +82,6 @@ inline at::Tensor input_bias_of(const c10::optional<at::Tensor>& ib, const at::T
   return ib->to(acc).expand({N, C}).contiguous();
 }
 
-// channel_bias_add_moments' inputs: x [N, C, H, W] floating point, bias [C] or [N, C] and an
-// optional residual like x, all of x's dtype and device.
-inline void check_bias_add_inputs(const at::Tensor& x, const at::Tensor& bias, const c10::optional<at::Tensor>& residual,
-                                  const char* op) {
-  TORCH_CHECK(x.dim() == 4, op, ": x must be [N, C, H, W], got ", shape_str(x.sizes()));
-  const auto dt = x.scalar_type();
-  TORCH_CHECK(dt == at::kFloat || dt == at::kBFloat16 || dt == at::kHalf || dt == at::kDouble, op,
-              ": x must be float32, bfloat16 or float16 (float64 on the CPU), got ", dt);
-  const bool per_channel = bias.dim() == 1 && bias.size(0) == x.size(1);
-  const bool per_sample = bias.dim() == 2 && bias.size(0) == x.size(0) && bias.size(1) == x.size(1);
-  TORCH_CHECK(per_channel || per_sample, op, ": bias must be [C] = [", x.size(1), "] or [N, C] = [", x.size(0), ", ",
-              x.size(1), "], got ", shape_str(bias.sizes()));
-  check_same(bias, x, op, "bias");
-  if (residual.has_value() && residual->defined()) {
-    TORCH_CHECK(residual->sizes() == x.sizes(), op, ": residual must have x's shape ", shape_str(x.sizes()), ", got ",
-                shape_str(residual->sizes()));
-    check_same(*residual, x, op, "residual");
-  }
-}
-
-// The partial moments handed in with x (tiger::channel_bias_add_moments): float [2, N, K, C]
-// for channels-last partials, [2, N, C, K, V] for NCHW ones (V lanes of one channel per row of
-// H·W / V); K row chunks of ceil(rows / K) rows, none empty. Returns (K, V); the data layout is
-// group_norm.h's Moments.
-struct MomentsShape {
-  int64_t chunks;
-  int vector_width;
-  bool nhwc;
-};
-
-inline MomentsShape check_moments(const at::Tensor& m, const at::Tensor& x, const Dims& d, const char* op) {
-  TORCH_CHECK(m.dim() == 4 || m.dim() == 5, op, ": moments must be [2, N, K, C] (channels-last) or "
-              "[2, N, C, K, V] (NCHW), got ", shape_str(m.sizes()));
-  check_dtype(m, stat_dtype(x), op, "moments");
-  TORCH_CHECK(m.device() == x.device(), op, ": moments are on ", m.device(), " but x is on ", x.device());
-  TORCH_CHECK(m.is_contiguous(), op, ": moments must be contiguous");
-  const bool nhwc = m.dim() == 4;
-  const int64_t K = m.size(nhwc ? 2 : 3), V = nhwc ? 1 : m.size(4);
-  const bool shape_ok = m.size(0) == 2 && m.size(1) == d.N && m.size(nhwc ? 3 : 2) == d.C && K >= 1 && V >= 1;
-  TORCH_CHECK(shape_ok, op, ": moments ", shape_str(m.sizes()), " do not belong to x of shape ", shape_str(x.sizes()),
-              " (expected [2, N, K, C] or [2, N, C, K, V] with N = ", d.N, ", C = ", d.C, ")");
-  TORCH_CHECK(d.HW % V == 0, op, ": moments of ", V, "-lane rows do not divide x's ", d.HW, " pixels");
-  const int64_t rows = d.HW / V, chunk = (rows + K - 1) / K;
-  TORCH_CHECK(K <= rows && (rows + chunk - 1) / chunk == K, op, ": moments have ", K, " chunks, which do not split ",
-              rows, " rows into non-empty chunks");
-  return MomentsShape{K, static_cast<int>(V), nhwc};
-}
-
 inline Params params_of(const c10::optional<at::Tensor>& w, const c10::optional<at::Tensor>& b,
                         const at::Tensor& input_bias = at::Tensor()) {
   const bool wf = w.has_value() && w->scalar_type() == at::kFloat;

@@ -15,11 +15,8 @@ from typing import Optional
 import torch
 
 from ._layout import output_format
-from .channel_bias import _backward as _bias_add_backward
-from .channel_bias import _setup_context as _bias_add_setup_context
 
-__all__ = ["group_norm", "group_norm_with_stats", "group_norm_input_grad", "channel_bias_add_moments",
-           "GroupNormSiLU", "attach_moments", "moments_of"]
+__all__ = ["group_norm", "group_norm_with_stats", "group_norm_input_grad", "GroupNormSiLU"]
 
 
 def _stat_dtype(x: torch.Tensor) -> torch.dtype:
@@ -27,21 +24,9 @@ def _stat_dtype(x: torch.Tensor) -> torch.dtype:
 
 
 @torch.library.register_fake("tiger::group_norm")
-def _fake(x, weight, bias, num_groups, eps, silu, input_bias=None, moments=None):
+def _fake(x, weight, bias, num_groups, eps, silu, input_bias=None):
     stats = x.new_empty((x.shape[0], num_groups), dtype=_stat_dtype(x))
     return torch.empty_like(x, memory_format=output_format(x)), stats, stats.new_empty(stats.shape)
-
-
-@torch.library.register_fake("tiger::channel_bias_add_moments")
-def _fake_moments(x, bias, residual=None):
-    # on CUDA K (row chunks) follows the device's SM count and V the pointers' alignment: unbacked sizes
-    torch._check(x.dim() == 4, lambda: f"tiger.channel_bias_add_moments: x must be [N, C, H, W], got {tuple(x.shape)}")
-    n, c = x.shape[:2]
-    cpu = x.device.type == "cpu"
-    k = 1 if cpu else torch.library.get_ctx().new_dynamic_size()
-    channels_last = output_format(x) == torch.channels_last
-    shape = (2, n, k, c) if channels_last else (2, n, c, k, 1 if cpu else torch.library.get_ctx().new_dynamic_size())
-    return torch.empty_like(x, memory_format=output_format(x)), x.new_empty(shape, dtype=_stat_dtype(x))
 
 
 @torch.library.register_fake("tiger::group_norm_backward")
@@ -78,52 +63,15 @@ def _backward(ctx, grad_y, _grad_mean, _grad_rstd):
         acc = torch.float64 if gx.dtype == torch.float64 else torch.float32
         gib = gx.sum(dim=(2, 3), dtype=acc)
         gib = (gib if input_bias.dim() == 2 else gib.sum(0)).to(input_bias.dtype)
-    return ((gx if need_x else None), gw, gb, None, None, None, gib, None)[:n_inputs]
+    return ((gx if need_x else None), gw, gb, None, None, None, gib)[:n_inputs]
 
 
 torch.library.register_autograd("tiger::group_norm", _backward, setup_context=_setup_context)
 
 
-def _moments_setup_context(ctx, inputs, output):
-    _bias_add_setup_context(ctx, inputs, output[0])
-    ctx.mark_non_differentiable(output[1])
-
-
-def _moments_backward(ctx, grad_y, _grad_moments):
-    return _bias_add_backward(ctx, grad_y)  # the moments take no gradient
-
-
-torch.library.register_autograd("tiger::channel_bias_add_moments", _moments_backward,
-                                setup_context=_moments_setup_context)
-
-
-def channel_bias_add_moments(x: torch.Tensor, bias: torch.Tensor, residual: Optional[torch.Tensor] = None
-                             ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`tiger.ops.channel_bias.channel_bias_add` that also returns the sum's partial moments,
-    for a :func:`group_norm` of the sum (``moments=``) that then skips its statistics pass (a
-    ResNet block's output pass feeding the next block's or a transformer's GroupNorm).
-
-    Args:
-        x: [N, C, H, W] float32/bfloat16/float16 (float64 on the CPU), channels-last or NCHW.
-        bias: [C] or [N, C], x's dtype.
-        residual: optional [N, C, H, W], x's dtype.
-
-    Returns:
-        (y, moments): y [N, C, H, W] = ``x + bias (+ residual)`` summed in float and rounded once
-        (channel_bias_add's values), channels-last when x is; moments [2, N, K, C] for a
-        channels-last y or [2, N, C, K, V] for an NCHW one (float32; float64 for float64 x):
-        partial means and sums of squared deviations of y over K row chunks (V lanes of one
-        channel per NCHW row), relative to each channel's first element of y. On CUDA they are
-        exactly the partials group_norm's own statistics pass would compute (the same walk), so
-        ``group_norm(y, ..., moments=moments)`` equals ``group_norm(y, ...)`` bit for bit; on the
-        CPU, one chunk per channel in float64.
-    """
-    return torch.ops.tiger.channel_bias_add_moments(x, bias, residual)
-
-
 def group_norm(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] = None,
                bias: Optional[torch.Tensor] = None, eps: float = 1e-5, silu: bool = False,
-               input_bias: Optional[torch.Tensor] = None, moments: Optional[torch.Tensor] = None) -> torch.Tensor:
+               input_bias: Optional[torch.Tensor] = None) -> torch.Tensor:
     """GroupNorm of ``x`` (+ ``input_bias``), optionally followed by SiLU, in one pass.
 
     Args:
@@ -135,28 +83,25 @@ def group_norm(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] 
         input_bias: [C] or [N, C], added to x per (sample,) channel before the norm without being
             written out: a bias-free convolution's bias (plus a ResNet block's time embedding)
             folded into the norm that follows it. Computed in float32 (float64 for float64 x).
-        moments: x's partial moments from :func:`channel_bias_add_moments` (the pass that wrote
-            x): the statistics come from them instead of a pass over x.
 
     Returns:
         [N, C, H, W] in x's dtype: ``act((x − mean_ng)·rstd_ng·w_c + b_c)`` with mean and the
         biased variance over each (n, group)'s C/G·H·W elements; channels-last when x is
         channels-last (and not also contiguous), else contiguous.
     """
-    if input_bias is None and moments is None:
+    if input_bias is None:
         return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu))[0]
-    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias,
-                                      moments)[0]
+    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias)[0]
 
 
 def group_norm_with_stats(x: torch.Tensor, num_groups: int, weight: Optional[torch.Tensor] = None,
                           bias: Optional[torch.Tensor] = None, eps: float = 1e-5, silu: bool = False,
-                          input_bias: Optional[torch.Tensor] = None, moments: Optional[torch.Tensor] = None
+                          input_bias: Optional[torch.Tensor] = None
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`group_norm` that also returns the statistics a hand-written backward needs
     (:func:`group_norm_input_grad`): (y, mean [N, G], rstd [N, G]), float32 statistics (float64
     for float64 x). Meant for code that runs its own backward (no autograd through the stats)."""
-    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias, moments)
+    return torch.ops.tiger.group_norm(x, weight, bias, int(num_groups), float(eps), bool(silu), input_bias)
 
 
 def group_norm_input_grad(grad_y: torch.Tensor, x: torch.Tensor, num_groups: int, mean: torch.Tensor,
@@ -179,25 +124,6 @@ def group_norm_input_grad(grad_y: torch.Tensor, x: torch.Tensor, num_groups: int
     """
     return torch.ops.tiger.group_norm_backward(grad_y, x, weight, bias, mean, rstd, int(num_groups), bool(silu),
                                                False, input_bias, residual_grad)[0]
-
-
-_MOMENTS = "_tiger_moments"
-
-
-def attach_moments(y: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:
-    """Let ``y`` carry its partial moments (:func:`channel_bias_add_moments`) to the
-    :class:`GroupNormSiLU` that normalises it next, through modules that only pass ``y`` on
-    (diffusers' blocks). Kept with ``y``'s version counter: once ``y`` is changed in place,
-    :func:`moments_of` no longer returns them. Returns ``y``."""
-    y.__dict__[_MOMENTS] = (moments, y._version)
-    return y
-
-
-def moments_of(x: torch.Tensor) -> Optional[torch.Tensor]:
-    """The moments :func:`attach_moments` gave ``x`` itself (not a view of it), while ``x`` is
-    unchanged since; else None."""
-    entry = x.__dict__.get(_MOMENTS)
-    return entry[0] if entry is not None and entry[1] == x._version else None
 
 
 class GroupNormSiLU(torch.nn.Module):
@@ -235,12 +161,11 @@ class GroupNormSiLU(torch.nn.Module):
         return m
 
     def forward(self, x: torch.Tensor, input_bias: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``input_bias`` ([C] or [N, C]): added to x first (:func:`group_norm`). Moments that x
-        carries (:func:`attach_moments`) replace the statistics pass."""
+        """``input_bias`` ([C] or [N, C]): added to x first (:func:`group_norm`)."""
         if x.dim() == 3:
             return group_norm(x.unsqueeze(-1), self.num_groups, self.weight, self.bias, self.eps, self.silu,
                               input_bias).squeeze(-1)
-        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps, self.silu, input_bias, moments_of(x))
+        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps, self.silu, input_bias)
 
     def extra_repr(self) -> str:
         return (f"{self.num_groups}, {self.num_channels}, eps={self.eps}, affine={self.affine}, "

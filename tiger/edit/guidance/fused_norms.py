@@ -37,15 +37,14 @@ import torch
 import torch.nn.functional as F
 
 from tiger.ops.channel_bias import channel_bias_add
-from tiger.ops.group_norm import (GroupNormSiLU, attach_moments, channel_bias_add_moments, group_norm_input_grad,
-                                  group_norm_with_stats, moments_of)
+from tiger.ops.group_norm import GroupNormSiLU, group_norm_input_grad, group_norm_with_stats
 
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["SiLUThenLinear", "fuse_group_norms", "bias_after_conv", "apply_fused_norms", "fused_norms_default",
-           "set_fold_norm_bias", "set_block_backward", "set_norm_moments"]
+           "set_fold_norm_bias", "set_block_backward"]
 
 
 class SiLUThenLinear(torch.nn.Linear):
@@ -87,35 +86,21 @@ def _fuse_resnet(block) -> int:
     return 2
 
 
-def _bias_add(y: torch.Tensor, bias: torch.Tensor, residual: Optional[torch.Tensor], moments: bool) -> torch.Tensor:
-    """``y + bias (+ residual)`` in one pass; with ``moments``, the sum also carries its partial
-    moments to the GroupNorm that reads it next (:func:`tiger.ops.group_norm.attach_moments`)."""
-    if not moments:
-        return channel_bias_add(y, bias, residual)
-    out, m = channel_bias_add_moments(y, bias, residual)
-    return attach_moments(out, m)
-
-
 def _conv_then_add(conv: torch.nn.Conv2d, x: torch.Tensor, extra_bias: Optional[torch.Tensor] = None,
-                   residual: Optional[torch.Tensor] = None, moments: bool = False) -> torch.Tensor:
+                   residual: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``conv(x) + extra_bias + residual`` with the convolution's bias, ``extra_bias`` ([N, C] or
-    [C]) and ``residual`` added by one :func:`channel_bias_add` pass after a bias-free convolution
-    (with the sum's moments attached when ``moments``: :func:`_bias_add`)."""
+    [C]) and ``residual`` added by one :func:`channel_bias_add` pass after a bias-free convolution."""
     y = conv._conv_forward(x, conv.weight, None)
     bias = conv.bias
     if extra_bias is not None:
         bias = extra_bias if bias is None else extra_bias + bias
     if bias is None:
-        bias = y.new_zeros(y.shape[1]) if residual is not None or moments else None
+        bias = y.new_zeros(y.shape[1]) if residual is not None else None
     if bias is None:
         return y
     if bias.dim() == 2 and bias.shape[0] != y.shape[0]:  # a [1, C] time embedding for the whole batch
         bias = bias.expand(y.shape[0], -1)
-    return _bias_add(y, bias.to(y.dtype), residual, moments)
-
-
-def _moments_on(module: torch.nn.Module) -> bool:
-    return module.__dict__.get("_tiger_norm_moments", False)
+    return channel_bias_add(y, bias.to(y.dtype), residual)
 
 
 def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torch.Tensor],
@@ -145,10 +130,10 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
         h = _conv_then_add(self.conv1, self.norm1(input_tensor, input_bias=ib1), temb_bias)
         h = self.dropout(self.norm2(h))
     if self.conv_shortcut is None:
-        return _conv_then_add(self.conv2, h, input_bias, input_tensor, _moments_on(self))
+        return _conv_then_add(self.conv2, h, input_bias, input_tensor)
     sc = self.conv_shortcut
     shortcut = sc._conv_forward(input_tensor, sc.weight, None)
-    return _conv_then_add(self.conv2, h, _shortcut_bias(sc, input_bias), shortcut, _moments_on(self))
+    return _conv_then_add(self.conv2, h, _shortcut_bias(sc, input_bias), shortcut)
 
 
 def _shortcut_bias(sc: torch.nn.Conv2d, input_bias: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
@@ -206,8 +191,7 @@ class _FoldedBlock(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, block, ib1: Optional[torch.Tensor] = None) -> torch.Tensor:
         # ib1: norm1's input bias (a producer's carried bias, float32), also added with the shortcut
         n1, n2, conv1, conv2 = block.norm1, block.norm2, block.conv1, block.conv2
-        h1, mean1, rstd1 = group_norm_with_stats(x, n1.num_groups, n1.weight, n1.bias, n1.eps, n1.silu, ib1,
-                                                 moments_of(x))
+        h1, mean1, rstd1 = group_norm_with_stats(x, n1.num_groups, n1.weight, n1.bias, n1.eps, n1.silu, ib1)
         c1 = conv1._conv_forward(h1, conv1.weight, None)
         ib = _norm_input_bias(conv1.bias, None, c1.shape[0])
         h2, mean2, rstd2 = group_norm_with_stats(c1, n2.num_groups, n2.weight, n2.bias, n2.eps, n2.silu, ib)
@@ -217,7 +201,7 @@ class _FoldedBlock(torch.autograd.Function):
             bias = bias.to(ib1.dtype) + ib1
         ctx.save_for_backward(x, c1, mean1, rstd1, mean2, rstd2, ib, ib1)
         ctx.block = block
-        return _bias_add(c2, bias.to(c2.dtype), x, _moments_on(block))
+        return channel_bias_add(c2, bias.to(c2.dtype), x)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
@@ -246,31 +230,6 @@ def set_block_backward(module: torch.nn.Module, on: bool) -> int:
             here = bool(on) and m.__dict__.get("_tiger_fold_norm_bias", False)
             m.__dict__["_tiger_block_backward"] = here
             count += here
-    return count
-
-
-def set_norm_moments(module: torch.nn.Module, on: bool) -> int:
-    """In every fused ``ResnetBlock2D`` whose output pass adds conv2's bias and the shortcut
-    (:func:`_resnet_forward_folded`, :class:`_FoldedBlock`) and every ``Transformer2DModel`` whose
-    output pass adds the residual (:func:`_continuous_output_keep_layout`: with a 1x1 ``proj_out``'s
-    bias, or after a linear one), let
-    that pass also compute its output's GroupNorm moments (:func:`tiger.ops.group_norm.
-    channel_bias_add_moments`) when ``on``: the GroupNorm that reads the output next (the next
-    block's norm1, a transformer's norm, ``conv_norm_out``) then skips its statistics pass. Same
-    statistics. Returns how many producers have it on."""
-    require_diffusers("GroupNorm moments from the producing pass")
-    from diffusers.models.resnet import ResnetBlock2D
-    from diffusers.models.transformers.transformer_2d import Transformer2DModel
-
-    count = 0
-    for m in module.modules():
-        fwd = getattr(m.__dict__.get("forward"), "__func__", None)
-        out = getattr(m.__dict__.get("_get_output_for_continuous_inputs"), "__func__", None)
-        producer = ((type(m) is ResnetBlock2D and fwd is _resnet_forward_folded)
-                    or (type(m) is Transformer2DModel and out is _continuous_output_keep_layout))
-        if producer:
-            m.__dict__["_tiger_norm_moments"] = bool(on)
-            count += bool(on)
     return count
 
 
@@ -321,13 +280,11 @@ def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, he
     if not self.use_linear_projection:
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
         if type(self.proj_out) is torch.nn.Conv2d:  # bias and residual in one pass
-            return _conv_then_add(self.proj_out, hidden_states, None, residual, _moments_on(self))
+            return _conv_then_add(self.proj_out, hidden_states, None, residual)
         hidden_states = self.proj_out(hidden_states)
     else:
         hidden_states = self.proj_out(hidden_states)
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
-    if _moments_on(self):  # the residual added by the pass that takes the sum's moments (a zero bias)
-        return _bias_add(hidden_states, hidden_states.new_zeros(hidden_states.shape[1]), residual, True)
     return hidden_states.add_(residual)
 
 

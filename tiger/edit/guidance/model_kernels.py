@@ -53,12 +53,6 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   leave their bias to the next ResNet block, which adds it inside norm1 and with its shortcut
   (:mod:`.encoder_bias`): one full read and write fewer per such layer (the largest at 512²),
   the same sums.
-- ``norm_moments``: the output pass of a fused ResNet block (conv2's bias + the shortcut) or of a
-  transformer (``proj_out``'s bias + the residual) also computes the GroupNorm partial moments of
-  what it writes (:func:`tiger.ops.group_norm.channel_bias_add_moments`, the same walk as the
-  norm's own statistics kernel) and attaches them to its output; the next block's norm1, a
-  transformer's norm or ``conv_norm_out`` then skips its statistics pass (a full read of the map
-  and a launch). The same statistics bit for bit.
 - ``pad_conv_in``: the first convolution of the UNet and of the VAE encoder (4-8 or 3 input
   channels) on an input zero-padded to a multiple of 16 channels, with a zero-padded kernel: the
   same sums (the extra products are with zeros), but cuDNN's tensor-core kernels instead of its
@@ -88,7 +82,7 @@ from .branch_prefix import set_branch_prefix
 from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
 from .encoder_bias import set_carry_conv_bias
 from .forward_switch import switch_forward
-from .fused_norms import set_block_backward, set_fold_norm_bias, set_norm_moments
+from .fused_norms import set_block_backward, set_fold_norm_bias
 from .transformer_blocks import set_fused_transformer, set_lean_attention
 from tiger.utils.lazy import require_diffusers
 
@@ -138,10 +132,6 @@ class ModelKernels:
             only the guidance branches that differ there (InstructPix2Pix's instruction and
             image-only branches share their first ResNet block and self-attention:
             :mod:`.branch_prefix`); None: on (the same operations on fewer rows, any device).
-        norm_moments: the ResNet blocks' and transformers' output passes (bias + residual) also
-            take their output's GroupNorm moments, so the norm that reads the output next skips
-            its statistics pass (:func:`.fused_norms.set_norm_moments`); None: on where the model
-            is on CUDA with tiger's CUDA kernels (the same statistics, bit for bit).
     """
 
     matmul_precision: str = "model"
@@ -157,7 +147,6 @@ class ModelKernels:
     fused_transformer: Optional[bool] = None
     carry_conv_bias: Optional[bool] = None
     branch_prefix: Optional[bool] = None
-    norm_moments: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -432,8 +421,7 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
-    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks",
-    "norm_moments_producers"}``."""
+    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -454,10 +442,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     own_backward = set_block_backward(vae, _resolve(kernels.block_backward, vae_kernels))
     carried = set_carry_conv_bias(vae, _resolve(kernels.carry_conv_bias, vae_kernels))
     prefix = set_branch_prefix(unet, _resolve(kernels.branch_prefix, True))
-    moments = (set_norm_moments(unet, _resolve(kernels.norm_moments, unet_kernels))
-               + set_norm_moments(vae, _resolve(kernels.norm_moments, vae_kernels)))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
             "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried,
-            "branch_prefix_blocks": prefix, "norm_moments_producers": moments}
+            "branch_prefix_blocks": prefix}
