@@ -158,3 +158,22 @@ def test_camera_conditions_cached_by_view_ids(models, ring_cameras):
     assert g.camera_conditions(pooled) is not first
     fresh = ViewBatch(cameras=cams, originals=pooled.originals, object_center=center)
     assert g.camera_conditions(fresh) is not g.camera_conditions(fresh)  # no ids: nothing cached
+
+
+def test_text_tower_built_without_random_init_equals_the_loaded_reference(tiny_models):
+    """The .pt's text tower is built on the meta device and given the checkpoint's tensors (no
+    random init); its outputs and position ids are those of a randomly initialised CLIPTextModel
+    that loads the same state dict."""
+    comp = convert_ldm_checkpoint(torch.load(tiny_models / "mvdream" / "sd-v2.1-base-4view.pt", weights_only=True),
+                                  mvdream_ldm_config("tiny"))
+    ref = transformers.CLIPTextModel(transformers.CLIPTextConfig(**comp.text_config))
+    ref.load_state_dict(comp.text_state, strict=False)
+    got = load_mvdream(tiny_models / "mvdream" / "sd-v2.1-base-4view.pt").prompts.text_encoder
+    ids = torch.randint(0, comp.text_config["vocab_size"], (2, 77), generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        assert torch.equal(got(ids).last_hidden_state, ref.eval()(ids).last_hidden_state)
+    ids_of = lambda m: dict(m.named_buffers())  # noqa: E731
+    assert [n for n in ids_of(got) if n.endswith("position_ids")]
+    for n, b in ids_of(ref).items():
+        assert torch.equal(ids_of(got)[n], b)
+    assert not any(t.is_meta for t in list(got.parameters()) + list(got.buffers()))

@@ -77,6 +77,26 @@ def _build_from_state(cls, config: dict, state: dict[str, torch.Tensor], what: s
     return model
 
 
+def _text_encoder_from_state(transformers, config: dict, state: dict[str, torch.Tensor], found: Path):
+    """The OpenCLIP text tower as a ``CLIPTextModel``, built on the meta device and given the
+    checkpoint's tensors (its random init took 2-5 s of CPU for 340M parameters); the position
+    ids, a buffer no checkpoint stores, are made here."""
+    with torch.device("meta"):
+        model = transformers.CLIPTextModel(transformers.CLIPTextConfig(**config))
+    result = model.load_state_dict(state, strict=False, assign=True)
+    if result.unexpected_keys or [k for k in result.missing_keys if not k.endswith("position_ids")]:
+        raise ValueError(f"tiger.edit.mvdream: text tower mismatch in {found}: missing {result.missing_keys[:5]}, "
+                         f"unexpected {result.unexpected_keys[:5]}")
+    for name, buf in list(model.named_buffers()):
+        if name.endswith("position_ids") and buf.is_meta:  # [1, max_positions]: 0, 1, 2, ...
+            owner = model.get_submodule(name.rpartition(".")[0])
+            owner.register_buffer("position_ids", torch.arange(buf.shape[-1]).expand(1, -1), persistent=False)
+    meta = [n for n, t in list(model.named_parameters()) + list(model.named_buffers()) if t.is_meta]
+    if meta:
+        raise ValueError(f"tiger.edit.mvdream: the text tower in {found} lacks {meta[:5]}")
+    return model
+
+
 def _load_state_dict(path: Path) -> dict[str, torch.Tensor]:
     """A tensors-only checkpoint, memory-mapped when it is in the zip format (legacy files are read)."""
     try:
@@ -126,11 +146,7 @@ def load_mvdream(
         comp = convert_ldm_checkpoint(state, ldm_config)
         unet = _build_from_state(diffusers.UNet2DConditionModel, comp.unet_config, comp.unet_state, "UNet")
         vae = _build_from_state(diffusers.AutoencoderKL, comp.vae_config, comp.vae_state, "VAE")
-        text_encoder = transformers.CLIPTextModel(transformers.CLIPTextConfig(**comp.text_config))
-        result = text_encoder.load_state_dict(comp.text_state, strict=False)
-        if result.unexpected_keys or [k for k in result.missing_keys if not k.endswith("position_ids")]:
-            raise ValueError(f"tiger.edit.mvdream: text tower mismatch in {found}: missing {result.missing_keys[:5]}, "
-                             f"unexpected {result.unexpected_keys[:5]}")
+        text_encoder = _text_encoder_from_state(transformers, comp.text_config, comp.text_state, found)
         tok = _tokenizer(Path(tokenizer) if tokenizer is not None else None, found.parent)
         schedule = comp.schedule
     else:
