@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from tiger.edit.target import EmptyTargetError
     from tiger.eval.edit import locality
     from tiger.utils.images import save_png
+    from tiger.utils.threads import in_background
     from tiger.utils.video import write_video
 
     if args.steps < 1 or args.size < 16:
@@ -108,6 +109,16 @@ def run(args: argparse.Namespace) -> int:
     elif needed and dev.type == "cpu":
         log.warning("edit on the CPU runs the diffusion models (%s) every step: expect hours; use a GPU "
                     "(--device cuda)", "+".join(needed))
+    dtype = None if args.dtype == "auto" else DTYPE_NAMES[args.dtype]
+
+    def build():  # MVDream loads now too, unless a resumed edit may not need it (it loads on first use)
+        return build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
+                              color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph,
+                              mvdream_kwargs=None if args.resume else {"lazy": False})
+
+    # The diffusion models are read and built while the scene, CLIP and the retrieval load (both
+    # mostly file reads and host work).
+    guidance_ready = in_background(build, "tiger-edit-models") if needed else build
     scene = load_scene(args.scene, dev)
     if scene.lang is None:
         raise CliError(f"{args.scene} has no language features (lang_*); run `tiger embed` first")
@@ -119,9 +130,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--target {args.target!r} retrieves no Gaussian (tau={args.tau}); try another text "
                        "or a lower --tau") from e
     check_selection_or_refuse(scene, target.mask, args.target, args.force, "edit")
-    dtype = None if args.dtype == "auto" else DTYPE_NAMES[args.dtype]
-    guidance = build_guidance(args.guidance, args.instruction, models=args.models, device=dev,
-                              color=args.color, seed=args.seed, dtype=dtype, cuda_graph=args.cuda_graph)
+    guidance = guidance_ready()
     cams = _cameras(args.data, args.skip_missing)
     out = claim_output(args.out, "edit", settings, force=args.force, resume=args.resume)
     cfg = EditConfig(steps=args.steps, width=args.size, height=args.size, seed=args.seed, view_pool=args.view_pool)
@@ -134,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
     bg = torch.tensor(cfg.background)
     save_png(out / "before_after.png", before_after_grid(scene, res.scene, views.fixed(4), bg))
     frames = list(render_rgb(res.scene, views.fixed(36), bg).cpu())
-    video = write_video(frames, out / "turntable", kind=args.video)
+    # encoded (OpenCV/Pillow release the GIL) while the metrics render
+    video_ready = in_background(lambda: write_video(frames, out / "turntable", kind=args.video), "tiger-edit-video")
     metrics = {"locality": locality(scene, res.scene, views.fixed(8), target.mask, res.editable)}
     if encoder is not None and hasattr(encoder, "clip"):
         from tiger.eval.edit import clip_metrics
@@ -143,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         before = render_rgb(scene, path, bg).permute(0, 3, 1, 2)
         after = render_rgb(res.scene, path, bg).permute(0, 3, 1, 2)
         metrics["clip"] = clip_metrics(encoder, before, after, args.target, args.instruction)
+    video = video_ready()
     report = {"instruction": args.instruction, "target": args.target, "guidance": args.guidance,
               "selected": target.count, "tau": target.tau, "settings": cfg.to_dict(),
               "guidance_settings": guidance.settings(),

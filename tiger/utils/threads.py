@@ -1,6 +1,7 @@
-"""Work spread over a few host threads: the one ordered thread map of the package."""
+"""Work on host threads: the one ordered thread map of the package, and one job in the background."""
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Callable, Iterable, Optional, TypeVar
 
@@ -33,4 +34,40 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], max_workers: int, name:
     return out
 
 
-__all__ = ["thread_map"]
+def in_background(fn: Callable[[], T], name: str = "tiger-background") -> Callable[[], T]:
+    """Start ``fn()`` in a daemon thread now and return a function that waits for its result (and
+    raises its error). For host-bound work to overlap with the caller's: reading and building
+    models while a scene loads, encoding a video while metrics render. ``fn`` runs with the
+    caller's grad mode and on the caller's current CUDA stream (the same stream, so tensors pass
+    between the threads without stream bookkeeping; GPU work of the two is not overlapped). A
+    daemon thread: an error in the caller ends the process without waiting for it."""
+    import torch
+
+    grad = torch.is_grad_enabled()
+    stream = torch.cuda.current_stream() if torch.cuda.is_available() and torch.cuda.is_initialized() else None
+    box: dict = {}
+
+    def work() -> None:
+        try:
+            with torch.set_grad_enabled(grad):
+                if stream is not None:
+                    with torch.cuda.stream(stream):
+                        box["value"] = fn()
+                else:
+                    box["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller by result()
+            box["error"] = exc
+
+    thread = threading.Thread(target=work, name=name, daemon=True)
+    thread.start()
+
+    def result() -> T:
+        thread.join()
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    return result
+
+
+__all__ = ["in_background", "thread_map"]
