@@ -111,3 +111,21 @@ def test_rest_pixels_exclude_walks_an_edited_gaussian_ends():
     assert loc["psnr"] < 60  # the pixels behind the edited Gaussian changed
     assert loc["parts"]["rest"]["max_abs_err"] == 0.0
     assert loc["parts"]["fringe"]["pixels"] > 0 and loc["parts"]["fringe"]["max_abs_err"] > 1e-3
+
+
+def test_locality_of_an_object_that_fills_every_view_is_not_measured():
+    """A footprint whose dilation covers every pixel leaves nothing to compare: no PSNR, no error
+    (the edit CLI reports it after the edit instead of failing), and the summary line says why."""
+    from tiger.eval.edit import locality_text
+
+    before = _two_blobs()
+    obj = torch.ones(100, dtype=torch.bool)  # everything is the object
+    cams = orbit_cameras(2, 16, 12, center=(0.0, 0.0, 0.0), radius=1.2, elevation_deg=10.0)
+    after = before.clone()
+    after.sh_dc += 1.0
+    loc = locality(before, after, cams, obj, obj, dilate_px=20)
+    assert loc["psnr"] is None and loc["pixels"] == 0 and loc["parts"] is None
+    assert "not measured" in locality_text(loc)
+    obj[50:] = False
+    loc = locality(before, after, orbit_cameras(2, 64, 48, center=(0.0, 0.0, 0.0), radius=3.0), obj, obj)
+    assert loc["psnr"] is not None and locality_text(loc, "the ball").startswith("locality PSNR outside the ball")

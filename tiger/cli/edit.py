@@ -65,7 +65,7 @@ def add_parser(sub) -> None:
     add_selection_options(p, guarded=True)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--video", choices=VIDEO_KINDS, default="auto",
-                   help="turntable video (auto: H.264 MP4, else VP9/VP8 WebM, else GIF: all play in "
+                   help="turntable video (auto: H.264 MP4, else VP8/VP9 WebM, else GIF: all play in "
                         "browsers; default: %(default)s)")
     p.set_defaults(func=run)
 
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from tiger.edit.pictures import before_after_grid
     from tiger.scene import render_rgb
     from tiger.edit.target import EmptyTargetError
-    from tiger.eval.edit import locality
+    from tiger.eval.edit import locality, locality_text
     from tiger.utils.images import save_png
     from tiger.utils.threads import in_background
     from tiger.utils.video import write_video
@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     s.add(f"{args.target!r}: {target.count} of {len(scene)} Gaussians edited ({args.guidance}, {args.steps} steps)")
     if "recolor_rgb" in report:
         s.add("colour: RGB " + ", ".join(f"{v:.3f}" for v in report["recolor_rgb"]) + " (0-1)")
-    s.add(f"locality PSNR outside the object: {metrics['locality']['psnr']:.2f} dB")
+    s.add(locality_text(metrics["locality"]))
     s.add(f"edited scene: {out / 'edited.ply'} ({len(res.scene)} Gaussians)")
     s.add(f"pictures: {out / 'before_after.png'}" + (f", video: {video}" if video else ""))
     s.add(f"details: {out / 'edit.json'}")

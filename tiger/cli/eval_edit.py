@@ -42,7 +42,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from tiger.edit.target import EmptyTargetError, resolve_target
     from tiger.edit.views import ObjectViews
-    from tiger.eval.edit import clip_metrics, locality
+    from tiger.eval.edit import clip_metrics, locality, locality_text
     from tiger.scene import render_rgb
 
     if args.views < 2:
@@ -83,8 +83,7 @@ def run(args: argparse.Namespace) -> int:
     with atomic_write(out / "metrics.json", "w") as fh:
         json.dump(report, fh, indent=2)
     s = Summary("tiger eval-edit")
-    s.add(f"locality PSNR outside '{args.target}': {report['locality']['psnr']:.2f} dB "
-          f"({report['locality']['fraction']:.0%} of the pixels)")
+    s.add(locality_text(report["locality"], f"'{args.target}'"))
     if "clip" in report:
         c = report["clip"]
         s.add(f"CLIP direction similarity {c['clip_direction_similarity']:.4f}, "

@@ -10,7 +10,7 @@ from tiger.edit import EditConfig, edit, resolve_target
 from tiger.edit.guidance import RecolorGuidance
 from tiger.edit.pictures import before_after_grid
 from tiger.edit.views import ObjectViews
-from tiger.eval.edit import locality
+from tiger.eval.edit import locality, locality_text
 from tiger.render.views import orbit_cameras
 from tiger.scene import GaussianScene
 from tiger.utils.images import save_png
@@ -47,7 +47,7 @@ def recolor_demo(out: Path, timer, target: str = "ball", instruction: str = "mak
     rgb = res.scene.rgb[res.editable].mean(0).tolist()
     print(f"  edit: {tgt.count} Gaussians of '{target}' recoloured; mean colour now "
           f"({rgb[0]:.2f}, {rgb[1]:.2f}, {rgb[2]:.2f}); {len(res.scene) - len(scene):+d} Gaussians from "
-          f"densification; locality PSNR outside the ball {loc['psnr']:.1f} dB")
+          f"densification; {locality_text(loc, 'the ball')}")
     print(f"    wrote {out / 'edit_before_after.png'} (top: before, bottom: after), "
           f"{out / 'edit_ball_closeup.png'}, {out / 'scene_ball_red.ply'}")
     return {"instruction": instruction, "target": target, "selected": tgt.count, "locality_psnr": loc["psnr"],

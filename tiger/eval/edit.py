@@ -22,6 +22,7 @@
 """
 from __future__ import annotations
 
+import logging
 import math
 from typing import TYPE_CHECKING, Optional, Sequence, Union
 
@@ -36,6 +37,8 @@ if TYPE_CHECKING:
     from transformers import CLIPModel
 
     from tiger.language.maskclip import MaskCLIP
+
+log = logging.getLogger(__name__)
 
 PSNR_CAP = 100.0
 
@@ -147,19 +150,32 @@ def locality(before: GaussianScene, after: GaussianScene, cameras: Sequence[Came
     """Locality PSNR of an edit over ``cameras``: renders of ``before`` and ``after`` (scenes)
     compared outside the union of the edited Gaussians' footprints (``edited_before`` [N_before]
     and ``edited_after`` [N_after] bool), dilated by ``dilate_px``. See :func:`psnr_outside`; the
-    result's ``parts`` splits the error by :func:`locality_parts`."""
+    result's ``parts`` splits the error by :func:`locality_parts`. When the dilated footprints
+    cover every pixel of every view nothing is compared: ``psnr``, ``mse`` and ``parts`` are None
+    (a warning is logged) instead of an error after the edit has run."""
     for name, scene, sel in (("edited_before", before, edited_before), ("edited_after", after, edited_after)):
         if sel.shape != (len(scene),) or sel.dtype != torch.bool:
             raise ValueError(f"tiger.eval.edit: {name} must be [N={len(scene)}] bool, got {list(sel.shape)} {sel.dtype}")
     rb, fb = render_rgb(before, cameras, background, footprint=edited_before)
     ra, fa = render_rgb(after, cameras, background, footprint=edited_after)
     masks = (fb > coverage) | (fa > coverage)
+    outside = ~dilate_mask(masks.to(rb.device), dilate_px)
+    if not bool(outside.any()):  # an object that fills every view: locality is not measurable here
+        log.warning("locality: the edited Gaussians' dilated footprint covers every pixel of the %d views; "
+                    "nothing to compare", len(cameras))
+        return {"psnr": None, "mse": None, "pixels": 0, "fraction": 0.0, "dilate_px": int(dilate_px), "parts": None}
     out = psnr_outside(rb, ra, masks, dilate_px)
     out["dilate_px"] = int(dilate_px)
-    outside = ~dilate_mask(masks.to(rb.device), dilate_px)
     out["parts"] = locality_parts(rb, ra, outside, edited_reach(before, cameras, edited_before),
                                   edited_reach(after, cameras, edited_after))
     return out
+
+
+def locality_text(loc: dict, where: str = "the object") -> str:
+    """One line for a summary: the locality PSNR of :func:`locality`'s result, or why there is none."""
+    if loc["psnr"] is None:
+        return "locality: not measured (the edited footprint covers every pixel of the views)"
+    return f"locality PSNR outside {where}: {loc['psnr']:.2f} dB ({loc['fraction']:.0%} of the pixels)"
 
 
 def edited_reach(scene: GaussianScene, cameras: Sequence[Camera], edited: torch.Tensor) -> torch.Tensor:
@@ -217,4 +233,4 @@ def clip_metrics(clip: Union["MaskCLIP", "CLIPModel"], before: torch.Tensor, aft
 
 
 __all__ = ["PSNR_CAP", "clip_direction_consistency", "clip_direction_similarity", "clip_image_embeddings",
-           "clip_metrics", "dilate_mask", "edited_reach", "locality", "locality_parts", "psnr_outside"]
+           "clip_metrics", "dilate_mask", "edited_reach", "locality", "locality_parts", "locality_text", "psnr_outside"]
