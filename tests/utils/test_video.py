@@ -114,3 +114,21 @@ def test_bad_input_names_the_problem(tmp_path):
         write_video([torch.zeros(8, 8)], tmp_path / "v")
     with pytest.raises(ValueError, match="fps"):
         write_video(frames(), tmp_path / "v", fps=0)
+
+
+def test_mp4_without_imageio_ffmpeg_names_what_to_install(tmp_path, monkeypatch):
+    """With no H.264 encoder in OpenCV and no imageio-ffmpeg, MP4 is refused in one line that names
+    the missing package (imageio would otherwise try another plugin and fail with its own message),
+    and nothing is left behind."""
+    import importlib.util
+
+    import tiger.utils.video as video
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else real(name, *a))
+    monkeypatch.setattr(video, "_ENCODERS", {**video._ENCODERS, "mp4": (video._imageio_h264,)})
+    with pytest.raises(RuntimeError) as err:
+        write_video(frames(), tmp_path / "clip", fps=10, kind="mp4")
+    msg = str(err.value)
+    assert "imageio-ffmpeg is not installed" in msg and "\n" not in msg
+    assert not list(tmp_path.iterdir())

@@ -53,7 +53,13 @@ def _opencv(fourcc: str) -> Callable[[list[np.ndarray], Path, float], None]:
 
 
 def _imageio_h264(arrays: list[np.ndarray], tmp: Path, fps: float) -> None:
-    import imageio.v2 as imageio  # needs the imageio-ffmpeg plugin
+    import importlib.util
+
+    # without its FFmpeg plugin imageio hands an .mp4 to whatever plugin is left (tifffile, if
+    # installed), which fails with a message that names neither H.264 nor what to install
+    if importlib.util.find_spec("imageio_ffmpeg") is None or importlib.util.find_spec("imageio") is None:
+        raise RuntimeError("imageio with imageio-ffmpeg is not installed")
+    import imageio.v2 as imageio
 
     with imageio.get_writer(str(tmp), fps=fps, codec="libx264", pixelformat="yuv420p",
                             macro_block_size=2) as w:
