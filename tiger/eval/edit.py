@@ -104,9 +104,14 @@ def psnr_outside(before: torch.Tensor, after: torch.Tensor, masks: torch.Tensor,
     if masks.shape != before.shape[:3]:
         raise ValueError(f"tiger.eval.edit: masks must be [V, H, W] = {list(before.shape[:3])}, got {list(masks.shape)}")
     outside = ~dilate_mask(masks.to(before.device), dilate_px)
-    n = int(outside.sum())
-    if n == 0:
+    if not bool(outside.any()):
         raise ValueError("tiger.eval.edit: the dilated object mask covers every pixel; nothing to compare")
+    return _psnr_over(before, after, outside)
+
+
+def _psnr_over(before: torch.Tensor, after: torch.Tensor, outside: torch.Tensor) -> dict:
+    """:func:`psnr_outside`'s result over the (non-empty) ``outside`` pixels [V, H, W]."""
+    n = int(outside.sum())
     err = (after.double() - before.double()).square().mean(-1)
     mse = float(err[outside].mean())
     return {"psnr": _psnr(mse), "mse": mse, "pixels": n, "fraction": n / outside.numel()}
@@ -164,7 +169,7 @@ def locality(before: GaussianScene, after: GaussianScene, cameras: Sequence[Came
         log.warning("locality: the edited Gaussians' dilated footprint covers every pixel of the %d views; "
                     "nothing to compare", len(cameras))
         return {"psnr": None, "mse": None, "pixels": 0, "fraction": 0.0, "dilate_px": int(dilate_px), "parts": None}
-    out = psnr_outside(rb, ra, masks, dilate_px)
+    out = _psnr_over(rb, ra, outside)
     out["dilate_px"] = int(dilate_px)
     out["parts"] = locality_parts(rb, ra, outside, edited_reach(before, cameras, edited_before),
                                   edited_reach(after, cameras, edited_after))

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import threading
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import nullcontext
 from typing import Callable, Iterable, Optional, TypeVar
 
 T = TypeVar("T")
@@ -49,12 +50,8 @@ def in_background(fn: Callable[[], T], name: str = "tiger-background") -> Callab
 
     def work() -> None:
         try:
-            with torch.set_grad_enabled(grad):
-                if stream is not None:
-                    with torch.cuda.stream(stream):
-                        box["value"] = fn()
-                else:
-                    box["value"] = fn()
+            with torch.set_grad_enabled(grad), (torch.cuda.stream(stream) if stream is not None else nullcontext()):
+                box["value"] = fn()
         except BaseException as exc:  # noqa: BLE001 - handed to the caller by result()
             box["error"] = exc
 

@@ -64,36 +64,24 @@ class MVDreamModels:
     num_views: int = NUM_VIEWS
 
 
-def _build_from_state(cls, config: dict, state: dict[str, torch.Tensor], what: str) -> torch.nn.Module:
-    """Instantiate on the meta device and assign the converted weights (no random init of 865M params)."""
+def _build_from_state(make: Callable[[], torch.nn.Module], state: dict[str, torch.Tensor], what: str,
+                      position_ids: bool = False) -> torch.nn.Module:
+    """``make()`` on the meta device, given the converted weights (no random init: 865M parameters
+    in the UNet, 340M in the text tower). ``position_ids``: the model's ``position_ids`` buffers,
+    which no checkpoint stores, are made here as 0, 1, 2, ... (CLIP's text tower)."""
     with torch.device("meta"):
-        model = cls(**config)
+        model = make()
     result = model.load_state_dict(state, strict=False, assign=True)
-    if result.missing_keys or result.unexpected_keys:
+    missing = [k for k in result.missing_keys if not (position_ids and k.endswith("position_ids"))]
+    if missing or result.unexpected_keys:
         raise ValueError(f"tiger.edit.mvdream: the checkpoint's {what} does not match its config: missing "
-                         f"{result.missing_keys[:5]}, unexpected {result.unexpected_keys[:5]}")
-    if any(t.is_meta for t in list(model.parameters()) + list(model.buffers())):
-        raise ValueError(f"tiger.edit.mvdream: {what} has tensors the checkpoint does not provide")
-    return model
-
-
-def _text_encoder_from_state(transformers, config: dict, state: dict[str, torch.Tensor], found: Path):
-    """The OpenCLIP text tower as a ``CLIPTextModel``, built on the meta device and given the
-    checkpoint's tensors (its random init took 2-5 s of CPU for 340M parameters); the position
-    ids, a buffer no checkpoint stores, are made here."""
-    with torch.device("meta"):
-        model = transformers.CLIPTextModel(transformers.CLIPTextConfig(**config))
-    result = model.load_state_dict(state, strict=False, assign=True)
-    if result.unexpected_keys or [k for k in result.missing_keys if not k.endswith("position_ids")]:
-        raise ValueError(f"tiger.edit.mvdream: text tower mismatch in {found}: missing {result.missing_keys[:5]}, "
-                         f"unexpected {result.unexpected_keys[:5]}")
-    for name, buf in list(model.named_buffers()):
-        if name.endswith("position_ids") and buf.is_meta:  # [1, max_positions]: 0, 1, 2, ...
+                         f"{missing[:5]}, unexpected {result.unexpected_keys[:5]}")
+    for name, buf in list(model.named_buffers()) if position_ids else ():
+        if name.endswith("position_ids") and buf.is_meta:  # [1, max_positions]
             owner = model.get_submodule(name.rpartition(".")[0])
             owner.register_buffer("position_ids", torch.arange(buf.shape[-1]).expand(1, -1), persistent=False)
-    meta = [n for n, t in list(model.named_parameters()) + list(model.named_buffers()) if t.is_meta]
-    if meta:
-        raise ValueError(f"tiger.edit.mvdream: the text tower in {found} lacks {meta[:5]}")
+    if any(t.is_meta for t in list(model.parameters()) + list(model.buffers())):
+        raise ValueError(f"tiger.edit.mvdream: {what} has tensors the checkpoint does not provide")
     return model
 
 
@@ -144,9 +132,11 @@ def load_mvdream(
             ldm_config = next((found.parent / n for n in LDM_CONFIG_NAMES if (found.parent / n).is_file()), None)
         state = _load_state_dict(found)
         comp = convert_ldm_checkpoint(state, ldm_config)
-        unet = _build_from_state(diffusers.UNet2DConditionModel, comp.unet_config, comp.unet_state, "UNet")
-        vae = _build_from_state(diffusers.AutoencoderKL, comp.vae_config, comp.vae_state, "VAE")
-        text_encoder = _text_encoder_from_state(transformers, comp.text_config, comp.text_state, found)
+        unet = _build_from_state(lambda: diffusers.UNet2DConditionModel(**comp.unet_config), comp.unet_state, "UNet")
+        vae = _build_from_state(lambda: diffusers.AutoencoderKL(**comp.vae_config), comp.vae_state, "VAE")
+        text_encoder = _build_from_state(
+            lambda: transformers.CLIPTextModel(transformers.CLIPTextConfig(**comp.text_config)), comp.text_state,
+            "text tower", position_ids=True)
         tok = _tokenizer(Path(tokenizer) if tokenizer is not None else None, found.parent)
         schedule = comp.schedule
     else:
