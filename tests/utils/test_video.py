@@ -132,3 +132,11 @@ def test_mp4_without_imageio_ffmpeg_names_what_to_install(tmp_path, monkeypatch)
     msg = str(err.value)
     assert "imageio-ffmpeg is not installed" in msg and "\n" not in msg
     assert not list(tmp_path.iterdir())
+
+
+def test_webm_tries_vp8_before_vp9():
+    """The default order, from its measurement (docs/BENCHMARKS.md, "`tiger edit` end to end"): for
+    the turntable OpenCV's VP8 took 0.54 s against VP9's 3.61 s at the same PSNR (37.47 / 37.52 dB)."""
+    import tiger.utils.video as video
+
+    assert [w.__name__ for w in video._ENCODERS["webm"]] == ["opencv_VP80", "opencv_VP90"]
