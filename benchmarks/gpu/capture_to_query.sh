@@ -15,6 +15,7 @@ FOX="${FOX:-.carry/realscene/fox}"
 ONLY="${ONLY:-reconstruct embed lift featup masks viewer}"
 export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 mkdir -p "$OUT"
+source benchmarks/gpu/bytecode.sh  # timed as an installation runs: byte-code compiled once
 say() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$OUT/log.txt"; }
 step() {  # name, seconds, command...
   local name=$1 limit=$2; shift 2

@@ -26,6 +26,7 @@ if [ "${SMOKE:-0}" = 1 ]; then DEVICE="${DEVICE:-cpu}"; SIZE="${SIZE:-tiny}"; fi
 DEVICE="${DEVICE:-cuda}"
 SIZE="${SIZE:-full}"
 export TIGER_MODELS="${TIGER_MODELS:-$OUT/models}" PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
+source "$(dirname "$0")/bytecode.sh"  # timed as an installation runs: byte-code compiled once
 mkdir -p "$OUT"
 LOG="$OUT/default_commands.txt"
 W="$OUT/work"

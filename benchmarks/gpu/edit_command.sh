@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # `tiger edit` end to end on the GPU, as a user runs it: the fox of default_commands.sh's QUICK run
 # (reconstructed, features, embedded; full-size random models in their real formats), then
-# `python -m benchmarks.edit_command` (wall time by phase) RUNS times, and the guidance-build
-# probe alternately in both threads (benchmarks.gpu.guidance_build_thread: main bg main bg).
+# `python -m benchmarks.edit_command` (wall time by phase) RUNS times, each a fresh process, with
+# the Python byte-code compiled once beforehand as an installation has it (bytecode.sh).
 #
 #   OUT=/tmp/ec bash benchmarks/gpu/edit_command.sh          # from the repo root, after `make build`
 #
@@ -13,6 +13,7 @@ PY="${PYTHON:-python3}"
 RUNS="${RUNS:-2}"
 export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 mkdir -p "$OUT"
+source "$(dirname "$0")/bytecode.sh"  # timed as an installation runs: byte-code compiled once
 OUT="$OUT" ONLY="reconstruct features_jbu embed" QUICK=1 bash benchmarks/gpu/default_commands.sh > "$OUT/prepare.txt" 2>&1 \
   || { echo "preparing the fox failed: $OUT/prepare.txt"; exit 1; }
 export TIGER_MODELS="$OUT/models"
@@ -21,4 +22,3 @@ for k in $(seq 1 "$RUNS"); do
     --out "$OUT/edit$k" --device cuda --force ${EDIT_ARGS:-} > "$OUT/edit$k.txt" 2>&1
   echo "== run $k (exit $?)"; sed -n '/wall time by phase/,$p' "$OUT/edit$k.txt"
 done
-for v in main bg main bg; do "$PY" -m benchmarks.gpu.guidance_build_thread "$v" 2>&1 | grep -E "^(main|bg):|Error"; done

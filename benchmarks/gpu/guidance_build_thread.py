@@ -1,6 +1,7 @@
-"""Does building the CSD guidance in another thread slow its first steps? (The open question of
-``docs/BENCHMARKS.md``, "`tiger edit` end to end".) One variant per process, so that no thread's
-cuDNN/cuBLAS state carries over:
+"""Does building the CSD guidance in another thread slow its first steps? (``docs/BENCHMARKS.md``,
+"`tiger edit` end to end"; raw ``benchmarks/gpu/results/guidance_build_thread_h100.txt``: no, only
+a machine's first process is slow.) One variant per process, so that no thread's cuDNN/cuBLAS
+state carries over:
 
 - ``main``: ``build_guidance`` in this thread (models loaded, guidances built, then the steps);
 - ``bg``: ``build_guidance`` in a background thread (``tiger.utils.threads.in_background``), as

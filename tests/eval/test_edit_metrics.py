@@ -129,3 +129,15 @@ def test_locality_of_an_object_that_fills_every_view_is_not_measured():
     obj[50:] = False
     loc = locality(before, after, orbit_cameras(2, 64, 48, center=(0.0, 0.0, 0.0), radius=3.0), obj, obj)
     assert loc["psnr"] is not None and locality_text(loc, "the ball").startswith("locality PSNR outside the ball")
+
+
+def test_locality_text_never_rounds_a_measured_share_to_zero():
+    """The summary's share of measured pixels: a fox that filled 99.6 % of the views printed "(0% of
+    the pixels)" beside a PSNR; small and near-full shares keep a decimal or a bound."""
+    from tiger.eval.edit import locality_text
+
+    def share(fraction: float) -> str:
+        return locality_text({"psnr": 40.0, "fraction": fraction}).split("(")[1].split(" of")[0]
+
+    assert [share(f) for f in (0.00004, 0.0042, 0.091, 0.5, 0.934, 0.99996, 1.0)] == \
+        ["<0.1%", "0.4%", "9.1%", "50%", "93.4%", ">99.9%", "100.0%"]

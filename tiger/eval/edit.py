@@ -180,7 +180,17 @@ def locality_text(loc: dict, where: str = "the object") -> str:
     """One line for a summary: the locality PSNR of :func:`locality`'s result, or why there is none."""
     if loc["psnr"] is None:
         return "locality: not measured (the edited footprint covers every pixel of the views)"
-    return f"locality PSNR outside {where}: {loc['psnr']:.2f} dB ({loc['fraction']:.0%} of the pixels)"
+    return f"locality PSNR outside {where}: {loc['psnr']:.2f} dB ({_percent(loc['fraction'])} of the pixels)"
+
+
+def _percent(share: float) -> str:
+    """A share as a percentage that never rounds a nonzero share to 0 % (or a partial one to 100 %)."""
+    pct = 100.0 * float(share)
+    if 0.0 < pct < 0.05:
+        return "<0.1%"
+    if 99.95 < pct < 100.0:
+        return ">99.9%"
+    return f"{pct:.1f}%" if pct < 10.0 or pct > 90.0 else f"{pct:.0f}%"
 
 
 def edited_reach(scene: GaussianScene, cameras: Sequence[Camera], edited: torch.Tensor) -> torch.Tensor:
