@@ -142,8 +142,8 @@ def run(args: argparse.Namespace) -> int:
                         force_360=True if not cams else None, width=args.size, height=args.size)
     bg = torch.tensor(cfg.background)
     frames = list(render_rgb(res.scene, views.fixed(36), bg).cpu())
-    # The turntable is the longest output to write (H100: ~2-3 s of encoding against ~2 s for the
-    # picture and the metrics): encoded (OpenCV/Pillow release the GIL) while the rest is made.
+    # The turntable is the longest output to write (profiled on the H100, the command still waited
+    # ~3 s for it after the metrics): encoded (OpenCV/Pillow release the GIL) while the rest is made.
     video_ready = in_background(lambda: write_video(frames, out / "turntable", kind=args.video), "tiger-edit-video")
     save_png(out / "before_after.png", before_after_grid(scene, res.scene, views.fixed(4), bg))
     metrics = {"locality": locality(scene, res.scene, views.fixed(8), target.mask, res.editable)}
