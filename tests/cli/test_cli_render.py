@@ -83,3 +83,34 @@ def test_cameras_json_survives_a_read_back(captured):
     ref = load_dataset(data).cameras
     assert [c.image_name for c in cams] == [c.image_name for c in ref]
     assert all(torch.allclose(a.viewmat.double(), b.viewmat.double(), atol=1e-6) for a, b in zip(cams, ref))
+
+
+def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch):
+    """The views render several to a pass (render_view_chunks); each picture equals the one a
+    render of its camera alone gives, byte for byte, across a chunk boundary."""
+    import tiger.scene
+    from tiger.scene import GaussianScene
+    from tiger.utils.images import depth_picture, to_uint8
+
+    chunks, chunked = [], tiger.scene.render_view_chunks
+
+    def four_a_pass(scene, cameras, *args, **kwargs):  # 6 views: chunks of 4 and 2
+        for first, outputs in chunked(scene, cameras, *args, views_per_pass=4, **kwargs):
+            chunks.append((first, outputs["color"].shape[0]))
+            yield first, outputs
+
+    monkeypatch.setattr(tiger.scene, "render_view_chunks", four_a_pass)
+    ply, _ = captured
+    out = tmp_path / "r"
+    assert main(["render", str(ply), "--views", "all", "--what", "color", "depth", "alpha", "--out", str(out),
+                 "--device", "cpu"]) == 0
+    scene = GaussianScene.load_ply(ply)
+    cams = read_cameras_json(ply.parent / "cameras.json")
+    for i, cam in enumerate(cams):
+        one = scene.render(cam)
+        color = np.array(Image.open(out / f"{i:03d}_color.png"))
+        assert np.array_equal(color, to_uint8(one["color"].clamp(0, 1))), i
+        assert np.array_equal(np.array(Image.open(out / f"{i:03d}_alpha.png")), to_uint8(one["alpha"])), i
+        depth = np.array(Image.open(out / f"{i:03d}_depth.png").convert("RGB"))
+        assert np.array_equal(depth, to_uint8(depth_picture(one["depth"], one["alpha"] > 0.5))[..., :3]), i
+    assert chunks == [(0, 4), (4, 2)]

@@ -142,3 +142,37 @@ def test_refit_refuses_another_deletions_checkpoint_even_with_nothing_to_train(t
     with pytest.raises(CheckpointMismatch, match="trainable"):
         refit(scene, torch.zeros_like(trainable), cams, targets, windows, cfg, checkpoint_dir=tmp_path,
               resume=True, progress=False)
+
+
+def test_render_stage_weights_are_the_per_view_renders():
+    """The render stage draws several views per pass (render_view_chunks) with one backward per
+    chunk: its pictures equal single-camera renders exactly, and each Gaussian's compositing
+    weight inside the holes / over the views is the sum over views of a per-view backward."""
+    from tiger.delete.holes import hole_masks
+    from tiger.delete.pipeline import render_stage
+    from tiger.scene import render_rgb
+
+    scene, is_mug, _ = _tabletop()
+    cams = _cameras(10)  # two chunks of views
+    cfg = DeleteConfig(tau=0.5, background=(1.0, 1.0, 1.0))
+    rest = scene.subset(~is_mug).detach()
+    views = render_stage(scene, rest, is_mug, cams, cfg)
+    bg = torch.tensor(cfg.background, dtype=scene.dtype)
+    _, vis = render_rgb(scene, cams, bg, footprint=is_mug)
+    hole_w = torch.zeros(len(rest), dtype=torch.float64)
+    view_w = torch.zeros(len(rest), dtype=torch.float64)
+    for k, cam in enumerate(cams):
+        ones = torch.ones(len(rest), 2, requires_grad=True)
+        r = rest.render(cam, ("rgb", ones), background=torch.cat([bg, bg.new_zeros(2)]))
+        assert torch.equal(r["color"][..., :3].detach().clamp(0, 1), views.rest_rgb[k])
+        assert torch.equal(r["alpha"].detach(), views.rest_alpha[k])
+        hole = hole_masks(vis[k][None], r["alpha"].detach()[None], visible_alpha=cfg.visible_alpha,
+                          thin_alpha=cfg.thin_alpha, dilate=cfg.dilate)[0]
+        assert torch.equal(hole, views.holes[k])
+        hole_grad, view_grad = torch.autograd.grad([(r["color"][..., 3] * hole).sum(), r["color"][..., 4].sum()],
+                                                   [ones, ones])
+        hole_w += hole_grad[:, 0].double()
+        view_w += view_grad[:, 1].double()
+    assert views.holes.any() and float(hole_w.max()) > 0
+    torch.testing.assert_close(views.hole_weight.double(), hole_w, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(views.view_weight.double(), view_w, rtol=1e-5, atol=1e-6)

@@ -11,7 +11,7 @@ import tiger
 from tiger.render.reference import sh_to_color_ref
 from tiger.ops.sh import sh_to_color
 from tiger.render import Camera, camera_center
-from tiger.scene import GaussianScene, render_views
+from tiger.scene import GaussianScene, render_rgb, render_view_chunks, render_views
 from tiger.scene.cameras import intrinsics
 
 from ..render.devices import DEVICES
@@ -75,6 +75,26 @@ def test_render_views_equals_per_camera_renders():
             for k in KEYS:
                 assert torch.equal(out[k][v], one[k]), (colors, k, v)
             assert int(out["n_isects"][v]) == one["n_isects"]
+
+
+def test_render_view_chunks_group_consecutive_cameras_of_one_size():
+    """Chunks of at most views_per_pass consecutive same-size cameras, in order, each view the
+    single-camera render; render_rgb (which renders through them) refuses mixed sizes."""
+    s = _scene()
+    sizes = [(24, 18), (24, 18), (24, 18), (16, 12), (24, 18), (24, 18)]
+    cams = [_camera(0.3 * i - 0.6, w, h) for i, (w, h) in enumerate(sizes)]
+    chunks = list(render_view_chunks(s, cams, "rgb+lang", views_per_pass=2, sh_degree=1))
+    assert [(first, out["color"].shape[0]) for first, out in chunks] == [(0, 2), (2, 1), (3, 1), (4, 2)]
+    for first, out in chunks:
+        for v in range(out["color"].shape[0]):
+            one = s.render(cams[first + v], "rgb+lang", sh_degree=1)
+            for k in KEYS:
+                assert torch.equal(out[k][v], one[k]), (first, v, k)
+    assert list(render_view_chunks(s, [])) == []
+    with pytest.raises(ValueError, match="views_per_pass"):
+        next(render_view_chunks(s, cams, views_per_pass=0))
+    with pytest.raises(ValueError, match="one size"):
+        render_rgb(s, cams)
 
 
 def test_render_views_gradients_agree_with_per_camera_renders():

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Iterator
 
 import torch
 
@@ -87,6 +88,16 @@ def _cameras(args: argparse.Namespace, scene: GaussianScene,
     return cams, f"{len(cams)} of {len(path)} {source}"
 
 
+def _renders(scene: GaussianScene, cams: list[Camera]) -> Iterator[dict[str, torch.Tensor]]:
+    """Each view's 'color' [H, W, 3], 'alpha' and 'depth' [H, W], rendered several views of one
+    size per pass (:func:`tiger.scene.render_view_chunks`), the same pictures as one render each."""
+    from tiger.scene import render_view_chunks
+
+    for _, chunk in render_view_chunks(scene.detach(), cams):  # detached: no autograd graph (no_grad
+        for v in range(chunk["color"].shape[0]):  # around a yield would leak into the caller)
+            yield {key: chunk[key][v] for key in ("color", "alpha", "depth")}
+
+
 def _stems(cams: list[Camera]) -> list[str]:
     """File stems: the source image's name without folder or extension (0001), made unique."""
     from pathlib import Path
@@ -126,9 +137,7 @@ def run(args: argparse.Namespace) -> int:
     frames, basis = [], None
     from tiger.utils.progress import progress
 
-    for cam, stem in zip(progress(cams, "rendering"), _stems(cams)):
-        with torch.no_grad():
-            r = scene.render(cam)
+    for cam, stem, r in zip(cams, _stems(cams), progress(_renders(scene, cams), "rendering", total=len(cams))):
         mask = r["alpha"] > 0.5
         if "color" in args.what:
             save_png(out / f"{stem}_color.png", r["color"].clamp(0, 1))

@@ -26,7 +26,7 @@ import torch
 
 from tiger.render import Camera
 from tiger.retrieval import CANONICAL_NEGATIVES, Retrieval, TextEncoder, retrieve
-from tiger.scene.gaussian_scene import GaussianScene, inverse_sigmoid, render_rgb
+from tiger.scene.gaussian_scene import GaussianScene, inverse_sigmoid, render_rgb, render_view_chunks
 from tiger.scene.sh import rgb_to_sh
 from tiger.train import StageTimer
 
@@ -94,21 +94,19 @@ def render_stage(scene: GaussianScene, rest: GaussianScene, removed: torch.Tenso
     bg3 = torch.tensor(cfg.background, dtype=scene.dtype, device=dev)
     before, vis = render_rgb(scene, cameras, bg3, footprint=removed)
     # two unit channels whose colour gradients are each Gaussian's compositing weight inside the
-    # hole (channel 3) and over the whole view (channel 4): one features-only backward per view
+    # hole (channel 3) and over the whole view (channel 4): one features-only backward per chunk
+    # of views (render_view_chunks: a few views per pass), the SH colour in the same pass
     ones = torch.ones(len(rest), 2, dtype=rest.dtype, device=dev, requires_grad=True)
     bg5 = torch.cat([bg3, bg3.new_zeros(2)])
-    rest_d = rest.detach()
     rows = []
-    for k, cam in enumerate(cameras):
-        with torch.no_grad():
-            rest_colors = rest_d.view_colors(cam)
-        r = rest_d.render(cam, torch.cat([rest_colors, ones], 1), background=bg5, check_finite=False)
-        hole = hole_masks(vis[k][None], r["alpha"].detach()[None], visible_alpha=cfg.visible_alpha,
-                          thin_alpha=cfg.thin_alpha, dilate=cfg.dilate)[0]
+    for first, r in render_view_chunks(rest.detach(), cameras, ("rgb", ones), background=bg5, check_finite=False):
+        v = r["color"].shape[0]
+        hole = hole_masks(vis[first:first + v], r["alpha"].detach(), visible_alpha=cfg.visible_alpha,
+                          thin_alpha=cfg.thin_alpha, dilate=cfg.dilate)
         ((r["color"][..., 3] * hole).sum() + r["color"][..., 4].sum()).backward()
         rows.append((r["color"][..., :3].detach(), r["alpha"].detach(), r["depth"].detach(), hole))
     grad = ones.grad.detach() if ones.grad is not None else torch.zeros(len(rest), 2, device=dev)
-    rgb, alpha, depth, holes = (torch.stack(t) for t in zip(*rows))
+    rgb, alpha, depth, holes = (torch.cat(t) for t in zip(*rows))
     footprint = disk_dilate(vis >= cfg.visible_alpha, cfg.dilate)
     return ViewStack(before, vis, rgb.clamp(0, 1), alpha, depth, holes, footprint, grad[:, 0], grad[:, 1])
 

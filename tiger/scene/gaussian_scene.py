@@ -4,7 +4,7 @@ from __future__ import annotations
 import copy
 import math
 import os
-from typing import Any, Iterable, Literal, NamedTuple, Optional, Sequence, Union
+from typing import Any, Iterable, Iterator, Literal, NamedTuple, Optional, Sequence, Union
 
 import torch
 
@@ -478,8 +478,35 @@ def render_views(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorS
     return composite_views(projections, size[0], size[1], _settings(options), means2d, trainable)
 
 
-#: Views rendered together by :func:`render_rgb` (bounds the stacked per-view projections).
+#: Views rendered together by :func:`render_view_chunks` and :func:`render_rgb` (bounds the stacked
+#: per-view projections).
 RGB_VIEWS_PER_PASS = 8
+
+
+def render_view_chunks(scene: GaussianScene, cameras: Sequence[Camera], colors: ColorSpec = None, *,
+                       views_per_pass: int = RGB_VIEWS_PER_PASS,
+                       **options: Any) -> Iterator[tuple[int, dict[str, torch.Tensor]]]:
+    """:func:`render_views` over any number of cameras of any sizes: consecutive cameras of one
+    image size, at most ``views_per_pass`` at a time, each chunk in one set of launches.
+
+    ``colors`` and ``options`` (``background``, ``sh_degree``, rasterizer keywords) are
+    :func:`render_views`'. Yields ``(first, outputs)``: the index of the chunk's first camera in
+    ``cameras`` and :func:`render_views`' stacked outputs for its views (view v of the chunk
+    equals ``scene.render(cameras[first + v], ...)``). The pictures of ``tiger render``,
+    turntables and grids (:func:`render_rgb`) come through here.
+    """
+    if views_per_pass < 1:
+        raise ValueError(f"tiger: render_view_chunks needs views_per_pass >= 1, got {views_per_pass}")
+    cameras = list(cameras)
+    start = 0
+    while start < len(cameras):
+        size = (cameras[start].width, cameras[start].height)
+        stop = start + 1
+        while (stop < len(cameras) and stop - start < views_per_pass
+               and (cameras[stop].width, cameras[stop].height) == size):
+            stop += 1
+        yield start, render_views(scene, cameras[start:stop], colors, **options)
+        start = stop
 
 
 @torch.no_grad()
@@ -510,9 +537,12 @@ def render_rgb(scene: GaussianScene, cameras: Sequence[Camera], background: Unio
             raise ValueError(f"tiger: render_rgb footprint must be [N={len(scene)}], got {list(footprint.shape)}")
         colors = ("rgb", footprint.to(scene.device, scene.dtype)[:, None])
         bg = torch.cat([bg, bg.new_zeros(1)])
+    sizes = {(cam.width, cam.height) for cam in cameras}
+    if len(sizes) > 1:
+        raise ValueError(f"tiger: render_rgb stacks views of one size, got {sorted(sizes)}")
     frozen = scene.detach()
-    parts = [render_views(frozen, cameras[i:i + RGB_VIEWS_PER_PASS], colors, background=bg,
-                          check_finite=False)["color"].clamp(0, 1) for i in range(0, len(cameras), RGB_VIEWS_PER_PASS)]
+    parts = [r["color"].clamp(0, 1) for _, r in render_view_chunks(frozen, cameras, colors, background=bg,
+                                                                   check_finite=False)]
     out = torch.cat(parts) if parts else render_views(frozen, cameras, colors)["color"]  # no camera: its error
     return out if footprint is None else (out[..., :3], out[..., 3])
 
