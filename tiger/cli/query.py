@@ -8,7 +8,7 @@ from typing import Optional
 import torch
 
 from tiger.render import Camera
-from tiger.scene import GaussianScene
+from tiger.scene import GaussianScene, render_view_chunks
 from tiger.utils.io import atomic_write, unique_file_slugs
 
 from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing, device_of, load_scene,
@@ -87,10 +87,9 @@ def run(args: argparse.Namespace) -> int:
         rgb = scene.rgb.detach()
         tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
                            0.35 * rgb + 0.3)
-        for i, cam in enumerate(cams):
-            with torch.no_grad():
-                img = scene.render(cam, tint, background=torch.ones(3, device=rgb.device))
-            save_png(out / f"{slug}_highlight_{i}.png", img["color"])
+        for first, chunk in render_view_chunks(scene.detach(), cams, tint, background=torch.ones(3, device=rgb.device)):
+            for v, img in enumerate(chunk["color"]):
+                save_png(out / f"{slug}_highlight_{first + v}.png", img)
         report[text] = {"selected": r.count, "tau": r.tau, "score": r.score, "files": slug,
                         "warning": check.problem,
                         "center": None if r.center is None else r.center.tolist(),
