@@ -88,18 +88,18 @@ def test_cameras_json_survives_a_read_back(captured):
 def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch):
     """The views render several to a pass (render_view_chunks); each picture equals the one a
     render of its camera alone gives, byte for byte, across a chunk boundary."""
-    import tiger.scene
-    from tiger.scene import GaussianScene
+    import tiger.cli.render
+    from tiger.scene import GaussianScene, render_view_chunks
     from tiger.utils.images import depth_picture, to_uint8
 
-    chunks, chunked = [], tiger.scene.render_view_chunks
+    chunks = []
 
     def four_a_pass(scene, cameras, *args, **kwargs):  # 6 views: chunks of 4 and 2
-        for first, outputs in chunked(scene, cameras, *args, views_per_pass=4, **kwargs):
+        for first, outputs in render_view_chunks(scene, cameras, *args, views_per_pass=4, **kwargs):
             chunks.append((first, outputs["color"].shape[0]))
             yield first, outputs
 
-    monkeypatch.setattr(tiger.scene, "render_view_chunks", four_a_pass)
+    monkeypatch.setattr(tiger.cli.render, "render_view_chunks", four_a_pass)
     ply, _ = captured
     out = tmp_path / "r"
     assert main(["render", str(ply), "--views", "all", "--what", "color", "depth", "alpha", "--out", str(out),

@@ -7,7 +7,7 @@ from typing import Iterator
 import torch
 
 from tiger.render import Camera
-from tiger.scene import GaussianScene
+from tiger.scene import GaussianScene, render_view_chunks
 
 from .common import (CliError, Summary, add_common, add_skip_missing, check_render_size, device_of, load_scene,
                      output_dir, positive_size)
@@ -91,8 +91,6 @@ def _cameras(args: argparse.Namespace, scene: GaussianScene,
 def _renders(scene: GaussianScene, cams: list[Camera]) -> Iterator[dict[str, torch.Tensor]]:
     """Each view's 'color' [H, W, 3], 'alpha' and 'depth' [H, W], rendered several views of one
     size per pass (:func:`tiger.scene.render_view_chunks`), the same pictures as one render each."""
-    from tiger.scene import render_view_chunks
-
     for _, chunk in render_view_chunks(scene.detach(), cams):  # detached: no autograd graph (no_grad
         for v in range(chunk["color"].shape[0]):  # around a yield would leak into the caller)
             yield {key: chunk[key][v] for key in ("color", "alpha", "depth")}
