@@ -265,3 +265,20 @@ def test_features_without_weights_names_every_missing_model(tmp_path, capsys, mo
     line = _last_line(capsys.readouterr().err)
     assert "3 of 3 models not found" in line and all(f"model '{m}'" in line for m in ("clip", "sam", "featup_jbu"))
     assert not out.exists()
+
+
+def test_edit_refuses_a_video_kind_it_cannot_write_before_any_work(tmp_path, capsys, monkeypatch):
+    """--video mp4 on a machine without an H.264 encoder: one line before the scene is even read
+    (not after a long edit), and no output folder."""
+    from tiger.utils import video
+
+    def broken(arrays, tmp, fps):
+        raise RuntimeError("no encoder in this build")
+
+    monkeypatch.setitem(video._ENCODERS, "mp4", (broken,))
+    out = tmp_path / "e"
+    code = main(["edit", str(tmp_path / "missing.ply"), "make it red", "--target", "mug", "--guidance", "recolor",
+                 "--video", "mp4", "--out", str(out), "--device", "cpu"])
+    assert code == 2
+    assert _last_line(capsys.readouterr().err).startswith("tiger edit: error: --video mp4: cannot write MP4 (broken:")
+    assert not out.exists()

@@ -140,3 +140,20 @@ def test_webm_tries_vp8_before_vp9():
     import tiger.utils.video as video
 
     assert [w.__name__ for w in video._ENCODERS["webm"]] == ["opencv_VP80", "opencv_VP90"]
+
+
+def test_check_video_kind_refuses_what_cannot_be_written(monkeypatch):
+    """An explicit container without a working encoder is refused up front with write_video's
+    message (encoders tried, what to install); auto / gif / none always pass."""
+    from tiger.utils import video
+
+    def broken(arrays, tmp, fps):
+        raise RuntimeError("no encoder in this build")
+
+    monkeypatch.setitem(video._ENCODERS, "mp4", (broken,))
+    with pytest.raises(RuntimeError, match=r"cannot write MP4 \(broken: no encoder in this build\); install imageio"):
+        video.check_video_kind("mp4")
+    for kind in ("auto", "gif", "none"):
+        video.check_video_kind(kind)
+    with pytest.raises(ValueError, match="kind must be one of"):
+        video.check_video_kind("avi")

@@ -66,7 +66,8 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--video", choices=VIDEO_KINDS, default="auto",
                    help="turntable video (auto: H.264 MP4, else VP8/VP9 WebM, else GIF: all play in "
-                        "browsers; default: %(default)s)")
+                        "browsers; default: %(default)s); mp4 or webm without an encoder here is "
+                        "refused before the edit starts")
     p.set_defaults(func=run)
 
 
@@ -85,12 +86,16 @@ def run(args: argparse.Namespace) -> int:
     from tiger.eval.edit import locality, locality_text
     from tiger.utils.images import save_png
     from tiger.utils.threads import in_background
-    from tiger.utils.video import write_video
+    from tiger.utils.video import check_video_kind, write_video
 
     if args.steps < 1 or args.size < 16:
         raise CliError("--steps must be >= 1 and --size >= 16")
     if args.view_pool < 0:
         raise CliError("--view-pool must be >= 0 (0: fresh cameras every step)")
+    try:  # an explicit --video this machine cannot write is refused now, not after the edit
+        check_video_kind(args.video)
+    except RuntimeError as e:
+        raise CliError(f"--video {args.video}: {e}") from None
     dev = device_of(args.device)
     if args.cuda_graph and dev.type != "cuda":
         raise CliError(f"--cuda-graph needs a CUDA --device, got {dev}")

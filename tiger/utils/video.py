@@ -104,6 +104,21 @@ def _write_encoded(arrays: list[np.ndarray], path: Path, fps: float, container: 
     raise RuntimeError(f"cannot write {container.upper()} (" + "; ".join(errors) + f"); {hint}, or ask for a GIF")
 
 
+def check_video_kind(kind: str) -> None:
+    """Refuse, before any long work, a ``kind`` this machine cannot write: "mp4" without an H.264
+    encoder, "webm" without VP8/VP9 (the RuntimeError of :func:`write_video`, naming the encoders
+    tried and what to install). Writes a 2-frame 16x16 clip of that kind into a temporary folder;
+    "auto", "gif" and "none" always work (Pillow writes the GIF)."""
+    if kind not in KINDS:
+        raise ValueError(f"write_video: kind must be one of {KINDS}, got {kind!r}")
+    if kind in ("auto", "gif", "none"):
+        return
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="tiger-video-check-") as folder:
+        write_video([np.zeros((16, 16, 3), np.uint8)] * 2, Path(folder) / "check", kind=kind)
+
+
 def write_video(frames: Sequence[Frame], path_stem: Union[str, os.PathLike], fps: float = 12,
                 kind: str = "auto") -> Optional[Path]:
     """Write ``frames`` ([H, W, 3] float in [0, 1] or uint8, all the same size) as a video.
