@@ -94,7 +94,8 @@ def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch)
 
     chunks = []
 
-    def four_a_pass(scene, cameras, *args, **kwargs):  # 6 views: chunks of 4 and 2
+    def four_a_pass(scene, cameras, *args, views_per_pass, **kwargs):  # 6 views: chunks of 4 and 2
+        assert views_per_pass == 8  # the default, memory permitting (tiny views here)
         for first, outputs in render_view_chunks(scene, cameras, *args, views_per_pass=4, **kwargs):
             chunks.append((first, outputs["color"].shape[0]))
             yield first, outputs
@@ -114,3 +115,16 @@ def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch)
         depth = np.array(Image.open(out / f"{i:03d}_depth.png").convert("RGB"))
         assert np.array_equal(depth, to_uint8(depth_picture(one["depth"], one["alpha"] > 0.5))[..., :3]), i
     assert chunks == [(0, 4), (4, 2)]
+
+
+def test_views_per_pass_follows_free_memory(monkeypatch):
+    """Several views render together only as far as half the free memory holds them by the render
+    estimate (80 bytes a pixel for RGB: 12 per channel + 44), between 1 and render_view_chunks'
+    default of 8."""
+    from tiger.cli import common
+
+    one = 100 * 100 * (3 * 12 + 44)
+    assert common.render_bytes(100, 100) == one
+    for free, want in ((10 * one, 5), (2 * one, 1), (one // 3, 1), (10**15, 8)):
+        monkeypatch.setattr(common, "available_bytes", lambda device, free=free: free)
+        assert common.views_per_pass(100, 100, torch.device("cpu")) == want, free

@@ -70,6 +70,16 @@ def check_render_size(width: int, height: int, device: torch.device, channels: i
                        f"{device.type} memory has {have / 2**30:.1f} GiB free; choose a smaller size")
 
 
+def views_per_pass(width: int, height: int, device: torch.device, channels: int = 3) -> int:
+    """How many views of ``width`` x ``height`` to render together (:func:`tiger.scene.render_view_chunks`):
+    up to its default, as many as half of ``device``'s free memory holds by :func:`render_bytes`
+    (at least one: :func:`check_render_size` has refused a view that does not fit)."""
+    from tiger.scene.gaussian_scene import RGB_VIEWS_PER_PASS
+
+    fit = available_bytes(device) // (2 * render_bytes(width, height, channels))
+    return int(max(1, min(RGB_VIEWS_PER_PASS, fit)))
+
+
 def add_common(p: argparse.ArgumentParser, out_default: Optional[str] = None,
                models: bool = False) -> None:
     """--device, --out, --force (and --models) with the same meaning in every subcommand."""

@@ -12,7 +12,7 @@ from tiger.scene import GaussianScene, render_view_chunks
 from tiger.utils.io import atomic_write, unique_file_slugs
 
 from .common import (CliError, Summary, add_common, add_selection_options, add_skip_missing, device_of, load_scene,
-                     open_dataset, output_dir, warn)
+                     open_dataset, output_dir, views_per_pass, warn)
 from .text import text_encoder
 
 
@@ -87,7 +87,9 @@ def run(args: argparse.Namespace) -> int:
         rgb = scene.rgb.detach()
         tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
                            0.35 * rgb + 0.3)
-        for first, chunk in render_view_chunks(scene.detach(), cams, tint, background=torch.ones(3, device=rgb.device)):
+        per_pass = views_per_pass(max(c.width for c in cams), max(c.height for c in cams), dev) if cams else 1
+        for first, chunk in render_view_chunks(scene.detach(), cams, tint, background=torch.ones(3, device=rgb.device),
+                                               views_per_pass=per_pass):
             for v, img in enumerate(chunk["color"]):
                 save_png(out / f"{slug}_highlight_{first + v}.png", img)
         report[text] = {"selected": r.count, "tau": r.tau, "score": r.score, "files": slug,

@@ -10,7 +10,7 @@ from tiger.render import Camera
 from tiger.scene import GaussianScene, render_view_chunks
 
 from .common import (CliError, Summary, add_common, add_skip_missing, check_render_size, device_of, load_scene,
-                     output_dir, positive_size)
+                     output_dir, positive_size, views_per_pass)
 
 KINDS = ("color", "depth", "alpha", "features", "relevancy")
 
@@ -88,11 +88,13 @@ def _cameras(args: argparse.Namespace, scene: GaussianScene,
     return cams, f"{len(cams)} of {len(path)} {source}"
 
 
-def _renders(scene: GaussianScene, cams: list[Camera]) -> Iterator[dict[str, torch.Tensor]]:
-    """Each view's 'color' [H, W, 3], 'alpha' and 'depth' [H, W], rendered several views of one
-    size per pass (:func:`tiger.scene.render_view_chunks`), the same pictures as one render each."""
-    for _, chunk in render_view_chunks(scene.detach(), cams):  # detached: no autograd graph (no_grad
-        for v in range(chunk["color"].shape[0]):  # around a yield would leak into the caller)
+def _renders(scene: GaussianScene, cams: list[Camera], per_pass: int) -> Iterator[dict[str, torch.Tensor]]:
+    """Each view's 'color' [H, W, 3], 'alpha' and 'depth' [H, W], rendered up to ``per_pass`` views
+    of one size at a time (:func:`tiger.scene.render_view_chunks`), the same pictures as one render
+    each."""
+    # a detached scene, not no_grad: grad mode set around a yield would hold in the caller too
+    for _, chunk in render_view_chunks(scene.detach(), cams, views_per_pass=per_pass):
+        for v in range(chunk["color"].shape[0]):
             yield {key: chunk[key][v] for key in ("color", "alpha", "depth")}
 
 
@@ -135,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
     frames, basis = [], None
     from tiger.utils.progress import progress
 
-    for cam, stem, r in zip(cams, _stems(cams), progress(_renders(scene, cams), "rendering", total=len(cams))):
+    renders = _renders(scene, cams, views_per_pass(width, height, dev))
+    for cam, stem, r in zip(cams, _stems(cams), progress(renders, "rendering", total=len(cams))):
         mask = r["alpha"] > 0.5
         if "color" in args.what:
             save_png(out / f"{stem}_color.png", r["color"].clamp(0, 1))
