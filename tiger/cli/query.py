@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     except (KeyError, ValueError) as e:
         raise CliError(f"{e.args[0] if e.args else e}; nothing was written") from None
     cams = pick_cameras(scene, args.data, args.views, dev, args.skip_missing)
+    per_pass = views_per_pass(max(c.width for c in cams), max(c.height for c in cams), dev) if cams else 1
     out = output_dir(args.out, args.force)
     summary = Summary("tiger query")
     report = {}
@@ -87,7 +88,6 @@ def run(args: argparse.Namespace) -> int:
         rgb = scene.rgb.detach()
         tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
                            0.35 * rgb + 0.3)
-        per_pass = views_per_pass(max(c.width for c in cams), max(c.height for c in cams), dev) if cams else 1
         for first, chunk in render_view_chunks(scene.detach(), cams, tint, background=torch.ones(3, device=rgb.device),
                                                views_per_pass=per_pass):
             for v, img in enumerate(chunk["color"]):
