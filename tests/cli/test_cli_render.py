@@ -11,6 +11,7 @@ from tiger.cli.main import main
 from tiger.scene.cameras_json import read_cameras_json, write_cameras_json
 from tiger.scene.dataset import load_dataset
 
+from ..render.devices import DEVICES
 from .datasets import tabletop_dataset
 
 
@@ -85,7 +86,8 @@ def test_cameras_json_survives_a_read_back(captured):
     assert all(torch.allclose(a.viewmat.double(), b.viewmat.double(), atol=1e-6) for a, b in zip(cams, ref))
 
 
-def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch):
+@pytest.mark.parametrize("device", DEVICES)
+def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch, device):
     """The views render several to a pass (render_view_chunks); each picture equals the one a
     render of its camera alone gives, byte for byte, across a chunk boundary."""
     import tiger.cli.render
@@ -104,8 +106,8 @@ def test_pictures_are_the_single_camera_renders(captured, tmp_path, monkeypatch)
     ply, _ = captured
     out = tmp_path / "r"
     assert main(["render", str(ply), "--views", "all", "--what", "color", "depth", "alpha", "--out", str(out),
-                 "--device", "cpu"]) == 0
-    scene = GaussianScene.load_ply(ply)
+                 "--device", device]) == 0
+    scene = GaussianScene.load_ply(ply).to(device=device)
     cams = read_cameras_json(ply.parent / "cameras.json")
     for i, cam in enumerate(cams):
         one = scene.render(cam)

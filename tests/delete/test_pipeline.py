@@ -9,6 +9,8 @@ from tiger.delete.refit import refit
 from tiger.render.views import orbit_cameras
 from tiger.retrieval import retrieve
 
+from ..render.devices import DEVICES
+
 MUG_CENTER = (-0.45, -0.13, 0.1)
 
 
@@ -144,7 +146,8 @@ def test_refit_refuses_another_deletions_checkpoint_even_with_nothing_to_train(t
               resume=True, progress=False)
 
 
-def test_render_stage_weights_are_the_per_view_renders():
+@pytest.mark.parametrize("device", DEVICES)
+def test_render_stage_weights_are_the_per_view_renders(device):
     """The render stage draws several views per pass (render_view_chunks) with one backward per
     chunk: its pictures equal single-camera renders exactly, and each Gaussian's compositing
     weight inside the holes / over the views is the sum over views of a per-view backward."""
@@ -153,16 +156,17 @@ def test_render_stage_weights_are_the_per_view_renders():
     from tiger.scene import render_rgb
 
     scene, is_mug, _ = _tabletop()
+    scene, is_mug = scene.to(device=device), is_mug.to(device)
     cams = _cameras(10)  # two chunks of views
     cfg = DeleteConfig(tau=0.5, background=(1.0, 1.0, 1.0))
     rest = scene.subset(~is_mug).detach()
     views = render_stage(scene, rest, is_mug, cams, cfg)
-    bg = torch.tensor(cfg.background, dtype=scene.dtype)
+    bg = torch.tensor(cfg.background, dtype=scene.dtype, device=device)
     _, vis = render_rgb(scene, cams, bg, footprint=is_mug)
-    hole_w = torch.zeros(len(rest), dtype=torch.float64)
-    view_w = torch.zeros(len(rest), dtype=torch.float64)
+    hole_w = torch.zeros(len(rest), dtype=torch.float64, device=device)
+    view_w = torch.zeros(len(rest), dtype=torch.float64, device=device)
     for k, cam in enumerate(cams):
-        ones = torch.ones(len(rest), 2, requires_grad=True)
+        ones = torch.ones(len(rest), 2, requires_grad=True, device=device)
         r = rest.render(cam, ("rgb", ones), background=torch.cat([bg, bg.new_zeros(2)]))
         assert torch.equal(r["color"][..., :3].detach().clamp(0, 1), views.rest_rgb[k])
         assert torch.equal(r["alpha"].detach(), views.rest_alpha[k])

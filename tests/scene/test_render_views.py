@@ -77,10 +77,11 @@ def test_render_views_equals_per_camera_renders():
             assert int(out["n_isects"][v]) == one["n_isects"]
 
 
-def test_render_view_chunks_group_consecutive_cameras_of_one_size():
+@pytest.mark.parametrize("device", DEVICES)
+def test_render_view_chunks_group_consecutive_cameras_of_one_size(device):
     """Chunks of at most views_per_pass consecutive same-size cameras, in order, each view the
     single-camera render; render_rgb (which renders through them) refuses mixed sizes."""
-    s = _scene()
+    s = _scene().to(device=device)
     sizes = [(24, 18), (24, 18), (24, 18), (16, 12), (24, 18), (24, 18)]
     cams = [_camera(0.3 * i - 0.6, w, h) for i, (w, h) in enumerate(sizes)]
     chunks = list(render_view_chunks(s, cams, "rgb+lang", views_per_pass=2, sh_degree=1))
