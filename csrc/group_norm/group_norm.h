@@ -42,22 +42,11 @@ struct Params {
   const float* input_bias;
 };
 
-// The L2-sliced forward of large channels-last maps (group_norm_cuda.cu, "L2-sliced forward"):
-// slices of S channels of one sample (whole groups, whole vectors, ~kSliceBytes), K row chunks
-// each. slices == 0: the map takes the three-kernel forward. counters() uint32 words, zeroed
-// before the launch, hold its work counter and per-slice progress.
-struct SlicedPlan {
-  int64_t S = 0, slices = 0, K = 0, chunk = 0;
-  int64_t counters() const { return slices > 0 ? 1 + 2 * slices : 0; }
-};
-SlicedPlan plan_sliced(const Dims& d, int vector_width, int elem_size, int64_t chunks);
-
-// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x. With a sliced
-// plan (plan_sliced, same chunks), counters: its zeroed workspace.
+// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x.
 template <typename T>
 void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks,
                     float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
-                    const SlicedPlan& sliced, unsigned* counters, void* stream);
+                    void* stream);
 
 // sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces;
 // residual (like x, may be null) is added to dx.

@@ -64,16 +64,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
   const int64_t chunks = plan_chunks(d, vw);
   auto pmean = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
   auto pm2 = at::empty_like(pmean);
-  const SlicedPlan sliced = plan_sliced(d, vw, static_cast<int>(x.element_size()), chunks);
-  at::Tensor counters;  // the sliced forward's work counter and per-slice progress, zeroed
-  if (sliced.slices > 0) counters = at::zeros({sliced.counters()}, x.options().dtype(at::kInt));
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   dispatch(x.scalar_type(), [&](auto tag) {
     using T = typename decltype(tag)::type;
     launch_forward<T>(reinterpret_cast<const T*>(x.data_ptr()), p, d, static_cast<float>(eps), silu, chunks,
                       pmean.data_ptr<float>(), pm2.data_ptr<float>(), mean.data_ptr<float>(), rstd.data_ptr<float>(),
-                      reinterpret_cast<T*>(y.data_ptr()), vw, sliced,
-                      counters.defined() ? reinterpret_cast<unsigned*>(counters.data_ptr<int>()) : nullptr, stream);
+                      reinterpret_cast<T*>(y.data_ptr()), vw, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return {y, mean, rstd};

@@ -15,7 +15,6 @@
 
 #include "common/cuda_helpers.cuh"
 #include "group_norm/group_norm.h"
-#include "group_norm/group_norm_walk.cuh"
 
 namespace tiger {
 namespace group_norm {
@@ -24,7 +23,16 @@ namespace {
 using tiger::cuda::load_as;
 using tiger::cuda::store_as;
 using tiger::cuda::Vec;
-using namespace walk;
+
+constexpr int kFinalThreads = 128;
+
+template <typename T>
+__device__ __forceinline__ float param_at(const Params& p, const void* ptr, int64_t c, float fill) {
+  if (ptr == nullptr) return fill;
+  return p.params_float ? static_cast<const float*>(ptr)[c] : load_as<float>(static_cast<const T*>(ptr)[c]);
+}
+
+__device__ __forceinline__ float sigmoid(float z) { return 1.f / (1.f + __expf(-z)); }
 
 // The walk of one block: geometry shared by the four walking kernels.
 struct Walk {
@@ -68,6 +76,43 @@ __device__ __forceinline__ int64_t offset_of(const Walk& w, const Tile& t, int64
 template <typename T, int V>
 __device__ __forceinline__ float shift_at(const T* x, const Walk& w, int64_t slice, int64_t c) {
   return load_as<float>(x[w.nhwc ? slice * w.rows * w.C + c : slice * w.rows * V]);
+}
+
+// Chan's merge of (count, mean, M2) b into a.
+__device__ __forceinline__ void merge(float& n, float& mean, float& m2, float nb, float meanb, float m2b) {
+  if (nb == 0.f) return;
+  const float tot = n + nb;
+  const float f = nb / tot;
+  const float delta = meanb - mean;
+  mean += delta * f;
+  m2 += m2b + delta * delta * n * f;
+  n = tot;
+}
+
+// Tree over the R thread rows of a block (slot = ty·cvt + tx), fixed order; after it slot tx
+// (ty = 0) holds the column's result. P is the power of two >= R.
+__device__ __forceinline__ int pow2_at_least(int r) {
+  int p = 1;
+  while (p < r) p <<= 1;
+  return p;
+}
+
+// Rows r0, r0 + step, ... < r1 in order, loading B rows before using them: the loads of a batch
+// are in flight together (one 16-byte load per thread at a time left the walks latency bound at
+// 50-70 % of the H100's bandwidth). The use order is the plain loop's: same results. B = 4 for
+// the one-tensor walks, 2 for the two-tensor ones (x and dy: 4 loads in flight either way; 4 rows
+// of both took ~160 registers a thread, one block per SM).
+template <int B, typename Load, typename Use>
+__device__ __forceinline__ void walk_rows(int64_t r0, int64_t r1, int64_t step, Load load, Use use) {
+  int64_t r = r0;
+  for (; r + (B - 1) * step < r1; r += B * step) {
+    decltype(load(r)) v[B];
+#pragma unroll
+    for (int u = 0; u < B; ++u) v[u] = load(r + u * step);
+#pragma unroll
+    for (int u = 0; u < B; ++u) use(r + u * step, v[u]);
+  }
+  for (; r < r1; r += step) use(r, load(r));
 }
 
 template <typename T, int V>
@@ -173,6 +218,12 @@ struct Partials {
     return nhwc ? g * D + e % D : g * D + e / (V * K);
   }
 };
+
+// Input bias of (n, c) (0 when absent): added to every element of the channel, shifts included,
+// so the per-channel moments (relative to the shift) need no change.
+__device__ __forceinline__ float input_bias_at(const float* ib, int64_t C, int64_t n, int64_t c) {
+  return ib == nullptr ? 0.f : ib[n * C + c];
+}
 
 template <typename T>
 __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const T* __restrict__ x,
@@ -541,21 +592,11 @@ int64_t plan_chunks(const Dims& d, int vector_width) {
   return std::max<int64_t>(1, (w.rows + chunk - 1) / std::max<int64_t>(chunk, 1));
 }
 
-// group_norm_sliced_cuda.cu
-template <typename T, int V>
-void launch_sliced_forward(const T* x, Params p, const Dims& d, float eps, bool silu, const SlicedPlan& plan,
-                           float* pmean, float* pm2, float* mean, float* rstd, T* y, unsigned* counters,
-                           cudaStream_t st);
-
 template <typename T>
 void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* partial_mean,
-                    float* partial_m2, float* mean, float* rstd, T* y, int vector_width, const SlicedPlan& sliced,
-                    unsigned* counters, void* stream) {
+                    float* partial_m2, float* mean, float* rstd, T* y, int vector_width, void* stream) {
   const auto st = static_cast<cudaStream_t>(stream);
-  if (sliced.slices > 0 && counters != nullptr && vector_width == 16 / static_cast<int>(sizeof(T)))
-    launch_sliced_forward<T, 16 / sizeof(T)>(x, p, d, eps, silu, sliced, partial_mean, partial_m2, mean, rstd, y,
-                                             counters, st);
-  else if (vector_width > 1)
+  if (vector_width > 1)
     forward_impl<T, 16 / sizeof(T)>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);
   else
     forward_impl<T, 1>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);
@@ -580,7 +621,7 @@ void launch_backward(const T* dy, const T* x, Params p, const Dims& d, const flo
 
 #define TIGER_INSTANTIATE(T)                                                                                     \
   template void launch_forward<T>(const T*, Params, const Dims&, float, bool, int64_t, float*, float*, float*, \
-                                  float*, T*, int, const SlicedPlan&, unsigned*, void*);                       \
+                                  float*, T*, int, void*);                                                     \
   template void launch_backward<T>(const T*, const T*, Params, const Dims&, const float*, const float*, bool,  \
                                    int64_t, float*, float*, float*, float*, float*, float*, const T*, T*, int, void*);
 TIGER_INSTANTIATE(float)
