@@ -69,10 +69,12 @@ run() {  # run NAME ARGS...: one tiger command, its output in $W/NAME.log, one s
   if [ "${SMOKE:-0}" = 1 ]; then  # every command's code path, none of its cost: tiny models, tiny maps
     # edit: the recolor guidance; the tiny VAE (factor 2) turns InstructPix2Pix's 512-px input into
     # 256x256 latents whose mid-block attention asks for 64 GiB on the CPU
-    R=(--steps 30 --downscale 8 --init-points 3000); E=(--steps 10); ED=(--steps 2 --size 64 --guidance recolor --color orange)
+    # edit and delete with --force: a tiny random CLIP's "fox" selects most of the scene, which the
+    # commands rightly refuse without it (the selection guard); the smoke run is after their code paths
+    R=(--steps 30 --downscale 8 --init-points 3000); E=(--steps 10); ED=(--steps 2 --size 64 --guidance recolor --color orange --force)
     F=(--long-side 96 --clip-long-side 64 --pca-dim 16)
     P=(--recon-steps 30 --downscale 8 --init-points 3000 --upsampler jbu "${F[@]}" --embed-steps 10)
-    Q=(--views 1); D=(--steps 2 --downscale 8); RE=(--views 2 --downscale 8)
+    Q=(--views 1); D=(--steps 2 --downscale 8 --force); RE=(--views 2 --downscale 8)
     subset 3 "$W/fox3"; FOX="$W/fox3"
     # implicit FeatUp's 1200-step fit takes over 15 minutes of CPU even with tiny models;
     # tests/language/test_featup_implicit.py runs its code path on the CPU
