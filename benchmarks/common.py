@@ -87,6 +87,22 @@ def cuda_time_ms(fn: Callable[[], Optional[object]], iters: int = 20, warmup: in
     return times[len(times) // 2]
 
 
+def cuda_graph_ms(fn: Callable[[], Optional[object]], calls: int = 1) -> float:
+    """GPU ms per call of ``fn``: ``calls`` calls captured in one CUDA graph (after one eager call
+    on the capture stream) and the graph's replays timed by :func:`cuda_time_ms` (as the guidance
+    steps run: no host launch cost between the kernels)."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.stream(side):
+        fn()
+        with torch.cuda.graph(graph, stream=side):
+            for _ in range(calls):
+                fn()
+    torch.cuda.current_stream().wait_stream(side)
+    return cuda_time_ms(graph.replay) / calls
+
+
 def cpu_time_ms(fn: Callable[..., object], iters: int = 3, warmup: int = 1,
                 setup: Optional[Callable[[], object]] = None) -> float:
     """Median wall time of ``fn`` in ms (CPU). ``setup`` (untimed) runs before each call and

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from benchmarks.common import cpu_time_ms, cuda_time_ms, print_table
+from benchmarks.common import cpu_time_ms, cuda_graph_ms, print_table
 from tiger.ops.layer_norm import layer_norm_rows
 from tiger.utils.dtypes import DTYPE_NAMES
 
@@ -35,21 +35,6 @@ def reference(x, w, b, eps=1e-5):
     xd = x.double()
     mean = xd.mean(-1, keepdim=True)
     return (xd - mean) / torch.sqrt((xd - mean).square().mean(-1, keepdim=True) + eps) * w.double() + b.double()
-
-
-def graph_ms(fn, calls: int = 20) -> float:
-    """GPU ms per call: ``calls`` calls captured in one CUDA graph and replayed (as the guidance
-    steps run; an eager call of either op costs more on the host than on the GPU at these sizes)."""
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.stream(side):
-        fn()
-        with torch.cuda.graph(graph, stream=side):
-            for _ in range(calls):
-                fn()
-    torch.cuda.current_stream().wait_stream(side)
-    return cuda_time_ms(graph.replay) / calls
 
 
 def rel(y, ref) -> float:
@@ -77,7 +62,7 @@ def main() -> None:
         # with an input bias, as the fused transformer blocks' second and third norms run
         ours_shift = lambda: layer_norm_rows(x, w, b, 1e-5, input_bias=shift)  # noqa: E731
         theirs = lambda: F.layer_norm(x, (c,), w, b, 1e-5)  # noqa: E731
-        timer = graph_ms if cuda else cpu_time_ms
+        timer = (lambda fn: cuda_graph_ms(fn, calls=20)) if cuda else cpu_time_ms
         t_ours, t_shift, t_torch = timer(ours), timer(ours_shift), timer(theirs)
         ref = reference(x, w, b)
         floor = 2 * x.numel() * x.element_size() / H100_BYTES_PER_S * 1e3 if cuda else float("nan")

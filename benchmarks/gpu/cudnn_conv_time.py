@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from benchmarks.common import cuda_graph_ms
+
 #: (N, H, W, C, K): the VAE encoder's 512², 256², 128² levels and the InstructPix2Pix UNet's 64².
 SHAPES = [(4, 512, 512, 128, 128), (4, 256, 256, 256, 256), (4, 128, 128, 512, 512), (12, 64, 64, 320, 320)]
 
@@ -22,20 +24,7 @@ def main() -> int:
         x = torch.randn(n, c, h, w, device="cuda", dtype=torch.bfloat16).contiguous(memory_format=torch.channels_last)
         wt = (torch.randn(k, c, 3, 3, device="cuda", dtype=torch.bfloat16) * 0.05).contiguous(
             memory_format=torch.channels_last)
-        for _ in range(5):
-            F.conv2d(x, wt, padding=1)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            F.conv2d(x, wt, padding=1)
-        times = []
-        for _ in range(20):
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            graph.replay()
-            b.record()
-            torch.cuda.synchronize()
-            times.append(a.elapsed_time(b))
-        ms = sorted(times)[len(times) // 2]
+        ms = cuda_graph_ms(lambda: F.conv2d(x, wt, padding=1))
         flop = 2 * n * h * w * k * 9 * c
         print(f"cuDNN {n}x{h}x{w}x{c}->{k}: {ms:.4f} ms  {flop / ms / 1e9:.0f} TFLOP/s")
     return 0

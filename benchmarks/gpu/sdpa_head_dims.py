@@ -2,7 +2,7 @@
 kernels, at head dim 40 (the model's), 48 and 64 (zero-padded choices a hand-written kernel might
 take) and the 32² layers' 80: whether padding the head dim costs cuDNN anything, and the reference
 for a CUTLASS FMHA probe in the same call (raw ``benchmarks/gpu/results/fmha_cutlass_vs_cudnn_h200.txt``).
-One CUDA graph replay per timing, median of 20.
+One CUDA graph replay per timing (``benchmarks.common.cuda_graph_ms``), median of 20.
 
     python -m benchmarks.gpu.sdpa_head_dims          # CUDA only
 """
@@ -11,25 +11,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from benchmarks.common import cuda_graph_ms
+
 #: (batch, heads, tokens, head dim): 12 = 3 guidance branches x 4 views.
 SHAPES = [(12, 8, 4096, 40), (12, 8, 4096, 48), (12, 8, 4096, 64), (12, 8, 1024, 80)]
-
-
-def graph_ms(fn) -> float:
-    for _ in range(3):
-        fn()
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        fn()
-    times = []
-    for _ in range(20):
-        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        a.record()
-        graph.replay()
-        b.record()
-        torch.cuda.synchronize()
-        times.append(a.elapsed_time(b))
-    return sorted(times)[len(times) // 2]
 
 
 def main() -> int:
@@ -43,7 +28,7 @@ def main() -> int:
         for name, backend in (("cudnn", SDPBackend.CUDNN_ATTENTION), ("flash", SDPBackend.FLASH_ATTENTION)):
             try:
                 with sdpa_kernel([backend]):
-                    ms = graph_ms(lambda: F.scaled_dot_product_attention(q, k, v))
+                    ms = cuda_graph_ms(lambda: F.scaled_dot_product_attention(q, k, v))
                 row.append(f"{name} {ms:.3f} ms ({4 * B * H * L * L * d / ms / 1e9:.0f} TFLOP/s at d={d})")
             except RuntimeError as e:  # a backend that refuses the shape
                 row.append(f"{name} n/a ({type(e).__name__})")
