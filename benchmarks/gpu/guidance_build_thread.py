@@ -13,7 +13,9 @@ carries over:
 - ``evict_prefetch``: ``evict``, then the same files read ahead (``posix_fadvise(WILLNEED)``) while
   the models load: whether prefetching them at a command's start would hide that wait.
 
-(``CUDA_CACHE_DISABLE=1 python -m ... main`` tests the other suspect, the driver's JIT cache.)
+(``CUDA_CACHE_DISABLE=1 python -m ... main`` tests the other suspect, the driver's JIT cache. The
+answer, raw ``guidance_cold_start_h100.txt``: the JIT cache; evicting or prefetching the libraries
+moves the first step by ~1 s.)
 Prints the build time, the first step (warm-up and CUDA-graph capture of both guidances), the
 second, and the mean of steps 3-12 (pooled views, 4 x 512², new pool ids every step as at the
 start of an edit). Run the variants alternately (main bg main bg) so a cold first process shows as

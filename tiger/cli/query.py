@@ -76,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
     out = output_dir(args.out, args.force)
     summary = Summary("tiger query")
     report = {}
+    # the highlight pictures' fixed parts, once for all texts
+    frozen, rgb = scene.detach(), scene.rgb.detach()
+    orange, white = rgb.new_tensor([1.0, 0.5, 0.0]), rgb.new_ones(3)
     for text, slug in zip(texts, unique_file_slugs(texts)):
         r = results[text]
         check = check_selection(scene.means, r.mask)
@@ -85,11 +88,8 @@ def run(args: argparse.Namespace) -> int:
             scene.subset(r.mask).save_ply(out / f"{slug}.ply")
         write_relevancy_pictures(scene, cams, text, out / "relevancy", encoder=encoder,
                                  score=args.score)
-        rgb = scene.rgb.detach()
-        tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * torch.tensor([1.0, 0.5, 0.0], device=rgb.device),
-                           0.35 * rgb + 0.3)
-        for first, chunk in render_view_chunks(scene.detach(), cams, tint, background=torch.ones(3, device=rgb.device),
-                                               views_per_pass=per_pass):
+        tint = torch.where(r.mask[:, None], 0.4 * rgb + 0.6 * orange, 0.35 * rgb + 0.3)
+        for first, chunk in render_view_chunks(frozen, cams, tint, background=white, views_per_pass=per_pass):
             for v, img in enumerate(chunk["color"]):
                 save_png(out / f"{slug}_highlight_{first + v}.png", img)
         report[text] = {"selected": r.count, "tau": r.tau, "score": r.score, "files": slug,
