@@ -48,6 +48,13 @@ void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, i
                     float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
                     void* stream);
 
+// The forward in one launch for channels-last maps small enough for a thread-block cluster's
+// registers (compute capability 9.0 and up; group_norm_small_cuda.cu): same outputs; returns false
+// (launching nothing) where it does not apply. launch_forward tries it first.
+template <typename T>
+bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
+                          int vector_width, void* stream);
+
 // sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces;
 // residual (like x, may be null) is added to dx.
 template <typename T>

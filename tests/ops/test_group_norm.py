@@ -203,8 +203,12 @@ def test_bad_inputs_name_the_problem():
 
 # ---- CUDA ------------------------------------------------------------------------------------
 # Shapes: D = 4 (VAE's 128 channels / 32), D = 10 (UNet's 320 / 32), a scalar path (C = 30 is no
-# multiple of the 16-byte vector; H·W = 35 neither), and one large enough for several chunks.
-CUDA_SHAPES = [(2, 128, 8, 8, 32), (3, 320, 6, 5, 32), (2, 30, 5, 7, 3), (1, 64, 96, 80, 8)]
+# multiple of the 16-byte vector; H·W = 35 neither), and one large enough for several chunks. On
+# compute capability 9.0 channels-last maps go to the one-launch forward where a block's registers
+# hold them (group_norm_small_cuda.cu): 8x8 and 6x5 maps with two and four groups a block, 15
+# vectors a block row (D = 60); 40x40 at D = 10 and 96x80 do not fit (the three-kernel forward).
+CUDA_SHAPES = [(2, 128, 8, 8, 32), (3, 320, 6, 5, 32), (2, 30, 5, 7, 3), (1, 64, 96, 80, 8),
+               (2, 320, 40, 40, 32), (1, 1920, 8, 8, 32), (2, 320, 96, 96, 32)]
 
 
 @pytest.mark.cuda
@@ -235,8 +239,9 @@ def test_cuda_matches_cpu_and_reference(dtype, layout, shape):
 @pytest.mark.cuda
 @pytest.mark.skipif(not CUDA, reason="needs CUDA and tiger's CUDA kernels")
 @pytest.mark.parametrize("layout", ["nchw", "cl"])
-def test_cuda_large_mean_and_determinism(layout):
-    x, w, b = make(4, 128, 64, 64, dtype=torch.float32, layout=layout, mean=1000.0, scale=1e-2, seed=7)
+@pytest.mark.parametrize("hw", [64, 16])  # 16x16 channels-last: the one-launch forward (compute capability 9.0)
+def test_cuda_large_mean_and_determinism(layout, hw):
+    x, w, b = make(4, 128, hw, hw, dtype=torch.float32, layout=layout, mean=1000.0, scale=1e-2, seed=7)
     xc, wc, bc = x.cuda(), w.cuda(), b.cuda()
     y, mean, rstd = torch.ops.tiger.group_norm(xc, wc, bc, 32, 1e-6, True)
     xg = x.to(F64).reshape(4, 32, -1)

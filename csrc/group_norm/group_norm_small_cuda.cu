@@ -1,0 +1,310 @@
+// tiger::group_norm's forward for small channels-last maps in one launch.
+//
+// The general forward (group_norm_cuda.cu) runs three kernels: per-chunk moments, their combine
+// per (n, g), the apply. On the diffusion UNets' smallest maps each of those launches is
+// latency-bound and walks long column passes with few blocks (8x1280x4², 8 blocks): 22-28 us per
+// norm for 0.3-8 MB. Here one block owns one (sample n, channel block) — cb = lcm(V, D) channels,
+// i.e. whole groups in whole 16-byte vectors — and holds its elements in registers: every thread
+// keeps up to E vectors of one fixed column (so its lanes' channels, groups and affine constants
+// are fixed), the groups' sums go warp -> block in a fixed order (deterministic), first of the
+// values (a first mean), then of the deviations from it and their squares (the exact mean and the
+// variance: large-mean inputs keep their variance), then each thread writes its elements
+// normalised. One read and one write of the map, one launch, no partial buffers.
+//
+// The block is a thread-block cluster of one: the kernel was written for clusters of K blocks
+// (distributed shared memory across them, in rank order), but on the H100 clusters of 4-8 made
+// the 32²-128² maps slower than the general forward (8x320x32² 17.5 -> 26.6 us, 4x256x128² 56.4
+// -> 97.7), while single blocks made the small ones 1.5-3.4x faster (8x1280x8² 26.6 -> 8.0 us,
+// 12x1280x16² 28.1 -> 19.4; benchmarks/gpu/results/group_norm_small_maps_ab_h100.txt). So
+// kMaxCluster is 1: maps whose (n, channel block) does not fit one block's registers take the
+// general forward.
+#include <cooperative_groups.h>
+#include <cuda_runtime.h>
+
+#include <numeric>
+
+#include "common/cuda_helpers.cuh"
+#include "group_norm/group_norm.h"
+
+namespace tiger {
+namespace group_norm {
+namespace {
+
+namespace cg = cooperative_groups;
+using tiger::cuda::load_as;
+using tiger::cuda::store_as;
+using tiger::cuda::Vec;
+
+constexpr int kBlockThreads = 256;  // the most threads a block of the cluster has
+// 16-byte vectors a thread holds: 8 of 2-byte types (32 registers; 12 spilled at two blocks per
+// SM), 12 of float32.
+template <typename T>
+constexpr int kMaxVectors = sizeof(T) == 2 ? 8 : 12;
+constexpr int kMaxCluster = 1;  // blocks per (n, channel block): clusters of 4-8 were slower (file comment)
+constexpr int kMaxWarps = kBlockThreads / 32;
+
+struct SmallGeom {
+  int64_t C, HW, G, cb;  // channels, pixels, groups, channels per block (whole groups and vectors)
+  int cbv, threads, cluster, E;  // vectors per pixel row of a block, threads per block (a multiple
+                                 // of cbv), blocks per cluster, vectors per thread
+};
+
+// Block-wide then cluster-wide sums of s[0..GB) in a fixed order; every thread gets the totals.
+template <int GB>
+__device__ __forceinline__ void cluster_sums(cg::cluster_group& cluster, float (&s)[GB], float (*s_warp)[GB],
+                                             float* s_block, float* s_total) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = (blockDim.x + 31) >> 5;
+#pragma unroll
+  for (int g = 0; g < GB; ++g) {
+#pragma unroll
+    for (int o = 16; o >= 1; o >>= 1) s[g] += __shfl_xor_sync(0xffffffffu, s[g], o);
+  }
+  if (lane == 0) {
+#pragma unroll
+    for (int g = 0; g < GB; ++g) s_warp[warp][g] = s[g];
+  }
+  __syncthreads();
+  if (threadIdx.x < GB) {
+    float t = 0.f;
+    for (int w = 0; w < warps; ++w) t += s_warp[w][threadIdx.x];
+    s_block[threadIdx.x] = t;
+  }
+  cluster.sync();  // every block's s_block written
+  if (threadIdx.x < GB) {
+    float t = 0.f;
+    for (unsigned r = 0; r < cluster.num_blocks(); ++r) t += cluster.map_shared_rank(s_block, r)[threadIdx.x];
+    s_total[threadIdx.x] = t;
+  }
+  __syncthreads();
+#pragma unroll
+  for (int g = 0; g < GB; ++g) s[g] = s_total[g];
+}
+
+// Sums over the lanes of each lane's group: out[g] = Σ_{l: group(l) = g} acc[l].
+template <int V, int GB>
+__device__ __forceinline__ void lanes_to_groups(const float (&acc)[V], uint32_t groups, float (&out)[GB]) {
+#pragma unroll
+  for (int g = 0; g < GB; ++g) {
+    out[g] = 0.f;
+#pragma unroll
+    for (int l = 0; l < V; ++l) out[g] += ((groups >> (4 * l)) & 15u) == uint32_t(g) ? acc[l] : 0.f;
+  }
+}
+
+// The value of lane l's group in per-group values.
+template <int GB>
+__device__ __forceinline__ float group_value(const float (&vals)[GB], uint32_t groups, int l) {
+  float r = 0.f;
+#pragma unroll
+  for (int g = 0; g < GB; ++g) r = ((groups >> (4 * l)) & 15u) == uint32_t(g) ? vals[g] : r;
+  return r;
+}
+
+template <typename T, int V, bool SILU, int GB>
+__global__ void __launch_bounds__(kBlockThreads, 2)
+    small_forward_kernel(const T* __restrict__ x, Params p, SmallGeom s, float eps, float* __restrict__ mean_out,
+                         float* __restrict__ rstd_out, T* __restrict__ y) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  __shared__ float s_warp[kMaxWarps][2 * GB];
+  __shared__ float s_block1[2 * GB], s_block2[2 * GB], s_total[2 * GB];
+  cg::cluster_group cluster = cg::this_cluster();
+  const int K = static_cast<int>(cluster.num_blocks());
+  const int64_t item = blockIdx.x / K, blocks_per_n = s.C / s.cb;
+  const int64_t n = item / blocks_per_n, c0 = item % blocks_per_n * s.cb;
+  const int64_t D = s.C / s.G, g0 = c0 / D;
+  const int i = static_cast<int>(cluster.block_rank()) * s.threads + static_cast<int>(threadIdx.x);
+  const int cv = i % s.cbv;  // the thread's column: its lanes' channels and groups are fixed
+  const int64_t pix0 = i / s.cbv, pix_step = int64_t(K) * s.threads / s.cbv;
+  const int64_t base = n * s.HW * s.C + c0 + cv * V;
+  const float inv_m = 1.f / static_cast<float>(D * s.HW);
+
+  uint32_t groups = 0;  // 4 bits a lane: its group relative to g0 (< 8)
+  float ib[V];
+#pragma unroll
+  for (int l = 0; l < V; ++l) {
+    groups |= static_cast<uint32_t>((cv * V + l) / D) << (4 * l);
+    ib[l] = p.input_bias == nullptr ? 0.f : p.input_bias[n * s.C + c0 + cv * V + l];
+  }
+  Vec<T, V> v[kMaxVectors<T>];
+  float acc[V], acc2[V];
+#pragma unroll
+  for (int l = 0; l < V; ++l) acc[l] = 0.f;
+#pragma unroll
+  for (int k = 0; k < kMaxVectors<T>; ++k) {
+    const int64_t pix = pix0 + k * pix_step;
+    if (k < s.E && pix < s.HW) {
+      v[k] = *reinterpret_cast<const Vec<T, V>*>(x + base + pix * s.C);
+#pragma unroll
+      for (int l = 0; l < V; ++l) acc[l] += load_as<float>(v[k].v[l]) + ib[l];
+    }
+  }
+  // pass 1: a first mean, the shift of pass 2 (large-mean inputs keep their variance there)
+  float sums[2 * GB];
+  {
+    float part[GB];
+    lanes_to_groups<V, GB>(acc, groups, part);
+#pragma unroll
+    for (int g = 0; g < GB; ++g) sums[g] = part[g];
+  }
+  cluster_sums<GB>(cluster, reinterpret_cast<float(&)[GB]>(sums), reinterpret_cast<float(*)[GB]>(s_warp), s_block1,
+                   s_total);
+  float shift[GB];
+#pragma unroll
+  for (int g = 0; g < GB; ++g) shift[g] = sums[g] * inv_m;
+  // pass 2: Σ d and Σ d² about the shift: the exact mean and the variance
+#pragma unroll
+  for (int l = 0; l < V; ++l) acc[l] = acc2[l] = 0.f;
+#pragma unroll
+  for (int k = 0; k < kMaxVectors<T>; ++k) {
+    const int64_t pix = pix0 + k * pix_step;
+    if (k < s.E && pix < s.HW) {
+#pragma unroll
+      for (int l = 0; l < V; ++l) {
+        const float d = load_as<float>(v[k].v[l]) + ib[l] - group_value<GB>(shift, groups, l);
+        acc[l] += d;
+        acc2[l] += d * d;
+      }
+    }
+  }
+  {
+    float p1[GB], p2[GB];
+    lanes_to_groups<V, GB>(acc, groups, p1);
+    lanes_to_groups<V, GB>(acc2, groups, p2);
+#pragma unroll
+    for (int g = 0; g < GB; ++g) {
+      sums[g] = p1[g];
+      sums[GB + g] = p2[g];
+    }
+  }
+  __syncthreads();  // every thread has read s_total: it is reused
+  cluster_sums<2 * GB>(cluster, sums, s_warp, s_block2, s_total);
+  float mean[GB], rstd[GB];
+#pragma unroll
+  for (int g = 0; g < GB; ++g) {
+    const float dm = sums[g] * inv_m;
+    mean[g] = shift[g] + dm;
+    rstd[g] = rsqrtf(fmaxf(sums[GB + g] * inv_m - dm * dm, 0.f) + eps);
+  }
+  if (cluster.block_rank() == 0 && i == 0) {
+    for (int g = 0; g < static_cast<int>(s.cb / D); ++g) {
+#pragma unroll
+      for (int h = 0; h < GB; ++h)
+        if (h == g) {
+          mean_out[n * s.G + g0 + g] = mean[h];
+          rstd_out[n * s.G + g0 + g] = rstd[h];
+        }
+    }
+  }
+  float m[V], a[V], b[V];
+#pragma unroll
+  for (int l = 0; l < V; ++l) {
+    const int64_t c = c0 + cv * V + l;
+    const float w = p.weight == nullptr ? 1.f
+                    : p.params_float   ? static_cast<const float*>(p.weight)[c]
+                                       : load_as<float>(static_cast<const T*>(p.weight)[c]);
+    b[l] = p.bias == nullptr ? 0.f
+           : p.params_float  ? static_cast<const float*>(p.bias)[c]
+                             : load_as<float>(static_cast<const T*>(p.bias)[c]);
+    m[l] = group_value<GB>(mean, groups, l) - ib[l];  // x − (mean − ib), as the general apply
+    a[l] = group_value<GB>(rstd, groups, l) * w;
+  }
+#pragma unroll
+  for (int k = 0; k < kMaxVectors<T>; ++k) {
+    const int64_t pix = pix0 + k * pix_step;
+    if (k < s.E && pix < s.HW) {
+      Vec<T, V> out;
+#pragma unroll
+      for (int l = 0; l < V; ++l) {
+        float z = (load_as<float>(v[k].v[l]) - m[l]) * a[l] + b[l];
+        if (SILU) z *= 1.f / (1.f + __expf(-z));
+        out.v[l] = store_as<T>(z);
+      }
+      *reinterpret_cast<Vec<T, V>*>(y + base + pix * s.C) = out;
+    }
+  }
+  cluster.sync();  // no block leaves while another may still read its shared memory
+#endif
+}
+
+// The geometry for this map, or false when the one-launch forward does not apply (not
+// channels-last, scalar path, pre-Hopper device, more than 4 groups or 8 vectors per block row,
+// or too many pixels for the registers of kMaxCluster blocks).
+template <typename T>
+bool plan_small(const Dims& d, int V, SmallGeom& s) {
+  if (!d.nhwc || V == 1 || d.G <= 0 || d.C % d.G != 0) return false;
+  int dev = 0, major = 0;
+  if (cudaGetDevice(&dev) != cudaSuccess ||
+      cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, dev) != cudaSuccess || major < 9)
+    return false;
+  const int64_t D = d.C / d.G, cb = std::lcm<int64_t>(V, D);
+  if (d.C % cb != 0 || cb / D > 4 || cb / V > kBlockThreads / 32) return false;
+  s.C = d.C;
+  s.HW = d.HW;
+  s.G = d.G;
+  s.cb = cb;
+  s.cbv = static_cast<int>(cb / V);
+  s.threads = kBlockThreads / s.cbv * s.cbv;
+  const int64_t per_pass = s.threads / s.cbv;  // pixels one block covers per vector a thread holds
+  for (int K = 1; K <= kMaxCluster; K *= 2) {
+    const int64_t E = (d.HW + K * per_pass - 1) / (K * per_pass);
+    if (E <= kMaxVectors<T>) {
+      s.cluster = K;
+      s.E = static_cast<int>(E);
+      return d.HW > 0;
+    }
+  }
+  return false;
+}
+
+template <typename T, int V, bool SILU, int GB>
+cudaError_t launch_small(const T* x, Params p, const SmallGeom& s, int64_t N, float eps, float* mean, float* rstd, T* y,
+                         cudaStream_t st) {
+  cudaLaunchConfig_t cfg = {};
+  cfg.gridDim = dim3(static_cast<unsigned>(N * (s.C / s.cb) * s.cluster));
+  cfg.blockDim = dim3(static_cast<unsigned>(s.threads));
+  cfg.stream = st;
+  cudaLaunchAttribute attr[1];
+  attr[0].id = cudaLaunchAttributeClusterDimension;
+  attr[0].val.clusterDim.x = static_cast<unsigned>(s.cluster);
+  attr[0].val.clusterDim.y = 1;
+  attr[0].val.clusterDim.z = 1;
+  cfg.attrs = attr;
+  cfg.numAttrs = 1;
+  return cudaLaunchKernelEx(&cfg, small_forward_kernel<T, V, SILU, GB>, x, p, s, eps, mean, rstd, y);
+}
+
+template <typename T, int V, bool SILU>
+cudaError_t launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_t N, float eps, float* mean,
+                                float* rstd, T* y, cudaStream_t st) {
+  switch (s.cb / (s.C / s.G)) {
+    case 1: return launch_small<T, V, SILU, 1>(x, p, s, N, eps, mean, rstd, y, st);
+    case 2: return launch_small<T, V, SILU, 2>(x, p, s, N, eps, mean, rstd, y, st);
+    default: return launch_small<T, V, SILU, 4>(x, p, s, N, eps, mean, rstd, y, st);  // 3 or 4 (plan_small)
+  }
+}
+
+}  // namespace
+
+template <typename T>
+bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
+                          int vector_width, void* stream) {
+  constexpr int V = 16 / sizeof(T);
+  SmallGeom s;
+  if (vector_width != V || !plan_small<T>(d, V, s)) return false;
+  const auto st = static_cast<cudaStream_t>(stream);
+  const cudaError_t err = silu ? launch_small_groups<T, V, true>(x, p, s, d.N, eps, mean, rstd, y, st)
+                               : launch_small_groups<T, V, false>(x, p, s, d.N, eps, mean, rstd, y, st);
+  if (err == cudaSuccess) return true;
+  (void)cudaGetLastError();  // a cluster the device cannot place: clear it, the general forward runs
+  return false;
+}
+
+template bool launch_forward_small<float>(const float*, Params, const Dims&, float, bool, float*, float*, float*, int,
+                                          void*);
+template bool launch_forward_small<__half>(const __half*, Params, const Dims&, float, bool, float*, float*, __half*,
+                                           int, void*);
+template bool launch_forward_small<__nv_bfloat16>(const __nv_bfloat16*, Params, const Dims&, float, bool, float*,
+                                                  float*, __nv_bfloat16*, int, void*);
+
+}  // namespace group_norm
+}  // namespace tiger
