@@ -45,8 +45,8 @@ constexpr int kMaxWarps = kBlockThreads / 32;
 
 struct SmallGeom {
   int64_t C, HW, G, cb;  // channels, pixels, groups, channels per block (whole groups and vectors)
-  int cbv, threads, cluster, E;  // vectors per pixel row of a block, threads per block (a multiple
-                                 // of cbv), blocks per cluster, vectors per thread
+  int cbv, threads, cluster, E;  // vectors per pixel row of a block, threads of a block that hold
+                                 // pixels (a multiple of cbv), blocks per cluster, vectors per thread
 };
 
 // Block-wide then cluster-wide sums of s[0..GB) in a fixed order; every thread gets the totals.
@@ -114,7 +114,9 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
   const int64_t D = s.C / s.G, g0 = c0 / D;
   const int i = static_cast<int>(cluster.block_rank()) * s.threads + static_cast<int>(threadIdx.x);
   const int cv = i % s.cbv;  // the thread's column: its lanes' channels and groups are fixed
-  const int64_t pix0 = i / s.cbv, pix_step = int64_t(K) * s.threads / s.cbv;
+  // threads past s.threads (blockDim is a whole number of warps, for the shuffles) hold no pixel
+  const int64_t pix0 = static_cast<int>(threadIdx.x) < s.threads ? i / s.cbv : s.HW;
+  const int64_t pix_step = int64_t(K) * s.threads / s.cbv;
   const int64_t base = n * s.HW * s.C + c0 + cv * V;
   const float inv_m = 1.f / static_cast<float>(D * s.HW);
 
@@ -261,7 +263,7 @@ cudaError_t launch_small(const T* x, Params p, const SmallGeom& s, int64_t N, fl
                          cudaStream_t st) {
   cudaLaunchConfig_t cfg = {};
   cfg.gridDim = dim3(static_cast<unsigned>(N * (s.C / s.cb) * s.cluster));
-  cfg.blockDim = dim3(static_cast<unsigned>(s.threads));
+  cfg.blockDim = dim3(static_cast<unsigned>((s.threads + 31) / 32 * 32));  // whole warps (the shuffles' full masks)
   cfg.stream = st;
   cudaLaunchAttribute attr[1];
   attr[0].id = cudaLaunchAttributeClusterDimension;
