@@ -48,9 +48,10 @@ void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, i
                     float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
                     void* stream);
 
-// The forward in one launch for channels-last maps small enough for a thread-block cluster's
-// registers (compute capability 9.0 and up; group_norm_small_cuda.cu): same outputs; returns false
-// (launching nothing) where it does not apply. launch_forward tries it first.
+// The forward in one launch for channels-last maps whose (sample, channel block) fits one block's
+// registers (compute capability 9.0 and up; group_norm_small_cuda.cu): same outputs, the partial
+// workspaces unused; returns false (launching nothing) where it does not apply. launch_forward
+// tries it first.
 template <typename T>
 bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
                           int vector_width, void* stream);
