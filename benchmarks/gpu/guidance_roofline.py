@@ -69,6 +69,7 @@ def _span_bytes(t: torch.Tensor) -> int:
 
 
 def _tensor_bytes(tree: Any) -> int:
+    """Bytes of the CUDA tensors in ``tree`` (args, kwargs or outputs), each tensor once."""
     seen, total = set(), 0
     for t in tree_flatten(tree)[0]:
         if isinstance(t, torch.Tensor) and t.is_cuda:
@@ -79,13 +80,13 @@ def _tensor_bytes(tree: Any) -> int:
     return total
 
 
-def _is_view(func) -> bool:
+def _is_view(func: Any) -> bool:
     """Whether an op returns a view of an input without writing it (aliases, reshapes)."""
     rets = func._schema.returns
     return bool(rets) and all(r.alias_info is not None and not r.alias_info.is_write for r in rets)
 
 
-def _exponentials(func, args) -> int:
+def _exponentials(func: Any, args: tuple) -> int:
     """Softmax exponentials of an attention forward: B·H·Lq·Lk."""
     if not any(k in str(func) for k in SDPA_OPS) or "backward" in str(func):
         return 0
@@ -95,6 +96,9 @@ def _exponentials(func, args) -> int:
 
 @dataclasses.dataclass
 class OpRecord:
+    """One dispatched op: name (``aten::convolution``), FLOPs, bytes of its tensors, softmax
+    exponentials, its first input's shape and its kernels' GPU time."""
+
     name: str
     flops: float
     bytes: int
