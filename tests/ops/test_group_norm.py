@@ -205,8 +205,9 @@ def test_bad_inputs_name_the_problem():
 # Shapes: D = 4 (VAE's 128 channels / 32), D = 10 (UNet's 320 / 32), a scalar path (C = 30 is no
 # multiple of the 16-byte vector; H·W = 35 neither), and one large enough for several chunks. On
 # compute capability 9.0 channels-last maps go to the one-launch forward where a block's registers
-# hold them (group_norm_small_cuda.cu): 8x8 and 6x5 maps with two and four groups a block, 15
-# vectors a block row (D = 60); 40x40 at D = 10 and 96x80 do not fit (the three-kernel forward).
+# hold them (group_norm_small_cuda.cu): 8x8 and 6x5 maps with two and four groups a block; 40x40
+# at D = 10, 96x80 and D = 60 (15 vectors a block row, over its limit of 8) take the three-kernel
+# forward.
 CUDA_SHAPES = [(2, 128, 8, 8, 32), (3, 320, 6, 5, 32), (2, 30, 5, 7, 3), (1, 64, 96, 80, 8),
                (2, 320, 40, 40, 32), (1, 1920, 8, 8, 32)]
 
