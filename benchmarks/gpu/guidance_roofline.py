@@ -32,7 +32,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
-from benchmarks.common import _addmm_inplace_flops, print_table
+from benchmarks.common import _addmm_inplace_flops, cuda_graph_ms, print_table
 from benchmarks.guidance import H100_BF16_TFLOPS, ring
 from benchmarks.guidance_floor import default_cuda_guidances, fixed_draws
 from tiger.edit.guidance.base import ViewBatch
@@ -179,23 +179,7 @@ def copy_bandwidth() -> float:
 def launch_floor_ms(calls: int = 2000) -> float:
     """ms per kernel of the shortest kernels (a 1-element add) replayed back to back in a CUDA graph."""
     x = torch.zeros(1, device="cuda")
-    stream = torch.cuda.Stream()
-    with torch.cuda.stream(stream):
-        for _ in range(3):
-            x.add_(1)
-    torch.cuda.synchronize()
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph, stream=stream):
-        for _ in range(calls):
-            x.add_(1)
-    graph.replay()
-    torch.cuda.synchronize()
-    a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    a.record()
-    graph.replay()
-    b.record()
-    torch.cuda.synchronize()
-    return a.elapsed_time(b) / calls
+    return cuda_graph_ms(lambda: x.add_(1), calls=calls)
 
 
 @dataclasses.dataclass
