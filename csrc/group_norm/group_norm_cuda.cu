@@ -3,9 +3,11 @@
 // Both layouts are walked the same way: a "slice" is an image row block that shares one set of
 // per-column channels (NHWC: slice = n, rows = pixels, columns = the C / V channel vectors;
 // NCHW: slice = (n, c), rows = H·W / V pixel vectors, one column whose V lanes all belong to
-// channel c). Block (slice s = blockIdx.x, chunk k = blockIdx.y) covers rows
-// [k·chunk, (k+1)·chunk); thread (tx, ty) owns column tx (+ passes of kMaxCols) and rows ty,
-// ty + R, ... so a warp reads contiguous 16-byte vectors. Per-(slice, chunk, lane) partials
+// channel c). Block (slice s = blockIdx.x, chunk k = blockIdx.y, column pass blockIdx.z) covers
+// rows [k·chunk, (k+1)·chunk) of the pass's (at most kMaxCols) columns; thread (tx, ty) owns
+// column tx of the pass and rows ty, ty + R, ... so a warp reads contiguous 16-byte vectors.
+// Column passes are blocks of their own, not a loop of one block: a wide map with few pixels
+// (the UNets' 1920- and 2560-channel maps at 8²-16², 5 passes) otherwise ran on N x 2 blocks. Per-(slice, chunk, lane) partials
 // (Welford moments relative to a per-channel shift; sums of dz and dz·x̂ for the backward) are
 // combined per (n, g) by a second kernel in a fixed order: deterministic, and no host
 // synchronisation anywhere.
@@ -128,7 +130,7 @@ __global__ void __launch_bounds__(kThreads) stats_kernel(const T* __restrict__ x
   const Tile t = tile_of(w);
   const int slot = threadIdx.x;
   const int P = pow2_at_least(t.R);
-  for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
+  for (int64_t v0 = int64_t(blockIdx.z) * w.cvt; v0 < w.cols; v0 += int64_t(gridDim.z) * w.cvt) {
     const int64_t v = v0 + t.tx;
     const bool active = t.ty < t.R && v < w.cols;
     float n = 0.f, mean[V], m2[V], shift[V];
@@ -297,7 +299,7 @@ __global__ void __launch_bounds__(kThreads, 4) apply_kernel(const T* __restrict_
                                                          const float* __restrict__ rstd_g, T* __restrict__ y) {
   const Tile t = tile_of(w);
   if (t.ty >= t.R) return;
-  for (int64_t v = t.tx; v < w.cols; v += w.cvt) {
+  for (int64_t v = int64_t(blockIdx.z) * w.cvt + t.tx; v < w.cols; v += int64_t(gridDim.z) * w.cvt) {
     // Three constants per lane, not ColumnConsts' five plus the product: fewer registers, more
     // blocks per SM for this bandwidth-bound pass. The input bias moves into the mean (x − (mean
     // − ib) keeps the subtraction of nearly equal values exact); x·a + shift would not.
@@ -351,7 +353,7 @@ __global__ void __launch_bounds__(kThreads) backward_reduce_kernel(const T* __re
   const Tile t = tile_of(w);
   const int slot = threadIdx.x;
   const int P = pow2_at_least(t.R);
-  for (int64_t v0 = 0; v0 < w.cols; v0 += w.cvt) {
+  for (int64_t v0 = int64_t(blockIdx.z) * w.cvt; v0 < w.cols; v0 += int64_t(gridDim.z) * w.cvt) {
     const int64_t v = v0 + t.tx;
     const bool active = t.ty < t.R && v < w.cols;
     float sa[V], sb[V];
@@ -488,7 +490,7 @@ __global__ void __launch_bounds__(kThreads, 2) dx_kernel(const T* __restrict__ d
   const Tile t = tile_of(w);
   if (t.ty >= t.R) return;
   const int64_t D = w.C / G;
-  for (int64_t v = t.tx; v < w.cols; v += w.cvt) {
+  for (int64_t v = int64_t(blockIdx.z) * w.cvt + t.tx; v < w.cols; v += int64_t(gridDim.z) * w.cvt) {
     ColumnConsts<T, V> k;
     k.load(w, t, v, p, G, mean_g, rstd_g);
     float k1[V], k2[V];
@@ -541,15 +543,19 @@ Partials make_partials(const Dims& d, const Walk& w, int V, int64_t chunks) {
   return Partials{d.N, d.C, d.G, chunks, w.rows, w.chunk, V, d.nhwc};
 }
 
-dim3 walk_grid(const Dims& d, int64_t chunks) {
-  return dim3(static_cast<unsigned>(d.nhwc ? d.N : d.N * d.C), static_cast<unsigned>(chunks));
+// Column passes of kMaxCols vectors.
+int64_t column_passes(const Walk& w) { return (w.cols + w.cvt - 1) / w.cvt; }
+
+dim3 walk_grid(const Dims& d, const Walk& w, int64_t chunks) {
+  return dim3(static_cast<unsigned>(d.nhwc ? d.N : d.N * d.C), static_cast<unsigned>(chunks),
+              static_cast<unsigned>(column_passes(w)));
 }
 
 template <typename T, int V>
 void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* pmean, float* pm2,
                   float* mean, float* rstd, T* y, cudaStream_t st) {
   const Walk w = make_walk(d, V, chunks);
-  const dim3 grid = walk_grid(d, chunks);
+  const dim3 grid = walk_grid(d, w, chunks);
   stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
   finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
       make_partials(d, w, V, chunks), x, p.input_bias, pmean, pm2, eps, mean, rstd);
@@ -564,7 +570,7 @@ void backward_impl(const T* dy, const T* x, Params p, const Dims& d, const float
                    int64_t chunks, float* pdz, float* pdzx, float* sum_dz, float* sum_dzx, float* c1, float* c2,
                    const T* residual, T* dx, cudaStream_t st) {
   const Walk w = make_walk(d, V, chunks);
-  const dim3 grid = walk_grid(d, chunks);
+  const dim3 grid = walk_grid(d, w, chunks);
   backward_reduce_kernel<T, V, SILU><<<grid, kThreads, 0, st>>>(dy, x, w, p, d.G, mean, rstd, pdz, pdzx);
   finalize_backward_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
       make_partials(d, w, V, chunks), p, pdz, pdzx, sum_dz, sum_dzx, c1, c2);
@@ -581,7 +587,8 @@ int64_t plan_chunks(const Dims& d, int vector_width) {
   if (cudaGetDevice(&dev) != cudaSuccess || cudaDeviceGetAttribute(&sm_count, cudaDevAttrMultiProcessorCount, dev) != cudaSuccess)
     sm_count = 132;
   const Walk w = make_walk(d, vector_width, 1);
-  const int64_t slices = d.nhwc ? d.N : d.N * d.C;
+  // blocks per chunk of rows: one per slice and column pass
+  const int64_t slices = (d.nhwc ? d.N : d.N * d.C) * column_passes(w);
   const int64_t R = kThreads / w.cvt;
   const int64_t target = 4 * static_cast<int64_t>(sm_count);
   int64_t chunks = slices > 0 ? (target + slices - 1) / slices : 1;

@@ -3,7 +3,8 @@
 // those threads idle and the blocks are too short-lived to keep the memory system busy (48 norms
 // of InstructPix2Pix's UNet took 1.7 ms, about 3.5x their read-and-write floor on an H100). Here a
 // group of G lanes of one warp owns a row (G the power of two that gives each lane at most 4
-// vectors, at most 32), keeps its vectors in registers (up to 8 a lane; longer rows are re-read),
+// vectors, at most 32), keeps its vectors in registers (up to 4 a lane where G < 32, else up to
+// 8; longer rows are re-read),
 // and reduces over the group with shuffles: mean first, then the sum of squared deviations (two
 // passes over registers, no cancellation), then the output, rounded once. An optional input bias
 // (a per-channel vector the residual stream has not added yet) is added in float wherever a value
@@ -29,7 +30,12 @@ using tiger::cuda::reciprocal_sqrt;
 using tiger::cuda::Vec;
 
 constexpr int kThreads = 256;
-constexpr int kMaxVecs = 8;  // vectors a lane keeps in registers
+// Vectors a lane keeps in registers: 4 where the row's lanes number fewer than 32 (G is chosen to
+// give each at most 4), 8 for the longest rows. Registers sized for 8 on every row left the
+// 64² transformer rows (49152 x 320, bf16) at ~45 % of the H100's bandwidth: the unused slots
+// held registers (bf16 instances 99-104 a thread, two blocks per SM; with 4: 48 without an input
+// bias, 72 with one, five and three blocks). A minimum of four blocks spilled the input-bias one.
+constexpr int kMaxVecs = 8;
 
 template <typename T>
 using Acc = std::conditional_t<std::is_same_v<T, double>, double, float>;
@@ -48,7 +54,7 @@ __device__ __forceinline__ Vec<T, V> load_vec(const T* p, int64_t i) {
 
 // SHIFT: input_bias is given. A separate instance, so that rows without one keep a kernel with
 // no trace of it (the runtime test and its loads cost ~10% on the UNets' rows, H100).
-template <typename T, int V, bool SHIFT>
+template <typename T, int V, bool SHIFT, int VECS>
 __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x, const T* __restrict__ weight,
                                                         const T* __restrict__ bias,
                                                         const T* __restrict__ input_bias, T* __restrict__ y,
@@ -61,7 +67,7 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
   const int sub = lane % G;
   const bool valid = row < M;  // every lane takes part in the shuffles
   const T* xr = x + (valid ? row : 0) * C;
-  const bool in_regs = nv <= G * kMaxVecs;
+  const bool in_regs = nv <= G * VECS;
 
   // Vector i of the row plus the input bias, in float.
   auto widen = [&](const Vec<T, V>& v, int i, A (&u)[V]) {
@@ -74,12 +80,12 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
     }
   };
 
-  Vec<T, V> reg[kMaxVecs];
+  Vec<T, V> reg[VECS];
   A u[V];
   A sum = A(0);
   if (in_regs) {
 #pragma unroll
-    for (int k = 0; k < kMaxVecs; ++k) {
+    for (int k = 0; k < VECS; ++k) {
       const int i = sub + k * G;
       if (valid && i < nv) {
         reg[k] = load_vec<T, V>(xr, i);
@@ -101,7 +107,7 @@ __global__ void __launch_bounds__(kThreads) rows_kernel(const T* __restrict__ x,
   auto each_vector = [&](auto&& use) {
     if (in_regs) {
 #pragma unroll
-      for (int k = 0; k < kMaxVecs; ++k) {
+      for (int k = 0; k < VECS; ++k) {
         const int i = sub + k * G;
         if (valid && i < nv) use(reg[k], i);
       }
@@ -151,12 +157,16 @@ void launch(const T* x, const T* weight, const T* bias, const T* input_bias, T* 
   const int64_t blocks = (M + rows_per_block - 1) / rows_per_block;
   if (blocks <= 0) return;
   const auto grid = static_cast<unsigned>(blocks);
-  if (input_bias != nullptr)
-    rows_kernel<T, V, true><<<grid, kThreads, 0, st>>>(x, weight, bias, input_bias, y, M, nv, static_cast<int>(C), G,
-                                                       static_cast<Acc<T>>(eps));
-  else
-    rows_kernel<T, V, false><<<grid, kThreads, 0, st>>>(x, weight, bias, nullptr, y, M, nv, static_cast<int>(C), G,
-                                                        static_cast<Acc<T>>(eps));
+  const int c = static_cast<int>(C);
+  const auto e = static_cast<Acc<T>>(eps);
+#define TIGER_LN_ROWS(SHIFT, VECS) \
+  rows_kernel<T, V, SHIFT, VECS><<<grid, kThreads, 0, st>>>(x, weight, bias, input_bias, y, M, nv, c, G, e)
+  if (G < 32) {  // nv <= 4·G
+    if (input_bias != nullptr) TIGER_LN_ROWS(true, 4); else TIGER_LN_ROWS(false, 4);
+  } else {
+    if (input_bias != nullptr) TIGER_LN_ROWS(true, kMaxVecs); else TIGER_LN_ROWS(false, kMaxVecs);
+  }
+#undef TIGER_LN_ROWS
 }
 
 bool aligned(const void* p) { return p == nullptr || reinterpret_cast<uintptr_t>(p) % 16 == 0; }

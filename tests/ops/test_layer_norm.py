@@ -138,7 +138,7 @@ def test_errors_name_the_problem():
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32, torch.float64])
 @pytest.mark.parametrize("shape,case", [((12, 256, 320), "vectors"), ((3, 5, 1280), "vectors"), ((7, 4096), "re-read"),
                                         ((33, 13), "scalar"), ((5, 320), "misaligned"), ((1, 8), "vectors"),
-                                        ((1000, 40), "vectors")])
+                                        ((1000, 40), "vectors"), ((9, 512), "vectors")])
 @pytest.mark.parametrize("bias,input_bias", [(True, False), (False, False), (True, True)])
 def test_cuda_against_float64(dtype, shape, case, bias, input_bias):
     g = torch.Generator().manual_seed(2)
