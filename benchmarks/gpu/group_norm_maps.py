@@ -1,0 +1,44 @@
+"""GroupNorm forward on every map shape of the CSD step's UNets and VAE, one op at a time: tiger's
+``group_norm`` (32 groups, SiLU, affine, a per-(sample, channel) input bias; bfloat16,
+channels-last, as the guidance runs it), microseconds per call from 50 calls replayed as one CUDA
+graph. Shapes: MVDream's UNet (2 branches x 4 views = 8 rows) at 4²-32², InstructPix2Pix's (12
+rows) at 8²-64², the VAE encoder's 4 views at 32²-128², including the up blocks' 1920- and
+2560-channel concatenations. Which kernels a shape takes (the one-launch forward, the three-kernel
+walk and its column passes) is in csrc/group_norm.
+Usage: python -m benchmarks.gpu.group_norm_maps [--tag NAME]"""
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from benchmarks.common import cuda_graph_ms
+from tiger.ops.group_norm import group_norm
+
+# (rows, channels, height, width)
+SHAPES = [(8, 1280, 4, 4), (8, 1280, 8, 8), (8, 2560, 8, 8), (8, 640, 16, 16), (8, 1920, 16, 16),
+          (8, 320, 32, 32), (4, 512, 32, 32), (12, 1280, 8, 8), (12, 2560, 8, 8), (12, 1280, 16, 16),
+          (12, 1920, 16, 16), (12, 640, 32, 32), (12, 320, 64, 64), (4, 512, 64, 64), (4, 256, 128, 128)]
+
+
+def time_shape(n: int, c: int, h: int, w: int, calls: int = 50) -> float:
+    """Microseconds per forward call of one [n, c, h, w] map (graph replays)."""
+    x = torch.randn(n, c, h, w, device="cuda").bfloat16().contiguous(memory_format=torch.channels_last)
+    weight = torch.rand(c, device="cuda").bfloat16()
+    input_bias = torch.randn(n, c, device="cuda")
+    return 1e3 * cuda_graph_ms(lambda: group_norm(x, 32, weight, weight, 1e-5, True, input_bias=input_bias),
+                               calls=calls)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tag", default="tiger", help="first column of every line (e.g. before / after)")
+    args = p.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("benchmarks.gpu.group_norm_maps: needs a CUDA device")
+    for n, c, h, w in SHAPES:
+        print(f"{args.tag} {n}x{c}x{h}x{w} fwd {time_shape(n, c, h, w):.2f} us", flush=True)
+
+
+if __name__ == "__main__":
+    main()
