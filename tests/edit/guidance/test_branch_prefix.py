@@ -1,5 +1,5 @@
 """The shared branch prefix (tiger.edit.guidance.branch_prefix): InstructPix2Pix's tiny UNet on the
-3-branch batch (and MVDream's guidance on its 2 branches) gives the same noise predictions with the instruction and image-only rows computed
+3-branch batch gives the same noise predictions with the instruction and image-only rows computed
 once up to the first cross-attention (fused transformer blocks or diffusers' own), its fallbacks,
 the row bookkeeping and the switch."""
 import pytest
@@ -94,34 +94,3 @@ def test_model_kernels_put_the_prefix_on_by_default(tiny_ip2p):
         assert "forward" not in unet.down_blocks[0].__dict__
     finally:
         mk.apply_model_kernels(unet, vae, mk.ModelKernels(branch_prefix=False))
-
-
-@pytest.mark.parametrize("fused", [False, True])
-def test_mvdream_branches_share_their_prefix(tiny_models, fused):
-    """MVDream's guidance call (prompt and negative-prompt branches of 4 views, the same latents,
-    timestep and cameras) gives the same latent gradient with the first ResNet block and (fused)
-    multi-view self-attention run on one branch's rows."""
-    from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
-
-    models = load_mvdream(tiny_models / "mvdream", fused_norms=False)
-    models.unet.double()
-    models.vae.double()
-    g = MVDreamGuidance(models, "a red ball")
-    assert g.text_embeddings.dtype == torch.float64
-    tb.set_fused_transformer(models.unet, fused)
-    gen = torch.Generator().manual_seed(4)
-    z = torch.randn(4, 4, 8, 8, generator=gen, dtype=torch.float64)
-    noise = torch.randn(4, 4, 8, 8, generator=gen, dtype=torch.float64)
-    cams = torch.randn(4, 16, generator=gen, dtype=torch.float64)
-    t = torch.tensor([300])
-    rows = []
-    hook = models.unet.down_blocks[0].resnets[0].register_forward_hook(lambda m, a, o: rows.append(a[0].shape[0]))
-    try:
-        bp.set_branch_prefix(models.unet, True)
-        got = g.latent_grad(z, cams, t, noise)
-        bp.set_branch_prefix(models.unet, False)
-        want = g.latent_grad(z, cams, t, noise)
-    finally:
-        hook.remove()
-    assert rows == [4, 8]  # one branch's 4 views, then all 8 rows without the prefix
-    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)

@@ -1,6 +1,6 @@
 """The UNets' transformer layers (tiger.edit.guidance.transformer_blocks): the lean attention and
 the fused transformer blocks against diffusers' own forward (float64, the tiny InstructPix2Pix
-UNet and MVDream's multi-view blocks), the fused blocks' bias column (exactly 1 in every dtype), their fallbacks, in-place
+UNet), the fused blocks' bias column (exactly 1 in every dtype), their fallbacks, in-place
 semantics, re-derivation and eligibility."""
 import copy
 
@@ -218,7 +218,7 @@ def test_what_is_not_fused(tiny_models, unet64):
 
     mv = load_mvdream(tiny_models / "mvdream", fused_norms=False)
     tb.set_lean_attention(mv.unet, True)
-    assert tb.set_fused_transformer(mv.unet, True) == len(_blocks(mv.unet)) > 0  # multi-view self-attention too
+    assert tb.set_fused_transformer(mv.unet, True) == 0  # multi-view self-attention
     mk.set_matmul_precision(unet64.float(), "fp8", emulate=True)
     assert tb.set_fused_transformer(unet64, True) == 0  # FP8 layers
     mk.set_matmul_precision(unet64, "model")
@@ -231,46 +231,3 @@ def test_apply_model_kernels_fuses_on_cuda_models_only(tiny_ip2p):
     got = mk.apply_model_kernels(unet, vae, mk.ModelKernels(fused_transformer=True))
     assert got["fused_transformer_blocks"] == len(_blocks(unet)) > 0
     assert mk.apply_model_kernels(unet, vae, mk.ModelKernels(fused_transformer=False))["fused_transformer_blocks"] == 0
-
-
-@pytest.fixture
-def mvdream_blocks64(tiny_models):
-    """The tiny MVDream UNet's transformer blocks in float64 (multi-view self-attention, lean
-    attention inside it), biases perturbed."""
-    from tiger.edit.guidance.mvdream import load_mvdream
-
-    unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet.double().eval()
-    tb.set_lean_attention(unet, True)
-    _perturb_biases(unet)
-    return _blocks(unet)
-
-
-def test_mvdream_fused_blocks_equal_diffusers_in_float64(mvdream_blocks64):
-    """The fused block's multi-view self-attention (rows of 4 consecutive views read as one
-    sequence) against diffusers' forward through MultiViewAttnProcessor."""
-    from tiger.edit.guidance.mvdream_attention import MultiViewAttnProcessor
-
-    assert mvdream_blocks64 and all(type(b.attn1.processor) is MultiViewAttnProcessor for b in mvdream_blocks64)
-    for i, block in enumerate(mvdream_blocks64):
-        h, text = _block_inputs(block, 8, 6, seed=10 + i)  # 2 samples x 4 views, 6 tokens a view
-        with torch.no_grad():
-            ref = block(h.clone(), encoder_hidden_states=text)
-            views = block.attn1.processor
-            block.attn1.set_processor(MultiViewAttnProcessor(1))  # per view: what the fused path must not do
-            per_view = block(h.clone(), encoder_hidden_states=text)
-            block.attn1.set_processor(views)
-            assert tb.set_fused_transformer(block, True) == 1 and tb.self_attention_views(block.attn1) == 4
-            x = h.clone()
-            got = block(x, encoder_hidden_states=text)
-            assert got.data_ptr() == x.data_ptr()  # the fused path ran (it writes into its input)
-            tb.set_fused_transformer(block, False)
-        torch.testing.assert_close(got, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
-        assert float((per_view - ref).abs().max()) > 1e-3 * float(ref.abs().max())  # the views do attend jointly
-
-
-def test_mvdream_fused_block_leaves_a_partial_view_group_to_diffusers(mvdream_blocks64):
-    block = mvdream_blocks64[0]
-    tb.set_fused_transformer(block, True)
-    h, text = _block_inputs(block, 6, 5, seed=3)  # 6 entries: not whole groups of 4 views
-    with torch.no_grad(), pytest.raises(ValueError, match="not a multiple of num_views=4"):
-        block(h, encoder_hidden_states=text)

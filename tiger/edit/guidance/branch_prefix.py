@@ -19,10 +19,6 @@ libraries. A first transformer block that does not run fused gets all rows after
 (only the ResNet block, norm and ``proj_in`` are shared then); anything else the shared path does
 not handle (gradients, training mode, masks, extra residuals, no share set) falls back to
 diffusers' forward with all rows.
-
-MVDream's UNet call stacks two branches of V views (prompt, negative prompt) with the same noisy
-latents, timestep and cameras: the same prefix, ``BranchShare(V, V)``. Its shared rows are whole
-groups of V views, so the multi-view self-attention attends over the same tokens.
 """
 from __future__ import annotations
 

@@ -46,10 +46,9 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   own backward when only their input needs a gradient (SDS): the kernels autograd runs, except
   that the shortcut's gradient is added inside norm1's backward pass (no separate sum: two map
   passes fewer per block) and the norms' outputs are not kept. Needs ``fold_norm_bias``.
-- ``branch_prefix``: InstructPix2Pix's instruction and image-only branches (and MVDream's prompt
-  and negative-prompt branches) are equal until the first cross-attention; the first down block
-  runs its first ResNet block and self-attention on the rows that differ (:mod:`.branch_prefix`).
-  The same operations on fewer rows.
+- ``branch_prefix``: InstructPix2Pix's instruction and image-only branches are equal until the
+  first cross-attention; the first down block runs its first ResNet block and self-attention on
+  the rows that differ (:mod:`.branch_prefix`). The same operations on fewer rows.
 - ``carry_conv_bias``: the VAE encoder's first convolution and its downsampling convolutions
   leave their bias to the next ResNet block, which adds it inside norm1 and with its shortcut
   (:mod:`.encoder_bias`): one full read and write fewer per such layer (the largest at 512²),
@@ -131,9 +130,8 @@ class ModelKernels:
             rounded once less).
         branch_prefix: the UNet's first down block computes, up to the first cross-attention,
             only the guidance branches that differ there (InstructPix2Pix's instruction and
-            image-only branches, MVDream's two branches share their first ResNet block and
-            self-attention: :mod:`.branch_prefix`); None: on (the same operations on fewer rows,
-            any device).
+            image-only branches share their first ResNet block and self-attention:
+            :mod:`.branch_prefix`); None: on (the same operations on fewer rows, any device).
     """
 
     matmul_precision: str = "model"

@@ -29,7 +29,6 @@ import torch
 from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
 from tiger.utils.lazy import require, require_diffusers
 
-from .branch_prefix import BranchShare, shared_branches
 from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values, dtype_name
 from .cuda_graph import GraphedStep
 from .diffusers_models import (PromptEncoder, freeze, latent_shape, matmul_vae_attention, model_device_dtype,
@@ -286,9 +285,8 @@ class MVDreamGuidance:
         e = self.text_embeddings  # branches: prompt, negative prompt
         emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(v, -1, -1)])
         cams = torch.cat([cameras, cameras]).to(self.dtype)
-        with shared_branches(m.unet, BranchShare(v, v)):  # the branches agree until text enters (same cameras)
-            eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
-                         class_labels=cams).sample.float()
+        eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
+                     class_labels=cams).sample.float()
         e_text, e_unc = eps.chunk(2)
         eps_hat = e_unc + self.guidance_scale * (e_text - e_unc)
         if self.recon:

@@ -42,10 +42,8 @@ from tiger.ops.fp8_rows import geglu
 from tiger.ops.layer_norm import layer_norm_rows
 from tiger.utils.lazy import require_diffusers
 
-from .mvdream_attention import MultiViewAttnProcessor
-
 __all__ = ["LeanAttnProcessor", "fused_cross_feed_forward", "fused_derived", "fused_self_attention",
-           "self_attention_views", "set_fused_transformer", "set_lean_attention"]
+           "set_fused_transformer", "set_lean_attention"]
 
 # The GEGLU projection's extra outputs: pairs (a, g) giving a · gelu(g) = 1, then 0 (one 16-byte
 # vector of bfloat16 per half, so rows stay aligned).
@@ -198,13 +196,6 @@ def _attend(attn, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, b: int) -> 
     return out.transpose(1, 2).reshape(q.shape[0], -1)
 
 
-def self_attention_views(attn) -> int:
-    """How many consecutive batch entries the self-attention ``attn`` attends over jointly: MVDream's
-    multi-view layers (:class:`~tiger.edit.guidance.mvdream_attention.MultiViewAttnProcessor`)
-    their ``num_views``, 1 for any other processor."""
-    return attn.processor.num_views if isinstance(attn.processor, MultiViewAttnProcessor) else 1
-
-
 def fused_derived(block, x: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor], attention_mask=None,
                   encoder_attention_mask=None, timestep=None, cross_attention_kwargs=None, class_labels=None,
                   added_cond_kwargs=None) -> Optional[_Derived]:
@@ -214,8 +205,7 @@ def fused_derived(block, x: torch.Tensor, encoder_hidden_states: Optional[torch.
     plain_call = ("_tiger_fused_weights" in block.__dict__ and not torch.is_grad_enabled() and not block.training
                   and attention_mask is None and encoder_attention_mask is None and timestep is None
                   and class_labels is None and not cross_attention_kwargs and not added_cond_kwargs
-                  and encoder_hidden_states is not None and x.ndim == 3 and x.is_contiguous()
-                  and x.shape[0] % self_attention_views(block.attn1) == 0)
+                  and encoder_hidden_states is not None and x.ndim == 3 and x.is_contiguous())
     d = _derived(block) if plain_call else None
     if (d is None or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
             or encoder_hidden_states.dtype != x.dtype):
@@ -225,14 +215,12 @@ def fused_derived(block, x: torch.Tensor, encoder_hidden_states: Optional[torch.
 
 def fused_self_attention(block, d: _Derived, x: torch.Tensor) -> torch.Tensor:
     """The fused block's first half on tokens ``x`` [B, L, C], in place: norm1, self-attention and
-    its output matmul accumulated into the residual stream (attn1's bias carried, not added). A
-    multi-view self-attention (MVDream) attends over the tokens of F consecutive entries jointly:
-    their rows are consecutive, so that is the same rows read as B / F sequences of F·L tokens."""
+    its output matmul accumulated into the residual stream (attn1's bias carried, not added)."""
     b, c = x.shape[0], x.shape[-1]
     h = x.view(-1, c)
     n = layer_norm_rows(h, block.norm1.weight, block.norm1.bias, block.norm1.eps)
     q, k, v = F.linear(n, d.qkv_weight, d.qkv_bias).chunk(3, dim=-1)
-    h.addmm_(_attend(block.attn1, q, k, v, b // self_attention_views(block.attn1)), block.attn1.to_out[0].weight.t())
+    h.addmm_(_attend(block.attn1, q, k, v, b), block.attn1.to_out[0].weight.t())
     return x
 
 
@@ -282,10 +270,7 @@ def _fusable(block) -> bool:
 
     def attention_plain(attn, cross: bool) -> bool:
         linear = all(type(m) is torch.nn.Linear for m in (attn.to_q, attn.to_k, attn.to_v, attn.to_out[0]))
-        proc = attn.processor
-        if not cross and type(proc) is MultiViewAttnProcessor:  # MVDream's: SDPA over F views' tokens
-            proc = proc.inner
-        return (attn is not None and type(proc) in (AttnProcessor2_0, LeanAttnProcessor) and linear
+        return (attn is not None and type(attn.processor) in (AttnProcessor2_0, LeanAttnProcessor) and linear
                 and LeanAttnProcessor.plain(attn) and attn.is_cross_attention == cross
                 and len(attn.to_out) == 2 and isinstance(attn.to_out[1], torch.nn.Dropout)
                 and attn.to_out[0].out_features == attn.to_q.in_features)
@@ -301,9 +286,9 @@ def _fusable(block) -> bool:
 
 def set_fused_transformer(unet: torch.nn.Module, on: bool) -> int:
     """Give the UNet's plain ``BasicTransformerBlock`` s the fused forward (``on``; module
-    docstring) or diffusers' again; returns how many blocks run fused afterwards. MVDream's blocks,
-    whose self-attention is multi-view, run fused too; blocks whose attentions or feed-forward are
-    anything else (FP8 layers, other processors) keep diffusers' forward."""
+    docstring) or diffusers' again; returns how many blocks run fused afterwards. Blocks whose
+    attentions or feed-forward are anything else (MVDream's multi-view attention, FP8 layers)
+    keep diffusers' forward."""
     require_diffusers("the fused transformer blocks")
     count = 0
     for m in unet.modules():
