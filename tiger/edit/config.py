@@ -43,8 +43,8 @@ class EditConfig:
             pool's 1024 views leave no fresh camera more than ~6° from a pooled one (128 sets: 6.9°,
             64: 11°, 16: 19°). On the GPU a pool saves the originals' renders and condition encodes
             of the steps that reuse a set, and a new set's are prepared beside the step before it
-            (``prefetch_views``): 1200 steps on an H100: 90.0 s fresh, 77.0-78.1 s with 256 sets,
-            74.6-74.8 s with 64.
+            (``prefetch_views``): 1200 steps on an H100: 90.0 s fresh, 77.0-79.5 s with 256 sets,
+            74.6-75.7 s with 64 (the spread is between machines, docs/BENCHMARKS.md).
             Memory: K x n_views x 4 x width x height bytes on the device (1 GiB at 256 x 4 x 512²).
         width, height, fov_deg: render size and vertical field of view of those cameras.
         elevation_deg: elevation range of the cameras for 360° captures.
