@@ -7,10 +7,10 @@
 // rows [k·chunk, (k+1)·chunk) of the pass's (at most kMaxCols) columns; thread (tx, ty) owns
 // column tx of the pass and rows ty, ty + R, ... so a warp reads contiguous 16-byte vectors.
 // Column passes are blocks of their own, not a loop of one block: a wide map with few pixels
-// (the UNets' 1920- and 2560-channel maps at 8²-16², 5 passes) otherwise ran on N x 2 blocks. Per-(slice, chunk, lane) partials
-// (Welford moments relative to a per-channel shift; sums of dz and dz·x̂ for the backward) are
-// combined per (n, g) by a second kernel in a fixed order: deterministic, and no host
-// synchronisation anywhere.
+// (the UNets' 1920- and 2560-channel maps at 8²-16², 4-5 passes) otherwise ran on N x 2 blocks.
+// Per-(slice, chunk, lane) partials (Welford moments relative to a per-channel shift; sums of dz
+// and dz·x̂ for the backward) are combined per (n, g) by a second kernel in a fixed order:
+// deterministic, and no host synchronisation anywhere.
 #include <cuda_runtime.h>
 
 #include <algorithm>

@@ -4,11 +4,10 @@
 // of InstructPix2Pix's UNet took 1.7 ms, about 3.5x their read-and-write floor on an H100). Here a
 // group of G lanes of one warp owns a row (G the power of two that gives each lane at most 4
 // vectors, at most 32), keeps its vectors in registers (up to 4 a lane where G < 32, else up to
-// 8; longer rows are re-read),
-// and reduces over the group with shuffles: mean first, then the sum of squared deviations (two
-// passes over registers, no cancellation), then the output, rounded once. An optional input bias
-// (a per-channel vector the residual stream has not added yet) is added in float wherever a value
-// is read, so the biased row is never written.
+// 8; longer rows are re-read), and reduces over the group with shuffles: mean first, then the
+// sum of squared deviations (two passes over registers, no cancellation), then the output,
+// rounded once. An optional input bias (a per-channel vector the residual stream has not added
+// yet) is added in float wherever a value is read, so the biased row is never written.
 #include <cuda_bf16.h>
 #include <cuda_fp16.h>
 #include <cuda_runtime.h>
@@ -34,7 +33,8 @@ constexpr int kThreads = 256;
 // give each at most 4), 8 for the longest rows. Registers sized for 8 on every row left the
 // 64² transformer rows (49152 x 320, bf16) at ~45 % of the H100's bandwidth: the unused slots
 // held registers (bf16 instances 99-104 a thread, two blocks per SM; with 4: 48 without an input
-// bias, 72 with one, five and three blocks). A minimum of four blocks spilled the input-bias one.
+// bias, 72 with one, five and three blocks). A minimum of four blocks a SM (64 registers) spilled
+// the input-bias instance and gained nothing net (benchmarks/gpu/NOTES.md).
 constexpr int kMaxVecs = 8;
 
 template <typename T>
