@@ -103,6 +103,16 @@ def cuda_graph_ms(fn: Callable[[], Optional[object]], calls: int = 1) -> float:
     return cuda_time_ms(graph.replay) / calls
 
 
+def cuda_copy_bandwidth(nbytes: int = 1 << 30) -> float:
+    """Device copy bandwidth in bytes/s (bytes read plus written) of an ``nbytes`` buffer, the
+    median of 10 copies (:func:`cuda_time_ms`)."""
+    x = torch.empty(nbytes // 4, device="cuda")
+    y = torch.empty_like(x)
+    ms = cuda_time_ms(lambda: y.copy_(x), iters=10)
+    del x, y
+    return 2 * nbytes / (ms * 1e-3)
+
+
 def cpu_time_ms(fn: Callable[..., object], iters: int = 3, warmup: int = 1,
                 setup: Optional[Callable[[], object]] = None) -> float:
     """Median wall time of ``fn`` in ms (CPU). ``setup`` (untimed) runs before each call and

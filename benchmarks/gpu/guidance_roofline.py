@@ -32,14 +32,13 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
-from benchmarks.common import _addmm_inplace_flops, cuda_graph_ms, print_table
+from benchmarks.common import _addmm_inplace_flops, cuda_copy_bandwidth, cuda_graph_ms, print_table
 from benchmarks.guidance import H100_BF16_TFLOPS, ring
-from benchmarks.guidance_floor import default_cuda_guidances, fixed_draws
+from benchmarks.guidance_floor import FLOOR_TARGET, MV_FRACTION, default_cuda_guidances, fixed_draws
 from tiger.edit.guidance.base import ViewBatch
 
 EXP_PER_S = 4.16e12  # SFU ex2 per second, H100 (benchmarks/gpu/results/exp2_throughput_h100.txt)
-FLOOR_TARGET = 1.6   # issue 30: the guidance step at most 1.6x its FLOP floor
-MV_SHARE = 0.75      # MVDream runs on the first 75 % of the steps (CSDSchedule's mv_end)
+RANGE = "tiger_op#"  # profiler range of recorded op i: RANGE + str(i)
 SDPA_OPS = ("_scaled_dot_product_cudnn_attention", "_scaled_dot_product_flash_attention",
             "_scaled_dot_product_efficient_attention")
 
@@ -136,9 +135,6 @@ class OpRecorder(TorchDispatchMode):
         return out
 
 
-RANGE = "tiger_op#"
-
-
 def record_ops(fn: Callable[[], Any]) -> tuple[list[OpRecord], float]:
     """The ops of one ``fn()`` call with their kernels' GPU time (torch.profiler: exact kernel
     durations, whatever the host's speed), and the GPU time of all kernels the call ran (ms; the
@@ -159,21 +155,6 @@ def record_ops(fn: Callable[[], Any]) -> tuple[list[OpRecord], float]:
     kernels = sum(ev.device_time / 1e3 for ev in events
                   if ev.device_type == torch.autograd.DeviceType.CUDA and not ev.name.startswith(RANGE))
     return rec.records, kernels
-
-
-def copy_bandwidth() -> float:
-    """Bytes per second of a 1 GiB device-to-device copy (read + write), the best of 10."""
-    x = torch.empty(1 << 29, dtype=torch.bfloat16, device="cuda")
-    y = torch.empty_like(x)
-    best = float("inf")
-    for _ in range(10):
-        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        a.record()
-        y.copy_(x)
-        b.record()
-        torch.cuda.synchronize()
-        best = min(best, a.elapsed_time(b))
-    return 2 * x.numel() * x.element_size() / (best * 1e-3)
 
 
 def launch_floor_ms(calls: int = 2000) -> float:
@@ -245,7 +226,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     args = p.parse_args(argv)
     if not torch.cuda.is_available():
         raise SystemExit("benchmarks.gpu.guidance_roofline needs CUDA")
-    rates = Rates(flops_per_ms=H100_BF16_TFLOPS * 1e9, bytes_per_ms=copy_bandwidth() * 1e-3,
+    rates = Rates(flops_per_ms=H100_BF16_TFLOPS * 1e9, bytes_per_ms=cuda_copy_bandwidth() * 1e-3,
                   exps_per_ms=EXP_PER_S * 1e-3, launch_ms=launch_floor_ms())
     print(f"# {torch.cuda.get_device_name(0)}: bf16 matmul {H100_BF16_TFLOPS:.0f} TFLOP/s, DRAM copy "
           f"{rates.bytes_per_ms * 1e-9:.2f} TB/s (measured), SFU {EXP_PER_S:.3g} exp/s, shortest graphed kernel "
@@ -271,7 +252,7 @@ def main(argv: Optional[list[str]] = None) -> None:
         records, span = record_ops(fn)
         totals[name] = summarise(name, records, span, rates, args.top)
     ip_t, mv_t = totals["ip2p_pooled"], totals["mvdream"]
-    csd = {k: ip_t[k] + MV_SHARE * mv_t[k] for k in ip_t}
+    csd = {k: ip_t[k] + MV_FRACTION * mv_t[k] for k in ip_t}
     floor_ms = csd["flops"] / rates.flops_per_ms
     overlap = max(floor_ms, csd["bytes"] / rates.bytes_per_ms, csd["exps"] / rates.exps_per_ms)
     rows = [{"CSD step (pooled)": "measured: the ops' kernel time (eager; one after another)", "ms": f"{csd['ms']:.1f}"},
@@ -283,7 +264,7 @@ def main(argv: Optional[list[str]] = None) -> None:
              "ms": f"{floor_ms:.1f}"},
             {"CSD step (pooled)": f"issue 30's target ({FLOOR_TARGET}x the FLOP floor)",
              "ms": f"{FLOOR_TARGET * floor_ms:.1f}"}]
-    print_table(rows, f"CSD step = InstructPix2Pix + {MV_SHARE} x MVDream ({csd['bytes'] / 1e9:.1f} GB of op "
+    print_table(rows, f"CSD step = InstructPix2Pix + {MV_FRACTION} x MVDream ({csd['bytes'] / 1e9:.1f} GB of op "
                       f"tensors, {csd['exps'] / 1e9:.2f} G exponentials)")
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import cuda_time_ms, rel_err, table
+from benchmarks.common import cuda_copy_bandwidth, cuda_time_ms, rel_err, table
 from tests.render.standard_scenes import standard_camera, standard_scene
 
 import tiger  # noqa: E402
@@ -284,15 +284,6 @@ def profile_kernels(args, path: Path) -> None:
     path.write_text("\n".join(lines))
 
 
-def copy_bandwidth() -> float:
-    """Device copy bandwidth in bytes/s, counting bytes read plus written."""
-    x = torch.empty(1 << 28, device="cuda")  # 1 GiB
-    y = torch.empty_like(x)
-    ms = cuda_time_ms(lambda: y.copy_(x), iters=10)
-    del x, y
-    return 2 * (1 << 30) / (ms * 1e-3)
-
-
 def floor_table(args, speed_rows, bw):
     rows = []
     w, h = args.width, args.height
@@ -336,7 +327,7 @@ def main() -> None:
         except Exception as exc:  # pragma: no cover - depends on the machine
             log(f"gsplat unavailable: {exc!r}")
     log(f"device: {torch.cuda.get_device_name()}, torch {torch.__version__}")
-    bw = copy_bandwidth()
+    bw = cuda_copy_bandwidth()
     log(f"device copy bandwidth: {bw / 1e12:.2f} TB/s (read + write)")
     result = {"bandwidth_TBps": bw / 1e12, "have_gsplat": have_gsplat}
 
