@@ -29,9 +29,20 @@ struct Dims {
   bool nhwc;
 };
 
-// Row chunks per slice (about 4 blocks per SM of the current device): the partial buffers hold
+// Blocks of the walking kernels the grid is planned for, per SM of the current device: the
+// forward's apply and statistics run four blocks per SM (one wave); the backward's reduction and
+// input gradient kBackwardBlocksPerSm (their launch bounds) in kBackwardWaves waves. A grid that is
+// not a whole number of waves leaves its last wave at a fraction of the bandwidth these long
+// walks are bound by. Measured on the H100 (group_norm_backward_occupancy_variants_h100.txt): 3
+// blocks per SM (the folded constants fit 80 registers) in 1, 2 or 3 waves, and 4 in one, were
+// slower than 2 in 2 on the VAE's 128²-512² maps (4x128x512² 484 us against 500-559).
+constexpr int kForwardBlocksPerSm = 4;
+constexpr int kBackwardBlocksPerSm = 2;
+constexpr int kBackwardWaves = 2;
+
+// Row chunks per slice for a grid of about blocks_per_sm blocks per SM: the partial buffers hold
 // N·C·chunks (NHWC) or N·C·chunks·vector_width (NCHW) floats each.
-int64_t plan_chunks(const Dims& d, int vector_width);
+int64_t plan_chunks(const Dims& d, int vector_width, int blocks_per_sm);
 
 // Affine parameters: dtype of x, or float32 (params_float); null = absent (w = 1, b = 0).
 // input_bias: float32 [N, C] added to x before everything else; null = absent.
@@ -50,8 +61,10 @@ void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, i
 
 // The forward in one launch for channels-last maps whose (sample, channel block) fits one block's
 // registers (compute capability 9.0 and up; group_norm_small_cuda.cu): same outputs, the partial
-// workspaces unused; returns false (launching nothing) where it does not apply. launch_forward
-// tries it first.
+// workspaces unused (small_forward_applies says when; launch_forward then needs none and may be
+// given null ones and chunks = 0). Returns false, launching nothing, where it does not apply.
+// launch_forward tries it first.
+bool small_forward_applies(const Dims& d, int vector_width, int element_size);
 template <typename T>
 bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
                           int vector_width, void* stream);

@@ -61,15 +61,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
   auto mean = at::empty({d.N, d.G}, fopts), rstd = at::empty({d.N, d.G}, fopts);
   if (x.numel() == 0) return {y, mean.zero_(), rstd.fill_(1.0 / std::sqrt(eps))};
   const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), y.data_ptr()});
-  const int64_t chunks = plan_chunks(d, vw);
+  // The one-launch forward needs no partial workspaces.
+  const bool small = small_forward_applies(d, vw, static_cast<int>(x.element_size()));
+  const int64_t chunks = small ? 0 : plan_chunks(d, vw, kForwardBlocksPerSm);
   auto pmean = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
   auto pm2 = at::empty_like(pmean);
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   dispatch(x.scalar_type(), [&](auto tag) {
     using T = typename decltype(tag)::type;
     launch_forward<T>(reinterpret_cast<const T*>(x.data_ptr()), p, d, static_cast<float>(eps), silu, chunks,
-                      pmean.data_ptr<float>(), pm2.data_ptr<float>(), mean.data_ptr<float>(), rstd.data_ptr<float>(),
-                      reinterpret_cast<T*>(y.data_ptr()), vw, stream);
+                      small ? nullptr : pmean.data_ptr<float>(), small ? nullptr : pm2.data_ptr<float>(),
+                      mean.data_ptr<float>(), rstd.data_ptr<float>(), reinterpret_cast<T*>(y.data_ptr()), vw, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return {y, mean, rstd};
@@ -94,11 +96,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
   const Params p = params_of(weight, bias, input_bias);
   auto dx = at::empty_like(x, memory_format(d.nhwc));
   const auto fopts = x.options().dtype(at::kFloat);
-  auto sum_dz = at::zeros({d.N, d.C}, fopts), sum_dzx = at::zeros({d.N, d.C}, fopts);
-  if (x.numel() > 0) {
+  // Every (n, c) is written by the backward's combine; only an empty map leaves them zero.
+  auto sum_dz = at::empty({d.N, d.C}, fopts), sum_dzx = at::empty({d.N, d.C}, fopts);
+  if (x.numel() == 0) {
+    sum_dz.zero_();
+    sum_dzx.zero_();
+  } else {
     const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), dy.data_ptr(), dx.data_ptr(),
                                                              residual.defined() ? residual.data_ptr() : nullptr});
-    const int64_t chunks = plan_chunks(d, vw);
+    const int64_t chunks = plan_chunks(d, vw, kBackwardBlocksPerSm * kBackwardWaves);
     auto pdz = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
     auto pdzx = at::empty_like(pdz);
     auto c1 = at::empty({d.N, d.G}, fopts), c2 = at::empty({d.N, d.G}, fopts);

@@ -330,37 +330,60 @@ __global__ void __launch_bounds__(kThreads, 4) apply_kernel(const T* __restrict_
   }
 }
 
-// dz = dy·silu'(z) (or dy) and x̂ of one element.
-template <bool SILU>
-__device__ __forceinline__ void dz_xhat(float xv, float dy, float mean, float rstd, float w, float b, float& dz,
-                                        float& xh) {
-  xh = (xv - mean) * rstd;
-  dz = dy;
-  if (SILU) {
-    const float z = xh * w + b, s = sigmoid(z);
-    dz *= s * (1.f + z * (1.f - s));
+// Per-lane constants of the backward, folded so that a lane keeps as few as the walk needs:
+// with m = mean − ib (the input bias moved into the mean, as the forward's apply does),
+//   d = x − m,   z = d·a + b  (a = rstd·w),   dz = dy·σ(z)(1 + z(1 − σ(z)))  (dz = dy without SiLU),
+//   Σ dz·x̂ = rstd·Σ dz·d,   dx = a·dz − rstd·c1 − d·rstd²·c2.
+// The reduction keeps m, a, b (3 a lane, rstd applied once at its end), the input gradient m, a,
+// b, k1 = rstd·c1, k2 = rstd²·c2 (5), instead of mean, rstd, w, b, ib (and c1, c2), with fewer
+// operations per element. The VAE's backward norms ran 7-11 % faster at the same two blocks per SM
+// (group_norm_backward_occupancy_variants_h100.txt); capped at 80 registers (three blocks per
+// SM, which the folded constants allow) they were slower (group_norm.h).
+template <typename T, int V>
+struct BackwardConsts {
+  float m[V], a[V], b[V];
+  __device__ __forceinline__ void load(const Walk& wk, const Tile& t, int64_t v, const Params& p, int64_t G,
+                                       const float* mean_g, const float* rstd_g) {
+    ColumnConsts<T, V> k;
+    k.load(wk, t, v, p, G, mean_g, rstd_g);
+#pragma unroll
+    for (int j = 0; j < V; ++j) {
+      m[j] = k.mean[j] - k.ib[j];
+      a[j] = k.rstd[j] * k.w[j];
+      b[j] = k.b[j];
+    }
   }
+};
+
+// dz of one element from d = x − m.
+template <bool SILU>
+__device__ __forceinline__ float dz_of(float d, float dy, float a, float b) {
+  if (!SILU) return dy;
+  const float z = d * a + b, s = sigmoid(z);
+  return dy * s * (1.f + z * (1.f - s));
 }
 
 // ---- backward reductions: per-(slice, chunk, lane) Σ dz and Σ dz·x̂ -----------------------
+// kBackwardBlocksPerSm blocks per SM (group_norm.h).
 template <typename T, int V, bool SILU>
-__global__ void __launch_bounds__(kThreads) backward_reduce_kernel(const T* __restrict__ dy, const T* __restrict__ x,
-                                                                   Walk w, Params p, int64_t G,
-                                                                   const float* __restrict__ mean_g,
-                                                                   const float* __restrict__ rstd_g,
-                                                                   float* __restrict__ pdz, float* __restrict__ pdzx) {
+__global__ void __launch_bounds__(kThreads, kBackwardBlocksPerSm) backward_reduce_kernel(const T* __restrict__ dy, const T* __restrict__ x,
+                                                                      Walk w, Params p, int64_t G,
+                                                                      const float* __restrict__ mean_g,
+                                                                      const float* __restrict__ rstd_g,
+                                                                      float* __restrict__ pdz, float* __restrict__ pdzx) {
   __shared__ float s_a[kThreads * V], s_b[kThreads * V];
   const Tile t = tile_of(w);
   const int slot = threadIdx.x;
   const int P = pow2_at_least(t.R);
+  const int64_t D = w.C / G;
   for (int64_t v0 = int64_t(blockIdx.z) * w.cvt; v0 < w.cols; v0 += int64_t(gridDim.z) * w.cvt) {
     const int64_t v = v0 + t.tx;
     const bool active = t.ty < t.R && v < w.cols;
-    float sa[V], sb[V];
+    float sa[V], sb[V];  // Σ dz, Σ dz·d
 #pragma unroll
     for (int j = 0; j < V; ++j) sa[j] = sb[j] = 0.f;
     if (active) {
-      ColumnConsts<T, V> k;
+      BackwardConsts<T, V> k;
       k.load(w, t, v, p, G, mean_g, rstd_g);
       walk_rows<2>(
           t.r0 + t.ty, t.r1, t.R,
@@ -372,13 +395,14 @@ __global__ void __launch_bounds__(kThreads) backward_reduce_kernel(const T* __re
           [&](int64_t, const VecPair<T, V>& in) {
 #pragma unroll
             for (int j = 0; j < V; ++j) {
-              float dz, xh;
-              dz_xhat<SILU>(load_as<float>(in.x.v[j]) + k.ib[j], load_as<float>(in.g.v[j]), k.mean[j], k.rstd[j],
-                            k.w[j], k.b[j], dz, xh);
+              const float d = load_as<float>(in.x.v[j]) - k.m[j];
+              const float dz = dz_of<SILU>(d, load_as<float>(in.g.v[j]), k.a[j], k.b[j]);
               sa[j] += dz;
-              sb[j] += dz * xh;
+              sb[j] += dz * d;
             }
           });
+#pragma unroll
+      for (int j = 0; j < V; ++j) sb[j] *= rstd_g[t.n * G + channel_of<V>(w, t, v, j) / D];  // Σ dz·x̂
     }
 #pragma unroll
     for (int j = 0; j < V; ++j) {
@@ -476,13 +500,11 @@ struct VecTriple {
   Vec<T, V> x, g, r;
 };
 
-// ---- backward apply: dx = rstd·(w·dz − c1 − x̂·c2) (+ residual) ----------------------------
+// ---- backward apply: dx = a·dz − k1 − d·k2 (+ residual) (BackwardConsts' folding) ----------
 // RES: a residual gradient (like x) is read with x and dy and added before the rounding.
-// At most 128 registers a thread (two blocks per SM): the residual's loads took the 16-byte
-// bf16 variant to 140 (one block per SM); capped, it spills 16 bytes and the InstructPix2Pix
-// step is 0.6 ms faster (H100, benchmarks/gpu/results/guidance_floor_dx_registers_h100.txt).
+// kBackwardBlocksPerSm blocks per SM (group_norm.h).
 template <typename T, int V, bool SILU, bool RES>
-__global__ void __launch_bounds__(kThreads, 2) dx_kernel(const T* __restrict__ dy, const T* __restrict__ x, Walk w,
+__global__ void __launch_bounds__(kThreads, kBackwardBlocksPerSm) dx_kernel(const T* __restrict__ dy, const T* __restrict__ x, Walk w,
                                                       Params p, int64_t G, const float* __restrict__ mean_g,
                                                       const float* __restrict__ rstd_g, const float* __restrict__ c1,
                                                       const float* __restrict__ c2, const T* __restrict__ residual,
@@ -491,14 +513,15 @@ __global__ void __launch_bounds__(kThreads, 2) dx_kernel(const T* __restrict__ d
   if (t.ty >= t.R) return;
   const int64_t D = w.C / G;
   for (int64_t v = int64_t(blockIdx.z) * w.cvt + t.tx; v < w.cols; v += int64_t(gridDim.z) * w.cvt) {
-    ColumnConsts<T, V> k;
+    BackwardConsts<T, V> k;
     k.load(w, t, v, p, G, mean_g, rstd_g);
     float k1[V], k2[V];
 #pragma unroll
     for (int j = 0; j < V; ++j) {
       const int64_t ng = t.n * G + channel_of<V>(w, t, v, j) / D;
-      k1[j] = c1[ng];
-      k2[j] = c2[ng];
+      const float rstd = rstd_g[ng];
+      k1[j] = rstd * c1[ng];
+      k2[j] = rstd * rstd * c2[ng];
     }
     walk_rows<2>(
         t.r0 + t.ty, t.r1, t.R,
@@ -514,10 +537,9 @@ __global__ void __launch_bounds__(kThreads, 2) dx_kernel(const T* __restrict__ d
           Vec<T, V> out;
 #pragma unroll
           for (int j = 0; j < V; ++j) {
-            float dz, xh;
-            dz_xhat<SILU>(load_as<float>(in.x.v[j]) + k.ib[j], load_as<float>(in.g.v[j]), k.mean[j], k.rstd[j],
-                          k.w[j], k.b[j], dz, xh);
-            float g = k.rstd[j] * (k.w[j] * dz - k1[j] - xh * k2[j]);
+            const float d = load_as<float>(in.x.v[j]) - k.m[j];
+            const float dz = dz_of<SILU>(d, load_as<float>(in.g.v[j]), k.a[j], k.b[j]);
+            float g = k.a[j] * dz - k1[j] - d * k2[j];
             if constexpr (RES) g += load_as<float>(in.r.v[j]);
             out.v[j] = store_as<T>(g);
           }
@@ -582,7 +604,7 @@ void backward_impl(const T* dy, const T* x, Params p, const Dims& d, const float
 
 }  // namespace
 
-int64_t plan_chunks(const Dims& d, int vector_width) {
+int64_t plan_chunks(const Dims& d, int vector_width, int blocks_per_sm) {
   int dev = 0, sm_count = 0;
   if (cudaGetDevice(&dev) != cudaSuccess || cudaDeviceGetAttribute(&sm_count, cudaDevAttrMultiProcessorCount, dev) != cudaSuccess)
     sm_count = 132;
@@ -590,7 +612,7 @@ int64_t plan_chunks(const Dims& d, int vector_width) {
   // blocks per chunk of rows: one per slice and column pass
   const int64_t slices = (d.nhwc ? d.N : d.N * d.C) * column_passes(w);
   const int64_t R = kThreads / w.cvt;
-  const int64_t target = 4 * static_cast<int64_t>(sm_count);
+  const int64_t target = static_cast<int64_t>(blocks_per_sm) * sm_count;
   int64_t chunks = slices > 0 ? (target + slices - 1) / slices : 1;
   const int64_t min_rows = 8 * R;  // at least 8 rows per thread row
   chunks = std::max<int64_t>(1, std::min<int64_t>(chunks, (w.rows + min_rows - 1) / min_rows));

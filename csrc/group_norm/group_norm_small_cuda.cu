@@ -11,14 +11,13 @@
 // variance: large-mean inputs keep their variance), then each thread writes its elements
 // normalised. One read and one write of the map, one launch, no partial buffers.
 //
-// The block is a thread-block cluster of one: the kernel was written for clusters of K blocks
-// (distributed shared memory across them, in rank order), but on the H100 clusters of 4-8 made
-// the 32²-128² maps slower than the general forward (8x320x32² 17.5 -> 26.6 us, 4x256x128² 56.4
-// -> 97.7), while single blocks made the small ones 1.5-3.4x faster (8x1280x8² 26.6 -> 8.0 us,
-// 12x1280x16² 28.1 -> 19.4; benchmarks/gpu/results/group_norm_small_maps_ab_h100.txt). So
-// kMaxCluster is 1: maps whose (n, channel block) does not fit one block's registers take the
-// general forward.
-#include <cooperative_groups.h>
+// Clusters of K blocks per (n, channel block), sharing their sums through distributed shared
+// memory, were measured and dropped: on the H100 clusters of 4-8 made the 32²-128² maps slower
+// than the general forward (8x320x32² 17.5 -> 26.6 us, 4x256x128² 56.4 -> 97.7), while single
+// blocks made the small ones 1.5-3.4x faster (8x1280x8² 26.6 -> 8.0 us, 12x1280x16² 28.1 -> 19.4;
+// benchmarks/gpu/results/group_norm_small_maps_ab_h100.txt; the cluster version is in git
+// history). Maps whose (n, channel block) does not fit one block's registers take the general
+// forward.
 #include <cuda_runtime.h>
 
 #include <numeric>
@@ -30,29 +29,26 @@ namespace tiger {
 namespace group_norm {
 namespace {
 
-namespace cg = cooperative_groups;
 using tiger::cuda::load_as;
 using tiger::cuda::store_as;
 using tiger::cuda::Vec;
 
-constexpr int kBlockThreads = 256;  // the most threads a block of the cluster has
+constexpr int kBlockThreads = 256;  // the most threads a block has
 // 16-byte vectors a thread holds: 8 of 2-byte types (32 registers; 12 spilled at two blocks per
 // SM), 12 of float32.
 template <typename T>
 constexpr int kMaxVectors = sizeof(T) == 2 ? 8 : 12;
-constexpr int kMaxCluster = 1;  // blocks per (n, channel block): clusters of 4-8 were slower (file comment)
 constexpr int kMaxWarps = kBlockThreads / 32;
 
 struct SmallGeom {
   int64_t C, HW, G, cb;  // channels, pixels, groups, channels per block (whole groups and vectors)
-  int cbv, threads, cluster, E;  // vectors per pixel row of a block, threads of a block that hold
-                                 // pixels (a multiple of cbv), blocks per cluster, vectors per thread
+  int cbv, threads, E;  // vectors per pixel row of a block, threads of a block that hold pixels
+                        // (a multiple of cbv), vectors per thread
 };
 
-// Block-wide then cluster-wide sums of s[0..GB) in a fixed order; every thread gets the totals.
+// Block-wide sums of s[0..GB) in a fixed order (warps, then warp 0..n); every thread gets the totals.
 template <int GB>
-__device__ __forceinline__ void cluster_sums(cg::cluster_group& cluster, float (&s)[GB], float (*s_warp)[GB],
-                                             float* s_block, float* s_total) {
+__device__ __forceinline__ void block_sums(float (&s)[GB], float (*s_warp)[GB], float* s_total) {
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = (blockDim.x + 31) >> 5;
 #pragma unroll
   for (int g = 0; g < GB; ++g) {
@@ -67,12 +63,6 @@ __device__ __forceinline__ void cluster_sums(cg::cluster_group& cluster, float (
   if (threadIdx.x < GB) {
     float t = 0.f;
     for (int w = 0; w < warps; ++w) t += s_warp[w][threadIdx.x];
-    s_block[threadIdx.x] = t;
-  }
-  cluster.sync();  // every block's s_block written
-  if (threadIdx.x < GB) {
-    float t = 0.f;
-    for (unsigned r = 0; r < cluster.num_blocks(); ++r) t += cluster.map_shared_rank(s_block, r)[threadIdx.x];
     s_total[threadIdx.x] = t;
   }
   __syncthreads();
@@ -104,19 +94,16 @@ template <typename T, int V, bool SILU, int GB>
 __global__ void __launch_bounds__(kBlockThreads, 2)
     small_forward_kernel(const T* __restrict__ x, Params p, SmallGeom s, float eps, float* __restrict__ mean_out,
                          float* __restrict__ rstd_out, T* __restrict__ y) {
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
   __shared__ float s_warp[kMaxWarps][2 * GB];
-  __shared__ float s_block1[2 * GB], s_block2[2 * GB], s_total[2 * GB];
-  cg::cluster_group cluster = cg::this_cluster();
-  const int K = static_cast<int>(cluster.num_blocks());
-  const int64_t item = blockIdx.x / K, blocks_per_n = s.C / s.cb;
+  __shared__ float s_total[2 * GB];
+  const int64_t item = blockIdx.x, blocks_per_n = s.C / s.cb;
   const int64_t n = item / blocks_per_n, c0 = item % blocks_per_n * s.cb;
   const int64_t D = s.C / s.G, g0 = c0 / D;
-  const int i = static_cast<int>(cluster.block_rank()) * s.threads + static_cast<int>(threadIdx.x);
+  const int i = static_cast<int>(threadIdx.x);
   const int cv = i % s.cbv;  // the thread's column: its lanes' channels and groups are fixed
   // threads past s.threads (blockDim is a whole number of warps, for the shuffles) hold no pixel
-  const int64_t pix0 = static_cast<int>(threadIdx.x) < s.threads ? i / s.cbv : s.HW;
-  const int64_t pix_step = int64_t(K) * s.threads / s.cbv;
+  const int64_t pix0 = i < s.threads ? i / s.cbv : s.HW;
+  const int64_t pix_step = s.threads / s.cbv;
   const int64_t base = n * s.HW * s.C + c0 + cv * V;
   const float inv_m = 1.f / static_cast<float>(D * s.HW);
 
@@ -148,8 +135,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 #pragma unroll
     for (int g = 0; g < GB; ++g) sums[g] = part[g];
   }
-  cluster_sums<GB>(cluster, reinterpret_cast<float(&)[GB]>(sums), reinterpret_cast<float(*)[GB]>(s_warp), s_block1,
-                   s_total);
+  block_sums<GB>(reinterpret_cast<float(&)[GB]>(sums), reinterpret_cast<float(*)[GB]>(s_warp), s_total);
   float shift[GB];
 #pragma unroll
   for (int g = 0; g < GB; ++g) shift[g] = sums[g] * inv_m;
@@ -179,7 +165,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
     }
   }
   __syncthreads();  // every thread has read s_total: it is reused
-  cluster_sums<2 * GB>(cluster, sums, s_warp, s_block2, s_total);
+  block_sums<2 * GB>(sums, s_warp, s_total);
   float mean[GB], rstd[GB];
 #pragma unroll
   for (int g = 0; g < GB; ++g) {
@@ -187,7 +173,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
     mean[g] = shift[g] + dm;
     rstd[g] = rsqrtf(fmaxf(sums[GB + g] * inv_m - dm * dm, 0.f) + eps);
   }
-  if (cluster.block_rank() == 0 && i == 0) {
+  if (i == 0) {
     for (int g = 0; g < static_cast<int>(s.cb / D); ++g) {
 #pragma unroll
       for (int h = 0; h < GB; ++h)
@@ -224,20 +210,29 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
       *reinterpret_cast<Vec<T, V>*>(y + base + pix * s.C) = out;
     }
   }
-  cluster.sync();  // no block leaves while another may still read its shared memory
-#endif
+}
+
+// Compute capability major of the current device, queried once per device.
+int capability_major() {
+  constexpr int kMaxDevices = 64;
+  static int major[kMaxDevices] = {};  // 0: not queried yet
+  int dev = 0;
+  if (cudaGetDevice(&dev) != cudaSuccess || dev < 0) return 0;
+  if (dev >= kMaxDevices) {
+    int m = 0;
+    return cudaDeviceGetAttribute(&m, cudaDevAttrComputeCapabilityMajor, dev) == cudaSuccess ? m : 0;
+  }
+  if (major[dev] == 0 && cudaDeviceGetAttribute(&major[dev], cudaDevAttrComputeCapabilityMajor, dev) != cudaSuccess)
+    major[dev] = 0;
+  return major[dev];
 }
 
 // The geometry for this map, or false when the one-launch forward does not apply (not
-// channels-last, scalar path, pre-Hopper device, more than 4 groups or 8 vectors per block row,
-// or too many pixels for the registers of kMaxCluster blocks).
-template <typename T>
-bool plan_small(const Dims& d, int V, SmallGeom& s) {
-  if (!d.nhwc || V == 1 || d.G <= 0 || d.C % d.G != 0) return false;
-  int dev = 0, major = 0;
-  if (cudaGetDevice(&dev) != cudaSuccess ||
-      cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, dev) != cudaSuccess || major < 9)
-    return false;
+// channels-last, scalar path, pre-Hopper device (only measured on the H100), more than 4 groups
+// or 8 vectors per block row, or too many pixels for one block's registers).
+bool plan_small(const Dims& d, int V, int max_vectors, SmallGeom& s) {
+  if (!d.nhwc || V == 1 || d.G <= 0 || d.C % d.G != 0 || d.HW <= 0) return false;
+  if (capability_major() < 9) return false;
   const int64_t D = d.C / d.G, cb = std::lcm<int64_t>(V, D);
   // at most 4 groups and 8 vectors a block row: what was measured (the up blocks' 1920- and
   // 2560-channel maps, 10-15 vectors a row, were not and take the general forward)
@@ -248,38 +243,24 @@ bool plan_small(const Dims& d, int V, SmallGeom& s) {
   s.cb = cb;
   s.cbv = static_cast<int>(cb / V);
   s.threads = kBlockThreads / s.cbv * s.cbv;
-  const int64_t per_pass = s.threads / s.cbv;  // pixels one block covers per vector a thread holds
-  for (int K = 1; K <= kMaxCluster; K *= 2) {
-    const int64_t E = (d.HW + K * per_pass - 1) / (K * per_pass);
-    if (E <= kMaxVectors<T>) {
-      s.cluster = K;
-      s.E = static_cast<int>(E);
-      return d.HW > 0;
-    }
-  }
-  return false;
+  const int64_t per_pass = s.threads / s.cbv;  // pixels a block covers per vector a thread holds
+  const int64_t E = (d.HW + per_pass - 1) / per_pass;
+  if (E > max_vectors) return false;
+  s.E = static_cast<int>(E);
+  return true;
 }
 
 template <typename T, int V, bool SILU, int GB>
-cudaError_t launch_small(const T* x, Params p, const SmallGeom& s, int64_t N, float eps, float* mean, float* rstd, T* y,
-                         cudaStream_t st) {
-  cudaLaunchConfig_t cfg = {};
-  cfg.gridDim = dim3(static_cast<unsigned>(N * (s.C / s.cb) * s.cluster));
-  cfg.blockDim = dim3(static_cast<unsigned>((s.threads + 31) / 32 * 32));  // whole warps (the shuffles' full masks)
-  cfg.stream = st;
-  cudaLaunchAttribute attr[1];
-  attr[0].id = cudaLaunchAttributeClusterDimension;
-  attr[0].val.clusterDim.x = static_cast<unsigned>(s.cluster);
-  attr[0].val.clusterDim.y = 1;
-  attr[0].val.clusterDim.z = 1;
-  cfg.attrs = attr;
-  cfg.numAttrs = 1;
-  return cudaLaunchKernelEx(&cfg, small_forward_kernel<T, V, SILU, GB>, x, p, s, eps, mean, rstd, y);
+void launch_small(const T* x, Params p, const SmallGeom& s, int64_t N, float eps, float* mean, float* rstd, T* y,
+                  cudaStream_t st) {
+  const unsigned blocks = static_cast<unsigned>(N * (s.C / s.cb));
+  const unsigned threads = static_cast<unsigned>((s.threads + 31) / 32 * 32);  // whole warps (full-mask shuffles)
+  small_forward_kernel<T, V, SILU, GB><<<blocks, threads, 0, st>>>(x, p, s, eps, mean, rstd, y);
 }
 
 template <typename T, int V, bool SILU>
-cudaError_t launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_t N, float eps, float* mean,
-                                float* rstd, T* y, cudaStream_t st) {
+void launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_t N, float eps, float* mean, float* rstd,
+                         T* y, cudaStream_t st) {
   switch (s.cb / (s.C / s.G)) {
     case 1: return launch_small<T, V, SILU, 1>(x, p, s, N, eps, mean, rstd, y, st);
     case 2: return launch_small<T, V, SILU, 2>(x, p, s, N, eps, mean, rstd, y, st);
@@ -289,18 +270,24 @@ cudaError_t launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_
 
 }  // namespace
 
+bool small_forward_applies(const Dims& d, int vector_width, int element_size) {
+  SmallGeom s;
+  const int V = 16 / element_size;
+  return vector_width == V && plan_small(d, V, element_size == 2 ? kMaxVectors<__half> : kMaxVectors<float>, s);
+}
+
 template <typename T>
 bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
                           int vector_width, void* stream) {
   constexpr int V = 16 / sizeof(T);
   SmallGeom s;
-  if (vector_width != V || !plan_small<T>(d, V, s)) return false;
+  if (vector_width != V || !plan_small(d, V, kMaxVectors<T>, s)) return false;
   const auto st = static_cast<cudaStream_t>(stream);
-  const cudaError_t err = silu ? launch_small_groups<T, V, true>(x, p, s, d.N, eps, mean, rstd, y, st)
-                               : launch_small_groups<T, V, false>(x, p, s, d.N, eps, mean, rstd, y, st);
-  if (err == cudaSuccess) return true;
-  (void)cudaGetLastError();  // a cluster the device cannot place: clear it, the general forward runs
-  return false;
+  if (silu)
+    launch_small_groups<T, V, true>(x, p, s, d.N, eps, mean, rstd, y, st);
+  else
+    launch_small_groups<T, V, false>(x, p, s, d.N, eps, mean, rstd, y, st);
+  return true;
 }
 
 template bool launch_forward_small<float>(const float*, Params, const Dims&, float, bool, float*, float*, float*, int,
