@@ -37,6 +37,25 @@ def test_graph_equals_eager(tiny_models, ring_cameras):
            lambda: torch.randint(20, 201, (1,), device="cuda"))
 
 
+def test_bad_renders_raise_and_later_steps_are_unchanged(tiny_models, ring_cameras):
+    """A captured guidance given a batch with NaN or values outside [0, 1] raises a clear error, and
+    its next valid steps still equal the eager steps."""
+    views = ViewBatch(cameras=ring_cameras(size=(16, 16)), originals=torch.rand(4, 3, 16, 16, device="cuda"),
+                      view_ids=torch.arange(4), object_center=torch.zeros(3))
+    ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
+    eager = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True)
+    graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)
+    bad = torch.rand(4, 3, 16, 16, device="cuda")
+    bad[0, 1, 2, 3] = float("nan")
+    graphed.grad(torch.rand(4, 3, 16, 16, device="cuda"), views)  # captured
+    with pytest.raises(ValueError, match="renders contain NaN or Inf"):
+        graphed.grad(bad, views)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        graphed.grad(bad.nan_to_num(0.5) * 3.0, views)
+    _check(eager, graphed, lambda: torch.rand(4, 3, 16, 16, device="cuda"), views, (4, 4, 8, 8),
+           lambda: torch.randint(20, 201, (4,), device="cuda"))
+
+
 def test_shared_pool_survives_freed_guidances(tiny_models, ring_cameras):
     """A second edit in the same process: the first edit's graphed guidances are freed (their pool
     with them) before the next one captures. Capturing into the freed pool's handle used to fail

@@ -96,6 +96,10 @@ def test_bad_inputs_named(models, ring_cameras):
         g.grad(torch.rand(V, 4, H, W), views)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         g.grad(torch.rand(V, 3, H, W) + 1.0, views)
+    nan = torch.rand(V, 3, H, W)
+    nan[1, 2, 3, 4] = float("nan")
+    with pytest.raises(ValueError, match="ip2p: renders contain NaN or Inf"):
+        g.grad(nan, views)
     with pytest.raises(ValueError, match="originals"):
         g.grad(torch.rand(V, 3, H + 2, W), views)
     with pytest.raises(ValueError, match="noise"):

@@ -132,6 +132,10 @@ def test_bad_inputs_named(models, ring_cameras):
         g.grad(torch.rand(3, 3, 16, 16), views)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         g.grad(torch.rand(4, 3, 16, 16) - 2.0, views)
+    inf = torch.rand(4, 3, 16, 16)
+    inf[3, 0, 0, 0] = float("inf")
+    with pytest.raises(ValueError, match="renders contain NaN or Inf"):
+        g.grad(inf, views)
     with pytest.raises(ValueError, match=r"\[V, 3, H, W\]"):
         g.grad(torch.rand(4, 16, 16), views)
     with pytest.raises(ValueError, match="object_center"):
