@@ -289,58 +289,12 @@ struct ColumnConsts {
   }
 };
 
-// ---- forward apply: y = act((x − mean)·rstd·w + b) ---------------------------------------
-// Four blocks per SM (64 registers; 32 bytes of the bf16 instances spill): the 80 registers of
-// three blocks left the 512² maps at 70 % of DRAM bandwidth; the apply kernels of one
-// InstructPix2Pix step 2.56 -> 2.36 ms (H100, guidance_floor_gn_apply_registers_h100.txt).
-template <typename T, int V, bool SILU>
-__global__ void __launch_bounds__(kThreads, 4) apply_kernel(const T* __restrict__ x, Walk w, Params p, int64_t G,
-                                                         const float* __restrict__ mean_g,
-                                                         const float* __restrict__ rstd_g, T* __restrict__ y) {
-  const Tile t = tile_of(w);
-  if (t.ty >= t.R) return;
-  for (int64_t v = int64_t(blockIdx.z) * w.cvt + t.tx; v < w.cols; v += int64_t(gridDim.z) * w.cvt) {
-    // Three constants per lane, not ColumnConsts' five plus the product: fewer registers, more
-    // blocks per SM for this bandwidth-bound pass. The input bias moves into the mean (x − (mean
-    // − ib) keeps the subtraction of nearly equal values exact); x·a + shift would not.
-    float m[V], a[V], b[V];
-    {
-      ColumnConsts<T, V> k;
-      k.load(w, t, v, p, G, mean_g, rstd_g);
-#pragma unroll
-      for (int j = 0; j < V; ++j) {
-        m[j] = k.mean[j] - k.ib[j];
-        a[j] = k.rstd[j] * k.w[j];
-        b[j] = k.b[j];
-      }
-    }
-    walk_rows<4>(
-        t.r0 + t.ty, t.r1, t.R,
-        [&](int64_t r) { return *reinterpret_cast<const Vec<T, V>*>(x + offset_of<V>(w, t, r, v)); },
-        [&](int64_t r, const Vec<T, V>& in) {
-          Vec<T, V> out;
-#pragma unroll
-          for (int j = 0; j < V; ++j) {
-            float z = (load_as<float>(in.v[j]) - m[j]) * a[j] + b[j];
-            if (SILU) z *= sigmoid(z);
-            out.v[j] = store_as<T>(z);
-          }
-          *reinterpret_cast<Vec<T, V>*>(y + offset_of<V>(w, t, r, v)) = out;
-        });
-  }
-}
-
-// Per-lane constants of the backward, folded so that a lane keeps as few as the walk needs:
-// with m = mean − ib (the input bias moved into the mean, as the forward's apply does),
-//   d = x − m,   z = d·a + b  (a = rstd·w),   dz = dy·σ(z)(1 + z(1 − σ(z)))  (dz = dy without SiLU),
-//   Σ dz·x̂ = rstd·Σ dz·d,   dx = a·dz − rstd·c1 − d·rstd²·c2.
-// The reduction keeps m, a, b (3 a lane, rstd applied once at its end), the input gradient m, a,
-// b, k1 = rstd·c1, k2 = rstd²·c2 (5), instead of mean, rstd, w, b, ib (and c1, c2), with fewer
-// operations per element. The VAE's backward norms ran 7-11 % faster at the same two blocks per SM
-// (group_norm_backward_occupancy_variants_h100.txt); capped at 80 registers (three blocks per
-// SM, which the folded constants allow) they were slower (group_norm.h).
+// Three constants per lane for the passes that apply the norm or its backward: with m = mean − ib
+// (the input bias moved into the mean: x − m keeps the subtraction of nearly equal values exact;
+// x·a + shift would not), a = rstd·w and b, z = (x − m)·a + b. Fewer registers than ColumnConsts'
+// five plus products, and fewer operations per element.
 template <typename T, int V>
-struct BackwardConsts {
+struct FoldedConsts {
   float m[V], a[V], b[V];
   __device__ __forceinline__ void load(const Walk& wk, const Tile& t, int64_t v, const Params& p, int64_t G,
                                        const float* mean_g, const float* rstd_g) {
@@ -354,6 +308,44 @@ struct BackwardConsts {
     }
   }
 };
+
+// ---- forward apply: y = act((x − mean)·rstd·w + b) ---------------------------------------
+// Four blocks per SM (64 registers; 32 bytes of the bf16 instances spill): the 80 registers of
+// three blocks left the 512² maps at 70 % of DRAM bandwidth; the apply kernels of one
+// InstructPix2Pix step 2.56 -> 2.36 ms (H100, guidance_floor_gn_apply_registers_h100.txt).
+template <typename T, int V, bool SILU>
+__global__ void __launch_bounds__(kThreads, 4) apply_kernel(const T* __restrict__ x, Walk w, Params p, int64_t G,
+                                                         const float* __restrict__ mean_g,
+                                                         const float* __restrict__ rstd_g, T* __restrict__ y) {
+  const Tile t = tile_of(w);
+  if (t.ty >= t.R) return;
+  for (int64_t v = int64_t(blockIdx.z) * w.cvt + t.tx; v < w.cols; v += int64_t(gridDim.z) * w.cvt) {
+    FoldedConsts<T, V> k;  // fewer registers: more blocks per SM for this bandwidth-bound pass
+    k.load(w, t, v, p, G, mean_g, rstd_g);
+    walk_rows<4>(
+        t.r0 + t.ty, t.r1, t.R,
+        [&](int64_t r) { return *reinterpret_cast<const Vec<T, V>*>(x + offset_of<V>(w, t, r, v)); },
+        [&](int64_t r, const Vec<T, V>& in) {
+          Vec<T, V> out;
+#pragma unroll
+          for (int j = 0; j < V; ++j) {
+            float z = (load_as<float>(in.v[j]) - k.m[j]) * k.a[j] + k.b[j];
+            if (SILU) z *= sigmoid(z);
+            out.v[j] = store_as<T>(z);
+          }
+          *reinterpret_cast<Vec<T, V>*>(y + offset_of<V>(w, t, r, v)) = out;
+        });
+  }
+}
+
+// The backward with FoldedConsts (m = mean − ib, a = rstd·w, b):
+//   d = x − m,   z = d·a + b  (a = rstd·w),   dz = dy·σ(z)(1 + z(1 − σ(z)))  (dz = dy without SiLU),
+//   Σ dz·x̂ = rstd·Σ dz·d,   dx = a·dz − rstd·c1 − d·rstd²·c2.
+// The reduction keeps m, a, b (3 a lane, rstd applied once at its end), the input gradient m, a,
+// b, k1 = rstd·c1, k2 = rstd²·c2 (5), instead of mean, rstd, w, b, ib (and c1, c2), with fewer
+// operations per element. The VAE's backward norms ran 7-11 % faster at the same two blocks per SM
+// (group_norm_backward_occupancy_variants_h100.txt); capped at 80 registers (three blocks per
+// SM, which the folded constants allow) they were slower (group_norm.h).
 
 // dz of one element from d = x − m.
 template <bool SILU>
@@ -383,7 +375,7 @@ __global__ void __launch_bounds__(kThreads, kBackwardBlocksPerSm) backward_reduc
 #pragma unroll
     for (int j = 0; j < V; ++j) sa[j] = sb[j] = 0.f;
     if (active) {
-      BackwardConsts<T, V> k;
+      FoldedConsts<T, V> k;
       k.load(w, t, v, p, G, mean_g, rstd_g);
       walk_rows<2>(
           t.r0 + t.ty, t.r1, t.R,
@@ -500,7 +492,7 @@ struct VecTriple {
   Vec<T, V> x, g, r;
 };
 
-// ---- backward apply: dx = a·dz − k1 − d·k2 (+ residual) (BackwardConsts' folding) ----------
+// ---- backward apply: dx = a·dz − k1 − d·k2 (+ residual) (FoldedConsts) ----------
 // RES: a residual gradient (like x) is read with x and dy and added before the rounding.
 // kBackwardBlocksPerSm blocks per SM (group_norm.h).
 template <typename T, int V, bool SILU, bool RES>
@@ -513,7 +505,7 @@ __global__ void __launch_bounds__(kThreads, kBackwardBlocksPerSm) dx_kernel(cons
   if (t.ty >= t.R) return;
   const int64_t D = w.C / G;
   for (int64_t v = int64_t(blockIdx.z) * w.cvt + t.tx; v < w.cols; v += int64_t(gridDim.z) * w.cvt) {
-    BackwardConsts<T, V> k;
+    FoldedConsts<T, V> k;
     k.load(w, t, v, p, G, mean_g, rstd_g);
     float k1[V], k2[V];
 #pragma unroll
