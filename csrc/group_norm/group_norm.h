@@ -40,8 +40,8 @@ constexpr int kForwardBlocksPerSm = 4;
 constexpr int kBackwardBlocksPerSm = 2;
 constexpr int kBackwardWaves = 2;
 
-// Row chunks per slice for a grid of about blocks_per_sm blocks per SM: the partial buffers hold
-// N·C·chunks (NHWC) or N·C·chunks·vector_width (NCHW) floats each.
+// Row chunks per slice for a grid of about blocks_per_sm blocks per SM (resident blocks x waves):
+// the partial buffers hold N·C·chunks (NHWC) or N·C·chunks·vector_width (NCHW) floats each.
 int64_t plan_chunks(const Dims& d, int vector_width, int blocks_per_sm);
 
 // Affine parameters: dtype of x, or float32 (params_float); null = absent (w = 1, b = 0).
