@@ -29,23 +29,24 @@ SHAPES = [(8, 1280, 4, 4), (8, 1280, 8, 8), (8, 2560, 8, 8), (8, 640, 16, 16), (
 BACKWARD_SHAPES = [(4, 512, 32, 32), *reversed(VAE_SHAPES)]
 
 
+def _inputs(n: int, c: int, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A bf16 channels-last [n, c, h, w] map, its [c] weight (also the bias) and [n, c] input bias."""
+    x = torch.randn(n, c, h, w, device="cuda").bfloat16().contiguous(memory_format=torch.channels_last)
+    return x, torch.rand(c, device="cuda").bfloat16(), torch.randn(n, c, device="cuda")
+
+
 def time_shape(n: int, c: int, h: int, w: int, calls: int = 50) -> float:
     """Microseconds per forward call of one [n, c, h, w] map (graph replays)."""
-    x = torch.randn(n, c, h, w, device="cuda").bfloat16().contiguous(memory_format=torch.channels_last)
-    weight = torch.rand(c, device="cuda").bfloat16()
-    input_bias = torch.randn(n, c, device="cuda")
+    x, weight, input_bias = _inputs(n, c, h, w)
     return 1e3 * cuda_graph_ms(lambda: group_norm(x, 32, weight, weight, 1e-5, True, input_bias=input_bias),
                                calls=calls)
 
 
 def time_backward(n: int, c: int, h: int, w: int, residual: bool, calls: int = 50) -> float:
     """Microseconds per input-gradient call of one [n, c, h, w] map (SiLU; graph replays)."""
-    def cl(t: torch.Tensor) -> torch.Tensor:
-        return t.bfloat16().contiguous(memory_format=torch.channels_last)
-    x, dy = cl(torch.randn(n, c, h, w, device="cuda")), cl(torch.randn(n, c, h, w, device="cuda"))
-    res = cl(torch.randn(n, c, h, w, device="cuda")) if residual else None
-    weight = torch.rand(c, device="cuda").bfloat16()
-    input_bias = torch.randn(n, c, device="cuda")
+    x, weight, input_bias = _inputs(n, c, h, w)
+    dy = torch.randn_like(x)
+    res = torch.randn_like(x) if residual else None
     _, mean, rstd = group_norm_with_stats(x, 32, weight, weight, 1e-5, True, input_bias=input_bias)
     return 1e3 * cuda_graph_ms(lambda: group_norm_input_grad(dy, x, 32, mean, rstd, weight, weight, True, input_bias,
                                                              res), calls=calls)

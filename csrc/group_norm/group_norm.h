@@ -53,18 +53,16 @@ struct Params {
   const float* input_bias;
 };
 
-// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x.
+// mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x. The three-kernel walk;
+// the caller tries launch_forward_small first.
 template <typename T>
 void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks,
                     float* partial_mean, float* partial_m2, float* mean, float* rstd, T* y, int vector_width,
                     void* stream);
 
 // The forward in one launch for channels-last maps whose (sample, channel block) fits one block's
-// registers (compute capability 9.0 and up; group_norm_small_cuda.cu): same outputs, the partial
-// workspaces unused (small_forward_applies says when; launch_forward then needs none and may be
-// given null ones and chunks = 0). Returns false, launching nothing, where it does not apply.
-// launch_forward tries it first.
-bool small_forward_applies(const Dims& d, int vector_width, int element_size);
+// registers (compute capability 9.0 and up; group_norm_small_cuda.cu): same outputs, no partial
+// workspaces. Returns false, launching nothing, where it does not apply.
 template <typename T>
 bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
                           int vector_width, void* stream);

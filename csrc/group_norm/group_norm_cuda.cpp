@@ -61,17 +61,19 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_cuda(const at::Tensor&
   auto mean = at::empty({d.N, d.G}, fopts), rstd = at::empty({d.N, d.G}, fopts);
   if (x.numel() == 0) return {y, mean.zero_(), rstd.fill_(1.0 / std::sqrt(eps))};
   const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), y.data_ptr()});
-  // The one-launch forward needs no partial workspaces.
-  const bool small = small_forward_applies(d, vw, static_cast<int>(x.element_size()));
-  const int64_t chunks = small ? 0 : plan_chunks(d, vw, kForwardBlocksPerSm);
-  auto pmean = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
-  auto pm2 = at::empty_like(pmean);
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
   dispatch(x.scalar_type(), [&](auto tag) {
     using T = typename decltype(tag)::type;
-    launch_forward<T>(reinterpret_cast<const T*>(x.data_ptr()), p, d, static_cast<float>(eps), silu, chunks,
-                      small ? nullptr : pmean.data_ptr<float>(), small ? nullptr : pm2.data_ptr<float>(),
-                      mean.data_ptr<float>(), rstd.data_ptr<float>(), reinterpret_cast<T*>(y.data_ptr()), vw, stream);
+    const auto* xp = reinterpret_cast<const T*>(x.data_ptr());
+    auto* yp = reinterpret_cast<T*>(y.data_ptr());
+    const float e = static_cast<float>(eps);
+    if (launch_forward_small<T>(xp, p, d, e, silu, mean.data_ptr<float>(), rstd.data_ptr<float>(), yp, vw, stream))
+      return;  // one launch, no partial workspaces
+    const int64_t chunks = plan_chunks(d, vw, kForwardBlocksPerSm);
+    auto pmean = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
+    auto pm2 = at::empty_like(pmean);
+    launch_forward<T>(xp, p, d, e, silu, chunks, pmean.data_ptr<float>(), pm2.data_ptr<float>(),
+                      mean.data_ptr<float>(), rstd.data_ptr<float>(), yp, vw, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return {y, mean, rstd};

@@ -616,7 +616,6 @@ int64_t plan_chunks(const Dims& d, int vector_width, int blocks_per_sm) {
 template <typename T>
 void launch_forward(const T* x, Params p, const Dims& d, float eps, bool silu, int64_t chunks, float* partial_mean,
                     float* partial_m2, float* mean, float* rstd, T* y, int vector_width, void* stream) {
-  if (launch_forward_small<T>(x, p, d, eps, silu, mean, rstd, y, vector_width, stream)) return;
   const auto st = static_cast<cudaStream_t>(stream);
   if (vector_width > 1)
     forward_impl<T, 16 / sizeof(T)>(x, p, d, eps, silu, chunks, partial_mean, partial_m2, mean, rstd, y, st);

@@ -212,27 +212,15 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
   }
 }
 
-// Compute capability major of the current device, queried once per device.
-int capability_major() {
-  constexpr int kMaxDevices = 64;
-  static int major[kMaxDevices] = {};  // 0: not queried yet
-  int dev = 0;
-  if (cudaGetDevice(&dev) != cudaSuccess || dev < 0) return 0;
-  if (dev >= kMaxDevices) {
-    int m = 0;
-    return cudaDeviceGetAttribute(&m, cudaDevAttrComputeCapabilityMajor, dev) == cudaSuccess ? m : 0;
-  }
-  if (major[dev] == 0 && cudaDeviceGetAttribute(&major[dev], cudaDevAttrComputeCapabilityMajor, dev) != cudaSuccess)
-    major[dev] = 0;
-  return major[dev];
-}
-
 // The geometry for this map, or false when the one-launch forward does not apply (not
 // channels-last, scalar path, pre-Hopper device (only measured on the H100), more than 4 groups
 // or 8 vectors per block row, or too many pixels for one block's registers).
 bool plan_small(const Dims& d, int V, int max_vectors, SmallGeom& s) {
   if (!d.nhwc || V == 1 || d.G <= 0 || d.C % d.G != 0 || d.HW <= 0) return false;
-  if (capability_major() < 9) return false;
+  int dev = 0, major = 0;
+  if (cudaGetDevice(&dev) != cudaSuccess ||
+      cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, dev) != cudaSuccess || major < 9)
+    return false;
   const int64_t D = d.C / d.G, cb = std::lcm<int64_t>(V, D);
   // at most 4 groups and 8 vectors a block row: what was measured (the up blocks' 1920- and
   // 2560-channel maps, 10-15 vectors a row, were not and take the general forward)
@@ -269,12 +257,6 @@ void launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_t N, fl
 }
 
 }  // namespace
-
-bool small_forward_applies(const Dims& d, int vector_width, int element_size) {
-  SmallGeom s;
-  const int V = 16 / element_size;
-  return vector_width == V && plan_small(d, V, element_size == 2 ? kMaxVectors<__half> : kMaxVectors<float>, s);
-}
 
 template <typename T>
 bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
