@@ -353,3 +353,23 @@ def test_cuda_graph_capture_and_replay():
         graph.replay()
         want_y, want_gx = step(static_x)
         assert torch.equal(static_y, want_y) and torch.equal(static_gx, want_gx)
+
+
+def test_walk_grid_constants_are_the_measured_ones():
+    """csrc/group_norm/group_norm.h plans the walks' grids: the forward for 4 blocks per SM, the
+    backward for 2 blocks per SM in 2 waves, the fastest of the variants measured on the H100 on
+    the VAE's largest input gradient (benchmarks/gpu/results/group_norm_backward_occupancy_variants_h100.txt,
+    V<blocks><waves>). A change there must be re-measured."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    header = (root / "csrc/group_norm/group_norm.h").read_text()
+    consts = {k: int(v) for k, v in re.findall(r"constexpr int (k\w+) = (\d+);", header)}
+    assert (consts["kForwardBlocksPerSm"], consts["kBackwardBlocksPerSm"], consts["kBackwardWaves"]) == (4, 2, 2)
+    raw = (root / "benchmarks/gpu/results/group_norm_backward_occupancy_variants_h100.txt").read_text()
+    tags = next(l for l in raw.splitlines() if l.startswith("shape | pass |")).split(" | ")[2:]
+    row = next(l for l in raw.splitlines() if l.startswith("4x128x512x512 | bwd |")).split(" | ")[2:]
+    times = dict(zip(tags, map(float, row)))
+    kept = f"V{consts['kBackwardBlocksPerSm']}{consts['kBackwardWaves']}"
+    assert min(times, key=times.get) == kept, times
