@@ -46,6 +46,7 @@ from tiger.demo.run import label_features  # noqa: E402
 from tiger.demo.scene import tabletop_scene  # noqa: E402
 from tiger.edit import EditConfig, edit, resolve_target  # noqa: E402
 from tiger.edit.guidance import RecolorGuidance  # noqa: E402
+from tiger.edit.guidance.model_kernels import ModelKernels  # noqa: E402
 from tiger.testing.ideal_denoiser import IdealDenoiserGuidance, render_targets  # noqa: E402
 from tiger.edit.views import ObjectViews  # noqa: E402
 from tiger.eval.edit import locality  # noqa: E402
@@ -69,11 +70,13 @@ def demo_scene(density: float, device: str) -> tuple[GaussianScene, torch.Tensor
 
 
 def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cuda_graph: bool, seed: int = 0,
-                       fused_norms: Optional[bool] = None, concurrent: bool = True):
+                       fused_norms: Optional[bool] = None, concurrent: bool = True, kernels=None):
     """CSD with randomly initialised InstructPix2Pix / MVDream of the real architectures (``full``:
     SD-1.5 IP2P and SD-2.1 MVDream, built directly on the device by benchmarks/guidance.py);
     ``fused_norms`` as for the real loaders (None, their default: VAE and UNet fused on CUDA);
-    ``concurrent``: MVDream on a side stream beside InstructPix2Pix (CSDGuidance's default)."""
+    ``concurrent``: MVDream on a side stream beside InstructPix2Pix (CSDGuidance's default);
+    ``kernels``: both guidances' :class:`~tiger.edit.guidance.model_kernels.ModelKernels` (None:
+    the default)."""
     from benchmarks.guidance import build_models, tokenizer
 
     from tiger.edit import CSDGuidance
@@ -83,9 +86,11 @@ def diffusion_guidance(kind: str, size: str, device: str, dtype: torch.dtype, cu
     ip2p_models, mv_models = build_models(size, device, dtype, tok, fused_norms)
     kw = {} if size == "full" else {"short_side": 64}
     ip = InstructPix2PixGuidance(ip2p_models, "make the ball look like a watermelon", cuda_graph=cuda_graph,
-                                 generator=torch.Generator(device).manual_seed(seed), **kw) if "ip2p" in kind else None
+                                 generator=torch.Generator(device).manual_seed(seed), kernels=kernels,
+                                 **kw) if "ip2p" in kind else None
     mv = MVDreamGuidance(mv_models, "a watermelon", cuda_graph=cuda_graph, image_size=256 if size == "full" else 32,
-                         generator=torch.Generator(device).manual_seed(seed + 1)) if "mvdream" in kind else None
+                         generator=torch.Generator(device).manual_seed(seed + 1),
+                         kernels=kernels) if "mvdream" in kind else None
     return CSDGuidance(ip, mv, concurrent=concurrent)
 
 
@@ -99,7 +104,8 @@ def build(kind: str, scene: GaussianScene, mask: torch.Tensor, args):
     dtype = DTYPE_NAMES[args.dtype]
     fused = {"auto": None, "on": True, "off": False}[args.fused_norms]
     return diffusion_guidance(kind, args.random_models, args.device, dtype, args.cuda_graph, fused_norms=fused,
-                              concurrent=not args.sequential_guidance), None
+                              concurrent=not args.sequential_guidance,
+                              kernels=ModelKernels.from_spec(args.model_kernels)), None
 
 
 def profile_steps(scene: GaussianScene, tgt, guidance, cfg: EditConfig, args) -> dict:
@@ -200,7 +206,7 @@ def run(args) -> dict:
     n = cfg.steps
     row = {"device": dev, "gaussians": len(scene), "editable": tgt.count, "guidance": args.guidance,
            "view_pool": args.view_pool, "prefetch_views": cfg.prefetch_views, "steps": n, "size": args.size,
-           "models_build_s": build_s, "edit_s": total,
+           "model_kernels": args.model_kernels or "default", "models_build_s": build_s, "edit_s": total,
            f"edit_{args.steps}_steps_s": total * args.steps / n}
     if projected is not None:
         row["warmup_projection_s"] = projected
@@ -248,6 +254,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--fused-norms", default="auto", choices=("auto", "on", "off"),
                    help="tiger's fused GroupNorm+SiLU in channels-last: auto = the loaders' default "
                         "(VAEs and UNets on CUDA, off on the CPU), on = both everywhere, off = torch's GroupNorm")
+    p.add_argument("--model-kernels", default="", metavar="FIELD=on|off|auto,...",
+                   help="the diffusion guidances' ModelKernels fields other than their defaults "
+                        "(e.g. stacked_time_bias=off,cached_text_kv=off)")
     p.add_argument("--sequential-guidance", action="store_true",
                    help="run MVDream after InstructPix2Pix on one stream (default: beside it on a side stream)")
     p.add_argument("--warmup", type=int, default=0, help="untimed warm-up steps before the timed edit")

@@ -80,10 +80,12 @@ from tiger.utils.dtypes import DTYPE_NAMES
 
 PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
                         subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False,
-                        fused_transformer=False, carry_conv_bias=False, branch_prefix=False)
+                        fused_transformer=False, carry_conv_bias=False, branch_prefix=False, stacked_time_bias=False,
+                        cached_text_kv=False)
 DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
                           subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True,
-                          fused_transformer=True, carry_conv_bias=True, branch_prefix=True)
+                          fused_transformer=True, carry_conv_bias=True, branch_prefix=True, stacked_time_bias=True,
+                          cached_text_kv=True)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -109,6 +111,8 @@ VARIANTS = {
     "default-fused_transformer": (dataclasses.replace(DEFAULT, fused_transformer=False), True, False, False),
     "default-carry_conv_bias": (dataclasses.replace(DEFAULT, carry_conv_bias=False), True, False, False),
     "default-branch_prefix": (dataclasses.replace(DEFAULT, branch_prefix=False), True, False, False),
+    "default-stacked_time_bias": (dataclasses.replace(DEFAULT, stacked_time_bias=False), True, False, False),
+    "default-cached_text_kv": (dataclasses.replace(DEFAULT, cached_text_kv=False), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
@@ -117,7 +121,8 @@ VARIANTS = {
 DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_norm_bias", "after+fp8", "default",
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
                     "default-block_backward", "default-pad_conv_in", "default-fused_transformer",
-                    "default-carry_conv_bias", "default-branch_prefix", "default+fp8",
+                    "default-carry_conv_bias", "default-branch_prefix", "default-stacked_time_bias",
+                    "default-cached_text_kv", "default+fp8",
                     "default+fp8_fast_accum")
 MV_FRACTION = CSDSchedule().mv_end  # MVDream runs while λ2 > 0: the first 75 % of the steps
 FLOOR_TARGET = 1.6  # issue 30: the guidance step at most 1.6x its FLOP floor

@@ -51,6 +51,7 @@ struct Params {
   const void* bias;
   bool params_float;
   const float* input_bias;
+  int64_t input_bias_stride;  // elements between the rows of input_bias (0: one [C] row for every n)
 };
 
 // mean/rstd [N, G]; partial_mean/partial_m2 [N·C·chunks] workspaces; y like x. The three-kernel walk;

@@ -223,13 +223,14 @@ struct Partials {
 
 // Input bias of (n, c) (0 when absent): added to every element of the channel, shifts included,
 // so the per-channel moments (relative to the shift) need no change.
-__device__ __forceinline__ float input_bias_at(const float* ib, int64_t C, int64_t n, int64_t c) {
-  return ib == nullptr ? 0.f : ib[n * C + c];
+__device__ __forceinline__ float input_bias_at(const float* ib, int64_t row_stride, int64_t n, int64_t c) {
+  return ib == nullptr ? 0.f : ib[n * row_stride + c];
 }
 
 template <typename T>
 __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const T* __restrict__ x,
                                                                        const float* __restrict__ ib,
+                                                                       int64_t ib_stride,
                                                                        const float* __restrict__ pmean,
                                                                        const float* __restrict__ pm2, float eps,
                                                                        float* __restrict__ mean_out,
@@ -238,7 +239,7 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials 
   const int64_t ng = blockIdx.x, n = ng / pt.G, g = ng % pt.G;
   // The group's frame: the shift of its first channel; each entry's mean moves into it.
   const int64_t c_first = g * (pt.C / pt.G);
-  const float s0 = load_as<float>(x[pt.shift_index(n, c_first)]) + input_bias_at(ib, pt.C, n, c_first);
+  const float s0 = load_as<float>(x[pt.shift_index(n, c_first)]) + input_bias_at(ib, ib_stride, n, c_first);
   float cnt = 0.f, mean = 0.f, m2 = 0.f;
   const int64_t E = pt.entries();
   for (int64_t e = threadIdx.x; e < E; e += blockDim.x) {
@@ -246,7 +247,7 @@ __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials 
     float c;
     pt.at(n, g, e, idx, c);
     const int64_t ch = pt.channel_of_entry(g, e);
-    const float to_group = load_as<float>(x[pt.shift_index(n, ch)]) + input_bias_at(ib, pt.C, n, ch) - s0;
+    const float to_group = load_as<float>(x[pt.shift_index(n, ch)]) + input_bias_at(ib, ib_stride, n, ch) - s0;
     merge(cnt, mean, m2, c, to_group + pmean[idx], pm2[idx]);
   }
   s_n[threadIdx.x] = cnt;
@@ -280,7 +281,7 @@ struct ColumnConsts {
     for (int j = 0; j < V; ++j) {
       const int64_t c = channel_of<V>(wk, t, v, j);
       const int64_t ng = t.n * G + c / D;
-      ib[j] = input_bias_at(p.input_bias, wk.C, t.n, c);
+      ib[j] = input_bias_at(p.input_bias, p.input_bias_stride, t.n, c);
       mean[j] = mean_g[ng];
       rstd[j] = rstd_g[ng];
       w[j] = param_at<T>(p, p.weight, c, 1.f);
@@ -572,7 +573,7 @@ void forward_impl(const T* x, Params p, const Dims& d, float eps, bool silu, int
   const dim3 grid = walk_grid(d, w, chunks);
   stats_kernel<T, V><<<grid, kThreads, 0, st>>>(x, w, pmean, pm2);
   finalize_stats_kernel<T><<<static_cast<unsigned>(d.N * d.G), kFinalThreads, 0, st>>>(
-      make_partials(d, w, V, chunks), x, p.input_bias, pmean, pm2, eps, mean, rstd);
+      make_partials(d, w, V, chunks), x, p.input_bias, p.input_bias_stride, pmean, pm2, eps, mean, rstd);
   if (silu)
     apply_kernel<T, V, true><<<grid, kThreads, 0, st>>>(x, w, p, d.G, mean, rstd, y);
   else

@@ -67,8 +67,9 @@ inline at::Tensor residual_grad_of(const c10::optional<at::Tensor>& r, const at:
   return r->contiguous(memory_format(nhwc));
 }
 
-// The input bias as float32 [N, C] contiguous (an undefined tensor when absent): [C] or [N, C]
-// of any floating dtype, on x's device.
+// The input bias as float32 [N, C] (an undefined tensor when absent): [C] or [N, C] of any floating
+// dtype, on x's device. Its rows may be strided (a [C] bias is the row stride 0, a slice of a wider
+// [N, C'] matrix its width: no copy for either); its channels are made contiguous.
 inline at::Tensor input_bias_of(const c10::optional<at::Tensor>& ib, const at::Tensor& x, const char* op) {
   if (!ib.has_value() || !ib->defined()) return at::Tensor();
   const int64_t N = x.size(0), C = x.size(1);
@@ -79,7 +80,8 @@ inline at::Tensor input_bias_of(const c10::optional<at::Tensor>& ib, const at::T
   TORCH_CHECK(ib->is_floating_point(), op, ": input_bias must be floating point, got ", ib->scalar_type());
   TORCH_CHECK(ib->device() == x.device(), op, ": input_bias is on ", ib->device(), " but x is on ", x.device());
   const auto acc = x.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
-  return ib->to(acc).expand({N, C}).contiguous();
+  const auto t = ib->to(acc).expand({N, C});
+  return t.stride(1) == 1 ? t : t.contiguous();
 }
 
 inline Params params_of(const c10::optional<at::Tensor>& w, const c10::optional<at::Tensor>& b,
@@ -91,7 +93,9 @@ inline Params params_of(const c10::optional<at::Tensor>& w, const c10::optional<
               b->scalar_type());
   const float* ib = input_bias.defined() && input_bias.scalar_type() == at::kFloat ? input_bias.data_ptr<float>()
                                                                                     : nullptr;
-  return Params{w.has_value() ? w->data_ptr() : nullptr, b.has_value() ? b->data_ptr() : nullptr, wf || bf, ib};
+  const int64_t ib_stride = ib == nullptr ? 0 : input_bias.stride(0);
+  return Params{w.has_value() ? w->data_ptr() : nullptr, b.has_value() ? b->data_ptr() : nullptr, wf || bf, ib,
+                ib_stride};
 }
 
 }  // namespace group_norm

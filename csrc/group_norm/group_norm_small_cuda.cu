@@ -112,7 +112,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 #pragma unroll
   for (int l = 0; l < V; ++l) {
     groups |= static_cast<uint32_t>((cv * V + l) / D) << (4 * l);
-    ib[l] = p.input_bias == nullptr ? 0.f : p.input_bias[n * s.C + c0 + cv * V + l];
+    ib[l] = p.input_bias == nullptr ? 0.f : p.input_bias[n * p.input_bias_stride + c0 + cv * V + l];
   }
   Vec<T, V> v[kMaxVectors<T>];
   float acc[V], acc2[V];

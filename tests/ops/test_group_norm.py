@@ -120,6 +120,42 @@ def test_input_bias_equals_norm_of_the_sum(layout, per_sample):
         group_norm(x, 4, w, b, 1e-5, True, input_bias=torch.zeros(3, dtype=F64))
 
 
+def _strided_biases(n: int, c: int, device: str, seed: int) -> list[tuple[str, torch.Tensor]]:
+    """input_bias views read in place (no copy): a column slice of a wider [N, C'] matrix, a [C]
+    row (row stride 0) and a [1, C] row expanded to [N, C] (row stride 0)."""
+    g = torch.Generator().manual_seed(seed)
+    wide = (torch.randn(n, c + 24, generator=g) * 3).to(device)
+    row = (torch.randn(c, generator=g) * 3).to(device)
+    return [("slice", wide[:, 16:16 + c]), ("channel", row), ("expanded", row[None].expand(n, -1))]
+
+
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if CUDA else []))
+@pytest.mark.parametrize("layout", ["nchw", "cl"])
+def test_strided_input_bias_equals_its_contiguous_copy(device, layout):
+    """A strided input bias (what the UNets' stacked time biases hand the norms) gives exactly the
+    values and gradients of its contiguous copy, on the CPU and on CUDA (the one-launch forward's
+    maps and the three-kernel walk's), forward and backward."""
+    shapes = [(2, 8, 5, 6, 4)] if device == "cpu" else [(2, 128, 8, 8, 32), (2, 320, 40, 40, 32)]
+    dtypes = [F64] if device == "cpu" else [torch.float32, torch.bfloat16]
+    for (n, c, h, w_, groups), dtype in [(s, d) for s in shapes for d in dtypes]:
+        x, w, b = make(n, c, h, w_, dtype=dtype, layout=layout, seed=c, mean=1.0, device=device)
+        gy = torch.randn(x.shape, generator=torch.Generator().manual_seed(5), dtype=F64).to(device)
+        for name, ib in _strided_biases(n, c, device, seed=c + 1):
+            for silu in (False, True):
+                outs = []
+                for bias in (ib, ib.contiguous()):
+                    xa = x.clone().requires_grad_()
+                    y = group_norm(xa, groups, w, b, 1e-6, silu, input_bias=bias)
+                    (y.to(F64) * gy).sum().backward()
+                    outs.append((y.detach(), xa.grad))
+                assert torch.equal(outs[0][0], outs[1][0]), (name, dtype, silu)
+                assert torch.equal(outs[0][1], outs[1][1]), (name, dtype, silu)
+                ref = reference(x.to(F64) + ib.to(F64).expand(n, c)[:, :, None, None], groups, w.to(F64),
+                                b.to(F64), 1e-6, silu)
+                tol = LOW[dtype] if dtype != torch.float32 else 1e-4
+                torch.testing.assert_close(outs[0][0].to(F64), ref, atol=tol, rtol=tol)
+
+
 @pytest.mark.parametrize("layout", ["nchw", "cl"])
 @pytest.mark.parametrize("dtype", [F64, torch.bfloat16])
 def test_input_grad_adds_the_residual_gradient_before_rounding(layout, dtype):

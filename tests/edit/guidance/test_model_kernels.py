@@ -336,7 +336,8 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
                                            "row_layer_norm": "auto", "subpixel_upsample": "auto",
                                            "lean_attention": "auto", "block_backward": "auto",
                                            "pad_conv_in": "auto", "fused_transformer": True if on else "auto",
-                                           "carry_conv_bias": "auto", "branch_prefix": "auto"}
+                                           "carry_conv_bias": "auto", "branch_prefix": "auto",
+                                           "stacked_time_bias": "auto", "cached_text_kv": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)
@@ -355,3 +356,15 @@ def test_row_layer_norm_and_subpixel_follow_the_device(tiny_ip2p):
     mk.apply_model_kernels(unet, vae, mk.ModelKernels(row_layer_norm=False, subpixel_upsample=False))
 
 
+
+
+def test_kernels_from_spec_sets_named_fields_and_names_bad_items():
+    k = mk.ModelKernels.from_spec("stacked_time_bias=off, cached_text_kv=on,fused_geglu=auto,matmul_precision=fp8")
+    assert (k.stacked_time_bias, k.cached_text_kv, k.fused_geglu, k.matmul_precision) == (False, True, None, "fp8")
+    assert mk.ModelKernels.from_spec("") == mk.ModelKernels()
+    with pytest.raises(ValueError, match="field=on\\|off\\|auto.*got 'no_such=on'"):
+        mk.ModelKernels.from_spec("no_such=on")
+    with pytest.raises(ValueError, match="got 'branch_prefix=yes'"):
+        mk.ModelKernels.from_spec("branch_prefix=yes")
+    with pytest.raises(ValueError, match="matmul_precision must be one of"):
+        mk.ModelKernels.from_spec("matmul_precision=int4")

@@ -43,8 +43,11 @@ from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
 
+# A folded block's shared time-embedding biases (:class:`.time_bias.StackedTimeBias`), if any.
+TIME_BIAS_KEY = "_tiger_time_biases"
+
 __all__ = ["SiLUThenLinear", "fuse_group_norms", "bias_after_conv", "apply_fused_norms", "fused_norms_default",
-           "set_fold_norm_bias", "set_block_backward"]
+           "folds_norm_bias", "set_fold_norm_bias", "set_block_backward", "TIME_BIAS_KEY"]
 
 
 class SiLUThenLinear(torch.nn.Linear):
@@ -117,15 +120,21 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
     ``input_tensor`` (:mod:`.encoder_bias`); the block computes on ``input_tensor + input_bias``
     by adding it inside norm1 and to the shortcut's bias (through a 1x1 shortcut convolution:
     ``W_sc·input_bias``, a per-channel constant)."""
+    fold = self.__dict__.get("_tiger_fold_norm_bias", False)
+    stacked = self.__dict__.get(TIME_BIAS_KEY) if fold and temb is not None else None
+    ib2 = None if stacked is None else stacked.input_bias(self, temb, input_tensor.shape[0])  # .time_bias
     temb_bias = None
-    if self.time_emb_proj is not None and temb is not None:
+    if ib2 is None and self.time_emb_proj is not None and temb is not None:
         temb_bias = self.time_emb_proj(temb)  # its SiLU: SiLUThenLinear or skip_time_act
     ib1 = None if input_bias is None else _norm_input_bias(input_bias, None, input_tensor.shape[0])
-    if self.__dict__.get("_tiger_fold_norm_bias", False):  # conv1's bias and temb added inside norm2
-        if self.__dict__.get("_tiger_block_backward", False) and _block_backward_applies(self, input_tensor, temb_bias):
+    if fold:  # conv1's bias and temb added inside norm2
+        if (ib2 is None and self.__dict__.get("_tiger_block_backward", False)
+                and _block_backward_applies(self, input_tensor, temb_bias)):
             return _FoldedBlock.apply(input_tensor, self, ib1)
         h = self.conv1._conv_forward(self.norm1(input_tensor, input_bias=ib1), self.conv1.weight, None)
-        h = self.dropout(self.norm2(h, input_bias=_norm_input_bias(self.conv1.bias, temb_bias, h.shape[0])))
+        if ib2 is None:
+            ib2 = _norm_input_bias(self.conv1.bias, temb_bias, h.shape[0])
+        h = self.dropout(self.norm2(h, input_bias=ib2))
     else:
         h = _conv_then_add(self.conv1, self.norm1(input_tensor, input_bias=ib1), temb_bias)
         h = self.dropout(self.norm2(h))
@@ -250,6 +259,13 @@ def set_fold_norm_bias(module: torch.nn.Module, on: bool) -> int:
         m.__dict__["_tiger_fold_norm_bias"] = bool(on)
         count += bool(on)
     return count
+
+
+def folds_norm_bias(module: torch.nn.Module) -> bool:
+    """Whether ``module`` is a folded ``ResnetBlock2D`` adding conv1's bias and its time embedding
+    inside norm2 (:func:`set_fold_norm_bias` on)."""
+    return (module.__dict__.get("_tiger_fold_norm_bias", False)
+            and getattr(module.__dict__.get("forward"), "__func__", None) is _resnet_forward_folded)
 
 
 def _folds_adds(block) -> bool:

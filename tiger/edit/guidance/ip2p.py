@@ -32,6 +32,7 @@ from .diffusers_models import (PromptEncoder, encode_latents, freeze, latent_sha
                                model_device_dtype, render_gradient, resize, resolution_for, vae_downsampling_factor)
 from .model_kernels import ModelKernels, apply_model_kernels
 from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
+from .text_kv import branch_text
 
 logger = logging.getLogger(__name__)
 
@@ -240,8 +241,9 @@ class InstructPix2PixGuidance:
         z_t = m.schedule.add_noise(z, noise, t)
         cond3 = torch.cat([cond, cond, torch.zeros_like(cond)]).to(z_t.dtype)
         inp = torch.cat([torch.cat([z_t, z_t, z_t]), cond3], dim=1)
-        e = self.text_embeddings  # branches: instruction, "", "" (device ops only: graph capturable)
-        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(2 * v, -1, -1)])
+        # branches: instruction, "", "": one tensor kept across calls (its cross-attention keys and
+        # values are computed once: .text_kv)
+        emb = branch_text(self, self.text_embeddings, (v, 2 * v))
         with shared_branches(m.unet, BranchShare(v, v)):  # instruction and image-only rows agree until text enters
             eps = m.unet(inp, torch.cat([t, t, t]), encoder_hidden_states=emb).sample.float()
         e_text, e_img, e_unc = eps.chunk(3)

@@ -57,6 +57,13 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   channels) on an input zero-padded to a multiple of 16 channels, with a zero-padded kernel: the
   same sums (the extra products are with zeros), but cuDNN's tensor-core kernels instead of its
   slow path for so few channels.
+- ``stacked_time_bias``: the UNet's folded ResNet blocks get their norm2 input biases (conv1's
+  bias plus the time-embedding projection) from one SiLU, one matmul on the blocks' stacked
+  projection weights and one float32 sum per call, read by the norms as column slices
+  (:mod:`.time_bias`), instead of five small launches per block. Same operations per element.
+- ``cached_text_kv``: the cross-attentions' keys and values of the guidance's fixed text are
+  computed once and kept with the text tensor (:mod:`.text_kv`) instead of in every call. The same
+  matmuls on the same rows.
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
   the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
@@ -83,7 +90,8 @@ from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsam
 from .encoder_bias import set_carry_conv_bias
 from .forward_switch import switch_forward
 from .fused_norms import set_block_backward, set_fold_norm_bias
-from .transformer_blocks import set_fused_transformer, set_lean_attention
+from .time_bias import set_stacked_time_bias
+from .transformer_blocks import set_cached_text_kv, set_fused_transformer, set_lean_attention
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
@@ -132,6 +140,11 @@ class ModelKernels:
             only the guidance branches that differ there (InstructPix2Pix's instruction and
             image-only branches share their first ResNet block and self-attention:
             :mod:`.branch_prefix`); None: on (the same operations on fewer rows, any device).
+        stacked_time_bias: the folded ResNet blocks' time-embedding biases from one stacked
+            matmul per UNet call (:mod:`.time_bias`); None: on where ``fold_norm_bias`` is (the
+            same operations per element).
+        cached_text_kv: the cross-attentions' keys and values of the fixed text computed once
+            (:mod:`.text_kv`); None: on (the same matmuls, any device).
     """
 
     matmul_precision: str = "model"
@@ -147,6 +160,8 @@ class ModelKernels:
     fused_transformer: Optional[bool] = None
     carry_conv_bias: Optional[bool] = None
     branch_prefix: Optional[bool] = None
+    stacked_time_bias: Optional[bool] = None
+    cached_text_kv: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -154,6 +169,23 @@ class ModelKernels:
                              f"got {self.matmul_precision!r}")
         if self.fp8_fast_accum and self.matmul_precision != "fp8":
             raise ValueError("tiger.edit: fp8_fast_accum=True needs matmul_precision='fp8'")
+
+    @classmethod
+    def from_spec(cls, spec: str) -> "ModelKernels":
+        """Kernels from ``"field=value,..."`` (values ``on``/``off``/``auto`` for the switches, the
+        name for ``matmul_precision``), the other fields at their defaults: ``""`` is the default."""
+        switches = {f.name for f in dataclasses.fields(cls)} - {"matmul_precision"}
+        values: dict[str, Any] = {}
+        for item in filter(None, (part.strip() for part in spec.split(","))):
+            name, _, value = item.partition("=")
+            if name == "matmul_precision":
+                values[name] = value
+            elif name in switches and value in ("on", "off", "auto"):
+                values[name] = {"on": True, "off": False, "auto": None}[value]
+            else:
+                raise ValueError(f"tiger.edit: model kernels take field=on|off|auto (fields: "
+                                 f"{', '.join(sorted(switches))}; matmul_precision=model|fp8), got {item!r}")
+        return cls(**values)
 
     def settings(self) -> dict[str, Any]:
         """JSON record (None recorded as ``"auto"``)."""
@@ -421,7 +453,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     """Put ``kernels`` on a guidance's models (idempotent; every setting reversible); returns what
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
-    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks"}``."""
+    "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks",
+    "stacked_time_bias_blocks", "cached_text_kv_layers"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -442,8 +475,11 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     own_backward = set_block_backward(vae, _resolve(kernels.block_backward, vae_kernels))
     carried = set_carry_conv_bias(vae, _resolve(kernels.carry_conv_bias, vae_kernels))
     prefix = set_branch_prefix(unet, _resolve(kernels.branch_prefix, True))
+    # after the folded norms, the fused blocks and the processors they build on
+    stacked = set_stacked_time_bias(unet, _resolve(kernels.stacked_time_bias, fold_on))
+    text_kv = set_cached_text_kv(unet, _resolve(kernels.cached_text_kv, True))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
             "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried,
-            "branch_prefix_blocks": prefix}
+            "branch_prefix_blocks": prefix, "stacked_time_bias_blocks": stacked, "cached_text_kv_layers": text_kv}

@@ -38,6 +38,7 @@ from .ldm_checkpoint import ConfigSource, convert_ldm_checkpoint
 from .mvdream_attention import install_multiview_attention
 from .mvdream_cameras import mvdream_cameras
 from .noise_schedule import NoiseSchedule, check_t_range, draw_noise, finite_clamped
+from .text_kv import branch_text
 
 logger = logging.getLogger(__name__)
 
@@ -282,8 +283,8 @@ class MVDreamGuidance:
         v = z.shape[0]
         tt = t.reshape(1).expand(v)
         z_t = m.schedule.add_noise(z, noise, tt)
-        e = self.text_embeddings  # branches: prompt, negative prompt
-        emb = torch.cat([e[0:1].expand(v, -1, -1), e[1:2].expand(v, -1, -1)])
+        # branches: prompt, negative prompt: one tensor kept across calls (.text_kv)
+        emb = branch_text(self, self.text_embeddings, (v, v))
         cams = torch.cat([cameras, cameras]).to(self.dtype)
         eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
                      class_labels=cams).sample.float()

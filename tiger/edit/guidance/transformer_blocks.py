@@ -42,13 +42,16 @@ from tiger.ops.fp8_rows import geglu
 from tiger.ops.layer_norm import layer_norm_rows
 from tiger.utils.lazy import require_diffusers
 
+from .text_kv import memo_text_kv
+
 __all__ = ["LeanAttnProcessor", "fused_cross_feed_forward", "fused_derived", "fused_self_attention",
-           "set_fused_transformer", "set_lean_attention"]
+           "set_cached_text_kv", "set_fused_transformer", "set_lean_attention"]
 
 # The GEGLU projection's extra outputs: pairs (a, g) giving a · gelu(g) = 1, then 0 (one 16-byte
 # vector of bfloat16 per half, so rows stay aligned).
 _EXTRA = 8
 _ONE_A, _ONE_G = 0.125, 8.0
+_CACHED_TEXT_KV = "_tiger_cached_text_kv"
 
 
 # -- lean attention -------------------------------------------------------------------------------
@@ -61,6 +64,7 @@ class LeanAttnProcessor:
 
     def __init__(self, fallback) -> None:
         self.fallback = fallback
+        self.cache_text = False  # cross-attention keys/values kept on the text (:mod:`.text_kv`)
 
     @staticmethod
     def plain(attn) -> bool:
@@ -80,10 +84,23 @@ class LeanAttnProcessor:
         if not self.handles(attn, hidden_states, attention_mask, args, kwargs):
             return self.fallback(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
         b = hidden_states.shape[0]
-        context = hidden_states if encoder_hidden_states is None else encoder_hidden_states
-        q, k, v = (t.flatten(0, 1) for t in (attn.to_q(hidden_states), attn.to_k(context), attn.to_v(context)))
+        q = attn.to_q(hidden_states).flatten(0, 1)
+        if encoder_hidden_states is None:
+            k, v = attn.to_k(hidden_states).flatten(0, 1), attn.to_v(hidden_states).flatten(0, 1)
+        else:
+            k, v = self._text_kv(attn, encoder_hidden_states)
         out = _attend(attn, q, k, v, b).unflatten(0, (b, -1))
         return attn.to_out[1](attn.to_out[0](out))
+
+
+    def _text_kv(self, attn, text: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        def compute() -> tuple[torch.Tensor, torch.Tensor]:
+            return attn.to_k(text).flatten(0, 1), attn.to_v(text).flatten(0, 1)
+
+        if not (self.cache_text and type(attn.to_k) is torch.nn.Linear and type(attn.to_v) is torch.nn.Linear):
+            return compute()
+        weights = [p for m in (attn.to_k, attn.to_v) for p in (m.weight, m.bias) if p is not None]
+        return memo_text_kv(attn, text, weights, compute)
 
 
 def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
@@ -232,8 +249,15 @@ def fused_cross_feed_forward(block, d: _Derived, x: torch.Tensor, encoder_hidden
     h = x.view(-1, c)
     a2 = block.attn2
     n = layer_norm_rows(h, block.norm2.weight, block.norm2.bias, block.norm2.eps, input_bias=d.norm2_shift)
-    text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
-    k, v = F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1)
+    def text_kv() -> tuple[torch.Tensor, torch.Tensor]:
+        text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
+        return F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1)
+
+    if block.__dict__.get(_CACHED_TEXT_KV, False):
+        k, v = memo_text_kv(block, encoder_hidden_states, [w for w in (d.kv_weight, d.kv_bias) if w is not None],
+                            text_kv)
+    else:
+        k, v = text_kv()
     h.addmm_(_attend(a2, a2.to_q(n), k, v, b), a2.to_out[0].weight.t())
     n = layer_norm_rows(h, block.norm3.weight, block.norm3.bias, block.norm3.eps, input_bias=d.norm3_shift)
     h.addmm_(geglu(F.linear(n, d.proj_weight, d.proj_bias)), d.out_weight.t())
@@ -301,4 +325,34 @@ def set_fused_transformer(unet: torch.nn.Module, on: bool) -> int:
         elif "_tiger_fused_weights" in m.__dict__:
             m.__dict__.pop("_tiger_fused_weights")
             m.__dict__.pop("forward", None)
+    return count
+
+
+def set_cached_text_kv(unet: torch.nn.Module, on: bool) -> int:
+    """Keep the cross-attentions' keys and values of a fixed text (:mod:`.text_kv`) in the UNet's
+    fused transformer blocks and :class:`LeanAttnProcessor` cross-attentions (``on``), or compute
+    them every call; returns how many cross-attentions keep them. Set after
+    :func:`set_fused_transformer` and :func:`set_lean_attention`."""
+    from diffusers.models.attention_processor import Attention
+
+    count = 0
+    fused_cross = set()
+    for m in unet.modules():
+        if "_tiger_fused_weights" in m.__dict__:
+            if on:
+                m.__dict__[_CACHED_TEXT_KV] = True
+                count += 1
+                fused_cross.add(id(m.attn2))
+            else:
+                m.__dict__.pop(_CACHED_TEXT_KV, None)
+        else:
+            m.__dict__.pop(_CACHED_TEXT_KV, None)
+    for m in unet.modules():
+        if not isinstance(m, Attention):
+            continue
+        proc = m.processor
+        lean = proc if type(proc) is LeanAttnProcessor else getattr(proc, "inner", None)
+        if type(lean) is LeanAttnProcessor:
+            lean.cache_text = bool(on) and m.is_cross_attention
+            count += lean.cache_text and id(m) not in fused_cross
     return count
