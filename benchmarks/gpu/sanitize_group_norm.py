@@ -2,7 +2,7 @@
 fused diffusion models) for compute-sanitizer (memcheck / racecheck):
 forward and backward (with and without parameter gradients, and the input gradient with a residual
 gradient added) for every dtype, both layouts,
-with and without SiLU, on shapes that take the 16-byte vector path, the scalar path (C or H·W
+with and without SiLU, strided input biases, on shapes that take the 16-byte vector path, the scalar path (C or H·W
 no multiple of the vector, an unaligned view), several row chunks and a several-pass column walk.
 """
 from __future__ import annotations
@@ -47,6 +47,15 @@ def main() -> None:
     group_norm(xv, 4, None, None, 1e-6, True).sum().backward()
     torch.cuda.synchronize()
     print("ok unaligned view", flush=True)
+    for n, c, h, w, g in SHAPES:  # input biases read in place: a column slice (row stride > C) and a [C] row
+        for cl in (False, True):
+            x = torch.randn(n, c, h, w, device="cuda", dtype=torch.bfloat16)
+            x = (x.contiguous(memory_format=torch.channels_last) if cl else x).requires_grad_()
+            wide = torch.randn(n, c + 24, device="cuda")
+            for ib in (wide[:, 16:16 + c], wide[0, :c]):
+                group_norm(x, g, None, None, 1e-6, True, input_bias=ib).float().sum().backward()
+    torch.cuda.synchronize()
+    print("ok strided input bias", flush=True)
     for n, c, h, w, _ in SHAPES:  # channel_bias_add: vector and scalar paths, both layouts, unaligned
         for dtype in (torch.float32, torch.bfloat16, torch.float16):
             x = torch.randn(n, c, h, w, device="cuda", dtype=dtype)
