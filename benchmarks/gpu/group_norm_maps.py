@@ -24,9 +24,9 @@ SHAPES = [(8, 1280, 4, 4), (8, 1280, 8, 8), (8, 2560, 8, 8), (8, 640, 16, 16), (
           (12, 1920, 16, 16), (12, 640, 32, 32), (12, 320, 64, 64), (4, 512, 64, 64), (4, 256, 128, 128),
           (4, 512, 128, 128), (4, 256, 256, 256), (4, 128, 512, 512)]
 
-# the VAE encoder's backward maps (4 views), smallest first: MVDream's 32² and benchmarks.group_norm's
-# InstructPix2Pix maps (rows, channels, height, width)
-BACKWARD_SHAPES = [(4, 512, 32, 32), *reversed(VAE_SHAPES)]
+# the VAE encoder's backward maps (4 views): MVDream's 32², 128² and 256² maps, then benchmarks.group_norm's
+# InstructPix2Pix maps, smallest first (rows, channels, height, width)
+BACKWARD_SHAPES = [(4, 512, 32, 32), (4, 256, 128, 128), (4, 128, 256, 256), *reversed(VAE_SHAPES)]
 
 
 def _inputs(n: int, c: int, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

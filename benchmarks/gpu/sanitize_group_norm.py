@@ -2,7 +2,7 @@
 fused diffusion models) for compute-sanitizer (memcheck / racecheck):
 forward and backward (with and without parameter gradients, and the input gradient with a residual
 gradient added) for every dtype, both layouts,
-with and without SiLU, strided input biases, on shapes that take the 16-byte vector path, the scalar path (C or H·W
+with and without SiLU, strided input biases, the one-launch input gradient, on shapes that take the 16-byte vector path, the scalar path (C or H·W
 no multiple of the vector, an unaligned view), several row chunks and a several-pass column walk.
 """
 from __future__ import annotations
@@ -56,6 +56,18 @@ def main() -> None:
                 group_norm(x, g, None, None, 1e-6, True, input_bias=ib).float().sum().backward()
     torch.cuda.synchronize()
     print("ok strided input bias", flush=True)
+    for n, c, h, w, g in ((4, 512, 8, 8, 32), (16, 320, 5, 5, 32), (8, 128, 9, 9, 32)):  # one-launch input gradient
+        for dtype in (torch.float32, torch.bfloat16):
+            x = torch.randn(n, c, h, w, device="cuda", dtype=dtype).contiguous(memory_format=torch.channels_last)
+            wt, b = torch.randn(c, device="cuda", dtype=dtype), torch.randn(c, device="cuda", dtype=dtype)
+            gy, res = torch.randn_like(x), torch.randn_like(x)
+            ib = torch.randn(n, c + 8, device="cuda")[:, 8:]
+            for silu in (False, True):
+                _, mean, rstd = group_norm_with_stats(x, g, wt, b, 1e-6, silu, ib)
+                dx = group_norm_input_grad(gy, x, g, mean, rstd, wt, b, silu, ib, res)
+                assert bool(torch.isfinite(dx.float()).all())
+    torch.cuda.synchronize()
+    print("ok one-launch input gradient", flush=True)
     for n, c, h, w, _ in SHAPES:  # channel_bias_add: vector and scalar paths, both layouts, unaligned
         for dtype in (torch.float32, torch.bfloat16, torch.float16):
             x = torch.randn(n, c, h, w, device="cuda", dtype=dtype)

@@ -68,6 +68,14 @@ template <typename T>
 bool launch_forward_small(const T* x, Params p, const Dims& d, float eps, bool silu, float* mean, float* rstd, T* y,
                           int vector_width, void* stream);
 
+// The input gradient in one launch (no parameter gradients: nothing but dx is written) for
+// channels-last maps that give most SMs a (sample, channel block) and whose x and dy fit L2
+// (group_norm_small_cuda.cu): the same formula as launch_backward. Returns false, launching
+// nothing, where it does not apply.
+template <typename T>
+bool launch_backward_small(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd,
+                           bool silu, const T* residual, T* dx, int vector_width, void* stream);
+
 // sum_dz/sum_dzx [N, C] (for dw, db) and c1/c2 [N, G] are outputs; partial_* [N·C·chunks] workspaces;
 // residual (like x, may be null) is added to dx.
 template <typename T>

@@ -1,4 +1,5 @@
-// tiger::group_norm's forward for small channels-last maps in one launch.
+// tiger::group_norm's forward for small channels-last maps in one launch, and its input gradient
+// for the VAE encoders' mid-sized maps in one launch (small_backward_kernel).
 //
 // The general forward (group_norm_cuda.cu) runs three kernels: per-chunk moments, their combine
 // per (n, g), the apply. On the diffusion UNets' smallest maps each of those launches is
@@ -212,6 +213,126 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
   }
 }
 
+// ---- the input gradient in one launch (no parameter gradients) ---------------------------
+// One block per (sample n, channel block) as the forward, walking its slice twice instead of
+// holding it: pass 1 sums w·dz and w·dz·(x − m) per lane over the block's pixels (x and dy read
+// from DRAM), the block combines them into c1, c2 of its groups (fixed order), pass 2 reads x and
+// dy again (from L2: plan_small_backward admits maps whose x and dy fit it) and writes
+// dx = a·dz − rstd·c1 − (x − m)·rstd²·c2 (+ residual), the three-kernel backward's formula
+// (group_norm_cuda.cu, FoldedConsts) with m = mean − ib, a = rstd·w. The three-kernel backward
+// gives these maps (the VAE encoders' 32²-128² norms) two walks of ~30 us each plus a combine,
+// latency-bound at 31-53 % of DRAM bandwidth (group_norm_vae_ncu_h100.txt).
+template <bool SILU>
+__device__ __forceinline__ float small_dz(float d, float dy, float a, float b) {
+  if (!SILU) return dy;
+  const float z = d * a + b, sg = 1.f / (1.f + __expf(-z));
+  return dy * sg * (1.f + z * (1.f - sg));
+}
+
+template <typename T, int V, bool SILU, bool RES, int GB>
+__global__ void __launch_bounds__(kBlockThreads, 2)
+    small_backward_kernel(const T* __restrict__ dy, const T* __restrict__ x, Params p, SmallGeom s,
+                          const float* __restrict__ mean_g, const float* __restrict__ rstd_g,
+                          const T* __restrict__ residual, T* __restrict__ dx) {
+  __shared__ float s_warp[kMaxWarps][2 * GB];
+  __shared__ float s_total[2 * GB];
+  const int64_t item = blockIdx.x, blocks_per_n = s.C / s.cb;
+  const int64_t n = item / blocks_per_n, c0 = item % blocks_per_n * s.cb;
+  const int64_t D = s.C / s.G, g0 = c0 / D;
+  const int i = static_cast<int>(threadIdx.x);
+  const int cv = i % s.cbv;
+  const int64_t pix0 = i < s.threads ? i / s.cbv : s.HW;  // threads past s.threads hold no pixel
+  const int64_t pix_step = s.threads / s.cbv;
+  const int64_t base = n * s.HW * s.C + c0 + cv * V;
+  const float inv_m = 1.f / static_cast<float>(D * s.HW);
+
+  uint32_t groups = 0;
+  float m[V], a[V], b[V], w[V], r[V];
+#pragma unroll
+  for (int l = 0; l < V; ++l) {
+    const int gl = (cv * V + l) / static_cast<int>(D);
+    groups |= static_cast<uint32_t>(gl) << (4 * l);
+    const int64_t c = c0 + cv * V + l, ng = n * s.G + g0 + gl;
+    const float ib = p.input_bias == nullptr ? 0.f : p.input_bias[n * p.input_bias_stride + c];
+    w[l] = p.weight == nullptr ? 1.f
+           : p.params_float   ? static_cast<const float*>(p.weight)[c]
+                              : load_as<float>(static_cast<const T*>(p.weight)[c]);
+    b[l] = p.bias == nullptr ? 0.f
+           : p.params_float  ? static_cast<const float*>(p.bias)[c]
+                             : load_as<float>(static_cast<const T*>(p.bias)[c]);
+    r[l] = rstd_g[ng];
+    m[l] = mean_g[ng] - ib;
+    a[l] = r[l] * w[l];
+  }
+  // pass 1: Σ dz and Σ dz·(x − m) per lane
+  float sa[V], sb[V];
+#pragma unroll
+  for (int l = 0; l < V; ++l) sa[l] = sb[l] = 0.f;
+#pragma unroll 4
+  for (int64_t pix = pix0; pix < s.HW; pix += pix_step) {
+    const Vec<T, V> xv = *reinterpret_cast<const Vec<T, V>*>(x + base + pix * s.C);
+    const Vec<T, V> gv = *reinterpret_cast<const Vec<T, V>*>(dy + base + pix * s.C);
+#pragma unroll
+    for (int l = 0; l < V; ++l) {
+      const float d = load_as<float>(xv.v[l]) - m[l];
+      const float dz = small_dz<SILU>(d, load_as<float>(gv.v[l]), a[l], b[l]);
+      sa[l] += dz;
+      sb[l] += dz * d;
+    }
+  }
+  // c1 = Σ w·dz / M, c2 = Σ w·dz·x̂ / M per group (x̂ = (x − m)·rstd)
+  float sums[2 * GB];
+  {
+    float wa[V], wb[V], p1[GB], p2[GB];
+#pragma unroll
+    for (int l = 0; l < V; ++l) {
+      wa[l] = w[l] * sa[l];
+      wb[l] = w[l] * r[l] * sb[l];
+    }
+    lanes_to_groups<V, GB>(wa, groups, p1);
+    lanes_to_groups<V, GB>(wb, groups, p2);
+#pragma unroll
+    for (int g = 0; g < GB; ++g) {
+      sums[g] = p1[g];
+      sums[GB + g] = p2[g];
+    }
+  }
+  block_sums<2 * GB>(sums, s_warp, s_total);
+  float k1[V], k2[V];
+  {
+    float c1[GB], c2[GB];
+#pragma unroll
+    for (int g = 0; g < GB; ++g) {
+      c1[g] = sums[g] * inv_m;
+      c2[g] = sums[GB + g] * inv_m;
+    }
+#pragma unroll
+    for (int l = 0; l < V; ++l) {
+      k1[l] = r[l] * group_value<GB>(c1, groups, l);
+      k2[l] = r[l] * r[l] * group_value<GB>(c2, groups, l);
+    }
+  }
+  // pass 2: dx
+#pragma unroll 4
+  for (int64_t pix = pix0; pix < s.HW; pix += pix_step) {
+    const int64_t off = base + pix * s.C;
+    const Vec<T, V> xv = *reinterpret_cast<const Vec<T, V>*>(x + off);
+    const Vec<T, V> gv = *reinterpret_cast<const Vec<T, V>*>(dy + off);
+    Vec<T, V> rv;
+    if constexpr (RES) rv = *reinterpret_cast<const Vec<T, V>*>(residual + off);
+    Vec<T, V> out;
+#pragma unroll
+    for (int l = 0; l < V; ++l) {
+      const float d = load_as<float>(xv.v[l]) - m[l];
+      const float dz = small_dz<SILU>(d, load_as<float>(gv.v[l]), a[l], b[l]);
+      float g = a[l] * dz - k1[l] - d * k2[l];
+      if constexpr (RES) g += load_as<float>(rv.v[l]);
+      out.v[l] = store_as<T>(g);
+    }
+    *reinterpret_cast<Vec<T, V>*>(dx + off) = out;
+  }
+}
+
 // The geometry for this map, or false when the one-launch forward does not apply (not
 // channels-last, scalar path, pre-Hopper device (only measured on the H100), more than 4 groups
 // or 8 vectors per block row, or too many pixels for one block's registers).
@@ -256,6 +377,39 @@ void launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_t N, fl
   }
 }
 
+// The one-launch input gradient applies where the forward's block geometry does (without its
+// register limit on the pixels: the backward walks them) and the map is large enough to give most
+// SMs a block, yet small enough that pass 2 finds x and dy in L2.
+constexpr int64_t kSmallBackwardMaxBytes = int64_t(36) << 20;  // x + dy; the H100's L2 is 50 MB
+
+bool plan_small_backward(const Dims& d, int V, int64_t elem_bytes, SmallGeom& s) {
+  if (!plan_small(d, V, 1 << 30, s)) return false;
+  int dev = 0, sms = 0;
+  if (cudaGetDevice(&dev) != cudaSuccess ||
+      cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev) != cudaSuccess)
+    return false;
+  const int64_t blocks = d.N * (d.C / s.cb);
+  return 4 * blocks >= 3 * int64_t(sms) && 2 * d.N * d.C * d.HW * elem_bytes <= kSmallBackwardMaxBytes;
+}
+
+template <typename T, int V, bool SILU, bool RES>
+void launch_small_backward(const T* dy, const T* x, Params p, const SmallGeom& s, int64_t N, const float* mean,
+                           const float* rstd, const T* residual, T* dx, cudaStream_t st) {
+  const unsigned blocks = static_cast<unsigned>(N * (s.C / s.cb));
+  const unsigned threads = static_cast<unsigned>((s.threads + 31) / 32 * 32);
+  switch (s.cb / (s.C / s.G)) {
+    case 1:
+      return small_backward_kernel<T, V, SILU, RES, 1><<<blocks, threads, 0, st>>>(dy, x, p, s, mean, rstd, residual,
+                                                                                   dx);
+    case 2:
+      return small_backward_kernel<T, V, SILU, RES, 2><<<blocks, threads, 0, st>>>(dy, x, p, s, mean, rstd, residual,
+                                                                                   dx);
+    default:
+      return small_backward_kernel<T, V, SILU, RES, 4><<<blocks, threads, 0, st>>>(dy, x, p, s, mean, rstd, residual,
+                                                                                   dx);
+  }
+}
+
 }  // namespace
 
 template <typename T>
@@ -278,6 +432,31 @@ template bool launch_forward_small<__half>(const __half*, Params, const Dims&, f
                                            int, void*);
 template bool launch_forward_small<__nv_bfloat16>(const __nv_bfloat16*, Params, const Dims&, float, bool, float*,
                                                   float*, __nv_bfloat16*, int, void*);
+
+template <typename T>
+bool launch_backward_small(const T* dy, const T* x, Params p, const Dims& d, const float* mean, const float* rstd,
+                           bool silu, const T* residual, T* dx, int vector_width, void* stream) {
+  constexpr int V = 16 / sizeof(T);
+  SmallGeom s;
+  if (vector_width != V || !plan_small_backward(d, V, sizeof(T), s)) return false;
+  const auto st = static_cast<cudaStream_t>(stream);
+  if (silu) {
+    if (residual != nullptr) launch_small_backward<T, V, true, true>(dy, x, p, s, d.N, mean, rstd, residual, dx, st);
+    else launch_small_backward<T, V, true, false>(dy, x, p, s, d.N, mean, rstd, residual, dx, st);
+  } else {
+    if (residual != nullptr) launch_small_backward<T, V, false, true>(dy, x, p, s, d.N, mean, rstd, residual, dx, st);
+    else launch_small_backward<T, V, false, false>(dy, x, p, s, d.N, mean, rstd, residual, dx, st);
+  }
+  return true;
+}
+
+#define TIGER_GN_SMALL_BACKWARD(T)                                                                                \
+  template bool launch_backward_small<T>(const T*, const T*, Params, const Dims&, const float*, const float*, bool, \
+                                         const T*, T*, int, void*);
+TIGER_GN_SMALL_BACKWARD(float)
+TIGER_GN_SMALL_BACKWARD(__half)
+TIGER_GN_SMALL_BACKWARD(__nv_bfloat16)
+#undef TIGER_GN_SMALL_BACKWARD
 
 }  // namespace group_norm
 }  // namespace tiger
