@@ -40,6 +40,9 @@ constexpr int kBlockThreads = 256;  // the most threads a block has
 template <typename T>
 constexpr int kMaxVectors = sizeof(T) == 2 ? 8 : 12;
 constexpr int kMaxWarps = kBlockThreads / 32;
+// The one-launch input gradient's blocks: one per SM (a block per (sample, channel block), about
+// one wave), so twice the forward's threads to keep twice the loads in flight.
+constexpr int kBackwardThreads = 512;
 
 struct SmallGeom {
   int64_t C, HW, G, cb;  // channels, pixels, groups, channels per block (whole groups and vectors)
@@ -221,7 +224,10 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 // dx = a·dz − rstd·c1 − (x − m)·rstd²·c2 (+ residual), the three-kernel backward's formula
 // (group_norm_cuda.cu, FoldedConsts) with m = mean − ib, a = rstd·w. The three-kernel backward
 // gives these maps (the VAE encoders' 32²-128² norms) two walks of ~30 us each plus a combine,
-// latency-bound at 31-53 % of DRAM bandwidth (group_norm_vae_ncu_h100.txt).
+// latency-bound at 31-53 % of DRAM bandwidth (group_norm_vae_ncu_h100.txt). H100, bf16, SiLU
+// (group_norm_one_launch_input_grad_h100.txt): 4x512x32² 21.7 -> 10.0 us, 4x512x64² 60.9 -> 38.2
+// (67.2 -> 47.3 with a residual); 256-thread blocks took 50.4 at 64², and admitting 4x256x128²
+// (x and dy 64 MiB, pass 2 partly from DRAM) made it slower than the walk (89.9 -> 100.1 us).
 template <bool SILU>
 __device__ __forceinline__ float small_dz(float d, float dy, float a, float b) {
   if (!SILU) return dy;
@@ -230,11 +236,11 @@ __device__ __forceinline__ float small_dz(float d, float dy, float a, float b) {
 }
 
 template <typename T, int V, bool SILU, bool RES, int GB>
-__global__ void __launch_bounds__(kBlockThreads, 2)
+__global__ void __launch_bounds__(kBackwardThreads, 1)
     small_backward_kernel(const T* __restrict__ dy, const T* __restrict__ x, Params p, SmallGeom s,
                           const float* __restrict__ mean_g, const float* __restrict__ rstd_g,
                           const T* __restrict__ residual, T* __restrict__ dx) {
-  __shared__ float s_warp[kMaxWarps][2 * GB];
+  __shared__ float s_warp[kBackwardThreads / 32][2 * GB];
   __shared__ float s_total[2 * GB];
   const int64_t item = blockIdx.x, blocks_per_n = s.C / s.cb;
   const int64_t n = item / blocks_per_n, c0 = item % blocks_per_n * s.cb;
@@ -336,7 +342,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 // The geometry for this map, or false when the one-launch forward does not apply (not
 // channels-last, scalar path, pre-Hopper device (only measured on the H100), more than 4 groups
 // or 8 vectors per block row, or too many pixels for one block's registers).
-bool plan_small(const Dims& d, int V, int max_vectors, SmallGeom& s) {
+bool plan_small(const Dims& d, int V, int max_vectors, SmallGeom& s, int block_threads = kBlockThreads) {
   if (!d.nhwc || V == 1 || d.G <= 0 || d.C % d.G != 0 || d.HW <= 0) return false;
   int dev = 0, major = 0;
   if (cudaGetDevice(&dev) != cudaSuccess ||
@@ -351,7 +357,7 @@ bool plan_small(const Dims& d, int V, int max_vectors, SmallGeom& s) {
   s.G = d.G;
   s.cb = cb;
   s.cbv = static_cast<int>(cb / V);
-  s.threads = kBlockThreads / s.cbv * s.cbv;
+  s.threads = block_threads / s.cbv * s.cbv;
   const int64_t per_pass = s.threads / s.cbv;  // pixels a block covers per vector a thread holds
   const int64_t E = (d.HW + per_pass - 1) / per_pass;
   if (E > max_vectors) return false;
@@ -383,7 +389,7 @@ void launch_small_groups(const T* x, Params p, const SmallGeom& s, int64_t N, fl
 constexpr int64_t kSmallBackwardMaxBytes = int64_t(36) << 20;  // x + dy; the H100's L2 is 50 MB
 
 bool plan_small_backward(const Dims& d, int V, int64_t elem_bytes, SmallGeom& s) {
-  if (!plan_small(d, V, 1 << 30, s)) return false;
+  if (!plan_small(d, V, 1 << 30, s, kBackwardThreads)) return false;
   int dev = 0, sms = 0;
   if (cudaGetDevice(&dev) != cudaSuccess ||
       cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev) != cudaSuccess)
