@@ -85,6 +85,20 @@ __device__ __forceinline__ void lanes_to_groups(const float (&acc)[V], uint32_t 
   }
 }
 
+// Two per-lane sums to per-group sums: out[0..GB) from first, out[GB..2GB) from second.
+template <int V, int GB>
+__device__ __forceinline__ void pair_to_groups(const float (&first)[V], const float (&second)[V], uint32_t groups,
+                                               float (&out)[2 * GB]) {
+  float p1[GB], p2[GB];
+  lanes_to_groups<V, GB>(first, groups, p1);
+  lanes_to_groups<V, GB>(second, groups, p2);
+#pragma unroll
+  for (int g = 0; g < GB; ++g) {
+    out[g] = p1[g];
+    out[GB + g] = p2[g];
+  }
+}
+
 // The value of lane l's group in per-group values.
 template <int GB>
 __device__ __forceinline__ float group_value(const float (&vals)[GB], uint32_t groups, int l) {
@@ -158,16 +172,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
       }
     }
   }
-  {
-    float p1[GB], p2[GB];
-    lanes_to_groups<V, GB>(acc, groups, p1);
-    lanes_to_groups<V, GB>(acc2, groups, p2);
-#pragma unroll
-    for (int g = 0; g < GB; ++g) {
-      sums[g] = p1[g];
-      sums[GB + g] = p2[g];
-    }
-  }
+  pair_to_groups<V, GB>(acc, acc2, groups, sums);
   __syncthreads();  // every thread has read s_total: it is reused
   block_sums<2 * GB>(sums, s_warp, s_total);
   float mean[GB], rstd[GB];
@@ -289,19 +294,13 @@ __global__ void __launch_bounds__(kBackwardThreads, 1)
   // c1 = Σ w·dz / M, c2 = Σ w·dz·x̂ / M per group (x̂ = (x − m)·rstd)
   float sums[2 * GB];
   {
-    float wa[V], wb[V], p1[GB], p2[GB];
+    float wa[V], wb[V];
 #pragma unroll
     for (int l = 0; l < V; ++l) {
       wa[l] = w[l] * sa[l];
       wb[l] = w[l] * r[l] * sb[l];
     }
-    lanes_to_groups<V, GB>(wa, groups, p1);
-    lanes_to_groups<V, GB>(wb, groups, p2);
-#pragma unroll
-    for (int g = 0; g < GB; ++g) {
-      sums[g] = p1[g];
-      sums[GB + g] = p2[g];
-    }
+    pair_to_groups<V, GB>(wa, wb, groups, sums);
   }
   block_sums<2 * GB>(sums, s_warp, s_total);
   float k1[V], k2[V];
