@@ -89,3 +89,47 @@ def test_cuda_after_an_event_runs_while_the_callers_queue_does():
     assert side_done.query() and not main_done.query()  # done while the caller's sleep still runs
     torch.cuda.synchronize()
     torch.testing.assert_close(out, (a @ a).sum(0))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_inline_runs_now_on_the_side_stream_and_keeps_errors_for_the_result():
+    """``thread=False``: the work runs in the caller's thread before run_beside returns, on the
+    side stream (after the given event only: it finishes while the caller's queued sleep still
+    runs), and an error it raised surfaces when the result is asked for."""
+    dev = torch.device("cuda")
+    a = torch.randn(512, 512, device=dev)
+    calls = []
+
+    def fn():
+        calls.append((threading.current_thread(), torch.cuda.current_stream(dev)))
+        out = (a @ a).sum(0)
+        done = torch.cuda.Event()
+        done.record()
+        return out, done
+
+    torch.cuda.synchronize()
+    ready = torch.cuda.Event()
+    ready.record(torch.cuda.current_stream(dev))
+    torch.cuda._sleep(2_000_000_000)  # ~1 s on the caller's stream
+    main_done = torch.cuda.Event()
+    main_done.record(torch.cuda.current_stream(dev))
+    later = run_beside(fn, dev, after=ready, thread=False)
+    assert calls and calls[0][0] is threading.current_thread()
+    assert calls[0][1] != torch.cuda.current_stream(dev)  # the side stream, and the caller's stream is back
+    out, side_done = later()
+    import time
+
+    start = time.perf_counter()
+    while not side_done.query() and time.perf_counter() - start < 5.0:
+        time.sleep(0.001)
+    assert side_done.query() and not main_done.query()
+    torch.cuda.synchronize()
+    torch.testing.assert_close(out, (a @ a).sum(0))
+
+    def boom():
+        raise ValueError("tiger.test: inline boom")
+
+    later = run_beside(boom, dev, thread=False)  # no raise here
+    with pytest.raises(ValueError, match="inline boom"):
+        later()
