@@ -98,8 +98,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
   const Params p = params_of(weight, bias, input_bias);
   auto dx = at::empty_like(x, memory_format(d.nhwc));
   const auto fopts = x.options().dtype(at::kFloat);
+  const auto dx_only = [&]() { return std::make_tuple(dx, at::empty({0}, fopts), at::empty({0}, fopts)); };
   if (x.numel() == 0) {
-    if (!param_grads) return {dx, at::empty({0}, fopts), at::empty({0}, fopts)};
+    if (!param_grads) return dx_only();
     return {dx, at::zeros({d.C}, fopts), at::zeros({d.C}, fopts)};
   }
   const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), dy.data_ptr(), dx.data_ptr(),
@@ -116,7 +117,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
           reinterpret_cast<T*>(dx.data_ptr()), vw, stream);
     });
     C10_CUDA_KERNEL_LAUNCH_CHECK();
-    if (one_launch) return {dx, at::empty({0}, fopts), at::empty({0}, fopts)};
+    if (one_launch) return dx_only();
   }
   // Every (n, c) of the sums is written by the backward's combine.
   auto sum_dz = at::empty({d.N, d.C}, fopts), sum_dzx = at::empty({d.N, d.C}, fopts);
@@ -134,7 +135,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
                        reinterpret_cast<T*>(dx.data_ptr()), vw, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (!param_grads) return {dx, at::empty({0}, fopts), at::empty({0}, fopts)};
+  if (!param_grads) return dx_only();
   return {dx, sum_dzx.sum(0), sum_dz.sum(0)};  // dw = Σ_n Σ dz·x̂, db = Σ_n Σ dz
 }
 

@@ -17,6 +17,7 @@
 
 #include "common/cuda_helpers.cuh"
 #include "group_norm/group_norm.h"
+#include "group_norm/group_norm_device.cuh"
 
 namespace tiger {
 namespace group_norm {
@@ -27,14 +28,6 @@ using tiger::cuda::store_as;
 using tiger::cuda::Vec;
 
 constexpr int kFinalThreads = 128;
-
-template <typename T>
-__device__ __forceinline__ float param_at(const Params& p, const void* ptr, int64_t c, float fill) {
-  if (ptr == nullptr) return fill;
-  return p.params_float ? static_cast<const float*>(ptr)[c] : load_as<float>(static_cast<const T*>(ptr)[c]);
-}
-
-__device__ __forceinline__ float sigmoid(float z) { return 1.f / (1.f + __expf(-z)); }
 
 // The walk of one block: geometry shared by the four walking kernels.
 struct Walk {
@@ -221,11 +214,8 @@ struct Partials {
   }
 };
 
-// Input bias of (n, c) (0 when absent): added to every element of the channel, shifts included,
-// so the per-channel moments (relative to the shift) need no change.
-__device__ __forceinline__ float input_bias_at(const float* ib, int64_t row_stride, int64_t n, int64_t c) {
-  return ib == nullptr ? 0.f : ib[n * row_stride + c];
-}
+// The input bias (input_bias_at) is added to every element of the channel, shifts included, so the
+// per-channel moments (relative to the shift) need no change.
 
 template <typename T>
 __global__ void __launch_bounds__(kFinalThreads) finalize_stats_kernel(Partials pt, const T* __restrict__ x,
@@ -347,14 +337,6 @@ __global__ void __launch_bounds__(kThreads, 4) apply_kernel(const T* __restrict_
 // operations per element. The VAE's backward norms ran 7-11 % faster at the same two blocks per SM
 // (group_norm_backward_occupancy_variants_h100.txt); capped at 80 registers (three blocks per
 // SM, which the folded constants allow) they were slower (group_norm.h).
-
-// dz of one element from d = x − m.
-template <bool SILU>
-__device__ __forceinline__ float dz_of(float d, float dy, float a, float b) {
-  if (!SILU) return dy;
-  const float z = d * a + b, s = sigmoid(z);
-  return dy * s * (1.f + z * (1.f - s));
-}
 
 // ---- backward reductions: per-(slice, chunk, lane) Σ dz and Σ dz·x̂ -----------------------
 // kBackwardBlocksPerSm blocks per SM (group_norm.h).

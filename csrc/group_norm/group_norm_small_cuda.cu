@@ -25,6 +25,7 @@
 
 #include "common/cuda_helpers.cuh"
 #include "group_norm/group_norm.h"
+#include "group_norm/group_norm_device.cuh"
 
 namespace tiger {
 namespace group_norm {
@@ -130,7 +131,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 #pragma unroll
   for (int l = 0; l < V; ++l) {
     groups |= static_cast<uint32_t>((cv * V + l) / D) << (4 * l);
-    ib[l] = p.input_bias == nullptr ? 0.f : p.input_bias[n * p.input_bias_stride + c0 + cv * V + l];
+    ib[l] = input_bias_at(p.input_bias, p.input_bias_stride, n, c0 + cv * V + l);
   }
   Vec<T, V> v[kMaxVectors<T>];
   float acc[V], acc2[V];
@@ -196,12 +197,8 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 #pragma unroll
   for (int l = 0; l < V; ++l) {
     const int64_t c = c0 + cv * V + l;
-    const float w = p.weight == nullptr ? 1.f
-                    : p.params_float   ? static_cast<const float*>(p.weight)[c]
-                                       : load_as<float>(static_cast<const T*>(p.weight)[c]);
-    b[l] = p.bias == nullptr ? 0.f
-           : p.params_float  ? static_cast<const float*>(p.bias)[c]
-                             : load_as<float>(static_cast<const T*>(p.bias)[c]);
+    const float w = param_at<T>(p, p.weight, c, 1.f);
+    b[l] = param_at<T>(p, p.bias, c, 0.f);
     m[l] = group_value<GB>(mean, groups, l) - ib[l];  // x − (mean − ib), as the general apply
     a[l] = group_value<GB>(rstd, groups, l) * w;
   }
@@ -213,7 +210,7 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 #pragma unroll
       for (int l = 0; l < V; ++l) {
         float z = (load_as<float>(v[k].v[l]) - m[l]) * a[l] + b[l];
-        if (SILU) z *= 1.f / (1.f + __expf(-z));
+        if (SILU) z *= sigmoid(z);
         out.v[l] = store_as<T>(z);
       }
       *reinterpret_cast<Vec<T, V>*>(y + base + pix * s.C) = out;
@@ -233,13 +230,6 @@ __global__ void __launch_bounds__(kBlockThreads, 2)
 // (group_norm_one_launch_input_grad_h100.txt): 4x512x32² 21.7 -> 10.0 us, 4x512x64² 60.9 -> 38.2
 // (67.2 -> 47.3 with a residual); 256-thread blocks took 50.4 at 64², and admitting 4x256x128²
 // (x and dy 64 MiB, pass 2 partly from DRAM) made it slower than the walk (89.9 -> 100.1 us).
-template <bool SILU>
-__device__ __forceinline__ float small_dz(float d, float dy, float a, float b) {
-  if (!SILU) return dy;
-  const float z = d * a + b, sg = 1.f / (1.f + __expf(-z));
-  return dy * sg * (1.f + z * (1.f - sg));
-}
-
 template <typename T, int V, bool SILU, bool RES, int GB>
 __global__ void __launch_bounds__(kBackwardThreads, 1)
     small_backward_kernel(const T* __restrict__ dy, const T* __restrict__ x, Params p, SmallGeom s,
@@ -264,13 +254,9 @@ __global__ void __launch_bounds__(kBackwardThreads, 1)
     const int gl = (cv * V + l) / static_cast<int>(D);
     groups |= static_cast<uint32_t>(gl) << (4 * l);
     const int64_t c = c0 + cv * V + l, ng = n * s.G + g0 + gl;
-    const float ib = p.input_bias == nullptr ? 0.f : p.input_bias[n * p.input_bias_stride + c];
-    w[l] = p.weight == nullptr ? 1.f
-           : p.params_float   ? static_cast<const float*>(p.weight)[c]
-                              : load_as<float>(static_cast<const T*>(p.weight)[c]);
-    b[l] = p.bias == nullptr ? 0.f
-           : p.params_float  ? static_cast<const float*>(p.bias)[c]
-                             : load_as<float>(static_cast<const T*>(p.bias)[c]);
+    const float ib = input_bias_at(p.input_bias, p.input_bias_stride, n, c);
+    w[l] = param_at<T>(p, p.weight, c, 1.f);
+    b[l] = param_at<T>(p, p.bias, c, 0.f);
     r[l] = rstd_g[ng];
     m[l] = mean_g[ng] - ib;
     a[l] = r[l] * w[l];
@@ -286,7 +272,7 @@ __global__ void __launch_bounds__(kBackwardThreads, 1)
 #pragma unroll
     for (int l = 0; l < V; ++l) {
       const float d = load_as<float>(xv.v[l]) - m[l];
-      const float dz = small_dz<SILU>(d, load_as<float>(gv.v[l]), a[l], b[l]);
+      const float dz = dz_of<SILU>(d, load_as<float>(gv.v[l]), a[l], b[l]);
       sa[l] += dz;
       sb[l] += dz * d;
     }
@@ -329,7 +315,7 @@ __global__ void __launch_bounds__(kBackwardThreads, 1)
 #pragma unroll
     for (int l = 0; l < V; ++l) {
       const float d = load_as<float>(xv.v[l]) - m[l];
-      const float dz = small_dz<SILU>(d, load_as<float>(gv.v[l]), a[l], b[l]);
+      const float dz = dz_of<SILU>(d, load_as<float>(gv.v[l]), a[l], b[l]);
       float g = a[l] * dz - k1[l] - d * k2[l];
       if constexpr (RES) g += load_as<float>(rv.v[l]);
       out.v[l] = store_as<T>(g);

@@ -14,7 +14,7 @@ enabled nothing is cached. The same matmuls on the same rows: the same values.
 """
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 
@@ -28,18 +28,21 @@ def _capturing(t: torch.Tensor) -> bool:
     return t.is_cuda and torch.cuda.is_current_stream_capturing()
 
 
-def memo_text_kv(layer: object, text: torch.Tensor, weights: Sequence[torch.Tensor],
-                 compute: Callable[[], tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+def memo_text_kv(layer: object, text: torch.Tensor, weights: Sequence[Optional[torch.Tensor]],
+                 compute: Callable[[], tuple[torch.Tensor, torch.Tensor]],
+                 keep: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """``compute()`` (the keys and values of ``layer`` for ``text``), kept on ``text`` for the next
     call with the same text and ``weights`` (the tensors ``compute`` projects with, at the same
-    versions). Nothing is kept with gradients enabled or during a CUDA-graph capture."""
-    if torch.is_grad_enabled() or _capturing(text):
+    versions; None entries, absent biases, are skipped). Nothing is kept unless ``keep``, with
+    gradients enabled or during a CUDA-graph capture."""
+    if not keep or torch.is_grad_enabled() or _capturing(text):
         return compute()
+    weights = [w for w in weights if w is not None]
     check = (text._version,) + tuple(w._version for w in weights)
     memo = text.__dict__.setdefault(_MEMO, {})
     entry = memo.get(id(layer))
-    if (entry is not None and entry[0] is layer and entry[1] == check
-            and all(a is b for a, b in zip(entry[2], weights)) and len(entry[2]) == len(weights)):
+    if (entry is not None and entry[0] is layer and entry[1] == check and len(entry[2]) == len(weights)
+            and all(a is b for a, b in zip(entry[2], weights))):
         return entry[3]
     kv = compute()
     memo[id(layer)] = (layer, check, tuple(weights), kv)

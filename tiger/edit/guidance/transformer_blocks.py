@@ -92,15 +92,12 @@ class LeanAttnProcessor:
         out = _attend(attn, q, k, v, b).unflatten(0, (b, -1))
         return attn.to_out[1](attn.to_out[0](out))
 
-
     def _text_kv(self, attn, text: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        def compute() -> tuple[torch.Tensor, torch.Tensor]:
-            return attn.to_k(text).flatten(0, 1), attn.to_v(text).flatten(0, 1)
-
-        if not (self.cache_text and type(attn.to_k) is torch.nn.Linear and type(attn.to_v) is torch.nn.Linear):
-            return compute()
-        weights = [p for m in (attn.to_k, attn.to_v) for p in (m.weight, m.bias) if p is not None]
-        return memo_text_kv(attn, text, weights, compute)
+        # only plain linear projections are kept (an FP8 layer's weights are its own)
+        keep = self.cache_text and type(attn.to_k) is torch.nn.Linear and type(attn.to_v) is torch.nn.Linear
+        weights = [attn.to_k.weight, attn.to_k.bias, attn.to_v.weight, attn.to_v.bias] if keep else []
+        return memo_text_kv(attn, text, weights, lambda: (attn.to_k(text).flatten(0, 1), attn.to_v(text).flatten(0, 1)),
+                            keep)
 
 
 def set_lean_attention(unet: torch.nn.Module, on: bool) -> int:
@@ -249,15 +246,10 @@ def fused_cross_feed_forward(block, d: _Derived, x: torch.Tensor, encoder_hidden
     h = x.view(-1, c)
     a2 = block.attn2
     n = layer_norm_rows(h, block.norm2.weight, block.norm2.bias, block.norm2.eps, input_bias=d.norm2_shift)
-    def text_kv() -> tuple[torch.Tensor, torch.Tensor]:
-        text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
-        return F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1)
-
-    if block.__dict__.get(_CACHED_TEXT_KV, False):
-        k, v = memo_text_kv(block, encoder_hidden_states, [w for w in (d.kv_weight, d.kv_bias) if w is not None],
-                            text_kv)
-    else:
-        k, v = text_kv()
+    text = encoder_hidden_states.reshape(-1, encoder_hidden_states.shape[-1])
+    k, v = memo_text_kv(block, encoder_hidden_states, [d.kv_weight, d.kv_bias],
+                        lambda: F.linear(text, d.kv_weight, d.kv_bias).chunk(2, dim=-1),
+                        block.__dict__.get(_CACHED_TEXT_KV, False))
     h.addmm_(_attend(a2, a2.to_q(n), k, v, b), a2.to_out[0].weight.t())
     n = layer_norm_rows(h, block.norm3.weight, block.norm3.bias, block.norm3.eps, input_bias=d.norm3_shift)
     h.addmm_(geglu(F.linear(n, d.proj_weight, d.proj_bias)), d.out_weight.t())
@@ -338,15 +330,11 @@ def set_cached_text_kv(unet: torch.nn.Module, on: bool) -> int:
     count = 0
     fused_cross = set()
     for m in unet.modules():
-        if "_tiger_fused_weights" in m.__dict__:
-            if on:
-                m.__dict__[_CACHED_TEXT_KV] = True
-                count += 1
-                fused_cross.add(id(m.attn2))
-            else:
-                m.__dict__.pop(_CACHED_TEXT_KV, None)
-        else:
-            m.__dict__.pop(_CACHED_TEXT_KV, None)
+        m.__dict__.pop(_CACHED_TEXT_KV, None)
+        if on and "_tiger_fused_weights" in m.__dict__:
+            m.__dict__[_CACHED_TEXT_KV] = True
+            count += 1
+            fused_cross.add(id(m.attn2))
     for m in unet.modules():
         if not isinstance(m, Attention):
             continue
