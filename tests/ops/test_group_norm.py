@@ -448,3 +448,27 @@ def test_walk_grid_constants_are_the_measured_ones():
     times = dict(zip(tags, map(float, row)))
     kept = f"V{consts['kBackwardBlocksPerSm']}{consts['kBackwardWaves']}"
     assert min(times, key=times.get) == kept, times
+
+
+def test_one_launch_input_grad_constants_are_the_measured_ones():
+    """csrc/group_norm/group_norm_small_cuda.cu runs the one-launch input gradient in 512-thread
+    blocks on maps whose x and dy fit 36 MiB: of the variants measured on the H100
+    (benchmarks/gpu/results/group_norm_one_launch_input_grad_h100.txt, second call: t256 = 256
+    threads, variant72 = 512 threads admitting 72 MiB, final = the kept constants), 512 threads is
+    the faster at 4x512x64², and the 72 MiB bound made 4x256x128² (64 MiB) slower. A change there
+    must be re-measured."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    src = (root / "csrc/group_norm/group_norm_small_cuda.cu").read_text()
+    assert int(re.search(r"constexpr int kBackwardThreads = (\d+);", src).group(1)) == 512
+    assert int(re.search(r"kSmallBackwardMaxBytes = int64_t\((\d+)\) << 20;", src).group(1)) == 36
+    assert 4 * 256 * 128 * 128 * 2 * 2 > 36 << 20 >= 4 * 512 * 64 * 64 * 2 * 2  # bf16 x + dy
+    raw = (root / "benchmarks/gpu/results/group_norm_one_launch_input_grad_h100.txt").read_text()
+    second = raw[raw.index("# call 5"):]
+    times = {(tag, shape): float(us) for tag, shape, us in
+             re.findall(r"^(t256|variant72|final) (\S+) bwd ([\d.]+) us$", second, re.M)}
+    assert times[("final", "4x512x64x64")] < times[("t256", "4x512x64x64")]
+    assert times[("variant72", "4x256x128x128")] > times[("final", "4x256x128x128")]
+

@@ -368,3 +368,17 @@ def test_kernels_from_spec_sets_named_fields_and_names_bad_items():
         mk.ModelKernels.from_spec("branch_prefix=yes")
     with pytest.raises(ValueError, match="matmul_precision must be one of"):
         mk.ModelKernels.from_spec("matmul_precision=int4")
+
+
+def test_model_kernels_defaults_resolve_the_new_switches(tiny_models):
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    models = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=True, dtype=torch.float64)
+    got = mk.apply_model_kernels(models.unet, models.vae, mk.ModelKernels(fold_norm_bias=True))
+    resnets = sum(1 for m in models.unet.modules()
+                  if type(m).__name__ == "ResnetBlock2D" and m.time_emb_proj is not None)
+    cross = sum(1 for m in models.unet.modules() if type(m).__name__ == "Attention" and m.is_cross_attention)
+    # defaults: stacked time biases wherever the norms fold them, cached text keys/values everywhere
+    assert got["stacked_time_bias_blocks"] == resnets > 0 and got["cached_text_kv_layers"] == cross > 0
+    got = mk.apply_model_kernels(models.unet, models.vae, mk.ModelKernels(fold_norm_bias=False))
+    assert got["stacked_time_bias_blocks"] == 0 and got["cached_text_kv_layers"] == cross
