@@ -62,19 +62,45 @@ struct TilePixel {
   bool inside;
 };
 
+// Where the tile size is a multiple of 8, a warp's 32 pixels are an 8-wide, 4-tall block
+// (warps in row-major order over the tile's 8x4 blocks) rather than 32 consecutive pixels of
+// row-major order (two rows of a 16-px tile): the same area with a shorter boundary, so fewer
+// list entries reach some pixel of the warp (warp_cull) and the warp walks fewer of them. For
+// 8-px tiles the two orders are the same. warp_span<1> follows this layout. H100 kernel ms
+// (docs/BENCHMARKS.md): fox forward 0.484 -> 0.457, the edit's forward 1.06 -> 1.03 and
+// editable backward 1.93 -> 1.81; splats seen edge-on (flat, wide) favour rows: the demo
+// tabletop's orbit forward 1.44 -> 1.52. A bounding-box pre-test before span_reaches' rows
+// was slower everywhere (fox 0.469, orbit 1.56).
+struct WarpBlock {
+  int c0, r0;  // the warp's first column and row in its tile
+};
+
+__device__ __forceinline__ bool warp_blocks(int tile_size) { return (tile_size & 7) == 0; }
+
+__device__ __forceinline__ WarpBlock warp_block(int tile_size, int warp) {
+  const int per_row = tile_size >> 3;  // 8-px blocks across the tile
+  return WarpBlock{8 * (warp % per_row), 4 * (warp / per_row)};
+}
+
 template <typename T>
 __device__ __forceinline__ TilePixel tile_pixel(const RasterLaunch<T>& a) {
   const BlockTile b = block_tile(a);
   TilePixel p;
   p.tile = b.tile;
-  const int t = threadIdx.x;
-  p.px = b.tx * a.tile_size + t % a.tile_size;
-  p.py = b.ty * a.tile_size + t / a.tile_size;
-  p.inside = t < a.tile_size * a.tile_size && p.px < a.width && p.py < a.height;
+  const int t = threadIdx.x, ts = a.tile_size;
+  int cx = t % ts, cy = t / ts;
+  if (warp_blocks(ts)) {
+    const WarpBlock w = warp_block(ts, t >> 5);
+    cx = w.c0 + (t & 7);
+    cy = w.r0 + ((t & 31) >> 3);
+  }
+  p.px = b.tx * ts + cx;
+  p.py = b.ty * ts + cy;
+  p.inside = t < ts * ts && p.px < a.width && p.py < a.height;
   return p;
 }
 
-// The pixels of one backward thread. PPT = 1: pixel t of the tile, as in the forward. PPT = 2
+// The pixels of one backward thread. PPT = 1: tile_pixel's pixel, as in the forward. PPT = 2
 // (16-px tiles, 128 threads): warp w covers rows 4w..4w+3, lane l column l % 16 of rows
 // 4w + l / 16 and 4w + 2 + l / 16, so one warp reduction sums a Gaussian's gradient over 64
 // pixels instead of 32 (half the shuffles and atomics per pixel), and a Gaussian staged in
@@ -113,8 +139,9 @@ __device__ __forceinline__ TilePixels<PPT> tile_pixels(const RasterLaunch<T>& a)
 
 // The pixel centres of this thread's warp: rows [y0, y0 + rows) of its tile, columns [x0, x1]
 // in its image's coordinates (a box around them where a warp holds part of a row). PPT = 1:
-// threads in row-major pixel order (16-px tiles: two rows a warp); PPT = 2: TilePixels' four
-// rows a warp. A warp beyond its tile's pixels gets rows = 0.
+// tile_pixel's layout (an 8x4 block a warp where the tile size is a multiple of 8, else
+// row-major pixel order); PPT = 2: TilePixels' four rows a warp. A warp beyond its tile's
+// pixels gets rows = 0.
 template <typename T>
 struct WarpSpan {
   T x0, x1, y0;
@@ -129,6 +156,12 @@ __device__ __forceinline__ WarpSpan<T> warp_span(const RasterLaunch<T>& a) {
   if constexpr (PPT == 2) {
     r0 = 4 * w;
     r1 = 4 * w + 3;
+  } else if (warp_blocks(ts)) {         // tile_pixel's 8x4 block
+    const WarpBlock wb = warp_block(ts, w);
+    c0 = wb.c0;
+    c1 = wb.c0 + 7;
+    r0 = wb.r0;
+    r1 = 32 * w < ts * ts ? wb.r0 + 3 : wb.r0 - 1;
   } else {
     const int t0 = 32 * w, t1 = 32 * w + 31;
     r0 = t0 / ts;

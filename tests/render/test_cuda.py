@@ -159,7 +159,8 @@ def test_warp_cull_changes_no_value(tile_size, dtype):
     or every entry: the forward's outputs are the same bit for bit, the backward ops' (one and
     two pixels a thread, all Gaussians or a trainable subset) up to the atomics' order. A
     heavy-tailed scene with a third of its Gaussians stretched 400:1 (the per-row test's rounding
-    margin), two views in one call, tile sizes whose warps hold two rows, four, or part of a row."""
+    margin), two views in one call, tile sizes whose one-pixel warps hold an 8x4 block (16, 8),
+    whole rows (12) or part of a row (5)."""
     from .standard_scenes import heavy_tailed_scene
 
     w, h = 300, 220
