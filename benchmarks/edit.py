@@ -166,8 +166,7 @@ def edit_config(args) -> EditConfig:
     return EditConfig(steps=args.steps, width=args.size, height=args.size, lrs={"sh_dc": args.lr_color},
                       densify_every=args.densify_every, densify_from=args.densify_every,
                       background=(1.0, 1.0, 1.0), progress=args.progress, checkpoint_every=0,
-                      view_pool=args.view_pool, prefetch_views=not args.no_prefetch_views,
-                      prefetch_thread=not args.prefetch_inline)
+                      view_pool=args.view_pool, prefetch_views=not args.no_prefetch_views)
 
 
 def run(args) -> dict:
@@ -206,8 +205,7 @@ def run(args) -> dict:
     total = time.perf_counter() - t0
     n = cfg.steps
     row = {"device": dev, "gaussians": len(scene), "editable": tgt.count, "guidance": args.guidance,
-           "view_pool": args.view_pool, "prefetch_views": cfg.prefetch_views, "prefetch_thread": cfg.prefetch_thread,
-           "steps": n, "size": args.size,
+           "view_pool": args.view_pool, "prefetch_views": cfg.prefetch_views, "steps": n, "size": args.size,
            "model_kernels": args.model_kernels or "default", "models_build_s": build_s, "edit_s": total,
            f"edit_{args.steps}_steps_s": total * args.steps / n}
     if projected is not None:
@@ -265,8 +263,6 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="time fewer steps when the warm-up projects more than this (the row says so)")
     p.add_argument("--steps", type=int, default=100)
-    p.add_argument("--prefetch-inline", action="store_true",
-                   help="prepare the next pool set in the loop's thread, not a worker (EditConfig.prefetch_thread off)")
     p.add_argument("--no-prefetch-views", action="store_true",
                    help="prepare a new pool set when its step comes, not beside the step before "
                         "(EditConfig.prefetch_views off; for A/B timing)")

@@ -67,9 +67,6 @@ class EditConfig:
             current step runs: on CUDA in a worker thread on a side stream, so a new set's original
             renders and InstructPix2Pix's condition encode overlap the step's guidance instead of
             delaying the next one. Changes no value (not recorded, like ``progress``).
-        prefetch_thread: on CUDA, prepare the next set in a worker thread (True) or in the loop's
-            thread right after the step's work is queued (False); on a side stream either way.
-            Changes no value (not recorded).
     """
 
     steps: int = 1200
@@ -93,7 +90,6 @@ class EditConfig:
     checkpoint_every: int = 100
     progress: bool = True
     prefetch_views: bool = True
-    prefetch_thread: bool = True
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.n_views < 1 or self.width < 1 or self.height < 1:
@@ -116,7 +112,6 @@ class EditConfig:
         d["background"] = list(self.background)
         d.pop("progress")
         d.pop("prefetch_views")
-        d.pop("prefetch_thread")
         return d
 
 

@@ -358,8 +358,7 @@ class EditSession:
         step = self.step
         # it reads only what existed when the pool was drawn (the original scene, the pool's
         # cameras), so it waits for that, not for this step's queued guidance
-        self._pending = (k, run_beside(lambda: self._prepare_set(k, step), self.device, after=self._pool_drawn,
-                                       thread=self.cfg.prefetch_thread))
+        self._pending = (k, run_beside(lambda: self._prepare_set(k, step), self.device, after=self._pool_drawn))
 
     def _ready_set(self, k: int) -> None:
         """Pool set ``k`` rendered and prepared before this step's guidance: the prefetch joined

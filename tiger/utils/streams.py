@@ -40,7 +40,7 @@ def side_stream(device: torch.device | str, high_priority: bool = False) -> torc
 
 
 def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[torch.Tensor, ...] = (),
-               after: "torch.cuda.Event | None" = None, thread: bool = True) -> Callable[[], T]:
+               after: "torch.cuda.Event | None" = None) -> Callable[[], T]:
     """Start ``fn()`` beside the caller's work and return a function that waits for its result.
 
     On CUDA ``fn`` runs in a worker thread on a side stream of ``device`` (after everything queued
@@ -55,11 +55,6 @@ def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[to
     captured meanwhile must use ``capture_error_mode="thread_local"``). Anywhere else (CPU) ``fn``
     runs when the result is asked for, in the caller's thread, as a plain call would.
     Grad mode is off inside ``fn``.
-
-    ``thread=False`` (CUDA): ``fn`` runs now, in the caller's thread, on the side stream; its
-    kernels still overlap the caller's queued work, its host work does not (no worker competing
-    for the interpreter while the caller launches); an error it raises surfaces when the result
-    is asked for, as with the worker.
     """
     dev = torch.device(device)
     if dev.type != "cuda":
@@ -82,14 +77,7 @@ def run_beside(fn: Callable[[], T], device: torch.device | str, inputs: tuple[to
         with torch.no_grad(), torch.cuda.device(dev), torch.cuda.stream(side):
             return fn()
 
-    if thread:
-        future: Future = _worker().submit(work)
-    else:
-        future = Future()
-        try:
-            future.set_result(work())
-        except Exception as exc:  # surfaces at result(), as the worker's would
-            future.set_exception(exc)
+    future: Future = _worker().submit(work)
 
     def result() -> T:
         out = future.result()
