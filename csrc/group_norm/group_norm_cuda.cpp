@@ -106,33 +106,25 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_backward_cuda(
   const int vw = choose_vector_width(d, x.element_size(), {x.data_ptr(), dy.data_ptr(), dx.data_ptr(),
                                                            residual.defined() ? residual.data_ptr() : nullptr});
   void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  bool one_launch = false;  // only dx is asked for: the one-launch input gradient, where it applies
-  if (!param_grads) {
-    dispatch(x.scalar_type(), [&](auto tag) {
-      using T = typename decltype(tag)::type;
-      one_launch = launch_backward_small<T>(
-          reinterpret_cast<const T*>(dy.data_ptr()), reinterpret_cast<const T*>(x.data_ptr()), p, d,
-          mean.data_ptr<float>(), rstd.data_ptr<float>(), silu,
-          residual.defined() ? reinterpret_cast<const T*>(residual.data_ptr()) : nullptr,
-          reinterpret_cast<T*>(dx.data_ptr()), vw, stream);
-    });
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
-    if (one_launch) return dx_only();
-  }
-  // Every (n, c) of the sums is written by the backward's combine.
-  auto sum_dz = at::empty({d.N, d.C}, fopts), sum_dzx = at::empty({d.N, d.C}, fopts);
-  const int64_t chunks = plan_chunks(d, vw, kBackwardBlocksPerSm * kBackwardWaves);
-  auto pdz = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
-  auto pdzx = at::empty_like(pdz);
-  auto c1 = at::empty({d.N, d.G}, fopts), c2 = at::empty({d.N, d.G}, fopts);
+  at::Tensor sum_dz, sum_dzx;  // [N, C], for dw and db; every (n, c) is written by the combine
   dispatch(x.scalar_type(), [&](auto tag) {
     using T = typename decltype(tag)::type;
-    launch_backward<T>(reinterpret_cast<const T*>(dy.data_ptr()), reinterpret_cast<const T*>(x.data_ptr()), p, d,
-                       mean.data_ptr<float>(), rstd.data_ptr<float>(), silu, chunks, pdz.data_ptr<float>(),
-                       pdzx.data_ptr<float>(), sum_dz.data_ptr<float>(), sum_dzx.data_ptr<float>(),
-                       c1.data_ptr<float>(), c2.data_ptr<float>(),
-                       residual.defined() ? reinterpret_cast<const T*>(residual.data_ptr()) : nullptr,
-                       reinterpret_cast<T*>(dx.data_ptr()), vw, stream);
+    const auto* dyp = reinterpret_cast<const T*>(dy.data_ptr());
+    const auto* xp = reinterpret_cast<const T*>(x.data_ptr());
+    const T* rp = residual.defined() ? reinterpret_cast<const T*>(residual.data_ptr()) : nullptr;
+    auto* dxp = reinterpret_cast<T*>(dx.data_ptr());
+    if (!param_grads && launch_backward_small<T>(dyp, xp, p, d, mean.data_ptr<float>(), rstd.data_ptr<float>(),
+                                                 silu, rp, dxp, vw, stream))
+      return;  // only dx asked for: one launch, no sums or partial workspaces
+    sum_dz = at::empty({d.N, d.C}, fopts);
+    sum_dzx = at::empty({d.N, d.C}, fopts);
+    const int64_t chunks = plan_chunks(d, vw, kBackwardBlocksPerSm * kBackwardWaves);
+    auto pdz = at::empty({d.N * d.C * chunks * (d.nhwc ? 1 : vw)}, fopts);
+    auto pdzx = at::empty_like(pdz);
+    auto c1 = at::empty({d.N, d.G}, fopts), c2 = at::empty({d.N, d.G}, fopts);
+    launch_backward<T>(dyp, xp, p, d, mean.data_ptr<float>(), rstd.data_ptr<float>(), silu, chunks,
+                       pdz.data_ptr<float>(), pdzx.data_ptr<float>(), sum_dz.data_ptr<float>(),
+                       sum_dzx.data_ptr<float>(), c1.data_ptr<float>(), c2.data_ptr<float>(), rp, dxp, vw, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (!param_grads) return dx_only();

@@ -21,6 +21,12 @@ _POOLS: dict[tuple, object] = {}
 _POOL_GRAPHS: "dict[tuple, weakref.WeakSet[torch.cuda.CUDAGraph]]" = {}
 
 
+def capturing(t: torch.Tensor) -> bool:
+    """Whether ``t``'s work would be recorded into a CUDA graph now (a CUDA tensor while the current
+    stream captures): what a memo must not keep across the capture boundary."""
+    return t.is_cuda and torch.cuda.is_current_stream_capturing()
+
+
 def _stream_key(stream: "torch.cuda.Stream") -> tuple:
     return (stream.device_index, stream.stream_id)
 

@@ -18,14 +18,12 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
+from .cuda_graph import capturing
+
 __all__ = ["branch_text", "memo_text_kv"]
 
 _MEMO = "_tiger_text_kv"
 _ROWS = "_tiger_branch_text"
-
-
-def _capturing(t: torch.Tensor) -> bool:
-    return t.is_cuda and torch.cuda.is_current_stream_capturing()
 
 
 def memo_text_kv(layer: object, text: torch.Tensor, weights: Sequence[Optional[torch.Tensor]],
@@ -35,7 +33,7 @@ def memo_text_kv(layer: object, text: torch.Tensor, weights: Sequence[Optional[t
     call with the same text and ``weights`` (the tensors ``compute`` projects with, at the same
     versions; None entries, absent biases, are skipped). Nothing is kept unless ``keep``, with
     gradients enabled or during a CUDA-graph capture."""
-    if not keep or torch.is_grad_enabled() or _capturing(text):
+    if not keep or torch.is_grad_enabled() or capturing(text):
         return compute()
     weights = [w for w in weights if w is not None]
     check = (text._version,) + tuple(w._version for w in weights)
@@ -64,6 +62,6 @@ def branch_text(owner: object, embeddings: torch.Tensor, counts: Sequence[int]) 
     if entry is not None and entry[0] is embeddings and entry[1] == embeddings._version:
         return entry[2]
     built = torch.cat([embeddings[i:i + 1].expand(c, -1, -1) for i, c in enumerate(key)])
-    if not _capturing(embeddings) and not built.requires_grad:
+    if not capturing(embeddings) and not built.requires_grad:
         rows[key] = (embeddings, embeddings._version, built)
     return built

@@ -27,6 +27,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
+from .cuda_graph import capturing
 from .fused_norms import TIME_BIAS_KEY as _KEY, SiLUThenLinear, folds_norm_bias
 
 __all__ = ["StackedTimeBias", "set_stacked_time_bias"]
@@ -98,17 +99,17 @@ class StackedTimeBias:
             return None
         if torch.is_grad_enabled() and (temb.requires_grad or any(p.requires_grad for p in self._sources())):
             return None
-        capturing = temb.is_cuda and torch.cuda.is_current_stream_capturing()
+        in_capture = capturing(temb)
         out = None
         for t, version, captured, biases in self._entries:  # the blocks after the first of a call
-            if t is temb and version == temb._version and captured == capturing:
+            if t is temb and version == temb._version and captured == in_capture:
                 out = biases
                 break
         if out is None:
             s = self._current()
             with torch.no_grad():
                 out = torch.add(s.conv_bias, F.linear(F.silu(temb), s.weight, s.proj_bias))
-            self._entries = [(temb, temb._version, capturing, out)] + self._entries[:_ENTRIES - 1]
+            self._entries = [(temb, temb._version, in_capture, out)] + self._entries[:_ENTRIES - 1]
         a, b = span
         rows = out[:, a:b]
         return rows if rows.shape[0] == n else rows.expand(n, -1)
@@ -133,8 +134,3 @@ def set_stacked_time_bias(unet: torch.nn.Module, on: bool) -> int:
     for m in eligible:
         m.__dict__[_KEY] = shared
     return len(eligible)
-
-
-def time_bias_of(block: torch.nn.Module) -> Optional[StackedTimeBias]:
-    """The :class:`StackedTimeBias` ``block`` belongs to, if any."""
-    return block.__dict__.get(_KEY)
