@@ -289,3 +289,50 @@ def test_rasterize_gaussians_passes_kernel_settings_down():
         got = tiger.rasterize_gaussians(m, q, s, o, col, V, K, w, h, binning=binning, kernels=kernels)
     assert dict(log.calls)["tiger.render_forward.default"][-8:] == binning.op_args() + (32, 0, False)
     assert torch.equal(got["color"], want["color"])
+
+
+def test_one_pixel_warp_layout_is_the_measured_8x4_block():
+    """The one-pixel-per-thread kernels give a warp an 8-wide, 4-tall pixel block of a 16-px tile
+    (``warp_block`` in csrc/raster/raster_kernels.cuh, followed by ``tile_pixel`` and
+    ``warp_span<1>``): of the layouts measured on the H100
+    (benchmarks/gpu/results/raster_warp_layout_ab_h100.txt: 'head' = two rows of 16, '8x4', 'box'
+    = 8x4 with a bounding-box pre-test), 8x4 drew the fox's raster forward fastest on both machines
+    that ran it and the edit's one-pixel backward faster than rows. A change there must be
+    re-measured. The block layout also has to tile the 16-px tile exactly (checked from the source's
+    constants)."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    src = (root / "csrc/raster/raster_kernels.cuh").read_text()
+    assert "const int per_row = tile_size >> 3;" in src
+    assert "return WarpBlock{8 * (warp % per_row), 4 * (warp / per_row)};" in src
+    assert "cx = w.c0 + (t & 7);" in src and "cy = w.r0 + ((t & 31) >> 3);" in src  # tile_pixel
+    assert "c1 = wb.c0 + 7;" in src and "r1 = 32 * w < ts * ts ? wb.r0 + 3 : wb.r0 - 1;" in src  # warp_span<1>
+    pixels = set()
+    for t in range(256):  # the same arithmetic for a 16-px tile: every pixel once, a warp an 8x4 block
+        w = t >> 5
+        c0, r0 = 8 * (w % 2), 4 * (w // 2)
+        cx, cy = c0 + (t & 7), r0 + ((t & 31) >> 3)
+        assert c0 <= cx <= c0 + 7 and r0 <= cy <= r0 + 3
+        pixels.add((cx, cy))
+    assert len(pixels) == 256
+
+    raw = (root / "benchmarks/gpu/results/raster_warp_layout_ab_h100.txt").read_text()
+    fox_forward: dict[tuple[str, str], float] = {}
+    edit_backward: dict[tuple[str, str], float] = {}
+    for machine in ("A", "B", "C"):
+        part = raw[raw.index(f"######## machine {machine}"):]
+        part = part[:part.index("########", 8)] if "########" in part[8:] else part
+        for build, body in re.findall(r"^==== real_scenes, build (\S+)\n(.*?)(?=^====|\Z)", part, re.M | re.S):
+            m = re.search(r"^ +fox +3 +ours +(\S+) +(\S+) +(\S+) +(\S+)", body, re.M)
+            fox_forward[(machine, build)] = float(m.group(4))
+        for build, body in re.findall(r"^==== render_views --edit kernel choices, build (\S+)\n(.*?)(?=^====|\Z)",
+                                      part, re.M | re.S):
+            m = re.search(r"^edit views +heavy_first +1 +True +one +(\S+) +(\S+)", body, re.M)
+            edit_backward[(machine, build)] = float(m.group(2))
+    for machine in ("B", "C"):
+        others = [v for (mm, b), v in fox_forward.items() if mm == machine and b != "8x4"]
+        assert others and fox_forward[(machine, "8x4")] < min(others)
+    for machine in ("A", "B"):
+        assert edit_backward[(machine, "8x4")] < edit_backward[(machine, "head")]
