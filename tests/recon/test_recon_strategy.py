@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tiger.recon import SceneOptimizer
-from tiger.recon.strategy import (DensifyStats, duplicate, prune_transparent, region_topk_densify, remove,
+from tiger.recon.strategy import (DensifyStats, clone_and_split, duplicate, prune_transparent, region_topk_densify, remove,
                                   reset_opacity, split)
 from tiger.scene import GaussianScene
 from tiger.scene.gaussian_scene import inverse_sigmoid
@@ -197,3 +197,43 @@ def test_prune_transparent_only_inside_the_region():
     assert opt.extras["id"].tolist() == [1, 3, 5, 6, 7, 8, 9]
     with pytest.raises(ValueError, match=r"remove mask must be \[N=7\] bool"):
         remove(opt, torch.ones(10, dtype=torch.bool))
+
+
+def _snapshot(opt, state) -> dict:
+    out = {f"param.{k}": v.detach().clone() for k, v in opt.scene.params().items() if v is not None}
+    out.update({f"extra.{k}": v.clone() for k, v in opt.extras.items()})
+    out.update({f"state.{k}": v.clone() for k, v in state.items()})
+    out.update({f"moment.{k}.{i}": m for k, ms in moments(opt).items() for i, m in enumerate(ms[:2])})
+    out["trainable"] = opt.trainable_mask().clone()
+    return out
+
+
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("n_split", [0, 3])
+def test_clone_and_split_is_duplicate_then_split_in_one_surgery(masked, n_split):
+    """The reference is the two primitives one after the other (as the rules called them): the
+    same rows in the same order, parameters, Adam moments, extras, state and random draws, bit for bit."""
+    n = 16
+    trainable = (torch.arange(n) % 3 != 0) if masked else None
+    clone = torch.zeros(n, dtype=torch.bool)
+    clone[[0, 4, 5, 9]] = True
+    split_mask = torch.zeros(n, dtype=torch.bool)
+    split_mask[[2, 10, 15][:n_split]] = True
+    results = []
+    for one_surgery in (False, True):
+        torch.manual_seed(0)  # warm's extras["relevance"]
+        opt = warm(trainable, n)
+        state = {"acc": torch.arange(n, dtype=torch.float32) + 0.5, "seen": torch.arange(n) % 4}
+        gen = torch.Generator().manual_seed(3)
+        if one_surgery:
+            counts = clone_and_split(opt, clone, split_mask, state, gen)
+        else:
+            cloned = duplicate(opt, clone, state)
+            counts = (cloned, split(opt, torch.cat([split_mask, split_mask.new_zeros(cloned)]), state, gen))
+        results.append((counts, _snapshot(opt, state), torch.rand(1, generator=gen)))
+    (c_ref, snap_ref, rng_ref), (c_got, snap_got, rng_got) = results
+    assert c_got == c_ref == (4, n_split) and torch.equal(rng_got, rng_ref)
+    assert snap_got.keys() == snap_ref.keys()
+    for k in snap_ref:
+        assert torch.equal(snap_got[k], snap_ref[k]), k
+    assert len(snap_got["param.means"]) == n + 4 + n_split

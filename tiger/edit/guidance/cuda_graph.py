@@ -8,6 +8,7 @@ caller), so it can be captured once per input signature and replayed.
 from __future__ import annotations
 
 import logging
+import threading
 import weakref
 from typing import Callable, Sequence
 
@@ -17,6 +18,7 @@ logger = logging.getLogger(__name__)
 
 StepFn = Callable[..., torch.Tensor]
 
+_LOCK = threading.Lock()  # the registries below: the loop's thread and the pool's worker both capture
 _POOLS: dict[tuple, object] = {}
 _POOL_GRAPHS: "dict[tuple, weakref.WeakSet[torch.cuda.CUDAGraph]]" = {}
 
@@ -44,10 +46,11 @@ def shared_graph_pool(stream: "torch.cuda.Stream | None" = None):
     guidances of a finished edit were freed), the caching allocator has released the pool and
     capturing into its old handle fails an internal assertion, so a fresh handle is made."""
     key = _stream_key(torch.cuda.current_stream() if stream is None else stream)
-    graphs = _POOL_GRAPHS.setdefault(key, weakref.WeakSet())
-    if key not in _POOLS or len(graphs) == 0:
-        _POOLS[key] = torch.cuda.graph_pool_handle()
-    return _POOLS[key]
+    with _LOCK:
+        graphs = _POOL_GRAPHS.setdefault(key, weakref.WeakSet())
+        if key not in _POOLS or len(graphs) == 0:
+            _POOLS[key] = torch.cuda.graph_pool_handle()
+        return _POOLS[key]
 
 
 _CAPTURE_STREAMS: dict[tuple, "torch.cuda.Stream"] = {}
@@ -63,18 +66,19 @@ def capture_stream(replay_stream: "torch.cuda.Stream") -> "torch.cuda.Stream":
     same stream and replayed at the same time on different streams would share that workspace
     (wrong values, or a hang in the kernels that keep semaphores in it: both seen on an H100)."""
     key = _stream_key(replay_stream)
-    stream = _CAPTURE_STREAMS.get(key)
-    if stream is None:
-        _REPLAY_STREAMS[key] = replay_stream.cuda_stream
-        taken = {s.cuda_stream for s in _CAPTURE_STREAMS.values()} | set(_REPLAY_STREAMS.values())
-        for _ in range(256):  # torch hands out streams from a round-robin pool: skip ones in use
-            stream = torch.cuda.Stream(device=replay_stream.device)
-            if stream.cuda_stream not in taken:
-                break
-        else:
-            raise RuntimeError("tiger.edit: no free CUDA stream for graph capture")
-        _CAPTURE_STREAMS[key] = stream
-    return stream
+    with _LOCK:
+        stream = _CAPTURE_STREAMS.get(key)
+        if stream is None:
+            _REPLAY_STREAMS[key] = replay_stream.cuda_stream
+            taken = {s.cuda_stream for s in _CAPTURE_STREAMS.values()} | set(_REPLAY_STREAMS.values())
+            for _ in range(256):  # torch hands out streams from a round-robin pool: skip ones in use
+                stream = torch.cuda.Stream(device=replay_stream.device)
+                if stream.cuda_stream not in taken:
+                    break
+            else:
+                raise RuntimeError("tiger.edit: no free CUDA stream for graph capture")
+            _CAPTURE_STREAMS[key] = stream
+        return stream
 
 
 class GraphedStep:
@@ -89,6 +93,10 @@ class GraphedStep:
     pool shared by all guidance steps replayed on the same stream (:func:`shared_graph_pool`).
     A graph is captured per input signature and per stream it is replayed on, so a step called on
     another stream never shares memory with the steps of the stream it was first captured for.
+    Captures are "thread_local" (``torch.cuda.graph``'s ``capture_error_mode``): the edit loop's
+    view-pool worker (:func:`tiger.utils.streams.run_beside`) captures InstructPix2Pix's condition
+    encode while the loop's thread synchronises on its own stream, and the loop's thread captures
+    the guidance steps while the worker runs; only the capturing thread's unsafe calls are errors.
     """
 
     def __init__(self, fn: StepFn, warmup: int = 3, share_pool: bool = True) -> None:
@@ -126,10 +134,12 @@ class GraphedStep:
                 self.fn(*static_in)
         replay_stream.wait_stream(cap)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=shared_graph_pool(replay_stream) if self.share_pool else None, stream=cap):
+        with torch.cuda.graph(graph, pool=shared_graph_pool(replay_stream) if self.share_pool else None, stream=cap,
+                              capture_error_mode="thread_local"):
             static_out = self.fn(*static_in)
         if self.share_pool:
-            _POOL_GRAPHS[_stream_key(replay_stream)].add(graph)
+            with _LOCK:
+                _POOL_GRAPHS[_stream_key(replay_stream)].add(graph)
         logger.info("captured a CUDA graph for input shapes %s", [tuple(a.shape) for a in args])
         return graph, static_in, static_out
 

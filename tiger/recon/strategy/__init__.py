@@ -3,9 +3,9 @@ optimizer in step), rules (which rows) and strategies (rule + schedule + statist
 when, the one place a loop's densification is decided)."""
 from __future__ import annotations
 
-from .primitives import duplicate, remove, reset_opacity, split
+from .primitives import clone_and_split, duplicate, remove, reset_opacity, split
 from .rules import DensifyStats, inria_densify, prune_transparent, region_topk_densify
 from .strategies import DensifySchedule, InriaStrategy, RegionTopKStrategy
 
-__all__ = ["DensifySchedule", "DensifyStats", "InriaStrategy", "RegionTopKStrategy", "duplicate", "inria_densify",
-           "prune_transparent", "region_topk_densify", "remove", "reset_opacity", "split"]
+__all__ = ["DensifySchedule", "DensifyStats", "InriaStrategy", "RegionTopKStrategy", "clone_and_split", "duplicate",
+           "inria_densify", "prune_transparent", "region_topk_densify", "remove", "reset_opacity", "split"]

@@ -20,7 +20,7 @@ from typing import Optional
 import torch
 
 from ..step import SceneOptimizer
-from .primitives import duplicate, remove, split
+from .primitives import clone_and_split, remove
 
 
 @dataclass
@@ -87,9 +87,7 @@ def _grow(opt: SceneOptimizer, stats: DensifyStats, want: torch.Tensor, large: t
           generator: Optional[torch.Generator]) -> tuple[int, int]:
     """Clone ``want & ~large``, split ``want & large``; children start with empty statistics."""
     n0 = len(opt.scene)
-    cloned = duplicate(opt, want & ~large, stats.rows())
-    split_mask = torch.cat([want & large, want.new_zeros(cloned)])
-    n_split = split(opt, split_mask, stats.rows(), generator)
+    cloned, n_split = clone_and_split(opt, want & ~large, want & large, stats.rows(), generator)
     stats.clear(slice(n0 - n_split, None))
     return cloned, n_split
 
