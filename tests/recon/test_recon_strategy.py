@@ -209,7 +209,7 @@ def _snapshot(opt, state) -> dict:
 
 
 @pytest.mark.parametrize("masked", [False, True])
-@pytest.mark.parametrize("n_split", [0, 3])
+@pytest.mark.parametrize("n_split", [0, 3, 4])  # 4: row 4 is also cloned
 def test_clone_and_split_is_duplicate_then_split_in_one_surgery(masked, n_split):
     """The reference is the two primitives one after the other (as the rules called them): the
     same rows in the same order, parameters, Adam moments, extras, state and random draws, bit for bit."""
@@ -218,7 +218,7 @@ def test_clone_and_split_is_duplicate_then_split_in_one_surgery(masked, n_split)
     clone = torch.zeros(n, dtype=torch.bool)
     clone[[0, 4, 5, 9]] = True
     split_mask = torch.zeros(n, dtype=torch.bool)
-    split_mask[[2, 10, 15][:n_split]] = True
+    split_mask[[2, 10, 15, 4][:n_split]] = True
     results = []
     for one_surgery in (False, True):
         torch.manual_seed(0)  # warm's extras["relevance"]

@@ -68,8 +68,9 @@ def clone_and_split(opt: SceneOptimizer, clone: torch.Tensor, split_mask: torch.
                     state: Optional[dict[str, torch.Tensor]] = None,
                     generator: Optional[torch.Generator] = None) -> tuple[int, int]:
     """:func:`duplicate` the rows of ``clone`` and then :func:`split` those of ``split_mask``
-    (both [N] bool, disjoint), in one row surgery: the same rows, moments and random draws as
-    the two calls (kept rows, then the clones, then the split children), but every parameter,
+    (both [N] bool; a row in both is cloned, then split, as by the two calls), in one row surgery:
+    the same rows, moments and random draws as the two calls (kept rows, then the clones, then
+    the split children), but every parameter,
     Adam moment and extra is gathered and concatenated once instead of twice (a densification's
     host work and launches, halved). Returns (cloned, split) counts."""
     parents = torch.nonzero(_mask(opt, clone, "clone")).reshape(-1)
