@@ -11,10 +11,16 @@ from tiger.utils.streams import run_beside
 pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
 
-def test_pooled_condition_graph_equals_eager_encode(tiny_models):
+@pytest.fixture
+def eager_and_graphed(tiny_models):
+    """Two InstructPix2Pix guidances on the same tiny models: eager, and graphed."""
     ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
-    eager = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True)
-    graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)
+    return (InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True),
+            InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True))
+
+
+def test_pooled_condition_graph_equals_eager_encode(eager_and_graphed):
+    eager, graphed = eager_and_graphed
     torch.manual_seed(0)
     for k in range(3):  # captured once, then the captured input refilled with new originals
         originals = torch.rand(4, 3, 16, 16, device="cuda")
@@ -25,10 +31,8 @@ def test_pooled_condition_graph_equals_eager_encode(tiny_models):
     assert len(graphed._graphed_cond._graphs) == 1 and len(graphed._cond_cache) == 12
 
 
-def test_condition_graph_captured_in_a_worker_while_the_caller_syncs(tiny_models):
-    ip = load_ip2p(tiny_models / "instruct-pix2pix", device="cuda")
-    eager = InstructPix2PixGuidance(ip, "make it red", short_side=16, keep_text_encoder=True)
-    graphed = InstructPix2PixGuidance(ip, "make it red", short_side=16, cuda_graph=True)
+def test_condition_graph_captured_in_a_worker_while_the_caller_syncs(eager_and_graphed):
+    eager, graphed = eager_and_graphed
     torch.manual_seed(1)
     originals = [torch.rand(4, 3, 16, 16, device="cuda") for _ in range(3)]
     for k, o in enumerate(originals):

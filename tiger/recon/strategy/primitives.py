@@ -30,25 +30,38 @@ def _mask(opt: SceneOptimizer, mask: torch.Tensor, what: str) -> torch.Tensor:
     return mask.to(opt.scene.device)
 
 
-def duplicate(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, torch.Tensor]] = None) -> int:
-    """Append an identical copy of each Gaussian in ``mask`` (INRIA's clone); returns the count."""
-    parents = torch.nonzero(_mask(opt, mask, "duplicate")).reshape(-1)
-    if parents.numel():  # none: no row surgery (it would copy every tensor and Adam row unchanged)
+def _grow(opt: SceneOptimizer, parents: torch.Tensor, split_rows: torch.Tensor, split_mask: Optional[torch.Tensor],
+          state: Optional[dict[str, torch.Tensor]], generator: Optional[torch.Generator]) -> None:
+    """The one row surgery of the growing primitives: a copy of each row of ``parents`` [P], then
+    rows ``split_rows`` [K] (``split_mask`` [N] bool) replaced by two children each, sampled from
+    the parent (positions drawn from its Gaussian, scales divided by 1.6, INRIA's split). New
+    order: kept rows, the copies, the split children. Nothing to do: no surgery (it would copy
+    every tensor and Adam row unchanged)."""
+    if parents.numel() == 0 and split_rows.numel() == 0:
+        return
+    if split_rows.numel() == 0:
         opt.edit_rows(parents=parents, state=state)
-    return int(parents.numel())
-
-
-def _split_children(opt: SceneOptimizer, idx: torch.Tensor,
-                    generator: Optional[torch.Generator]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """(parent of each child [2K], their ``means`` and ``log_scales`` [2K, 3]) of splitting rows
-    ``idx`` [K]: positions drawn from the parent's Gaussian, scales divided by 1.6."""
+        return
     s = opt.scene
-    rep = idx.repeat(SPLIT_CHILDREN)
+    rep = split_rows.repeat(SPLIT_CHILDREN)
     std = s.scales.detach()[rep]
     samples = torch.randn(std.shape, generator=generator, dtype=std.dtype).to(std.device) * std
     rot = quat_to_rotmat(s.quats.detach()[rep])
-    means = (rot @ samples.unsqueeze(-1)).squeeze(-1) + s.means.detach()[rep]
-    return rep, {"means": means, "log_scales": torch.log(std / SPLIT_SCALE_DIVISOR)}
+    children = {"means": (rot @ samples.unsqueeze(-1)).squeeze(-1) + s.means.detach()[rep],
+                "log_scales": torch.log(std / SPLIT_SCALE_DIVISOR)}
+    overrides = {name: torch.cat([getattr(s, name).detach()[parents], v]) for name, v in children.items()}
+    opt.edit_rows(keep=~split_mask, parents=torch.cat([parents, rep]), state=state, overrides=overrides)
+
+
+def _rows(mask: torch.Tensor) -> torch.Tensor:
+    return torch.nonzero(mask).reshape(-1)
+
+
+def duplicate(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, torch.Tensor]] = None) -> int:
+    """Append an identical copy of each Gaussian in ``mask`` (INRIA's clone); returns the count."""
+    parents = _rows(_mask(opt, mask, "duplicate"))
+    _grow(opt, parents, parents[:0], None, state, None)
+    return int(parents.numel())
 
 
 def split(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, torch.Tensor]] = None,
@@ -56,11 +69,9 @@ def split(opt: SceneOptimizer, mask: torch.Tensor, state: Optional[dict[str, tor
     """Replace each Gaussian in ``mask`` by two children sampled from it (positions drawn from
     the parent's Gaussian, scales divided by 1.6, INRIA's split); the children go to the end.
     Returns the number of Gaussians split."""
-    idx = torch.nonzero(_mask(opt, mask, "split")).reshape(-1)
-    if idx.numel() == 0:
-        return 0
-    rep, overrides = _split_children(opt, idx, generator)
-    opt.edit_rows(keep=~mask.to(opt.scene.device), parents=rep, state=state, overrides=overrides)
+    mask = _mask(opt, mask, "split")
+    idx = _rows(mask)
+    _grow(opt, idx[:0], idx, mask, state, generator)
     return int(idx.numel())
 
 
@@ -70,20 +81,13 @@ def clone_and_split(opt: SceneOptimizer, clone: torch.Tensor, split_mask: torch.
     """:func:`duplicate` the rows of ``clone`` and then :func:`split` those of ``split_mask``
     (both [N] bool; a row in both is cloned, then split, as by the two calls), in one row surgery:
     the same rows, moments and random draws as the two calls (kept rows, then the clones, then
-    the split children), but every parameter,
-    Adam moment and extra is gathered and concatenated once instead of twice (a densification's
-    host work and launches, halved). Returns (cloned, split) counts."""
-    parents = torch.nonzero(_mask(opt, clone, "clone")).reshape(-1)
+    the split children), but every parameter, Adam moment and extra is gathered and concatenated
+    once instead of twice (a densification's host work and launches, halved). Returns (cloned,
+    split) counts."""
+    parents = _rows(_mask(opt, clone, "clone"))
     split_mask = _mask(opt, split_mask, "split")
-    idx = torch.nonzero(split_mask).reshape(-1)
-    if idx.numel() == 0:
-        if parents.numel():
-            opt.edit_rows(parents=parents, state=state)
-        return int(parents.numel()), 0
-    rep, children = _split_children(opt, idx, generator)
-    s = opt.scene
-    overrides = {name: torch.cat([getattr(s, name).detach()[parents], v]) for name, v in children.items()}
-    opt.edit_rows(keep=~split_mask, parents=torch.cat([parents, rep]), state=state, overrides=overrides)
+    idx = _rows(split_mask)
+    _grow(opt, parents, idx, split_mask, state, generator)
     return int(parents.numel()), int(idx.numel())
 
 
