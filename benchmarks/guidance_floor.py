@@ -43,6 +43,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
   added in passes of their own instead of by the next ResNet block (``ModelKernels.carry_conv_bias``);
 - ``default-branch_prefix``: the default with InstructPix2Pix's instruction and image-only branches
   computed apart up to the first cross-attention instead of once (``ModelKernels.branch_prefix``);
+- ``default+head40_attention``: the default with tiger's Hopper kernel instead of cuDNN's SDPA for
+  InstructPix2Pix's head-dim-40 self-attentions (``ModelKernels.head40_attention``, opt-in);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
   (every other variant runs it beside InstructPix2Pix on a side stream, ``CSDGuidance``'s default);
 - ``default+fp8``, ``default+fp8_fast_accum``: and FP8 matmuls, plain or with
@@ -81,11 +83,11 @@ from tiger.utils.dtypes import DTYPE_NAMES
 PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
                         subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False,
                         fused_transformer=False, carry_conv_bias=False, branch_prefix=False, stacked_time_bias=False,
-                        cached_text_kv=False)
+                        cached_text_kv=False, head40_attention=False)
 DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
                           subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True,
                           fused_transformer=True, carry_conv_bias=True, branch_prefix=True, stacked_time_bias=True,
-                          cached_text_kv=True)
+                          cached_text_kv=True, head40_attention=False)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -113,6 +115,7 @@ VARIANTS = {
     "default-branch_prefix": (dataclasses.replace(DEFAULT, branch_prefix=False), True, False, False),
     "default-stacked_time_bias": (dataclasses.replace(DEFAULT, stacked_time_bias=False), True, False, False),
     "default-cached_text_kv": (dataclasses.replace(DEFAULT, cached_text_kv=False), True, False, False),
+    "default+head40_attention": (dataclasses.replace(DEFAULT, head40_attention=True), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
     "default+fp8_fast_accum": (dataclasses.replace(DEFAULT, matmul_precision="fp8", fp8_fast_accum=True),
@@ -122,7 +125,7 @@ DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
                     "default-block_backward", "default-pad_conv_in", "default-fused_transformer",
                     "default-carry_conv_bias", "default-branch_prefix", "default-stacked_time_bias",
-                    "default-cached_text_kv", "default+fp8",
+                    "default-cached_text_kv", "default+head40_attention", "default+fp8",
                     "default+fp8_fast_accum")
 MV_FRACTION = CSDSchedule().mv_end  # MVDream runs while λ2 > 0: the first 75 % of the steps
 FLOOR_TARGET = 1.6  # issue 30: the guidance step at most 1.6x its FLOP floor

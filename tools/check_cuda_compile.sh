@@ -19,5 +19,10 @@ for f in "${files[@]}"; do
   if ! "$NVCC" -std=c++17 -O2 --expt-relaxed-constexpr -arch=sm_${ARCHS} -Icsrc -c "$f" -o "$out/$(basename "$f").o"; then
     echo "FAILED: $f" >&2; status=1
   fi
+  # Hopper-only sources (wgmma) also as the build compiles them for an H100: sm_90a
+  if [[ "$f" == *_sm90a.cu ]] && ! "$NVCC" -std=c++17 -O2 --expt-relaxed-constexpr -arch=sm_90a \
+      -Icsrc -c "$f" -o "$out/$(basename "$f").90a.o"; then
+    echo "FAILED (sm_90a): $f" >&2; status=1
+  fi
 done
 exit $status

@@ -64,6 +64,10 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
 - ``cached_text_kv``: the cross-attentions' keys and values of the guidance's fixed text are
   computed once and kept with the text tensor (:mod:`.text_kv`) instead of in every call. The same
   matmuls on the same rows.
+- ``head40_attention`` (opt-in): the UNet's self-attentions with head dim 40 (InstructPix2Pix's
+  64² layers) by :func:`tiger.ops.attention.attention_rows`, whose Hopper kernel multiplies at
+  head dim 48 / 40 with warpgroup MMAs instead of cuDNN's 64; still ~10 % slower than cuDNN's
+  SDPA on an H100 (docs/BENCHMARKS.md, "Head-dim-40 attention").
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
   the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
@@ -91,7 +95,7 @@ from .encoder_bias import set_carry_conv_bias
 from .forward_switch import switch_forward
 from .fused_norms import set_block_backward, set_fold_norm_bias
 from .time_bias import set_stacked_time_bias
-from .transformer_blocks import set_cached_text_kv, set_fused_transformer, set_lean_attention
+from .transformer_blocks import set_cached_text_kv, set_fused_transformer, set_head40_attention, set_lean_attention
 from tiger.utils.lazy import require_diffusers
 
 logger = logging.getLogger(__name__)
@@ -145,6 +149,11 @@ class ModelKernels:
             same operations per element).
         cached_text_kv: the cross-attentions' keys and values of the fixed text computed once
             (:mod:`.text_kv`); None: on (the same matmuls, any device).
+        head40_attention: the UNet's self-attentions of head dim 40 by tiger's Hopper kernel
+            (:func:`tiger.ops.attention.attention_rows`) in the lean processor and the fused
+            blocks; None: off (measured ~10 % slower than cuDNN's SDPA on an H100: 1.0 against
+            0.9 ms for InstructPix2Pix's 12 x 8 x 4096² layer). The same error against float64 as
+            SDPA's (P rounded to bfloat16 before its product with V, as cuDNN does).
     """
 
     matmul_precision: str = "model"
@@ -162,6 +171,7 @@ class ModelKernels:
     branch_prefix: Optional[bool] = None
     stacked_time_bias: Optional[bool] = None
     cached_text_kv: Optional[bool] = None
+    head40_attention: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISIONS:
@@ -454,7 +464,7 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
     "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks",
-    "stacked_time_bias_blocks", "cached_text_kv_layers"}``."""
+    "stacked_time_bias_blocks", "cached_text_kv_layers", "head40_attention_layers"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -478,8 +488,10 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     # after the folded norms, the fused blocks and the processors they build on
     stacked = set_stacked_time_bias(unet, _resolve(kernels.stacked_time_bias, fold_on))
     text_kv = set_cached_text_kv(unet, _resolve(kernels.cached_text_kv, True))
+    head40 = set_head40_attention(unet, _resolve(kernels.head40_attention, False))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
             "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried,
-            "branch_prefix_blocks": prefix, "stacked_time_bias_blocks": stacked, "cached_text_kv_layers": text_kv}
+            "branch_prefix_blocks": prefix, "stacked_time_bias_blocks": stacked, "cached_text_kv_layers": text_kv,
+            "head40_attention_layers": head40}

@@ -38,6 +38,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
+from tiger.ops.attention import attention_rows
 from tiger.ops.fp8_rows import geglu
 from tiger.ops.layer_norm import layer_norm_rows
 from tiger.utils.lazy import require_diffusers
@@ -45,13 +46,15 @@ from tiger.utils.lazy import require_diffusers
 from .text_kv import memo_text_kv
 
 __all__ = ["LeanAttnProcessor", "fused_cross_feed_forward", "fused_derived", "fused_self_attention",
-           "set_cached_text_kv", "set_fused_transformer", "set_lean_attention"]
+           "set_cached_text_kv", "set_fused_transformer", "set_head40_attention",
+           "set_lean_attention"]
 
 # The GEGLU projection's extra outputs: pairs (a, g) giving a · gelu(g) = 1, then 0 (one 16-byte
 # vector of bfloat16 per half, so rows stay aligned).
 _EXTRA = 8
 _ONE_A, _ONE_G = 0.125, 8.0
 _CACHED_TEXT_KV = "_tiger_cached_text_kv"
+_HEAD40 = "_tiger_head40_attention"
 
 
 # -- lean attention -------------------------------------------------------------------------------
@@ -204,7 +207,11 @@ def _heads(t: torch.Tensor, b: int, heads: int) -> torch.Tensor:
 
 
 def _attend(attn, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, b: int) -> torch.Tensor:
-    """SDPA over [B·L, I] token rows (strided views allowed) → [B·L, I] (a view of SDPA's output)."""
+    """SDPA over [B·L, I] token rows (strided views allowed) → [B·L, I] (a view of SDPA's output);
+    a self-attention marked by :func:`set_head40_attention` runs :func:`tiger.ops.attention.attention_rows`
+    (which takes head dim 40 on an H100 and computes the reference otherwise)."""
+    if attn.__dict__.get(_HEAD40) and k.shape[0] == q.shape[0] and not torch.is_grad_enabled():
+        return attention_rows(q, k, v, b, attn.heads)
     out = F.scaled_dot_product_attention(_heads(q, b, attn.heads), _heads(k, b, attn.heads), _heads(v, b, attn.heads),
                                          dropout_p=0.0, is_causal=False)
     return out.transpose(1, 2).reshape(q.shape[0], -1)
@@ -317,6 +324,26 @@ def set_fused_transformer(unet: torch.nn.Module, on: bool) -> int:
         elif "_tiger_fused_weights" in m.__dict__:
             m.__dict__.pop("_tiger_fused_weights")
             m.__dict__.pop("forward", None)
+    return count
+
+
+def set_head40_attention(unet: torch.nn.Module, on: bool) -> int:
+    """Run the UNet's self-attentions with head dim 40 (InstructPix2Pix's 64² layers: 8 heads of 40
+    over 4096 tokens) by :func:`tiger.ops.attention.attention_rows` in the lean processor and the
+    fused blocks (``on``), or by SDPA; returns how many layers it takes. Forward only: a call with
+    gradients enabled runs SDPA. Opt-in (:class:`.model_kernels.ModelKernels` ``head40_attention``):
+    on an H100 the kernel is still ~10 % slower than cuDNN's SDPA for these layers."""
+    from diffusers.models.attention_processor import Attention
+
+    count = 0
+    for m in unet.modules():
+        if not isinstance(m, Attention):
+            continue
+        m.__dict__.pop(_HEAD40, None)
+        head_dim = m.to_q.out_features // m.heads if isinstance(m.to_q, torch.nn.Linear) else None
+        if on and not m.is_cross_attention and head_dim == 40:
+            m.__dict__[_HEAD40] = True
+            count += 1
     return count
 
 
