@@ -118,6 +118,24 @@ def test_fused_block_in_bfloat16_is_as_close_to_float64_as_diffusers(unet64, une
     assert err_ours < 0.02 and err_ours <= 1.5 * err_theirs, (err_ours, err_theirs)
 
 
+def _graphed_block_output(block, h: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+    """``block(h, encoder_hidden_states=text)`` captured in a CUDA graph (after one call on the
+    capture stream) and replayed on a fresh copy of ``h``; synchronised."""
+    with torch.no_grad():
+        graph, x = torch.cuda.CUDAGraph(), h.clone()
+        s = torch.cuda.Stream()
+        s.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(s):
+            block(h.clone(), encoder_hidden_states=text)
+            with torch.cuda.graph(graph, stream=s):
+                out = block(x, encoder_hidden_states=text)
+        torch.cuda.current_stream().wait_stream(s)
+        x.copy_(h)
+        graph.replay()
+        torch.cuda.synchronize()
+    return out
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float32])
@@ -133,18 +151,7 @@ def test_fused_block_on_cuda_is_as_close_to_float64_as_diffusers(unet64, dtype):
         theirs = dev(hd.clone(), encoder_hidden_states=td).double().cpu()
         assert tb.set_fused_transformer(dev, True) == 1
         ours = dev(hd.clone(), encoder_hidden_states=td).double().cpu()
-        graph, x = torch.cuda.CUDAGraph(), hd.clone()
-        s = torch.cuda.Stream()
-        s.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(s):
-            dev(hd.clone(), encoder_hidden_states=td)
-            with torch.cuda.graph(graph, stream=s):
-                out = dev(x, encoder_hidden_states=td)
-        torch.cuda.current_stream().wait_stream(s)
-        x.copy_(hd)
-        graph.replay()
-        torch.cuda.synchronize()
-    assert torch.equal(out.double().cpu(), ours)
+    assert torch.equal(_graphed_block_output(dev, hd, td).double().cpu(), ours)
     err_ours, err_theirs = (float((v - ref).norm() / ref.norm()) for v in (ours, theirs))
     bound = 0.02 if dtype == torch.bfloat16 else 1e-5
     assert err_ours < bound and err_ours <= 1.5 * err_theirs + 1e-7, (err_ours, err_theirs)
@@ -282,17 +289,6 @@ def test_head40_attention_on_an_h100_is_as_close_to_float64_as_sdpa(fused):
         theirs = dev(hd.clone(), encoder_hidden_states=td).double().cpu()
         assert tb.set_head40_attention(dev, True) == 1
         ours = dev(hd.clone(), encoder_hidden_states=td).double().cpu()
-        graph, x = torch.cuda.CUDAGraph(), hd.clone()
-        s = torch.cuda.Stream()
-        s.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(s):
-            dev(hd.clone(), encoder_hidden_states=td)
-            with torch.cuda.graph(graph, stream=s):
-                out = dev(x, encoder_hidden_states=td)
-        torch.cuda.current_stream().wait_stream(s)
-        x.copy_(hd)
-        graph.replay()
-        torch.cuda.synchronize()
-    assert torch.equal(out.double().cpu(), ours)
+    assert torch.equal(_graphed_block_output(dev, hd, td).double().cpu(), ours)
     err_ours, err_theirs = (float((v - ref).norm() / ref.norm()) for v in (ours, theirs))
     assert err_ours < 0.02 and err_ours <= 1.25 * err_theirs, (err_ours, err_theirs)
