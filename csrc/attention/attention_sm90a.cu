@@ -20,7 +20,7 @@
 // "producer" (one producer warp fills three stages behind mbarriers and the consumer warpgroups
 // run free of each other, so one's exponentials can overlap another's MMAs). Measured on an H100
 // (benchmarks/attention.py, docs/BENCHMARKS.md): the producer schedule with 3 warpgroups is the
-// fastest, ~1.0 ms for InstructPix2Pix's 12 x 8 x 4096² layer, still ~10 % slower than cuDNN's
+// fastest, ~1.0 ms for InstructPix2Pix's 12 x 8 x 4096² layer, still ~12 % slower than cuDNN's
 // SDPA; what did not help is in benchmarks/gpu/NOTES.md.
 #include <cuda_bf16.h>
 #include <cuda_runtime.h>

@@ -66,7 +66,7 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   matmuls on the same rows.
 - ``head40_attention`` (opt-in): the UNet's self-attentions with head dim 40 (InstructPix2Pix's
   64² layers) by :func:`tiger.ops.attention.attention_rows`, whose Hopper kernel multiplies at
-  head dim 48 / 40 with warpgroup MMAs instead of cuDNN's 64; still ~10 % slower than cuDNN's
+  head dim 48 / 40 with warpgroup MMAs instead of cuDNN's 64; still ~12 % slower than cuDNN's
   SDPA on an H100 (docs/BENCHMARKS.md, "Head-dim-40 attention").
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
@@ -151,7 +151,7 @@ class ModelKernels:
             (:mod:`.text_kv`); None: on (the same matmuls, any device).
         head40_attention: the UNet's self-attentions of head dim 40 by tiger's Hopper kernel
             (:func:`tiger.ops.attention.attention_rows`) in the lean processor and the fused
-            blocks; None: off (measured ~10 % slower than cuDNN's SDPA on an H100: 1.0 against
+            blocks; None: off (measured ~12 % slower than cuDNN's SDPA on an H100: 1.0 against
             0.9 ms for InstructPix2Pix's 12 x 8 x 4096² layer). The same error against float64 as
             SDPA's (P rounded to bfloat16 before its product with V, as cuDNN does).
     """
