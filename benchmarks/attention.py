@@ -1,7 +1,8 @@
-"""tiger::attention_rows (every schedule and CTA size on the GPU) against torch's SDPA (the peer: cuDNN's fused attention on an H100, the
-math path on the CPU) on the guidances' self-attention shapes: ms per call and the relative error
-against the float64 definition (tests/ops/test_attention.py), plus the exponential bound (one
-exp per score at the SFU's rate, `exp2_throughput_h100.txt`) and the FLOP bound at head dim 40.
+"""tiger::attention_rows (every schedule and CTA size on the GPU) against torch's SDPA (the peer:
+cuDNN's fused attention on an H100, the math path on the CPU) on the guidances' self-attention
+shapes: ms per call and the relative error against the float64 definition
+(tests/ops/test_attention.py), plus the exponential bound (one exp per score at the SFU's rate,
+`exp2_throughput_h100.txt`) and the FLOP bound at head dim 40.
 
     python -m benchmarks.attention                 # CPU, a small shape
     python -m benchmarks.attention --device cuda   # InstructPix2Pix's 64² layers (batch 12 and 8)
@@ -13,20 +14,13 @@ from __future__ import annotations
 import argparse
 
 import torch
-import torch.nn.functional as F
 
 from benchmarks.common import cpu_time_ms, cuda_graph_ms, rel_err
-from tests.ops.test_attention import attention64, stacked_qkv
+from tests.ops.test_attention import attention64, sdpa_rows, stacked_qkv
 from tiger.ops.attention import SCHEDULES, attention_rows
 
 SFU_EXP_PER_S = 4.16e12  # H100, measured (benchmarks/gpu/results/exp2_throughput_h100.txt)
 TENSOR_FLOP_PER_S = 790e12  # H100 bf16 dense GEMM rate measured in this project
-
-
-def sdpa_rows(q, k, v, batch, heads):
-    """The peer: F.scaled_dot_product_attention on the same rows (as transformer_blocks did)."""
-    view = [t.unflatten(1, (heads, -1)).unflatten(0, (batch, -1)).transpose(1, 2) for t in (q, k, v)]
-    return F.scaled_dot_product_attention(*view).transpose(1, 2).reshape(q.shape[0], -1)
 
 
 def main() -> None:
@@ -49,8 +43,9 @@ def main() -> None:
         flop_ms = 4 * batch * heads * L * L * 40 / TENSOR_FLOP_PER_S * 1e3
         runs = [("torch SDPA (peer)", lambda: sdpa_rows(q, k, v, batch, heads))]
         variants = [(k_, w) for k_, ws in SCHEDULES.items() for w in ws] if cuda else [("producer", 3)]
-        runs += [(f"tiger, {k_} x{w}" if cuda else "tiger (reference)", lambda k_=k_, w=w: attention_rows(q, k, v, batch, heads, schedule=k_,
-                                                                        warpgroups=w)) for k_, w in variants]
+        for k_, w in variants:
+            runs.append((f"tiger, {k_} x{w}" if cuda else "tiger (reference)",
+                         lambda k_=k_, w=w: attention_rows(q, k, v, batch, heads, schedule=k_, warpgroups=w)))
         with torch.no_grad():
             for who, fn in runs:
                 ms = cuda_graph_ms(fn, calls=10) if cuda else cpu_time_ms(fn)

@@ -269,6 +269,47 @@ __device__ __forceinline__ void load_kv(const AttentionParams& p, const __nv_bfl
   }
 }
 
+// The (batch, head) and query rows of this CTA: first query row m0 of the sequence at row0;
+// q, k, v point at the sequence's first row, this head's columns.
+struct CtaRows {
+  int64_t row0;
+  int m0, head;
+  const __nv_bfloat16 *q, *k, *v;
+};
+
+__device__ __forceinline__ CtaRows cta_rows(const AttentionParams& p, int rows_per_cta) {
+  CtaRows r;
+  r.m0 = blockIdx.x * rows_per_cta;
+  r.head = blockIdx.y;
+  r.row0 = static_cast<int64_t>(blockIdx.z) * p.L;
+  r.q = p.q + r.row0 * p.q_stride + r.head * kD;
+  r.k = p.k + r.row0 * p.k_stride + r.head * kD;
+  r.v = p.v + r.row0 * p.v_stride + r.head * kD;
+  return r;
+}
+
+// Columns 40-47 of Q's q_rows rows and of every K stage stay zero: QKᵀ's third k16 step adds
+// nothing. Threads tid, tid + threads, ... of the CTA.
+__device__ __forceinline__ void zero_pad_columns(unsigned char* sq, int q_rows, unsigned char* sk, int k_stages, int tid,
+                                                 int threads) {
+  const uint4 zero = make_uint4(0, 0, 0, 0);
+  for (int r = tid; r < q_rows; r += threads) *reinterpret_cast<uint4*>(sq + qk_offset(r, kChunks)) = zero;
+  for (int r = tid; r < k_stages * kBlockN; r += threads)
+    *reinterpret_cast<uint4*>(sk + (r / kBlockN) * kKBytes + qk_offset(r % kBlockN, kChunks)) = zero;
+}
+
+// Copies the CTA's query rows first … first + count − 1 into Q's tile (threads tid, tid + threads,
+// ...; uncommitted cp.async). Rows past L (the last CTA when 64·warpgroups does not divide L)
+// compute on row L − 1 and are not stored.
+__device__ __forceinline__ void load_q(const AttentionParams& p, const CtaRows& cta, unsigned char* sq, int first,
+                                       int count, int tid, int threads) {
+  for (int i = tid; i < count * kChunks; i += threads) {
+    const int row = first + i % count, c = i / count;
+    const int64_t src = min(cta.m0 + row, p.L - 1);
+    cp_async16(smem_address(sq + qk_offset(row, c)), cta.q + src * p.q_stride + c * 8);
+  }
+}
+
 template <int kWG>
 __global__ void __launch_bounds__(Tile<kWG>::kThreads, kWG == 1 ? 3 : kWG == 2 ? 2 : 1) attention_head40_kernel(const AttentionParams p) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
@@ -278,24 +319,10 @@ __global__ void __launch_bounds__(Tile<kWG>::kThreads, kWG == 1 ? 3 : kWG == 2 ?
   unsigned char* sk = smem + T::kQBytes;  // two stages
   unsigned char* sv = sk + 2 * kKBytes;   // two stages
   const int tid = threadIdx.x, wg = tid >> 7;
-  const int m0 = blockIdx.x * T::kRows, head = blockIdx.y, batch = blockIdx.z;
-  const int64_t row0 = static_cast<int64_t>(batch) * p.L;
-  const __nv_bfloat16* qb = p.q + row0 * p.q_stride + head * kD;
-  const __nv_bfloat16* kb = p.k + row0 * p.k_stride + head * kD;
-  const __nv_bfloat16* vb = p.v + row0 * p.v_stride + head * kD;
-
-  // columns 40-47 of Q and of both K stages stay zero: QKᵀ's third k16 step adds nothing
-  const uint4 zero = make_uint4(0, 0, 0, 0);
-  for (int r = tid; r < T::kRows; r += T::kThreads) *reinterpret_cast<uint4*>(sq + qk_offset(r, kChunks)) = zero;
-  for (int r = tid; r < 2 * kBlockN; r += T::kThreads)
-    *reinterpret_cast<uint4*>(sk + (r / kBlockN) * kKBytes + qk_offset(r % kBlockN, kChunks)) = zero;
-  // query rows past L (the last CTA when 64·kWG does not divide L) compute on row L − 1 and are not stored
-  for (int i = tid; i < T::kRows * kChunks; i += T::kThreads) {
-    const int row = i % T::kRows, c = i / T::kRows;
-    const int64_t src = min(m0 + row, p.L - 1);
-    cp_async16(smem_address(sq + qk_offset(row, c)), qb + src * p.q_stride + c * 8);
-  }
-  load_kv<T::kThreads>(p, kb, vb, 0, sk, sv, tid);
+  const CtaRows cta = cta_rows(p, T::kRows);
+  zero_pad_columns(sq, T::kRows, sk, 2, tid, T::kThreads);
+  load_q(p, cta, sq, 0, T::kRows, tid, T::kThreads);
+  load_kv<T::kThreads>(p, cta.k, cta.v, 0, sk, sv, tid);
   cp_async_commit();
 
   float o[20];
@@ -311,7 +338,7 @@ __global__ void __launch_bounds__(Tile<kWG>::kThreads, kWG == 1 ? 3 : kWG == 2 ?
     const int stage = j & 1;
     unsigned char* skj = sk + stage * kKBytes;
     unsigned char* svj = sv + stage * kVBytes;
-    if (j + 1 < n_tiles) load_kv<T::kThreads>(p, kb, vb, j + 1, sk + (stage ^ 1) * kKBytes, sv + (stage ^ 1) * kVBytes, tid);
+    if (j + 1 < n_tiles) load_kv<T::kThreads>(p, cta.k, cta.v, j + 1, sk + (stage ^ 1) * kKBytes, sv + (stage ^ 1) * kVBytes, tid);
     cp_async_commit();
     cp_async_wait<1>();  // tile j has landed (tile j + 1 may be in flight)
     fence_proxy_async();
@@ -321,7 +348,7 @@ __global__ void __launch_bounds__(Tile<kWG>::kThreads, kWG == 1 ? 3 : kWG == 2 ?
     __syncthreads();  // every warp is done with this stage before it is refilled
   }
 
-  store_rows(p, o, row_sum, m0 + 64 * wg, row0, head);
+  store_rows(p, o, row_sum, cta.m0 + 64 * wg, cta.row0, cta.head);
 #else
   (void)p;  // built for another architecture: the host never launches it there
 #endif
@@ -371,16 +398,8 @@ __global__ void __launch_bounds__(WsTile<kWG>::kThreads, 1) attention_head40_ws_
   unsigned char* sv = sk + kStages * kKBytes;  // kStages stages
   const uint32_t full0 = smem_address(sv + kStages * kVBytes), empty0 = full0 + kStages * 8;
   const int tid = threadIdx.x;
-  const int m0 = blockIdx.x * T::kRows, head = blockIdx.y, batch = blockIdx.z;
-  const int64_t row0 = static_cast<int64_t>(batch) * p.L;
-  const __nv_bfloat16* qb = p.q + row0 * p.q_stride + head * kD;
-  const __nv_bfloat16* kb = p.k + row0 * p.k_stride + head * kD;
-  const __nv_bfloat16* vb = p.v + row0 * p.v_stride + head * kD;
-
-  const uint4 zero = make_uint4(0, 0, 0, 0);  // columns 40-47 of Q and of every K stage
-  for (int r = tid; r < T::kRows; r += T::kThreads) *reinterpret_cast<uint4*>(sq + qk_offset(r, kChunks)) = zero;
-  for (int r = tid; r < kStages * kBlockN; r += T::kThreads)
-    *reinterpret_cast<uint4*>(sk + (r / kBlockN) * kKBytes + qk_offset(r % kBlockN, kChunks)) = zero;
+  const CtaRows cta = cta_rows(p, T::kRows);
+  zero_pad_columns(sq, T::kRows, sk, kStages, tid, T::kThreads);
   if (tid == 0) {
     for (int s = 0; s < kStages; ++s) {
       mbar_init(full0 + 8 * s, 32);               // the producer's lanes, when their copies land
@@ -395,20 +414,15 @@ __global__ void __launch_bounds__(WsTile<kWG>::kThreads, 1) attention_head40_ws_
     for (int j = 0; j < n_tiles; ++j) {
       const int s = j % kStages;
       if (j >= kStages) mbar_wait(empty0 + 8 * s, (j / kStages - 1) & 1);
-      load_kv<32>(p, kb, vb, j, sk + s * kKBytes, sv + s * kVBytes, lane);
+      load_kv<32>(p, cta.k, cta.v, j, sk + s * kKBytes, sv + s * kVBytes, lane);
       mbar_arrive_copies(full0 + 8 * s);
     }
     cp_async_wait<0>();
     return;
   }
 
-  const int wg = tid >> 7, wtid = tid & 127;
-  // this warpgroup's 64 query rows (rows past L compute on row L − 1 and are not stored)
-  for (int i = wtid; i < 64 * kChunks; i += 128) {
-    const int row = 64 * wg + i % 64, c = i / 64;
-    const int64_t src = min(m0 + row, p.L - 1);
-    cp_async16(smem_address(sq + qk_offset(row, c)), qb + src * p.q_stride + c * 8);
-  }
+  const int wg = tid >> 7;
+  load_q(p, cta, sq, 64 * wg, 64, tid & 127, 128);  // this warpgroup's 64 query rows
   cp_async_commit();
   cp_async_wait<0>();
   fence_proxy_async();
@@ -428,7 +442,7 @@ __global__ void __launch_bounds__(WsTile<kWG>::kThreads, 1) attention_head40_ws_
                       row_max, row_sum);
     mbar_arrive(empty0 + 8 * s);
   }
-  store_rows(p, o, row_sum, m0 + 64 * wg, row0, head);
+  store_rows(p, o, row_sum, cta.m0 + 64 * wg, cta.row0, cta.head);
 #else
   (void)p;
 #endif

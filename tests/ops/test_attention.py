@@ -33,6 +33,13 @@ def attention64(q, k, v, batch, heads, scale=None):
     return out
 
 
+def sdpa_rows(q, k, v, batch, heads):
+    """The peer on the same rows: torch's F.scaled_dot_product_attention (cuDNN's on an H100), as
+    the guidances' transformer blocks call it."""
+    view = [t.unflatten(1, (heads, -1)).unflatten(0, (batch, -1)).transpose(1, 2) for t in (q, k, v)]
+    return F.scaled_dot_product_attention(*view).transpose(1, 2).reshape(q.shape[0], -1)
+
+
 def stacked_qkv(batch, L, heads, D, dtype, device, gen, spread=1.0):
     """q, k, v as the strided column blocks of one [batch·L, 3·heads·D] matmul output."""
     qkv = (torch.randn(batch * L, 3 * heads * D, generator=gen, dtype=torch.float64) * spread).to(dtype).to(device)
@@ -101,8 +108,7 @@ def test_hopper_kernel_as_close_as_cudnn(schedule, warpgroups, batch, L, heads, 
     q, k, v = stacked_qkv(batch, L, heads, 40, torch.bfloat16, "cuda", g, spread)
     with torch.no_grad():
         out = attention_rows(q, k, v, batch, heads, schedule=schedule, warpgroups=warpgroups)
-        sdpa = F.scaled_dot_product_attention(*(t.unflatten(1, (heads, 40)).unflatten(0, (batch, L)).transpose(1, 2)
-                                                for t in (q, k, v))).transpose(1, 2).reshape(batch * L, -1)
+        sdpa = sdpa_rows(q, k, v, batch, heads)
     torch.cuda.synchronize()
     assert torch.isfinite(out).all()
     ref = attention64(q, k, v, batch, heads)
