@@ -292,3 +292,13 @@ def test_head40_attention_on_an_h100_is_as_close_to_float64_as_sdpa(fused):
     assert torch.equal(_graphed_block_output(dev, hd, td).double().cpu(), ours)
     err_ours, err_theirs = (float((v - ref).norm() / ref.norm()) for v in (ours, theirs))
     assert err_ours < 0.02 and err_ours <= 1.25 * err_theirs, (err_ours, err_theirs)
+
+
+def test_head40_attention_is_off_by_default(tiny_ip2p):
+    """ModelKernels' default leaves the head-dim-40 self-attentions on SDPA (the kernel measured
+    1.12x cuDNN's time on an H100, docs/BENCHMARKS.md); asking for it marks them."""
+    block = _head40_block()
+    got = mk.apply_model_kernels(block, copy.deepcopy(tiny_ip2p.vae), mk.ModelKernels())
+    assert got["head40_attention_layers"] == 0 and tb._HEAD40 not in block.attn1.__dict__
+    got = mk.apply_model_kernels(block, copy.deepcopy(tiny_ip2p.vae), mk.ModelKernels(head40_attention=True))
+    assert got["head40_attention_layers"] == 1
