@@ -271,7 +271,8 @@ def parser() -> argparse.ArgumentParser:
                         "(EditConfig.view_pool, default %(default)s as tiger edit; 0: fresh views every step)")
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--lr-color", type=float, default=0.05)
-    p.add_argument("--densify-every", type=int, default=25)
+    p.add_argument("--densify-every", type=int, default=EditConfig().densify_every,
+                   help="densify every K steps, from step K (default %(default)s: EditConfig's, as tiger edit)")
     p.add_argument("--progress", action="store_true")
     p.add_argument("--profile-steps", type=int, default=0,
                    help="CUDA: after the timed edit, this many steps under torch.profiler (host vs GPU per stage)")

@@ -17,11 +17,12 @@
 // leading / stride byte offsets.
 //
 // Two schedules: "lockstep" (every thread copies, two stages, a CTA-wide barrier per tile) and
-// "producer" (one producer warp fills three stages behind mbarriers and the consumer warpgroups
-// run free of each other, so one's exponentials can overlap another's MMAs). Measured on an H100
-// (benchmarks/attention.py, docs/BENCHMARKS.md): the producer schedule with 3 warpgroups is the
-// fastest, ~1.0 ms for InstructPix2Pix's 12 x 8 x 4096² layer, still ~12 % slower than cuDNN's
-// SDPA; what did not help is in benchmarks/gpu/NOTES.md.
+// "producer" (a producer warpgroup fills four stages behind mbarriers and gives its registers to
+// the consumer warpgroups, which run free of each other, overlap each tile's softmax with the
+// previous tile's PV, and compute a quarter of the exponentials on the FMA pipes). Measured on an
+// H100 (benchmarks/attention.py, docs/BENCHMARKS.md): the producer schedule with 3 warpgroups is
+// the fastest, 0.90-0.92 ms for InstructPix2Pix's 12 x 8 x 4096² layer as CUDA-graph replays,
+// level with cuDNN's SDPA (0.91); what did and did not help is in benchmarks/gpu/NOTES.md.
 #include <cuda_bf16.h>
 #include <cuda_runtime.h>
 
@@ -97,6 +98,20 @@ __device__ __forceinline__ float exp2_approx(float x) {
   return y;
 }
 
+// 2^x on the FMA and integer pipes instead of the SFU (FlashAttention-4's trick, for a share of a
+// tile's exponentials: the SFU issues 16 a clock per SM, the FMA pipes 128): x = j + f with j =
+// rint(x) from the 1.5·2^23 add, 2^f for f in [-0.5, 0.5] by a cubic (relative error 7.5e-5, far
+// below P's bf16 rounding), j added to the exponent bits. Clamped at -126 so that the exponent
+// cannot wrap: the cubic is 0.99993 at f = 0, so j = -127 would carry into the sign bit (a NaN);
+// x ≤ -126 gives 0 or a subnormal below 2^-125 (ex2.approx.ftz gives 0 below -126).
+__device__ __forceinline__ float exp2_fma(float x) {
+  x = fmaxf(x, -126.f);
+  const float t = x + 12582912.f;
+  const float f = x - (t - 12582912.f);
+  const float p = fmaf(fmaf(fmaf(0.05517143f, f, 0.24261086f), f, 0.693261f), f, 0.9999281f);
+  return __uint_as_float(__float_as_uint(p) + (__float_as_uint(t) << 23));
+}
+
 __device__ __forceinline__ uint32_t pack_bf16(float lo, float hi) {
   const __nv_bfloat162 v = __floats2bfloat162_rn(lo, hi);
   return *reinterpret_cast<const uint32_t*>(&v);
@@ -164,6 +179,11 @@ __device__ __forceinline__ void issue_pv(float (&o)[20], const uint32_t (&pa)[8]
 
 // The online softmax of a completed S, in place: the new running maxima, row sums rescaled and
 // extended, s = exp2(s·scale − max·scale); returns the factor alpha by which O must be rescaled.
+// kFmaExp: a quarter of the exponentials (scores i with i % 8 ≥ 6) run on the FMA pipes
+// (exp2_fma), the rest on the SFU, whose 16 a clock per SM bound the layer otherwise (the producer
+// schedule; the lockstep CTAs of 128 registers would spill its temporaries). Four independent
+// max / sum chains a row instead of one measured no faster.
+template <bool kFmaExp>
 __device__ __forceinline__ void softmax_in_place(float (&s)[64], float scale, float (&row_max)[2], float (&row_sum)[2],
                                                  float (&alpha)[2]) {
   float mx[2] = {row_max[0], row_max[1]};
@@ -183,7 +203,10 @@ __device__ __forceinline__ void softmax_in_place(float (&s)[64], float scale, fl
     shift[r] = mx[r] * scale;
   }
 #pragma unroll
-  for (int i = 0; i < 64; ++i) s[i] = exp2_approx(fmaf(s[i], scale, -shift[(i >> 1) & 1]));
+  for (int i = 0; i < 64; ++i) {
+    const float x = fmaf(s[i], scale, -shift[(i >> 1) & 1]);
+    s[i] = kFmaExp && (i & 7) >= 6 ? exp2_fma(x) : exp2_approx(x);
+  }
 #pragma unroll
   for (int nb = 0; nb < 16; ++nb) {
     row_sum[0] += s[4 * nb] + s[4 * nb + 1];
@@ -222,7 +245,7 @@ __device__ __forceinline__ void attend_tile(uint32_t q_addr, uint32_t k_addr, ui
   wgmma_wait<0>();
 #pragma unroll
   for (int i = 0; i < 64; ++i) fence_register(s[i]);
-  softmax_in_place(s, scale, row_max, row_sum, alpha);
+  softmax_in_place<false>(s, scale, row_max, row_sum, alpha);
   rescale(o, alpha);
   pack_p(s, pa);
   issue_pv(o, pa, v_addr);
@@ -355,18 +378,26 @@ __global__ void __launch_bounds__(Tile<kWG>::kThreads, kWG == 1 ? 3 : kWG == 2 ?
 }
 
 
-// -- warp-specialised variant: a producer warp fills kStages key / value stages, the consumer
+// -- warp-specialised variant: a producer warpgroup fills kStages key / value stages, the consumer
 // warpgroups run free of each other (mbarriers, no CTA-wide barrier in the loop), so one's
-// exponentials can overlap another's MMAs --------------------------------------------------------
-constexpr int kStages = 3;
+// exponentials can overlap another's MMAs ------------------------------------------------------------
+constexpr int kStages = 4;
 
+// The producer is a whole warpgroup that hands registers to the consumers (setmaxnreg): registers
+// are allocated per SM sub-partition (16K each; warp w runs on sub-partition w % 4), so a lone
+// producer warp beside 12 consumer warps caps every thread at 128 registers, too few for the
+// overlapped loop below; with the producer warpgroup at kProducerRegs the consumers get
+// kConsumerRegs (152 with 3 consumer warpgroups, 232 with 2).
 template <int kWG>
 struct WsTile {
   static constexpr int kRows = 64 * kWG;
   static constexpr int kConsumers = 128 * kWG;
-  static constexpr int kThreads = kConsumers + 32;
+  static constexpr int kProducers = 128;
+  static constexpr int kThreads = kConsumers + kProducers;
   static constexpr int kQBytes = kRows * kDPad * 2;
   static constexpr int kSmemBytes = kQBytes + kStages * (kKBytes + kVBytes) + 2 * kStages * 8;
+  static constexpr int kProducerRegs = 56;  // 40 spilled the copy loop's addresses
+  static constexpr int kConsumerRegs = (512 - kProducerRegs) / kWG / 8 * 8 > 240 ? 240 : (512 - kProducerRegs) / kWG / 8 * 8;
 };
 
 __device__ __forceinline__ void mbar_init(uint32_t bar, int count) {
@@ -387,6 +418,60 @@ __device__ __forceinline__ void mbar_wait(uint32_t bar, int parity) {
       "r"(parity)
       : "memory");
 }
+template <int N>
+__device__ __forceinline__ void set_max_registers_dec() {
+  asm volatile("setmaxnreg.dec.sync.aligned.u32 %0;\n" ::"n"(N));
+}
+template <int N>
+__device__ __forceinline__ void set_max_registers_inc() {
+  asm volatile("setmaxnreg.inc.sync.aligned.u32 %0;\n" ::"n"(N));
+}
+
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
+// A consumer warpgroup's key tiles with FlashAttention-3's intra-warpgroup overlap: QKᵀ of tile j
+// and PV of tile j − 1 are issued together and tile j's softmax starts when QKᵀ is done, beside
+// PV. S is rewritten in place, so the registers live across an MMA are S (64), P (32) and O (20).
+// (ptxas places the wait for PV j − 1 after the first ~25 max instructions of the softmax, not
+// after its exponentials, so the overlap is partial: with the FMA-pipe exponentials 0.85 ms against
+// 0.86-0.87 without the overlap for the 12-row layer; the overlap alone was slower, 0.88.)
+__device__ __forceinline__ void attend_overlapped(uint32_t q_addr, const unsigned char* sk, const unsigned char* sv,
+                                                  uint32_t full0, uint32_t empty0, int n_tiles, float scale,
+                                                  float (&o)[20], float (&row_max)[2], float (&row_sum)[2]) {
+  float s[64], alpha[2];
+  uint32_t pa[8][4];
+  mbar_wait(full0, 0);
+  fence_proxy_async();  // the producer's copies, visible now, before the MMAs read them
+  issue_qk(s, q_addr, smem_address(sk));
+  wgmma_wait<0>();
+#pragma unroll
+  for (int i = 0; i < 64; ++i) fence_register(s[i]);
+  softmax_in_place<true>(s, scale, row_max, row_sum, alpha);
+  pack_p(s, pa);
+  for (int j = 1; j < n_tiles; ++j) {
+    const int st = j % kStages, prev = (j - 1) % kStages;
+    mbar_wait(full0 + 8 * st, (j / kStages) & 1);
+    fence_proxy_async();
+    issue_qk(s, q_addr, smem_address(sk + st * kKBytes));
+    issue_pv(o, pa, smem_address(sv + prev * kVBytes));
+    wgmma_wait<1>();  // S of tile j is complete; PV of tile j − 1 may still run
+#pragma unroll
+    for (int i = 0; i < 64; ++i) fence_register(s[i]);
+    softmax_in_place<true>(s, scale, row_max, row_sum, alpha);
+    wgmma_wait<0>();
+#pragma unroll
+    for (int i = 0; i < 20; ++i) fence_register(o[i]);
+    mbar_arrive(empty0 + 8 * prev);
+    rescale(o, alpha);
+    pack_p(s, pa);
+  }
+  const int last = (n_tiles - 1) % kStages;
+  issue_pv(o, pa, smem_address(sv + last * kVBytes));
+  wgmma_wait<0>();
+#pragma unroll
+  for (int i = 0; i < 20; ++i) fence_register(o[i]);
+  mbar_arrive(empty0 + 8 * last);
+}
+#endif
 
 template <int kWG>
 __global__ void __launch_bounds__(WsTile<kWG>::kThreads, 1) attention_head40_ws_kernel(const AttentionParams p) {
@@ -394,7 +479,7 @@ __global__ void __launch_bounds__(WsTile<kWG>::kThreads, 1) attention_head40_ws_
   using T = WsTile<kWG>;
   extern __shared__ __align__(128) unsigned char smem[];
   unsigned char* sq = smem;
-  unsigned char* sk = smem + T::kQBytes;     // kStages stages
+  unsigned char* sk = smem + T::kQBytes;       // kStages stages
   unsigned char* sv = sk + kStages * kKBytes;  // kStages stages
   const uint32_t full0 = smem_address(sv + kStages * kVBytes), empty0 = full0 + kStages * 8;
   const int tid = threadIdx.x;
@@ -402,47 +487,41 @@ __global__ void __launch_bounds__(WsTile<kWG>::kThreads, 1) attention_head40_ws_
   zero_pad_columns(sq, T::kRows, sk, kStages, tid, T::kThreads);
   if (tid == 0) {
     for (int s = 0; s < kStages; ++s) {
-      mbar_init(full0 + 8 * s, 32);               // the producer's lanes, when their copies land
-      mbar_init(empty0 + 8 * s, T::kConsumers);   // every consumer thread, when its MMAs have read it
+      mbar_init(full0 + 8 * s, T::kProducers);   // every producer thread, when its copies land
+      mbar_init(empty0 + 8 * s, T::kConsumers);  // every consumer thread, when its MMAs have read it
     }
   }
   __syncthreads();
   const int n_tiles = p.L / kBlockN;
 
-  if (tid >= T::kConsumers) {  // producer warp
+  if (tid >= T::kConsumers) {  // the producer warpgroup
+    set_max_registers_dec<T::kProducerRegs>();
     const int lane = tid - T::kConsumers;
     for (int j = 0; j < n_tiles; ++j) {
       const int s = j % kStages;
       if (j >= kStages) mbar_wait(empty0 + 8 * s, (j / kStages - 1) & 1);
-      load_kv<32>(p, cta.k, cta.v, j, sk + s * kKBytes, sv + s * kVBytes, lane);
+      load_kv<T::kProducers>(p, cta.k, cta.v, j, sk + s * kKBytes, sv + s * kVBytes, lane);
       mbar_arrive_copies(full0 + 8 * s);
     }
     cp_async_wait<0>();
-    return;
-  }
+  } else {
+    set_max_registers_inc<T::kConsumerRegs>();
+    const int wg = tid >> 7;
+    load_q(p, cta, sq, 64 * wg, 64, tid & 127, 128);  // this warpgroup's 64 query rows
+    cp_async_commit();
+    cp_async_wait<0>();
+    fence_proxy_async();
+    asm volatile("bar.sync %0, 128;\n" ::"r"(1 + wg) : "memory");  // the warpgroup's Q rows are in
 
-  const int wg = tid >> 7;
-  load_q(p, cta, sq, 64 * wg, 64, tid & 127, 128);  // this warpgroup's 64 query rows
-  cp_async_commit();
-  cp_async_wait<0>();
-  fence_proxy_async();
-  asm volatile("bar.sync %0, 128;\n" ::"r"(1 + wg) : "memory");  // the warpgroup's Q rows are in
-
-  float o[20];
+    float o[20];
 #pragma unroll
-  for (int i = 0; i < 20; ++i) o[i] = 0.f;
-  const float neg_inf = -__int_as_float(0x7f800000);
-  float row_max[2] = {neg_inf, neg_inf}, row_sum[2] = {0.f, 0.f};
-  const uint32_t q_addr = smem_address(sq) + wg * 8 * kQKGroup;
-  for (int j = 0; j < n_tiles; ++j) {
-    const int s = j % kStages;
-    mbar_wait(full0 + 8 * s, (j / kStages) & 1);
-    fence_proxy_async();  // the producer's copies, visible now, before the MMAs read them
-    attend_tile(q_addr, smem_address(sk + s * kKBytes), smem_address(sv + s * kVBytes), p.scale_log2, o,
-                      row_max, row_sum);
-    mbar_arrive(empty0 + 8 * s);
+    for (int i = 0; i < 20; ++i) o[i] = 0.f;
+    const float neg_inf = -__int_as_float(0x7f800000);
+    float row_max[2] = {neg_inf, neg_inf}, row_sum[2] = {0.f, 0.f};
+    const uint32_t q_addr = smem_address(sq) + wg * 8 * kQKGroup;
+    attend_overlapped(q_addr, sk, sv, full0, empty0, n_tiles, p.scale_log2, o, row_max, row_sum);
+    store_rows(p, o, row_sum, cta.m0 + 64 * wg, cta.row0, cta.head);
   }
-  store_rows(p, o, row_sum, cta.m0 + 64 * wg, cta.row0, cta.head);
 #else
   (void)p;
 #endif
@@ -486,10 +565,10 @@ cudaError_t launch_ws(const AttentionParams& p, cudaStream_t stream) {
   using T = WsTile<kWG>;
   const dim3 grid(static_cast<unsigned>((p.L + T::kRows - 1) / T::kRows), static_cast<unsigned>(p.heads),
                   static_cast<unsigned>(p.batch));
-  const cudaError_t err = cudaFuncSetAttribute(attention_head40_ws_kernel<kWG>,
-                                               cudaFuncAttributeMaxDynamicSharedMemorySize, T::kSmemBytes);
+  auto kernel = attention_head40_ws_kernel<kWG>;
+  const cudaError_t err = cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, T::kSmemBytes);
   if (err != cudaSuccess) return err;
-  attention_head40_ws_kernel<kWG><<<grid, T::kThreads, T::kSmemBytes, stream>>>(p);
+  kernel<<<grid, T::kThreads, T::kSmemBytes, stream>>>(p);
   return cudaGetLastError();
 }
 }  // namespace

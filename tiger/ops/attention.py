@@ -5,8 +5,9 @@ The guidances' UNets hold q, k and v as token rows [batch·L, heads·D] (strided
 q/k/v matmul). InstructPix2Pix's 64² self-attentions have 8 heads of D = 40 over L = 4096 tokens,
 a shape cuDNN's SDPA runs at ~0.9 ms on an H100 (padding the head dim to 64). The CUDA kernel here
 (compute capability 9.0, bf16, D = 40, L a multiple of 128) multiplies at head dim 48 / 40 with
-warpgroup MMAs, several warpgroups of a CTA sharing each key / value tile; measured ~1.0 ms for
-that layer, so the guidances keep cuDNN's SDPA by default
+warpgroup MMAs, several warpgroups of a CTA sharing each key / value tile; measured 0.90-0.92 ms
+for that layer, level with cuDNN's 0.91 and no faster in the guidance step, so the guidances keep
+cuDNN's SDPA by default
 (:class:`tiger.edit.guidance.model_kernels.ModelKernels` ``head40_attention``). Every other case, and the
 CPU, computes the reference: float32 (float64 for float64) products and softmax, rounded once.
 
@@ -44,10 +45,13 @@ def attention_rows(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, batch: int
         batch: number of sequences; heads: number of heads.
         scale: the softmax's scale; None: 1/sqrt(D) (SDPA's default).
         schedule, warpgroups: the CUDA kernel's variant (:data:`SCHEDULES`): ``"producer"`` (a
-            producer warp fills three key / value stages behind mbarriers, the warpgroups run free
-            of each other) or ``"lockstep"`` (every thread copies, a CTA-wide barrier per key
+            producer warpgroup fills four key / value stages behind mbarriers and hands its
+            registers to the consumer warpgroups, which run free of each other, overlap a tile's
+            softmax with the previous tile's PV and take a quarter of the exponentials on the FMA
+            pipes: values differ from the lockstep schedule's within bf16 rounding) or ``"lockstep"`` (every thread copies, a CTA-wide barrier per key
             tile), with 64·warpgroups query rows a CTA sharing each key / value tile. The default
-            is the fastest measured (docs/BENCHMARKS.md, "Head-dim-40 attention"). Same values.
+            is the fastest measured (docs/BENCHMARKS.md, "Head-dim-40 attention"). Within a
+            schedule every warpgroup count gives the same values.
 
     Returns:
         [batch·L, heads·D] contiguous, q's dtype: row (b, t), head h holds

@@ -66,8 +66,8 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
   matmuls on the same rows.
 - ``head40_attention`` (opt-in): the UNet's self-attentions with head dim 40 (InstructPix2Pix's
   64² layers) by :func:`tiger.ops.attention.attention_rows`, whose Hopper kernel multiplies at
-  head dim 48 / 40 with warpgroup MMAs instead of cuDNN's 64; still ~12 % slower than cuDNN's
-  SDPA on an H100 (docs/BENCHMARKS.md, "Head-dim-40 attention").
+  head dim 48 / 40 with warpgroup MMAs instead of cuDNN's 64; level with cuDNN's SDPA on an
+  H100 and the CSD step no faster with it (docs/BENCHMARKS.md, "Head-dim-40 attention").
 - ``vae_downsample_4x4``: the VAE's stride-2 downsampling convolutions, which diffusers runs on
   a (0, 1, 0, 1) zero-padded copy of the map, as 4x4 convolutions with padding 1 whose kernel is
   the 3x3 one in its lower-right corner and zeros elsewhere: the same sums (the extra products
@@ -151,8 +151,8 @@ class ModelKernels:
             (:mod:`.text_kv`); None: on (the same matmuls, any device).
         head40_attention: the UNet's self-attentions of head dim 40 by tiger's Hopper kernel
             (:func:`tiger.ops.attention.attention_rows`) in the lean processor and the fused
-            blocks; None: off (measured ~12 % slower than cuDNN's SDPA on an H100: 1.0 against
-            0.9 ms for InstructPix2Pix's 12 x 8 x 4096² layer). The same error against float64 as
+            blocks; None: off (measured level with cuDNN's SDPA on an H100: 0.90-0.92 against 0.91
+            ms for InstructPix2Pix's 12 x 8 x 4096² layer, and the CSD step no faster with it). The same error against float64 as
             SDPA's (P rounded to bfloat16 before its product with V, as cuDNN does).
     """
 

@@ -332,7 +332,8 @@ def set_head40_attention(unet: torch.nn.Module, on: bool) -> int:
     over 4096 tokens) by :func:`tiger.ops.attention.attention_rows` in the lean processor and the
     fused blocks (``on``), or by SDPA; returns how many layers it takes. Forward only: a call with
     gradients enabled runs SDPA. Opt-in (:class:`.model_kernels.ModelKernels` ``head40_attention``):
-    on an H100 the kernel is still ~12 % slower than cuDNN's SDPA for these layers."""
+    on an H100 the kernel is level with cuDNN's SDPA for these layers (0.90-0.92 against 0.91 ms a
+    12-row layer) and the CSD step no faster with it."""
     from diffusers.models.attention_processor import Attention
 
     count = 0
