@@ -98,7 +98,7 @@ int main(int argc, char** argv) {
       CK(cudaEventSynchronize(e1));
       float ms; cudaEventElapsedTime(&ms, e0, e1); ms /= 20; if (rep > 0) ms_best = std::min(ms_best, ms);
     }
-    printf("%-24s B=%d  %.4f ms   rel.err vs f64 %.3e   max|diff| vs ws3 %.3e  nonfinite %d\n", variants[v].name, B, ms_best,
+    printf("%-24s B=%d  %.4f ms   rel.err vs f64 %.3e   max|diff| vs first %.3e  nonfinite %d\n", variants[v].name, B, ms_best,
            std::sqrt(num / den), mdiff, bad);
   }
   return 0;

@@ -12,14 +12,16 @@ import sys
 import torch
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
+from tests.ops.test_attention import stacked_qkv
+
 BACKENDS = (("cudnn", SDPBackend.CUDNN_ATTENTION), ("flash", SDPBackend.FLASH_ATTENTION))
 
 
 def qkv(batch: int, heads: int = 8, L: int = 4096, D: int = 40):
-    """q, k, v [batch, heads, L, D] bf16: strided views of one [batch·L, 3·heads·D] matrix."""
-    rows = torch.randn(batch * L, 3 * heads * D, device="cuda", dtype=torch.bfloat16)
-    w = heads * D
-    return [rows[:, i * w:(i + 1) * w].view(batch, L, heads, D).transpose(1, 2) for i in range(3)]
+    """q, k, v [batch, heads, L, D] bf16: views of the strided column blocks of one stacked
+    [batch·L, 3·heads·D] matrix (tests/ops/test_attention.stacked_qkv), as the UNets hold them."""
+    rows = stacked_qkv(batch, L, heads, D, torch.bfloat16, "cuda", torch.Generator().manual_seed(batch))
+    return [t.view(batch, L, heads, D).transpose(1, 2) for t in rows]
 
 
 def best_ms(fn, runs: int = 7, calls: int = 20) -> float:
@@ -40,7 +42,6 @@ def best_ms(fn, runs: int = 7, calls: int = 20) -> float:
 
 
 def main() -> None:
-    torch.manual_seed(0)
     if sys.argv[1:] == ["ncu"]:
         q, k, v = qkv(12)
         with sdpa_kernel(SDPBackend.CUDNN_ATTENTION):

@@ -397,7 +397,10 @@ struct WsTile {
   static constexpr int kQBytes = kRows * kDPad * 2;
   static constexpr int kSmemBytes = kQBytes + kStages * (kKBytes + kVBytes) + 2 * kStages * 8;
   static constexpr int kProducerRegs = 56;  // 40 spilled the copy loop's addresses
-  static constexpr int kConsumerRegs = (512 - kProducerRegs) / kWG / 8 * 8 > 240 ? 240 : (512 - kProducerRegs) / kWG / 8 * 8;
+  // a sub-partition's 512 registers a lane, less the producer's, shared by kWG consumer warps
+  // (steps of 8; setmaxnreg takes at most 240 here: it must leave the producer its share)
+  static constexpr int kConsumerShare = (512 - kProducerRegs) / kWG / 8 * 8;
+  static constexpr int kConsumerRegs = kConsumerShare < 240 ? kConsumerShare : 240;
 };
 
 __device__ __forceinline__ void mbar_init(uint32_t bar, int count) {
