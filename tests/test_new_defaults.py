@@ -190,3 +190,13 @@ def test_edit_prepares_the_next_pool_set_beside_the_step_and_records_no_such_cho
 
     assert EditConfig().prefetch_views is True
     assert EditConfig().to_dict() == EditConfig(prefetch_views=False).to_dict()
+
+
+def test_edit_densifies_every_100_steps_from_step_100():
+    # tiger edit's schedule (docs/EDITING.md, "densification": every 100 steps from step 100, steps/12);
+    # benchmarks/edit.py takes its --densify-every default from here, so the 1200-step figures in
+    # docs/BENCHMARKS.md (edit_1200_steps_h100.txt) time this schedule, not the former 25.
+    from tiger.edit import EditConfig
+
+    assert (EditConfig().densify_every, EditConfig().densify_from) == (100, 100)
+    assert EditConfig().steps // 12 == EditConfig().densify_every
