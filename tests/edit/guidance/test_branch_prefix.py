@@ -94,3 +94,52 @@ def test_model_kernels_put_the_prefix_on_by_default(tiny_ip2p):
         assert "forward" not in unet.down_blocks[0].__dict__
     finally:
         mk.apply_model_kernels(unet, vae, mk.ModelKernels(branch_prefix=False))
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_mvdream_branches_share_their_prefix(tiny_models, fused, monkeypatch):
+    """MVDream's prompt and negative-prompt branches (same latents, t and cameras) agree until the
+    first cross-attention: its first ResNet block (and, fused, its multi-view self-attention over
+    the one group of 4 views left) runs on 4 of the 8 rows, with the same noise prediction."""
+    from tiger.edit.guidance.mvdream import load_mvdream
+
+    halves = []
+    real = bp.fused_self_attention
+    monkeypatch.setattr(bp, "fused_self_attention", lambda block, d, x: halves.append(x.shape[0]) or real(block, d, x))
+    unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet.double().eval()
+    tb.set_lean_attention(unet, True)
+    tb.set_fused_transformer(unet, fused)
+    gen = torch.Generator().manual_seed(11)
+    c = unet.config
+    z = torch.randn(4, c.in_channels, 8, 8, generator=gen, dtype=torch.float64)
+    cams = torch.randn(4, c.projection_class_embeddings_input_dim, generator=gen, dtype=torch.float64)
+    text = torch.randn(2, 77, c.cross_attention_dim, generator=gen, dtype=torch.float64)
+    x, t = torch.cat([z, z]), torch.full((8,), 250)
+    emb, cams2 = torch.cat([text[:1].expand(4, -1, -1), text[1:].expand(4, -1, -1)]), torch.cat([cams, cams])
+    with torch.no_grad():
+        want = unet(x, t, encoder_hidden_states=emb, class_labels=cams2).sample
+        assert bp.set_branch_prefix(unet, True) == 1
+        calls = []
+        hook = unet.down_blocks[0].resnets[0].register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+        with bp.shared_branches(unet, bp.BranchShare(4, 4)):
+            got = unet(x, t, encoder_hidden_states=emb, class_labels=cams2).sample
+        hook.remove()
+    assert calls == [4]
+    assert halves == ([4] if fused else [])
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_the_mvdream_guidance_shares_the_prefix(tiny_models, monkeypatch):
+    """MVDreamGuidance's UNet call sets the share (rows [V, 2V) repeat rows [0, V))."""
+    from tiger.edit.guidance.mvdream import MVDreamGuidance, load_mvdream
+
+    seen = []
+    real = bp._shared_down_block_forward
+    monkeypatch.setattr(bp, "_shared_down_block_forward",
+                        lambda self, *a, **k: seen.append(self.__dict__.get("_tiger_branch_share")) or real(self, *a, **k))
+    guidance = MVDreamGuidance(load_mvdream(tiny_models / "mvdream"), "a tiger", cuda_graph=False)
+    bp.set_branch_prefix(guidance.models.unet, False)
+    bp.set_branch_prefix(guidance.models.unet, True)  # bound again: to the patched forward
+    z = torch.randn(4, 4, 8, 8)
+    guidance.latent_grad(z, torch.randn(4, 16), torch.tensor([300]), torch.randn(4, 4, 8, 8))
+    assert seen == [bp.BranchShare(4, 4)]

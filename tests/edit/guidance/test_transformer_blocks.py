@@ -164,7 +164,8 @@ def test_the_extra_geglu_column_is_one(unet64, dtype):
     d = tb._derive(block)
     f = block.ff.net[2].in_features
     n = torch.randn(5, block.norm3.normalized_shape[0], dtype=torch.float64).to(dtype)
-    g = geglu(F.linear(n, d.proj_weight, d.proj_bias))
+    proj_weight, proj_bias, _ = tb.extra_pair_weights(block, d)
+    g = geglu(F.linear(n, proj_weight, proj_bias))
     assert g.shape == (5, f + 8)
     one = 1 - 1e-15 if dtype == torch.float64 else 1.0  # erf(8/sqrt 2) is 1 in float32, not in float64
     torch.testing.assert_close(g[:, f].double(), torch.full((5,), one, dtype=torch.float64), atol=1e-15, rtol=0)
@@ -220,12 +221,96 @@ def test_fused_block_follows_a_dtype_change(fused_block):
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
 
 
-def test_what_is_not_fused(tiny_models, unet64):
+def _mvdream_call(unet, views: int = 4, dtype=torch.float64):
+    """One fixed 2-branch call of MVDream's UNet: latents, t, text, cameras for 2·views rows."""
+    gen = torch.Generator().manual_seed(5)
+    c = unet.config
+    z = torch.randn(views, c.in_channels, 8, 8, generator=gen, dtype=dtype)
+    text = torch.randn(2, 77, c.cross_attention_dim, generator=gen, dtype=dtype)
+    cams = torch.randn(views, c.projection_class_embeddings_input_dim, generator=gen, dtype=dtype)
+    emb = torch.cat([text[:1].expand(views, -1, -1), text[1:].expand(views, -1, -1)])
+    return torch.cat([z, z]), torch.full((2 * views,), 300), emb, torch.cat([cams, cams])
+
+
+def test_mvdream_multiview_blocks_fuse_and_equal_diffusers_in_float64(tiny_models):
+    """MVDream's blocks (self-attention over each group of 4 views) run fused: the same values as
+    diffusers' forward with the multi-view processor, in float64; a batch of partial view groups
+    falls back to diffusers (whose processor refuses it)."""
     from tiger.edit.guidance.mvdream import load_mvdream
 
-    mv = load_mvdream(tiny_models / "mvdream", fused_norms=False)
-    tb.set_lean_attention(mv.unet, True)
-    assert tb.set_fused_transformer(mv.unet, True) == 0  # multi-view self-attention
+    unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet.double().eval()
+    tb.set_lean_attention(unet, True)
+    _perturb_biases(unet)
+    x, t, emb, cams = _mvdream_call(unet)
+    with torch.no_grad():
+        ref = unet(x, t, encoder_hidden_states=emb, class_labels=cams).sample
+        assert tb.set_fused_transformer(unet, True) == len(_blocks(unet)) > 0
+        got = unet(x, t, encoder_hidden_states=emb, class_labels=cams).sample
+        # the joint attention matters: the views attending one by one give something else
+        for m in unet.modules():
+            if getattr(m, "processor", None) is not None and hasattr(m.processor, "num_views"):
+                m.processor.num_views = 1
+        alone = unet(x, t, encoder_hidden_states=emb, class_labels=cams).sample
+        for m in unet.modules():
+            if getattr(m, "processor", None) is not None and hasattr(m.processor, "num_views"):
+                m.processor.num_views = 4
+        with pytest.raises(ValueError, match="not a multiple of num_views"):
+            unet(x[:6], t[:6], encoder_hidden_states=emb[:6], class_labels=cams[:6])
+    torch.testing.assert_close(got, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
+    assert (alone - ref).abs().max() > 1e-3 * float(ref.abs().max())
+
+
+@pytest.mark.parametrize("model", ["ip2p", "mvdream"])
+def test_fused_transformers_carry_the_last_blocks_biases_through_proj_out(tiny_models, model, monkeypatch):
+    """With tiger's fused norms (whose transformer output takes ``out_bias``), each transformer's
+    last fused block leaves its three biases to ``proj_out``'s bias (a 1x1 convolution in
+    InstructPix2Pix, a linear layer in MVDream): the same values as diffusers' forward in float64,
+    through the carrying path (counted), and switched off cleanly."""
+    from diffusers.models.transformers.transformer_2d import Transformer2DModel
+
+    from tiger.edit.guidance.fused_norms import fuse_group_norms
+    from tiger.edit.guidance.ip2p import load_ip2p
+    from tiger.edit.guidance.mvdream import load_mvdream
+
+    if model == "ip2p":
+        unet = load_ip2p(tiny_models / "instruct-pix2pix", fused_norms=False).unet
+    else:
+        unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet
+    unet = unet.double().eval()
+    tb.set_lean_attention(unet, True)
+    _perturb_biases(unet)
+    with torch.no_grad():
+        for tr in unet.modules():
+            if type(tr) is Transformer2DModel and tr.proj_out.bias is not None:
+                tr.proj_out.bias.normal_(generator=torch.Generator().manual_seed(4))
+    fuse_group_norms(unet)
+    transformers = [m for m in unet.modules() if type(m) is Transformer2DModel]
+    if model == "ip2p":
+        gen = torch.Generator().manual_seed(7)
+        x = torch.randn(3, unet.config.in_channels, 8, 8, generator=gen, dtype=torch.float64)
+        kwargs = dict(encoder_hidden_states=torch.randn(3, 77, unet.config.cross_attention_dim, generator=gen,
+                                                        dtype=torch.float64))
+        t = torch.tensor([10, 200, 900])
+    else:
+        x, t, emb, cams = _mvdream_call(unet)
+        kwargs = dict(encoder_hidden_states=emb, class_labels=cams)
+    carried = []
+    real = tb._carried_out_bias
+    monkeypatch.setattr(tb, "_carried_out_bias", lambda tr, d: carried.append(tr) or real(tr, d))
+    with torch.no_grad():
+        ref = unet(x, t, **kwargs).sample
+        assert tb.set_fused_transformer(unet, True) == len(_blocks(unet))
+        assert all(m.__dict__.get(tb._CARRY) for m in transformers) and transformers
+        got = unet(x, t, **kwargs).sample
+        again = unet(x, t, **kwargs).sample  # the cached proj_out bias
+    assert len(carried) == 2 * len(transformers)
+    torch.testing.assert_close(got, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
+    assert torch.equal(again, got)
+    tb.set_fused_transformer(unet, False)
+    assert not any(k in m.__dict__ for m in transformers for k in (tb._CARRY, tb._OUT_BIAS, "forward"))
+
+
+def test_what_is_not_fused(unet64):
     mk.set_matmul_precision(unet64.float(), "fp8", emulate=True)
     assert tb.set_fused_transformer(unet64, True) == 0  # FP8 layers
     mk.set_matmul_precision(unet64, "model")

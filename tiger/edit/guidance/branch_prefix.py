@@ -29,7 +29,7 @@ from typing import Iterator, Optional
 import torch
 
 from .forward_switch import switch_forward
-from .transformer_blocks import fused_cross_feed_forward, fused_derived, fused_self_attention
+from .transformer_blocks import fused_blocks_output, fused_derived, fused_self_attention
 
 __all__ = ["BranchShare", "set_branch_prefix", "shared_branches"]
 
@@ -104,15 +104,9 @@ def _transformer_shared(tr, h: torch.Tensor, encoder_hidden_states: torch.Tensor
     blocks = list(tr.transformer_blocks)
     d = fused_derived(blocks[0], x, encoder_hidden_states) if blocks else None
     if d is not None:
-        x = fused_cross_feed_forward(blocks[0], d, share.expand(fused_self_attention(blocks[0], d, x)),
-                                     encoder_hidden_states)
-        blocks = blocks[1:]
-    else:
-        x = share.expand(x)
-    for block in blocks:
-        x = block(x, encoder_hidden_states=encoder_hidden_states)
-    return tr._get_output_for_continuous_inputs(x, share.expand(h), encoder_hidden_states.shape[0], height, width,
-                                                inner)
+        x = fused_self_attention(blocks[0], d, x)
+    return fused_blocks_output(tr, share.expand(x), share.expand(h), encoder_hidden_states, height, width, inner,
+                               first_half_done=d is not None)
 
 
 def _shared_down_block_forward(self, hidden_states: torch.Tensor, temb: Optional[torch.Tensor] = None,

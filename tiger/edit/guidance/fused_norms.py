@@ -287,12 +287,23 @@ def _fuse_norm_out(module) -> int:
     return 1
 
 
-def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, height, width, inner_dim):
+def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, height, width, inner_dim,
+                                   out_bias: Optional[torch.Tensor] = None):
     """``Transformer2DModel._get_output_for_continuous_inputs`` of diffusers 0.42 without its
     ``.contiguous()``: the [B, H·W, C] tokens viewed as a [B, C, H, W] map are channels-last, so
     the output (and the residual sum) stay channels-last; a 1x1-convolution projection adds its
     bias and the residual in one pass (:func:`_conv_then_add`), a linear one gets the residual in
-    place into its fresh output (a linear layer's backward keeps no output). Same values."""
+    place into its fresh output (a linear layer's backward keeps no output). Same values.
+    ``out_bias`` [C_out]: used instead of the projection's bias (a linear ``proj_out``, layer or
+    1x1 convolution: the fused transformers' carried biases, :mod:`.transformer_blocks`)."""
+    if out_bias is not None:
+        weight = self.proj_out.weight
+        if not self.use_linear_projection:
+            hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
+            y = self.proj_out._conv_forward(hidden_states, weight, None)
+            return channel_bias_add(y, out_bias.to(y.dtype), residual)
+        hidden_states = F.linear(hidden_states, weight, out_bias)
+        return hidden_states.reshape(batch_size, height, width, -1).permute(0, 3, 1, 2).add_(residual)
     if not self.use_linear_projection:
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
         if type(self.proj_out) is torch.nn.Conv2d:  # bias and residual in one pass

@@ -30,6 +30,7 @@ from tiger.models.paths import ConfigLike, PathLike, resolve_model_path
 from tiger.utils.lazy import require, require_diffusers
 
 from .base import GuidanceInfo, ViewBatch, check_render_shape, check_render_values, dtype_name
+from .branch_prefix import BranchShare, shared_branches
 from .cuda_graph import GraphedStep
 from .diffusers_models import (PromptEncoder, freeze, latent_shape, matmul_vae_attention, model_device_dtype,
                                render_gradient)
@@ -286,8 +287,9 @@ class MVDreamGuidance:
         # branches: prompt, negative prompt: one tensor kept across calls (.text_kv)
         emb = branch_text(self, self.text_embeddings, (v, v))
         cams = torch.cat([cameras, cameras]).to(self.dtype)
-        eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
-                     class_labels=cams).sample.float()
+        with shared_branches(m.unet, BranchShare(v, v)):  # both branches agree until text enters
+            eps = m.unet(torch.cat([z_t, z_t]), torch.cat([tt, tt]), encoder_hidden_states=emb,
+                         class_labels=cams).sample.float()
         e_text, e_unc = eps.chunk(2)
         eps_hat = e_unc + self.guidance_scale * (e_text - e_unc)
         if self.recon:

@@ -18,7 +18,14 @@ The fused block (forward, without autograd) moves them into the output matmuls:
   matmul's extra column holds ``b_ff + b_attn1 + b_attn2``. The block's output is the residual
   stream with every bias added, as diffusers computes it;
 - the self-attention's q, k, v come from one matmul on stacked weights (and the cross-attention's
-  k, v from one on the text), read as strided views by SDPA.
+  k, v from one on the text), read as strided views by SDPA;
+- MVDream's multi-view self-attention (the F views of a sample attend jointly) is SDPA on B/F
+  rows of F·L tokens: a group's rows are adjacent, so no reshape copies;
+- in a whole fused ``Transformer2DModel`` (with :mod:`.fused_norms`' output) the last block does
+  not add its three biases at all: they go into ``proj_out``'s bias as ``W·B + b`` (the
+  projection is linear), so that block's feed-forward matmuls keep their own shapes (N = 2F,
+  K = F: the extra pairs cost 10-20 % of those GEMMs at 64² on an H100) and the extra-pair
+  weights are never made for it (every transformer of these UNets has one block).
 
 Same sums; the roundings differ: each residual sum is rounded once instead of twice, and the
 summed biases are rounded once to the model's dtype. The derived weights are built once from the
@@ -45,7 +52,8 @@ from tiger.utils.lazy import require_diffusers
 
 from .text_kv import memo_text_kv
 
-__all__ = ["LeanAttnProcessor", "fused_cross_feed_forward", "fused_derived", "fused_self_attention",
+__all__ = ["LeanAttnProcessor", "extra_pair_weights", "fused_blocks_output", "fused_cross_feed_forward", "fused_derived",
+           "fused_self_attention",
            "set_cached_text_kv", "set_fused_transformer", "set_head40_attention",
            "set_lean_attention"]
 
@@ -139,9 +147,11 @@ class _Derived:
     kv_bias: Optional[torch.Tensor]
     norm2_shift: torch.Tensor           # [C]: attn1's output bias, carried into norm2
     norm3_shift: torch.Tensor           # [C]: attn1's + attn2's output biases, carried into norm3
-    proj_weight: torch.Tensor           # [2(F + 8), C]: the GEGLU projection with the extra pairs
-    proj_bias: torch.Tensor             # [2(F + 8)]
-    out_weight: torch.Tensor            # [C, F + 8]: the feed-forward output with the biases' column
+    carried: torch.Tensor               # [C] float32 (float64): b_ff + b_attn1 + b_attn2
+    # (proj_weight [2(F + 8), C], proj_bias [2(F + 8)], out_weight [C, F + 8]): the feed-forward with
+    # the extra pairs and the biases' column, made on first use (a carrying transformer's last
+    # block never uses them: :func:`extra_pair_weights`)
+    extra_pairs: Optional[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = None
 
 
 def _linear_parts(layer: torch.nn.Linear) -> tuple[torch.Tensor, torch.Tensor]:
@@ -170,24 +180,39 @@ def _derive(block) -> _Derived:
         qkv_w, qkv_b = _stack([a1.to_q, a1.to_k, a1.to_v])
         kv_w, kv_b = _stack([a2.to_k, a2.to_v])
         b1, b2 = _linear_parts(a1.to_out[0])[1], _linear_parts(a2.to_out[0])[1]
-        proj_w, proj_b = _linear_parts(ff.net[0].proj)
-        out_w, out_b = _linear_parts(ff.net[2])
-        acc = torch.float64 if out_w.dtype == torch.float64 else torch.float32
-        f, c = out_w.shape[1], proj_w.shape[1]
-        zeros = proj_w.new_zeros(_EXTRA, c)
-        pair_a, pair_g = proj_b.new_zeros(_EXTRA), proj_b.new_zeros(_EXTRA)
-        pair_a[0], pair_g[0] = _ONE_A, _ONE_G
-        carried = (out_b.to(acc) + b1.to(acc) + b2.to(acc)).to(out_w.dtype)
-        bias_columns = out_w.new_zeros(out_w.shape[0], _EXTRA)
-        bias_columns[:, 0] = carried
+        out_b = _linear_parts(ff.net[2])[1]
+        acc = torch.float64 if out_b.dtype == torch.float64 else torch.float32
         sources = _sources(block)
         return _Derived(
             sources=sources, versions=tuple(p._version for p in sources),
             qkv_weight=qkv_w, qkv_bias=qkv_b, kv_weight=kv_w, kv_bias=kv_b,
             norm2_shift=b1.clone(), norm3_shift=(b1.to(acc) + b2.to(acc)).to(b1.dtype),
-            proj_weight=torch.cat([proj_w[:f], zeros, proj_w[f:], zeros]),
-            proj_bias=torch.cat([proj_b[:f], pair_a, proj_b[f:], pair_g]),
-            out_weight=torch.cat([out_w, bias_columns], dim=1).contiguous())
+            carried=out_b.to(acc) + b1.to(acc) + b2.to(acc))
+
+
+def extra_pair_weights(block, d: _Derived) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The feed-forward of a block that adds its own biases (module docstring): the GEGLU
+    projection with 8 extra output pairs, (weight [2(F + 8), C], bias [2(F + 8)]), and the
+    output matmul's weight [C, F + 8] whose first extra column holds ``d.carried`` rounded once
+    to the weights' dtype. Made on first use and kept with ``d`` (not while a CUDA graph
+    captures)."""
+    if d.extra_pairs is not None:
+        return d.extra_pairs
+    ff = block.ff
+    with torch.no_grad():
+        proj_w, proj_b = _linear_parts(ff.net[0].proj)
+        out_w = ff.net[2].weight
+        f, c = out_w.shape[1], proj_w.shape[1]
+        zeros = proj_w.new_zeros(_EXTRA, c)
+        pair_a, pair_g = proj_b.new_zeros(_EXTRA), proj_b.new_zeros(_EXTRA)
+        pair_a[0], pair_g[0] = _ONE_A, _ONE_G
+        bias_columns = out_w.new_zeros(out_w.shape[0], _EXTRA)
+        bias_columns[:, 0] = d.carried.to(out_w.dtype)
+        weights = (torch.cat([proj_w[:f], zeros, proj_w[f:], zeros]), torch.cat([proj_b[:f], pair_a, proj_b[f:], pair_g]),
+                   torch.cat([out_w, bias_columns], dim=1).contiguous())
+    if not (out_w.is_cuda and torch.cuda.is_current_stream_capturing()):
+        d.extra_pairs = weights
+    return weights
 
 
 def _derived(block) -> _Derived:
@@ -199,6 +224,25 @@ def _derived(block) -> _Derived:
             or d.qkv_weight.dtype != w.dtype):
         d = block.__dict__["_tiger_fused_weights"] = _derive(block)
     return d
+
+
+def _joint_views(attn) -> int:
+    """How many consecutive batch rows ``attn`` attends over jointly: MVDream's multi-view
+    processor (:class:`.mvdream_attention.MultiViewAttnProcessor`) its ``num_views``, else 1."""
+    return int(getattr(attn.processor, "num_views", 1))
+
+
+def _plain_processor(attn) -> bool:
+    """diffusers' SDPA processor or :class:`LeanAttnProcessor`, directly or inside MVDream's
+    multi-view processor (which only regroups the rows around it)."""
+    from diffusers.models.attention_processor import AttnProcessor2_0
+
+    from .mvdream_attention import MultiViewAttnProcessor
+
+    proc = attn.processor
+    if type(proc) is MultiViewAttnProcessor:
+        proc = proc.inner
+    return type(proc) in (AttnProcessor2_0, LeanAttnProcessor)
 
 
 def _heads(t: torch.Tensor, b: int, heads: int) -> torch.Tensor:
@@ -229,26 +273,32 @@ def fused_derived(block, x: torch.Tensor, encoder_hidden_states: Optional[torch.
                   and encoder_hidden_states is not None and x.ndim == 3 and x.is_contiguous())
     d = _derived(block) if plain_call else None
     if (d is None or x.dtype != d.qkv_weight.dtype or x.device != d.qkv_weight.device
-            or encoder_hidden_states.dtype != x.dtype):
-        return None
+            or encoder_hidden_states.dtype != x.dtype or x.shape[0] % _joint_views(block.attn1)):
+        return None  # (a batch of partial view groups: diffusers' forward, whose processor says why)
     return d
 
 
 def fused_self_attention(block, d: _Derived, x: torch.Tensor) -> torch.Tensor:
     """The fused block's first half on tokens ``x`` [B, L, C], in place: norm1, self-attention and
-    its output matmul accumulated into the residual stream (attn1's bias carried, not added)."""
+    its output matmul accumulated into the residual stream (attn1's bias carried, not added). A
+    multi-view self-attention (MVDream: F views of a sample in consecutive rows) attends over the
+    F·L tokens of each group: the group's rows are adjacent in ``x``, so that is SDPA on B/F
+    rows of F·L tokens, what its processor computes by reshaping."""
     b, c = x.shape[0], x.shape[-1]
     h = x.view(-1, c)
     n = layer_norm_rows(h, block.norm1.weight, block.norm1.bias, block.norm1.eps)
     q, k, v = F.linear(n, d.qkv_weight, d.qkv_bias).chunk(3, dim=-1)
-    h.addmm_(_attend(block.attn1, q, k, v, b), block.attn1.to_out[0].weight.t())
+    h.addmm_(_attend(block.attn1, q, k, v, b // _joint_views(block.attn1)), block.attn1.to_out[0].weight.t())
     return x
 
 
-def fused_cross_feed_forward(block, d: _Derived, x: torch.Tensor, encoder_hidden_states: torch.Tensor) -> torch.Tensor:
+def fused_cross_feed_forward(block, d: _Derived, x: torch.Tensor, encoder_hidden_states: torch.Tensor,
+                             carry: bool = False) -> torch.Tensor:
     """The fused block's second half on ``x`` [B, L, C] (the first half's output), in place:
     norm2 with attn1's bias, cross-attention on ``encoder_hidden_states`` [B, T, D], norm3 with both
-    attention biases, the GEGLU feed-forward whose output matmul adds every carried bias."""
+    attention biases, the GEGLU feed-forward whose output matmul adds every carried bias; with
+    ``carry`` the feed-forward is the block's own (no extra pair, no bias column) and the result
+    lacks ``d.carried`` [C], which the caller adds (:func:`fused_blocks_output`)."""
     b, c = x.shape[0], x.shape[-1]
     h = x.view(-1, c)
     a2 = block.attn2
@@ -259,8 +309,110 @@ def fused_cross_feed_forward(block, d: _Derived, x: torch.Tensor, encoder_hidden
                         block.__dict__.get(_CACHED_TEXT_KV, False))
     h.addmm_(_attend(a2, a2.to_q(n), k, v, b), a2.to_out[0].weight.t())
     n = layer_norm_rows(h, block.norm3.weight, block.norm3.bias, block.norm3.eps, input_bias=d.norm3_shift)
-    h.addmm_(geglu(F.linear(n, d.proj_weight, d.proj_bias)), d.out_weight.t())
+    if carry:  # even GEMM shapes: N = 2F, K = F (the extra pairs cost 10-20 % at 64², H100)
+        proj, out = block.ff.net[0].proj, block.ff.net[2]
+        h.addmm_(geglu(F.linear(n, proj.weight, proj.bias)), out.weight.t())
+    else:
+        proj_weight, proj_bias, out_weight = extra_pair_weights(block, d)
+        h.addmm_(geglu(F.linear(n, proj_weight, proj_bias)), out_weight.t())
     return x
+
+
+# -- fused transformers: the last block's biases through proj_out ----------------------------------
+_CARRY = "_tiger_carry_out"
+_OUT_BIAS = "_tiger_out_bias"
+
+
+def _carried_out_bias(tr, d: _Derived) -> torch.Tensor:
+    """proj_out's bias plus its weights times the last block's carried biases
+    (``proj_out(h + B) = W·h + (W·B + b)``: the projection is linear), summed in float32
+    (float64) and rounded once to the weights' dtype; kept until a weight changes (version
+    counters), not written while a CUDA graph captures."""
+    po = tr.proj_out
+    w = po.weight
+    key = (w._version, None if po.bias is None else po.bias._version, w.device, w.dtype)
+    hit = tr.__dict__.get(_OUT_BIAS)
+    if hit is not None and hit[0] is d and hit[1] == key:
+        return hit[2]
+    with torch.no_grad():
+        acc = d.carried.dtype
+        bias = w.reshape(w.shape[0], -1).to(acc) @ d.carried
+        if po.bias is not None:
+            bias = bias + po.bias.to(acc)
+        bias = bias.to(w.dtype)
+    if not (w.is_cuda and torch.cuda.is_current_stream_capturing()):
+        tr.__dict__[_OUT_BIAS] = (d, key, bias)
+    return bias
+
+
+def fused_blocks_output(tr, x: torch.Tensor, residual: torch.Tensor, encoder_hidden_states: torch.Tensor,
+                        height: int, width: int, inner_dim: int, first_half_done: bool = False) -> torch.Tensor:
+    """A continuous-input ``Transformer2DModel``'s blocks on its tokens ``x`` [B, H·W, C] and its
+    output (``proj_out`` and ``residual`` [B, C, H, W]). Fused blocks run in place; when the
+    transformer carries (:func:`set_fused_transformer`), the last one leaves its three biases to
+    ``proj_out``'s bias (:func:`_carried_out_bias`), so its feed-forward matmuls keep the block's
+    own shapes. ``first_half_done``: the first block's self-attention half already ran on ``x``
+    (:mod:`.branch_prefix`)."""
+    blocks = list(tr.transformer_blocks)
+    carried = None
+    for i, block in enumerate(blocks):
+        d = fused_derived(block, x, encoder_hidden_states)
+        if d is None:
+            if i == 0 and first_half_done:
+                raise RuntimeError("tiger.edit: the first transformer block's first half ran fused, its second cannot")
+            x = block(x, encoder_hidden_states=encoder_hidden_states)
+            continue
+        if not (i == 0 and first_half_done):
+            fused_self_attention(block, d, x)
+        last = i == len(blocks) - 1 and tr.__dict__.get(_CARRY, False)
+        fused_cross_feed_forward(block, d, x, encoder_hidden_states, carry=last)
+        carried = d if last else None
+    if carried is None:
+        return tr._get_output_for_continuous_inputs(x, residual, x.shape[0], height, width, inner_dim)
+    return tr._get_output_for_continuous_inputs(x, residual, x.shape[0], height, width, inner_dim,
+                                                out_bias=_carried_out_bias(tr, carried))
+
+
+def _fused_transformer_forward(self, hidden_states: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor] = None,
+                               timestep=None, added_cond_kwargs=None, class_labels=None, cross_attention_kwargs=None,
+                               attention_mask=None, encoder_attention_mask=None, return_dict: bool = True):
+    """``Transformer2DModel.forward`` (diffusers 0.42, continuous input) through
+    :func:`fused_blocks_output`; any other call runs diffusers' forward."""
+    plain = (encoder_hidden_states is not None and timestep is None and added_cond_kwargs is None
+             and class_labels is None and not cross_attention_kwargs and attention_mask is None
+             and encoder_attention_mask is None and not torch.is_grad_enabled() and not self.training
+             and hidden_states.ndim == 4)
+    if not plain:
+        return type(self).forward(self, hidden_states, encoder_hidden_states, timestep, added_cond_kwargs, class_labels,
+                                  cross_attention_kwargs, attention_mask, encoder_attention_mask, return_dict)
+    _, _, height, width = hidden_states.shape
+    x, inner_dim = self._operate_on_continuous_inputs(hidden_states)
+    out = fused_blocks_output(self, x.contiguous(), hidden_states, encoder_hidden_states, height, width, inner_dim)
+    if not return_dict:
+        return (out,)
+    from diffusers.models.modeling_outputs import Transformer2DModelOutput
+
+    return Transformer2DModelOutput(sample=out)
+
+
+def _carries(tr) -> bool:
+    """Whether ``tr`` may run :func:`_fused_transformer_forward` with the carried biases: a
+    continuous-input ``Transformer2DModel`` whose blocks are all fused, whose output is
+    :mod:`.fused_norms`' (which takes ``out_bias``) and whose ``proj_out`` is linear (a linear
+    layer, or a 1x1 convolution on the map)."""
+    from diffusers.models.transformers.transformer_2d import Transformer2DModel
+
+    from .fused_norms import _continuous_output_keep_layout
+
+    if type(tr) is not Transformer2DModel or not tr.is_input_continuous or len(tr.transformer_blocks) == 0:
+        return False
+    out = tr.__dict__.get("_get_output_for_continuous_inputs")
+    po = tr.proj_out
+    linear = (type(po) is torch.nn.Linear if tr.use_linear_projection else
+              type(po) is torch.nn.Conv2d and po.kernel_size == (1, 1) and po.stride == (1, 1)
+              and po.padding == (0, 0) and po.groups == 1)
+    return (linear and getattr(out, "__func__", None) is _continuous_output_keep_layout
+            and all("_tiger_fused_weights" in b.__dict__ for b in tr.transformer_blocks))
 
 
 def _fused_block_forward(self, hidden_states: torch.Tensor, attention_mask: Optional[torch.Tensor] = None,
@@ -280,10 +432,10 @@ def _fused_block_forward(self, hidden_states: torch.Tensor, attention_mask: Opti
 
 def _fusable(block) -> bool:
     """A plain self- plus cross-attention block with LayerNorms and a GEGLU feed-forward whose
-    attentions run diffusers' SDPA processor or :class:`LeanAttnProcessor` directly."""
+    attentions run diffusers' SDPA processor or :class:`LeanAttnProcessor` (the self-attention
+    also inside MVDream's multi-view processor)."""
     from diffusers.models.activations import GEGLU
     from diffusers.models.attention import BasicTransformerBlock
-    from diffusers.models.attention_processor import AttnProcessor2_0
 
     if type(block) is not BasicTransformerBlock:
         return False
@@ -293,7 +445,8 @@ def _fusable(block) -> bool:
 
     def attention_plain(attn, cross: bool) -> bool:
         linear = all(type(m) is torch.nn.Linear for m in (attn.to_q, attn.to_k, attn.to_v, attn.to_out[0]))
-        return (attn is not None and type(attn.processor) in (AttnProcessor2_0, LeanAttnProcessor) and linear
+        grouped = _joint_views(attn) > 1
+        return (attn is not None and _plain_processor(attn) and linear and not (cross and grouped)
                 and LeanAttnProcessor.plain(attn) and attn.is_cross_attention == cross
                 and len(attn.to_out) == 2 and isinstance(attn.to_out[1], torch.nn.Dropout)
                 and attn.to_out[0].out_features == attn.to_q.in_features)
@@ -309,9 +462,9 @@ def _fusable(block) -> bool:
 
 def set_fused_transformer(unet: torch.nn.Module, on: bool) -> int:
     """Give the UNet's plain ``BasicTransformerBlock`` s the fused forward (``on``; module
-    docstring) or diffusers' again; returns how many blocks run fused afterwards. Blocks whose
-    attentions or feed-forward are anything else (MVDream's multi-view attention, FP8 layers)
-    keep diffusers' forward."""
+    docstring) or diffusers' again; returns how many blocks run fused afterwards. MVDream's
+    multi-view self-attention fuses too (SDPA over each group of views); blocks whose attentions
+    or feed-forward are anything else (FP8 layers, other processors) keep diffusers' forward."""
     require_diffusers("the fused transformer blocks")
     count = 0
     for m in unet.modules():
@@ -324,6 +477,14 @@ def set_fused_transformer(unet: torch.nn.Module, on: bool) -> int:
         elif "_tiger_fused_weights" in m.__dict__:
             m.__dict__.pop("_tiger_fused_weights")
             m.__dict__.pop("forward", None)
+    for m in unet.modules():  # after the blocks: a transformer carries only if all its blocks are fused
+        carries = on and _carries(m)
+        if carries:
+            m.__dict__[_CARRY] = True
+            m.forward = types.MethodType(_fused_transformer_forward, m)
+        elif _CARRY in m.__dict__:
+            for key in (_CARRY, _OUT_BIAS, "forward"):
+                m.__dict__.pop(key, None)
     return count
 
 
