@@ -50,6 +50,8 @@ from tiger.ops.fp8_rows import geglu
 from tiger.ops.layer_norm import layer_norm_rows
 from tiger.utils.lazy import require_diffusers
 
+from .fused_norms import _continuous_output_keep_layout
+from .mvdream_attention import MultiViewAttnProcessor
 from .text_kv import memo_text_kv
 
 __all__ = ["LeanAttnProcessor", "extra_pair_weights", "fused_blocks_output", "fused_cross_feed_forward", "fused_derived",
@@ -237,8 +239,6 @@ def _plain_processor(attn) -> bool:
     multi-view processor (which only regroups the rows around it)."""
     from diffusers.models.attention_processor import AttnProcessor2_0
 
-    from .mvdream_attention import MultiViewAttnProcessor
-
     proc = attn.processor
     if type(proc) is MultiViewAttnProcessor:
         proc = proc.inner
@@ -401,8 +401,6 @@ def _carries(tr) -> bool:
     :mod:`.fused_norms`' (which takes ``out_bias``) and whose ``proj_out`` is linear (a linear
     layer, or a 1x1 convolution on the map)."""
     from diffusers.models.transformers.transformer_2d import Transformer2DModel
-
-    from .fused_norms import _continuous_output_keep_layout
 
     if type(tr) is not Transformer2DModel or not tr.is_input_continuous or len(tr.transformer_blocks) == 0:
         return False
