@@ -44,3 +44,33 @@ def unet_inputs():
         return x, torch.tensor([10, 200, 900]), e
 
     return make
+
+
+@pytest.fixture
+def mvdream_unet64(tiny_models):
+    """The tiny MVDream UNet (multi-view self-attention) in float64, eval mode, diffusers' own
+    norms, with the lean attention."""
+    from tiger.edit.guidance import transformer_blocks as tb
+    from tiger.edit.guidance.mvdream import load_mvdream
+
+    unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet.double().eval()
+    tb.set_lean_attention(unet, True)
+    return unet
+
+
+@pytest.fixture
+def mvdream_inputs():
+    """A builder ``(unet, views=4, dtype=float64) -> (latents, t, text, cameras)`` of one fixed
+    2-branch call of MVDream's UNet on 2·views rows, rows [views, 2·views) repeating rows
+    [0, views) except for the text."""
+
+    def make(unet, views: int = 4, dtype=torch.float64):
+        gen = torch.Generator().manual_seed(5)
+        c = unet.config
+        z = torch.randn(views, c.in_channels, 8, 8, generator=gen, dtype=dtype)
+        text = torch.randn(2, 77, c.cross_attention_dim, generator=gen, dtype=dtype)
+        cams = torch.randn(views, c.projection_class_embeddings_input_dim, generator=gen, dtype=dtype)
+        emb = torch.cat([text[:1].expand(views, -1, -1), text[1:].expand(views, -1, -1)])
+        return torch.cat([z, z]), torch.full((2 * views,), 300), emb, torch.cat([cams, cams])
+
+    return make

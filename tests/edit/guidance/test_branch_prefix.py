@@ -97,25 +97,16 @@ def test_model_kernels_put_the_prefix_on_by_default(tiny_ip2p):
 
 
 @pytest.mark.parametrize("fused", [False, True])
-def test_mvdream_branches_share_their_prefix(tiny_models, fused, monkeypatch):
+def test_mvdream_branches_share_their_prefix(mvdream_unet64, mvdream_inputs, fused, monkeypatch):
     """MVDream's prompt and negative-prompt branches (same latents, t and cameras) agree until the
     first cross-attention: its first ResNet block (and, fused, its multi-view self-attention over
     the one group of 4 views left) runs on 4 of the 8 rows, with the same noise prediction."""
-    from tiger.edit.guidance.mvdream import load_mvdream
-
     halves = []
     real = bp.fused_self_attention
     monkeypatch.setattr(bp, "fused_self_attention", lambda block, d, x: halves.append(x.shape[0]) or real(block, d, x))
-    unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet.double().eval()
-    tb.set_lean_attention(unet, True)
+    unet = mvdream_unet64
     tb.set_fused_transformer(unet, fused)
-    gen = torch.Generator().manual_seed(11)
-    c = unet.config
-    z = torch.randn(4, c.in_channels, 8, 8, generator=gen, dtype=torch.float64)
-    cams = torch.randn(4, c.projection_class_embeddings_input_dim, generator=gen, dtype=torch.float64)
-    text = torch.randn(2, 77, c.cross_attention_dim, generator=gen, dtype=torch.float64)
-    x, t = torch.cat([z, z]), torch.full((8,), 250)
-    emb, cams2 = torch.cat([text[:1].expand(4, -1, -1), text[1:].expand(4, -1, -1)]), torch.cat([cams, cams])
+    x, t, emb, cams2 = mvdream_inputs(unet)
     with torch.no_grad():
         want = unet(x, t, encoder_hidden_states=emb, class_labels=cams2).sample
         assert bp.set_branch_prefix(unet, True) == 1

@@ -221,39 +221,28 @@ def test_fused_block_follows_a_dtype_change(fused_block):
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
 
 
-def _mvdream_call(unet, views: int = 4, dtype=torch.float64):
-    """One fixed 2-branch call of MVDream's UNet: latents, t, text, cameras for 2·views rows."""
-    gen = torch.Generator().manual_seed(5)
-    c = unet.config
-    z = torch.randn(views, c.in_channels, 8, 8, generator=gen, dtype=dtype)
-    text = torch.randn(2, 77, c.cross_attention_dim, generator=gen, dtype=dtype)
-    cams = torch.randn(views, c.projection_class_embeddings_input_dim, generator=gen, dtype=dtype)
-    emb = torch.cat([text[:1].expand(views, -1, -1), text[1:].expand(views, -1, -1)])
-    return torch.cat([z, z]), torch.full((2 * views,), 300), emb, torch.cat([cams, cams])
+def _set_views(unet, views: int) -> None:
+    """Set every multi-view processor of ``unet`` to attend over ``views`` rows jointly."""
+    for m in unet.modules():
+        if getattr(m, "processor", None) is not None and hasattr(m.processor, "num_views"):
+            m.processor.num_views = views
 
 
-def test_mvdream_multiview_blocks_fuse_and_equal_diffusers_in_float64(tiny_models):
+def test_mvdream_multiview_blocks_fuse_and_equal_diffusers_in_float64(mvdream_unet64, mvdream_inputs):
     """MVDream's blocks (self-attention over each group of 4 views) run fused: the same values as
     diffusers' forward with the multi-view processor, in float64; a batch of partial view groups
     falls back to diffusers (whose processor refuses it)."""
-    from tiger.edit.guidance.mvdream import load_mvdream
-
-    unet = load_mvdream(tiny_models / "mvdream", fused_norms=False).unet.double().eval()
-    tb.set_lean_attention(unet, True)
+    unet = mvdream_unet64
     _perturb_biases(unet)
-    x, t, emb, cams = _mvdream_call(unet)
+    x, t, emb, cams = mvdream_inputs(unet)
     with torch.no_grad():
         ref = unet(x, t, encoder_hidden_states=emb, class_labels=cams).sample
         assert tb.set_fused_transformer(unet, True) == len(_blocks(unet)) > 0
         got = unet(x, t, encoder_hidden_states=emb, class_labels=cams).sample
         # the joint attention matters: the views attending one by one give something else
-        for m in unet.modules():
-            if getattr(m, "processor", None) is not None and hasattr(m.processor, "num_views"):
-                m.processor.num_views = 1
+        _set_views(unet, 1)
         alone = unet(x, t, encoder_hidden_states=emb, class_labels=cams).sample
-        for m in unet.modules():
-            if getattr(m, "processor", None) is not None and hasattr(m.processor, "num_views"):
-                m.processor.num_views = 4
+        _set_views(unet, 4)
         with pytest.raises(ValueError, match="not a multiple of num_views"):
             unet(x[:6], t[:6], encoder_hidden_states=emb[:6], class_labels=cams[:6])
     torch.testing.assert_close(got, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
@@ -261,7 +250,8 @@ def test_mvdream_multiview_blocks_fuse_and_equal_diffusers_in_float64(tiny_model
 
 
 @pytest.mark.parametrize("model", ["ip2p", "mvdream"])
-def test_fused_transformers_carry_the_last_blocks_biases_through_proj_out(tiny_models, model, monkeypatch):
+def test_fused_transformers_carry_the_last_blocks_biases_through_proj_out(tiny_models, model, mvdream_inputs,
+                                                                           monkeypatch):
     """With tiger's fused norms (whose transformer output takes ``out_bias``), each transformer's
     last fused block leaves its three biases to ``proj_out``'s bias (a 1x1 convolution in
     InstructPix2Pix, a linear layer in MVDream): the same values as diffusers' forward in float64,
@@ -292,7 +282,7 @@ def test_fused_transformers_carry_the_last_blocks_biases_through_proj_out(tiny_m
                                                         dtype=torch.float64))
         t = torch.tensor([10, 200, 900])
     else:
-        x, t, emb, cams = _mvdream_call(unet)
+        x, t, emb, cams = mvdream_inputs(unet)
         kwargs = dict(encoder_hidden_states=emb, class_labels=cams)
     carried = []
     real = tb._carried_out_bias

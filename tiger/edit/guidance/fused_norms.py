@@ -296,21 +296,17 @@ def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, he
     place into its fresh output (a linear layer's backward keeps no output). Same values.
     ``out_bias`` [C_out]: used instead of the projection's bias (a linear ``proj_out``, layer or
     1x1 convolution: the fused transformers' carried biases, :mod:`.transformer_blocks`)."""
-    if out_bias is not None:
-        weight = self.proj_out.weight
-        if not self.use_linear_projection:
-            hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
-            y = self.proj_out._conv_forward(hidden_states, weight, None)
-            return channel_bias_add(y, out_bias.to(y.dtype), residual)
-        hidden_states = F.linear(hidden_states, weight, out_bias)
-        return hidden_states.reshape(batch_size, height, width, -1).permute(0, 3, 1, 2).add_(residual)
+    po = self.proj_out
     if not self.use_linear_projection:
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
-        if type(self.proj_out) is torch.nn.Conv2d:  # bias and residual in one pass
-            return _conv_then_add(self.proj_out, hidden_states, None, residual)
-        hidden_states = self.proj_out(hidden_states)
+        if type(po) is torch.nn.Conv2d:  # bias and residual in one pass
+            if out_bias is None:
+                return _conv_then_add(po, hidden_states, None, residual)
+            y = po._conv_forward(hidden_states, po.weight, None)
+            return channel_bias_add(y, out_bias.to(y.dtype), residual)
+        hidden_states = po(hidden_states)
     else:
-        hidden_states = self.proj_out(hidden_states)
+        hidden_states = po(hidden_states) if out_bias is None else F.linear(hidden_states, po.weight, out_bias)
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
     return hidden_states.add_(residual)
 
