@@ -43,6 +43,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
   added in passes of their own instead of by the next ResNet block (``ModelKernels.carry_conv_bias``);
 - ``default-branch_prefix``: the default with InstructPix2Pix's instruction and image-only branches
   computed apart up to the first cross-attention instead of once (``ModelKernels.branch_prefix``);
+- ``default-skip_concat``: the default with torch.cat for the UNets' up-block skip concatenations
+  instead of their producers writing into the wide maps (``ModelKernels.skip_concat``);
 - ``default+head40_attention``: the default with tiger's Hopper kernel instead of cuDNN's SDPA for
   InstructPix2Pix's head-dim-40 self-attentions (``ModelKernels.head40_attention``, opt-in);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
@@ -115,6 +117,7 @@ VARIANTS = {
     "default-branch_prefix": (dataclasses.replace(DEFAULT, branch_prefix=False), True, False, False),
     "default-stacked_time_bias": (dataclasses.replace(DEFAULT, stacked_time_bias=False), True, False, False),
     "default-cached_text_kv": (dataclasses.replace(DEFAULT, cached_text_kv=False), True, False, False),
+    "default-skip_concat": (dataclasses.replace(DEFAULT, skip_concat=False), True, False, False),
     "default+head40_attention": (dataclasses.replace(DEFAULT, head40_attention=True), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
@@ -125,7 +128,7 @@ DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
                     "default-block_backward", "default-pad_conv_in", "default-fused_transformer",
                     "default-carry_conv_bias", "default-branch_prefix", "default-stacked_time_bias",
-                    "default-cached_text_kv", "default+head40_attention", "default+fp8",
+                    "default-cached_text_kv", "default-skip_concat", "default+head40_attention", "default+fp8",
                     "default+fp8_fast_accum")
 MV_FRACTION = CSDSchedule().mv_end  # MVDream runs while λ2 > 0: the first 75 % of the steps
 FLOOR_TARGET = 1.6  # issue 30: the guidance step at most 1.6x its FLOP floor

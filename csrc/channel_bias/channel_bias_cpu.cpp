@@ -20,9 +20,23 @@ at::Tensor channel_bias_add_cpu(const at::Tensor& x, const at::Tensor& bias, con
   return y;
 }
 
+void channel_bias_add_into_cpu(const at::Tensor& x, const std::optional<at::Tensor>& bias,
+                               const std::optional<at::Tensor>& residual, at::Tensor out) {
+  check_into(x, bias, residual, out);
+  if (!(bias.has_value() && bias->defined())) {  // a copy (+ residual), rounded once
+    const auto acc = x.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+    out.copy_(residual.has_value() && residual->defined() ? at::add(x.to(acc), residual->to(acc)) : x);
+    return;
+  }
+  out.copy_(channel_bias_add_cpu(x, *bias, residual));
+}
+
 }  // namespace
 
-TORCH_LIBRARY_IMPL(tiger, CPU, m) { m.impl("channel_bias_add", &channel_bias_add_cpu); }
+TORCH_LIBRARY_IMPL(tiger, CPU, m) {
+  m.impl("channel_bias_add", &channel_bias_add_cpu);
+  m.impl("channel_bias_add_into", &channel_bias_add_into_cpu);
+}
 
 }  // namespace channel_bias
 }  // namespace tiger

@@ -15,6 +15,39 @@ namespace tiger {
 namespace channel_bias {
 namespace {
 
+template <typename T>
+const T* ptr(const at::Tensor& t) {
+  return t.defined() ? reinterpret_cast<const T*>(t.data_ptr()) : nullptr;
+}
+
+// y (x's layout, or NHWC rows out_row elements apart) = x + bias (+ residual); x, bias and
+// residual contiguous in x's layout, bias undefined for a plain copy.
+void launch(const at::Tensor& x, const at::Tensor& bias, const at::Tensor& residual, void* y, int64_t out_row,
+            bool nhwc) {
+  const int64_t C = x.size(1), inner = nhwc ? 1 : x.size(2) * x.size(3);
+  const int64_t plane = C * x.size(2) * x.size(3);
+  const bool per_sample = bias.defined() && bias.dim() == 2;
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
+  switch (x.scalar_type()) {
+    case at::kFloat:
+      launch_channel_bias<float>(ptr<float>(x), ptr<float>(bias), ptr<float>(residual), static_cast<float*>(y),
+                                 x.numel(), C, inner, plane, out_row, per_sample, nhwc, stream);
+      break;
+    case at::kHalf:
+      launch_channel_bias<__half>(ptr<__half>(x), ptr<__half>(bias), ptr<__half>(residual), static_cast<__half*>(y),
+                                  x.numel(), C, inner, plane, out_row, per_sample, nhwc, stream);
+      break;
+    case at::kBFloat16:
+      launch_channel_bias<__nv_bfloat16>(ptr<__nv_bfloat16>(x), ptr<__nv_bfloat16>(bias), ptr<__nv_bfloat16>(residual),
+                                         static_cast<__nv_bfloat16*>(y), x.numel(), C, inner, plane, out_row,
+                                         per_sample, nhwc, stream);
+      break;
+    default:
+      TORCH_CHECK(false, kOp, " (CUDA): x must be float32, bfloat16 or float16, got ", x.scalar_type());
+  }
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+}
+
 at::Tensor channel_bias_add_cuda(const at::Tensor& x_in, const at::Tensor& bias_in,
                                  const std::optional<at::Tensor>& residual_in) {
   check_inputs(x_in, bias_in, residual_in);
@@ -23,43 +56,38 @@ at::Tensor channel_bias_add_cuda(const at::Tensor& x_in, const at::Tensor& bias_
   const bool nhwc = is_nhwc(x_in);
   const auto fmt = memory_format(nhwc);
   const auto x = x_in.contiguous(fmt);
-  const auto bias = bias_in.contiguous();
   const bool has_residual = residual_in.has_value() && residual_in->defined();
   const auto residual = has_residual ? residual_in->contiguous(fmt) : at::Tensor();  // x's layout
   auto y = at::empty_like(x, fmt);
-  const int64_t C = x.size(1), inner = nhwc ? 1 : x.size(2) * x.size(3);
-  const int64_t plane = C * x.size(2) * x.size(3);
-  const bool per_sample = bias.dim() == 2;
-  void* stream = c10::cuda::getCurrentCUDAStream().stream();
-  switch (x.scalar_type()) {
-    case at::kFloat:
-      launch_channel_bias<float>(x.data_ptr<float>(), bias.data_ptr<float>(),
-                                 has_residual ? residual.data_ptr<float>() : nullptr, y.data_ptr<float>(), x.numel(), C,
-                                 inner, plane, per_sample, nhwc, stream);
-      break;
-    case at::kHalf:
-      launch_channel_bias<__half>(reinterpret_cast<const __half*>(x.data_ptr()),
-                                  reinterpret_cast<const __half*>(bias.data_ptr()),
-                                  has_residual ? reinterpret_cast<const __half*>(residual.data_ptr()) : nullptr,
-                                  reinterpret_cast<__half*>(y.data_ptr()), x.numel(), C, inner, plane, per_sample,
-                                  nhwc, stream);
-      break;
-    case at::kBFloat16:
-      launch_channel_bias<__nv_bfloat16>(
-          reinterpret_cast<const __nv_bfloat16*>(x.data_ptr()), reinterpret_cast<const __nv_bfloat16*>(bias.data_ptr()),
-          has_residual ? reinterpret_cast<const __nv_bfloat16*>(residual.data_ptr()) : nullptr,
-          reinterpret_cast<__nv_bfloat16*>(y.data_ptr()), x.numel(), C, inner, plane, per_sample, nhwc, stream);
-      break;
-    default:
-      TORCH_CHECK(false, kOp, " (CUDA): x must be float32, bfloat16 or float16, got ", x.scalar_type());
-  }
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  launch(x, bias_in.contiguous(), residual, y.data_ptr(), x.size(1), nhwc);
   return y;
+}
+
+void channel_bias_add_into_cuda(const at::Tensor& x_in, const std::optional<at::Tensor>& bias_in,
+                                const std::optional<at::Tensor>& residual_in, at::Tensor out) {
+  check_into(x_in, bias_in, residual_in, out);
+  TORCH_CHECK(x_in.is_cuda(), kOp_into, ": x must be on a CUDA device");
+  const c10::cuda::CUDAGuard guard(x_in.device());
+  const bool has_bias = bias_in.has_value() && bias_in->defined();
+  const bool has_residual = residual_in.has_value() && residual_in->defined();
+  const int64_t out_row = nhwc_row_stride(out);
+  if (out_row == 0) {  // any other output layout: the op's result, copied
+    const auto bias = has_bias ? *bias_in : at::zeros({x_in.size(1)}, x_in.options());
+    out.copy_(channel_bias_add_cuda(x_in, bias, residual_in));
+    return;
+  }
+  const auto fmt = at::MemoryFormat::ChannelsLast;
+  const auto x = x_in.contiguous(fmt);  // rows of C, whatever x's own layout
+  const auto residual = has_residual ? residual_in->contiguous(fmt) : at::Tensor();
+  launch(x, has_bias ? bias_in->contiguous() : at::Tensor(), residual, out.data_ptr(), out_row, /*nhwc=*/true);
 }
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(tiger, CUDA, m) { m.impl("channel_bias_add", &channel_bias_add_cuda); }
+TORCH_LIBRARY_IMPL(tiger, CUDA, m) {
+  m.impl("channel_bias_add", &channel_bias_add_cuda);
+  m.impl("channel_bias_add_into", &channel_bias_add_into_cuda);
+}
 
 }  // namespace channel_bias
 }  // namespace tiger

@@ -4,7 +4,9 @@
 // hold V consecutive channels (NHWC, C % V == 0), with a scalar kernel for the other shapes. A
 // vector never spans two samples, so a per-sample bias ([N, C]: a convolution's bias plus a
 // ResNet block's time embedding) costs one index more. The residual (a ResNet block's shortcut)
-// is read in the same pass: bias and residual cost one read-write of the map instead of two.
+// is read in the same pass: bias and residual cost one read-write of the map instead of two. An NHWC
+// output may have rows longer than C (a channel slice of a wider channels-last map: the UNet up
+// blocks' skip concatenations written in place), and the bias may be absent (a plain copy).
 #include <cuda_bf16.h>
 #include <cuda_fp16.h>
 #include <cuda_runtime.h>
@@ -28,15 +30,21 @@ template <typename T, int V>
 __global__ void __launch_bounds__(kThreads) bias_kernel(const T* __restrict__ x, const T* __restrict__ bias,
                                                         const T* __restrict__ residual, T* __restrict__ y,
                                                         int64_t n_vec, int64_t C, int64_t inner, int64_t plane,
-                                                        bool per_sample, bool nhwc) {
+                                                        int64_t out_row, bool per_sample, bool nhwc) {
   const int64_t stride = static_cast<int64_t>(gridDim.x) * blockDim.x;
   for (int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x; i < n_vec; i += stride) {
     const int64_t e = i * V;  // first element of the vector
-    const T* b = per_sample ? bias + (e / plane) * C : bias;
+    const T* b = bias == nullptr ? nullptr : per_sample ? bias + (e / plane) * C : bias;
     const Vec<T, V> xv = reinterpret_cast<const Vec<T, V>*>(x)[i];
     float acc[V];
-    if (nhwc) {
-      const int64_t c0 = e % C;  // V consecutive channels (V divides C, or V == 1)
+    int64_t o = e;  // the output's first element
+    if (b == nullptr) {
+#pragma unroll
+      for (int j = 0; j < V; ++j) acc[j] = load_as<float>(xv.v[j]);
+      if (nhwc) o = (e / C) * out_row + e % C;
+    } else if (nhwc) {
+      const int64_t c0 = e % C;  // V consecutive channels (V divides C and out_row, or V == 1)
+      o = (e / C) * out_row + c0;
 #pragma unroll
       for (int j = 0; j < V; ++j) acc[j] = load_as<float>(xv.v[j]) + load_as<float>(b[c0 + j]);
     } else {
@@ -52,18 +60,18 @@ __global__ void __launch_bounds__(kThreads) bias_kernel(const T* __restrict__ x,
     Vec<T, V> out;
 #pragma unroll
     for (int j = 0; j < V; ++j) out.v[j] = store_as<T>(acc[j]);
-    reinterpret_cast<Vec<T, V>*>(y)[i] = out;
+    *reinterpret_cast<Vec<T, V>*>(y + o) = out;
   }
 }
 
 template <typename T, int V>
 void launch(const T* x, const T* bias, const T* residual, T* y, int64_t n, int64_t C, int64_t inner, int64_t plane,
-            bool per_sample, bool nhwc, cudaStream_t st) {
+            int64_t out_row, bool per_sample, bool nhwc, cudaStream_t st) {
   const int64_t n_vec = n / V;
   const int64_t blocks = std::min<int64_t>((n_vec + kThreads - 1) / kThreads, 65535LL * 8);
   if (blocks > 0)
     bias_kernel<T, V><<<static_cast<unsigned>(blocks), kThreads, 0, st>>>(x, bias, residual, y, n_vec, C, inner, plane,
-                                                                         per_sample, nhwc);
+                                                                         out_row, per_sample, nhwc);
 }
 
 bool aligned(const void* p, int bytes) { return reinterpret_cast<uintptr_t>(p) % bytes == 0; }
@@ -72,20 +80,20 @@ bool aligned(const void* p, int bytes) { return reinterpret_cast<uintptr_t>(p) %
 
 template <typename T>
 void launch_channel_bias(const T* x, const T* bias, const T* residual, T* y, int64_t n, int64_t C, int64_t inner,
-                         int64_t plane, bool per_sample, bool nhwc, void* stream) {
+                         int64_t plane, int64_t out_row, bool per_sample, bool nhwc, void* stream) {
   constexpr int V = 16 / sizeof(T);
   const auto st = static_cast<cudaStream_t>(stream);
-  const bool vec = (nhwc ? C % V == 0 : inner % V == 0) && aligned(x, 16) && aligned(y, 16) &&
+  const bool vec = (nhwc ? C % V == 0 && out_row % V == 0 : inner % V == 0) && aligned(x, 16) && aligned(y, 16) &&
                    (residual == nullptr || aligned(residual, 16));
   if (vec)
-    launch<T, V>(x, bias, residual, y, n, C, inner, plane, per_sample, nhwc, st);
+    launch<T, V>(x, bias, residual, y, n, C, inner, plane, out_row, per_sample, nhwc, st);
   else
-    launch<T, 1>(x, bias, residual, y, n, C, inner, plane, per_sample, nhwc, st);
+    launch<T, 1>(x, bias, residual, y, n, C, inner, plane, out_row, per_sample, nhwc, st);
 }
 
 #define TIGER_CHANNEL_BIAS_INSTANTIATE(T)                                                                   \
   template void launch_channel_bias<T>(const T*, const T*, const T*, T*, int64_t, int64_t, int64_t, int64_t, \
-                                       bool, bool, void*);
+                                       int64_t, bool, bool, void*);
 TIGER_CHANNEL_BIAS_INSTANTIATE(float)
 TIGER_CHANNEL_BIAS_INSTANTIATE(__half)
 TIGER_CHANNEL_BIAS_INSTANTIATE(__nv_bfloat16)

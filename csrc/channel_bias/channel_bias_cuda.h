@@ -7,11 +7,12 @@ namespace channel_bias {
 
 // y[e] = x[e] + bias[(n,) channel(e)] (+ residual[e]) over n elements of a contiguous NCHW
 // (inner = H·W) or NHWC (inner = 1) tensor with C channels and `plane` = C·H·W elements per
-// sample; bias is [C], or [N, C] when per_sample; residual (same layout as x) may be null.
-// Computed in float, rounded once to T.
+// sample; bias is [C], or [N, C] when per_sample, or null (y = x (+ residual)); residual (same
+// layout as x) may be null. NHWC: y's rows (pixels) are out_row >= C elements apart (C: y has x's
+// layout); NCHW: out_row is not read and y has x's layout. Computed in float, rounded once to T.
 template <typename T>
 void launch_channel_bias(const T* x, const T* bias, const T* residual, T* y, int64_t n, int64_t C, int64_t inner,
-                         int64_t plane, bool per_sample, bool nhwc, void* stream);
+                         int64_t plane, int64_t out_row, bool per_sample, bool nhwc, void* stream);
 
 }  // namespace channel_bias
 }  // namespace tiger

@@ -69,3 +69,80 @@ def test_cuda_bit_exact(dtype, shape, layout):
     assert torch.equal(y, rounded_sum(x, b)) and torch.equal(y, x + b[None, :, None, None])
     assert y.is_contiguous(memory_format=CL) == (layout == "cl" and x.shape[2] * x.shape[3] > 1)
     assert torch.isfinite(y).all()
+
+
+def _wide_slice(shape, extra, dtype, device="cpu", offset=0):
+    """A [N, C, H, W] channel slice (channels offset .. offset + C) of a channels-last map with C + extra channels."""
+    n, c, h, w = shape
+    wide = torch.full((n, c + extra, h, w), float("nan"), dtype=dtype, device=device).contiguous(memory_format=CL)
+    return wide, wide[:, offset:offset + c]
+
+
+@pytest.mark.parametrize("bias_kind", ["channel", "sample", "none"])
+@pytest.mark.parametrize("residual", [False, True])
+def test_into_a_channel_slice_writes_the_same_values_and_nothing_else(bias_kind, residual):
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(2, 6, 3, 4, generator=g, dtype=torch.float64).contiguous(memory_format=CL)
+    b = {"channel": torch.randn(6, generator=g, dtype=torch.float64),
+         "sample": torch.randn(2, 6, generator=g, dtype=torch.float64), "none": None}[bias_kind]
+    r = torch.randn(2, 6, 3, 4, generator=g, dtype=torch.float64) if residual else None
+    wide, out = _wide_slice(x.shape, 5, torch.float64, offset=3)
+    assert channel_bias_add(x, b, r, out=out) is out
+    ref = x + (0 if b is None else b.view(-1, 6, 1, 1) if b.dim() == 1 else b[:, :, None, None])
+    ref = ref + (0 if r is None else r)
+    torch.testing.assert_close(out, ref, atol=0, rtol=0)
+    assert wide[:, :3].isnan().all() and wide[:, 9:].isnan().all()  # the other channels untouched
+
+
+def test_into_rounds_once_like_the_op_and_takes_any_output_layout():
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(2, 8, 5, 3, generator=g).to(torch.bfloat16)
+    b = torch.randn(8, generator=g).to(torch.bfloat16)
+    r = torch.randn(2, 8, 5, 3, generator=g).to(torch.bfloat16)
+    ref = channel_bias_add(x, b, r)
+    for out in (torch.empty_like(x), torch.empty(2, 8, 5, 6, dtype=torch.bfloat16)[..., ::2],
+                _wide_slice(x.shape, 8, torch.bfloat16, offset=8)[1]):
+        assert torch.equal(channel_bias_add(x, b, r, out=out), ref)
+
+
+def test_into_refuses_autograd_and_wrong_outputs():
+    x = torch.zeros(1, 3, 2, 2, requires_grad=True)
+    with pytest.raises(ValueError, match="out= has no autograd"):
+        channel_bias_add(x, torch.zeros(3), out=torch.empty(1, 3, 2, 2))
+    with torch.no_grad():
+        channel_bias_add(x, torch.ones(3), out=torch.empty(1, 3, 2, 2))
+    with pytest.raises(RuntimeError, match=r"out must have x's shape \[1, 3, 2, 2\]"):
+        channel_bias_add(x.detach(), torch.zeros(3), out=torch.empty(1, 4, 2, 2))
+    with pytest.raises(RuntimeError, match="out has dtype"):
+        channel_bias_add(x.detach(), torch.zeros(3), out=torch.empty(1, 3, 2, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="bias is None"):
+        channel_bias_add(x.detach(), None)
+
+
+def test_opcheck_into():
+    x = torch.randn(2, 4, 3, 3).contiguous(memory_format=CL)
+    out = _wide_slice(x.shape, 4, torch.float32)[1]
+    torch.library.opcheck(torch.ops.tiger.channel_bias_add_into, (x, torch.randn(4), None, out))
+    torch.library.opcheck(torch.ops.tiger.channel_bias_add_into, (x, None, torch.randn(2, 4, 3, 3), out))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device and tiger built with CUDA")
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32])
+@pytest.mark.parametrize("case", ["vector", "odd_rows", "odd_offset", "nchw_out", "no_bias", "nchw_x"])
+def test_cuda_into_bit_exact(dtype, case):
+    g = torch.Generator().manual_seed(4)
+    shape = (3, 16 if case != "odd_rows" else 5, 4, 6)
+    x = torch.randn(shape, generator=g).to(dtype).cuda()
+    x = x if case == "nchw_x" else x.contiguous(memory_format=CL)
+    b = None if case == "no_bias" else torch.randn(shape[1], generator=g).to(dtype).cuda()
+    r = torch.randn(shape, generator=g).to(dtype).cuda()
+    if case == "nchw_out":
+        wide, out = None, torch.empty(shape, dtype=dtype, device="cuda")
+    else:  # rows of 32 (21) elements, slices at channel 8 (16-byte aligned) or 3: the vector (scalar) kernel
+        wide, out = _wide_slice(shape, 16, dtype, "cuda", offset=3 if case == "odd_offset" else 8)
+    ref = channel_bias_add(x, b if b is not None else torch.zeros_like(x[0, :, 0, 0]), r)
+    assert torch.equal(channel_bias_add(x, b, r, out=out), ref)
+    if wide is not None:
+        o = 3 if case == "odd_offset" else 8
+        assert wide[:, :o].isnan().all() and wide[:, o + shape[1]:].isnan().all()

@@ -26,9 +26,9 @@ def _spy_folded_calls():
 
     real = fn.channel_bias_add
 
-    def spy(x, bias, residual=None):
-        calls.append(residual is not None or bias.dim() == 2)
-        return real(x, bias, residual)
+    def spy(x, bias, residual=None, out=None):
+        calls.append(residual is not None or bias is not None and bias.dim() == 2)
+        return real(x, bias, residual, out=out)
 
     fn.channel_bias_add = spy
     return calls, lambda: setattr(fn, "channel_bias_add", real)

@@ -90,25 +90,26 @@ def _fuse_resnet(block) -> int:
 
 
 def _conv_then_add(conv: torch.nn.Conv2d, x: torch.Tensor, extra_bias: Optional[torch.Tensor] = None,
-                   residual: Optional[torch.Tensor] = None) -> torch.Tensor:
+                   residual: Optional[torch.Tensor] = None, out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``conv(x) + extra_bias + residual`` with the convolution's bias, ``extra_bias`` ([N, C] or
-    [C]) and ``residual`` added by one :func:`channel_bias_add` pass after a bias-free convolution."""
+    [C]) and ``residual`` added by one :func:`channel_bias_add` pass after a bias-free convolution;
+    written into ``out`` when given (no gradient: :mod:`.skip_concat`)."""
     y = conv._conv_forward(x, conv.weight, None)
     bias = conv.bias
     if extra_bias is not None:
         bias = extra_bias if bias is None else extra_bias + bias
-    if bias is None:
-        bias = y.new_zeros(y.shape[1]) if residual is not None else None
-    if bias is None:
-        return y
-    if bias.dim() == 2 and bias.shape[0] != y.shape[0]:  # a [1, C] time embedding for the whole batch
+    if bias is None and residual is None:
+        return y if out is None else out.copy_(y)
+    if bias is None and out is None:
+        bias = y.new_zeros(y.shape[1])
+    if bias is not None and bias.dim() == 2 and bias.shape[0] != y.shape[0]:  # a [1, C] time embedding for the batch
         bias = bias.expand(y.shape[0], -1)
-    return channel_bias_add(y, bias.to(y.dtype), residual)
+    return channel_bias_add(y, None if bias is None else bias.to(y.dtype), residual, out=out)
 
 
 def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torch.Tensor],
                              *args: object, input_bias: Optional[torch.Tensor] = None,
-                             **kwargs: object) -> torch.Tensor:
+                             out: Optional[torch.Tensor] = None, **kwargs: object) -> torch.Tensor:
     """A fused ``ResnetBlock2D`` (SiLUs inside the norms, ``time_embedding_norm == "default"``,
     no resampling, ``output_scale_factor == 1``): diffusers 0.42's computation with the adds
     folded into the convolutions' bias passes: ``conv1``'s bias and the time embedding as one
@@ -119,7 +120,8 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
     ``input_bias`` [C] (model dtype): a bias the producing convolution has not added to
     ``input_tensor`` (:mod:`.encoder_bias`); the block computes on ``input_tensor + input_bias``
     by adding it inside norm1 and to the shortcut's bias (through a 1x1 shortcut convolution:
-    ``W_sc·input_bias``, a per-channel constant)."""
+    ``W_sc·input_bias``, a per-channel constant). ``out``: a tensor of the output's shape to write
+    the output into (no gradient; :mod:`.skip_concat`)."""
     fold = self.__dict__.get("_tiger_fold_norm_bias", False)
     stacked = self.__dict__.get(TIME_BIAS_KEY) if fold and temb is not None else None
     ib2 = None if stacked is None else stacked.input_bias(self, temb, input_tensor.shape[0])  # .time_bias
@@ -130,7 +132,8 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
     if fold:  # conv1's bias and temb added inside norm2
         if (ib2 is None and self.__dict__.get("_tiger_block_backward", False)
                 and _block_backward_applies(self, input_tensor, temb_bias)):
-            return _FoldedBlock.apply(input_tensor, self, ib1)
+            y = _FoldedBlock.apply(input_tensor, self, ib1)
+            return y if out is None else out.copy_(y)
         h = self.conv1._conv_forward(self.norm1(input_tensor, input_bias=ib1), self.conv1.weight, None)
         if ib2 is None:
             ib2 = _norm_input_bias(self.conv1.bias, temb_bias, h.shape[0])
@@ -139,10 +142,10 @@ def _resnet_forward_folded(self, input_tensor: torch.Tensor, temb: Optional[torc
         h = _conv_then_add(self.conv1, self.norm1(input_tensor, input_bias=ib1), temb_bias)
         h = self.dropout(self.norm2(h))
     if self.conv_shortcut is None:
-        return _conv_then_add(self.conv2, h, input_bias, input_tensor)
+        return _conv_then_add(self.conv2, h, input_bias, input_tensor, out=out)
     sc = self.conv_shortcut
     shortcut = sc._conv_forward(input_tensor, sc.weight, None)
-    return _conv_then_add(self.conv2, h, _shortcut_bias(sc, input_bias), shortcut)
+    return _conv_then_add(self.conv2, h, _shortcut_bias(sc, input_bias), shortcut, out=out)
 
 
 def _shortcut_bias(sc: torch.nn.Conv2d, input_bias: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
@@ -288,27 +291,28 @@ def _fuse_norm_out(module) -> int:
 
 
 def _continuous_output_keep_layout(self, hidden_states, residual, batch_size, height, width, inner_dim,
-                                   out_bias: Optional[torch.Tensor] = None):
+                                   out_bias: Optional[torch.Tensor] = None, out: Optional[torch.Tensor] = None):
     """``Transformer2DModel._get_output_for_continuous_inputs`` of diffusers 0.42 without its
     ``.contiguous()``: the [B, H·W, C] tokens viewed as a [B, C, H, W] map are channels-last, so
     the output (and the residual sum) stay channels-last; a 1x1-convolution projection adds its
     bias and the residual in one pass (:func:`_conv_then_add`), a linear one gets the residual in
     place into its fresh output (a linear layer's backward keeps no output). Same values.
     ``out_bias`` [C_out]: used instead of the projection's bias (a linear ``proj_out``, layer or
-    1x1 convolution: the fused transformers' carried biases, :mod:`.transformer_blocks`)."""
+    1x1 convolution: the fused transformers' carried biases, :mod:`.transformer_blocks`).
+    ``out``: a tensor of the output's shape to write the output into (no gradient; :mod:`.skip_concat`)."""
     po = self.proj_out
     if not self.use_linear_projection:
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
         if type(po) is torch.nn.Conv2d:  # bias and residual in one pass
             if out_bias is None:
-                return _conv_then_add(po, hidden_states, None, residual)
+                return _conv_then_add(po, hidden_states, None, residual, out=out)
             y = po._conv_forward(hidden_states, po.weight, None)
-            return channel_bias_add(y, out_bias.to(y.dtype), residual)
+            return channel_bias_add(y, out_bias.to(y.dtype), residual, out=out)
         hidden_states = po(hidden_states)
     else:
         hidden_states = po(hidden_states) if out_bias is None else F.linear(hidden_states, po.weight, out_bias)
         hidden_states = hidden_states.reshape(batch_size, height, width, inner_dim).permute(0, 3, 1, 2)
-    return hidden_states.add_(residual)
+    return hidden_states.add_(residual) if out is None else torch.add(hidden_states, residual, out=out)
 
 
 def _conv_then_channel_bias(self, x: torch.Tensor) -> torch.Tensor:

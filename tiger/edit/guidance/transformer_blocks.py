@@ -346,13 +346,15 @@ def _carried_out_bias(tr, d: _Derived) -> torch.Tensor:
 
 
 def fused_blocks_output(tr, x: torch.Tensor, residual: torch.Tensor, encoder_hidden_states: torch.Tensor,
-                        height: int, width: int, inner_dim: int, first_half_done: bool = False) -> torch.Tensor:
+                        height: int, width: int, inner_dim: int, first_half_done: bool = False,
+                        out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """A continuous-input ``Transformer2DModel``'s blocks on its tokens ``x`` [B, H·W, C] and its
     output (``proj_out`` and ``residual`` [B, C, H, W]). Fused blocks run in place; when the
     transformer carries (:func:`set_fused_transformer`), the last one leaves its three biases to
     ``proj_out``'s bias (:func:`_carried_out_bias`), so its feed-forward matmuls keep the block's
     own shapes. ``first_half_done``: the first block's self-attention half already ran on ``x``
-    (:mod:`.branch_prefix`)."""
+    (:mod:`.branch_prefix`). ``out``: a tensor of the output's shape to write the output into (no
+    gradient; :mod:`.skip_concat`)."""
     blocks = list(tr.transformer_blocks)
     carried = None
     for i, block in enumerate(blocks):
@@ -367,32 +369,42 @@ def fused_blocks_output(tr, x: torch.Tensor, residual: torch.Tensor, encoder_hid
         last = i == len(blocks) - 1 and tr.__dict__.get(_CARRY, False)
         fused_cross_feed_forward(block, d, x, encoder_hidden_states, carry=last)
         carried = d if last else None
-    if carried is None:
-        return tr._get_output_for_continuous_inputs(x, residual, x.shape[0], height, width, inner_dim)
-    return tr._get_output_for_continuous_inputs(x, residual, x.shape[0], height, width, inner_dim,
-                                                out_bias=_carried_out_bias(tr, carried))
+    output = tr._get_output_for_continuous_inputs
+    takes_out = getattr(output, "__func__", None) is _continuous_output_keep_layout
+    kwargs = {} if out is None or not takes_out else {"out": out}
+    if carried is not None:
+        kwargs["out_bias"] = _carried_out_bias(tr, carried)
+    y = output(x, residual, x.shape[0], height, width, inner_dim, **kwargs)
+    return y if out is None or takes_out else out.copy_(y)
 
 
 def _fused_transformer_forward(self, hidden_states: torch.Tensor, encoder_hidden_states: Optional[torch.Tensor] = None,
                                timestep=None, added_cond_kwargs=None, class_labels=None, cross_attention_kwargs=None,
-                               attention_mask=None, encoder_attention_mask=None, return_dict: bool = True):
+                               attention_mask=None, encoder_attention_mask=None, return_dict: bool = True,
+                               out: Optional[torch.Tensor] = None):
     """``Transformer2DModel.forward`` (diffusers 0.42, continuous input) through
-    :func:`fused_blocks_output`; any other call runs diffusers' forward."""
+    :func:`fused_blocks_output`; any other call runs diffusers' forward. ``out``: a tensor of the
+    output's shape to write the output into (no gradient; :mod:`.skip_concat`)."""
     plain = (encoder_hidden_states is not None and timestep is None and added_cond_kwargs is None
              and class_labels is None and not cross_attention_kwargs and attention_mask is None
              and encoder_attention_mask is None and not torch.is_grad_enabled() and not self.training
              and hidden_states.ndim == 4)
     if not plain:
-        return type(self).forward(self, hidden_states, encoder_hidden_states, timestep, added_cond_kwargs, class_labels,
-                                  cross_attention_kwargs, attention_mask, encoder_attention_mask, return_dict)
+        y = type(self).forward(self, hidden_states, encoder_hidden_states, timestep, added_cond_kwargs, class_labels,
+                               cross_attention_kwargs, attention_mask, encoder_attention_mask, return_dict)
+        if out is not None:
+            out.copy_(y[0] if isinstance(y, tuple) else y.sample)
+            return (out,) if isinstance(y, tuple) else type(y)(sample=out)
+        return y
     _, _, height, width = hidden_states.shape
     x, inner_dim = self._operate_on_continuous_inputs(hidden_states)
-    out = fused_blocks_output(self, x.contiguous(), hidden_states, encoder_hidden_states, height, width, inner_dim)
+    y = fused_blocks_output(self, x.contiguous(), hidden_states, encoder_hidden_states, height, width, inner_dim,
+                            out=out)
     if not return_dict:
-        return (out,)
+        return (y,)
     from diffusers.models.modeling_outputs import Transformer2DModelOutput
 
-    return Transformer2DModelOutput(sample=out)
+    return Transformer2DModelOutput(sample=y)
 
 
 def _carries(tr) -> bool:
