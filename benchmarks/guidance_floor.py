@@ -45,6 +45,8 @@ Variants (one call measures all, each with a freshly captured CUDA graph; ``--va
   computed apart up to the first cross-attention instead of once (``ModelKernels.branch_prefix``);
 - ``default-skip_concat``: the default with torch.cat for the UNets' up-block skip concatenations
   instead of their producers writing into the wide maps (``ModelKernels.skip_concat``);
+- ``default-row_softmax``: the default with torch's softmax in the VAE attention instead of
+  tiger's row kernel (``ModelKernels.row_softmax``);
 - ``default+head40_attention``: the default with tiger's Hopper kernel instead of cuDNN's SDPA for
   InstructPix2Pix's head-dim-40 self-attentions (``ModelKernels.head40_attention``, opt-in);
 - ``default+sequential``: the default kernels with MVDream run after InstructPix2Pix on one stream
@@ -85,11 +87,11 @@ from tiger.utils.dtypes import DTYPE_NAMES
 PLAIN = mk.ModelKernels(fused_geglu=False, vae_downsample_4x4=False, fold_norm_bias=False, row_layer_norm=False,
                         subpixel_upsample=False, lean_attention=False, block_backward=False, pad_conv_in=False,
                         fused_transformer=False, carry_conv_bias=False, branch_prefix=False, stacked_time_bias=False,
-                        cached_text_kv=False, head40_attention=False)
+                        cached_text_kv=False, skip_concat=False, row_softmax=False, head40_attention=False)
 DEFAULT = mk.ModelKernels(fused_geglu=True, vae_downsample_4x4=True, fold_norm_bias=True, row_layer_norm=True,
                           subpixel_upsample=True, lean_attention=True, block_backward=True, pad_conv_in=True,
                           fused_transformer=True, carry_conv_bias=True, branch_prefix=True, stacked_time_bias=True,
-                          cached_text_kv=True, head40_attention=False)
+                          cached_text_kv=True, skip_concat=True, row_softmax=True, head40_attention=False)
 
 
 def _plain_and(**fields) -> mk.ModelKernels:
@@ -118,6 +120,7 @@ VARIANTS = {
     "default-stacked_time_bias": (dataclasses.replace(DEFAULT, stacked_time_bias=False), True, False, False),
     "default-cached_text_kv": (dataclasses.replace(DEFAULT, cached_text_kv=False), True, False, False),
     "default-skip_concat": (dataclasses.replace(DEFAULT, skip_concat=False), True, False, False),
+    "default-row_softmax": (dataclasses.replace(DEFAULT, row_softmax=False), True, False, False),
     "default+head40_attention": (dataclasses.replace(DEFAULT, head40_attention=True), True, False, False),
     "default+sequential": (DEFAULT, True, False, False),
     "default+fp8": (dataclasses.replace(DEFAULT, matmul_precision="fp8"), True, False, False),
@@ -128,7 +131,8 @@ DEFAULT_VARIANTS = ("after", "after+downsample_4x4", "after+geglu", "after+fold_
                     "default-row_layer_norm", "default-subpixel_upsample", "default-lean_attention",
                     "default-block_backward", "default-pad_conv_in", "default-fused_transformer",
                     "default-carry_conv_bias", "default-branch_prefix", "default-stacked_time_bias",
-                    "default-cached_text_kv", "default-skip_concat", "default+head40_attention", "default+fp8",
+                    "default-cached_text_kv", "default-skip_concat", "default-row_softmax",
+                    "default+head40_attention", "default+fp8",
                     "default+fp8_fast_accum")
 MV_FRACTION = CSDSchedule().mv_end  # MVDream runs while λ2 > 0: the first 75 % of the steps
 FLOOR_TARGET = 1.6  # issue 30: the guidance step at most 1.6x its FLOP floor

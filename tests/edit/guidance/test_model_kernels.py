@@ -338,7 +338,8 @@ def test_guidance_records_and_applies_kernels(tiny_models, ring_cameras):
                                            "pad_conv_in": "auto", "fused_transformer": True if on else "auto",
                                            "carry_conv_bias": "auto", "branch_prefix": "auto",
                                            "stacked_time_bias": "auto", "cached_text_kv": "auto",
-                                           "skip_concat": "auto", "head40_attention": "auto"}
+                                           "skip_concat": "auto", "row_softmax": "auto",
+                                           "head40_attention": "auto"}
         grads.append(g.grad(renders, views, t=t, noise=noise, vae_noise=vae_noise)[0])
     cos, rel = _cos_rel(grads[1], grads[0])
     assert cos > 1 - 1e-9 and rel < 1e-5, (cos, rel)

@@ -13,9 +13,12 @@ from typing import Callable, Optional
 import torch
 import torch.nn.functional as F
 
+from tiger.ops.softmax import softmax_rows
 from tiger.utils.lazy import require_diffusers
 
 from .fused_norms import apply_fused_norms
+
+ROW_SOFTMAX = "_tiger_row_softmax"  # a VAE attention layer's softmax by tiger's row kernel (ModelKernels.row_softmax)
 
 
 def vae_downsampling_factor(vae) -> int:
@@ -112,7 +115,8 @@ def _attention_probs_one_pass(self, query: torch.Tensor, key: torch.Tensor,
     rounds its output once, which is what the upcast (``upcast_softmax``: scores to float32,
     softmax, back to the model's dtype) computes, without writing and reading the [B, L, L]
     scores three more times in float32 (forward and backward). Same values up to the order of the
-    float32 sums; identical for float32 models."""
+    float32 sums; identical for float32 models. With ``ROW_SOFTMAX`` set on the layer, the softmax
+    is :func:`tiger.ops.softmax.softmax_rows` (the same values up to float32 summation order)."""
     if self.upcast_attention:
         query, key = query.float(), key.float()
     if attention_mask is None:
@@ -120,6 +124,8 @@ def _attention_probs_one_pass(self, query: torch.Tensor, key: torch.Tensor,
     else:
         base, beta = attention_mask, 1
     scores = torch.baddbmm(base, query, key.transpose(-1, -2), beta=beta, alpha=self.scale)
+    if self.__dict__.get(ROW_SOFTMAX, False):  # ModelKernels.row_softmax
+        return softmax_rows(scores)
     return scores.softmax(dim=-1)
 
 
@@ -144,6 +150,17 @@ def matmul_vae_attention(vae: torch.nn.Module) -> int:
         m.set_processor(AttnProcessor())
         m.get_attention_scores = types.MethodType(_attention_probs_one_pass, m)
     return len(layers)
+
+
+def set_row_softmax(vae: torch.nn.Module, on: bool) -> int:
+    """The softmax of the VAE's matmul attentions (:func:`matmul_vae_attention`) by
+    :func:`tiger.ops.softmax.softmax_rows` (``on``) or torch's; returns how many layers use tiger's."""
+    count = 0
+    for m in vae.modules():
+        if getattr(m.__dict__.get("get_attention_scores"), "__func__", None) is _attention_probs_one_pass:
+            m.__dict__[ROW_SOFTMAX] = bool(on)
+            count += bool(on)
+    return count
 
 
 class PromptEncoder:

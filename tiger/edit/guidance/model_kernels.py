@@ -64,6 +64,9 @@ convolution layers (sub-pixel upsampling, padded first convolutions, 4x4 downsam
 - ``cached_text_kv``: the cross-attentions' keys and values of the guidance's fixed text are
   computed once and kept with the text tensor (:mod:`.text_kv`) instead of in every call. The same
   matmuls on the same rows.
+- ``row_softmax``: the VAE attention's softmax (its [B, L, L] scores, forward and backward) by
+  :func:`tiger.ops.softmax.softmax_rows`, a row per block held in registers, instead of torch's
+  kernels: the same values up to the order of the float32 sums.
 - ``skip_concat``: the UNet's up blocks write each skip concatenation's hidden half where it is
   produced (the previous ResNet block's output pass, the transformer's ``proj_out`` pass, the
   previous block's sub-pixel upsampler) and copy only the skip in (:mod:`.skip_concat`): the
@@ -95,6 +98,7 @@ from tiger.ops.layer_norm import layer_norm_rows
 
 from .branch_prefix import set_branch_prefix
 from .conv_layers import set_downsample_4x4, set_pad_conv_in, set_subpixel_upsample
+from .diffusers_models import set_row_softmax
 from .encoder_bias import set_carry_conv_bias
 from .forward_switch import switch_forward
 from .fused_norms import set_block_backward, set_fold_norm_bias
@@ -154,6 +158,9 @@ class ModelKernels:
             same operations per element).
         cached_text_kv: the cross-attentions' keys and values of the fixed text computed once
             (:mod:`.text_kv`); None: on (the same matmuls, any device).
+        row_softmax: the VAE attention's softmax by tiger's row kernel
+            (:func:`.diffusers_models.set_row_softmax`); None: on where the VAE is on CUDA with
+            tiger's CUDA kernels (the float32 sums in another order).
         skip_concat: the up blocks' skip concatenations written in place by their producers
             (:mod:`.skip_concat`); None: on where the UNet is on CUDA with tiger's CUDA kernels (the
             same values).
@@ -180,6 +187,7 @@ class ModelKernels:
     stacked_time_bias: Optional[bool] = None
     cached_text_kv: Optional[bool] = None
     skip_concat: Optional[bool] = None
+    row_softmax: Optional[bool] = None
     head40_attention: Optional[bool] = None
 
     def __post_init__(self) -> None:
@@ -473,7 +481,8 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     resolved: ``{"matmul_precision", "fp8_layers", "fused_geglu", "row_layer_norms", "subpixel_upsamples",
     "lean_attentions", "fused_transformer_blocks", "vae_downsample_4x4", "fold_norm_bias_blocks",
     "block_backward_blocks", "padded_conv_ins", "carry_conv_bias_encoders", "branch_prefix_blocks",
-    "stacked_time_bias_blocks", "cached_text_kv_layers", "skip_concat_blocks", "head40_attention_layers"}``."""
+    "stacked_time_bias_blocks", "cached_text_kv_layers", "skip_concat_blocks", "row_softmax_layers",
+    "head40_attention_layers"}``."""
     unet_kernels, vae_kernels = _on_cuda_with_kernels(unet), _on_cuda_with_kernels(vae)
     vae_cuda = _on_cuda(vae)
     geglu_on = _resolve(kernels.fused_geglu, unet_kernels)
@@ -498,10 +507,11 @@ def apply_model_kernels(unet: torch.nn.Module, vae: torch.nn.Module, kernels: Mo
     stacked = set_stacked_time_bias(unet, _resolve(kernels.stacked_time_bias, fold_on))
     text_kv = set_cached_text_kv(unet, _resolve(kernels.cached_text_kv, True))
     skip_concat = set_skip_concat(unet, _resolve(kernels.skip_concat, unet_kernels))
+    row_softmax = set_row_softmax(vae, _resolve(kernels.row_softmax, vae_kernels))
     head40 = set_head40_attention(unet, _resolve(kernels.head40_attention, False))
     return {"matmul_precision": kernels.matmul_precision, "fp8_layers": fp8_layers, "fused_geglu": geglu_on,
             "row_layer_norms": row_norms, "subpixel_upsamples": subpixel, "lean_attentions": lean,
             "fused_transformer_blocks": fused_blocks, "vae_downsample_4x4": ds_on, "fold_norm_bias_blocks": folded,
             "block_backward_blocks": own_backward, "padded_conv_ins": padded, "carry_conv_bias_encoders": carried,
             "branch_prefix_blocks": prefix, "stacked_time_bias_blocks": stacked, "cached_text_kv_layers": text_kv,
-            "skip_concat_blocks": skip_concat, "head40_attention_layers": head40}
+            "skip_concat_blocks": skip_concat, "row_softmax_layers": row_softmax, "head40_attention_layers": head40}
