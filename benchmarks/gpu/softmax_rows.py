@@ -23,7 +23,7 @@ SHAPES = [("ip2p vae 512^2", (4, 4096, 4096), torch.bfloat16), ("mvdream vae 256
 
 def _max_error(got: torch.Tensor, want: torch.Tensor, dtype: torch.dtype) -> float:
     """Largest |got - want| over the first 64 rows in units of ``dtype``'s eps (want float64)."""
-    return float((got[:64].double() - want).abs().max()) / torch.finfo(dtype).eps
+    return float((got[:64].cpu().double() - want).abs().max()) / torch.finfo(dtype).eps
 
 
 def main() -> int:
