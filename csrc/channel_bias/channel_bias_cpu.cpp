@@ -31,11 +31,33 @@ void channel_bias_add_into_cpu(const at::Tensor& x, const std::optional<at::Tens
   out.copy_(channel_bias_add_cpu(x, *bias, residual));
 }
 
+void subpixel_interleave_into_cpu(const at::Tensor& z, const std::optional<at::Tensor>& bias, at::Tensor out) {
+  check_interleave(z, bias, out);
+  const int64_t N = out.size(0), C = out.size(1), H = out.size(2) / 2, W = out.size(3) / 2;
+  const auto zv = z.permute({0, 2, 3, 1}).contiguous().view({N, H + 1, W + 1, 2, 2, C});
+  auto y = at::empty({N, 2 * H, 2 * W, C}, out.options());  // NHWC
+  const auto yv = y.view({N, H, 2, W, 2, C});
+  const bool has_bias = bias.has_value() && bias->defined();
+  for (int64_t a = 0; a < 2; ++a) {
+    for (int64_t b = 0; b < 2; ++b) {
+      const auto src = zv.slice(1, a, a + H).slice(2, b, b + W).select(4, b).select(3, a);  // [N, H, W, C]
+      auto dst = yv.select(4, b).select(2, a);                                               // [N, H, W, C]
+      if (has_bias) {
+        at::add_out(dst, src, *bias);
+      } else {
+        dst.copy_(src);
+      }
+    }
+  }
+  out.copy_(y.permute({0, 3, 1, 2}));
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(tiger, CPU, m) {
   m.impl("channel_bias_add", &channel_bias_add_cpu);
   m.impl("channel_bias_add_into", &channel_bias_add_into_cpu);
+  m.impl("subpixel_interleave_into", &subpixel_interleave_into_cpu);
 }
 
 }  // namespace channel_bias

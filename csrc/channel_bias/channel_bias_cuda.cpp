@@ -82,11 +82,44 @@ void channel_bias_add_into_cuda(const at::Tensor& x_in, const std::optional<at::
   launch(x, has_bias ? bias_in->contiguous() : at::Tensor(), residual, out.data_ptr(), out_row, /*nhwc=*/true);
 }
 
+void subpixel_interleave_into_cuda(const at::Tensor& z_in, const std::optional<at::Tensor>& bias_in, at::Tensor out) {
+  check_interleave(z_in, bias_in, out);
+  TORCH_CHECK(z_in.is_cuda(), kOp_interleave, ": z must be on a CUDA device");
+  const c10::cuda::CUDAGuard guard(z_in.device());
+  const int64_t N = out.size(0), C = out.size(1), H = out.size(2) / 2, W = out.size(3) / 2;
+  const int64_t out_row = nhwc_row_stride(out);
+  auto y = out_row ? out : at::empty(out.sizes(), out.options().memory_format(at::MemoryFormat::ChannelsLast));
+  const auto z = z_in.contiguous(at::MemoryFormat::ChannelsLast);
+  const bool has_bias = bias_in.has_value() && bias_in->defined();
+  const auto bias = has_bias ? bias_in->contiguous() : at::Tensor();
+  void* stream = c10::cuda::getCurrentCUDAStream().stream();
+  const int64_t row = out_row ? out_row : C;
+  switch (z.scalar_type()) {
+    case at::kFloat:
+      launch_subpixel_interleave<float>(ptr<float>(z), ptr<float>(bias), static_cast<float*>(y.data_ptr()), N, C, H,
+                                        W, row, stream);
+      break;
+    case at::kHalf:
+      launch_subpixel_interleave<__half>(ptr<__half>(z), ptr<__half>(bias), static_cast<__half*>(y.data_ptr()), N, C,
+                                         H, W, row, stream);
+      break;
+    case at::kBFloat16:
+      launch_subpixel_interleave<__nv_bfloat16>(ptr<__nv_bfloat16>(z), ptr<__nv_bfloat16>(bias),
+                                                static_cast<__nv_bfloat16*>(y.data_ptr()), N, C, H, W, row, stream);
+      break;
+    default:
+      TORCH_CHECK(false, kOp_interleave, " (CUDA): z must be float32, bfloat16 or float16, got ", z.scalar_type());
+  }
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (!out_row) out.copy_(y);
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(tiger, CUDA, m) {
   m.impl("channel_bias_add", &channel_bias_add_cuda);
   m.impl("channel_bias_add_into", &channel_bias_add_into_cuda);
+  m.impl("subpixel_interleave_into", &subpixel_interleave_into_cuda);
 }
 
 }  // namespace channel_bias

@@ -65,5 +65,25 @@ inline int64_t nhwc_row_stride(const at::Tensor& out) {
   return ok ? R : 0;
 }
 
+constexpr const char* kOp_interleave = "tiger.subpixel_interleave_into";
+
+// subpixel_interleave_into: z [N, 4C, H+1, W+1], bias [C] or absent, out [N, C, 2H, 2W], one dtype and device.
+inline void check_interleave(const at::Tensor& z, const std::optional<at::Tensor>& bias, const at::Tensor& out) {
+  TORCH_CHECK(z.dim() == 4 && out.dim() == 4, kOp_interleave, ": z and out must be [N, C, H, W], got ",
+              shape_str(z.sizes()), " and ", shape_str(out.sizes()));
+  const int64_t N = out.size(0), C = out.size(1), H = out.size(2) / 2, W = out.size(3) / 2;
+  TORCH_CHECK(out.size(2) % 2 == 0 && out.size(3) % 2 == 0 && z.size(0) == N && z.size(1) == 4 * C &&
+                  z.size(2) == H + 1 && z.size(3) == W + 1,
+              kOp_interleave, ": z must be [N, 4C, H+1, W+1] = [", N, ", ", 4 * C, ", ", H + 1, ", ", W + 1,
+              "] for out [N, C, 2H, 2W] = ", shape_str(out.sizes()), ", got ", shape_str(z.sizes()));
+  TORCH_CHECK(z.is_floating_point(), kOp_interleave, ": z must be a floating-point tensor, got ", z.scalar_type());
+  check_same(out, z, kOp_interleave, "out");
+  if (bias.has_value() && bias->defined()) {
+    TORCH_CHECK(bias->dim() == 1 && bias->size(0) == C, kOp_interleave, ": bias must be [C] = [", C, "], got ",
+                shape_str(bias->sizes()));
+    check_same(*bias, z, kOp_interleave, "bias");
+  }
+}
+
 }  // namespace channel_bias
 }  // namespace tiger

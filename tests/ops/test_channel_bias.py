@@ -146,3 +146,57 @@ def test_cuda_into_bit_exact(dtype, case):
     if wide is not None:
         o = 3 if case == "odd_offset" else 8
         assert wide[:, :o].isnan().all() and wide[:, o + shape[1]:].isnan().all()
+
+
+def interleave_reference(z: torch.Tensor, bias) -> torch.Tensor:
+    """y[n, c, 2i+a, 2j+b] = z[n, (2a+b)C + c, i+a, j+b] + bias[c] by explicit indexing, float64."""
+    n, c4, h1, w1 = z.shape
+    c, h, w = c4 // 4, h1 - 1, w1 - 1
+    y = torch.empty(n, c, 2 * h, 2 * w, dtype=torch.float64)
+    zd = z.double()
+    for a in (0, 1):
+        for b in (0, 1):
+            y[:, :, a::2, b::2] = zd[:, (2 * a + b) * c:(2 * a + b + 1) * c, a:a + h, b:b + w]
+    return y if bias is None else y + bias.double()[None, :, None, None]
+
+
+@pytest.mark.parametrize("with_bias", [True, False])
+def test_subpixel_interleave_cpu_and_into_a_slice(with_bias):
+    from tiger.ops.channel_bias import subpixel_interleave
+
+    g = torch.Generator().manual_seed(5)
+    z = torch.randn(2, 4 * 6, 4, 5, generator=g).to(torch.bfloat16).contiguous(memory_format=CL)
+    b = torch.randn(6, generator=g).to(torch.bfloat16) if with_bias else None
+    want = interleave_reference(z, b).to(torch.bfloat16)  # one rounding of the exact sum
+    y = subpixel_interleave(z, b)
+    assert torch.equal(y, want) and y.is_contiguous(memory_format=CL) and y.shape == (2, 6, 6, 8)
+    wide, out = _wide_slice((2, 6, 6, 8), 10, torch.bfloat16, offset=4)
+    assert subpixel_interleave(z, b, out=out) is out and torch.equal(out, want)
+    assert wide[:, :4].isnan().all() and wide[:, 10:].isnan().all()
+    with pytest.raises(RuntimeError, match=r"z must be \[N, 4C, H\+1, W\+1\] = \[2, 24, 4, 5\]"):
+        subpixel_interleave(z[:, :, :3], b, out=torch.empty(2, 6, 6, 8, dtype=torch.bfloat16))
+    torch.library.opcheck(torch.ops.tiger.subpixel_interleave_into, (z, b, out))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device and tiger built with CUDA")
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32])
+@pytest.mark.parametrize("case", ["vector", "slice", "odd_channels", "no_bias", "nchw_z"])
+def test_cuda_subpixel_interleave_bit_exact(dtype, case):
+    from tiger.ops.channel_bias import subpixel_interleave
+
+    g = torch.Generator().manual_seed(6)
+    c = 5 if case == "odd_channels" else 16
+    z = torch.randn(3, 4 * c, 9, 7, generator=g).to(dtype)
+    b = None if case == "no_bias" else torch.randn(c, generator=g).to(dtype)
+    want = interleave_reference(z, b).to(dtype)
+    zc = z.cuda() if case == "nchw_z" else z.cuda().contiguous(memory_format=CL)
+    bc = None if b is None else b.cuda()
+    if case == "slice":
+        wide, out = _wide_slice((3, c, 16, 12), 16, dtype, "cuda", offset=8)
+        subpixel_interleave(zc, bc, out=out)
+        assert wide[:, :8].isnan().all() and wide[:, 8 + c:].isnan().all()
+        y = out
+    else:
+        y = subpixel_interleave(zc, bc)
+    assert torch.equal(y.cpu(), want)

@@ -18,7 +18,7 @@ import torch
 
 from ._layout import output_format
 
-__all__ = ["channel_bias_add"]
+__all__ = ["channel_bias_add", "subpixel_interleave"]
 
 
 @torch.library.register_fake("tiger::channel_bias_add")
@@ -30,6 +30,15 @@ def _fake(x, bias, residual=None):
 def _fake_into(x, bias, residual, out):
     torch._check(out.shape == x.shape, lambda: f"tiger.channel_bias_add_into: out must have x's shape "
                                               f"{tuple(x.shape)}, got {tuple(out.shape)}")
+    return None
+
+
+@torch.library.register_fake("tiger::subpixel_interleave_into")
+def _fake_interleave(z, bias, out):
+    n, c, h2, w2 = out.shape
+    torch._check(tuple(z.shape) == (n, 4 * c, h2 // 2 + 1, w2 // 2 + 1),
+                 lambda: f"tiger.subpixel_interleave_into: z must be [N, 4C, H+1, W+1] for out {tuple(out.shape)}, "
+                         f"got {tuple(z.shape)}")
     return None
 
 
@@ -83,4 +92,31 @@ def channel_bias_add(x: torch.Tensor, bias: Optional[torch.Tensor], residual: Op
         raise ValueError("tiger.channel_bias_add: out= has no autograd; x, bias or residual needs a gradient "
                          "(call it under torch.no_grad() or without out=)")
     torch.ops.tiger.channel_bias_add_into(x, bias, residual, out)
+    return out
+
+
+def subpixel_interleave(z: torch.Tensor, bias: Optional[torch.Tensor] = None,
+                        out: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The four phase outputs of a sub-pixel 2x upsampling convolution interleaved, plus its bias:
+    ``y[n, c, 2i+a, 2j+b] = z[n, (2a+b)·C + c, i+a, j+b] + bias[c]`` (one pass; summed in float and
+    rounded once). :mod:`tiger.edit.guidance.conv_layers`' upsampling layers.
+
+    Args:
+        z: [N, 4C, H+1, W+1] floating point (float32/bfloat16/float16 on CUDA), the convolution of the
+            low-resolution map with the four phases' 2x2 kernels (padding 1); channels-last is fastest.
+        bias: optional [C], z's dtype and device.
+        out: optional [N, C, 2H, 2W] (z's dtype and device, any strides) to write into; fastest on
+            CUDA when its rows have the channels innermost (a channels-last map or a channel slice of
+            a wider one). No autograd.
+
+    Returns:
+        [N, C, 2H, 2W]: ``out`` when given, else a new channels-last tensor.
+    """
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (z, bias)):
+        raise ValueError("tiger.subpixel_interleave: no autograd; z or bias needs a gradient")
+    if out is None:
+        n, c4, h1, w1 = z.shape
+        out = torch.empty((n, c4 // 4, 2 * (h1 - 1), 2 * (w1 - 1)), dtype=z.dtype, device=z.device,
+                          memory_format=torch.channels_last)
+    torch.ops.tiger.subpixel_interleave_into(z, bias, out)
     return out

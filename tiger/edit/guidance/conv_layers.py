@@ -19,7 +19,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from tiger.ops.channel_bias import channel_bias_add
+from tiger.ops.channel_bias import channel_bias_add, subpixel_interleave
 from tiger.utils.lazy import require_diffusers
 
 __all__ = ["padded_conv_in", "set_downsample_4x4", "set_pad_conv_in", "set_subpixel_upsample", "subpixel_weight"]
@@ -69,34 +69,20 @@ def _subpixel_upsample_forward(self, hidden_states: torch.Tensor, output_size=No
                                out: Optional[torch.Tensor] = None, **kwargs: object) -> torch.Tensor:
     """diffusers 0.42's ``Upsample2D`` (nearest 2x, 3x3 convolution) as four 2x2 convolutions on
     the input: Z = conv(x, W4, padding 1) is [N, 4C, H+1, W+1], and output pixel (2i+a, 2j+b) is
-    Z[2a+b block, i+a, j+b] plus the bias. ``out``: a [N, C, 2H, 2W] tensor to write the output
-    into (no gradient), interleaved in place when its channels are innermost (a channel slice of
-    a channels-last map: :mod:`.skip_concat`)."""
-    n, _, h, w = hidden_states.shape
+    Z[2a+b block, i+a, j+b] plus the bias (one pass: :func:`tiger.ops.channel_bias.subpixel_interleave`).
+    ``out``: a [N, C, 2H, 2W] tensor to write the output into (no gradient), interleaved in place
+    when its channels are innermost (a channel slice of a channels-last map: :mod:`.skip_concat`)."""
+    _, _, h, w = hidden_states.shape
     conv = self.conv
     if output_size is not None and tuple(output_size) != (2 * h, 2 * w) or \
             (torch.is_grad_enabled() and (conv.weight.requires_grad or hidden_states.requires_grad)):
         y = type(self).forward(self, hidden_states, output_size, *args, **kwargs)
         return y if out is None else out.copy_(y)
     z = F.conv2d(hidden_states, self._tiger_weight_subpixel, None, padding=1)
-    c = conv.out_channels
-    zv = z.permute(0, 2, 3, 1)  # [N, H+1, W+1, 4C] (a view when z is channels-last)
-    if not zv.is_contiguous():
-        zv = zv.contiguous()
-    zv = zv.view(n, h + 1, w + 1, 2, 2, c)
-    in_place = out is not None and (c == 1 or out.stride(1) == 1)
-    y = out if in_place else torch.empty((n, c, 2 * h, 2 * w), dtype=z.dtype, device=z.device,
-                                         memory_format=torch.channels_last)
-    yv = y.permute(0, 2, 3, 1).view(n, h, 2, w, 2, c)
-    for a in (0, 1):
-        for b in (0, 1):
-            src = zv[:, a:a + h, b:b + w, a, b, :]
-            if conv.bias is None:
-                yv[:, :, a, :, b, :].copy_(src)
-            else:
-                torch.add(src, conv.bias.to(src.dtype), out=yv[:, :, a, :, b, :])
+    bias = None if conv.bias is None else conv.bias.to(z.dtype)
     if out is not None:
-        return out if in_place else out.copy_(y)
+        return subpixel_interleave(z, bias, out=out)
+    y = subpixel_interleave(z, bias)  # channels-last
     return y if hidden_states.is_contiguous(memory_format=torch.channels_last) and not hidden_states.is_contiguous() \
         else y.contiguous()
 
