@@ -45,8 +45,8 @@ def main() -> int:
             y = fwd()
             dx = bwd(y)
             dx_ref = reference_backward(y.reshape(-1, shape[-1])[:64].cpu(), gy64)
-            fwd_ms = cuda_graph_ms(fwd, calls=20) / 20
-            bwd_ms = cuda_graph_ms(lambda: bwd(y), calls=20) / 20
+            fwd_ms = cuda_graph_ms(fwd, calls=20)  # per call
+            bwd_ms = cuda_graph_ms(lambda: bwd(y), calls=20)
             rows.append({"shape": label, "op": name, "forward_ms": fwd_ms, "forward_floor_ms": 2e3 * nbytes / bandwidth,
                          "forward_err_eps": _max_error(y.reshape(-1, shape[-1]), y_ref, dt),
                          "backward_ms": bwd_ms, "backward_floor_ms": 3e3 * nbytes / bandwidth,
