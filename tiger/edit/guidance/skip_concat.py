@@ -124,10 +124,11 @@ def _up_block(block: torch.nn.Module, hidden: torch.Tensor, skips: Sequence[torc
         return hidden
     for k, up in enumerate(block.upsamplers):
         extra = block.__dict__.get(_NEXT_SKIP) if k == len(block.upsamplers) - 1 else None
-        n, c, h, w = hidden.shape
+        batch, _, h, w = hidden.shape
+        c = getattr(up, "out_channels", None)
         doubled = upsample_size is None or tuple(upsample_size) == (2 * h, 2 * w)
-        if extra and doubled and _writes_into(up) and _channels_last(hidden):
-            wide = torch.empty((n, c + extra, 2 * h, 2 * w), dtype=hidden.dtype, device=hidden.device,
+        if extra and c and doubled and _writes_into(up) and _channels_last(hidden):
+            wide = torch.empty((batch, c + extra, 2 * h, 2 * w), dtype=hidden.dtype, device=hidden.device,
                                memory_format=torch.channels_last)  # the sub-pixel output's layout
             hidden = up(hidden, upsample_size, out=wide[:, :c])
             handoff.put(hidden, wide)
