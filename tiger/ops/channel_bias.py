@@ -1,4 +1,4 @@
-"""``tiger::channel_bias_add``: ``y = x + bias[c]`` for [N, C, H, W] tensors (fake kernel,
+"""``tiger::channel_bias_add``: ``y = x + bias[c]`` for [N, C, H, W] tensors (fake kernels,
 autograd, the function). Kernels in ``csrc/channel_bias/``.
 
 A convolution's bias is a per-channel add after the convolution. For channels-last bf16 maps
@@ -9,6 +9,8 @@ ResNet block's time embedding and shortcut into the same pass. Values are the fl
 once (identical to ``x + bias`` without a residual). With ``out=`` the same values go into a given
 tensor, e.g. a channel slice of a wider channels-last map (the UNet up blocks' skip concatenations
 written in place, :mod:`tiger.edit.guidance.skip_concat`); the bias may then be None (a copy).
+``tiger::subpixel_interleave_into`` (:func:`subpixel_interleave`) is the same pass with a gather:
+the bias pass of a sub-pixel 2x upsampling convolution, whose four phase outputs it interleaves.
 """
 from __future__ import annotations
 
