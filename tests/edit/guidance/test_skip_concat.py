@@ -82,6 +82,14 @@ def test_next_skip_channels_come_from_the_next_blocks_first_resnet(tiny_models):
     assert sc._NEXT_SKIP not in up1.__dict__  # the last block hands nothing on
 
 
+def test_apply_model_kernels_turns_it_on_only_with_cuda_kernels(tiny_models):
+    from tiger.edit.guidance.ip2p import load_ip2p
+
+    models = load_ip2p(tiny_models / "instruct-pix2pix")  # CPU: "auto" resolves to off
+    assert mk.apply_model_kernels(models.unet, models.vae, mk.ModelKernels())["skip_concat_blocks"] == 0
+    assert mk.apply_model_kernels(models.unet, models.vae, mk.ModelKernels(skip_concat=True))["skip_concat_blocks"] == 2
+
+
 def test_gradients_and_freeu_run_diffusers_forward(tiny_models, unet_inputs, monkeypatch):
     unet = _unet(tiny_models, torch.float64, True)
     x, t, e = unet_inputs(unet, torch.float64)

@@ -85,10 +85,6 @@ def _produce(module: torch.nn.Module, call: Callable[..., Any], like: torch.Tens
     return channel_bias_add(y, None, out=wide[:, :y.shape[1]]), wide
 
 
-def _first(y: Any) -> torch.Tensor:
-    return y[0] if isinstance(y, tuple) else y.sample if hasattr(y, "sample") else y
-
-
 def _runs_here(block: torch.nn.Module, hidden: torch.Tensor) -> bool:
     freeu = all(getattr(block, k, None) for k in ("s1", "s2", "b1", "b2"))
     grad = torch.is_grad_enabled() and (hidden.requires_grad or any(p.requires_grad for p in block.parameters()))
@@ -118,7 +114,7 @@ def _up_block(block: torch.nn.Module, hidden: torch.Tensor, skips: Sequence[torc
         else:
             r = resnet(x, temb)
             attn = attentions[i]
-            hidden, wide = _produce(attn, lambda **o: _first(attn(r, return_dict=False, **attention_kwargs, **o)),
+            hidden, wide = _produce(attn, lambda **o: attn(r, return_dict=False, **attention_kwargs, **o)[0],
                                     r, r.shape[1], nxt)
     if block.upsamplers is None:
         return hidden
